@@ -1,0 +1,75 @@
+"""One exception base for the package, subclasses by kind, each carrying its data.
+
+Every error raised on purpose by redarm_ros derives from :class:`RedarmError`,
+so a caller can catch the package's failures without catching bugs.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+
+class RedarmError(Exception):
+    """Base of every error raised on purpose by redarm_ros."""
+
+
+class InvalidInputError(RedarmError, ValueError):
+    """The caller passed something malformed: NaN, wrong shape, non-unit quaternion, unknown name.
+
+    ``field`` names the offending argument and ``value`` holds what was given.
+    """
+
+    def __init__(self, message: str, *, field: str | None = None, value: Any = None) -> None:
+        super().__init__(message)
+        self.field = field
+        self.value = value
+
+
+class ConfigError(InvalidInputError):
+    """A configuration file or parameter set is missing or inconsistent."""
+
+
+class UnreachableError(RedarmError):
+    """A pose lies outside the workspace (``distance`` is how far, in metres, if known)."""
+
+    def __init__(self, message: str, *, distance: float | None = None) -> None:
+        super().__init__(message)
+        self.distance = distance
+
+
+class JointLimitError(RedarmError):
+    """A joint value is outside its limits: ``joint`` index/name, ``value`` and ``bounds`` (rad)."""
+
+    def __init__(
+        self,
+        message: str,
+        *,
+        joint: int | str | None = None,
+        value: float | None = None,
+        bounds: tuple[float, float] | None = None,
+    ) -> None:
+        super().__init__(message)
+        self.joint = joint
+        self.value = value
+        self.bounds = bounds
+
+
+class BusError(RedarmError):
+    """The CAN bus could not be opened or used; the original error is kept as ``__cause__``."""
+
+
+class BusTimeoutError(BusError, TimeoutError):
+    """A module did not answer in time (``module_id`` and ``timeout_s``)."""
+
+    def __init__(self, message: str, *, module_id: int | None = None, timeout_s: float | None = None) -> None:
+        super().__init__(message)
+        self.module_id = module_id
+        self.timeout_s = timeout_s
+
+
+class ProtocolError(RedarmError, ValueError):
+    """A CAN frame does not follow the PowerCube (M5) protocol (``frame`` holds it)."""
+
+    def __init__(self, message: str, *, frame: Any = None) -> None:
+        super().__init__(message)
+        self.frame = frame

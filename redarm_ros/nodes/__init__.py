@@ -1,0 +1,1 @@
+"""redarm_ros.nodes."""
