@@ -137,10 +137,10 @@ def start_canbus_server(group: ProcessGroup, name: str = "canbus") -> CanBusServ
         ready=r"REDARM_CANBUS_PORT=(\d+)",
         ready_timeout=20.0,
     )
+    from redarm_ros.can.bus_server import client_config, client_env
+
     port = int(proc.ready_match.group(1))  # type: ignore[attr-defined]
-    kwargs: dict[str, Any] = {"interface": "remote", "channel": f"ws://127.0.0.1:{port}/"}
-    env = {"CAN_INTERFACE": "remote", "CAN_CHANNEL": kwargs["channel"]}
-    return CanBusServer(port=port, kwargs=kwargs, process=proc, env=env)
+    return CanBusServer(port=port, kwargs=client_config(port), process=proc, env=client_env(port))
 
 
 @pytest.fixture

@@ -1,0 +1,140 @@
+"""Small rclpy helpers shared by the redarm_ros nodes: the standard ``main()`` and parameter plumbing.
+
+Parameters are described once as :class:`ParamSpec` (name, default, description,
+validator); :func:`declare_params` declares them with descriptors and installs
+one on-set callback that runs the validators, so a bad ``ros2 param set`` (or a
+bad YAML value at start-up) is refused with a reason instead of reaching the
+node's logic.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import rclpy
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+
+_LOG = logging.getLogger(__name__)
+
+# A validator returns None when the value is fine, else the reason it is refused.
+Validator = Callable[[Any], str | None]
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    """One node parameter: ``name``, ``default`` (fixes the type), ``description``, optional ``validate``.
+
+    ``read_only`` parameters can only be set at start-up (overrides / YAML).
+    """
+
+    name: str
+    default: Any
+    description: str
+    validate: Validator | None = None
+    read_only: bool = False
+
+
+def declare_params(node: Node, specs: Sequence[ParamSpec]) -> dict[str, Any]:
+    """Declare ``specs`` on ``node``, validate start-up values, install the on-set validator.
+
+    Returns name -> value as declared (after overrides from YAML / the command line).
+
+    Raises:
+        ValueError: a start-up value (override) fails its validator.
+    """
+    by_name = {s.name: s for s in specs}
+
+    def on_set(params: list[Parameter]) -> SetParametersResult:
+        for p in params:
+            spec = by_name.get(p.name)
+            if spec is None or spec.validate is None:
+                continue
+            reason = spec.validate(p.value)
+            if reason is not None:
+                return SetParametersResult(successful=False, reason=f"{p.name}: {reason}")
+        return SetParametersResult(successful=True)
+
+    # Installed before declaring so start-up overrides are validated too.
+    node.add_on_set_parameters_callback(on_set)
+    values: dict[str, Any] = {}
+    for s in specs:
+        desc = ParameterDescriptor(description=s.description, read_only=s.read_only)
+        try:
+            values[s.name] = node.declare_parameter(s.name, s.default, desc).value
+        except rclpy.exceptions.InvalidParameterValueException as exc:
+            raise ValueError(f"parameter {s.name}: {exc}") from exc
+    return values
+
+
+def param_values(node: Node, names: Iterable[str]) -> dict[str, Any]:
+    """Current values of the named parameters."""
+    return {n: node.get_parameter(n).value for n in names}
+
+
+# -- reusable validators -----------------------------------------------------------------------------
+def positive(value: Any) -> str | None:
+    """Validator: a number > 0."""
+    return None if isinstance(value, (int, float)) and value > 0 else "must be > 0"
+
+
+def non_negative(value: Any) -> str | None:
+    """Validator: a number >= 0."""
+    return None if isinstance(value, (int, float)) and value >= 0 else "must be >= 0"
+
+
+def in_range(lo: float, hi: float) -> Validator:
+    """Validator factory: a number in [lo, hi]."""
+
+    def check(value: Any) -> str | None:
+        ok = isinstance(value, (int, float)) and lo <= value <= hi
+        return None if ok else f"must be in [{lo}, {hi}]"
+
+    return check
+
+
+def run_node(
+    make_node: Callable[[], Node],
+    args: Sequence[str] | None = None,
+    *,
+    multithreaded: bool = False,
+) -> int:
+    """The standard main(): init, build the node, spin, stop cleanly on Ctrl-C / external shutdown.
+
+    ``make_node`` is called after ``rclpy.init``. If the node has a ``close()``
+    method it is called before ``destroy_node()`` (to stop worker threads).
+    Returns the process exit code (0 on a normal or Ctrl-C stop, 1 if the
+    node could not be built).
+    """
+    rclpy.init(args=list(args) if args is not None else None)
+    node: Node | None = None
+    code = 0
+    try:
+        try:
+            node = make_node()
+        except (ValueError, RuntimeError, OSError) as exc:
+            # Construction failures (bad parameters, unknown arm) end the process with one clear line.
+            logging.basicConfig()
+            _LOG.error("could not start: %s", exc)
+            return 1
+        executor = MultiThreadedExecutor() if multithreaded else SingleThreadedExecutor()
+        executor.add_node(node)
+        try:
+            executor.spin()
+        finally:
+            executor.shutdown(timeout_sec=1.0)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            close = getattr(node, "close", None)
+            if callable(close):
+                close()
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return code
