@@ -168,6 +168,35 @@ def cmd_pingpong(ns: argparse.Namespace) -> int:
     return 0 if result["ok"] else 1
 
 
+SUITE = ("pingpong",)
+
+
+def cmd_suite(ns: argparse.Namespace) -> int:
+    """Run every scenario in turn; each writes ``result_<name>.json`` into ``--out``."""
+    out = Path(ns.out)
+    out.mkdir(parents=True, exist_ok=True)
+    bus_args = []
+    if ns.interface:
+        bus_args += ["--interface", ns.interface]
+    if ns.channel:
+        bus_args += ["--channel", ns.channel]
+    failed = 0
+    for name in ns.only or SUITE:
+        result_path = out / f"result_{name}.json"
+        t0 = time.monotonic()
+        _LOG.info("scenario %s: start", name)
+        try:
+            sub_ns = build_parser().parse_args([name, *bus_args, "--result", str(result_path)])
+            rc = int(sub_ns.func(sub_ns))
+        except Exception as exc:  # one scenario's crash must not hide the others' results
+            _LOG.exception("scenario %s crashed", name)
+            _write_result(str(result_path), {"ok": False, "error": repr(exc)})
+            rc = 1
+        _LOG.info("scenario %s: rc=%d in %.1f s", name, rc, time.monotonic() - t0)
+        failed += rc != 0
+    return 1 if failed else 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """Command-line interface of the scenario program."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -194,6 +223,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--timeout", type=float, default=1.0, help="per round trip [s]")
     p.add_argument("--ready-timeout", type=float, default=60.0, help="echo start-up [s]")
     p.set_defaults(func=cmd_pingpong)
+
+    p = sub.add_parser("suite", help="every scenario in turn, results into --out")
+    common(p)
+    p.add_argument("--out", required=True, help="directory for result_<name>.json")
+    p.add_argument("--only", nargs="*", choices=SUITE, help="run only these scenarios")
+    p.set_defaults(func=cmd_suite)
     return parser
 
 
