@@ -1,0 +1,127 @@
+"""Setpoint generator: velocity/acceleration limits hold for any command sequence; moves land exactly."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from redarm_ros.sim.ramp import JointRamp, RampMode, braking_speed
+
+DT = 1e-3
+
+
+def _run(r: JointRamp, steps: int) -> list[float]:
+    return [r.step(DT) for _ in range(steps)]
+
+
+def _vel_acc(ps: list[float]) -> tuple[np.ndarray, np.ndarray]:
+    v = np.diff(ps) / DT
+    return v, np.diff(v) / DT
+
+
+def test_single_move_is_a_trapezoid_of_the_right_duration():
+    r = JointRamp(0.0, -3, 3, max_vel=1.0, max_acc=2.0)
+    r.command_position(1.0)
+    ps = [r.pos]
+    while r.active:
+        ps.append(r.step(DT))
+    v, a = _vel_acc(ps)
+    assert ps[-1] == 1.0 and r.mode is RampMode.IDLE
+    # trapezoid: 0.5 s up, 0.5 s cruise, 0.5 s down -> 1.5 s (plus the one-step zeroing)
+    assert len(ps) - 1 == pytest.approx(1500, abs=3)
+    assert v.max() == pytest.approx(1.0) and v.min() >= 0  # no overshoot
+    assert np.abs(a).max() <= 2.0 * (1 + 1e-6)
+    assert np.mean(np.isclose(v, 1.0)) > 0.3  # really cruises at the limit
+
+
+def test_fstep_duration_caps_speed():
+    r = JointRamp(0.0, -3, 3, max_vel=2.0, max_acc=10.0)
+    r.command_position(-0.5, duration_s=2.0)
+    ps = _run(r, 2500)
+    v, _ = _vel_acc(ps)
+    assert np.abs(v).max() == pytest.approx(0.25, rel=1e-6)
+    assert ps[-1] == -0.5
+
+
+def test_random_command_sequences_respect_limits():
+    rng = np.random.default_rng(5)
+    for _ in range(150):
+        vmax, amax = rng.uniform(0.2, 2.0), rng.uniform(0.5, 5.0)
+        r = JointRamp(rng.uniform(-1, 1), -2.5, 2.5, vmax, amax)
+        ps = [r.pos]
+        for _ in range(6):
+            kind = rng.integers(3)
+            if kind == 0:
+                r.command_position(rng.uniform(-3, 3), duration_s=float(rng.choice([0.0, 0.01, 1.0])))
+            elif kind == 1:
+                r.command_velocity(rng.uniform(-3, 3))
+            else:
+                r.halt()
+            ps += _run(r, int(rng.integers(1, 2500)))
+        v, a = _vel_acc(ps)
+        assert np.abs(v).max() <= vmax * (1 + 1e-9)
+        assert np.abs(a).max() <= amax * (1 + 1e-6)
+        assert min(ps) >= -2.5 and max(ps) <= 2.5
+
+
+def test_velocity_mode_brakes_before_the_limit_and_halt_stops():
+    r = JointRamp(0.0, -1.0, 1.0, max_vel=1.0, max_acc=1.0)
+    r.command_velocity(5.0)  # clamped to max_vel
+    _run(r, 4000)
+    assert r.pos == pytest.approx(1.0) and r.vel == 0.0
+    r.command_velocity(-0.5)
+    _run(r, 1000)
+    assert r.vel == pytest.approx(-0.5)
+    r.halt()
+    _run(r, 600)
+    assert r.mode is RampMode.IDLE and not r.active
+    held = r.pos
+    _run(r, 100)
+    assert r.pos == held
+
+
+def test_streamed_steps_are_followed_without_lag():
+    # a host streaming one FSTEP per 10 ms cycle along a sine: after the start-up transient the
+    # setpoint is on the reference (feed-forward), with jitter it stays within a few mrad
+    rng = np.random.default_rng(2)
+    for jitter, tol in ((0, 1e-9), (1, 0.01)):
+        r = JointRamp(0.0, -3, 3, max_vel=2.0, max_acc=8.0)
+        err, ps = [], [r.pos]
+        for k in range(300):
+            r.command_position(0.5 * math.sin(2 * (k + 1) * 0.01), duration_s=0.01)
+            ps += _run(r, 10 + int(rng.integers(-jitter, jitter + 1)))
+            err.append(abs(r.ref - r.pos))
+        v, a = _vel_acc(ps)
+        assert max(err[60:]) < tol
+        assert np.abs(a).max() <= 8.0 * (1 + 1e-6)
+
+
+def test_stream_end_brakes_within_the_acceleration_limit_and_settles_on_target():
+    r = JointRamp(0.0, -3, 3, max_vel=2.0, max_acc=8.0)
+    for k in range(100):  # 1 rad/s ramp stream
+        r.command_position(k * 0.01, duration_s=0.01)
+        _run(r, 10)
+    ps = _run(r, 1000)
+    overshoot = max(ps) - r.target
+    assert 0 < overshoot <= 1.0**2 / (2 * 8.0) + 1e-3
+    assert ps[-1] == r.target and r.mode is RampMode.IDLE
+    # a later step (beyond the stream grace) is a single move from rest again: no overshoot
+    r.command_position(0.5, duration_s=0.01)
+    ps = _run(r, 2000)
+    assert min(ps) == 0.5 and ps[-1] == 0.5  # moving down from 0.99
+
+
+def test_braking_speed_is_exact():
+    for dist in (1e-7, 3e-6, 0.01, 0.37, 2.0):
+        r = JointRamp(0.0, -5, 5, max_vel=100.0, max_acc=3.0)
+        r.vel = braking_speed(dist, 3.0, DT) + 3.0 * DT  # the first HALT step takes off one acc * dt
+        r.mode = RampMode.HALT
+        _run(r, 5000)
+        assert r.pos == pytest.approx(dist, abs=1e-12)
+    assert braking_speed(0.0, 1.0, DT) == 0.0
+    with pytest.raises(ValueError):
+        JointRamp(0.0, -1, 1, 0.0, 1.0)
+    with pytest.raises(ValueError):
+        JointRamp(0.0, -1, 1, 1.0, 1.0).command_position(float("nan"))
