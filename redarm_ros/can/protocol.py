@@ -477,8 +477,10 @@ def _message(arbitration_id: int, data: bytes | bytearray) -> can.Message:
 
 
 def _check_module_id(module_id: int) -> int:
-    if isinstance(module_id, bool) or not isinstance(module_id, int) or not (
-        MIN_MODULE_ID <= module_id <= MAX_MODULE_ID
+    if (
+        isinstance(module_id, bool)
+        or not isinstance(module_id, int)
+        or not (MIN_MODULE_ID <= module_id <= MAX_MODULE_ID)
     ):
         raise InvalidInputError(
             f"module id must be an int in {MIN_MODULE_ID}..{MAX_MODULE_ID}, got {module_id!r}",

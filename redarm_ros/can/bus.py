@@ -1,0 +1,366 @@
+"""Open the CAN bus from python-can configuration only, and guard the known transport flaws.
+
+The transport is never chosen in code. :func:`resolve_config` and :func:`open_bus` use
+python-can's own configuration chain, with this precedence (python-can's, fixed):
+
+1. explicit keyword arguments (e.g. node parameters ``interface``/``channel``, passed through),
+2. ``can.rc``,
+3. environment ``CAN_INTERFACE``, ``CAN_CHANNEL``, ``CAN_BITRATE``, ``CAN_CONFIG`` (JSON with
+   any further keyword; with ``config_context="X"`` the ``_X``-suffixed variables come first),
+4. config files (``~/can.conf``, ``/etc/can.conf``, ``~/.can``, ``~/.canrc``, or ``config_file``).
+
+Errors are translated into :class:`~redarm_ros.errors.BusError` (cause kept) with a message that
+says what to do:
+
+* socketcan, errno 97 ``EAFNOSUPPORT``: the kernel has no SocketCAN at all;
+* socketcan, errno 19 ``ENODEV``: the interface (e.g. ``vcan0``) does not exist, with the
+  ``ip link`` commands to create it (see ``setup_vcan.sh`` next to this file);
+* remote (python-can-remote 0.3.0): a dead server surfaces as ``WebsocketClosed`` or
+  ``OSError`` rather than ``CanError``, clients do not reconnect, and ``shutdown()`` can raise
+  ``OSError``. :class:`ReconnectingBus` converts the first, offers :meth:`ReconnectingBus.reopen`
+  for the second and swallows (and logs) the third.
+
+Messages sent through :class:`ReconnectingBus` are checked (11/29-bit id range, DLC matches
+data, classic CAN at most 8 bytes) before they reach the transport, because one malformed frame
+on the remote bus can stop delivery to other clients; build them with ``check=True`` anyway.
+"""
+
+from __future__ import annotations
+
+import errno
+import http.client
+import logging
+import threading
+import time
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import can
+
+from redarm_ros.errors import BusError, InvalidInputError
+
+logger = logging.getLogger(__name__)
+
+VCAN_RECIPE = "sudo ip link add dev {ch} type vcan && sudo ip link set up {ch}"
+
+try:  # python-can-remote is optional for socketcan-only deployments
+    from can_remote.websocket import WebsocketClosed as _WebsocketClosed
+except ImportError:  # pragma: no cover - the pinned environment has it
+
+    class _WebsocketClosed(Exception):  # type: ignore[no-redef]  # noqa: N818 - mirrors the library name
+        """Placeholder when python-can-remote is not installed."""
+
+
+# Errors that mean "the connection is gone": the bus must be reopened.
+_LOST_ERRORS: tuple[type[BaseException], ...] = (
+    _WebsocketClosed,
+    OSError,
+    http.client.HTTPException,
+    EOFError,
+)
+
+
+def resolve_config(
+    *, config_file: str | None = None, config_context: str | None = None, **kwargs: Any
+) -> dict[str, Any]:
+    """The python-can bus configuration that :func:`open_bus` would use (see module docstring).
+
+    Keyword arguments whose value is ``None`` or ``""`` are dropped, so unset node parameters
+    fall through to the environment.
+
+    Raises:
+        BusError: no interface is configured anywhere, or the interface name is unknown.
+    """
+    given = {k: v for k, v in kwargs.items() if v is not None and v != ""}
+    try:
+        cfg = can.util.load_config(path=config_file, config=given, context=config_context)
+    except (can.CanInterfaceNotImplementedError, NotImplementedError, ValueError, TypeError) as exc:
+        if not (given.get("interface") or given.get("bustype")) and "None" in str(exc):
+            raise BusError(
+                "no CAN interface configured: pass interface/channel, or set CAN_INTERFACE and "
+                "CAN_CHANNEL (e.g. CAN_INTERFACE=remote CAN_CHANNEL=ws://127.0.0.1:<port>/ for "
+                "the redarm-canbus server, or CAN_INTERFACE=socketcan CAN_CHANNEL=vcan0)"
+            ) from exc
+        raise BusError(f"invalid CAN configuration: {exc}") from exc
+    return dict(cfg)
+
+
+def _find_errno(exc: BaseException) -> int | None:
+    """errno of ``exc`` or of anything in its cause/context chain (python-can wraps some)."""
+    seen: set[int] = set()
+    cur: BaseException | None = exc
+    while cur is not None and id(cur) not in seen:
+        seen.add(id(cur))
+        code = getattr(cur, "errno", None)
+        if isinstance(code, int):
+            return code
+        code = getattr(cur, "error_code", None)
+        if isinstance(code, int) and code in errno.errorcode:
+            return code
+        cur = cur.__cause__ or cur.__context__
+    return None
+
+
+def describe_open_error(cfg: dict[str, Any], exc: BaseException) -> str:
+    """A message saying why opening ``cfg`` failed and what to do about it."""
+    interface = cfg.get("interface")
+    channel = cfg.get("channel")
+    code = _find_errno(exc)
+    where = f"CAN bus interface={interface!r} channel={channel!r}"
+    if interface == "socketcan":
+        ch = channel or "vcan0"
+        if code == errno.EAFNOSUPPORT:
+            return (
+                f"cannot open {where}: this kernel has no SocketCAN at all (errno 97 EAFNOSUPPORT: "
+                "socket(AF_CAN) is not supported). Use a kernel with CAN/vcan modules (e.g. the "
+                "User-Mode Linux guest in scripts/setup_uml.sh) or the loopback bus server: "
+                "run redarm-canbus and set CAN_INTERFACE=remote CAN_CHANNEL=ws://127.0.0.1:<port>/"
+            )
+        if code == errno.ENODEV:
+            return (
+                f"cannot open {where}: interface {ch!r} does not exist (errno 19 ENODEV). "
+                f"Create it with: {VCAN_RECIPE.format(ch=ch)} (or run redarm_ros/can/setup_vcan.sh {ch})"
+            )
+        if code == errno.ENETDOWN:
+            return (
+                f"cannot open {where}: interface {ch!r} is down"
+                f" (errno 100 ENETDOWN): sudo ip link set up {ch}"
+            )
+    if interface == "remote":
+        if code == errno.ECONNREFUSED:
+            return (
+                f"cannot open {where}: no CAN bus server listens there (connection refused); "
+                "start one with redarm-canbus --port-file PATH and use its port"
+            )
+        return f"cannot open {where}: the CAN bus server did not accept the connection ({exc!r})"
+    return f"cannot open {where}: {exc!r}"
+
+
+def _open_raw(cfg: dict[str, Any]) -> can.BusABC:
+    try:
+        return can.Bus(ignore_config=True, **cfg)
+    except BusError:
+        raise
+    except Exception as exc:  # any backend failure becomes a BusError with its cause
+        raise BusError(describe_open_error(cfg, exc)) from exc
+
+
+def safe_shutdown(bus: can.BusABC | None) -> None:
+    """Shut ``bus`` down, swallowing and logging the errors a dead transport raises.
+
+    python-can-remote's ``shutdown()`` raises ``OSError`` when the server is already gone; the
+    bus is then marked shut down anyway (so its ``__del__`` stays quiet) and its socket closed.
+    """
+    if bus is None:
+        return
+    try:
+        bus.shutdown()
+        return
+    except Exception as exc:  # shutdown must not fail the caller
+        info = getattr(bus, "channel_info", bus)
+        logger.info("ignoring error while shutting down CAN bus %s: %r", info, exc)
+    try:
+        can.BusABC.shutdown(bus)  # marks it shut down, stops periodic tasks
+    except Exception:
+        pass
+    sock = getattr(bus, "socket", None)
+    if sock is not None:
+        try:
+            sock.close()
+        except OSError:
+            pass
+
+
+def check_message(msg: can.Message) -> None:
+    """Refuse a frame that could upset other nodes (what ``can.Message(check=True)`` enforces).
+
+    Raises:
+        InvalidInputError: id out of range, DLC not matching the data, or too long.
+    """
+    id_max = 0x1FFFFFFF if msg.is_extended_id else 0x7FF
+    n = len(msg.data)
+    if (
+        not 0 <= msg.arbitration_id <= id_max
+        or msg.dlc != n
+        or n > (64 if msg.is_fd else 8)
+        or (msg.is_remote_frame and msg.is_fd)
+    ):
+        raise InvalidInputError(f"refusing to send malformed CAN frame: {msg}", field="msg", value=msg)
+
+
+class ReconnectingBus(can.BusABC):
+    """A python-can bus over a configuration, with typed errors and :meth:`reopen`.
+
+    Every failure of the underlying transport surfaces as :class:`BusError` (cause kept). When
+    the connection is gone (``WebsocketClosed``, ``OSError``), the bus is marked lost: later
+    ``send``/``recv`` raise :class:`BusError` at once until :meth:`reopen` succeeds. The class
+    does not reconnect on its own: the caller decides when (see :meth:`reopen_with_backoff`),
+    so it can first make sure no stale command is sent.
+
+    Thread-safety: ``send`` and ``recv`` may be called from different threads (as the
+    transports allow); ``reopen`` and ``shutdown`` must not race with them.
+
+    Args:
+        config_file: python-can config file to read (else the default locations).
+        config_context: python-can config context (``CAN_INTERFACE_<context>``, file section).
+        can_filters: software filters applied by :class:`can.BusABC`.
+        **kwargs: python-can bus keywords (``interface``, ``channel``, ``bitrate``, ...); unset
+            ones (None/"") fall through to the environment and config files.
+
+    Raises:
+        BusError: the bus cannot be opened (see :func:`describe_open_error`).
+    """
+
+    def __init__(
+        self,
+        *,
+        config_file: str | None = None,
+        config_context: str | None = None,
+        can_filters: can.typechecking.CanFilters | None = None,
+        **kwargs: Any,
+    ) -> None:
+        self.config = resolve_config(config_file=config_file, config_context=config_context, **kwargs)
+        self._bus: can.BusABC | None = _open_raw(self.config)
+        self._lost: BaseException | None = None
+        self._lock = threading.Lock()
+        self.reopen_count = 0
+        self.channel_info = f"{self._bus.channel_info} (redarm)"
+        super().__init__(channel=self.config.get("channel"), can_filters=can_filters)
+
+    # -- state ---------------------------------------------------------------------------------
+
+    @property
+    def is_lost(self) -> bool:
+        """True after the transport failed, until :meth:`reopen` succeeds."""
+        return self._lost is not None
+
+    @property
+    def inner(self) -> can.BusABC | None:
+        """The python-can bus currently in use (None when lost or shut down)."""
+        return self._bus
+
+    def _mark_lost(self, exc: BaseException, during: str) -> BusError:
+        if self._lost is None:
+            logger.warning("CAN bus %s lost during %s: %r", self.config.get("channel"), during, exc)
+        self._lost = exc
+        bus, self._bus = self._bus, None
+        safe_shutdown(bus)
+        return BusError(
+            f"CAN bus {self.config.get('interface')}:{self.config.get('channel')} lost during {during}: "
+            f"{exc!r}; call reopen()"
+        )
+
+    def _live(self, during: str) -> can.BusABC:
+        bus = self._bus
+        if bus is None:
+            if self._is_shutdown:
+                raise BusError("CAN bus is shut down")
+            raise BusError(f"CAN bus lost ({self._lost!r}); call reopen() before {during}")
+        return bus
+
+    # -- BusABC hooks --------------------------------------------------------------------------
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        """Send ``msg`` (checked first).
+
+        Raises:
+            InvalidInputError: ``msg`` is malformed (nothing is sent).
+            BusError: the transport failed (lost: reopen needed) or refused the frame.
+        """
+        check_message(msg)
+        bus = self._live("send")
+        try:
+            bus.send(msg, timeout)
+        except _LOST_ERRORS as exc:
+            raise self._mark_lost(exc, "send") from exc
+        except can.CanError as exc:
+            raise BusError(f"CAN send failed: {exc}") from exc
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        bus = self._live("recv")
+        try:
+            return bus.recv(timeout), False
+        except _LOST_ERRORS as exc:
+            raise self._mark_lost(exc, "recv") from exc
+        except can.CanError as exc:
+            raise BusError(f"CAN receive failed: {exc}") from exc
+
+    def shutdown(self) -> None:
+        """Close the transport; never raises for a dead one (logged instead)."""
+        bus, self._bus = self._bus, None
+        safe_shutdown(bus)
+        super().shutdown()
+
+    # -- reconnection --------------------------------------------------------------------------
+
+    def reopen(self) -> None:
+        """Drop the current transport (if any) and open a new one with the same configuration.
+
+        Frames queued on the old connection are lost; the caller must re-read the state of
+        the devices before commanding them again.
+
+        Raises:
+            BusError: the bus cannot be opened now (try again later).
+        """
+        if self._is_shutdown:
+            raise BusError("CAN bus is shut down; cannot reopen")
+        with self._lock:
+            old, self._bus = self._bus, None
+            safe_shutdown(old)
+            self._bus = _open_raw(self.config)
+            self._lost = None
+            self.reopen_count += 1
+            logger.info("CAN bus %s reopened (%d)", self.config.get("channel"), self.reopen_count)
+
+    def reopen_with_backoff(
+        self,
+        *,
+        attempts: int = 10,
+        initial_s: float = 0.05,
+        max_s: float = 2.0,
+        sleep: Callable[[float], None] = time.sleep,
+    ) -> int:
+        """Call :meth:`reopen` until it works, doubling the wait from ``initial_s`` up to ``max_s``.
+
+        Returns:
+            The number of failed attempts before success.
+
+        Raises:
+            BusError: still failing after ``attempts`` tries (the last error as cause).
+        """
+        for attempt, delay in enumerate(backoff_delays(initial_s, max_s)):
+            try:
+                self.reopen()
+                return attempt
+            except BusError as exc:
+                if attempt + 1 >= attempts:
+                    raise BusError(f"CAN bus could not be reopened after {attempts} attempts: {exc}") from exc
+                logger.info("reopen attempt %d failed (%s); retrying in %.3f s", attempt + 1, exc, delay)
+                sleep(delay)
+        raise AssertionError("unreachable")  # pragma: no cover
+
+
+def backoff_delays(initial_s: float = 0.05, max_s: float = 2.0) -> Iterator[float]:
+    """Endless exponential backoff: initial_s, 2*initial_s, ... capped at max_s (seconds)."""
+    delay = initial_s
+    while True:
+        yield delay
+        delay = min(max_s, delay * 2.0)
+
+
+def open_bus(
+    *,
+    config_file: str | None = None,
+    config_context: str | None = None,
+    can_filters: can.typechecking.CanFilters | None = None,
+    **kwargs: Any,
+) -> ReconnectingBus:
+    """Open the configured CAN bus as a :class:`ReconnectingBus` (see that class for arguments).
+
+    Raises:
+        BusError: with the reason and the remedy (errno 97 / 19 for socketcan, refused
+            connection for the remote server, no configuration at all).
+    """
+    return ReconnectingBus(
+        config_file=config_file, config_context=config_context, can_filters=can_filters, **kwargs
+    )

@@ -1,0 +1,165 @@
+"""The loopback CAN bus server (redarm-canbus): loopback-only bind, port announcement, two clients
+exchanging frames through a server subprocess, malformed frames not killing delivery, signals."""
+
+from __future__ import annotations
+
+import json
+import signal
+import time
+from collections.abc import Iterator
+
+import can
+import pytest
+from can_remote.websocket import WebSocket
+
+from redarm_ros.can.bus import open_bus
+from redarm_ros.can.bus_server import (
+    BusServerProcess,
+    LoopbackBusServer,
+    check_loopback,
+    client_config,
+    main,
+    start_bus_server,
+)
+from redarm_ros.can.testing import OpenBusTracker
+from redarm_ros.errors import BusError, InvalidInputError
+
+
+@pytest.fixture(autouse=True)
+def _no_open_buses() -> Iterator[None]:
+    with OpenBusTracker() as tracker:
+        yield
+    leaked = tracker.close_leaked()
+    if leaked:
+        pytest.fail(f"test left CAN buses open: {leaked}", pytrace=False)
+
+
+@pytest.fixture
+def server_proc(tmp_path) -> Iterator[BusServerProcess]:
+    proc = start_bus_server(port_file=tmp_path / "canbus.port")
+    yield proc
+    proc.stop()
+
+
+def _msg(arb_id: int, data: bytes = b"\x00") -> can.Message:
+    return can.Message(arbitration_id=arb_id, data=data, is_extended_id=False, check=True)
+
+
+def _drain_ids(bus: can.BusABC, quiet_s: float = 0.3) -> list[int]:
+    out = []
+    while (m := bus.recv(quiet_s)) is not None:
+        out.append(m.arbitration_id)
+    return out
+
+
+@pytest.mark.parametrize("host", ["127.0.0.1", "localhost", "127.0.0.2"])
+def test_loopback_hosts_accepted(host: str) -> None:
+    assert check_loopback(host).startswith("127.")
+
+
+@pytest.mark.parametrize("host", ["0.0.0.0", "192.168.1.10", "::1", "::", "example.org", ""])
+def test_non_loopback_hosts_refused(host: str) -> None:
+    with pytest.raises(InvalidInputError):
+        check_loopback(host)
+
+
+def test_cli_refuses_non_loopback_bind(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["--host", "0.0.0.0", "--port", "0"]) == 2
+    assert "only 127.0.0.0/8" in capsys.readouterr().err
+
+
+def test_client_config_shape() -> None:
+    assert client_config(5555) == {"interface": "remote", "channel": "ws://127.0.0.1:5555/"}
+
+
+def test_two_clients_through_server_subprocess(server_proc: BusServerProcess, tmp_path) -> None:
+    assert int((tmp_path / "canbus.port").read_text()) == server_proc.port
+    with open_bus(**server_proc.client_config()) as a, open_bus(**server_proc.client_config()) as b:
+        for i in range(20):
+            a.send(_msg(0x0E1, bytes([i])))
+            b.send(_msg(0x0A1, bytes([i, 0])))
+        got_b = [b.recv(2.0) for _ in range(20)]
+        got_a = [a.recv(2.0) for _ in range(20)]
+        assert [bytes(m.data) for m in got_b] == [bytes([i]) for i in range(20)]
+        assert [bytes(m.data) for m in got_a] == [bytes([i, 0]) for i in range(20)]
+        assert a.recv(0.05) is None  # no echo of own frames
+    assert server_proc.stop() == 0
+    assert not (tmp_path / "canbus.port").exists()
+
+
+def test_shared_conftest_fixture_and_env_config(canbus_server, monkeypatch: pytest.MonkeyPatch) -> None:
+    for k, v in canbus_server.env.items():
+        monkeypatch.setenv(k, v)
+    with open_bus() as a, open_bus(**canbus_server.kwargs) as b:  # env-configured and explicit
+        a.send(_msg(0x0C3, b"\x0a\x1d"))
+        m = b.recv(2.0)
+        assert m is not None and (m.arbitration_id, bytes(m.data)) == (0x0C3, b"\x0a\x1d")
+
+
+def _json_client(channel: str) -> WebSocket:
+    """A foreign client speaking python-can-remote's JSON protocol (as the web page does)."""
+    ws = WebSocket(channel, ["can.json.v1"])
+    ws.send(json.dumps({"type": "bus_request", "payload": {"config": {}}}))
+    assert json.loads(ws.read())["type"] == "bus_response"
+    return ws
+
+
+def test_malformed_frame_from_one_client_does_not_kill_delivery(server_proc: BusServerProcess) -> None:
+    """Unguarded python-can-remote 0.3.0: a dlc-1000 frame from a JSON client silently kills the
+    sender threads of every other client. The server drops such frames on entry."""
+    cfg = server_proc.client_config()
+    with open_bus(**cfg) as a, open_bus(**cfg) as b:
+        a.send(_msg(0x0E1))
+        assert b.recv(2.0).arbitration_id == 0x0E1
+        ws = _json_client(server_proc.channel)
+        try:
+            for payload in (
+                {"arbitration_id": 0x10, "is_extended_id": False, "dlc": 1000, "data": [1]},
+                {"arbitration_id": -1, "is_extended_id": False, "data": [1]},
+                {"arbitration_id": 0x800, "is_extended_id": False, "data": [1]},
+            ):
+                ws.send(json.dumps({"type": "message", "payload": payload}))
+            # A raw python-can-remote client can also send a frame check=True would refuse.
+            raw = can.Bus(ignore_config=True, **cfg)
+            try:
+                raw.send(can.Message(arbitration_id=0x11, data=bytes(20), is_extended_id=False))
+                raw.send(_msg(0x0E7))  # a good frame from the same client still goes through
+            finally:
+                raw.shutdown()
+            time.sleep(0.2)
+            assert _drain_ids(b) == [0x0E7]  # none of the malformed frames arrived
+            for i in range(5):  # and delivery to the others still works, both ways
+                a.send(_msg(0x0E2, bytes([i])))
+                b.send(_msg(0x0A2, bytes([i])))
+            assert _drain_ids(b) == [0x0E2] * 5 and _drain_ids(a) == [0x0E7] + [0x0A2] * 5
+        finally:
+            ws.close()
+
+
+def test_in_process_server_counts_dropped_frames() -> None:
+    with LoopbackBusServer() as srv, open_bus(**srv.client_config()) as good:
+        ws = _json_client(srv.channel)
+        try:
+            ws.send(
+                json.dumps({"type": "message", "payload": {"arbitration_id": 0x10, "dlc": 999, "data": []}})
+            )
+            ws.send(json.dumps({"type": "message", "payload": {"arbitration_id": 0x10, "data": [1]}}))
+            m = good.recv(2.0)
+            assert m is not None and m.arbitration_id == 0x10 and bytes(m.data) == b"\x01"
+            assert srv.dropped_frames == 1
+        finally:
+            ws.close()
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_signal_stops_server_cleanly_and_clients_see_it(sig: int) -> None:
+    srv = start_bus_server()
+    bus = open_bus(**srv.client_config())
+    try:
+        srv.process.send_signal(sig)
+        assert srv.process.wait(10) == 0
+        with pytest.raises(BusError, match="lost"):
+            bus.recv(2.0)
+    finally:
+        bus.shutdown()
+        srv.stop()
