@@ -11,7 +11,7 @@ import pytest
 
 from redarm_ros.errors import InvalidInputError
 from redarm_ros.kinematics import load_arm
-from redarm_ros.sim.plant import connect, quiet_stdout
+from redarm_ros.sim.plant import connect, quiet_stdio
 from redarm_ros.sim.urdf import (
     build_urdf,
     joint_efforts,
@@ -22,7 +22,7 @@ from redarm_ros.sim.urdf import (
     write_urdf,
 )
 
-with quiet_stdout():
+with quiet_stdio():
     import pybullet as pb
 
 ARMS = ["pa10", "pa10_7c", "powercube6", "powercube7"]

@@ -49,27 +49,33 @@ MOTION_EPS = 1e-3  # rad/s; measured speed above this counts as "in motion"
 
 
 @contextlib.contextmanager
-def quiet_stdout() -> Iterator[None]:
-    """Silence file descriptor 1 (pybullet prints from C on import/connect) for the block."""
-    try:
-        fd = sys.stdout.fileno()
-    except (AttributeError, OSError, ValueError):  # no real fd (e.g. captured): nothing to do
-        yield
-        return
-    sys.stdout.flush()
-    saved = os.dup(fd)
+def quiet_stdio() -> Iterator[None]:
+    """Silence file descriptors 1 and 2 for the block (pybullet prints from C on import and connect)."""
+    streams = [s for s in (sys.stdout, sys.stderr) if s is not None]
+    fds = []
+    for s in streams:
+        try:
+            fds.append(s.fileno())
+        except (AttributeError, OSError, ValueError):  # no real fd (e.g. captured in memory)
+            pass
+    for s in streams:
+        s.flush()
+    saved = [os.dup(fd) for fd in fds]
     try:
         with open(os.devnull, "wb") as null:
-            os.dup2(null.fileno(), fd)
+            for fd in fds:
+                os.dup2(null.fileno(), fd)
         yield
     finally:
-        sys.stdout.flush()
-        os.dup2(saved, fd)
-        os.close(saved)
+        for s in streams:
+            s.flush()
+        for fd, keep in zip(fds, saved, strict=True):
+            os.dup2(keep, fd)
+            os.close(keep)
 
 
 def _pybullet() -> Any:
-    with quiet_stdout():
+    with quiet_stdio():
         import pybullet
 
     return pybullet
@@ -78,7 +84,7 @@ def _pybullet() -> Any:
 def connect(gui: bool = False) -> int:
     """Open a pybullet client (DIRECT, or GUI if asked) quietly and return its id."""
     pb = _pybullet()
-    with quiet_stdout():
+    with quiet_stdio():
         cid = pb.connect(pb.GUI if gui else pb.DIRECT)
     if cid < 0:
         raise RuntimeError("pybullet could not connect (GUI needs a display)")
