@@ -193,21 +193,36 @@ def _scratch_root() -> str | None:
     return str(shm) if shm.is_dir() and os.access(shm, os.W_OK) else None
 
 
-def _kill_leftovers(umid: str) -> int:
-    """SIGKILL any host process still carrying ``umid=<umid>`` (UML's per-guest-process helpers)."""
-    killed = 0
+def _umid_pids(umid: str) -> list[int]:
+    """Live host processes carrying ``umid=<umid>`` on their command line (UML and its helpers)."""
     needle = f"umid={umid}".encode()
+    pids = []
     for entry in os.scandir("/proc"):
         if not entry.name.isdigit():
             continue
         try:
             with open(f"/proc/{entry.name}/cmdline", "rb") as f:
-                if needle not in f.read().split(b"\0"):
-                    continue
-            os.kill(int(entry.name), signal.SIGKILL)
-            killed += 1
-        except (OSError, ValueError):
+                if needle in f.read().split(b"\0"):
+                    with open(f"/proc/{entry.name}/stat", "rb") as st:
+                        if st.read().rsplit(b")", 1)[-1].split()[0] not in (b"Z", b"X"):
+                            pids.append(int(entry.name))
+        except (OSError, ValueError, IndexError):
             continue
+    return pids
+
+
+def _kill_leftovers(umid: str, timeout_s: float = 5.0) -> int:
+    """SIGKILL every process of guest ``umid`` still alive and wait until they are gone."""
+    killed = 0
+    deadline = time.monotonic() + timeout_s
+    while (pids := _umid_pids(umid)) and time.monotonic() < deadline:
+        for pid in pids:
+            try:
+                os.kill(pid, signal.SIGKILL)
+                killed += 1
+            except OSError:
+                pass
+        time.sleep(0.05)
     return killed
 
 
