@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from redarm_ros.control.obstacles import load_scene
 from redarm_ros.errors import InvalidInputError
 from redarm_ros.kinematics import load_arm
 from redarm_ros.sim.plant import PybulletPlant
@@ -88,12 +89,17 @@ def test_two_plants_in_two_clients_are_independent():
 
 def test_scene_objects_and_snapshot(pa10, tmp_path):
     empty = pa10.render(160, 120)
-    ids = [
-        pa10.add_table(),
-        pa10.add_object({"type": "sphere", "position": [0.5, 0.2, 0.5], "radius": 0.06}),
-        pa10.add_object({"type": "cylinder", "position": [0.5, -0.2, 0.5], "radius": 0.04, "height": 0.2}),
+    ids = pa10.add_scene(load_scene("table_cylinder").to_dict())  # table top + one can
+    ids += [
+        pa10.add_object({"type": "sphere", "center": [0.5, 0.2, 0.5], "radius": 0.06}),
         pa10.add_object(
-            {"type": "box", "position": [0.7, 0.0, 0.45], "size": [0.1, 0.1, 0.1], "rgba": [1, 0, 0, 1]}
+            {
+                "type": "box",
+                "center": [0.7, 0.0, 0.45],
+                "size": [0.1, 0.1, 0.1],
+                "yaw": 0.3,
+                "rgba": [1, 0, 0, 1],
+            }
         ),
     ]
     assert len(set(ids)) == 4 and pa10.objects == ids

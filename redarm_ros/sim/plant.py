@@ -408,9 +408,9 @@ class PybulletPlant:
 
     def add_table(
         self,
-        center_xy: Sequence[float] = (0.6, 0.0),
-        size_xy: Sequence[float] = (0.6, 0.9),
-        height: float = 0.4,
+        center_xy: Sequence[float] = (0.45, 0.0),
+        size_xy: Sequence[float] = (1.3, 1.4),
+        height: float = 0.0,
         thickness: float = 0.04,
     ) -> int:
         """Add a static table top (a box whose upper face is at ``height`` m). Returns its body id."""
@@ -421,40 +421,63 @@ class PybulletPlant:
         )
 
     def add_object(self, spec: Mapping[str, Any]) -> int:
-        """Add one object from a mapping (e.g. a YAML scene entry).
+        """Add one object from a mapping: the scene schema of ``redarm_ros.control.obstacles``.
 
-        Keys: ``type`` (sphere | cylinder | box | table), ``position`` [x, y, z] (m), ``radius``,
-        ``height`` (cylinder), ``half_extents`` or ``size`` (box, full extents), ``orientation``
-        [x, y, z, w], ``rgba``, ``mass``; for ``table``: ``center_xy``, ``size_xy``, ``height``.
+        Keys: ``type`` (sphere | cylinder | box | cube | table), ``center`` (or ``position``) [x, y, z] m;
+        sphere ``radius``; cylinder ``radius``, ``height`` (vertical unless ``orientation`` x,y,z,w);
+        box ``size`` (full edges) or ``half_extents``, ``yaw`` (rad about z) or ``orientation``;
+        optional ``rgba``, ``mass`` (kg, 0 = static); ``name`` is ignored. ``table``: ``center_xy``,
+        ``size_xy``, ``height`` (of the top surface), ``thickness``.
+        Raises :class:`InvalidInputError` naming what is wrong.
         """
+        if not isinstance(spec, Mapping):
+            raise InvalidInputError(
+                f"scene object must be a mapping, got {spec!r}", field="object", value=spec
+            )
         kind = str(spec.get("type", "")).lower()
         common: dict[str, Any] = {k: spec[k] for k in ("rgba", "mass") if k in spec}
         try:
+            pos = spec["center"] if "center" in spec else spec.get("position")
             if kind == "sphere":
-                return self.add_sphere(spec["position"], spec["radius"], **common)
+                return self.add_sphere(pos, spec["radius"], **common)
             if kind == "cylinder":
+                height = spec["height"] if "height" in spec else spec["length"]
                 return self.add_cylinder(
-                    spec["position"],
-                    spec["radius"],
-                    spec.get("height", spec.get("length")),
-                    orientation=spec.get("orientation"),
-                    **common,
+                    pos, spec["radius"], height, orientation=spec.get("orientation"), **common
                 )
-            if kind == "box":
+            if kind in ("box", "cube"):
                 he = spec.get("half_extents")
                 if he is None:
                     he = [float(v) / 2 for v in spec["size"]]
-                return self.add_box(spec["position"], he, orientation=spec.get("orientation"), **common)
+                orn = spec.get("orientation")
+                if orn is None and "yaw" in spec:
+                    yaw = float(spec["yaw"])
+                    orn = [0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2)]
+                return self.add_box(pos, he, orientation=orn, **common)
             if kind == "table":
                 kw = {k: spec[k] for k in ("center_xy", "size_xy", "height", "thickness") if k in spec}
                 return self.add_table(**kw)
-        except (KeyError, TypeError) as exc:
+        except (KeyError, TypeError, ValueError) as exc:
+            if isinstance(exc, InvalidInputError):
+                raise
             raise InvalidInputError(
-                f"bad scene object {dict(spec)!r}: {exc}", field="object", value=spec
+                f"bad scene object {dict(spec)!r}: {exc!r}", field="object", value=spec
             ) from exc
         raise InvalidInputError(
             f"unknown scene object type {kind!r} (sphere, cylinder, box, table)", field="type", value=kind
         )
+
+    def add_scene(self, scene: Mapping[str, Any]) -> list[int]:
+        """Add a whole scene: ``{"table_height": z or None, "obstacles": [object, ...]}`` (the schema of
+        ``redarm_ros.control.obstacles.Scene.to_dict``). A table top is added below ``table_height``
+        in front of the arm. Returns the new body ids."""
+        ids = []
+        th = scene.get("table_height")
+        if th is not None:
+            ids.append(self.add_table(height=float(th)))
+        for obj in scene.get("obstacles") or []:
+            ids.append(self.add_object(obj))
+        return ids
 
     @property
     def objects(self) -> list[int]:
