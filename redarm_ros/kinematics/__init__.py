@@ -1,1 +1,28 @@
-"""redarm_ros.kinematics."""
+"""Kinematics core (numpy only, no ROS): arm models, FK, Jacobian, swivel IK, PowerCube IK, numeric IK.
+
+Quaternions inside this package are (w, x, y, z) unless a name says otherwise (``*_xyzw``).
+
+    from redarm_ros.kinematics import load_arm
+    arm = load_arm("pa10")
+    T = arm.fk(q)                    # 4x4 base -> tool
+    sols = arm.ik(T, swivel=0.3)     # (k, 7), every in-limit solution at that swivel
+    q, info = arm.ik_nearest(T, q_seed)
+"""
+
+from redarm_ros.kinematics.model import Arm, Joint, available_arms, build_arm, load_arm, pose_error
+from redarm_ros.kinematics.powercube6 import PowerCube6Arm
+from redarm_ros.kinematics.result import IKInfo, IKStatus
+from redarm_ros.kinematics.swivel import SwivelArm
+
+__all__ = [
+    "Arm",
+    "Joint",
+    "SwivelArm",
+    "PowerCube6Arm",
+    "IKInfo",
+    "IKStatus",
+    "load_arm",
+    "build_arm",
+    "available_arms",
+    "pose_error",
+]

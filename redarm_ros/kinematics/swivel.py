@@ -1,0 +1,670 @@
+"""Closed-form swivel IK of 7-DOF arms with a spherical shoulder and wrist (PA10, 7-module PowerCube).
+
+Follows Moore & Oztop, "Redundancy parametrization for flexible motion control" step by step:
+
+1. wrist point ``pW = p - L4 q k q*`` (eq. 10);
+2. elbow circle: centre ``C`` on the shoulder-wrist line, normal ``n = unit(pW - pS)``, radius ``rho``;
+3. elbow ``pE = C + rho qA u qA*`` (eq. 15) with ``qA`` the shortest rotation k -> n (eq. 14) and
+   ``u = Qz(s) i Qz(s)*`` (eq. 13) the swivel quaternion of the swivel angle ``s``;
+4. theta4 from the triangle pS, pE, pW;
+5./6. the shoulder orientation q3 (z3 along the upper arm, x3 in the arm plane) and theta1..3 from its
+   ZYZ decomposition (eq. 11/12);
+7./8. q4 = q3 Qy(theta4) and theta5..7 from the ZYZ decomposition of q4* q.
+
+The other solutions come from the paper's three sign flips (theta4 -> -theta4 with theta3, theta5 +- pi;
+theta2 -> -theta2 with theta1, theta3 +- pi; theta6 -> -theta6 with theta5, theta7 +- pi), up to 8 per
+swivel. Quaternions are (w, x, y, z); the swivel quaternion ``u`` is passed as its vector part (x, y, z).
+
+Conventions and choices (also in docs/kinematics.md):
+
+* Solutions are ordered by the flip pattern (f2, f4, f6) in binary (f2 most significant); a flipped
+  theta is the negative of the base one (base theta2, theta4, theta6 >= 0).
+* Angles are wrapped into the joint limits. By default each solution appears once, with every angle at
+  the in-limit 2*pi copy nearest to 0 (so ``ik`` returns at most 8 rows); ``all_copies=True`` lists every
+  in-limit 2*pi copy (joints with a range wider than 2*pi, e.g. the PA10's +-255 and +-360 deg joints).
+  ``ik_nearest`` picks the copy nearest to the seed.
+* Singular cases have defined answers, never NaN:
+  - stretched or folded elbow (rho = 0, sin theta4 = 0): the arm plane is undefined; x3 = -qA u qA*, so
+    the swivel still chooses how the rotation is split between theta3 and theta5 (the limit of the
+    regular case from the theta4 > 0 side);
+  - wrist straight below the shoulder (n = -k): qA is the rotation by pi about x;
+  - elbow on the base axis (sin theta2 = 0) or wrist aligned (sin theta6 = 0): theta1 (theta5) = 0 and
+    theta3 (theta7) takes the whole rotation;
+  - wrist at the shoulder (only reachable when L2 = L3): n = k is taken as the reference;
+  - out of reach: ``ik`` returns no rows; ``elbow_circle`` raises UnreachableError with the distance.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from redarm_ros.errors import InvalidInputError, UnreachableError
+from redarm_ros.kinematics.model import LIMIT_TOL, Arm, Joint
+from redarm_ros.kinematics.result import IKInfo, IKStatus
+
+__all__ = ["SwivelArm", "FLIP_PATTERNS"]
+
+PI = math.pi
+TWO_PI = 2.0 * math.pi
+REACH_TOL = 1e-9  # m; a wrist this far beyond the reach sphere still counts as (just) reachable
+DEGEN_SIN = 1e-12  # |sin theta| below which the arm plane / a ZYZ decomposition is degenerate
+RHO_DEGEN = 1e-7  # m; below this elbow-circle radius swivel(q) uses the degenerate definition
+
+# flip pattern k -> (f2, f4, f6); per joint which of the two alternatives (base, flipped) to use
+FLIP_PATTERNS = [((k >> 2) & 1, (k >> 1) & 1, k & 1) for k in range(8)]
+_ALT_INDEX = np.array([[f2, f2, f2 ^ f4, f4, f4 ^ f6, f6, f6] for f2, f4, f6 in FLIP_PATTERNS])
+
+
+def _wrap(x: float) -> float:
+    """x (within (-3pi, 3pi]) wrapped into (-pi, pi]."""
+    if x > PI:
+        return x - TWO_PI
+    if x <= -PI:
+        return x + TWO_PI
+    return x
+
+
+class SwivelArm(Arm):
+    """7-DOF z,y,z,y,z,y,z arm with link lengths L1..L4 (m): closed-form swivel IK.
+
+    ``fk`` orientation is ``Qz(t1)Qy(t2)Qz(t3)Qy(t4)Qz(t5)Qy(t6)Qz(t7)`` (w, x, y, z); shoulder at
+    ``L1 k``, elbow ``pS + L2 q2 k q2*``, wrist ``pE + L3 q4 k q4*``, tool ``pW + L4 q6 k q6*``.
+    """
+
+    kind = "swivel7"
+    has_swivel = True
+
+    def __init__(
+        self,
+        name: str,
+        chain: Sequence[Joint],
+        tool: np.ndarray,
+        key_joints: Sequence[int],
+        config: dict[str, Any] | None = None,
+    ) -> None:
+        super().__init__(name, chain, tool, key_joints, config)
+        L = [float(v) for v in self.config["link_lengths"]]
+        self.link_lengths = tuple(L)
+        self._L = tuple(L)
+        # joints whose range reaches beyond (-pi, pi]: more than one 2*pi copy may fit
+        self._wide = [lo < -PI or up > PI for lo, up in zip(self._lower_l, self._upper_l, strict=True)]
+        self._shifts = []
+        for lo, up in zip(self._lower_l, self._upper_l, strict=True):
+            kmax = int(math.ceil(max(abs(lo), abs(up)) / TWO_PI)) + 1
+            self._shifts.append([k * TWO_PI for k in range(-kmax, kmax + 1)])
+
+    # ------------------------------------------------------------------ geometry
+    @property
+    def shoulder(self) -> np.ndarray:
+        """Shoulder position pS = L1 k (m)."""
+        return np.array([0.0, 0.0, self._L[0]])
+
+    def _circle(self, Tl: list[list[float]]) -> tuple[float, ...] | float:
+        """Wrist relative to the shoulder and the elbow circle, or the (positive) reach violation in m.
+
+        Returns (dx, dy, dz, D, rxy2, nx, ny, nz, ca) with d = pW - pS, D = |d|, n = d / D and ca the
+        cosine of the angle at the shoulder between n and the upper arm.
+        """
+        L1, L2, L3, L4 = self._L
+        r0, r1, r2 = Tl[0], Tl[1], Tl[2]
+        dx = r0[3] - L4 * r0[2]
+        dy = r1[3] - L4 * r1[2]
+        dz = r2[3] - L4 * r2[2] - L1
+        rxy2 = dx * dx + dy * dy
+        D2 = rxy2 + dz * dz
+        D = math.sqrt(D2)
+        if D > L2 + L3 + REACH_TOL:
+            return D - (L2 + L3)
+        if D < abs(L2 - L3) - REACH_TOL:
+            return abs(L2 - L3) - D
+        if D < 1e-12:  # wrist at the shoulder (L2 == L3): n = k by convention
+            return (dx, dy, dz, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0)
+        inv = 1.0 / D
+        ca = (L2 * L2 + D2 - L3 * L3) / (2.0 * L2 * D)
+        ca = 1.0 if ca > 1.0 else (-1.0 if ca < -1.0 else ca)
+        return (dx, dy, dz, D, rxy2, dx * inv, dy * inv, dz * inv, ca)
+
+    @staticmethod
+    def _rot_qa(circ: tuple[float, ...], ux: float, uy: float) -> tuple[float, float, float]:
+        """qA u qA* for u = (ux, uy, 0): the shortest rotation k -> n applied to u (eq. 14-15)."""
+        dx, dy, dz, D, rxy2, nx, ny, nz, _ = circ
+        if D == 0.0 or (rxy2 < 1e-300 and dz >= 0.0):
+            return ux, uy, 0.0
+        if dz >= 0.0:
+            h = 1.0 + nz
+        elif rxy2 < 1e-300:  # n = -k: rotation by pi about x
+            return ux, -uy, 0.0
+        else:  # 1 + nz without cancellation
+            h = rxy2 / (D * (D - dz))
+        w = -(nx * ux + ny * uy)
+        return ux + nx * w / h, uy + ny * w / h, w
+
+    @staticmethod
+    def _rot_qa_inv(circ: tuple[float, ...], ex: float, ey: float, ez: float) -> tuple[float, float]:
+        """(x, y) of qA* e qA: inverse of :meth:`_rot_qa` (eq. 16)."""
+        dx, dy, dz, D, rxy2, nx, ny, nz, _ = circ
+        if D == 0.0 or (rxy2 < 1e-300 and dz >= 0.0):
+            return ex, ey
+        if dz >= 0.0:
+            h = 1.0 + nz
+        elif rxy2 < 1e-300:
+            return ex, -ey
+        else:
+            h = rxy2 / (D * (D - dz))
+        wz = -(nx * ex + ny * ey)
+        return ex - nx * ez + nx * wz / h, ey - ny * ez + ny * wz / h
+
+    def _base_solution(self, Tl: list[list[float]], ux: float, uy: float) -> tuple[float, ...] | float:
+        """The base solution (theta2, theta4, theta6 >= 0) at swivel quaternion u, or the reach violation."""
+        circ = self._circle(Tl)
+        if not isinstance(circ, tuple):
+            return circ
+        return self._base_from_circle(Tl, circ, ux, uy)
+
+    def _base_from_circle(
+        self, Tl: list[list[float]], circ: tuple[float, ...], ux: float, uy: float
+    ) -> tuple[float, ...]:
+        L1, L2, L3, L4 = self._L
+        dx, dy, dz, D, rxy2, nx, ny, nz, ca = circ
+        sa = math.sqrt(max(0.0, 1.0 - ca * ca))
+        rux, ruy, ruz = self._rot_qa(circ, ux, uy)
+        # elbow relative to the shoulder: L2 ca n + rho qA u qA*  (rho = L2 sa)
+        ex = L2 * (ca * nx + sa * rux)
+        ey = L2 * (ca * ny + sa * ruy)
+        ez = L2 * (ca * nz + sa * ruz)
+        inv = 1.0 / math.sqrt(ex * ex + ey * ey + ez * ez)
+        zx, zy, zz = ex * inv, ey * inv, ez * inv  # upper-arm direction = z of frame 3
+        fx, fy, fz = dx - ex, dy - ey, dz - ez  # forearm (not normalised: only directions matter)
+        fd = fx * zx + fy * zy + fz * zz
+        gx, gy, gz = fx - fd * zx, fy - fd * zy, fz - fd * zz
+        gn = math.sqrt(gx * gx + gy * gy + gz * gz)
+        t4 = math.atan2(gn, fd)
+        fn = math.hypot(gn, fd)
+        if gn > DEGEN_SIN * fn:
+            x3x, x3y, x3z = gx / gn, gy / gn, gz / gn
+        else:  # stretched / folded elbow: the swivel picks the arm plane
+            pd = rux * zx + ruy * zy + ruz * zz
+            x3x, x3y, x3z = -(rux - pd * zx), -(ruy - pd * zy), -(ruz - pd * zz)
+            k = 1.0 / math.sqrt(x3x * x3x + x3y * x3y + x3z * x3z)
+            x3x, x3y, x3z = x3x * k, x3y * k, x3z * k
+        y3x, y3y, y3z = zy * x3z - zz * x3y, zz * x3x - zx * x3z, zx * x3y - zy * x3x
+        # ZYZ of R3 = [x3 y3 z3] (eq. 11); theta3 from the residual so that degenerate cases stay exact
+        rz = math.sqrt(zx * zx + zy * zy)
+        t2 = math.atan2(rz, zz)
+        if rz > DEGEN_SIN:
+            c1, s1 = zx / rz, zy / rz
+            t1 = math.atan2(zy, zx)
+        else:
+            c1, s1, t1 = 1.0, 0.0, 0.0
+        a11 = c1 * x3x + s1 * x3y
+        a21 = -s1 * x3x + c1 * x3y
+        t3 = math.atan2(a21, zz * a11 - rz * x3z)
+        # R4 = R3 Ry(theta4): x4 = c4 x3 - s4 z3, y4 = y3, z4 = s4 x3 + c4 z3
+        c4, s4 = fd / fn, gn / fn
+        x4x, x4y, x4z = c4 * x3x - s4 * zx, c4 * x3y - s4 * zy, c4 * x3z - s4 * zz
+        z4x, z4y, z4z = s4 * x3x + c4 * zx, s4 * x3y + c4 * zy, s4 * x3z + c4 * zz
+        r0, r1, r2 = Tl[0], Tl[1], Tl[2]
+        ax, ay, az = r0[2], r1[2], r2[2]
+        bx, by, bz = r0[0], r1[0], r2[0]
+        w13 = x4x * ax + x4y * ay + x4z * az
+        w23 = y3x * ax + y3y * ay + y3z * az
+        w33 = z4x * ax + z4y * ay + z4z * az
+        w11 = x4x * bx + x4y * by + x4z * bz
+        w21 = y3x * bx + y3y * by + y3z * bz
+        w31 = z4x * bx + z4y * by + z4z * bz
+        rw = math.sqrt(w13 * w13 + w23 * w23)
+        t6 = math.atan2(rw, w33)
+        if rw > DEGEN_SIN:
+            c5, s5 = w13 / rw, w23 / rw
+            t5 = math.atan2(w23, w13)
+        else:
+            c5, s5, t5 = 1.0, 0.0, 0.0
+        b11 = c5 * w11 + s5 * w21
+        b21 = -s5 * w11 + c5 * w21
+        t7 = math.atan2(b21, w33 * b11 - rw * w31)
+        return (t1, t2, t3, t4, t5, t6, t7)
+
+    def _fit(self, j: int, x: float) -> list[float]:
+        """In-limit 2*pi copies of angle x for joint j, nearest to 0 first (empty if none)."""
+        lo, up = self._lower_l[j], self._upper_l[j]
+        if not self._wide[j]:
+            if lo - LIMIT_TOL <= x <= up + LIMIT_TOL:
+                return [min(max(x, lo), up)]
+            return []
+        out = []
+        for sft in self._shifts[j]:
+            v = x + sft
+            if lo - LIMIT_TOL <= v <= up + LIMIT_TOL:
+                out.append(min(max(v, lo), up))
+        out.sort(key=abs)
+        return out
+
+    def _expand(self, base: tuple[float, ...], all_copies: bool = False) -> list[list[float]]:
+        """All flip combinations of a base solution that fit the limits (each joint's copy nearest 0)."""
+        t1, t2, t3, t4, t5, t6, t7 = base
+        alts = (
+            (t1, _wrap(t1 + PI)),
+            (t2, -t2),
+            (t3, _wrap(t3 + PI)),
+            (t4, -t4),
+            (t5, _wrap(t5 + PI)),
+            (t6, -t6),
+            (t7, _wrap(t7 + PI)),
+        )
+        fits = [[self._fit(j, a) for a in pair] for j, pair in enumerate(alts)]
+        out: list[list[float]] = []
+        for pat in _ALT_INDEX.tolist():
+            cols = [fits[j][pat[j]] for j in range(7)]
+            if not all(cols):
+                continue
+            if not all_copies:
+                out.append([c[0] for c in cols])
+            else:
+                rows: list[list[float]] = [[]]
+                for c in cols:
+                    rows = [r + [v] for r in rows for v in c]
+                out.extend(rows)
+        return out
+
+    # ------------------------------------------------------------------ public IK
+    def elbow_circle(self, T: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+        """(C, n, rho): centre (m, base frame), unit normal and radius (m) of the elbow circle of pose T.
+
+        Raises :class:`UnreachableError` (``distance`` = metres beyond the reachable shell) if the wrist
+        point is out of reach, :class:`InvalidInputError` for a malformed T.
+        """
+        Tl = self.check_pose(T)
+        circ = self._circle(Tl)
+        if not isinstance(circ, tuple):
+            raise UnreachableError(f"wrist point is {circ:.6g} m outside the reachable shell", distance=circ)
+        L2 = self._L[1]
+        _, _, _, _, _, nx, ny, nz, ca = circ
+        n = np.array([nx, ny, nz])
+        C = self.shoulder + L2 * ca * n
+        return C, n, L2 * math.sqrt(max(0.0, 1.0 - ca * ca))
+
+    def ik(self, T: np.ndarray, swivel: float | None = 0.0, *, all_copies: bool = False) -> np.ndarray:
+        """Every joint solution (k, 7), k <= 8, of pose T (4x4, base frame) at swivel angle ``swivel`` (rad).
+
+        Only solutions inside the joint limits are returned, each angle wrapped to its in-limit 2*pi copy
+        nearest 0 (``all_copies=True``: one row per in-limit copy). An unreachable pose gives (0, 7).
+        Raises :class:`InvalidInputError` for NaN/inf, a non-orthonormal rotation or a bad swivel.
+        """
+        if swivel is None:
+            swivel = 0.0
+        try:
+            s = float(swivel)
+        except (TypeError, ValueError) as exc:
+            raise InvalidInputError(
+                f"swivel must be a number, got {swivel!r}", field="swivel", value=swivel
+            ) from exc
+        if not math.isfinite(s):
+            raise InvalidInputError(f"swivel must be finite, got {s}", field="swivel", value=swivel)
+        return self._ik_u(self.check_pose(T), math.cos(s), math.sin(s), all_copies)
+
+    def ik_u(self, T: np.ndarray, u: Sequence[float], *, all_copies: bool = False) -> np.ndarray:
+        """Like :meth:`ik` with the swivel quaternion u = Qz(s) i Qz(s)*: a pure unit quaternion in the
+        xy plane given as its vector part (x, y, z). Raises :class:`InvalidInputError` if u is not unit
+        (tolerance 1e-6) or has a z component."""
+        try:
+            ua = [float(v) for v in u]
+        except (TypeError, ValueError) as exc:
+            raise InvalidInputError("u must be 3 numbers (x, y, z)", field="u", value=u) from exc
+        if len(ua) != 3 or not all(math.isfinite(v) for v in ua):
+            raise InvalidInputError("u must be 3 finite numbers (x, y, z)", field="u", value=u)
+        nu = math.hypot(ua[0], ua[1])
+        if abs(ua[2]) > 1e-6 or abs(nu - 1.0) > 1e-6:
+            raise InvalidInputError(f"u must be a unit vector in the xy plane, got {ua}", field="u", value=u)
+        return self._ik_u(self.check_pose(T), ua[0] / nu, ua[1] / nu, all_copies)
+
+    def _ik_u(self, Tl: list[list[float]], ux: float, uy: float, all_copies: bool) -> np.ndarray:
+        base = self._base_solution(Tl, ux, uy)
+        if not isinstance(base, tuple):
+            return np.empty((0, 7))
+        rows = self._expand(base, all_copies)
+        return np.array(rows) if rows else np.empty((0, 7))
+
+    def swivel(self, q: Sequence[float]) -> float:
+        """Swivel angle s in (-pi, pi] of q (eq. 16): u = qA* (pE - C)/rho qA, s = atan2(u_y, u_x).
+
+        With the elbow stretched or folded (rho < 1e-7 m) the direction -sign(theta4) x3 (the x axis of
+        joint frame 3) replaces (pE - C)/rho, consistent with :meth:`ik`.
+        """
+        qa = self.check_q(q)
+        return self._swivel_lists(qa.tolist())
+
+    def swivel_u(self, q: Sequence[float]) -> np.ndarray:
+        """Swivel quaternion u of q as its vector part (x, y, z), z = 0."""
+        s = self.swivel(q)
+        return np.array([math.cos(s), math.sin(s), 0.0])
+
+    def _swivel_lists(self, q: Sequence[float]) -> float:
+        L1, L2, L3, L4 = self._L
+        t1, t2, t3, t4 = q[0], q[1], q[2], q[3]
+        c1, s1, c2, s2 = math.cos(t1), math.sin(t1), math.cos(t2), math.sin(t2)
+        c3, s3, c4, s4 = math.cos(t3), math.sin(t3), math.cos(t4), math.sin(t4)
+        ex, ey, ez = L2 * c1 * s2, L2 * s1 * s2, L2 * c2
+        X = c2 * c3 * s4 + s2 * c4
+        Y = s3 * s4
+        Z = -s2 * c3 * s4 + c2 * c4
+        dx = ex + L3 * (c1 * X - s1 * Y)
+        dy = ey + L3 * (s1 * X + c1 * Y)
+        dz = ez + L3 * Z
+        rxy2 = dx * dx + dy * dy
+        D2 = rxy2 + dz * dz
+        D = math.sqrt(D2)
+        if D < 1e-12:
+            circ = (dx, dy, dz, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0)
+            nx = ny = 0.0
+            nz = 1.0
+        else:
+            nx, ny, nz = dx / D, dy / D, dz / D
+            circ = (dx, dy, dz, D, rxy2, nx, ny, nz, 0.0)
+        ep = ex * nx + ey * ny + ez * nz
+        px, py, pz = ex - ep * nx, ey - ep * ny, ez - ep * nz
+        rho = math.sqrt(px * px + py * py + pz * pz)
+        if rho > RHO_DEGEN:
+            px, py, pz = px / rho, py / rho, pz / rho
+        else:  # stretched / folded elbow: -sign(theta4) x3
+            sg = -1.0 if math.copysign(1.0, t4) > 0 else 1.0
+            px = sg * (c1 * c2 * c3 - s1 * s3)
+            py = sg * (s1 * c2 * c3 + c1 * s3)
+            pz = sg * (-s2 * c3)
+        ux, uy = self._rot_qa_inv(circ, px, py, pz)
+        s = math.atan2(uy, ux)
+        return PI if s <= -PI else s
+
+    # ------------------------------------------------------------------ vectorised closed form
+    def _base_np(self, P: list[Any], ux: np.ndarray, uy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Vectorised base solutions. P: 3x4 nested entries (scalars or (m,) arrays) of the poses;
+        ux, uy: (m,) swivel quaternion. Returns (theta (m, 7), reachable (m,) bool)."""
+        L1, L2, L3, L4 = self._L
+        r0, r1, r2 = P
+        dx = np.asarray(r0[3] - L4 * r0[2], dtype=float) + 0.0 * ux
+        dy = r1[3] - L4 * r1[2] + 0.0 * ux
+        dz = r2[3] - L4 * r2[2] - L1 + 0.0 * ux
+        rxy2 = dx * dx + dy * dy
+        D = np.sqrt(rxy2 + dz * dz)
+        reach = (D <= L2 + L3 + REACH_TOL) & (D >= abs(L2 - L3) - REACH_TOL)
+        Ds = np.where(D < 1e-12, 1.0, D)
+        at_sh = D < 1e-12
+        nx = np.where(at_sh, 0.0, dx / Ds)
+        ny = np.where(at_sh, 0.0, dy / Ds)
+        nz = np.where(at_sh, 1.0, dz / Ds)
+        ca = np.clip((L2 * L2 + D * D - L3 * L3) / (2.0 * L2 * Ds), -1.0, 1.0)
+        ca = np.where(at_sh, 0.0, ca)
+        sa = np.sqrt(np.maximum(0.0, 1.0 - ca * ca))
+        # shortest rotation k -> n applied to u
+        down = (dz < 0.0) & (rxy2 < 1e-300)
+        up = at_sh | ((dz >= 0.0) & (rxy2 < 1e-300))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            h = np.where(dz >= 0.0, 1.0 + nz, rxy2 / (Ds * (Ds - dz)))
+            w = -(nx * ux + ny * uy)
+            rux = np.where(down | up, ux, ux + nx * w / h)
+            ruy = np.where(up, uy, np.where(down, -uy, uy + ny * w / h))
+            ruz = np.where(down | up, 0.0, w)
+        ex = L2 * (ca * nx + sa * rux)
+        ey = L2 * (ca * ny + sa * ruy)
+        ez = L2 * (ca * nz + sa * ruz)
+        inv = 1.0 / np.sqrt(ex * ex + ey * ey + ez * ez)
+        zx, zy, zz = ex * inv, ey * inv, ez * inv
+        fx, fy, fz = dx - ex, dy - ey, dz - ez
+        fd = fx * zx + fy * zy + fz * zz
+        gx, gy, gz = fx - fd * zx, fy - fd * zy, fz - fd * zz
+        gn = np.sqrt(gx * gx + gy * gy + gz * gz)
+        t4 = np.arctan2(gn, fd)
+        fn = np.hypot(gn, fd)
+        fn = np.where(fn == 0.0, 1.0, fn)
+        reg = gn > DEGEN_SIN * fn
+        gs = np.where(reg, gn, 1.0)
+        pd = rux * zx + ruy * zy + ruz * zz
+        x3x = np.where(reg, gx / gs, -(rux - pd * zx))
+        x3y = np.where(reg, gy / gs, -(ruy - pd * zy))
+        x3z = np.where(reg, gz / gs, -(ruz - pd * zz))
+        k = 1.0 / np.sqrt(x3x * x3x + x3y * x3y + x3z * x3z)
+        x3x, x3y, x3z = x3x * k, x3y * k, x3z * k
+        y3x, y3y, y3z = zy * x3z - zz * x3y, zz * x3x - zx * x3z, zx * x3y - zy * x3x
+        rz = np.sqrt(zx * zx + zy * zy)
+        t2 = np.arctan2(rz, zz)
+        r_ok = rz > DEGEN_SIN
+        rzs = np.where(r_ok, rz, 1.0)
+        c1 = np.where(r_ok, zx / rzs, 1.0)
+        s1 = np.where(r_ok, zy / rzs, 0.0)
+        t1 = np.where(r_ok, np.arctan2(zy, zx), 0.0)
+        a11 = c1 * x3x + s1 * x3y
+        a21 = -s1 * x3x + c1 * x3y
+        t3 = np.arctan2(a21, zz * a11 - rz * x3z)
+        c4, s4 = fd / fn, gn / fn
+        x4x, x4y, x4z = c4 * x3x - s4 * zx, c4 * x3y - s4 * zy, c4 * x3z - s4 * zz
+        z4x, z4y, z4z = s4 * x3x + c4 * zx, s4 * x3y + c4 * zy, s4 * x3z + c4 * zz
+        ax, ay, az = r0[2], r1[2], r2[2]
+        bx, by, bz = r0[0], r1[0], r2[0]
+        w13 = x4x * ax + x4y * ay + x4z * az
+        w23 = y3x * ax + y3y * ay + y3z * az
+        w33 = z4x * ax + z4y * ay + z4z * az
+        w11 = x4x * bx + x4y * by + x4z * bz
+        w21 = y3x * bx + y3y * by + y3z * bz
+        w31 = z4x * bx + z4y * by + z4z * bz
+        rw = np.sqrt(w13 * w13 + w23 * w23)
+        t6 = np.arctan2(rw, w33)
+        w_ok = rw > DEGEN_SIN
+        rws = np.where(w_ok, rw, 1.0)
+        c5 = np.where(w_ok, w13 / rws, 1.0)
+        s5 = np.where(w_ok, w23 / rws, 0.0)
+        t5 = np.where(w_ok, np.arctan2(w23, w13), 0.0)
+        b11 = c5 * w11 + s5 * w21
+        b21 = -s5 * w11 + c5 * w21
+        t7 = np.arctan2(b21, w33 * b11 - rw * w31)
+        return np.stack([t1, t2, t3, t4, t5, t6, t7], axis=-1), reach
+
+    @staticmethod
+    def _flips_np(theta: np.ndarray) -> np.ndarray:
+        """(m, 7) base solutions -> (m, 8, 7) flip combinations wrapped into (-pi, pi]."""
+        alt = theta.copy()
+        for j in (0, 2, 4, 6):
+            v = theta[:, j] + PI
+            alt[:, j] = np.where(v > PI, v - TWO_PI, v)
+        for j in (1, 3, 5):
+            alt[:, j] = -theta[:, j]
+        A = np.stack([theta, alt], axis=-1)  # (m, 7, 2)
+        return A[:, np.arange(7)[None, :], _ALT_INDEX]
+
+    def _fit_np(self, Q: np.ndarray, ref: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Wrap (..., 7) angles into the limits: copy nearest ``ref`` (default 0). Returns (Q, in_limits)."""
+        out = np.empty_like(Q)
+        ok = np.ones(Q.shape[:-1], dtype=bool)
+        for j in range(7):
+            lo, up = self._lower_l[j], self._upper_l[j]
+            x = Q[..., j]
+            if not self._wide[j]:
+                inl = (x >= lo - LIMIT_TOL) & (x <= up + LIMIT_TOL)
+                out[..., j] = np.clip(x, lo, up)
+                ok &= inl
+                continue
+            r = 0.0 if ref is None else ref[j]
+            best = np.full(x.shape, np.inf)
+            val = np.zeros(x.shape)
+            for sft in self._shifts[j]:
+                v = x + sft
+                inl = (v >= lo - LIMIT_TOL) & (v <= up + LIMIT_TOL)
+                d = np.where(inl, np.abs(v - r), np.inf)
+                better = d < best
+                val = np.where(better, v, val)
+                best = np.where(better, d, best)
+            out[..., j] = np.clip(val, lo, up)
+            ok &= np.isfinite(best)
+        return out, ok
+
+    def ik_batch(self, Ts: np.ndarray, swivels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Vectorised closed form for m poses at m swivel angles.
+
+        Ts: (m, 4, 4) base -> tool poses, swivels: (m,) rad (or a scalar for all).
+        Returns ``(Q, valid)``: Q of shape (m, 8, 7) holding the 8 flip combinations in the same order as
+        :meth:`ik` (pattern (f2, f4, f6) in binary) wrapped to the in-limit copy nearest 0, and ``valid``
+        (m, 8) bool, False where the pose is out of reach or the solution violates a limit. Entries that
+        are not valid hold NaN. Poses are checked for NaN/inf and shape (not for orthonormality, for speed).
+        """
+        Ts = np.asarray(Ts, dtype=float)
+        if Ts.ndim != 3 or Ts.shape[1:] != (4, 4):
+            raise InvalidInputError(f"Ts must have shape (m, 4, 4), got {Ts.shape}", field="Ts")
+        m = Ts.shape[0]
+        sw = np.broadcast_to(np.asarray(swivels, dtype=float), (m,))
+        if not (np.all(np.isfinite(Ts)) and np.all(np.isfinite(sw))):
+            raise InvalidInputError("Ts or swivels contain NaN or inf", field="Ts")
+        P = [[Ts[:, i, j] for j in range(4)] for i in range(3)]
+        theta, reach = self._base_np(P, np.cos(sw), np.sin(sw))
+        Q, ok = self._fit_np(self._flips_np(theta))
+        valid = ok & reach[:, None]
+        Q[~valid] = np.nan
+        return Q, valid
+
+    # ------------------------------------------------------------------ nearest solution
+    def ik_nearest(
+        self,
+        T: np.ndarray,
+        q_seed: Sequence[float],
+        *,
+        weights: Sequence[float] | None = None,
+        samples: int = 36,
+        fine_samples: int = 720,
+        refine: int = 4,
+        timeout_s: float | None = None,
+        **_ignored: Any,
+    ) -> tuple[np.ndarray | None, IKInfo]:
+        """The in-limit solution of pose T nearest to ``q_seed`` over all swivel angles.
+
+        Distance is the weighted squared joint distance ``sum(w * (q - q_seed)**2)`` with each joint's
+        2*pi copy chosen nearest to the seed. Search: a vectorised scan of ``samples`` swivels starting
+        at swivel(q_seed) (all 8 flips each), a ``fine_samples`` scan if nothing fits the limits, then
+        ``refine`` parabolic refinement steps of the best branch. Deterministic. Returns (q or None,
+        :class:`IKInfo`); failure reasons: INVALID_INPUT, OUT_OF_REACH, NO_SOLUTION_IN_LIMITS.
+        """
+        t0 = time.perf_counter()
+        try:
+            Tl = self.check_pose(T)
+            seed = self.check_q(q_seed, "q_seed")
+            if weights is None:
+                w = np.ones(7)
+            else:
+                w = np.asarray(weights, dtype=float)
+                if w.shape != (7,) or not np.all(np.isfinite(w)) or np.any(w < 0):
+                    raise InvalidInputError("weights must be 7 finite non-negative numbers", field="weights")
+        except InvalidInputError as exc:
+            return None, IKInfo(IKStatus.INVALID_INPUT, str(exc))
+        circ = self._circle(Tl)
+        if not isinstance(circ, tuple):
+            return None, IKInfo(
+                IKStatus.OUT_OF_REACH, f"wrist point is {circ:.6g} m outside the reachable shell"
+            )
+        seed_l = seed.tolist()
+        s0 = self._swivel_lists(seed_l)
+        P = [r[:] for r in Tl[:3]]
+        best = self._scan(P, s0, samples, seed, w)
+        cands = 8 * samples
+        if best is None:
+            best = self._scan(P, s0, fine_samples, seed, w)
+            cands += 8 * fine_samples
+            samples = fine_samples
+        if best is None:
+            return None, IKInfo(
+                IKStatus.NO_SOLUTION_IN_LIMITS,
+                f"reachable, but no swivel ({cands} candidates) gives a solution within the joint limits",
+                candidates=cands,
+            )
+        s_best, branch, q_best, c_best = best
+        step = TWO_PI / samples
+        iters = 0
+        # successive parabolic interpolation on the chosen branch's cost over s
+        lo_s, hi_s = s_best - step, s_best + step
+        pts = [(s_best, c_best, q_best)]
+        for s in (lo_s, hi_s):
+            r = self._branch_eval(Tl, circ, s, branch, seed_l, w)
+            cands += 1
+            if r is not None:
+                pts.append((s, r[1], r[0]))
+        for _ in range(refine):
+            if timeout_s is not None and time.perf_counter() - t0 > timeout_s:
+                break
+            if len(pts) < 3:
+                break
+            pts.sort(key=lambda p: p[1])
+            (sa, fa, _), (sb, fb, _), (sc, fc, _) = pts[0], pts[1], pts[2]
+            den = (sb - sa) * (fb - fc) - (sb - sc) * (fb - fa)
+            if abs(den) < 1e-300:
+                break
+            sn = sb - 0.5 * ((sb - sa) ** 2 * (fb - fc) - (sb - sc) ** 2 * (fb - fa)) / den
+            if not (s_best - step <= sn <= s_best + step) or any(abs(sn - p[0]) < 1e-12 for p in pts):
+                break
+            iters += 1
+            r = self._branch_eval(Tl, circ, sn, branch, seed_l, w)
+            cands += 1
+            if r is None:
+                break
+            pts.append((sn, r[1], r[0]))
+            pts.sort(key=lambda p: p[1])
+            pts = pts[:3]
+        pts.sort(key=lambda p: p[1])
+        s_fin, _, q_fin = pts[0]
+        q = np.array(q_fin)
+        R, p = self._fk_lists(q_fin)
+        Tq = np.array([R[0] + [p[0]], R[1] + [p[1]], R[2] + [p[2]], [0.0, 0.0, 0.0, 1.0]])
+        from redarm_ros.kinematics.model import pose_error
+
+        pe, re = pose_error(Tq, np.asarray(T, dtype=float))
+        s_fin = math.atan2(math.sin(s_fin), math.cos(s_fin))
+        return q, IKInfo(
+            IKStatus.SUCCESS, "ok", swivel=s_fin, pos_err=pe, rot_err=re, iterations=iters, candidates=cands
+        )
+
+    def _scan(
+        self, P: list[list[float]], s0: float, m: int, seed: np.ndarray, w: np.ndarray
+    ) -> tuple[float, int, list[float], float] | None:
+        s = s0 + np.arange(m) * (TWO_PI / m)
+        theta, _ = self._base_np(P, np.cos(s), np.sin(s))
+        Q, ok = self._fit_np(self._flips_np(theta), seed)
+        cost = np.where(ok, ((Q - seed) ** 2 * w).sum(axis=-1), np.inf)
+        idx = int(np.argmin(cost))
+        i, b = divmod(idx, 8)
+        c = float(cost[i, b])
+        if not math.isfinite(c):
+            return None
+        return float(s[i]), b, Q[i, b].tolist(), c
+
+    def _branch_eval(
+        self,
+        Tl: list[list[float]],
+        circ: tuple[float, ...],
+        s: float,
+        branch: int,
+        seed: list[float],
+        w: np.ndarray,
+    ) -> tuple[list[float], float] | None:
+        """Flip pattern ``branch`` at swivel s, each angle at its in-limit copy nearest the seed."""
+        base = self._base_from_circle(Tl, circ, math.cos(s), math.sin(s))
+        t1, t2, t3, t4, t5, t6, t7 = base
+        alts = (
+            (t1, _wrap(t1 + PI)),
+            (t2, -t2),
+            (t3, _wrap(t3 + PI)),
+            (t4, -t4),
+            (t5, _wrap(t5 + PI)),
+            (t6, -t6),
+            (t7, _wrap(t7 + PI)),
+        )
+        pat = _ALT_INDEX[branch]
+        q = []
+        cost = 0.0
+        wl = w.tolist()
+        for j in range(7):
+            cs = self._fit(j, alts[j][pat[j]])
+            if not cs:
+                return None
+            v = min(cs, key=lambda x, r=seed[j]: abs(x - r))
+            q.append(v)
+            cost += wl[j] * (v - seed[j]) ** 2
+        return q, cost
