@@ -1,0 +1,372 @@
+"""ik_service node: bad requests answered with the right status (node keeps serving), FK round trips,
+swivel mode, all solutions, in-process and across processes, and a second node of the same name."""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+import pytest
+
+rclpy = pytest.importorskip("rclpy")
+pytest.importorskip("redarm_interfaces", reason="redarm_interfaces not built (run scripts/setup_env.sh)")
+
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from redarm_interfaces.srv import SolveIK  # noqa: E402
+
+from redarm_ros.kinematics import load_arm  # noqa: E402
+from redarm_ros.kinematics.quaternion import matrix_to_quat  # noqa: E402
+from redarm_ros.nodes.ik_service import IKServiceNode, pose_msg_to_matrix  # noqa: E402
+from redarm_ros.procs import python_module_cmd  # noqa: E402
+
+ARMS = ["pa10", "pa10_7c", "powercube6", "powercube7"]
+R = SolveIK.Response
+
+
+def make_request(T: np.ndarray, arm: str = "", **fields: Any) -> SolveIK.Request:
+    """A SolveIK request for the 4x4 pose T (quaternion converted to the message's x, y, z, w)."""
+    req = SolveIK.Request()
+    req.arm = arm
+    p = req.target.pose.position
+    p.x, p.y, p.z = (float(v) for v in T[:3, 3])
+    w, x, y, z = (float(v) for v in matrix_to_quat(T[:3, :3]))
+    o = req.target.pose.orientation
+    o.x, o.y, o.z, o.w = x, y, z, w
+    for k, v in fields.items():
+        setattr(req, k, v)
+    return req
+
+
+class Caller:
+    """Client side: call the service and spin until the answer is there (bounded)."""
+
+    def __init__(
+        self, ctx: Any, executor: SingleThreadedExecutor, service: str = "/ik_service/solve_ik"
+    ) -> None:
+        self.node = rclpy.create_node("ik_test_client", context=ctx)
+        self.client = self.node.create_client(SolveIK, service)
+        self.executor = executor
+        executor.add_node(self.node)
+
+    def wait_ready(self, timeout: float = 10.0) -> None:
+        deadline = time.monotonic() + timeout
+        while not self.client.service_is_ready():
+            assert time.monotonic() < deadline, "service did not appear"
+            self.executor.spin_once(timeout_sec=0.05)
+
+    def __call__(self, req: SolveIK.Request, timeout: float = 10.0) -> SolveIK.Response:
+        fut = self.client.call_async(req)
+        deadline = time.monotonic() + timeout
+        while not fut.done():
+            assert time.monotonic() < deadline, "no answer from the service"
+            self.executor.spin_once(timeout_sec=0.05)
+        return fut.result()
+
+
+@pytest.fixture(scope="module")
+def ctx(ros_env: Any) -> Iterator[Any]:
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=ros_env.domain_id)
+    yield context
+    rclpy.shutdown(context=context)
+
+
+@pytest.fixture(scope="module")
+def service(ctx: Any) -> Iterator[tuple[IKServiceNode, Caller]]:
+    """One in-process ik_service node (all four arms) and a client in the same executor."""
+    node = IKServiceNode(
+        context=ctx,
+        node_name="ik_service_inproc",  # the cross-process test below owns the default name
+        parameter_overrides=[Parameter("arms", value=ARMS), Parameter("duplicate_check_s", value=0.0)],
+    )
+    executor = SingleThreadedExecutor(context=ctx)
+    executor.add_node(node)
+    caller = Caller(ctx, executor, "/ik_service_inproc/solve_ik")
+    caller.wait_ready()
+    yield node, caller
+    executor.shutdown()
+    caller.node.destroy_node()
+    node.destroy_node()
+
+
+def random_pose(arm: Any, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """A joint vector well inside the limits and its tool pose."""
+    q = rng.uniform(0.8 * arm.lower, 0.8 * arm.upper)
+    return q, arm.fk(q)
+
+
+GOOD_T = load_arm("pa10").fk(np.array([0.3, 0.4, -0.2, 1.0, 0.3, 0.5, 0.1]))
+
+
+def _bad(kind: str) -> SolveIK.Request:
+    req = make_request(GOOD_T, "pa10")
+    o = req.target.pose.orientation
+    if kind == "nan_position":
+        req.target.pose.position.y = math.nan
+    elif kind == "nan_orientation":
+        o.z = math.nan
+    elif kind == "inf_position":
+        req.target.pose.position.x = math.inf
+    elif kind == "zero_quaternion":
+        o.x = o.y = o.z = o.w = 0.0
+    elif kind == "non_unit_quaternion":
+        o.x, o.y, o.z, o.w = 0.0, 0.0, 0.0, 2.0
+    elif kind == "unknown_arm":
+        req.arm = "no_such_arm"
+    elif kind == "seed_too_short":
+        req.seed = [0.0, 0.1, 0.2]
+    elif kind == "seed_too_long":
+        req.seed = [0.0] * 8
+    elif kind == "seed_nan":
+        req.seed = [0.0, 0.0, math.nan, 0.0, 0.0, 0.0, 0.0]
+    elif kind == "foreign_frame":
+        req.target.header.frame_id = "camera_link"
+    elif kind == "negative_timeout":
+        req.timeout = -1.0
+    elif kind == "nan_swivel":
+        req.swivel_given, req.swivel = True, math.nan
+    elif kind == "swivel_on_chain_without_swivel":
+        req.arm = "powercube6"  # its analytic IK has no swivel; asking for one must not crash
+        req.swivel_given, req.swivel = True, 0.3
+    else:  # pragma: no cover - test table typo
+        raise AssertionError(kind)
+    return req
+
+
+BAD = [
+    "nan_position",
+    "nan_orientation",
+    "inf_position",
+    "zero_quaternion",
+    "non_unit_quaternion",
+    "unknown_arm",
+    "seed_too_short",
+    "seed_too_long",
+    "seed_nan",
+    "foreign_frame",
+    "negative_timeout",
+    "nan_swivel",
+]
+
+
+@pytest.mark.parametrize("kind", BAD)
+def test_bad_request_is_invalid_input_and_node_keeps_serving(service: Any, kind: str) -> None:
+    node, call = service
+    resp = call(_bad(kind))
+    assert resp.status == R.INVALID_INPUT, (kind, resp.status, resp.message)
+    assert resp.message, "a refusal must say why"
+    assert len(resp.solution.position) == 0
+    # The same node answers a good request right after.
+    good = call(make_request(GOOD_T, "pa10"))
+    assert good.status == R.SUCCESS, good.message
+
+
+def test_messages_name_the_problem(service: Any) -> None:
+    _, call = service
+    assert "no_such_arm" in call(_bad("unknown_arm")).message
+    assert "pa10" in call(_bad("unknown_arm")).message  # lists what is served
+    assert "seed" in call(_bad("seed_too_short")).message
+    assert "zero quaternion" in call(_bad("zero_quaternion")).message
+    assert "camera_link" in call(_bad("foreign_frame")).message
+
+
+def test_swivel_on_powercube6_is_answered(service: Any) -> None:
+    """The 6-DOF arm: a swivel request is answered (solved or refused), never a crash."""
+    _, call = service
+    resp = call(_bad("swivel_on_chain_without_swivel"))
+    assert resp.status in (R.SUCCESS, R.INVALID_INPUT, R.NO_SOLUTION_IN_LIMITS, R.OUT_OF_REACH)
+
+
+@pytest.mark.parametrize("arm_name", ["pa10", "powercube7"])
+def test_unreachable_is_out_of_reach(service: Any, arm_name: str) -> None:
+    _, call = service
+    T = np.eye(4)
+    T[:3, 3] = (3.0, 0.0, 0.5)  # metres beyond any of these arms
+    resp = call(make_request(T, arm_name))
+    assert resp.status == R.OUT_OF_REACH, resp.message
+    assert len(resp.solution.position) == 0
+    resp = call(make_request(T, arm_name, swivel_given=True, swivel=0.5))
+    assert resp.status == R.OUT_OF_REACH, resp.message
+
+
+def test_slightly_non_unit_quaternion_is_renormalised(service: Any) -> None:
+    _, call = service
+    req = make_request(GOOD_T, "pa10")
+    o = req.target.pose.orientation
+    o.x, o.y, o.z, o.w = (1.0002 * v for v in (o.x, o.y, o.z, o.w))
+    resp = call(req)
+    assert resp.status == R.SUCCESS, resp.message
+    assert resp.orientation_error < 1e-9
+
+
+@pytest.mark.parametrize("arm_name", ARMS)
+def test_fk_round_trip_all_solutions(service: Any, arm_name: str) -> None:
+    _, call = service
+    arm = load_arm(arm_name)
+    rng = np.random.default_rng(7)
+    for _ in range(8):
+        q_true, T = random_pose(arm, rng)
+        resp = call(make_request(T, arm_name, all_solutions=True))
+        assert resp.status == R.SUCCESS, resp.message
+        assert list(resp.solution.name) == list(arm.joint_names)
+        assert resp.solution.header.frame_id == "base_link"
+        q = np.array(resp.solution.position)
+        assert arm.within_limits(q, 1e-9)
+        pe, re = arm.pose_error(q, T)
+        assert pe < 1e-9 and re < 1e-9
+        assert resp.position_error == pytest.approx(pe, abs=1e-12)
+        assert resp.orientation_error == pytest.approx(re, abs=1e-12)
+        assert len(resp.solutions) >= 1
+        for pt in resp.solutions:
+            qs = np.array(pt.positions)
+            assert qs.shape == (arm.n,) and arm.within_limits(qs, 1e-9)
+            pe, re = arm.pose_error(qs, T)
+            assert pe < 1e-9 and re < 1e-9
+
+
+@pytest.mark.parametrize("arm_name", ["pa10", "powercube7"])
+def test_seed_gives_nearest_solution(service: Any, arm_name: str) -> None:
+    """With the true configuration as seed, the answer is that configuration (no branch flip)."""
+    _, call = service
+    arm = load_arm(arm_name)
+    rng = np.random.default_rng(11)
+    for _ in range(8):
+        q_true, T = random_pose(arm, rng)
+        resp = call(make_request(T, arm_name, seed=[float(v) for v in q_true]))
+        assert resp.status == R.SUCCESS, resp.message
+        assert np.max(np.abs(np.array(resp.solution.position) - q_true)) < 1e-6
+        assert resp.swivel == pytest.approx(arm.swivel(q_true), abs=1e-6)
+
+
+@pytest.mark.parametrize("arm_name", ["pa10", "pa10_7c", "powercube7"])
+def test_swivel_given_solves_at_that_swivel(service: Any, arm_name: str) -> None:
+    _, call = service
+    arm = load_arm(arm_name)
+    rng = np.random.default_rng(3)
+    solved = 0
+    for _ in range(10):
+        q_true, T = random_pose(arm, rng)
+        s = float(arm.swivel(q_true))
+        resp = call(
+            make_request(
+                T, arm_name, swivel_given=True, swivel=s, all_solutions=True, seed=[float(v) for v in q_true]
+            )
+        )
+        assert resp.status == R.SUCCESS, resp.message  # the true q is a solution at its own swivel
+        solved += 1
+        q = np.array(resp.solution.position)
+        assert np.max(np.abs(q - q_true)) < 1e-6  # nearest to the seed among the (up to 8) solutions
+        assert resp.swivel == pytest.approx(s, abs=1e-6)
+        for pt in resp.solutions:
+            assert arm.swivel(np.array(pt.positions)) == pytest.approx(s, abs=1e-6)
+            assert arm.pose_error(np.array(pt.positions), T)[0] < 1e-9
+    assert solved == 10
+
+
+def test_swivel_without_in_limit_solution_says_so(service: Any) -> None:
+    """A reachable pose at a swivel where every solution breaks a limit: NO_SOLUTION_IN_LIMITS."""
+    _, call = service
+    arm = load_arm("pa10")
+    rng = np.random.default_rng(5)
+    found = False
+    for _ in range(200):
+        _, T = random_pose(arm, rng)
+        for s in np.linspace(-math.pi, math.pi, 24, endpoint=False):
+            if len(arm.ik(T, s)) == 0:
+                resp = call(make_request(T, "pa10", swivel_given=True, swivel=float(s)))
+                assert resp.status == R.NO_SOLUTION_IN_LIMITS, resp.message
+                assert "limit" in resp.message
+                found = True
+                break
+        if found:
+            break
+    assert found, "no test pose found (widen the search)"
+
+
+def test_default_arm_and_base_frame(service: Any) -> None:
+    _, call = service
+    req = make_request(GOOD_T, "")  # empty arm -> default (pa10)
+    req.target.header.frame_id = "base_link"
+    resp = call(req)
+    assert resp.status == R.SUCCESS
+    assert len(resp.solution.position) == 7
+
+
+def test_pose_msg_to_matrix_tolerance() -> None:
+    from geometry_msgs.msg import Pose
+
+    from redarm_ros.errors import InvalidInputError
+
+    pose = Pose()
+    pose.orientation.w = 1.0 + 5e-4
+    T = pose_msg_to_matrix(pose, 1e-3)
+    assert np.allclose(T, np.eye(4))
+    with pytest.raises(InvalidInputError):
+        pose_msg_to_matrix(pose, 1e-4)
+
+
+def test_bad_parameters_refuse_to_start(ctx: Any) -> None:
+    with pytest.raises(ValueError, match="default_arm"):
+        IKServiceNode(
+            context=ctx,
+            node_name="ik_bad1",
+            parameter_overrides=[
+                Parameter("arms", value=["pa10"]),
+                Parameter("default_arm", value="powercube7"),
+                Parameter("duplicate_check_s", value=0.0),
+            ],
+        )
+    with pytest.raises(ValueError, match="no_such_arm"):
+        IKServiceNode(
+            context=ctx,
+            node_name="ik_bad2",
+            parameter_overrides=[
+                Parameter("arms", value=["no_such_arm"]),
+                Parameter("duplicate_check_s", value=0.0),
+            ],
+        )
+
+
+# ---------------------------------------------------------------------------------------------
+# Across processes
+# ---------------------------------------------------------------------------------------------
+def test_cross_process_service_and_duplicate_refused(procs: Any, ctx: Any) -> None:
+    """The node as its own process: answers good and bad requests; a second one of the same name
+    refuses to start with a clear message and exit code 1, and the first keeps serving."""
+    first = procs.start(
+        "ik_service",
+        python_module_cmd("redarm_ros.nodes.ik_service"),
+        ready=r"serving /ik_service/solve_ik",
+        ready_timeout=30.0,
+    )
+    executor = SingleThreadedExecutor(context=ctx)
+    call = Caller(ctx, executor)
+    try:
+        call.wait_ready(timeout=15.0)
+        arm = load_arm("pa10")
+        rng = np.random.default_rng(1)
+        for _ in range(5):
+            q_true, T = random_pose(arm, rng)
+            resp = call(make_request(T, "pa10"))
+            assert resp.status == R.SUCCESS, resp.message
+            assert arm.pose_error(np.array(resp.solution.position), T)[0] < 1e-9
+        assert call(_bad("nan_position")).status == R.INVALID_INPUT
+        assert call(_bad("unknown_arm")).status == R.INVALID_INPUT
+
+        second = procs.start("ik_service_2", python_module_cmd("redarm_ros.nodes.ik_service"))
+        second.expect_exit()
+        second.wait_for_line(r"already running", timeout=30.0)
+        deadline = time.monotonic() + 15.0
+        while second.returncode is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert second.returncode == 1
+        assert first.is_running()
+        resp = call(make_request(GOOD_T, "pa10"))
+        assert resp.status == R.SUCCESS, resp.message
+    finally:
+        executor.shutdown()
+        call.node.destroy_node()
