@@ -53,11 +53,17 @@ PI = math.pi
 TWO_PI = 2.0 * math.pi
 REACH_TOL = 1e-9  # m; a wrist this far beyond the reach sphere still counts as (just) reachable
 DEGEN_SIN = 1e-12  # |sin theta| below which the arm plane / a ZYZ decomposition is degenerate
+ZOOM_SIN = 0.1  # ik_nearest zooms in when |sin theta2| or |sin theta6| of its best candidate is below
 RHO_DEGEN = 1e-7  # m; below this elbow-circle radius swivel(q) uses the degenerate definition
 
 # flip pattern k -> (f2, f4, f6); per joint which of the two alternatives (base, flipped) to use
 FLIP_PATTERNS = [((k >> 2) & 1, (k >> 1) & 1, k & 1) for k in range(8)]
 _ALT_INDEX = np.array([[f2, f2, f2 ^ f4, f4, f4 ^ f6, f6, f6] for f2, f4, f6 in FLIP_PATTERNS])
+# the same flips as affine maps: angle -> sign * angle + shift (shift a multiple of pi, not wrapped)
+_J7 = np.arange(7)[None, :]
+# alternatives per joint as affine maps angle -> sign * angle + shift: (7, 2), column 1 = flipped
+_ALT_SIGN = np.array([[1.0, 1.0 if j % 2 == 0 else -1.0] for j in range(7)])
+_ALT_SHIFT = np.array([[0.0, PI if j % 2 == 0 else 0.0] for j in range(7)])
 
 
 def _wrap(x: float) -> float:
@@ -93,6 +99,8 @@ class SwivelArm(Arm):
         self._L = tuple(L)
         # joints whose range reaches beyond (-pi, pi]: more than one 2*pi copy may fit
         self._wide = [lo < -PI or up > PI for lo, up in zip(self._lower_l, self._upper_l, strict=True)]
+        self._lo2 = self.lower[:, None]
+        self._up2 = self.upper[:, None]
         self._shifts = []
         for lo, up in zip(self._lower_l, self._upper_l, strict=True):
             kmax = int(math.ceil(max(abs(lo), abs(up)) / TWO_PI)) + 1
@@ -524,6 +532,74 @@ class SwivelArm(Arm):
         return Q, valid
 
     # ------------------------------------------------------------------ nearest solution
+    def _pose_ctx(self, Tl: list[list[float]], circ: tuple[float, ...]) -> tuple[Any, ...]:
+        """Per-pose constants of a vectorised swivel sweep."""
+        L1, L2, L3, L4 = self._L
+        dx, dy, dz, D, rxy2, nx, ny, nz, ca = circ
+        sa = math.sqrt(max(0.0, 1.0 - ca * ca))
+        a0 = self._rot_qa(circ, 1.0, 0.0)
+        a1 = self._rot_qa(circ, 0.0, 1.0)
+        Au = np.array([[a0[0], a1[0]], [a0[1], a1[1]], [a0[2], a1[2]]])  # qA applied to (ux, uy, 0)
+        zc = np.array([[ca * nx], [ca * ny], [ca * nz]])
+        c4 = max(-1.0, min(1.0, (D * D - L2 * L2 - L3 * L3) / (2.0 * L2 * L3)))
+        s4 = math.sqrt(max(0.0, 1.0 - c4 * c4))
+        d = np.array([[dx], [dy], [dz]])
+        a = np.array([Tl[0][2], Tl[1][2], Tl[2][2]])
+        b = np.array([Tl[0][0], Tl[1][0], Tl[2][0]])
+        return Au, sa * Au, zc, d, c4, s4, a, b
+
+    def _sweep(
+        self, ctx: tuple[Any, ...], s: np.ndarray, seed: np.ndarray, w: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """All 8 flips at the swivels s (M,), angles at the in-limit copy nearest the seed.
+
+        Returns (cost (M, 8), Q (M, 8, 7)); cost is inf where a solution violates a limit.
+        """
+        Au, A, zc, d, c4, s4, a, b = ctx
+        L2 = self._L[1]
+        U = np.stack([np.cos(s), np.sin(s)])
+        Z = zc + A @ U  # upper-arm direction, (3, M)
+        if s4 > 1e-9:
+            F = d - L2 * Z
+            X = F - (F * Z).sum(0) * Z
+        else:  # stretched / folded elbow: the swivel picks the arm plane (as in _base_from_circle)
+            Ru = Au @ U
+            X = (Ru * Z).sum(0) * Z - Ru
+        X = X / np.sqrt((X * X).sum(0))
+        z0, z1, z2 = Z
+        x0, x1, x2 = X
+        y0, y1, y2 = z1 * x2 - z2 * x1, z2 * x0 - z0 * x2, z0 * x1 - z1 * x0
+        rz = np.hypot(z0, z1)
+        th = np.empty((len(s), 7))
+        th[:, 1] = np.arctan2(rz, z2)
+        # theta1 is arbitrary (atan2 of ~0) on the base axis; theta3 from the residual keeps R3 exact
+        t1 = th[:, 0] = np.arctan2(z1, z0)
+        c1, s1 = np.cos(t1), np.sin(t1)
+        th[:, 2] = np.arctan2(c1 * x1 - s1 * x0, z2 * (c1 * x0 + s1 * x1) - rz * x2)
+        th[:, 3] = math.atan2(s4, c4)
+        X4 = c4 * X - s4 * Z
+        Z4 = s4 * X + c4 * Z
+        w13, w33 = a @ X4, a @ Z4
+        w23 = a[0] * y0 + a[1] * y1 + a[2] * y2
+        w11, w31 = b @ X4, b @ Z4
+        w21 = b[0] * y0 + b[1] * y1 + b[2] * y2
+        rw = np.hypot(w13, w23)
+        th[:, 5] = np.arctan2(rw, w33)
+        t5 = th[:, 4] = np.arctan2(w23, w13)
+        c5, s5 = np.cos(t5), np.sin(t5)
+        th[:, 6] = np.arctan2(c5 * w21 - s5 * w11, w33 * (c5 * w11 + s5 * w21) - rw * w31)
+        # per joint the two alternatives (base, flipped; unwrapped), each at the copy nearest the seed
+        # and moved into the limits; the 8 flip patterns then only pick and add per-joint costs
+        A2 = th[:, :, None] * _ALT_SIGN + _ALT_SHIFT  # (M, 7, 2)
+        sd = seed[:, None]
+        V = A2 - TWO_PI * np.round((A2 - sd) / TWO_PI)
+        lo, up = self._lo2, self._up2
+        V = np.where(V > up, V - TWO_PI, np.where(V < lo, V + TWO_PI, V))
+        c = np.where((V >= lo - LIMIT_TOL) & (V <= up + LIMIT_TOL), (V - sd) ** 2 * w[:, None], np.inf)
+        cost = c[:, _J7, _ALT_INDEX].sum(axis=-1)  # (M, 8)
+        V = np.clip(V, lo, up)[:, _J7, _ALT_INDEX]
+        return cost, V
+
     def ik_nearest(
         self,
         T: np.ndarray,
@@ -532,17 +608,25 @@ class SwivelArm(Arm):
         weights: Sequence[float] | None = None,
         samples: int = 36,
         fine_samples: int = 720,
-        refine: int = 4,
+        refine: int = 3,
+        zoom: int = 3,
         timeout_s: float | None = None,
         **_ignored: Any,
     ) -> tuple[np.ndarray | None, IKInfo]:
         """The in-limit solution of pose T nearest to ``q_seed`` over all swivel angles.
 
-        Distance is the weighted squared joint distance ``sum(w * (q - q_seed)**2)`` with each joint's
-        2*pi copy chosen nearest to the seed. Search: a vectorised scan of ``samples`` swivels starting
-        at swivel(q_seed) (all 8 flips each), a ``fine_samples`` scan if nothing fits the limits, then
-        ``refine`` parabolic refinement steps of the best branch. Deterministic. Returns (q or None,
-        :class:`IKInfo`); failure reasons: INVALID_INPUT, OUT_OF_REACH, NO_SOLUTION_IN_LIMITS.
+        Distance: weighted squared joint distance ``sum(w * (q - q_seed)**2)``, each joint at its in-limit
+        2*pi copy nearest the seed. Search (deterministic): one vectorised sweep of all 8 flips over
+        ``samples`` swivels spread over the circle plus a geometric pattern of swivels around the seed's
+        own swivel (so a seed next to a solution finds it, also near singular configurations where q
+        changes fast with s); a ``fine_samples`` sweep if nothing fits the limits; up to ``zoom``
+        geometric zoom sweeps when the best candidate is near a shoulder/wrist singularity
+        (|sin theta2| or |sin theta6| < 0.1); then up to ``refine`` steps of successive parabolic
+        interpolation of the best branch's distance over s (scalar solves). ``timeout_s`` (s) stops
+        the refinement early.
+
+        Returns (q or None, :class:`IKInfo`); failure reasons: INVALID_INPUT, OUT_OF_REACH,
+        NO_SOLUTION_IN_LIMITS.
         """
         t0 = time.perf_counter()
         try:
@@ -554,6 +638,9 @@ class SwivelArm(Arm):
                 w = np.asarray(weights, dtype=float)
                 if w.shape != (7,) or not np.all(np.isfinite(w)) or np.any(w < 0):
                     raise InvalidInputError("weights must be 7 finite non-negative numbers", field="weights")
+            samples = int(samples)
+            if samples < 4:
+                raise InvalidInputError("samples must be >= 4", field="samples", value=samples)
         except InvalidInputError as exc:
             return None, IKInfo(IKStatus.INVALID_INPUT, str(exc))
         circ = self._circle(Tl)
@@ -561,79 +648,95 @@ class SwivelArm(Arm):
             return None, IKInfo(
                 IKStatus.OUT_OF_REACH, f"wrist point is {circ:.6g} m outside the reachable shell"
             )
-        seed_l = seed.tolist()
-        s0 = self._swivel_lists(seed_l)
-        P = [r[:] for r in Tl[:3]]
-        best = self._scan(P, s0, samples, seed, w)
-        cands = 8 * samples
-        if best is None:
-            best = self._scan(P, s0, fine_samples, seed, w)
-            cands += 8 * fine_samples
-            samples = fine_samples
-        if best is None:
+        ctx = self._pose_ctx(Tl, circ)
+        s0 = self._swivel_lists(seed.tolist())
+        step = TWO_PI / samples
+        pattern = step * 2.0 ** -np.arange(1, 13)
+        s = s0 + np.concatenate([np.arange(samples) * step, pattern, -pattern])
+        cost, Q = self._sweep(ctx, s, seed, w)
+        cands = cost.size
+        if not np.isfinite(cost).any():
+            s = s0 + np.arange(int(fine_samples)) * (TWO_PI / int(fine_samples))
+            cost, Q = self._sweep(ctx, s, seed, w)
+            cands += cost.size
+            step = TWO_PI / int(fine_samples)
+        if not np.isfinite(cost).any():
             return None, IKInfo(
                 IKStatus.NO_SOLUTION_IN_LIMITS,
                 f"reachable, but no swivel ({cands} candidates) gives a solution within the joint limits",
                 candidates=cands,
             )
-        s_best, branch, q_best, c_best = best
-        step = TWO_PI / samples
+        i, b = divmod(int(np.argmin(cost)), 8)
+        s_b, c_b, q_b = float(s[i]), float(cost[i, b]), Q[i, b]
+        # near a shoulder/wrist ZYZ singularity (sin theta2 or sin theta6 small) q changes fast with s:
+        # zoom with geometric patterns around the best swivel before the parabolic refinement
+        h = step
         iters = 0
-        # successive parabolic interpolation on the chosen branch's cost over s
-        lo_s, hi_s = s_best - step, s_best + step
-        pts = [(s_best, c_best, q_best)]
-        for s in (lo_s, hi_s):
-            r = self._branch_eval(Tl, circ, s, branch, seed_l, w)
-            cands += 1
-            if r is not None:
-                pts.append((s, r[1], r[0]))
-        for _ in range(refine):
+        zooms = 0
+        while zooms < zoom and (abs(math.sin(q_b[1])) < ZOOM_SIN or abs(math.sin(q_b[5])) < ZOOM_SIN):
             if timeout_s is not None and time.perf_counter() - t0 > timeout_s:
                 break
-            if len(pts) < 3:
+            zooms += 1
+            pat = h * 2.0 ** -np.arange(0, 12)
+            s = s_b + np.concatenate([[0.0], pat, -pat])
+            cost, Q = self._sweep(ctx, s, seed, w)
+            cands += cost.size
+            i = int(np.argmin(cost[:, b]))
+            if cost[i, b] <= c_b:
+                s_b, c_b, q_b = float(s[i]), float(cost[i, b]), Q[i, b]
+            h = max(abs(s_b - float(s[0])), h * 2.0**-11)
+        i = int(np.argmin(np.abs(s - s_b)))
+        # successive parabolic interpolation on branch b from the best sample and its neighbours
+        order = np.argsort(s)
+        pos = int(np.nonzero(order == i)[0][0])
+        cb = cost[:, b]
+        pts = [(s_b, c_b)]
+        for nb in (order[pos - 1] if pos > 0 else None, order[pos + 1] if pos + 1 < len(s) else None):
+            if nb is not None and math.isfinite(cb[nb]):
+                pts.append((float(s[nb]), float(cb[nb])))
+        seed_l = seed.tolist()
+        while len(pts) == 3 and iters < refine:
+            if timeout_s is not None and time.perf_counter() - t0 > timeout_s:
                 break
-            pts.sort(key=lambda p: p[1])
-            (sa, fa, _), (sb, fb, _), (sc, fc, _) = pts[0], pts[1], pts[2]
+            (sa, fa), (sb, fb), (sc, fc) = sorted(pts)
             den = (sb - sa) * (fb - fc) - (sb - sc) * (fb - fa)
-            if abs(den) < 1e-300:
+            if den == 0.0:
                 break
-            sn = sb - 0.5 * ((sb - sa) ** 2 * (fb - fc) - (sb - sc) ** 2 * (fb - fa)) / den
-            if not (s_best - step <= sn <= s_best + step) or any(abs(sn - p[0]) < 1e-12 for p in pts):
+            sv = sb - 0.5 * ((sb - sa) ** 2 * (fb - fc) - (sb - sc) ** 2 * (fb - fa)) / den
+            if not (sa < sv < sc) or abs(sv - s_b) < 1e-12:
                 break
             iters += 1
-            r = self._branch_eval(Tl, circ, sn, branch, seed_l, w)
+            r = self._branch_eval(Tl, circ, sv, b, seed_l, w)
             cands += 1
             if r is None:
                 break
-            pts.append((sn, r[1], r[0]))
-            pts.sort(key=lambda p: p[1])
-            pts = pts[:3]
-        pts.sort(key=lambda p: p[1])
-        s_fin, _, q_fin = pts[0]
-        q = np.array(q_fin)
-        R, p = self._fk_lists(q_fin)
-        Tq = np.array([R[0] + [p[0]], R[1] + [p[1]], R[2] + [p[2]], [0.0, 0.0, 0.0, 1.0]])
-        from redarm_ros.kinematics.model import pose_error
-
-        pe, re = pose_error(Tq, np.asarray(T, dtype=float))
-        s_fin = math.atan2(math.sin(s_fin), math.cos(s_fin))
+            if r[1] < c_b:
+                s_b, c_b, q_b = sv, r[1], r[0]
+            # keep the bracket around the best point
+            pts = sorted([*pts, (sv, r[1])])
+            k = min(range(len(pts)), key=lambda j: pts[j][1])
+            if k == 0 or k == len(pts) - 1:
+                break
+            pts = pts[k - 1 : k + 2]
+        iters += zooms
+        q = np.array(q_b, dtype=float)
+        pe, re = self._pose_err_lists(q.tolist(), Tl)
+        s_fin = math.atan2(math.sin(s_b), math.cos(s_b))
         return q, IKInfo(
             IKStatus.SUCCESS, "ok", swivel=s_fin, pos_err=pe, rot_err=re, iterations=iters, candidates=cands
         )
 
-    def _scan(
-        self, P: list[list[float]], s0: float, m: int, seed: np.ndarray, w: np.ndarray
-    ) -> tuple[float, int, list[float], float] | None:
-        s = s0 + np.arange(m) * (TWO_PI / m)
-        theta, _ = self._base_np(P, np.cos(s), np.sin(s))
-        Q, ok = self._fit_np(self._flips_np(theta), seed)
-        cost = np.where(ok, ((Q - seed) ** 2 * w).sum(axis=-1), np.inf)
-        idx = int(np.argmin(cost))
-        i, b = divmod(idx, 8)
-        c = float(cost[i, b])
-        if not math.isfinite(c):
-            return None
-        return float(s[i]), b, Q[i, b].tolist(), c
+    def _pose_err_lists(self, q: list[float], Tl: list[list[float]]) -> tuple[float, float]:
+        """(position error m, rotation error rad) of fk(q) against the nested-list pose Tl."""
+        R, p = self._fk_lists(q)
+        pe = math.sqrt(sum((p[i] - Tl[i][3]) ** 2 for i in range(3)))
+        # residual rotation Rd R^T: angle = atan2(|skew|/2, (trace - 1)/2)
+        M = [[sum(Tl[i][k] * R[j][k] for k in range(3)) for j in range(3)] for i in range(3)]
+        vx, vy, vz = M[2][1] - M[1][2], M[0][2] - M[2][0], M[1][0] - M[0][1]
+        re = math.atan2(
+            0.5 * math.sqrt(vx * vx + vy * vy + vz * vz), 0.5 * (M[0][0] + M[1][1] + M[2][2] - 1.0)
+        )
+        return pe, abs(re)
 
     def _branch_eval(
         self,
@@ -643,10 +746,10 @@ class SwivelArm(Arm):
         branch: int,
         seed: list[float],
         w: np.ndarray,
-    ) -> tuple[list[float], float] | None:
-        """Flip pattern ``branch`` at swivel s, each angle at its in-limit copy nearest the seed."""
-        base = self._base_from_circle(Tl, circ, math.cos(s), math.sin(s))
-        t1, t2, t3, t4, t5, t6, t7 = base
+    ) -> tuple[np.ndarray, float] | None:
+        """Flip pattern ``branch`` at swivel s (scalar solve), each angle at its in-limit copy nearest the
+        seed. Returns (q, weighted squared distance to the seed) or None if a limit is violated."""
+        t1, t2, t3, t4, t5, t6, t7 = self._base_from_circle(Tl, circ, math.cos(s), math.sin(s))
         alts = (
             (t1, _wrap(t1 + PI)),
             (t2, -t2),
@@ -656,15 +759,16 @@ class SwivelArm(Arm):
             (t6, -t6),
             (t7, _wrap(t7 + PI)),
         )
-        pat = _ALT_INDEX[branch]
+        pat = _ALT_INDEX[branch].tolist()
+        wl = w.tolist()
         q = []
         cost = 0.0
-        wl = w.tolist()
         for j in range(7):
             cs = self._fit(j, alts[j][pat[j]])
             if not cs:
                 return None
-            v = min(cs, key=lambda x, r=seed[j]: abs(x - r))
+            r = seed[j]
+            v = min(cs, key=lambda x, r=r: abs(x - r))
             q.append(v)
-            cost += wl[j] * (v - seed[j]) ** 2
-        return q, cost
+            cost += wl[j] * (v - r) ** 2
+        return np.array(q), cost
