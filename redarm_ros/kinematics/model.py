@@ -231,8 +231,13 @@ class Arm:
         return bool(np.all(q >= self.lower - tol) and np.all(q <= self.upper + tol))
 
     # ------------------------------------------------------------------ forward kinematics
-    def _fk_lists(self, q: Sequence[float]) -> tuple[list[list[float]], list[float]]:
-        """Scalar FK: (R rows, p) of the tool. q: sequence of n floats (not validated)."""
+    def _fk_lists(
+        self, q: Sequence[float], record: list[tuple[list[float], list[float]]] | None = None
+    ) -> tuple[list[list[float]], list[float]]:
+        """Scalar FK: (R rows, p) of the tool. q: sequence of n floats (not validated).
+
+        If ``record`` is a list, (joint origin, joint axis) in the base frame are appended per joint.
+        """
         R = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
         p = [0.0, 0.0, 0.0]
         cos, sin = math.cos, math.sin
@@ -241,6 +246,12 @@ class Arm:
                 p = [p[i] + R[i][0] * po[0] + R[i][1] * po[1] + R[i][2] * po[2] for i in range(3)]
             if Ro is not None:
                 R = [[sum(R[i][k] * Ro[k][j] for k in range(3)) for j in range(3)] for i in range(3)]
+            if record is not None:
+                if code >= 0:
+                    z = [R[0][code], R[1][code], R[2][code]]
+                else:
+                    z = [R[i][0] * ax[0] + R[i][1] * ax[1] + R[i][2] * ax[2] for i in range(3)]
+                record.append((p, z))
             c, s = cos(qi), sin(qi)
             if code == 2:
                 R = [[r[0] * c + r[1] * s, r[1] * c - r[0] * s, r[2]] for r in R]
