@@ -1,0 +1,729 @@
+"""Reaching controller: attractor dynamics for the hand, swivel dynamics for the elbow, closed-form IK.
+
+One :meth:`ReachController.step` (forward Euler, ``dt`` in s) does, in this order:
+
+1. heading direction (azimuth, elevation) of the end effector: target attractor plus obstacle
+   repellers (:class:`~redarm_ros.control.attractor.HeadingDynamics`);
+2. speed along the heading from a smooth profile that stops at the target
+   (:class:`~redarm_ros.control.attractor.SpeedProfile`);
+3. hand orientation: rotation-vector attractor towards the goal orientation, optionally turned so
+   that the tool axis follows the path tangent far from the goal (eq. 20-21 in rotation-vector form);
+4. swivel angle: ``tau ds/dt = l1 h(s_des - s) + l_obs F_obs + l_sing F_sing + l_lim F_lim``
+   (:class:`~redarm_ros.control.swivel_dynamics.SwivelDynamics`), ``s_des`` the preferred elbow;
+5. joint positions from the closed-form IK at the new pose and swivel: the in-limit solution nearest
+   (in time at the joint velocity limits) to the previous one, so there is no branch flip; a step that
+   would exceed the joint velocity limits is shortened; if no continuous solution exists at that
+   swivel, nearby swivels are searched; if none, the arm holds.
+
+Units: m, rad, s. Quaternions are (w, x, y, z). The core is pure Python/numpy (no ROS); the
+controller node converts messages to these calls.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+import math
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from redarm_ros.control.attractor import (
+    HeadingDynamics,
+    HeadingParams,
+    SpeedParams,
+    SpeedProfile,
+    direction,
+    heading_angles,
+)
+from redarm_ros.control.elbow import ArmGeometry, ElbowCircle, elbow_circle
+from redarm_ros.control.obstacles import TABLE, ArmCapsules, Clearance, Scene, links_clearance
+from redarm_ros.control.rotations import (
+    matrix_from_quat,
+    quat_angle,
+    quat_between_vectors,
+    quat_from_matrix,
+    quat_from_rotvec,
+    quat_mul,
+    quat_normalize,
+    quat_rotate,
+    rotvec_between,
+    slerp_vectors,
+)
+from redarm_ros.control.swivel_dynamics import SwivelDynamics, SwivelForces, SwivelParams, wrap_angle
+from redarm_ros.errors import ConfigError, InvalidInputError, UnreachableError
+
+LOG = logging.getLogger(__name__)
+
+Vec3 = tuple[float, float, float]
+Quat = tuple[float, float, float, float]
+
+
+class Phase(enum.StrEnum):
+    """What the controller is doing (string values match ``ControllerState`` constants)."""
+
+    IDLE = "IDLE"  # no goal since reset: holds
+    REACHING = "REACHING"  # moving towards the goal
+    REACHED = "REACHED"  # within tolerance of the goal (keeps tracking it)
+    HOLDING = "HOLDING"  # a goal is set but no continuous, in-limit step exists: holds
+    REJECTED = "REJECTED"  # the last goal was rejected: stops smoothly and holds
+
+
+class GoalStatus(enum.Enum):
+    """Outcome of :meth:`ReachController.set_goal` (IKStatus-like)."""
+
+    ACCEPTED = "accepted"
+    OUT_OF_REACH = "out_of_reach"
+    NO_SOLUTION_IN_LIMITS = "no_solution_in_limits"
+    IN_COLLISION = "in_collision"
+    INVALID_INPUT = "invalid_input"
+    NOT_READY = "not_ready"
+
+
+@dataclass(frozen=True)
+class GoalCheck:
+    """Verdict on a goal pose: ``status``, human-readable ``message``; for accepted goals the swivel
+    range that is reachable and collision-free was seen (``free_swivels``: count of scanned swivels)."""
+
+    status: GoalStatus
+    message: str = ""
+    free_swivels: int = 0
+    best_swivel: float | None = None
+
+    @property
+    def accepted(self) -> bool:
+        """True if the goal was accepted."""
+        return self.status is GoalStatus.ACCEPTED
+
+
+@dataclass(frozen=True)
+class StepResult:
+    """Outcome of one control step.
+
+    q: joint positions to command (rad), always within limits. phase: :class:`Phase`.
+    swivel / swivel_desired: current and preferred swivel angle (rad, paper convention eq. 13-16).
+    clearance: minimum signed distance arm-obstacles/table (m, > 0 is collision-free) with the
+    closest ``clearance_link`` (0 base, 1 upper arm, 2 forearm, 3 hand) and ``clearance_obstacle``
+    (index in the scene, -1 table). distance_to_goal (m) and orientation_error (rad) of the commanded
+    pose (inf without a goal). heading: (azimuth, elevation) of the end-effector heading (rad).
+    speed: end-effector speed (m/s). position: commanded tool position (m). message: why it holds.
+    """
+
+    q: np.ndarray
+    phase: Phase
+    swivel: float
+    swivel_desired: float
+    clearance: float
+    clearance_link: int
+    clearance_obstacle: int
+    distance_to_goal: float
+    orientation_error: float
+    heading: tuple[float, float]
+    speed: float
+    position: Vec3
+    message: str = ""
+
+
+@dataclass(frozen=True)
+class ControllerParams:
+    """Controller parameters (units in brackets).
+
+    dt [s]: nominal step (``step()`` takes the actual one; it is clamped to ``max_dt``).
+    heading, swivel, speed: parameters of the three dynamics (see their classes).
+    capsules: link radii of the collision model.
+    preferred_swivel [rad]: the swivel attractor ``s_des``. With ``swivel_reference="high"`` it is an
+    offset from the highest elbow position on the circle (0 = elbow as high as possible, the natural
+    posture of a PA10 on a table, whose shoulder pitch of +/-91 deg keeps the elbow above the
+    shoulder); ``"low"``: offset from the lowest elbow position (the human-like low elbow of an arm
+    mounted above the table); for both, positive offsets turn the elbow one way around the
+    shoulder-wrist axis (right-handed about ``n``); ``"absolute"``: the swivel angle of eq. 13-16.
+    swivel_mode: ``"dynamics"`` (eq. 31) or ``"fixed"`` (keep the swivel of reset(): redundancy unused).
+    lam_ori [1/s], max_ori_rate [rad/s]: orientation attractor rate and its clamp.
+    tangent_weight [0..1], tangent_distance [m]: how much the tool axis follows the path tangent
+    (eq. 20-21) while farther than ``tangent_distance`` from the goal (blended to the goal orientation
+    nearer).
+    final_distance [m]: within this distance the motion direction blends into the straight line to
+    the goal (the heading dynamics is singular at the goal).
+    pos_tolerance [m], ori_tolerance [rad]: REACHED when both errors are below.
+    flip_ratio: a joint step above ``flip_ratio * max_vel * dt`` is a branch change, never taken.
+    swivel_search_step [rad], swivel_search_count: search around the swivel when the IK has no
+    continuous solution there.
+    goal_scan: number of swivel samples used to check a goal.
+    """
+
+    dt: float = 0.01
+    heading: HeadingParams = field(default_factory=HeadingParams)
+    swivel: SwivelParams = field(default_factory=SwivelParams)
+    speed: SpeedParams = field(default_factory=SpeedParams)
+    capsules: ArmCapsules = field(default_factory=ArmCapsules)
+    preferred_swivel: float = 0.0
+    swivel_reference: str = "high"
+    swivel_mode: str = "dynamics"
+    lam_ori: float = 5.0
+    max_ori_rate: float = 1.5
+    tangent_weight: float = 0.0
+    tangent_distance: float = 0.15
+    final_distance: float = 0.02
+    pos_tolerance: float = 1e-3
+    ori_tolerance: float = 0.01
+    max_dt: float = 0.05
+    flip_ratio: float = 10.0
+    swivel_search_step: float = 0.03
+    swivel_search_count: int = 10
+    goal_scan: int = 72
+
+    def __post_init__(self) -> None:
+        if self.swivel_reference not in ("high", "low", "absolute"):
+            raise ConfigError(f"swivel_reference must be 'high', 'low' or 'absolute', got "
+                              f"{self.swivel_reference!r}",
+                              field="swivel_reference", value=self.swivel_reference)
+        if self.swivel_mode not in ("dynamics", "fixed"):
+            raise ConfigError(f"swivel_mode must be 'dynamics' or 'fixed', got {self.swivel_mode!r}",
+                              field="swivel_mode", value=self.swivel_mode)
+        for name in ("dt", "lam_ori", "max_ori_rate", "tangent_distance", "final_distance", "pos_tolerance",
+                     "ori_tolerance",
+                     "max_dt", "flip_ratio", "swivel_search_step"):
+            v = getattr(self, name)
+            if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
+                raise ConfigError(f"{name} must be finite and > 0, got {v!r}", field=name, value=v)
+        if not (0.0 <= self.tangent_weight <= 1.0):
+            raise ConfigError("tangent_weight must be in [0, 1]", field="tangent_weight",
+                              value=self.tangent_weight)
+        if not math.isfinite(self.preferred_swivel):
+            raise ConfigError("preferred_swivel must be finite", field="preferred_swivel",
+                              value=self.preferred_swivel)
+
+    def with_(self, **changes: Any) -> ControllerParams:
+        """A copy with some fields changed."""
+        return replace(self, **changes)
+
+
+def _swivel_low(circle: ElbowCircle) -> float | None:
+    """Swivel (rad) of the lowest elbow position on the circle; None if the circle is horizontal."""
+    az, bz = circle.a[2], circle.b[2]
+    if math.hypot(az, bz) < 0.05:
+        return None
+    return math.atan2(-bz, -az)
+
+
+class ReachController:
+    """Reach Cartesian goals with a 7-DOF swivel arm by attractor dynamics (see module docstring).
+
+    Typical use::
+
+        ctl = ReachController(load_arm("pa10"), load_scene("table_cylinder"))
+        ctl.reset(q_measured)
+        check = ctl.set_goal(T_goal)          # GoalCheck; rejected goals leave the arm holding
+        while True:
+            r = ctl.step(0.01)                # StepResult; command r.q
+            if r.phase is Phase.REACHED: ...
+
+    Raises:
+        ConfigError: the arm has no elbow circle (not a spherical-shoulder/wrist 7-DOF arm).
+    """
+
+    def __init__(self, arm: Any, scene: Scene | None = None, params: ControllerParams | None = None) -> None:
+        if getattr(arm, "n", None) != 7 or not hasattr(arm, "elbow_circle"):
+            raise ConfigError(f"ReachController needs a 7-DOF swivel arm, got {getattr(arm, 'name', arm)!r}",
+                              field="arm")
+        self.arm = arm
+        self.params = params or ControllerParams()
+        self.scene = scene if scene is not None else Scene()
+        self.geom = ArmGeometry.from_arm(arm)
+        self.swivel_dyn = SwivelDynamics(self.params.swivel)
+        self.heading_dyn = HeadingDynamics(self.params.heading)
+        self.speed_profile = SpeedProfile(self.params.speed)
+        self._lower = np.asarray(arm.lower, float)
+        self._upper = np.asarray(arm.upper, float)
+        self._max_vel = np.asarray(arm.max_vel, float)
+        self._inv_vel = 1.0 / self._max_vel
+        self._wide = [j for j in range(7) if self._upper[j] - self._lower[j] > 2.0 * math.pi]
+        self._q: np.ndarray | None = None
+        self._goal_p: Vec3 | None = None
+        self._goal_q: Quat | None = None
+        self._phase = Phase.IDLE
+        self._message = ""
+        self._pos: Vec3 = (0.0, 0.0, 0.0)
+        self._rot: Quat = (1.0, 0.0, 0.0, 0.0)
+        self._s = 0.0
+        self._s_des = 0.0
+        self._s_fixed = 0.0
+        self._phi = 0.0
+        self._theta = 0.0
+        self._v = 0.0
+        self._a = 0.0
+        self._v_cap: float | None = None
+        self._prev_pos: Vec3 | None = None
+        self._circle: ElbowCircle | None = None
+        self._clear = Clearance(math.inf, -1, -1)
+
+    # ------------------------------------------------------------------ properties
+    @property
+    def phase(self) -> Phase:
+        """Current :class:`Phase`."""
+        return self._phase
+
+    @property
+    def q(self) -> np.ndarray | None:
+        """Last commanded joint positions (rad), None before :meth:`reset`."""
+        return None if self._q is None else self._q.copy()
+
+    @property
+    def swivel(self) -> float:
+        """Current swivel angle (rad)."""
+        return self._s
+
+    @property
+    def goal(self) -> tuple[Vec3, Quat] | None:
+        """Active goal as (position m, quaternion w,x,y,z) or None."""
+        if self._goal_p is None or self._goal_q is None:
+            return None
+        return self._goal_p, self._goal_q
+
+    # ------------------------------------------------------------------ set-up
+    def reset(self, q: Any) -> None:
+        """Start from measured joint positions ``q`` (rad); clears the goal (phase IDLE).
+
+        Raises:
+            InvalidInputError: wrong length or NaN.
+            JointLimitError-free: positions slightly outside the limits are clamped into them.
+        """
+        qa = self.arm.check_q(q)
+        qa = np.clip(qa, self._lower, self._upper)
+        T = np.asarray(self.arm.fk(qa), float)
+        self._q = qa
+        self._pos = (float(T[0, 3]), float(T[1, 3]), float(T[2, 3]))
+        self._rot = quat_from_matrix(T[:3, :3])
+        self._s = float(self.arm.swivel(qa))
+        self._s_fixed = self._s
+        self._s_des = self._s
+        self._v = 0.0
+        self._a = 0.0
+        self._v_cap = None
+        self._prev_pos = None
+        self._goal_p = None
+        self._goal_q = None
+        self._phase = Phase.IDLE
+        self._message = ""
+        try:
+            self._circle = elbow_circle(self.geom, T)
+            self._clear = links_clearance(self._circle.key_points(self._s), self.scene, self.params.capsules)
+        except UnreachableError:  # singular reset pose (wrist on the shoulder): no circle yet
+            self._circle = None
+            self._clear = Clearance(math.inf, -1, -1)
+
+    def set_scene(self, scene: Scene) -> GoalCheck | None:
+        """Replace the obstacles (e.g. from the node's MarkerArray). Re-checks the active goal; if it
+        is now inside an obstacle it is dropped (phase REJECTED, the arm stops) and the failing
+        :class:`GoalCheck` is returned; otherwise returns None."""
+        if not isinstance(scene, Scene):
+            raise InvalidInputError("scene must be a Scene", field="scene", value=scene)
+        self.scene = scene
+        if self._circle is not None and self._q is not None:
+            self._clear = links_clearance(self._circle.key_points(self._s), scene, self.params.capsules)
+        if self._goal_p is not None and self._goal_q is not None:
+            T = self._goal_matrix()
+            check = self.check_goal(T)
+            if not check.accepted:
+                self._reject(check)
+                return check
+        return None
+
+    def set_preferred_swivel(self, value: float) -> None:
+        """Change the preferred swivel (rad, same reference as ``params.swivel_reference``)."""
+        v = float(value)
+        if not math.isfinite(v):
+            raise InvalidInputError("preferred swivel must be finite", field="preferred_swivel", value=value)
+        self.params = self.params.with_(preferred_swivel=v)
+
+    # ------------------------------------------------------------------ goals
+    def check_goal(self, T: Any) -> GoalCheck:
+        """Check a goal pose (4x4, base frame) without changing state; see :class:`GoalStatus`."""
+        try:
+            Tl = self.arm.check_pose(T)
+        except InvalidInputError as exc:
+            return GoalCheck(GoalStatus.INVALID_INPUT, str(exc))
+        Tn = np.asarray(Tl, float)
+        try:
+            circle = elbow_circle(self.geom, Tn)
+        except UnreachableError as exc:
+            return GoalCheck(GoalStatus.OUT_OF_REACH, f"goal out of reach: {exc}")
+        caps = self.params.capsules
+        p = circle.tool
+        for j, o in enumerate(self.scene.obstacles):
+            if o.signed_distance(p) < 0.0:
+                return GoalCheck(GoalStatus.IN_COLLISION, f"goal position lies inside obstacle {j} "
+                                 f"{o.name or type(o).__name__.lower()!r}")
+        hand = links_clearance(circle.key_points(0.0), self.scene, caps, (3,))
+        if hand.distance < 0.0:
+            what = "the table" if hand.obstacle == TABLE else f"obstacle {hand.obstacle}"
+            return GoalCheck(GoalStatus.IN_COLLISION,
+                             f"the hand at the goal would collide with {what} "
+                             f"(clearance {hand.distance:.3f} m)")
+        n = max(8, int(self.params.goal_scan))
+        in_limits = 0
+        free = 0
+        best: tuple[float, float] | None = None
+        for k in range(n):
+            s = -math.pi + 2.0 * math.pi * k / n
+            sols = self.arm.ik(Tn, s)
+            if sols.shape[0] == 0:
+                continue
+            in_limits += 1
+            c = links_clearance(circle.key_points(s), self.scene, caps, (1, 2)).distance
+            if c > 0.0:
+                free += 1
+                if best is None or c > best[1]:
+                    best = (s, c)
+        if in_limits == 0:
+            return GoalCheck(GoalStatus.NO_SOLUTION_IN_LIMITS,
+                             f"no IK solution within the joint limits at any of {n} swivel angles")
+        if free == 0:
+            return GoalCheck(GoalStatus.IN_COLLISION,
+                             "every elbow position on the swivel circle collides with the scene")
+        return GoalCheck(GoalStatus.ACCEPTED, "", free, None if best is None else best[0])
+
+    def set_goal(self, T: Any) -> GoalCheck:
+        """Set a new goal pose (4x4 homogeneous, base frame, m). A goal mid-motion retargets smoothly
+        (heading and speed are continuous). A rejected goal stops the arm smoothly (phase REJECTED).
+        """
+        if self._q is None:
+            return GoalCheck(GoalStatus.NOT_READY, "reset(q) must be called before set_goal()")
+        check = self.check_goal(T)
+        if not check.accepted:
+            self._reject(check)
+            return check
+        Tn = np.asarray(T, float)
+        self._goal_p = (float(Tn[0, 3]), float(Tn[1, 3]), float(Tn[2, 3]))
+        self._goal_q = quat_from_matrix(Tn[:3, :3])
+        if self._v < 1e-6:  # starting from rest: head straight at the goal
+            gp, cp = self._goal_p, self._pos
+            self._phi, self._theta = heading_angles((gp[0] - cp[0], gp[1] - cp[1], gp[2] - cp[2]), self._phi)
+        self._phase = Phase.REACHING
+        self._message = ""
+        return check
+
+    def stop(self) -> None:
+        """Drop the goal; the arm decelerates smoothly and holds (phase IDLE)."""
+        self._goal_p = None
+        self._goal_q = None
+        self._phase = Phase.IDLE
+        self._message = "stopped"
+
+    def _reject(self, check: GoalCheck) -> None:
+        LOG.info("goal rejected: %s", check.message)
+        self._goal_p = None
+        self._goal_q = None
+        self._phase = Phase.REJECTED
+        self._message = check.message
+
+    def _goal_matrix(self) -> np.ndarray:
+        assert self._goal_p is not None and self._goal_q is not None
+        T = np.eye(4)
+        T[:3, :3] = matrix_from_quat(self._goal_q)
+        T[:3, 3] = self._goal_p
+        return T
+
+    # ------------------------------------------------------------------ the step
+    def step(self, dt: float | None = None) -> StepResult:
+        """Advance the dynamics by ``dt`` seconds (default ``params.dt``) and return the command.
+
+        Raises:
+            InvalidInputError: called before :meth:`reset`, or a non-finite/negative dt.
+        """
+        if self._q is None:
+            raise InvalidInputError("reset(q) must be called before step()", field="q")
+        p = self.params
+        dt = p.dt if dt is None else float(dt)
+        if not math.isfinite(dt) or dt < 0.0:
+            raise InvalidInputError(f"dt must be finite and >= 0, got {dt!r}", field="dt", value=dt)
+        dt = min(dt, p.max_dt)
+        if dt == 0.0 or (self._goal_p is None and self._v <= 0.0):
+            return self._result()
+        if self._circle is None:  # singular start: no circle to work on
+            self._message = "start pose has no elbow circle (wrist at the shoulder)"
+            return self._result()
+
+        pos, rot = self._pos, self._rot
+        goal_p = self._goal_p
+        obstacles = self.scene.obstacles
+        # 1-2. heading and speed
+        if goal_p is not None:
+            dist = math.dist(pos, goal_p)
+            self._phi, self._theta, _ = self.heading_dyn.step(self._phi, self._theta, dt, pos, goal_p,
+                                                              obstacles)
+            self._v, self._a = self.speed_profile.step(self._v, self._a, dist, dt, self._v_cap)
+        else:  # no goal: decelerate along the current heading
+            sp = self.speed_profile.params
+            self._a = max(-sp.a_max, min(0.0, self._a - dt * sp.omega * sp.omega * self._v))
+            self._v = max(0.0, self._v + dt * self._a) if self._v > 1e-4 else 0.0
+            if self._v == 0.0:
+                self._a = 0.0
+        e = direction(self._phi, self._theta)
+        if goal_p is not None and dist < p.final_distance:
+            # Final approach: blend towards the straight line so that a heading which ended up
+            # opposite to the target (an unstable but balanced state) cannot carry the hand away.
+            w = 1.0 - dist / p.final_distance
+            g = ((goal_p[0] - pos[0]) / dist, (goal_p[1] - pos[1]) / dist, (goal_p[2] - pos[2]) / dist) \
+                if dist > 1e-12 else e
+            m = ((1.0 - w) * e[0] + w * g[0], (1.0 - w) * e[1] + w * g[1], (1.0 - w) * e[2] + w * g[2])
+            mn = math.sqrt(m[0] ** 2 + m[1] ** 2 + m[2] ** 2)
+            e = (m[0] / mn, m[1] / mn, m[2] / mn) if mn > 1e-9 else g
+        step_len = self._v * dt
+        if goal_p is not None:
+            step_len = min(step_len, dist)
+        new_pos = (pos[0] + step_len * e[0], pos[1] + step_len * e[1], pos[2] + step_len * e[2])
+        # 3. orientation
+        new_rot = rot
+        if self._goal_q is not None:
+            target_rot = self._orientation_target(e, dist if goal_p is not None else 0.0)
+            w = rotvec_between(rot, target_rot)
+            wn = math.sqrt(w[0] ** 2 + w[1] ** 2 + w[2] ** 2)
+            gain = p.lam_ori * dt
+            if wn * p.lam_ori > p.max_ori_rate:
+                gain = p.max_ori_rate * dt / wn
+            gain = min(gain, 1.0)
+            new_rot = quat_normalize(quat_mul(quat_from_rotvec((gain * w[0], gain * w[1], gain * w[2])), rot))
+        # 4-5. swivel and IK (with velocity scaling / swivel search / hold)
+        ok = self._advance(new_pos, new_rot, dt)
+        if ok:
+            self._prev_pos = pos
+        self._update_phase()
+        return self._result()
+
+    def _orientation_target(self, e: Vec3, dist: float) -> Quat:
+        """Goal orientation, turned so that the tool axis leans towards the heading far from the goal."""
+        assert self._goal_q is not None
+        p = self.params
+        if p.tangent_weight <= 0.0 or self._v < 1e-3:
+            return self._goal_q
+        w = p.tangent_weight * max(0.0, min(1.0, (dist - p.tangent_distance) / p.tangent_distance))
+        if w <= 0.0:
+            return self._goal_q
+        g = quat_rotate(self._goal_q, (0.0, 0.0, 1.0))  # tool approach axis at the goal
+        a = slerp_vectors(g, e, w)
+        return quat_normalize(quat_mul(quat_between_vectors(g, a), self._goal_q))
+
+    def _desired_swivel(self, circle: ElbowCircle) -> float:
+        p = self.params
+        if p.swivel_reference == "absolute":
+            return wrap_angle(p.preferred_swivel)
+        low = _swivel_low(circle)
+        if low is None:
+            return self._s_des
+        ref = low if p.swivel_reference == "low" else low + math.pi
+        return wrap_angle(ref + p.preferred_swivel)
+
+    def _limit_margins(self, T: np.ndarray, circle: ElbowCircle, s: float, q_ref: np.ndarray
+                       ) -> tuple[float, float, float] | None:
+        """Joint-limit margins (rad) at s, s+eps, s-eps on the current branch, if near a limit."""
+        m0 = self._margin(q_ref)
+        if m0 >= self.params.swivel.lim_threshold:
+            return None
+        eps = self.params.swivel.eps
+        out = [m0]
+        for ds in (eps, -eps):
+            sols = self.arm.ik(T, s + ds)
+            pick = self._select(sols, q_ref, 1.0)
+            out.append(self._margin(pick[0]) if pick is not None else -1.0)
+        return out[0], out[1], out[2]
+
+    def _margin(self, q: np.ndarray) -> float:
+        return float(np.min(np.minimum(q - self._lower, self._upper - q)))
+
+    def _select(self, sols: np.ndarray, q_ref: np.ndarray, dt: float) -> tuple[np.ndarray, float] | None:
+        """Solution nearest to q_ref in time at the velocity limits, and its ratio to the limit over dt."""
+        if sols.shape[0] == 0:
+            return None
+        sols = sols.copy()
+        for j in self._wide:  # pick the 2*pi copy nearest to the reference within the limits
+            k = np.round((sols[:, j] - q_ref[j]) / (2.0 * math.pi))
+            cand = sols[:, j] - 2.0 * math.pi * k
+            ok = (cand >= self._lower[j]) & (cand <= self._upper[j])
+            sols[ok, j] = cand[ok]
+        ratios = np.max(np.abs(sols - q_ref) * self._inv_vel, axis=1) / dt
+        i = int(np.argmin(ratios))
+        return sols[i], float(ratios[i])
+
+    def _advance(self, new_pos: Vec3, new_rot: Quat, dt: float) -> bool:
+        """Swivel dynamics + IK for the proposed pose; commits the state and returns True on success."""
+        p = self.params
+        q_prev = self._q
+        assert q_prev is not None
+        pos0, rot0, s0 = self._pos, self._rot, self._s
+        for _attempt in range(4):
+            T = np.eye(4)
+            T[:3, :3] = matrix_from_quat(new_rot)
+            T[:3, 3] = new_pos
+            try:
+                circle = elbow_circle(self.geom, T)
+            except UnreachableError:
+                circle = None
+            if circle is None:  # the heading would leave the workspace: shorten the step
+                new_pos, new_rot = _blend(pos0, rot0, new_pos, new_rot, 0.5)
+                self._v *= 0.5
+                continue
+            # swivel dynamics
+            if p.swivel_mode == "fixed":
+                s_des = self._s_fixed
+                s_new = self._s_fixed
+            else:
+                s_des = self._desired_swivel(circle)
+                margins = self._limit_margins(T, circle, s0, q_prev)
+                forces = self.swivel_dyn.forces(circle, s0, self.scene, p.capsules, margins)
+                s_new = self.swivel_dyn.step(s0, s_des, dt, forces)
+            self._s_des = s_des
+            pick = self._select(self.arm.ik(T, s_new), q_prev, dt)
+            if pick is None or pick[1] > p.flip_ratio:
+                pick, s_new = self._search_swivel(T, s_new, q_prev, dt)
+            if pick is None:
+                # No continuous solution here: try a shorter Cartesian step before holding.
+                new_pos, new_rot = _blend(pos0, rot0, new_pos, new_rot, 0.5)
+                self._v *= 0.5
+                continue
+            q_new, ratio = pick
+            if ratio > 1.0 + 1e-9 and s_new != s0:
+                # Too fast for a joint: the elbow yields first (the hand path has priority).
+                yielded = self._yield_swivel(T, s0, s_new, q_prev, dt, ratio)
+                if yielded is not None:
+                    s_new, q_new, ratio = yielded
+            if ratio > 1.0 + 1e-9:
+                # Too fast for a joint: shorten the whole step (pose and swivel) and retry once or twice.
+                scaled = self._scale_step(pos0, rot0, s0, new_pos, new_rot, s_new, q_prev, dt, ratio)
+                if scaled is None:
+                    new_pos, new_rot = _blend(pos0, rot0, new_pos, new_rot, 0.5)
+                    continue
+                new_pos, new_rot, s_new, q_new, circle = scaled
+            self._commit(q_new, new_pos, new_rot, s_new, circle, dt)
+            return True
+        self._hold("no joint solution continuous with the current configuration "
+                   "(joint limits or singularity)")
+        return False
+
+    def _yield_swivel(self, T: np.ndarray, s0: float, s1: float, q_prev: np.ndarray, dt: float,
+                      ratio: float) -> tuple[float, np.ndarray, float] | None:
+        """Shorten only the swivel change so the joint velocities fit; None if the hand motion alone
+        is already too fast (then the whole step is shortened)."""
+        ds = wrap_angle(s1 - s0)
+        best: tuple[float, np.ndarray, float] | None = None
+        for frac in (0.98 / ratio, 0.5 / ratio, 0.0):
+            s = wrap_angle(s0 + frac * ds)
+            pick = self._select(self.arm.ik(T, s), q_prev, dt)
+            if pick is None or pick[1] > self.params.flip_ratio:
+                continue
+            if best is None or pick[1] < best[2]:
+                best = (s, pick[0], pick[1])
+            if pick[1] <= 1.0 + 1e-9:
+                return best
+        return best
+
+    def _search_swivel(self, T: np.ndarray, s_new: float, q_prev: np.ndarray, dt: float
+                       ) -> tuple[tuple[np.ndarray, float] | None, float]:
+        p = self.params
+        for k in range(1, p.swivel_search_count + 1):
+            for sign in (1.0, -1.0):
+                s_try = wrap_angle(s_new + sign * k * p.swivel_search_step)
+                pick = self._select(self.arm.ik(T, s_try), q_prev, dt)
+                if pick is not None and pick[1] <= p.flip_ratio:
+                    return pick, s_try
+        return None, s_new
+
+    def _scale_step(self, pos0: Vec3, rot0: Quat, s0: float, pos1: Vec3, rot1: Quat, s1: float,
+                    q_prev: np.ndarray, dt: float, ratio: float
+                    ) -> tuple[Vec3, Quat, float, np.ndarray, ElbowCircle] | None:
+        frac = 1.0
+        for _ in range(4):
+            frac *= 0.98 / ratio  # shorten the (already shortened) step by the excess ratio
+            pos, rot = _blend(pos0, rot0, pos1, rot1, frac)
+            s = wrap_angle(s0 + frac * wrap_angle(s1 - s0))
+            T = np.eye(4)
+            T[:3, :3] = matrix_from_quat(rot)
+            T[:3, 3] = pos
+            try:
+                circle = elbow_circle(self.geom, T)
+            except UnreachableError:
+                return None
+            pick = self._select(self.arm.ik(T, s), q_prev, dt)
+            if pick is None:
+                return None
+            q, ratio = pick
+            if ratio <= 1.0 + 1e-9:
+                # Tell the speed filter, so that the next steps slow down smoothly.
+                self._v *= frac
+                self._v_cap = self._v
+                return pos, rot, s, q, circle
+        return None
+
+    def _commit(self, q: np.ndarray, pos: Vec3, rot: Quat, s: float, circle: ElbowCircle, dt: float) -> None:
+        moved = math.dist(pos, self._pos)
+        self._q = q
+        self._pos = pos
+        self._rot = rot
+        self._s = s
+        self._circle = circle
+        if self._v_cap is not None and moved >= 0.999 * self._v * dt:
+            # The cap was not binding in this step: relax it gradually.
+            self._v_cap = self._v_cap * 1.05 + 1e-3
+            if self._v_cap > self.speed_profile.params.v_max:
+                self._v_cap = None
+        self._clear = links_clearance(circle.key_points(s), self.scene, self.params.capsules)
+        if self._phase is Phase.HOLDING:
+            self._phase = Phase.REACHING
+            self._message = ""
+
+    def _hold(self, why: str) -> None:
+        self._v = 0.0
+        self._a = 0.0
+        if self._goal_p is not None:
+            self._phase = Phase.HOLDING
+        self._message = why
+
+    def _update_phase(self) -> None:
+        if self._goal_p is None or self._goal_q is None or self._phase is Phase.HOLDING:
+            return
+        d = math.dist(self._pos, self._goal_p)
+        err = quat_angle(self._rot, self._goal_q)
+        if d <= self.params.pos_tolerance and err <= self.params.ori_tolerance:
+            self._phase = Phase.REACHED
+        else:
+            self._phase = Phase.REACHING
+
+    def _result(self) -> StepResult:
+        assert self._q is not None
+        if self._goal_p is not None and self._goal_q is not None:
+            d = math.dist(self._pos, self._goal_p)
+            err = quat_angle(self._rot, self._goal_q)
+        else:
+            d = math.inf
+            err = math.inf
+        return StepResult(
+            q=self._q.copy(),
+            phase=self._phase,
+            swivel=self._s,
+            swivel_desired=self._s_des,
+            clearance=self._clear.distance,
+            clearance_link=self._clear.link,
+            clearance_obstacle=self._clear.obstacle,
+            distance_to_goal=d,
+            orientation_error=err,
+            heading=(self._phi, self._theta),
+            speed=self._v,
+            position=self._pos,
+            message=self._message,
+        )
+
+    def forces(self) -> SwivelForces | None:
+        """Swivel forces at the current state (for plots and diagnostics)."""
+        if self._circle is None:
+            return None
+        return self.swivel_dyn.forces(self._circle, self._s, self.scene, self.params.capsules)
+
+
+def _blend(pos0: Vec3, rot0: Quat, pos1: Vec3, rot1: Quat, t: float) -> tuple[Vec3, Quat]:
+    """Pose a fraction ``t`` of the way from (pos0, rot0) to (pos1, rot1)."""
+    pos = (pos0[0] + t * (pos1[0] - pos0[0]), pos0[1] + t * (pos1[1] - pos0[1]),
+           pos0[2] + t * (pos1[2] - pos0[2]))
+    w = rotvec_between(rot0, rot1)
+    rot = quat_normalize(quat_mul(quat_from_rotvec((t * w[0], t * w[1], t * w[2])), rot0))
+    return pos, rot
