@@ -1,0 +1,143 @@
+"""Thin adapter: the PowerCube module emulator (``redarm_ros.can.module_emulator``) over the pybullet plant.
+
+No protocol code lives here: every frame is handled by :class:`~redarm_ros.can.module_emulator.
+PowerCubeModule`. This module only
+
+* builds one module per joint with the arm model's limits (soft limits = joint limits, max
+  velocity/acceleration = the model's, ramp velocity/acceleration = half of those, home position 0
+  clipped into the limits),
+* gives each module its joint of the :class:`~redarm_ros.sim.plant.PybulletPlant` as its plant,
+  reporting the measured position clamped into the joint limits when it exceeds them by less than
+  :data:`LIMIT_SLACK` (pybullet's constraint solver settles a joint parked on its limit a few
+  microradians beyond it; a real encoder would not flag that, so neither should the module),
+* routes decoded frames to the modules while honouring the process's silenced-module set, and
+* reports module states for the status file without side effects.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Collection, Sequence
+from typing import Any
+
+import can
+
+from redarm_ros.can import protocol as pc
+from redarm_ros.can.module_emulator import EmulatedArm, ModuleConfig, PowerCubeModule
+from redarm_ros.can.protocol import ActState
+from redarm_ros.sim.plant import JointPlant, PybulletPlant
+
+LIMIT_SLACK = 1e-5  # rad
+
+
+class _LimitedJoint:
+    """A :class:`JointPlant` whose reported position is clamped into the limits within the slack."""
+
+    def __init__(self, joint: JointPlant, lower: float, upper: float) -> None:
+        self._j = joint
+        self._lo, self._hi = lower, upper
+
+    def command_position(
+        self, target: float, vel_limit: float | None, acc_limit: float | None, duration_s: float | None
+    ) -> None:
+        self._j.command_position(target, vel_limit, acc_limit, duration_s)
+
+    def command_velocity(self, velocity: float) -> None:
+        self._j.command_velocity(velocity)
+
+    def halt(self) -> None:
+        self._j.halt()
+
+    def position(self) -> float:
+        q = self._j.position()
+        if self._hi < q <= self._hi + LIMIT_SLACK:
+            return self._hi
+        if self._lo - LIMIT_SLACK <= q < self._lo:
+            return self._lo
+        return q
+
+    def velocity(self) -> float:
+        return self._j.velocity()
+
+    def in_motion(self) -> bool:
+        return self._j.in_motion()
+
+
+class PlantModules:
+    """One emulated PowerCube module per joint of ``plant``, ids ``module_ids`` (joint order).
+
+    Thread-safety: all module access happens under the bank's lock.
+    """
+
+    def __init__(self, plant: PybulletPlant, module_ids: Sequence[int], *, homed: bool = False) -> None:
+        arm = plant.arm
+        if len(module_ids) != plant.n:
+            raise ValueError(f"need {plant.n} module ids, got {len(module_ids)}")
+        plants = []
+        configs = []
+        for i in range(plant.n):
+            lo, hi = float(arm.lower[i]), float(arm.upper[i])
+            plants.append(_LimitedJoint(plant.joint(i), lo, hi))
+            configs.append(
+                ModuleConfig(
+                    lower=lo,
+                    upper=hi,
+                    max_vel=float(arm.max_vel[i]),
+                    max_acc=float(arm.max_acc[i]),
+                    home_position=min(max(0.0, lo), hi),
+                    homed=homed,
+                )
+            )
+        self.bank = EmulatedArm(plants, configs, module_ids=list(module_ids))
+        self.module_ids = list(module_ids)
+        self.ids = frozenset(module_ids)
+
+    def module(self, module_id: int) -> PowerCubeModule:
+        """The emulated module with this id."""
+        return self.bank.modules[module_id]
+
+    def handle(self, frame: pc.Frame, silenced: Collection[int] = ()) -> list[can.Message]:
+        """Frames to send for one decoded request or broadcast (silenced modules ignore it)."""
+        out: list[can.Message] = []
+        with self.bank.lock:
+            if isinstance(frame, pc.Broadcast):
+                for mid, m in self.bank.modules.items():
+                    if mid not in silenced:
+                        out += m.handle(frame)
+                return out
+            mid = getattr(frame, "module_id", None)
+            m = self.bank.modules.get(mid) if mid is not None else None
+            if m is None or mid in silenced or not isinstance(frame, _REQUESTS):
+                return out
+            return m.handle(frame)
+
+    def tick(self, silenced: Collection[int] = ()) -> list[can.Message]:
+        """Advance the modules' time-driven behaviour; unsolicited frames of speaking modules."""
+        out: list[can.Message] = []
+        with self.bank.lock:
+            for mid, m in self.bank.modules.items():
+                frames = m.tick()
+                if mid not in silenced:
+                    out += frames
+        return out
+
+    def describe(self) -> list[dict[str, Any]]:
+        """Per module: id, ACT_STATE (int and flag names), homed, position (rad). No side effects."""
+        out = []
+        with self.bank.lock:
+            for mid in self.module_ids:
+                m = self.bank.modules[mid]
+                st = ActState(m.sticky)
+                st |= (ActState.MOTION | ActState.INPROGRESS) if m.plant.in_motion() else ActState.RAMP_END
+                out.append(
+                    {
+                        "id": mid,
+                        "state": int(st),
+                        "flags": [f.name for f in ActState if f.value and f in st and f.name],
+                        "position": m.plant.position(),
+                        "requests": m.requests,
+                    }
+                )
+        return out
+
+
+_REQUESTS = (pc.CommandRequest, pc.SetParamRequest, pc.GetParamRequest, pc.SetMoveRequest)

@@ -1,0 +1,673 @@
+"""``redarm-sim``: the hardware stand-in process (pybullet arm + one emulated PowerCube module per joint).
+
+No ROS here: to the rest of the system this process *is* the hardware. It
+
+* owns a :class:`~redarm_ros.sim.plant.PybulletPlant` and steps it in real time at ``--rate`` Hz
+  (default 1000, sleeping until each step's deadline; late steps are counted as overruns and caught
+  up in bursts, a backlog of more than :data:`MAX_BURST` steps is dropped and counted as a resync),
+* emulates modules ``1..n`` (``--first-id`` shifts them) with :mod:`redarm_ros.can.module_emulator`
+  on the CAN bus chosen by python-can configuration (``--can-interface``/``--can-channel``/
+  ``--can-config-file`` passed through, else ``CAN_INTERFACE``/``CAN_CHANNEL``/``CAN_CONFIG``),
+  answering each request from a dedicated bus thread as soon as it arrives,
+* survives malformed frames (counted), a lost bus (reopened with backoff), and handler bugs (counted),
+* writes a JSON status (joint positions, setpoints, tool pose from the pybullet link state, module
+  states, counters) atomically to ``--status-file`` at ``--status-rate`` Hz,
+* renders PNG snapshots headless into ``--snapshot-dir`` (``start.png`` after start-up, ``final.png``
+  on a clean exit, and on request),
+* offers fault injection for tests: ``--drop-replies FRACTION`` (seeded by ``--seed``),
+  ``--delay-replies MS``, ``--silence-module ID`` (repeatable; silent modules ignore every frame),
+  ``--die-after S`` (SIGKILLs itself: a crash, no clean-up), and at run time ``SIGUSR1`` (toggle
+  the silence of the ``--silence-module`` set), ``SIGUSR2`` (snapshot) and ``--control-file``.
+
+See ``docs/sim.md`` for the status schema and the control file format. Exit codes: 0 clean stop
+(SIGINT/SIGTERM), 2 bad arguments, 3 bus could not be opened, -9 (killed) after ``--die-after``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import heapq
+import json
+import logging
+import math
+import os
+import random
+import signal
+import sys
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import can
+
+from redarm_ros.can import protocol as pc
+from redarm_ros.errors import BusError, RedarmError
+from redarm_ros.sim.plant import PybulletPlant
+
+_LOG = logging.getLogger("redarm_ros.sim.hardware")
+
+READY_LINE = "REDARM_SIM_READY"
+MAX_BURST = 50  # steps caught up at once; a larger backlog is dropped (resync)
+CONTROL_POLL_S = 0.05
+ENV_PREFIX = "REDARM_SIM_"
+EXIT_BAD_ARGS = 2
+EXIT_NO_BUS = 3
+
+
+# --------------------------------------------------------------------------------------------------
+# Fault injection and counters
+# --------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Faults:
+    """Fault injection settings (mutable at run time; read by the bus thread).
+
+    ``drop_replies``: probability in [0, 1] that a reply is not sent; ``delay_replies_ms``: added
+    latency of every reply; ``silenced``: module ids that ignore every frame (no state change, no
+    reply), like modules cut off the bus; ``toggle_set``: the ids SIGUSR1 toggles.
+    """
+
+    drop_replies: float = 0.0
+    delay_replies_ms: float = 0.0
+    silenced: set[int] = field(default_factory=set)
+    toggle_set: set[int] = field(default_factory=set)
+    seed: int = 0
+
+    def validate(self) -> None:
+        """Raise ValueError on an out-of-range setting."""
+        if not (0.0 <= self.drop_replies <= 1.0):
+            raise ValueError(f"drop fraction must be in [0, 1], got {self.drop_replies}")
+        if not (0.0 <= self.delay_replies_ms <= 60_000.0) or not math.isfinite(self.delay_replies_ms):
+            raise ValueError(f"reply delay must be in [0, 60000] ms, got {self.delay_replies_ms}")
+
+
+@dataclass
+class Counters:
+    """What happened on the bus and in the loop (all monotonic counts since start)."""
+
+    frames_rx: int = 0
+    requests: int = 0  # frames addressed to our modules (incl. broadcasts)
+    replies_tx: int = 0
+    malformed: int = 0
+    foreign: int = 0  # well-formed frames not for us (other ids, replies of other devices)
+    dropped_replies: int = 0
+    delayed_replies: int = 0
+    silenced_rx: int = 0
+    handler_errors: int = 0
+    send_errors: int = 0
+    bus_lost: int = 0
+    bus_reopened: int = 0
+    overruns: int = 0
+    resyncs: int = 0
+    max_lag_ms: float = 0.0
+    reply_latency_max_ms: float = 0.0
+    reply_latency_sum_ms: float = 0.0
+    snapshots: int = 0
+    control_errors: int = 0
+
+
+# --------------------------------------------------------------------------------------------------
+# The process core
+# --------------------------------------------------------------------------------------------------
+
+
+class HardwareSim:
+    """The simulated arm plus its emulated modules on ``bus``.
+
+    ``bus`` is any python-can bus (a :class:`~redarm_ros.can.bus.ReconnectingBus` in the process, a
+    ``virtual`` bus in tests); ``plant`` the pybullet plant; ``module_ids`` one id per joint.
+    ``run()`` blocks in the physics loop until :meth:`request_stop`; the bus is served by a thread.
+    """
+
+    def __init__(
+        self,
+        plant: PybulletPlant,
+        bus: can.BusABC,
+        *,
+        module_ids: Sequence[int] | None = None,
+        rate_hz: float = 1000.0,
+        faults: Faults | None = None,
+        status_file: str | os.PathLike[str] | None = None,
+        status_rate_hz: float = 20.0,
+        snapshot_dir: str | os.PathLike[str] | None = None,
+        snapshot_size: tuple[int, int] = (640, 480),
+        control_file: str | os.PathLike[str] | None = None,
+        die_after_s: float | None = None,
+        emulator_factory: Callable[..., Any] | None = None,
+    ) -> None:
+        self.plant = plant
+        self.bus = bus
+        self.n = plant.n
+        self.module_ids = list(module_ids) if module_ids is not None else list(range(1, self.n + 1))
+        if len(self.module_ids) != self.n or len(set(self.module_ids)) != self.n:
+            raise ValueError(f"need {self.n} distinct module ids, got {self.module_ids}")
+        self.rate_hz = float(rate_hz)
+        self.faults = faults or Faults()
+        self.faults.validate()
+        self.status_file = Path(status_file) if status_file else None
+        self.status_period = 1.0 / status_rate_hz if status_rate_hz > 0 else math.inf
+        self.snapshot_dir = Path(snapshot_dir) if snapshot_dir else None
+        self.snapshot_size = snapshot_size
+        self.control_file = Path(control_file) if control_file else None
+        self.die_after_s = die_after_s
+        self.counters = Counters()
+        self.snapshots: list[str] = []
+        self._rng = random.Random(self.faults.seed)
+        self._stop = threading.Event()
+        self._snapshot_requests: list[str | None] = []
+        self._lock = threading.Lock()  # faults / counters / snapshot requests between threads
+        self._pending: list[tuple[float, int, can.Message, float]] = []  # delayed: (due, seq, msg, t_rx)
+        self._seq = 0
+        self._decoder = pc.FrameDecoder()
+        self._control_sig: tuple[int, int] | None = None
+        self._start = time.monotonic()
+        self.emulator = (emulator_factory or _default_emulator)(plant, self.module_ids)
+        self._bus_thread = threading.Thread(target=self._bus_loop, name="sim-bus", daemon=True)
+
+    # -- control from other threads / signal handlers -------------------------------------------------
+    def request_stop(self) -> None:
+        """Ask :meth:`run` to return (safe from signal handlers and other threads)."""
+        self._stop.set()
+
+    def request_snapshot(self, name: str | None = None) -> None:
+        """Ask the physics thread to write a snapshot (``name``.png, or a numbered one)."""
+        with self._lock:
+            self._snapshot_requests.append(name)
+
+    def toggle_silence(self) -> None:
+        """Silence the ``toggle_set`` modules if any of them speaks, else let them all speak again."""
+        with self._lock:
+            ts = self.faults.toggle_set
+            if ts & self.faults.silenced == ts:
+                self.faults.silenced -= ts
+            else:
+                self.faults.silenced |= ts
+            _LOG.info("silenced modules now %s", sorted(self.faults.silenced))
+
+    # -- bus side -------------------------------------------------------------------------------------
+    def _send(self, msg: can.Message, t_rx: float) -> None:
+        try:
+            self.bus.send(msg)
+        except (BusError, can.CanError, OSError) as exc:
+            self.counters.send_errors += 1
+            _LOG.warning("reply not sent: %r", exc)
+            return
+        c = self.counters
+        c.replies_tx += 1
+        lat = (time.monotonic() - t_rx) * 1e3
+        c.reply_latency_sum_ms += lat
+        if lat > c.reply_latency_max_ms:
+            c.reply_latency_max_ms = lat
+
+    def _flush_pending(self, now: float) -> None:
+        while self._pending and self._pending[0][0] <= now:
+            _, _, msg, t_rx = heapq.heappop(self._pending)
+            self._send(msg, t_rx)
+
+    def handle_frame(self, msg: can.Message, t_rx: float) -> None:
+        """Process one received frame: decode, route to the emulator, apply faults, send replies."""
+        c = self.counters
+        c.frames_rx += 1
+        frame = self._decoder.decode(msg)
+        c.malformed = self._decoder.malformed
+        if frame is None:
+            return
+        target = _target_of(frame)
+        if target is None or (target != 0 and target not in self.emulator.ids):
+            c.foreign += 1
+            return
+        with self._lock:
+            silenced = set(self.faults.silenced)
+            drop, delay = self.faults.drop_replies, self.faults.delay_replies_ms
+        if target != 0 and target in silenced:
+            c.silenced_rx += 1
+            return
+        c.requests += 1
+        try:
+            replies = self.emulator.handle(frame, silenced)
+        except Exception:  # noqa: BLE001 - a bug in one request must not take the hardware down
+            c.handler_errors += 1
+            _LOG.exception("error handling %s", msg)
+            return
+        self._emit(replies, t_rx, drop, delay)
+
+    def _emit(self, frames: Sequence[can.Message], t_rx: float, drop: float, delay: float) -> None:
+        """Send frames now or later, or drop them, as the faults say."""
+        c = self.counters
+        for reply in frames:
+            if drop > 0.0 and self._rng.random() < drop:
+                c.dropped_replies += 1
+                continue
+            if delay > 0.0:
+                c.delayed_replies += 1
+                self._seq += 1
+                heapq.heappush(self._pending, (t_rx + delay / 1e3, self._seq, reply, t_rx))
+                continue
+            self._send(reply, t_rx)
+
+    def _tick(self, now: float) -> None:
+        with self._lock:
+            silenced = set(self.faults.silenced)
+            drop, delay = self.faults.drop_replies, self.faults.delay_replies_ms
+        try:
+            frames = self.emulator.tick(silenced)
+        except Exception:  # noqa: BLE001 - as in handle_frame
+            self.counters.handler_errors += 1
+            _LOG.exception("error in module tick")
+            return
+        if frames:
+            self._emit(frames, now, drop, delay)
+
+    def _bus_loop(self) -> None:
+        backoff = 0.05
+        while not self._stop.is_set():
+            now = time.monotonic()
+            self._flush_pending(now)
+            self._tick(now)
+            timeout = 0.01
+            if self._pending:
+                timeout = max(0.0, min(timeout, self._pending[0][0] - now))
+            try:
+                msg = self.bus.recv(timeout)
+            except (BusError, can.CanError, OSError) as exc:
+                self._on_bus_lost(exc, backoff)
+                backoff = min(2.0, backoff * 2)
+                continue
+            backoff = 0.05
+            if msg is not None:
+                self.handle_frame(msg, time.monotonic())
+
+    def _on_bus_lost(self, exc: BaseException, delay: float) -> None:
+        self.counters.bus_lost += 1
+        _LOG.warning("CAN bus error: %r; reopening in %.2f s", exc, delay)
+        self._pending.clear()  # replies to a dead connection are stale
+        if self._stop.wait(delay):
+            return
+        reopen = getattr(self.bus, "reopen", None)
+        if reopen is None:
+            return
+        try:
+            reopen()
+            self.counters.bus_reopened += 1
+        except RedarmError as exc2:
+            _LOG.info("reopen failed: %s", exc2)
+
+    # -- physics side ---------------------------------------------------------------------------------
+    def status(self) -> dict[str, Any]:
+        """The machine-readable status (see docs/sim.md); call from the physics thread."""
+        p = self.plant
+        pos, quat = p.tool_pose()
+        with self._lock:
+            faults = {
+                "drop_replies": self.faults.drop_replies,
+                "delay_replies_ms": self.faults.delay_replies_ms,
+                "silenced": sorted(self.faults.silenced),
+                "toggle_set": sorted(self.faults.toggle_set),
+            }
+        counters = asdict(self.counters)
+        n_rep = max(1, counters["replies_tx"])
+        counters["reply_latency_mean_ms"] = counters.pop("reply_latency_sum_ms") / n_rep
+        return {
+            "pid": os.getpid(),
+            "arm": p.arm.name,
+            "n": self.n,
+            "module_ids": self.module_ids,
+            "joint_names": list(p.arm.joint_names),
+            "running": not self._stop.is_set(),
+            "wall_time": time.time(),
+            "uptime_s": time.monotonic() - self._start,
+            "sim_time_s": p.sim_time,
+            "steps": p.steps,
+            "rate_hz": self.rate_hz,
+            "q": p.q.tolist(),
+            "dq": p.dq.tolist(),
+            "q_setpoint": p.q_setpoint.tolist(),
+            "tool": {"position": pos.tolist(), "quaternion_xyzw": quat.tolist()},
+            "modules": self.emulator.describe(),
+            "faults": faults,
+            "counters": counters,
+            "snapshots": list(self.snapshots),
+        }
+
+    def write_status(self) -> None:
+        """Write :meth:`status` to the status file atomically (temp file + rename)."""
+        if self.status_file is None:
+            return
+        tmp = self.status_file.with_name(f".{self.status_file.name}.{os.getpid()}.tmp")
+        with open(tmp, "w", encoding="utf-8") as fh:
+            json.dump(self.status(), fh)
+        os.replace(tmp, self.status_file)
+
+    def snapshot(self, name: str | None = None) -> str | None:
+        """Render a PNG into the snapshot dir now (physics thread); returns its path."""
+        if self.snapshot_dir is None:
+            _LOG.warning("snapshot requested but no --snapshot-dir given")
+            return None
+        self.snapshot_dir.mkdir(parents=True, exist_ok=True)
+        stem = name or f"snapshot_{self.counters.snapshots:04d}"
+        stem = "".join(ch for ch in stem if ch.isalnum() or ch in "-_.") or "snapshot"
+        path = self.snapshot_dir / (stem if stem.endswith(".png") else f"{stem}.png")
+        w, h = self.snapshot_size
+        self.plant.snapshot_png(path, w, h)
+        self.counters.snapshots += 1
+        self.snapshots.append(str(path))
+        return str(path)
+
+    def _poll_control(self) -> None:
+        f = self.control_file
+        if f is None:
+            return
+        try:
+            st = f.stat()
+        except FileNotFoundError:
+            return
+        sig = (st.st_mtime_ns, st.st_size)
+        if sig == self._control_sig:
+            return
+        self._control_sig = sig
+        try:
+            data = json.loads(f.read_text(encoding="utf-8") or "{}")
+            self.apply_control(data)
+        except (OSError, ValueError, TypeError) as exc:
+            self.counters.control_errors += 1
+            _LOG.warning("control file %s ignored: %s", f, exc)
+
+    def apply_control(self, data: dict[str, Any]) -> None:
+        """Apply a control mapping: ``silence`` (list of ids), ``drop_replies``, ``delay_replies_ms``,
+        ``snapshot`` (name), ``stop`` (true). Raises ValueError/TypeError on bad content."""
+        if not isinstance(data, dict):
+            raise TypeError("control file must hold a JSON object")
+        unknown = set(data) - {"silence", "drop_replies", "delay_replies_ms", "snapshot", "stop"}
+        if unknown:
+            raise ValueError(f"unknown control keys {sorted(unknown)}")
+        with self._lock:
+            new = Faults(
+                drop_replies=float(data.get("drop_replies", self.faults.drop_replies)),
+                delay_replies_ms=float(data.get("delay_replies_ms", self.faults.delay_replies_ms)),
+                silenced={int(i) for i in data.get("silence", self.faults.silenced)},
+                toggle_set=self.faults.toggle_set,
+                seed=self.faults.seed,
+            )
+            new.validate()
+            self.faults = new
+        if data.get("snapshot"):
+            self.request_snapshot(str(data["snapshot"]))
+        if data.get("stop"):
+            self.request_stop()
+        _LOG.info("control applied: %s", data)
+
+    def run(self, on_ready: Callable[[], None] | None = None) -> None:
+        """Serve the bus and step physics in real time until :meth:`request_stop`."""
+        period = 1.0 / self.rate_hz
+        self._bus_thread.start()
+        c = self.counters
+        if self.snapshot_dir is not None:
+            self.snapshot("start")
+        self.write_status()
+        if on_ready is not None:
+            on_ready()
+        t0 = time.monotonic()
+        k = 0
+        next_status = t0
+        next_control = t0
+        try:
+            while not self._stop.is_set():
+                now = time.monotonic()
+                due = int((now - t0) / period) - k
+                if due > 0:
+                    lag = (now - (t0 + (k + 1) * period)) * 1e3
+                    if lag > c.max_lag_ms:
+                        c.max_lag_ms = lag
+                    if due > MAX_BURST:
+                        c.resyncs += 1
+                        c.overruns += 1
+                        t0 += (due - 1) * period  # forget the backlog: simulated time lags wall time
+                        due = 1
+                    elif due > 1:
+                        c.overruns += 1
+                    self.plant.step(due)
+                    k += due
+                if self.die_after_s is not None and now - self._start >= self.die_after_s:
+                    _LOG.warning("--die-after %.3f s reached: crashing on purpose", self.die_after_s)
+                    os.kill(os.getpid(), signal.SIGKILL)
+                if now >= next_control:
+                    next_control = now + CONTROL_POLL_S
+                    self._poll_control()
+                    with self._lock:
+                        reqs, self._snapshot_requests = self._snapshot_requests, []
+                    for name in reqs:
+                        self.snapshot(name)
+                    if reqs:  # rendering took a while: do not count the catch-up as overruns
+                        t0 = time.monotonic() - k * period
+                if now >= next_status:
+                    next_status = now + self.status_period
+                    self.write_status()
+                delay = t0 + (k + 1) * period - time.monotonic()
+                if delay > 0:
+                    time.sleep(delay)
+        finally:
+            self._stop.set()
+            self._bus_thread.join(timeout=2.0)
+            if self.snapshot_dir is not None:
+                try:
+                    self.snapshot("final")
+                except Exception:  # noqa: BLE001 - never block shutdown on a picture
+                    _LOG.exception("final snapshot failed")
+            self.write_status()
+
+
+def _target_of(frame: Any) -> int | None:
+    """Module id a request is for, 0 for a broadcast, None for anything not a request."""
+    if isinstance(frame, pc.Broadcast):
+        return 0
+    if isinstance(frame, pc.CommandRequest | pc.SetParamRequest | pc.GetParamRequest | pc.SetMoveRequest):
+        return int(frame.module_id)
+    return None
+
+
+def _default_emulator(plant: PybulletPlant, module_ids: Sequence[int]) -> Any:
+    from redarm_ros.sim.emulation import PlantModules
+
+    return PlantModules(plant, module_ids)
+
+
+# --------------------------------------------------------------------------------------------------
+# Command line
+# --------------------------------------------------------------------------------------------------
+
+
+def _floats(text: str) -> list[float]:
+    return [float(t) for t in text.replace(",", " ").split()]
+
+
+def _ids(values: Sequence[str]) -> set[int]:
+    out: set[int] = set()
+    for v in values:
+        out |= {int(t) for t in str(v).replace(",", " ").split()}
+    return out
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``redarm-sim`` argument parser (every fault flag also reads ``REDARM_SIM_<FLAG>``)."""
+    env = os.environ.get
+    ap = argparse.ArgumentParser(
+        prog="redarm-sim",
+        description="pybullet arm answering as PowerCube modules on the CAN bus (no ROS).",
+    )
+    ap.add_argument("--arm", default=env(ENV_PREFIX + "ARM", "pa10"), help="arm model name or YAML path")
+    ap.add_argument("--gui", action="store_true", help="pybullet GUI (needs a display)")
+    ap.add_argument("--rate", type=float, default=1000.0, help="physics rate in Hz (default 1000)")
+    ap.add_argument("--initial-q", nargs="+", default=None, help="initial joint positions (rad)")
+    ap.add_argument("--first-id", type=int, default=1, help="module id of joint 1 (default 1)")
+    ap.add_argument("--scene", default=None, help="scene name (config/scenes) or YAML path to show")
+    ap.add_argument("--status-file", default=env(ENV_PREFIX + "STATUS_FILE"), help="JSON status path")
+    ap.add_argument("--status-rate", type=float, default=20.0, help="status writes per second")
+    ap.add_argument("--snapshot-dir", default=env(ENV_PREFIX + "SNAPSHOT_DIR"), help="PNG directory")
+    ap.add_argument("--snapshot-size", default="640x480", help="snapshot WIDTHxHEIGHT")
+    ap.add_argument("--control-file", default=env(ENV_PREFIX + "CONTROL_FILE"), help="JSON control file")
+    g = ap.add_argument_group("CAN bus (python-can configuration, passed through)")
+    g.add_argument("--can-interface", default=None, help="python-can interface (else CAN_INTERFACE)")
+    g.add_argument("--can-channel", default=None, help="python-can channel (else CAN_CHANNEL)")
+    g.add_argument("--can-config-file", default=None, help="python-can config file")
+    g.add_argument("--can-bitrate", type=int, default=None, help="bitrate (interfaces that take one)")
+    f = ap.add_argument_group("fault injection (for tests)")
+    f.add_argument(
+        "--drop-replies",
+        type=float,
+        default=float(env(ENV_PREFIX + "DROP_REPLIES", "0") or 0),
+        metavar="FRACTION",
+        help="drop this fraction of replies (seeded)",
+    )
+    f.add_argument(
+        "--delay-replies",
+        type=float,
+        default=float(env(ENV_PREFIX + "DELAY_REPLIES", "0") or 0),
+        metavar="MS",
+        help="delay every reply by MS milliseconds",
+    )
+    f.add_argument(
+        "--silence-module",
+        action="append",
+        default=None,
+        metavar="ID",
+        help="module id(s) that ignore the bus (repeatable, comma list); SIGUSR1 toggles them",
+    )
+    f.add_argument(
+        "--silence-initially",
+        choices=("on", "off"),
+        default="on",
+        help="whether --silence-module ids start silent (default on)",
+    )
+    f.add_argument(
+        "--die-after",
+        type=float,
+        default=_env_float(ENV_PREFIX + "DIE_AFTER"),
+        metavar="S",
+        help="SIGKILL itself after S seconds (a crash)",
+    )
+    f.add_argument("--seed", type=int, default=int(env(ENV_PREFIX + "SEED", "0") or 0), help="fault RNG seed")
+    ap.add_argument("--log-level", default="INFO", help="logging level (DEBUG, INFO, WARNING)")
+    return ap
+
+
+def _env_float(name: str) -> float | None:
+    v = os.environ.get(name)
+    return float(v) if v else None
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``redarm-sim`` / ``ros2 run redarm_ros sim``."""
+    ap = build_parser()
+    args = ap.parse_args(argv)
+    logging.basicConfig(
+        level=getattr(logging, str(args.log_level).upper(), logging.INFO),
+        format="%(asctime)s %(levelname)s redarm-sim: %(message)s",
+        stream=sys.stderr,
+    )
+    silence_env = os.environ.get(ENV_PREFIX + "SILENCE_MODULE")
+    silence_args = (
+        args.silence_module if args.silence_module is not None else ([silence_env] if silence_env else [])
+    )
+    try:
+        toggle = _ids(silence_args)
+        faults = Faults(
+            drop_replies=args.drop_replies,
+            delay_replies_ms=args.delay_replies,
+            silenced=set(toggle) if args.silence_initially == "on" else set(),
+            toggle_set=toggle,
+            seed=args.seed,
+        )
+        faults.validate()
+        w, h = (int(v) for v in str(args.snapshot_size).lower().split("x"))
+        initial_q = _floats(" ".join(args.initial_q)) if args.initial_q else None
+        if args.rate <= 0 or not math.isfinite(args.rate):
+            raise ValueError("--rate must be > 0")
+    except ValueError as exc:
+        ap.print_usage(sys.stderr)
+        _LOG.error("bad arguments: %s", exc)
+        return EXIT_BAD_ARGS
+
+    from redarm_ros.kinematics import load_arm
+
+    try:
+        arm = load_arm(args.arm)
+        plant = PybulletPlant.create(arm, gui=args.gui, time_step=1.0 / args.rate, initial_q=initial_q)
+        if args.scene:
+            from redarm_ros.control.obstacles import load_scene
+
+            plant.add_scene(load_scene(args.scene).to_dict())
+    except RedarmError as exc:
+        _LOG.error("%s", exc)
+        return EXIT_BAD_ARGS
+
+    from redarm_ros.can.bus import open_bus
+
+    try:
+        bus = open_bus(
+            interface=args.can_interface,
+            channel=args.can_channel,
+            config_file=args.can_config_file,
+            bitrate=args.can_bitrate,
+        )
+    except BusError as exc:
+        _LOG.error("%s", exc)
+        plant.close()
+        return EXIT_NO_BUS
+
+    ids = list(range(args.first_id, args.first_id + arm.n))
+    sim = HardwareSim(
+        plant,
+        bus,
+        module_ids=ids,
+        rate_hz=args.rate,
+        faults=faults,
+        status_file=args.status_file,
+        status_rate_hz=args.status_rate,
+        snapshot_dir=args.snapshot_dir,
+        snapshot_size=(w, h),
+        control_file=args.control_file,
+        die_after_s=args.die_after,
+    )
+
+    def _stop(signum: int, _frame: object) -> None:
+        _LOG.info("signal %d: stopping", signum)
+        sim.request_stop()
+
+    signal.signal(signal.SIGINT, _stop)
+    signal.signal(signal.SIGTERM, _stop)
+    signal.signal(signal.SIGUSR1, lambda *_: sim.toggle_silence())
+    signal.signal(signal.SIGUSR2, lambda *_: sim.request_snapshot(None))
+
+    def _ready() -> None:
+        sys.stdout.write(
+            f"{READY_LINE} arm={arm.name} modules={ids[0]}-{ids[-1]} rate={args.rate:g} pid={os.getpid()}\n"
+        )
+        sys.stdout.flush()
+
+    try:
+        sim.run(on_ready=_ready)
+    finally:
+        try:
+            bus.shutdown()
+        except Exception:  # noqa: BLE001 - shutting down a dead transport must not mask the exit
+            _LOG.debug("bus shutdown failed", exc_info=True)
+        plant.close()
+    c = sim.counters
+    _LOG.info(
+        "stopped: %d frames, %d replies, %d malformed, %d overruns, max lag %.2f ms, max reply %.2f ms",
+        c.frames_rx,
+        c.replies_tx,
+        c.malformed,
+        c.overruns,
+        c.max_lag_ms,
+        c.reply_latency_max_ms,
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
