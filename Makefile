@@ -1,0 +1,59 @@
+# redarm_ros developer entry points. `make test` and `make demo` are the two README commands: both set
+# the environment up themselves (scripts/setup_env.sh: .venv, pinned wheels, `pip install -e .`, the
+# interfaces package built into the venv), idempotently; a second run skips every finished step.
+# Everything that may start ROS runs through scripts/ros_sandbox.sh (SHM-only DDS, random
+# ROS_DOMAIN_ID, private network namespace when possible). See docs/setup.md.
+
+SHELL := /bin/bash
+.SHELLFLAGS := -eu -o pipefail -c
+.DEFAULT_GOAL := test
+
+VENV := .venv
+PY := $(VENV)/bin/python
+SANDBOX := scripts/ros_sandbox.sh
+# The demo module: the full-stack demo once it exists, else the IK table demo.
+DEMO_MODULE ?= $(if $(wildcard redarm_ros/demo.py redarm_ros/demo/__init__.py),redarm_ros.demo,redarm_ros.ik_demo)
+DEMO_ARGS ?=
+PYTEST_ARGS ?=
+# Every benchmark takes --quick (a smoke run of a few seconds); `make bench BENCH_ARGS=` runs them in full.
+BENCH_ARGS ?= --quick
+
+.PHONY: setup test lint demo bench clean distclean
+
+setup:
+	@bash scripts/setup_env.sh
+
+lint: setup
+	$(VENV)/bin/ruff check .
+
+# Lint and tests both run; the target fails if either failed. pytest's exit 5 ("no tests collected")
+# is reported and not treated as a failure.
+test: setup
+	@if [ -f scripts/setup_uml.sh ]; then bash scripts/setup_uml.sh; fi  # UML guest for SocketCAN tests
+	@rc=0; \
+	echo "+ ruff check ."; $(VENV)/bin/ruff check . || rc=$$?; \
+	echo "+ pytest $(PYTEST_ARGS)"; \
+	prc=0; $(SANDBOX) $(PY) -m pytest $(PYTEST_ARGS) || prc=$$?; \
+	if [ $$prc -eq 5 ]; then echo "make test: pytest collected no tests"; prc=0; fi; \
+	if [ $$rc -ne 0 ]; then echo "make test: ruff found problems (exit $$rc)"; fi; \
+	if [ $$prc -ne 0 ]; then echo "make test: pytest failed (exit $$prc)"; fi; \
+	[ $$rc -eq 0 ] && [ $$prc -eq 0 ]
+
+demo: setup
+	$(SANDBOX) $(PY) -m $(DEMO_MODULE) $(DEMO_ARGS)
+
+bench: setup
+	@rc=0; for b in benchmarks/*.py; do \
+	    [ -e "$$b" ] || continue; \
+	    echo "+ $$b $(BENCH_ARGS)"; \
+	    $(SANDBOX) $(PY) "$$b" $(BENCH_ARGS) || { echo "make bench: $$b failed"; rc=1; }; \
+	done; exit $$rc
+
+# Build products, caches and stamps; the venv stays (`make distclean` removes it too).
+clean:
+	rm -rf .build build install log demo_output .pytest_cache .ruff_cache .hypothesis *.egg-info \
+	    $(VENV)/.redarm-stamps
+	find . -path ./$(VENV) -prune -o -name __pycache__ -type d -prune -exec rm -rf {} +
+
+distclean: clean
+	rm -rf $(VENV)
