@@ -73,3 +73,12 @@ class ProtocolError(RedarmError, ValueError):
     def __init__(self, message: str, *, frame: Any = None) -> None:
         super().__init__(message)
         self.frame = frame
+
+
+class ModuleFaultError(RedarmError):
+    """A bus module reports an error state (``module_id``, ACT_STATE bits in ``state``)."""
+
+    def __init__(self, message: str, *, module_id: int | None = None, state: int | None = None) -> None:
+        super().__init__(message)
+        self.module_id = module_id
+        self.state = state
