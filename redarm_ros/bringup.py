@@ -1,0 +1,372 @@
+"""``redarm-bringup``: the whole simulated stack as supervised child processes, without ``ros2 launch``.
+
+Starts, in order, each waiting for its readiness line:
+
+1. ``redarm-canbus``  - the loopback CAN bus server (python-can-remote on 127.0.0.1, ephemeral port);
+2. ``redarm-sim``     - the pybullet arm answering as PowerCube modules on that bus;
+3. ``can_driver``     - the ROS driver node (``/joint_states``, ``/joint_command``, ``~/init``...);
+4. ``ik_service``     - the SolveIK service node;
+5. ``controller``     - the attractor-dynamics reaching controller (``/goal_pose``).
+
+Every child gets the workplace DDS rules (``FASTDDS_BUILTIN_TRANSPORTS=SHM``, its own
+``ROS_DOMAIN_ID``: the caller's if set, else a random one in 1..200), its output is forwarded line by
+line with a ``[name]`` prefix, Ctrl-C (SIGINT) or SIGTERM stops them all in reverse order (SIGINT,
+wait, SIGINT, SIGKILL), and a child that dies on its own is reported; the rest are then stopped and
+the exit code is 1. ``--hardware real`` skips the bus server and the simulator and points the driver
+at a python-can configuration instead; ``--hardware none`` starts only the ROS nodes.
+
+The same machinery is importable: :class:`Stack` (a context manager) is what ``redarm-demo`` and the
+end-to-end tests use. Nothing here imports rclpy.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import signal
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import FrameType, TracebackType
+from typing import IO
+
+from redarm_ros.procs import ChildDiedError, ManagedProcess, ProcessGroup, python_module_cmd, random_domain_id
+
+_LOG = logging.getLogger("redarm_ros.bringup")
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+
+# Readiness lines, one per child (regular expressions searched in its output).
+READY = {
+    "canbus": r"REDARM_CANBUS_PORT=(\d+)",
+    "sim": r"REDARM_SIM_READY|modules? .*ready|ready",
+    "can_driver": r"can_driver.*(ready|running|cycle|started|homed|discovered)",
+    "ik_service": r"serving /\S*solve_ik",
+    "controller": r"controller.*(ready|control loop at)",
+}
+
+
+def config_dir() -> Path:
+    """``config/`` of the source tree, or ``share/redarm_ros/config`` of an install."""
+    candidates = [REPO_ROOT / "config", Path(sys.prefix) / "share" / "redarm_ros" / "config"]
+    try:  # an ament install
+        from ament_index_python.packages import get_package_share_directory
+
+        candidates.append(Path(get_package_share_directory("redarm_ros")) / "config")
+    except Exception:  # noqa: BLE001 - not installed the ament way
+        pass
+    for c in candidates:
+        if c.is_dir():
+            return c
+    return candidates[0]
+
+
+def _params_file(name: str) -> list[str]:
+    """``--params-file <config>/<name>.yaml`` if the file exists, else nothing."""
+    path = config_dir() / f"{name}.yaml"
+    return ["--params-file", str(path)] if path.is_file() else []
+
+
+def _yaml_list(values: Sequence[float]) -> str:
+    return "[" + ", ".join(f"{float(v):.9g}" for v in values) + "]"
+
+
+@dataclass
+class StackConfig:
+    """What to start and how. Units: Hz, s, rad.
+
+    ``hardware``: ``sim`` (bus server + simulator + driver), ``real`` (driver on ``can_interface`` /
+    ``can_channel``), ``none`` (no driver). ``scene`` is a scene name or YAML path shared by the
+    simulator (objects drawn and collidable) and the controller (obstacles to avoid).
+    """
+
+    arm: str = "pa10"
+    hardware: str = "sim"
+    ik_service: bool = True
+    controller: bool = True
+    scene: str | None = None
+    gui: bool = False
+    status_file: Path | None = None
+    snapshot_dir: Path | None = None
+    initial_q: list[float] | None = None
+    driver_rate_hz: float = 250.0
+    control_rate_hz: float = 100.0
+    can_interface: str | None = None
+    can_channel: str | None = None
+    log_level: str = "info"
+    ready_timeout_s: float = 60.0
+    extra_args: dict[str, list[str]] = field(default_factory=dict)  # per child: appended arguments
+
+
+class Stack:
+    """The supervised stack; use as a context manager (``start()`` on enter, ``stop()`` on exit).
+
+    Attributes after :meth:`start`: ``group`` (the :class:`ProcessGroup`), ``children`` (name ->
+    :class:`ManagedProcess`), ``can_channel`` (python-can channel of the bus, sim mode),
+    ``status_file`` (the simulator's JSON status), ``domain_id``.
+    """
+
+    def __init__(
+        self,
+        cfg: StackConfig,
+        *,
+        sink: Callable[[str], None] | IO[str] | None = None,
+        domain_id: int | None = None,
+    ) -> None:
+        self.cfg = cfg
+        if domain_id is None:
+            env_id = os.environ.get("ROS_DOMAIN_ID", "").strip()
+            domain_id = int(env_id) if env_id.isdigit() else random_domain_id()
+        self.domain_id = domain_id
+        self._tmp = tempfile.TemporaryDirectory(prefix="redarm_stack_")
+        self.status_file = (
+            Path(cfg.status_file) if cfg.status_file else Path(self._tmp.name) / "sim_status.json"
+        )
+        self.group = ProcessGroup(
+            domain_id=domain_id,
+            sink=sink if sink is not None else sys.stderr,
+            log_dir=Path(self._tmp.name) / "ros_log",
+            pythonpath=self._pythonpath(),
+        )
+        self.children: dict[str, ManagedProcess] = {}
+        self.can_channel: str | None = cfg.can_channel
+        self.can_interface: str | None = cfg.can_interface
+
+    @staticmethod
+    def _pythonpath() -> list[Path]:
+        # Running from a source tree without `pip install -e .`: make the children find the package.
+        return [REPO_ROOT] if (REPO_ROOT / "redarm_ros" / "__init__.py").is_file() else []
+
+    # -- start ------------------------------------------------------------------------------------
+    def _start(self, name: str, cmd: list[str], ready: str | None) -> ManagedProcess:
+        cmd = cmd + self.cfg.extra_args.get(name, [])
+        _LOG.info("starting %s: %s", name, " ".join(cmd))
+        child = self.group.start(name, cmd, ready=ready, ready_timeout=self.cfg.ready_timeout_s)
+        self.children[name] = child
+        _LOG.info("%s is up (pid %d)", name, child.pid)
+        return child
+
+    def _ros_args(self, node: str, params: dict[str, str]) -> list[str]:
+        args = ["--ros-args", "--log-level", self.cfg.log_level, *_params_file(node)]
+        if self.cfg.log_level in ("warn", "error", "fatal"):
+            # The readiness line is an info message of the node's own logger: keep that one at info.
+            args += ["--log-level", f"{node}:=info"]
+        for k, v in params.items():
+            args += ["-p", f"{k}:={v}"]
+        return args
+
+    def start(self) -> Stack:
+        """Start every configured child in order, each waiting for its readiness line.
+
+        Raises:
+            ChildDiedError, ReadinessTimeoutError: a child failed to come up (everything started so
+                far is stopped again).
+        """
+        cfg = self.cfg
+        if cfg.hardware not in ("sim", "real", "none"):
+            raise ValueError(f"hardware must be sim, real or none, got {cfg.hardware!r}")
+        try:
+            if cfg.hardware == "sim":
+                bus = self._start(
+                    "canbus",
+                    python_module_cmd("redarm_ros.can.bus_server", "--host", "127.0.0.1", "--port", "0"),
+                    READY["canbus"],
+                )
+                port = int(bus.ready_match.group(1))  # type: ignore[attr-defined]
+                self.can_interface, self.can_channel = "remote", f"ws://127.0.0.1:{port}/"
+                sim_cmd = python_module_cmd(
+                    "redarm_ros.sim.hardware",
+                    "--arm",
+                    cfg.arm,
+                    "--can-interface",
+                    self.can_interface,
+                    "--can-channel",
+                    self.can_channel,
+                    "--status-file",
+                    str(self.status_file),
+                )
+                if cfg.gui:
+                    sim_cmd.append("--gui")
+                if cfg.scene:
+                    sim_cmd += ["--scene", cfg.scene]
+                if cfg.snapshot_dir:
+                    sim_cmd += ["--snapshot-dir", str(cfg.snapshot_dir)]
+                if cfg.initial_q:
+                    sim_cmd += ["--initial-q", *(f"{v:.9g}" for v in cfg.initial_q)]
+                self._start("sim", sim_cmd, READY["sim"])
+            if cfg.hardware in ("sim", "real"):
+                if not self.can_interface:
+                    raise ValueError("--hardware real needs --can-interface (and usually --can-channel)")
+                params = {
+                    "arm": cfg.arm,
+                    "rate_hz": f"{cfg.driver_rate_hz:g}",
+                    "auto_init": "true",
+                    "can.interface": self.can_interface,
+                }
+                if self.can_channel:
+                    params["can.channel"] = self.can_channel
+                self._start(
+                    "can_driver",
+                    python_module_cmd("redarm_ros.nodes.can_driver", *self._ros_args("can_driver", params)),
+                    READY["can_driver"],
+                )
+            if cfg.ik_service:
+                self._start(
+                    "ik_service",
+                    python_module_cmd("redarm_ros.nodes.ik_service", *self._ros_args("ik_service", {})),
+                    READY["ik_service"],
+                )
+            if cfg.controller:
+                params = {"arm": cfg.arm, "rate_hz": f"{cfg.control_rate_hz:g}"}
+                if cfg.scene:
+                    params["scene"] = cfg.scene
+                self._start(
+                    "controller",
+                    python_module_cmd("redarm_ros.nodes.controller", *self._ros_args("controller", params)),
+                    READY["controller"],
+                )
+        except BaseException:
+            self.stop()
+            raise
+        return self
+
+    # -- supervise / stop -------------------------------------------------------------------------
+    def check(self) -> None:
+        """Raise :class:`ChildDiedError` if a child died without being asked to."""
+        self.group.check()
+
+    def wait(self, poll_s: float = 0.2) -> None:
+        """Block until a child dies (raises ChildDiedError) or KeyboardInterrupt."""
+        while True:
+            self.check()
+            time.sleep(poll_s)
+
+    def stop(self) -> dict[str, int]:
+        """Stop every child in reverse start order; returns name -> exit code."""
+        codes = self.group.stop_all()
+        for name, rc in codes.items():
+            _LOG.info("%s stopped (exit code %d)", name, rc)
+        return codes
+
+    def close(self) -> None:
+        """Stop the children and remove the temp directory."""
+        self.stop()
+        self._tmp.cleanup()
+
+    def __enter__(self) -> Stack:
+        return self.start()
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
+
+
+# -- command line --------------------------------------------------------------------------------
+def build_parser() -> argparse.ArgumentParser:
+    """The ``redarm-bringup`` argument parser."""
+    ap = argparse.ArgumentParser(
+        prog="redarm-bringup",
+        description="Start the simulated redarm stack (bus server, simulator, can_driver, ik_service, "
+        "controller) as supervised processes; Ctrl-C stops them all.",
+    )
+    ap.add_argument("--arm", default="pa10", help="arm model (config/arms/<name>.yaml), default pa10")
+    ap.add_argument(
+        "--hardware",
+        choices=("sim", "real", "none"),
+        default="sim",
+        help="sim: bus server + pybullet simulator + driver (default); real: driver on the "
+        "python-can bus given by --can-interface/--can-channel; none: no driver",
+    )
+    ap.add_argument("--can-interface", help="python-can interface for --hardware real (e.g. socketcan)")
+    ap.add_argument("--can-channel", help="python-can channel for --hardware real (e.g. can0)")
+    ap.add_argument("--no-controller", action="store_true", help="do not start the controller node")
+    ap.add_argument("--no-ik-service", action="store_true", help="do not start the ik_service node")
+    ap.add_argument("--scene", help="scene name (config/scenes) or YAML path, for simulator and controller")
+    ap.add_argument("--gui", action="store_true", help="open the pybullet GUI (needs a display)")
+    ap.add_argument("--status-file", type=Path, help="where the simulator writes its JSON status")
+    ap.add_argument("--snapshot-dir", type=Path, help="where the simulator writes PNG snapshots")
+    ap.add_argument(
+        "--initial-q", type=float, nargs="+", help="initial joint angles of the simulated arm (rad)"
+    )
+    ap.add_argument("--driver-rate", type=float, default=250.0, help="can_driver cycle rate (Hz)")
+    ap.add_argument("--control-rate", type=float, default=100.0, help="controller rate (Hz)")
+    ap.add_argument("--log-level", default="info", choices=("debug", "info", "warn", "error"))
+    ap.add_argument(
+        "--domain-id", type=int, help="ROS_DOMAIN_ID (default: $ROS_DOMAIN_ID, else random 1..200)"
+    )
+    ap.add_argument(
+        "--ready-timeout", type=float, default=60.0, help="seconds each child may take to come up"
+    )
+    return ap
+
+
+def config_from_args(ns: argparse.Namespace) -> StackConfig:
+    """A :class:`StackConfig` from parsed ``redarm-bringup`` arguments."""
+    return StackConfig(
+        arm=ns.arm,
+        hardware=ns.hardware,
+        ik_service=not ns.no_ik_service,
+        controller=not ns.no_controller,
+        scene=ns.scene,
+        gui=ns.gui,
+        status_file=ns.status_file,
+        snapshot_dir=ns.snapshot_dir,
+        initial_q=ns.initial_q,
+        driver_rate_hz=ns.driver_rate,
+        control_rate_hz=ns.control_rate,
+        can_interface=ns.can_interface,
+        can_channel=ns.can_channel,
+        log_level=ns.log_level,
+        ready_timeout_s=ns.ready_timeout,
+    )
+
+
+def _raise_keyboard_interrupt(signum: int, _frame: FrameType | None) -> None:
+    raise KeyboardInterrupt(f"signal {signum}")
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Console entry point. Exit codes: 0 stopped by Ctrl-C/SIGTERM, 1 a child died or failed to start."""
+    ns = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="[bringup] %(message)s", stream=sys.stderr)
+    # SIGTERM (systemd, a test, `kill`) takes the same clean path as Ctrl-C.
+    signal.signal(signal.SIGTERM, _raise_keyboard_interrupt)
+    cfg = config_from_args(ns)
+    stack = Stack(cfg, domain_id=ns.domain_id)
+    _LOG.info("ROS_DOMAIN_ID=%d, FASTDDS_BUILTIN_TRANSPORTS=SHM", stack.domain_id)
+    code = 0
+    try:
+        stack.start()
+        _LOG.info(
+            "stack up: %s; Ctrl-C to stop", ", ".join(f"{n} (pid {c.pid})" for n, c in stack.children.items())
+        )
+        stack.wait()
+    except KeyboardInterrupt:
+        _LOG.info("stopping (Ctrl-C)")
+    except ChildDiedError as exc:
+        _LOG.error(
+            "child %s died unexpectedly (exit code %s); stopping the others. Last output:\n%s",
+            exc.name,
+            exc.returncode,
+            "\n".join(exc.tail[-15:]),
+        )
+        code = 1
+    except Exception as exc:  # noqa: BLE001 - report start-up failures in one line, then clean up
+        _LOG.error("could not bring the stack up: %s", exc)
+        code = 1
+    finally:
+        # A second Ctrl-C while stopping must not abandon children: ignore it until all are down.
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        stack.close()
+        _LOG.info("all children stopped")
+    return code
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,135 @@
+"""redarm-bringup: Ctrl-C stops every child; a child that dies is reported and the rest are stopped."""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import time
+from typing import Any
+
+import pytest
+
+pytest.importorskip("redarm_interfaces", reason="redarm_interfaces not built (run scripts/setup_env.sh)")
+
+from redarm_ros.bringup import StackConfig, build_parser, config_from_args  # noqa: E402
+from redarm_ros.procs import python_module_cmd  # noqa: E402
+
+UP = r"stack up: (.*); Ctrl-C to stop"
+
+
+def _child_pids(line_match: re.Match[str]) -> dict[str, int]:
+    return {m.group(1): int(m.group(2)) for m in re.finditer(r"(\w+) \(pid (\d+)\)", line_match.group(1))}
+
+
+def _alive(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat", encoding="ascii") as f:
+            state = f.read().rsplit(")", 1)[-1].split()[0]
+    except OSError:
+        return False
+    return state not in ("Z", "X")
+
+
+def _wait_exit(proc: Any, timeout: float) -> int | None:
+    deadline = time.monotonic() + timeout
+    while proc.returncode is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    return proc.returncode
+
+
+def _wait_gone(pids: list[int], timeout: float) -> list[int]:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        left = [p for p in pids if _alive(p)]
+        if not left:
+            return []
+        time.sleep(0.05)
+    return [p for p in pids if _alive(p)]
+
+
+def test_parser_defaults_and_flags() -> None:
+    cfg = config_from_args(build_parser().parse_args([]))
+    assert cfg == StackConfig(), "defaults of the CLI and of StackConfig must agree"
+    cfg = config_from_args(
+        build_parser().parse_args(
+            ["--arm", "powercube7", "--no-controller", "--scene", "table_cylinder", "--hardware", "none"]
+        )
+    )
+    assert (cfg.arm, cfg.controller, cfg.ik_service, cfg.scene, cfg.hardware) == (
+        "powercube7",
+        False,
+        True,
+        "table_cylinder",
+        "none",
+    )
+
+
+def test_ctrl_c_stops_all_children(procs: Any) -> None:
+    bringup = procs.start(
+        "bringup",
+        python_module_cmd(
+            "redarm_ros.bringup", "--hardware", "none", "--no-controller", "--log-level", "warn"
+        ),
+    )
+    m = bringup.wait_for_line(UP, timeout=60.0)
+    pids = _child_pids(m)
+    assert set(pids) == {"ik_service"}
+    assert all(_alive(p) for p in pids.values())
+    bringup.expect_exit()
+    bringup.send_signal(signal.SIGINT)  # what a terminal Ctrl-C delivers to the foreground process
+    assert _wait_exit(bringup.popen, 30.0) == 0, bringup.tail(20)
+    assert _wait_gone(list(pids.values()), 5.0) == [], "a child outlived the bring-up"
+    out = "\n".join(bringup.output())
+    assert "ik_service stopped (exit code 0)" in out
+    assert "all children stopped" in out
+
+
+def test_sigterm_stops_all_children(procs: Any) -> None:
+    bringup = procs.start(
+        "bringup",
+        python_module_cmd(
+            "redarm_ros.bringup", "--hardware", "none", "--no-controller", "--log-level", "warn"
+        ),
+    )
+    pids = _child_pids(bringup.wait_for_line(UP, timeout=60.0))
+    bringup.expect_exit()
+    bringup.send_signal(signal.SIGTERM)
+    assert _wait_exit(bringup.popen, 30.0) == 0, bringup.tail(20)
+    assert _wait_gone(list(pids.values()), 5.0) == []
+
+
+def test_dead_child_is_reported(procs: Any) -> None:
+    bringup = procs.start(
+        "bringup",
+        python_module_cmd(
+            "redarm_ros.bringup", "--hardware", "none", "--no-controller", "--log-level", "warn"
+        ),
+    )
+    pids = _child_pids(bringup.wait_for_line(UP, timeout=60.0))
+    bringup.expect_exit()
+    os.kill(pids["ik_service"], signal.SIGKILL)  # a crash
+    bringup.wait_for_line(r"child ik_service died unexpectedly \(exit code -9\)", timeout=15.0)
+    assert _wait_exit(bringup.popen, 30.0) == 1
+    assert _wait_gone(list(pids.values()), 5.0) == []
+
+
+def test_child_that_cannot_start_is_reported() -> None:
+    """In-process Stack: a node that exits during start-up raises ChildDiedError; nothing is left running."""
+    from redarm_ros.bringup import Stack
+    from redarm_ros.procs import ChildDiedError
+
+    lines: list[str] = []
+    cfg = StackConfig(
+        hardware="none",
+        controller=False,
+        log_level="warn",
+        extra_args={"ik_service": ["-p", "default_arm:=no_such_arm"]},
+    )
+    stack = Stack(cfg, sink=lines.append)
+    with pytest.raises(ChildDiedError) as err:
+        stack.start()
+    assert err.value.name == "ik_service"
+    assert any("no_such_arm" in line for line in lines), lines
+    assert all(not c.is_running() for c in stack.children.values())
+    stack.close()
