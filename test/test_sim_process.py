@@ -249,3 +249,30 @@ def test_bad_arguments_and_missing_bus_exit_with_a_code(procs, args, code):
     proc.expect_exit()
     proc.popen.wait(timeout=30)
     assert proc.returncode == code
+
+
+def test_sim_reconnects_when_the_bus_server_comes_back(procs, tmp_path):
+    port = _free_port()
+    server_cmd = python_module_cmd("redarm_ros.can.bus_server", "--host", "127.0.0.1", "--port", str(port))
+    server = procs.start("canbus", server_cmd, ready=r"REDARM_CANBUS_PORT=", ready_timeout=20.0)
+
+    class _Server:  # what _start_sim needs of the canbus fixture
+        def cli_args(self) -> list[str]:
+            return ["--can-interface", "remote", "--can-channel", f"ws://127.0.0.1:{port}/"]
+
+    _start_sim(procs, _Server(), tmp_path)
+    kwargs = {"interface": "remote", "channel": f"ws://127.0.0.1:{port}/"}
+    host = Host(kwargs)
+    try:
+        assert host.ask(pc.get_param(1, Param.DEF_VERSION)) is not None
+    finally:
+        host.close()
+    assert server.stop() == 0
+    _wait_status(tmp_path, lambda s: s["counters"]["bus_lost"] >= 1)
+    procs.start("canbus2", server_cmd, ready=r"REDARM_CANBUS_PORT=", ready_timeout=20.0)
+    _wait_status(tmp_path, lambda s: s["counters"]["bus_reopened"] >= 1, timeout=20.0)
+    host = Host(kwargs)
+    try:
+        assert host.ask(pc.get_param(1, Param.DEF_VERSION)) is not None
+    finally:
+        host.close()

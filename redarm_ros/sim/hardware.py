@@ -554,6 +554,20 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
+def strip_ros_args(argv: Sequence[str]) -> list[str]:
+    """Drop ``--ros-args ... [--]`` sections (``ros2 run``/launch append them; this is no ROS node)."""
+    out: list[str] = []
+    skipping = False
+    for a in argv:
+        if a == "--ros-args":
+            skipping = True
+        elif skipping and a == "--":
+            skipping = False
+        elif not skipping:
+            out.append(a)
+    return out
+
+
 def _env_float(name: str) -> float | None:
     v = os.environ.get(name)
     return float(v) if v else None
@@ -562,7 +576,7 @@ def _env_float(name: str) -> float | None:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``redarm-sim`` / ``ros2 run redarm_ros sim``."""
     ap = build_parser()
-    args = ap.parse_args(argv)
+    args = ap.parse_args(strip_ros_args(sys.argv[1:] if argv is None else list(argv)))
     logging.basicConfig(
         level=getattr(logging, str(args.log_level).upper(), logging.INFO),
         format="%(asctime)s %(levelname)s redarm-sim: %(message)s",

@@ -50,26 +50,27 @@ MOTION_EPS = 1e-3  # rad/s; measured speed above this counts as "in motion"
 
 @contextlib.contextmanager
 def quiet_stdio() -> Iterator[None]:
-    """Silence file descriptors 1 and 2 for the block (pybullet prints from C on import and connect)."""
-    streams = [s for s in (sys.stdout, sys.stderr) if s is not None]
-    fds = []
-    for s in streams:
-        try:
-            fds.append(s.fileno())
-        except (AttributeError, OSError, ValueError):  # no real fd (e.g. captured in memory)
-            pass
-    for s in streams:
-        s.flush()
-    saved = [os.dup(fd) for fd in fds]
+    """Silence file descriptors 1 and 2 for the block (pybullet prints from C on import and connect).
+
+    Works on the descriptors themselves, so it also holds under pytest's capture, where
+    ``sys.stdout`` has no real descriptor.
+    """
+    for s in (sys.stdout, sys.stderr):
+        if s is not None:
+            s.flush()
+    saved = []
     try:
+        for fd in (1, 2):
+            try:
+                saved.append((fd, os.dup(fd)))
+            except OSError:  # descriptor not open: nothing to silence
+                continue
         with open(os.devnull, "wb") as null:
-            for fd in fds:
+            for fd, _ in saved:
                 os.dup2(null.fileno(), fd)
         yield
     finally:
-        for s in streams:
-            s.flush()
-        for fd, keep in zip(fds, saved, strict=True):
+        for fd, keep in saved:
             os.dup2(keep, fd)
             os.close(keep)
 
