@@ -22,6 +22,7 @@ end-to-end tests use. Nothing here imports rclpy.
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import os
 import signal
@@ -32,7 +33,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import FrameType, TracebackType
-from typing import IO
+from typing import IO, Any
 
 from redarm_ros.procs import ChildDiedError, ManagedProcess, ProcessGroup, python_module_cmd, random_domain_id
 
@@ -43,10 +44,10 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 # Readiness lines, one per child (regular expressions searched in its output).
 READY = {
     "canbus": r"REDARM_CANBUS_PORT=(\d+)",
-    "sim": r"REDARM_SIM_READY|modules? .*ready|ready",
-    "can_driver": r"can_driver.*(ready|running|cycle|started|homed|discovered)",
+    "sim": r"REDARM_SIM_READY",
+    "can_driver": r"can_driver ready:",
     "ik_service": r"serving /\S*solve_ik",
-    "controller": r"controller.*(ready|control loop at)",
+    "controller": r"controller ready:",
 }
 
 
@@ -91,6 +92,7 @@ class StackConfig:
     scene: str | None = None
     gui: bool = False
     status_file: Path | None = None
+    control_file: Path | None = None
     snapshot_dir: Path | None = None
     initial_q: list[float] | None = None
     driver_rate_hz: float = 250.0
@@ -123,9 +125,9 @@ class Stack:
             domain_id = int(env_id) if env_id.isdigit() else random_domain_id()
         self.domain_id = domain_id
         self._tmp = tempfile.TemporaryDirectory(prefix="redarm_stack_")
-        self.status_file = (
-            Path(cfg.status_file) if cfg.status_file else Path(self._tmp.name) / "sim_status.json"
-        )
+        tmp = Path(self._tmp.name)
+        self.status_file = Path(cfg.status_file) if cfg.status_file else tmp / "sim_status.json"
+        self.control_file = Path(cfg.control_file) if cfg.control_file else tmp / "sim_control.json"
         self.group = ProcessGroup(
             domain_id=domain_id,
             sink=sink if sink is not None else sys.stderr,
@@ -135,6 +137,7 @@ class Stack:
         self.children: dict[str, ManagedProcess] = {}
         self.can_channel: str | None = cfg.can_channel
         self.can_interface: str | None = cfg.can_interface
+        self._control_seq = 0
 
     @staticmethod
     def _pythonpath() -> list[Path]:
@@ -179,15 +182,9 @@ class Stack:
                 port = int(bus.ready_match.group(1))  # type: ignore[attr-defined]
                 self.can_interface, self.can_channel = "remote", f"ws://127.0.0.1:{port}/"
                 sim_cmd = python_module_cmd(
-                    "redarm_ros.sim.hardware",
-                    "--arm",
-                    cfg.arm,
-                    "--can-interface",
-                    self.can_interface,
-                    "--can-channel",
-                    self.can_channel,
-                    "--status-file",
-                    str(self.status_file),
+                    "redarm_ros.sim.hardware", "--arm", cfg.arm,
+                    "--can-interface", self.can_interface, "--can-channel", self.can_channel,
+                    "--status-file", str(self.status_file), "--control-file", str(self.control_file),
                 )
                 if cfg.gui:
                     sim_cmd.append("--gui")
@@ -233,6 +230,45 @@ class Stack:
             self.stop()
             raise
         return self
+
+    # -- talk to the simulator ------------------------------------------------------------------
+    def sim_status(self) -> dict[str, Any] | None:
+        """The simulator's last JSON status (joint positions ``q``, ``tool`` pose from pybullet's link
+        state: ``position`` m and ``quaternion_xyzw``), or None if there is none yet."""
+        try:
+            return json.loads(self.status_file.read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            return None
+
+    def sim_control(self, **data: Any) -> None:
+        """Write the simulator's control file (atomically), e.g. ``sim_control(snapshot="goal_1")``.
+
+        Keys (see docs/sim.md): ``snapshot`` (PNG name in the snapshot dir), ``silence``,
+        ``drop_replies``, ``delay_replies_ms``, ``stop``. The simulator polls the file every 50 ms
+        and acts when its modification time or size changes.
+        """
+        self._control_seq += 1
+        tmp = self.control_file.with_name(f".{self.control_file.name}.{self._control_seq}.tmp")
+        # Alternate a trailing space so two identical requests still differ in size.
+        tmp.write_text(json.dumps(data) + " " * (self._control_seq % 2), encoding="utf-8")
+        os.replace(tmp, self.control_file)
+
+    def request_snapshot(self, name: str, timeout_s: float = 10.0) -> Path | None:
+        """Ask the simulator for ``<snapshot_dir>/<name>.png`` and wait until its status lists it.
+
+        Returns the path, or None without a snapshot directory / simulator or if it did not appear.
+        """
+        if self.cfg.snapshot_dir is None or self.cfg.hardware != "sim":
+            return None
+        self.sim_control(snapshot=name)
+        want = (Path(self.cfg.snapshot_dir) / f"{name}.png").resolve()
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            st = self.sim_status() or {}
+            if any(Path(p).resolve() == want for p in st.get("snapshots", [])):
+                return want
+            time.sleep(0.05)
+        return None
 
     # -- supervise / stop -------------------------------------------------------------------------
     def check(self) -> None:
@@ -290,6 +326,7 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--gui", action="store_true", help="open the pybullet GUI (needs a display)")
     ap.add_argument("--status-file", type=Path, help="where the simulator writes its JSON status")
     ap.add_argument("--snapshot-dir", type=Path, help="where the simulator writes PNG snapshots")
+    ap.add_argument("--control-file", type=Path, help="the simulator's control file (docs/sim.md)")
     ap.add_argument(
         "--initial-q", type=float, nargs="+", help="initial joint angles of the simulated arm (rad)"
     )
@@ -315,6 +352,7 @@ def config_from_args(ns: argparse.Namespace) -> StackConfig:
         scene=ns.scene,
         gui=ns.gui,
         status_file=ns.status_file,
+        control_file=ns.control_file,
         snapshot_dir=ns.snapshot_dir,
         initial_q=ns.initial_q,
         driver_rate_hz=ns.driver_rate,
