@@ -53,9 +53,15 @@ def declare_params(node: Node, specs: Sequence[ParamSpec]) -> dict[str, Any]:
     def on_set(params: list[Parameter]) -> SetParametersResult:
         for p in params:
             spec = by_name.get(p.name)
-            if spec is None or spec.validate is None:
+            if spec is None:
                 continue
-            reason = spec.validate(p.value)
+            value = p.value
+            if _is_float_param(spec):
+                # `-p rate_hz:=250` arrives as an integer; accept any number for a float parameter.
+                if isinstance(value, bool) or not isinstance(value, (int, float)):
+                    return SetParametersResult(successful=False, reason=f"{p.name}: must be a number")
+                value = float(value)
+            reason = spec.validate(value) if spec.validate is not None else None
             if reason is not None:
                 return SetParametersResult(successful=False, reason=f"{p.name}: {reason}")
         return SetParametersResult(successful=True)
@@ -64,16 +70,23 @@ def declare_params(node: Node, specs: Sequence[ParamSpec]) -> dict[str, Any]:
     node.add_on_set_parameters_callback(on_set)
     values: dict[str, Any] = {}
     for s in specs:
-        desc = ParameterDescriptor(description=s.description, read_only=s.read_only)
+        desc = ParameterDescriptor(description=s.description, read_only=s.read_only,
+                                   dynamic_typing=_is_float_param(s))
         try:
-            values[s.name] = node.declare_parameter(s.name, s.default, desc).value
-        except rclpy.exceptions.InvalidParameterValueException as exc:
+            value = node.declare_parameter(s.name, s.default, desc).value
+        except (rclpy.exceptions.InvalidParameterValueException,
+                rclpy.exceptions.InvalidParameterTypeException) as exc:
             raise ValueError(f"parameter {s.name}: {exc}") from exc
+        values[s.name] = float(value) if _is_float_param(s) and value is not None else value
     return values
 
 
+def _is_float_param(spec: ParamSpec) -> bool:
+    return isinstance(spec.default, float)
+
+
 def param_values(node: Node, names: Iterable[str]) -> dict[str, Any]:
-    """Current values of the named parameters."""
+    """Current values of the named parameters (integers given for float parameters stay integers)."""
     return {n: node.get_parameter(n).value for n in names}
 
 
