@@ -52,6 +52,7 @@ _LOG = logging.getLogger("redarm_ros.sim.hardware")
 READY_LINE = "REDARM_SIM_READY"
 MAX_BURST = 50  # steps caught up at once; a larger backlog is dropped (resync)
 CONTROL_POLL_S = 0.05
+OVERRUN_REPORT_S = 5.0  # log late steps at most this often
 ENV_PREFIX = "REDARM_SIM_"
 EXIT_BAD_ARGS = 2
 EXIT_NO_BUS = 3
@@ -414,6 +415,7 @@ class HardwareSim:
         k = 0
         next_status = t0
         next_control = t0
+        next_report, reported = t0 + OVERRUN_REPORT_S, 0
         try:
             while not self._stop.is_set():
                 now = time.monotonic()
@@ -446,6 +448,14 @@ class HardwareSim:
                 if now >= next_status:
                     next_status = now + self.status_period
                     self.write_status()
+                if now >= next_report:
+                    next_report = now + OVERRUN_REPORT_S
+                    if c.overruns > reported:
+                        _LOG.warning(
+                            "%d late physics steps in the last %.0f s (max lag so far %.2f ms, %d resyncs)",
+                            c.overruns - reported, OVERRUN_REPORT_S, c.max_lag_ms, c.resyncs,
+                        )  # fmt: skip
+                        reported = c.overruns
                 delay = t0 + (k + 1) * period - time.monotonic()
                 if delay > 0:
                     time.sleep(delay)
