@@ -144,9 +144,13 @@ class KinematicPlant:
     """An acceleration- and velocity-limited joint integrated lazily to the clock's time.
 
     Each query advances the state from the last query to ``clock()`` in steps of at most
-    ``step_s`` (semi-implicit Euler). Position moves brake with the ramp acceleration so they
-    land on the target; an FSTEP caps the speed at distance / duration. Velocity moves brake to
-    rest before ``lower``/``upper``. Thread-safe (one lock).
+    ``step_s`` (semi-implicit Euler). A ramp move (no duration) brakes with its acceleration so
+    it lands on the target. An FSTEP (with a duration) aims to *arrive* at the end of its
+    duration: until then it moves at (remaining distance / remaining time), so a stream of
+    FSTEPs, one per host cycle, is followed without stopping at each target; when the duration
+    is over and no new step came, it brakes onto the target like a ramp move. Velocity moves
+    brake to rest before ``lower``/``upper``. Speeds never exceed the velocity limit, speed
+    changes never exceed the acceleration limit. Thread-safe (one lock).
 
     Args:
         position: initial position (rad).
@@ -182,6 +186,8 @@ class KinematicPlant:
         self._vcap = self.max_vel
         self._acc = self.max_acc
         self._target_vel = 0.0
+        self._arrive: float | None = None  # FSTEP: clock time at which to be on target
+        self._ts = self._t  # start time of the step being integrated
 
     # -- integration ---------------------------------------------------------------------------
 
@@ -193,7 +199,9 @@ class KinematicPlant:
             return
         n = math.ceil(dt_total / self._h - 1e-9)
         h = dt_total / n
-        for _ in range(n):
+        t0 = now - dt_total
+        for k in range(n):
+            self._ts = t0 + k * h
             if self._step(h):
                 break
 
@@ -206,9 +214,14 @@ class KinematicPlant:
             err = self._target - self._p
             if abs(err) <= 1e-12 and abs(v) <= dv:
                 return self._rest(self._target)
-            # braking speed sqrt(2 a |e|), never more than the step can cover exactly
-            speed = min(self._vcap, math.sqrt(2.0 * a * abs(err)), abs(err) / h)
-            v_des = math.copysign(speed, err)
+            left = None if self._arrive is None else self._arrive - self._ts
+            if left is not None and left > h:
+                # FSTEP window: arrive on time (remaining distance over remaining time)
+                v_des = max(-self._vcap, min(self._vcap, err / left))
+            else:
+                # braking speed sqrt(2 a |e|), never more than the step can cover exactly
+                speed = min(self._vcap, math.sqrt(2.0 * a * abs(err)), abs(err) / h)
+                v_des = math.copysign(speed, err)
         elif self._mode is _PlantMode.VELOCITY:
             v_des = self._target_vel
             if v_des > 0:
@@ -246,8 +259,8 @@ class KinematicPlant:
             self._advance()
             target = min(max(float(target), self.lower), self.upper)
             vcap = self.max_vel if not vel_limit or vel_limit <= 0 else min(float(vel_limit), self.max_vel)
-            if duration_s is not None and duration_s > 0:
-                vcap = min(vcap, max(abs(target - self._p) / duration_s, 1e-6))
+            has_duration = duration_s is not None and duration_s > 0
+            self._arrive = self._t + float(duration_s) if has_duration else None  # type: ignore[arg-type]
             self._acc = (
                 self.max_acc if not acc_limit or acc_limit <= 0 else min(float(acc_limit), self.max_acc)
             )

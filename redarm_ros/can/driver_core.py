@@ -1,0 +1,842 @@
+"""Host side of a PowerCube arm: discovery, init/home, halt, recover and the cyclic FSTEP stream.
+
+ROS-free; talks to any ``can.BusABC`` (usually a :class:`~redarm_ros.can.bus.ReconnectingBus`).
+One cycle (:meth:`PowerCubeArmDriver.cycle`) sends one FSTEP_EXT per joint carrying the cycle
+time, then the startMotionAll broadcast (the modules run with SYNC_MOTION, so all joints start
+together), optionally the watchdog refresh broadcast, and then collects the extended
+acknowledgements (actual position *before* the move, short state) in one receive loop with a
+deadline. Frames are pre-built once and patched in place every cycle.
+
+Safety rules, all enforced before anything is sent:
+
+* a target with NaN/inf or the wrong shape is refused (:class:`InvalidInputError`, nothing sent);
+* targets are clamped to ``[lower, upper]`` and to a step of ``max_vel * dt`` from the previous
+  commanded target; clamped joints are listed in :attr:`CycleResult.clamped`;
+* a module that misses ``max_missed`` consecutive replies -> every module is halted, the driver
+  enters FAULT and :class:`BusTimeoutError` (``module_id``, ``timeout_s``) is raised once, with
+  the cycle's result in its ``cycle_result`` attribute;
+* a module reporting ERROR (short state, or a state frame on 0x060+id) -> every module halted,
+  its full ACT_STATE is read (POWERFAULT, TOW_ERROR, BEYOND_SOFT, ...) and reported in
+  :attr:`CycleResult.fault` / :attr:`CycleResult.faults`; the driver enters FAULT;
+* in FAULT or HALTED a cycle only holds and polls (target = measured position, which halted
+  modules refuse anyway) until :meth:`recover` (or :meth:`init`);
+* a transport failure raises :class:`BusError`; the caller reopens the bus with backoff
+  (:meth:`reconnect`, or ``bus.reopen()`` directly). The first use after a failure re-reads
+  the positions and holds them: a command from before the loss is never replayed.
+
+Threading: every public method takes one lock, so calls from different threads are serialised,
+but the intended use is one thread owning the driver (the node's loop thread) and calling
+:meth:`cycle` at a fixed rate and the other methods in between.
+
+Units: rad, rad/s, rad/s^2, s. Times come from ``clock`` (default ``time.perf_counter``).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import struct
+import threading
+import time
+from collections.abc import Callable, Hashable, Sequence
+from dataclasses import dataclass, field
+from enum import Enum
+
+import can
+import numpy as np
+
+from redarm_ros.can import protocol as p
+from redarm_ros.can.protocol import ActConfig, ActState, Command, MoveMode, Param
+from redarm_ros.errors import BusError, BusTimeoutError, InvalidInputError, ModuleFaultError, RedarmError
+
+logger = logging.getLogger(__name__)
+
+_FSTEP_EXT = struct.Struct("<BBfH")
+#: Bits that make the driver halt everything and report.
+FAULT_BITS = (
+    ActState.ERROR
+    | ActState.POWERFAULT
+    | ActState.TOW_ERROR
+    | ActState.BEYOND_SOFT
+    | ActState.BEYOND_HARD
+    | ActState.POW_VOLT_ERR
+    | ActState.POW_FET_TEMP
+    | ActState.POW_WDG_TEMP
+    | ActState.POW_SHORTCUR
+    | ActState.POW_HALLERR
+    | ActState.POW_INTEGRAL_ERR
+)
+_LATENCY_WINDOW = 1024
+
+
+class DriverState(Enum):
+    """Lifecycle of :class:`PowerCubeArmDriver`."""
+
+    UNINITIALIZED = "uninitialized"  # not yet init()/recover(): cycle() refuses
+    READY = "ready"  # following targets
+    HALTED = "halted"  # halt() was called: cycles hold and poll until recover()/init()
+    FAULT = "fault"  # a module failed or stopped answering: cycles hold and poll until recover()
+
+
+class ModuleStats:
+    """Per-module statistics for diagnostics (counts since construction; latency over a window)."""
+
+    __slots__ = (
+        "module_id",
+        "replies",
+        "lost",
+        "late",
+        "malformed",
+        "consecutive_misses",
+        "silent",
+        "_lat",
+        "_k",
+    )
+
+    def __init__(self, module_id: int) -> None:
+        self.module_id = module_id
+        self.replies = 0
+        self.lost = 0  # expected replies that did not arrive before the deadline
+        self.late = 0  # replies that arrived after their deadline (or twice)
+        self.malformed = 0  # frames from this module that the codec refused
+        self.consecutive_misses = 0
+        self.silent = False  # missed max_missed replies in a row (cleared by the next reply)
+        self._lat = np.zeros(_LATENCY_WINDOW)
+        self._k = 0
+
+    def add_latency(self, seconds: float) -> None:
+        """Record one reply latency (s)."""
+        self._lat[self._k % _LATENCY_WINDOW] = seconds
+        self._k += 1
+
+    def _window(self) -> np.ndarray:
+        return self._lat[: min(self._k, _LATENCY_WINDOW)]
+
+    @property
+    def latency_median_ms(self) -> float:
+        """Median reply latency over the last replies (ms; 0 before the first)."""
+        w = self._window()
+        return float(np.median(w) * 1e3) if w.size else 0.0
+
+    @property
+    def latency_max_ms(self) -> float:
+        """Largest reply latency over the last replies (ms; 0 before the first)."""
+        w = self._window()
+        return float(w.max() * 1e3) if w.size else 0.0
+
+    def as_dict(self) -> dict[str, float | int | bool]:
+        """Plain values for logs and diagnostics."""
+        return {
+            "module_id": self.module_id,
+            "replies": self.replies,
+            "lost": self.lost,
+            "late": self.late,
+            "malformed": self.malformed,
+            "silent": self.silent,
+            "latency_median_ms": self.latency_median_ms,
+            "latency_max_ms": self.latency_max_ms,
+        }
+
+    def __repr__(self) -> str:
+        return f"ModuleStats({self.as_dict()})"
+
+
+@dataclass(frozen=True)
+class DiscoveryReport:
+    """Result of :meth:`PowerCubeArmDriver.discover`: firmware version per found id, missing ids."""
+
+    found: dict[int, int]
+    missing: list[int]
+
+    @property
+    def complete(self) -> bool:
+        """True when every configured module answered."""
+        return not self.missing
+
+
+@dataclass(frozen=True)
+class ArmState:
+    """Positions (n,) rad and ACT_STATE bits per joint, read with GETPARAM."""
+
+    positions: np.ndarray
+    states: list[ActState]
+
+    @property
+    def errors(self) -> dict[int, ActState]:
+        """Joint index -> fault bits, for joints reporting any of :data:`FAULT_BITS`."""
+        return {j: s & FAULT_BITS for j, s in enumerate(self.states) if s & FAULT_BITS}
+
+
+@dataclass
+class CycleResult:
+    """What one :meth:`PowerCubeArmDriver.cycle` sent and measured (arrays in joint order)."""
+
+    stamp: float  # clock time (s) when the commands went out
+    positions: np.ndarray  # (n,) rad, actual positions before this cycle's move (last known if no reply)
+    velocities: np.ndarray  # (n,) rad/s, finite-difference estimate between cycles
+    targets: np.ndarray  # (n,) rad actually commanded (after clamps)
+    states: np.ndarray  # (n,) int, ACT_STATE bits (from the short state; last known if no reply)
+    replied: np.ndarray  # (n,) bool
+    latency_s: np.ndarray  # (n,) s from a joint's command to its reply (NaN if none)
+    clamped: tuple[int, ...] = ()  # joint indices whose target was clamped
+    clamped_to_limits: np.ndarray | None = None  # (n,) bool: clamped into [lower, upper]
+    clamped_step: np.ndarray | None = None  # (n,) bool: clamped to max_vel * dt
+    lost: int = 0  # replies missing this cycle
+    late: int = 0  # stale replies of earlier cycles seen this cycle
+    malformed: int = 0  # malformed frames seen this cycle
+    fault: str = ""  # why the driver halted everything this cycle ("" if it did not)
+    faults: dict[int, ActState] = field(default_factory=dict)  # module id -> fault bits
+    holding: bool = False  # True when the driver was not READY: the cycle only held and polled
+    resynced: bool = False  # positions were re-read after a bus failure; target ignored this cycle
+
+
+_Matcher = Callable[[p.Frame], bool]
+
+
+def _is_param(param: Param) -> _Matcher:
+    return lambda f: isinstance(f, p.GetParamReply) and f.param is param
+
+
+def _is_setparam_ack(param: Param) -> _Matcher:
+    return lambda f: isinstance(f, p.SetParamAck) and f.param is param
+
+
+def _is_ack(cmd: Command) -> _Matcher:
+    return lambda f: isinstance(f, p.CommandAck) and f.command is cmd
+
+
+class PowerCubeArmDriver:
+    """Drive PowerCube modules ``module_ids`` (joint order) on ``bus``.
+
+    Args:
+        bus: an open python-can bus (a :class:`~redarm_ros.can.bus.ReconnectingBus` can be
+            reopened by :meth:`reconnect`).
+        module_ids: CAN module id (1..31) of each joint.
+        lower, upper: joint limits (rad); targets are clamped into them.
+        max_vel: per-joint speed limit (rad/s); a target moves at most ``max_vel * dt`` per cycle.
+        max_acc: per-joint acceleration limit (rad/s^2), written to the modules (ACT_FMAXACC) at init.
+        reply_timeout_s: how long a cycle or request waits for replies.
+        max_missed: consecutive missing replies after which a module counts as silent.
+        watchdog_refresh: send the watchdog refresh broadcast ``0x100 [07 00]`` every cycle.
+        enable_watchdog: set WATCHDOG_ENABLE on the modules at init (then refresh every cycle).
+        sync_motion: set SYNC_MOTION at init so all joints start on the STARTMOVE broadcast.
+        home_timeout_s: how long :meth:`init` waits for HOME_OK.
+        poll_interval_s: ACT_STATE polling interval while homing.
+        clock: time source (s).
+    """
+
+    def __init__(
+        self,
+        bus: can.BusABC,
+        module_ids: Sequence[int],
+        lower: Sequence[float],
+        upper: Sequence[float],
+        max_vel: Sequence[float],
+        max_acc: Sequence[float],
+        *,
+        reply_timeout_s: float = 0.02,
+        max_missed: int = 3,
+        watchdog_refresh: bool = False,
+        enable_watchdog: bool = False,
+        sync_motion: bool = True,
+        home_timeout_s: float = 30.0,
+        poll_interval_s: float = 0.02,
+        clock: Callable[[], float] = time.perf_counter,
+    ) -> None:
+        ids = [int(i) for i in module_ids]
+        n = len(ids)
+        if n == 0 or len(set(ids)) != n or not all(p.MIN_MODULE_ID <= i <= p.MAX_MODULE_ID for i in ids):
+            raise InvalidInputError(f"module ids must be unique ints in 1..31, got {ids}", field="module_ids")
+        arrays = {}
+        for name, v in (("lower", lower), ("upper", upper), ("max_vel", max_vel), ("max_acc", max_acc)):
+            a = np.array(v, dtype=float).reshape(-1)
+            if a.shape != (n,) or not np.all(np.isfinite(a)):
+                raise InvalidInputError(f"{name} must be {n} finite values", field=name, value=v)
+            arrays[name] = a
+        if np.any(arrays["lower"] > arrays["upper"]):
+            raise InvalidInputError("lower must not exceed upper", field="lower", value=lower)
+        if np.any(arrays["max_vel"] <= 0) or np.any(arrays["max_acc"] <= 0):
+            raise InvalidInputError("max_vel and max_acc must be > 0", field="max_vel")
+        if not reply_timeout_s > 0 or max_missed < 1:
+            raise InvalidInputError(
+                "reply_timeout_s must be > 0 and max_missed >= 1", field="reply_timeout_s"
+            )
+        self.bus = bus
+        self.module_ids = ids
+        self.n = n
+        self.lower, self.upper = arrays["lower"], arrays["upper"]
+        self.max_vel, self.max_acc = arrays["max_vel"], arrays["max_acc"]
+        self.reply_timeout_s = float(reply_timeout_s)
+        self.max_missed = int(max_missed)
+        self.watchdog_refresh = bool(watchdog_refresh or enable_watchdog)
+        self.enable_watchdog = bool(enable_watchdog)
+        self.sync_motion = bool(sync_motion)
+        self.home_timeout_s = float(home_timeout_s)
+        self.poll_interval_s = float(poll_interval_s)
+        self._clock = clock
+        self._lock = threading.Lock()
+        self.state = DriverState.UNINITIALIZED
+        self.stats = [ModuleStats(i) for i in ids]
+        self.decoder = p.FrameDecoder()
+        # Routing tables: reply id / state id -> joint index.
+        self._reply_index = {p.IdBase.CMD_ACK + i: j for j, i in enumerate(ids)}
+        self._state_index = {p.IdBase.STATE + i: j for j, i in enumerate(ids)}
+        # Pre-built frames, patched in place every cycle.
+        self._fstep_msgs = [p.fstep(i, 0.0, 1) for i in ids]
+        self._startmove = p.start_motion_all()
+        self._wd_refresh = p.watchdog_refresh_all()
+        self._halt_all_msg = p.halt_all()
+        self._q_meas = np.zeros(n)  # last measured positions
+        self._q_cmd = np.zeros(n)  # last commanded target
+        self._states = np.zeros(n, dtype=np.int64)
+        self._prev_stamp: float | None = None
+        self._prev_q: np.ndarray | None = None
+        self._needs_resync = False
+        self._pending_faults: dict[int, ActState] = {}
+
+    # ------------------------------------------------------------------------------------------
+    # transport helpers (translate any failure to BusError and remember to resync)
+    # ------------------------------------------------------------------------------------------
+
+    def _lost(self, exc: BaseException, during: str) -> BusError:
+        self._needs_resync = True
+        if isinstance(exc, BusError):
+            return exc
+        err = BusError(f"CAN bus failed during {during}: {exc!r}")
+        err.__cause__ = exc
+        return err
+
+    def _send(self, msg: can.Message) -> None:
+        try:
+            self.bus.send(msg)
+        except InvalidInputError:
+            raise
+        except Exception as exc:
+            raise self._lost(exc, "send") from exc
+
+    def _recv(self, timeout: float) -> can.Message | None:
+        try:
+            return self.bus.recv(timeout)
+        except Exception as exc:
+            raise self._lost(exc, "receive") from exc
+
+    def _note_state_frame(self, msg: can.Message, j: int) -> None:
+        frame = self.decoder.decode(msg)
+        if frame is None:
+            self.stats[j].malformed += 1
+        elif isinstance(frame, p.StateFrame):
+            self._states[j] = int(frame.state)
+            if frame.state & FAULT_BITS:
+                self._pending_faults[self.module_ids[j]] = frame.state
+
+    def _drain(self) -> int:
+        """Read what is already queued (stale replies of earlier cycles); returns late ext acks."""
+        late = 0
+        while (msg := self._recv(0.0)) is not None:
+            j = self._reply_index.get(msg.arbitration_id)
+            if j is None:
+                js = self._state_index.get(msg.arbitration_id)
+                if js is not None:
+                    self._note_state_frame(msg, js)
+                continue
+            frame = self.decoder.decode(msg)
+            if frame is None:
+                self.stats[j].malformed += 1
+            elif isinstance(frame, p.SetMoveExtAck):
+                self.stats[j].late += 1
+                late += 1
+        return late
+
+    def _transact(
+        self,
+        items: Sequence[tuple[Hashable, int, can.Message, _Matcher]],
+        *,
+        timeout_s: float | None = None,
+        attempts: int = 2,
+    ) -> dict[Hashable, p.Frame]:
+        """Send requests and collect matching replies.
+
+        ``items`` are (key, joint index, request, matcher); a reply from joint j answers the
+        first pending item of j whose matcher accepts it. Missing replies are re-requested
+        up to ``attempts`` times. Returns key -> reply for the items that were answered.
+        """
+        timeout = self.reply_timeout_s if timeout_s is None else timeout_s
+        results: dict[Hashable, p.Frame] = {}
+        for _ in range(attempts):
+            todo = [it for it in items if it[0] not in results]
+            if not todo:
+                break
+            self._drain()
+            for _key, _j, msg, _m in todo:
+                self._send(msg)
+            deadline = self._clock() + timeout
+            while len(results) < len(items):
+                left = deadline - self._clock()
+                if left <= 0:
+                    break
+                msg = self._recv(left)
+                if msg is None:
+                    continue
+                j = self._reply_index.get(msg.arbitration_id)
+                if j is None:
+                    js = self._state_index.get(msg.arbitration_id)
+                    if js is not None:
+                        self._note_state_frame(msg, js)
+                    continue
+                frame = self.decoder.decode(msg)
+                if frame is None:
+                    self.stats[j].malformed += 1
+                    continue
+                for key, jj, _msg, match in todo:
+                    if jj == j and key not in results and match(frame):
+                        results[key] = frame
+                        break
+        return results
+
+    def _require_all(self, results: dict[Hashable, p.Frame], keys: Sequence[Hashable], what: str) -> None:
+        for key in keys:
+            if key not in results:
+                j = key[0] if isinstance(key, tuple) else key
+                mid = self.module_ids[int(j)]  # type: ignore[arg-type]
+                raise BusTimeoutError(
+                    f"module {mid} did not answer {what} within {self.reply_timeout_s:.3f} s",
+                    module_id=mid,
+                    timeout_s=self.reply_timeout_s,
+                )
+
+    def _command_all(self, cmd: Command, *, require: bool = True) -> list[int]:
+        items = [(j, j, p.command(mid, cmd), _is_ack(cmd)) for j, mid in enumerate(self.module_ids)]
+        res = self._transact(items)
+        if require:
+            self._require_all(res, list(range(self.n)), cmd.name)
+        return [self.module_ids[j] for j in range(self.n) if j in res]
+
+    def _halt_all(self) -> list[int]:
+        """HALT every module (acks collected, not required) and broadcast haltAll as a backstop."""
+        acked = self._command_all(Command.HALT, require=False)
+        self._send(self._halt_all_msg)
+        return acked
+
+    def _read_state_locked(self) -> ArmState:
+        items = []
+        for j, mid in enumerate(self.module_ids):
+            items.append(((j, "state"), j, p.get_param(mid, Param.ACT_STATE), _is_param(Param.ACT_STATE)))
+            items.append(((j, "pos"), j, p.get_param(mid, Param.ACT_FPOS), _is_param(Param.ACT_FPOS)))
+        res = self._transact(items)
+        self._require_all(res, [it[0] for it in items], "GETPARAM ACT_STATE/ACT_FPOS")
+        q = np.array([float(res[(j, "pos")].value) for j in range(self.n)])  # type: ignore[attr-defined]
+        states = [ActState(int(res[(j, "state")].value)) for j in range(self.n)]  # type: ignore[attr-defined]
+        self._q_meas[:] = q
+        self._states[:] = [int(s) for s in states]
+        self._needs_resync = False
+        self._prev_stamp = None
+        return ArmState(q.copy(), states)
+
+    def _hold_measured(self) -> None:
+        self._q_cmd[:] = self._q_meas
+        for s in self.stats:
+            s.consecutive_misses = 0
+            s.silent = False
+
+    # ------------------------------------------------------------------------------------------
+    # public API
+    # ------------------------------------------------------------------------------------------
+
+    def discover(self) -> DiscoveryReport:
+        """Scan the configured ids with GETPARAM DEF_VERSION (as the vendor library does).
+
+        Raises:
+            BusError: the bus failed.
+        """
+        with self._lock:
+            items = [
+                (j, j, p.get_param(mid, Param.DEF_VERSION), _is_param(Param.DEF_VERSION))
+                for j, mid in enumerate(self.module_ids)
+            ]
+            res = self._transact(items, timeout_s=max(self.reply_timeout_s, 0.1))
+            found = {self.module_ids[j]: int(f.value) for j, f in res.items()}  # type: ignore[attr-defined]
+            missing = [mid for mid in self.module_ids if mid not in found]
+            if missing:
+                logger.warning("PowerCube modules not answering discovery: %s", missing)
+            return DiscoveryReport(found, missing)
+
+    def read_state(self) -> ArmState:
+        """Read ACT_STATE and ACT_FPOS of every module (no motion).
+
+        Raises:
+            BusTimeoutError: a module did not answer (after one retry).
+            BusError: the bus failed.
+        """
+        with self._lock:
+            return self._read_state_locked()
+
+    def init(self, *, home: bool = True) -> ArmState:
+        """Configure, reset and home every module, then hold the measured position.
+
+        Sets SYNC_MOTION (and WATCHDOG_ENABLE if asked) in ACT_CONFIG, clears DISABLE_ACK, writes
+        ACT_FMAXVEL/ACT_FMAXACC, RESETs, HOMEs and polls ACT_STATE until every module has
+        HOME_OK (``home_timeout_s``).
+
+        Raises:
+            BusTimeoutError: a module did not answer, or homing did not finish in time.
+            ModuleFaultError: a module is in error after reset or homing.
+            BusError: the bus failed.
+        """
+        with self._lock:
+            self.state = DriverState.UNINITIALIZED
+            self._configure_locked()
+            self._command_all(Command.RESET)
+            if home:
+                self._home_locked()
+            st = self._read_state_locked()
+            self._raise_on_errors(st, "init")
+            self._hold_measured()
+            self._pending_faults.clear()
+            self.state = DriverState.READY
+            logger.info("PowerCube arm initialised at %s", np.round(st.positions, 4).tolist())
+            return st
+
+    def _configure_locked(self) -> None:
+        want_set = ActConfig(0)
+        if self.sync_motion:
+            want_set |= ActConfig.SYNC_MOTION
+        if self.enable_watchdog:
+            want_set |= ActConfig.WATCHDOG_ENABLE
+        want_clear = ActConfig.DISABLE_ACK
+        if not self.sync_motion:
+            want_clear |= ActConfig.SYNC_MOTION
+        items = [
+            (j, j, p.get_param(mid, Param.ACT_CONFIG), _is_param(Param.ACT_CONFIG))
+            for j, mid in enumerate(self.module_ids)
+        ]
+        res = self._transact(items)
+        self._require_all(res, list(range(self.n)), "GETPARAM ACT_CONFIG")
+        sets = []
+        for j, mid in enumerate(self.module_ids):
+            cfg = (int(res[j].value) | int(want_set)) & ~int(want_clear)  # type: ignore[attr-defined]
+            sets.append(
+                ((j, "cfg"), j, p.set_param(mid, Param.ACT_CONFIG, cfg), _is_setparam_ack(Param.ACT_CONFIG))
+            )
+            sets.append(
+                ((j, "vel"), j, p.set_param(mid, Param.ACT_FMAXVEL, float(self.max_vel[j])),
+                 _is_setparam_ack(Param.ACT_FMAXVEL))
+            )  # fmt: skip
+            sets.append(
+                ((j, "acc"), j, p.set_param(mid, Param.ACT_FMAXACC, float(self.max_acc[j])),
+                 _is_setparam_ack(Param.ACT_FMAXACC))
+            )  # fmt: skip
+        # Acks may be suppressed by a DISABLE_ACK left on: verify by reading back instead.
+        self._transact(sets, attempts=1)
+        res = self._transact(items)
+        self._require_all(res, list(range(self.n)), "GETPARAM ACT_CONFIG")
+        for j, mid in enumerate(self.module_ids):
+            cfg = int(res[j].value)  # type: ignore[attr-defined]
+            if (cfg & int(want_set)) != int(want_set) or cfg & int(want_clear):
+                raise ModuleFaultError(
+                    f"module {mid} did not take ACT_CONFIG 0x{cfg:08x}", module_id=mid, state=cfg
+                )
+
+    def _home_locked(self) -> None:
+        self._command_all(Command.HOME)
+        deadline = self._clock() + self.home_timeout_s
+        while True:
+            if self.watchdog_refresh:
+                self._send(self._wd_refresh)
+            items = [
+                (j, j, p.get_param(mid, Param.ACT_STATE), _is_param(Param.ACT_STATE))
+                for j, mid in enumerate(self.module_ids)
+            ]
+            res = self._transact(items)
+            self._require_all(res, list(range(self.n)), "GETPARAM ACT_STATE")
+            states = [ActState(int(res[j].value)) for j in range(self.n)]  # type: ignore[attr-defined]
+            self._raise_on_errors(ArmState(self._q_meas.copy(), states), "homing")
+            if all(s & ActState.HOME_OK for s in states):
+                return
+            if self._clock() > deadline:
+                slow = [self.module_ids[j] for j, s in enumerate(states) if not s & ActState.HOME_OK]
+                raise BusTimeoutError(
+                    f"modules {slow} did not report HOME_OK within {self.home_timeout_s} s",
+                    module_id=slow[0],
+                    timeout_s=self.home_timeout_s,
+                )
+            self._sleep(self.poll_interval_s)
+
+    def _sleep(self, seconds: float) -> None:
+        # Waiting on the bus keeps a fake clock in step in tests and drains traffic meanwhile.
+        end = self._clock() + seconds
+        while (left := end - self._clock()) > 0:
+            msg = self._recv(left)
+            if msg is not None:
+                js = self._state_index.get(msg.arbitration_id)
+                if js is not None:
+                    self._note_state_frame(msg, js)
+
+    def _raise_on_errors(self, st: ArmState, during: str) -> None:
+        errs = st.errors
+        if errs:
+            j, bits = next(iter(errs.items()))
+            mid = self.module_ids[j]
+            names = "|".join(b.name or "" for b in ActState if b & st.states[j] and b & FAULT_BITS)
+            raise ModuleFaultError(
+                f"module {mid} in error during {during}: {names}", module_id=mid, state=int(bits)
+            )
+
+    def halt(self) -> list[int]:
+        """HALT every module (and broadcast haltAll); cycles then only hold and poll.
+
+        Returns:
+            The module ids that acknowledged the HALT.
+
+        Raises:
+            BusError: the bus failed.
+        """
+        with self._lock:
+            acked = self._halt_all()
+            if self.state is not DriverState.FAULT:
+                self.state = DriverState.HALTED
+            logger.warning("PowerCube arm halted (acknowledged by %s)", acked)
+            return acked
+
+    def recover(self) -> ArmState:
+        """RESET every module, re-read positions and hold them (READY again).
+
+        Raises:
+            BusTimeoutError: a module did not answer.
+            ModuleFaultError: a module is still in error after the reset.
+            BusError: the bus failed.
+        """
+        with self._lock:
+            self._command_all(Command.RESET)
+            st = self._read_state_locked()
+            self._raise_on_errors(st, "recover")
+            self._hold_measured()
+            self._pending_faults.clear()
+            self.state = DriverState.READY
+            logger.info("PowerCube arm recovered, holding %s", np.round(st.positions, 4).tolist())
+            return st
+
+    def reconnect(self) -> ArmState:
+        """Reopen the bus (one attempt; call again with backoff) and re-read the positions.
+
+        The held target becomes the measured position: nothing commanded before the loss is
+        sent again.
+
+        Raises:
+            BusError: the bus cannot be reopened (or has no ``reopen``), or failed again.
+            BusTimeoutError: a module did not answer after reopening.
+        """
+        with self._lock:
+            reopen = getattr(self.bus, "reopen", None)
+            if reopen is None:
+                raise BusError("this bus cannot be reopened; open a new one and a new driver")
+            self._needs_resync = True
+            reopen()
+            st = self._read_state_locked()
+            self._hold_measured()
+            return st
+
+    # ------------------------------------------------------------------------------------------
+    # the cycle
+    # ------------------------------------------------------------------------------------------
+
+    def _check_target(self, q_target: Sequence[float] | np.ndarray) -> np.ndarray:
+        q = np.asarray(q_target, dtype=float)
+        if q.shape != (self.n,):
+            raise InvalidInputError(
+                f"target must have shape ({self.n},), got {q.shape}", field="q_target", value=q
+            )
+        bad = ~np.isfinite(q)
+        if bad.any():
+            j = int(np.argmax(bad))
+            raise InvalidInputError(
+                f"target of joint {j} (module {self.module_ids[j]}) is not finite: {q[j]}",
+                field="q_target",
+                value=q,
+            )
+        return q
+
+    def cycle(self, q_target: Sequence[float] | np.ndarray | None, dt_s: float) -> CycleResult:
+        """One control cycle: FSTEP_EXT to every joint (duration ``dt_s``), STARTMOVE, collect replies.
+
+        ``q_target`` (n,) rad, or None to hold the last commanded target. In HALTED/FAULT the
+        target is ignored and the measured position is held (a poll).
+
+        Raises:
+            InvalidInputError: NaN/inf/wrong-shaped target or bad ``dt_s`` (nothing was sent).
+            RedarmError: the driver was never initialised (call :meth:`init` or :meth:`recover`).
+            BusTimeoutError: a module just reached ``max_missed`` consecutive misses (every
+                module was halted; ``exc.cycle_result`` holds this cycle's result).
+            BusError: the bus failed (reopen it, e.g. with :meth:`reconnect`).
+        """
+        if not (isinstance(dt_s, (int, float)) and math.isfinite(dt_s) and dt_s > 0):
+            raise InvalidInputError(f"dt_s must be a positive number of seconds, got {dt_s!r}", field="dt_s")
+        q_in = None if q_target is None else self._check_target(q_target)
+        with self._lock:
+            if self.state is DriverState.UNINITIALIZED:
+                raise RedarmError("PowerCube driver not initialised: call init() (or recover()) first")
+            resynced = False
+            if self._needs_resync:
+                self._read_state_locked()
+                self._q_cmd[:] = self._q_meas
+                resynced = True
+            return self._cycle_locked(q_in, float(dt_s), resynced)
+
+    def _cycle_locked(self, q_in: np.ndarray | None, dt: float, resynced: bool) -> CycleResult:
+        n = self.n
+        holding = self.state is not DriverState.READY
+        lim_mask = np.zeros(n, dtype=bool)
+        step_mask = np.zeros(n, dtype=bool)
+        if holding:
+            q = self._q_meas.copy()
+        elif q_in is None or resynced:
+            q = self._q_cmd.copy()
+        else:
+            q = np.clip(q_in, self.lower, self.upper)
+            lim_mask = q != q_in
+            step = self.max_vel * dt
+            q_step = np.clip(q, self._q_cmd - step, self._q_cmd + step)
+            step_mask = q_step != q
+            q = q_step
+        ms = min(0xFFFF, max(1, round(dt * 1000.0)))
+
+        late = self._drain()
+        malformed0 = self.decoder.malformed
+        t_sent = np.empty(n)
+        clock = self._clock
+        for j in range(n):
+            msg = self._fstep_msgs[j]
+            _FSTEP_EXT.pack_into(msg.data, 0, Command.SETMOVE, MoveMode.FSTEP_EXT, q[j], ms)
+            self._send(msg)
+            t_sent[j] = clock()
+        self._send(self._startmove)
+        if self.watchdog_refresh:
+            self._send(self._wd_refresh)
+        stamp = float(t_sent[0])
+
+        replied = np.zeros(n, dtype=bool)
+        latency = np.full(n, np.nan)
+        short = np.zeros(n, dtype=np.int64)
+        remaining = n
+        deadline = stamp + self.reply_timeout_s
+        reply_index = self._reply_index
+        while remaining:
+            left = deadline - clock()
+            if left <= 0:
+                break
+            msg = self._recv(left)
+            if msg is None:
+                continue
+            t = clock()
+            j = reply_index.get(msg.arbitration_id)
+            if j is None:
+                js = self._state_index.get(msg.arbitration_id)
+                if js is not None:
+                    self._note_state_frame(msg, js)
+                continue
+            frame = self.decoder.decode(msg)
+            if frame is None:
+                self.stats[j].malformed += 1
+                continue
+            if isinstance(frame, p.SetMoveExtAck) and frame.mode is MoveMode.FSTEP_EXT:
+                if replied[j]:  # a second ack in one cycle: the first was a late one
+                    self.stats[j].late += 1
+                    late += 1
+                    continue
+                replied[j] = True
+                remaining -= 1
+                self._q_meas[j] = frame.position
+                short[j] = int(frame.short_state)
+                latency[j] = t - t_sent[j]
+
+        # bookkeeping
+        lost = 0
+        silent: list[int] = []
+        for j, s in enumerate(self.stats):
+            if replied[j]:
+                s.replies += 1
+                s.consecutive_misses = 0
+                s.silent = False
+                s.add_latency(float(latency[j]))
+                # keep the long-only bits (HOME_OK, causes) from the last full read
+                long_bits = int(p.long_state_from_short(int(short[j])))
+                keep = int(self._states[j]) & ~int(p.long_state_from_short(0xFF))
+                self._states[j] = keep | long_bits
+            else:
+                s.lost += 1
+                lost += 1
+                s.consecutive_misses += 1
+                if s.consecutive_misses >= self.max_missed and not s.silent:
+                    s.silent = True
+                    silent.append(self.module_ids[j])
+        if self._prev_stamp is not None and stamp > self._prev_stamp and self._prev_q is not None:
+            vel = (self._q_meas - self._prev_q) / (stamp - self._prev_stamp)
+        else:
+            vel = np.zeros(n)
+        self._prev_stamp = stamp
+        self._prev_q = self._q_meas.copy()
+        if not holding:
+            self._q_cmd[:] = q
+
+        result = CycleResult(
+            stamp=stamp,
+            positions=self._q_meas.copy(),
+            velocities=vel,
+            targets=q,
+            states=self._states.copy(),
+            replied=replied,
+            latency_s=latency,
+            clamped=tuple(int(j) for j in np.flatnonzero(lim_mask | step_mask)),
+            clamped_to_limits=lim_mask,
+            clamped_step=step_mask,
+            lost=lost,
+            late=late,
+            malformed=self.decoder.malformed - malformed0,
+            holding=holding,
+            resynced=resynced,
+        )
+
+        # faults: ERROR in a short state, or a state frame with fault bits
+        faults = dict(self._pending_faults)
+        self._pending_faults.clear()
+        errored = [j for j in range(n) if replied[j] and short[j] & p.ShortState.ERROR]
+        if errored and self.state is not DriverState.FAULT:
+            self._halt_all()
+            for j in errored:
+                faults.setdefault(self.module_ids[j], self._full_state(j))
+        elif faults and self.state is not DriverState.FAULT:
+            self._halt_all()
+        if faults and self.state is not DriverState.FAULT:
+            self.state = DriverState.FAULT
+            result.faults = faults
+            result.fault = "; ".join(
+                f"module {mid}: " + "|".join(b.name or "" for b in ActState if b & bits and b & FAULT_BITS)
+                for mid, bits in sorted(faults.items())
+            )
+            logger.error("PowerCube fault, all modules halted: %s", result.fault)
+
+        if silent and self.state is not DriverState.FAULT:
+            self._halt_all()
+            self.state = DriverState.FAULT
+            result.fault = f"module {silent[0]} stopped answering ({self.max_missed} replies missed)"
+            logger.error("PowerCube %s; all modules halted", result.fault)
+            err = BusTimeoutError(
+                f"module {silent[0]} missed {self.max_missed} consecutive replies "
+                f"(timeout {self.reply_timeout_s:.3f} s each); all modules halted",
+                module_id=silent[0],
+                timeout_s=self.reply_timeout_s,
+            )
+            err.cycle_result = result  # type: ignore[attr-defined]
+            raise err
+        return result
+
+    def _full_state(self, j: int) -> ActState:
+        """ACT_STATE of joint j read with GETPARAM (to learn the cause behind a short ERROR bit)."""
+        mid = self.module_ids[j]
+        res = self._transact(
+            [(j, j, p.get_param(mid, Param.ACT_STATE), _is_param(Param.ACT_STATE))], attempts=1
+        )
+        if j in res:
+            st = ActState(int(res[j].value))  # type: ignore[attr-defined]
+            self._states[j] = int(st)
+            return st & FAULT_BITS or ActState.ERROR
+        return ActState.ERROR
