@@ -36,6 +36,7 @@ Conventions and choices (also in docs/kinematics.md):
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from collections.abc import Sequence
@@ -49,12 +50,16 @@ from redarm_ros.kinematics.result import IKInfo, IKStatus
 
 __all__ = ["SwivelArm", "FLIP_PATTERNS"]
 
+_log = logging.getLogger(__name__)
+
 PI = math.pi
 TWO_PI = 2.0 * math.pi
 REACH_TOL = 1e-9  # m; a wrist this far beyond the reach sphere still counts as (just) reachable
 DEGEN_SIN = 1e-12  # |sin theta| below which the arm plane / a ZYZ decomposition is degenerate
 ZOOM_SIN = 0.1  # ik_nearest zooms in when |sin theta2| or |sin theta6| of its best candidate is below
 RHO_DEGEN = 1e-7  # m; below this elbow-circle radius swivel(q) uses the degenerate definition
+SING_WIDTH = 0.35  # rad; ik_nearest searches closely where theta2 or theta6 gets this near 0 or pi
+AXIS_TOL2 = 1e-24  # (1e-12)^2: a wrist within 1e-12 * D of the base axis counts as on it (n = +-k)
 
 # flip pattern k -> (f2, f4, f6); per joint which of the two alternatives (base, flipped) to use
 FLIP_PATTERNS = [((k >> 2) & 1, (k >> 1) & 1, k & 1) for k in range(8)]
@@ -141,11 +146,11 @@ class SwivelArm(Arm):
     def _rot_qa(circ: tuple[float, ...], ux: float, uy: float) -> tuple[float, float, float]:
         """qA u qA* for u = (ux, uy, 0): the shortest rotation k -> n applied to u (eq. 14-15)."""
         dx, dy, dz, D, rxy2, nx, ny, nz, _ = circ
-        if D == 0.0 or (rxy2 < 1e-300 and dz >= 0.0):
+        if D == 0.0 or (dz >= 0.0 and rxy2 <= AXIS_TOL2 * D * D):
             return ux, uy, 0.0
         if dz >= 0.0:
             h = 1.0 + nz
-        elif rxy2 < 1e-300:  # n = -k: rotation by pi about x
+        elif rxy2 <= AXIS_TOL2 * D * D:  # n = -k: rotation by pi about x
             return ux, -uy, 0.0
         else:  # 1 + nz without cancellation
             h = rxy2 / (D * (D - dz))
@@ -156,11 +161,11 @@ class SwivelArm(Arm):
     def _rot_qa_inv(circ: tuple[float, ...], ex: float, ey: float, ez: float) -> tuple[float, float]:
         """(x, y) of qA* e qA: inverse of :meth:`_rot_qa` (eq. 16)."""
         dx, dy, dz, D, rxy2, nx, ny, nz, _ = circ
-        if D == 0.0 or (rxy2 < 1e-300 and dz >= 0.0):
+        if D == 0.0 or (dz >= 0.0 and rxy2 <= AXIS_TOL2 * D * D):
             return ex, ey
         if dz >= 0.0:
             h = 1.0 + nz
-        elif rxy2 < 1e-300:
+        elif rxy2 <= AXIS_TOL2 * D * D:
             return ex, -ey
         else:
             h = rxy2 / (D * (D - dz))
@@ -194,12 +199,19 @@ class SwivelArm(Arm):
         t4 = math.atan2(gn, fd)
         fn = math.hypot(gn, fd)
         if gn > DEGEN_SIN * fn:
-            x3x, x3y, x3z = gx / gn, gy / gn, gz / gn
+            x3x, x3y, x3z = gx, gy, gz
         else:  # stretched / folded elbow: the swivel picks the arm plane
             pd = rux * zx + ruy * zy + ruz * zz
             x3x, x3y, x3z = -(rux - pd * zx), -(ruy - pd * zy), -(ruz - pd * zz)
-            k = 1.0 / math.sqrt(x3x * x3x + x3y * x3y + x3z * x3z)
-            x3x, x3y, x3z = x3x * k, x3y * k, x3z * k
+            if x3x * x3x + x3y * x3y + x3z * x3z < 1e-18:  # wrist at the shoulder: u along the arm
+                x3x, x3y, x3z = -zz * zx, -zz * zy, 1.0 - zz * zz
+        # normalise and orthogonalise again: g is tiny next to f near the stretched elbow
+        k = 1.0 / math.sqrt(x3x * x3x + x3y * x3y + x3z * x3z)
+        x3x, x3y, x3z = x3x * k, x3y * k, x3z * k
+        pd = x3x * zx + x3y * zy + x3z * zz
+        x3x, x3y, x3z = x3x - pd * zx, x3y - pd * zy, x3z - pd * zz
+        k = 1.0 / math.sqrt(x3x * x3x + x3y * x3y + x3z * x3z)
+        x3x, x3y, x3z = x3x * k, x3y * k, x3z * k
         y3x, y3y, y3z = zy * x3z - zz * x3y, zz * x3x - zx * x3z, zx * x3y - zy * x3x
         # ZYZ of R3 = [x3 y3 z3] (eq. 11); theta3 from the residual so that degenerate cases stay exact
         rz = math.sqrt(zx * zx + zy * zy)
@@ -408,8 +420,8 @@ class SwivelArm(Arm):
         ca = np.where(at_sh, 0.0, ca)
         sa = np.sqrt(np.maximum(0.0, 1.0 - ca * ca))
         # shortest rotation k -> n applied to u
-        down = (dz < 0.0) & (rxy2 < 1e-300)
-        up = at_sh | ((dz >= 0.0) & (rxy2 < 1e-300))
+        down = (dz < 0.0) & (rxy2 <= AXIS_TOL2 * D * D)
+        up = at_sh | ((dz >= 0.0) & (rxy2 <= AXIS_TOL2 * D * D))
         with np.errstate(divide="ignore", invalid="ignore"):
             h = np.where(dz >= 0.0, 1.0 + nz, rxy2 / (Ds * (Ds - dz)))
             w = -(nx * ux + ny * uy)
@@ -434,6 +446,15 @@ class SwivelArm(Arm):
         x3x = np.where(reg, gx / gs, -(rux - pd * zx))
         x3y = np.where(reg, gy / gs, -(ruy - pd * zy))
         x3z = np.where(reg, gz / gs, -(ruz - pd * zz))
+        tiny = x3x * x3x + x3y * x3y + x3z * x3z < 1e-18  # wrist at the shoulder: u along the arm
+        x3x = np.where(tiny, -zz * zx, x3x)
+        x3y = np.where(tiny, -zz * zy, x3y)
+        x3z = np.where(tiny, 1.0 - zz * zz, x3z)
+        for _ in range(2):  # normalise, orthogonalise to z3 again (g is tiny near the stretched elbow)
+            k = 1.0 / np.sqrt(x3x * x3x + x3y * x3y + x3z * x3z)
+            x3x, x3y, x3z = x3x * k, x3y * k, x3z * k
+            pd = x3x * zx + x3y * zy + x3z * zz
+            x3x, x3y, x3z = x3x - pd * zx, x3y - pd * zy, x3z - pd * zz
         k = 1.0 / np.sqrt(x3x * x3x + x3y * x3y + x3z * x3z)
         x3x, x3y, x3z = x3x * k, x3y * k, x3z * k
         y3x, y3y, y3z = zy * x3z - zz * x3y, zz * x3x - zx * x3z, zx * x3y - zy * x3x
@@ -548,6 +569,32 @@ class SwivelArm(Arm):
         b = np.array([Tl[0][0], Tl[1][0], Tl[2][0]])
         return Au, sa * Au, zc, d, c4, s4, a, b
 
+    def _singular_swivels(self, ctx: tuple[Any, ...]) -> list[float]:
+        """Swivels where the elbow comes within SING_WIDTH of the base axis (sin theta2 -> 0) or the
+        forearm within SING_WIDTH of the tool axis (sin theta6 -> 0).
+
+        Both cosines are of the form c + A cos s + B sin s along the circle, so their extremes are at
+        atan2(B, A) (maximum) and atan2(B, A) + pi (minimum)."""
+        Au, A, zc, d, c4, s4, a, b = ctx
+        L2, L3 = self._L[1], self._L[2]
+        out = []
+        lim = math.cos(SING_WIDTH)
+        # cos theta2 = z3 . k
+        c, A2, B2 = float(zc[2, 0]), float(A[2, 0]), float(A[2, 1])
+        # cos theta6 = forearm . tool axis, forearm = (d - L2 z3) / L3
+        c6 = (float(a @ d[:, 0]) - L2 * float(a @ zc[:, 0])) / L3
+        A6, B6 = -L2 / L3 * float(a @ A[:, 0]), -L2 / L3 * float(a @ A[:, 1])
+        for cc, aa, bb in ((c, A2, B2), (c6, A6, B6)):
+            amp = math.hypot(aa, bb)
+            if amp < 1e-12:
+                continue
+            sm = math.atan2(bb, aa)
+            if cc + amp > lim:
+                out.append(sm)
+            if cc - amp < -lim:
+                out.append(sm + PI)
+        return out
+
     def _sweep(
         self, ctx: tuple[Any, ...], s: np.ndarray, seed: np.ndarray, w: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
@@ -565,6 +612,11 @@ class SwivelArm(Arm):
         else:  # stretched / folded elbow: the swivel picks the arm plane (as in _base_from_circle)
             Ru = Au @ U
             X = (Ru * Z).sum(0) * Z - Ru
+            tiny = (X * X).sum(0) < 1e-18  # wrist at the shoulder: u along the arm
+            if tiny.any():
+                X = np.where(tiny, np.array([[0.0], [0.0], [1.0]]) - Z[2] * Z, X)
+        X = X / np.sqrt((X * X).sum(0))
+        X = X - (X * Z).sum(0) * Z  # orthogonalise again: F - (F.Z)Z is tiny near the stretched elbow
         X = X / np.sqrt((X * X).sum(0))
         z0, z1, z2 = Z
         x0, x1, x2 = X
@@ -608,7 +660,7 @@ class SwivelArm(Arm):
         weights: Sequence[float] | None = None,
         samples: int = 36,
         fine_samples: int = 720,
-        refine: int = 3,
+        refine: int = 4,
         zoom: int = 3,
         timeout_s: float | None = None,
         **_ignored: Any,
@@ -652,7 +704,13 @@ class SwivelArm(Arm):
         s0 = self._swivel_lists(seed.tolist())
         step = TWO_PI / samples
         pattern = step * 2.0 ** -np.arange(1, 13)
-        s = s0 + np.concatenate([np.arange(samples) * step, pattern, -pattern])
+        parts = [s0 + np.arange(samples) * step, s0 + pattern, s0 - pattern]
+        # joint angles change fast with s where the elbow passes the base axis (theta2 -> 0) or the
+        # forearm lines up with the tool axis (theta6 -> 0): look closely around those swivels too
+        spat = SING_WIDTH * 2.0 ** -np.arange(0, 10)
+        for sc in self._singular_swivels(ctx):
+            parts += [np.array([sc]), sc + spat, sc - spat]
+        s = np.concatenate(parts)
         cost, Q = self._sweep(ctx, s, seed, w)
         cands = cost.size
         if not np.isfinite(cost).any():
@@ -686,38 +744,48 @@ class SwivelArm(Arm):
                 s_b, c_b, q_b = float(s[i]), float(cost[i, b]), Q[i, b]
             h = max(abs(s_b - float(s[0])), h * 2.0**-11)
         i = int(np.argmin(np.abs(s - s_b)))
-        # successive parabolic interpolation on branch b from the best sample and its neighbours
+        # bracketed 1-D refinement of branch b's distance over s (scalar solves): parabolic steps
+        # when both bracket ends are feasible, else bisection towards an infeasible end (the optimum
+        # often sits at a joint limit)
         order = np.argsort(s)
         pos = int(np.nonzero(order == i)[0][0])
         cb = cost[:, b]
-        pts = [(s_b, c_b)]
-        for nb in (order[pos - 1] if pos > 0 else None, order[pos + 1] if pos + 1 < len(s) else None):
-            if nb is not None and math.isfinite(cb[nb]):
-                pts.append((float(s[nb]), float(cb[nb])))
+        sa, fa = (float(s[order[pos - 1]]), float(cb[order[pos - 1]])) if pos > 0 else (s_b - step, math.inf)
+        sc, fc = (
+            (float(s[order[pos + 1]]), float(cb[order[pos + 1]]))
+            if pos + 1 < len(s)
+            else (s_b + step, math.inf)
+        )
         seed_l = seed.tolist()
-        while len(pts) == 3 and iters < refine:
+        while iters < refine and sc - sa > 1e-9:
             if timeout_s is not None and time.perf_counter() - t0 > timeout_s:
                 break
-            (sa, fa), (sb, fb), (sc, fc) = sorted(pts)
-            den = (sb - sa) * (fb - fc) - (sb - sc) * (fb - fa)
-            if den == 0.0:
-                break
-            sv = sb - 0.5 * ((sb - sa) ** 2 * (fb - fc) - (sb - sc) ** 2 * (fb - fa)) / den
-            if not (sa < sv < sc) or abs(sv - s_b) < 1e-12:
-                break
+            sv = math.nan
+            if math.isfinite(fa) and math.isfinite(fc):
+                den = (s_b - sa) * (c_b - fc) - (s_b - sc) * (c_b - fa)
+                if den != 0.0:
+                    sv = s_b - 0.5 * ((s_b - sa) ** 2 * (c_b - fc) - (s_b - sc) ** 2 * (c_b - fa)) / den
+            if not (sa < sv < sc) or abs(sv - s_b) < 1e-10:
+                left = (s_b - sa) * (2.0 if not math.isfinite(fa) else 1.0)
+                right = (sc - s_b) * (2.0 if not math.isfinite(fc) else 1.0)
+                sv = 0.5 * (sa + s_b) if left > right else 0.5 * (s_b + sc)
             iters += 1
             r = self._branch_eval(Tl, circ, sv, b, seed_l, w)
             cands += 1
-            if r is None:
-                break
-            if r[1] < c_b:
-                s_b, c_b, q_b = sv, r[1], r[0]
-            # keep the bracket around the best point
-            pts = sorted([*pts, (sv, r[1])])
-            k = min(range(len(pts)), key=lambda j: pts[j][1])
-            if k == 0 or k == len(pts) - 1:
-                break
-            pts = pts[k - 1 : k + 2]
+            fv = r[1] if r is not None else math.inf
+            if fv < c_b:
+                if sv < s_b:
+                    sc, fc = s_b, c_b
+                else:
+                    sa, fa = s_b, c_b
+                gain = c_b - fv
+                s_b, c_b, q_b = sv, fv, r[0]  # type: ignore[index]
+                if gain < 1e-12 * (1.0 + c_b) and math.isfinite(fa) and math.isfinite(fc):
+                    break
+            elif sv < s_b:
+                sa, fa = sv, fv
+            else:
+                sc, fc = sv, fv
         iters += zooms
         q = np.array(q_b, dtype=float)
         pe, re = self._pose_err_lists(q.tolist(), Tl)
