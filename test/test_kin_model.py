@@ -163,7 +163,13 @@ def test_unknown_arm_and_bad_files(tmp_path: Path) -> None:
 def test_generic_chain_yaml_reproduces_pa10(tmp_path: Path) -> None:
     L = (0.315, 0.45, 0.50, 0.08)
     z = [0.0, L[0], 0.0, L[1], 0.0, L[2], 0.0]
-    lines = ["name: pa10_chain", "kind: chain", "key_joints: [1, 3, 5]", "tool: {xyz: [0, 0, 0.08]}", "joints:"]
+    lines = [
+        "name: pa10_chain",
+        "kind: chain",
+        "key_joints: [1, 3, 5]",
+        "tool: {xyz: [0, 0, 0.08]}",
+        "joints:",
+    ]
     for i in range(7):
         ax = "z" if i % 2 == 0 else "[0, 1, 0]"
         lines.append(

@@ -1,4 +1,4 @@
-"""Closed-form swivel IK (PA10, PA10-7C, 7-module PowerCube): round trips, swivel, properties, singular cases."""
+"""Closed-form swivel IK (PA10, PA10-7C, PowerCube 7): round trips, swivel, properties, singular cases."""
 
 from __future__ import annotations
 
@@ -15,7 +15,9 @@ from redarm_ros.kinematics.quaternion import qrotate, shortest_rotation
 
 SWIVEL_ARMS = ["pa10", "pa10_7c", "powercube7"]
 ARMS = {name: load_arm(name) for name in SWIVEL_ARMS}
-PROP = settings(max_examples=60, derandomize=True, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+PROP = settings(
+    max_examples=60, derandomize=True, deadline=None, suppress_health_check=[HealthCheck.too_slow]
+)
 
 
 def _rand_q(arm: SwivelArm, n: int, seed: int) -> np.ndarray:
@@ -271,7 +273,9 @@ def test_nearest_from_mid_range_seed(name: str) -> None:
         assert info.pos_err < 1e-9 and info.rot_err < 1e-9
         assert np.max(np.abs(arm.fk(qn) - T)) < 1e-9
         assert arm.within_limits(qn)
-        assert info.swivel is not None and abs(math.remainder(arm.swivel(qn) - info.swivel, 2 * math.pi)) < 1e-6
+        assert (
+            info.swivel is not None and abs(math.remainder(arm.swivel(qn) - info.swivel, 2 * math.pi)) < 1e-6
+        )
 
 
 @pytest.mark.parametrize("name", SWIVEL_ARMS)
