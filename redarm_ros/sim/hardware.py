@@ -52,6 +52,7 @@ _LOG = logging.getLogger("redarm_ros.sim.hardware")
 READY_LINE = "REDARM_SIM_READY"
 MAX_BURST = 50  # steps caught up at once; a larger backlog is dropped (resync)
 CONTROL_POLL_S = 0.05
+SWITCH_INTERVAL_S = 5e-4
 OVERRUN_REPORT_S = 5.0  # log late steps at most this often
 ENV_PREFIX = "REDARM_SIM_"
 EXIT_BAD_ARGS = 2
@@ -642,6 +643,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         plant.close()
         return EXIT_NO_BUS
 
+    # The bus thread must get the GIL quickly when a frame arrives, even while the physics thread
+    # computes: a shorter switch interval than the default 5 ms bounds that wait.
+    sys.setswitchinterval(SWITCH_INTERVAL_S)
     ids = list(range(args.first_id, args.first_id + arm.n))
     sim = HardwareSim(
         plant,
