@@ -1,0 +1,524 @@
+"""Controller node: Cartesian goals on a topic -> joint motion by attractor dynamics.
+
+Wiring only: the dynamics (heading, hand orientation, swivel with obstacle and joint-limit force-lets)
+and the closed-form IK step live in :class:`redarm_ros.control.reach_controller.ReachController`.
+This node feeds it the measured joint state, goals and obstacles, steps it at ``rate_hz`` and
+publishes what it returns.
+
+Topics (relative names, so a namespace or remapping applies):
+
+* in  ``goal_pose`` (geometry_msgs/PoseStamped): a new goal, also mid-motion (retargets smoothly);
+* in  ``obstacles`` (visualization_msgs/MarkerArray): SPHERE, CYLINDER (vertical) and CUBE markers,
+  ADD/MODIFY/DELETE/DELETEALL by (ns, id); replaces the obstacles of the ``scene`` parameter, whose
+  table stays;
+* in  ``joint_states`` (sensor_msgs/JointState): the measured arm (from ``can_driver``);
+* out ``joint_command`` (trajectory_msgs/JointTrajectory): one point per control step,
+  ``time_from_start`` = one period;
+* out ``~/state`` (redarm_interfaces/ControllerState): phase, swivel, clearance, distance to goal...
+  every step;
+* out ``~/markers`` (visualization_msgs/MarkerArray): elbow circle, arm, heading, goal, obstacles.
+
+A goal out of reach, without an in-limit solution, or inside an obstacle is rejected with a log
+line and phase ``rejected`` on ``~/state``; the arm stops smoothly and holds. Parameters and
+examples: docs/nodes.md. Units: m, rad, s; message quaternions are (x, y, z, w).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+from builtin_interfaces.msg import Duration
+from geometry_msgs.msg import Point, PoseStamped
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import QoSProfile
+from redarm_interfaces.msg import ControllerState
+from sensor_msgs.msg import JointState
+from std_msgs.msg import ColorRGBA
+from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+from visualization_msgs.msg import Marker, MarkerArray
+
+from redarm_ros.control.attractor import SpeedParams, direction
+from redarm_ros.control.obstacles import Box, Cylinder, Scene, Sphere, load_scene
+from redarm_ros.control.reach_controller import ControllerParams, GoalStatus, Phase, ReachController
+from redarm_ros.errors import InvalidInputError, RedarmError
+from redarm_ros.kinematics import load_arm
+from redarm_ros.kinematics.quaternion import matrix_to_quat, quat_to_matrix
+from redarm_ros.nodes._common import ParamSpec, declare_params, in_range, non_negative, positive, run_node
+from redarm_ros.nodes.ik_service import check_unique_node_name, pose_msg_to_matrix
+
+NODE_NAME = "controller"
+
+
+def _finite(value: Any) -> str | None:
+    return None if isinstance(value, (int, float)) and math.isfinite(value) else "must be a finite number"
+
+
+def _one_of(*choices: str) -> Any:
+    def check(value: Any) -> str | None:
+        return None if value in choices else f"must be one of {', '.join(choices)}"
+
+    return check
+
+
+PARAMS = [
+    ParamSpec("arm", "pa10", "Arm model (config/arms/<name>.yaml or a path); a 7-DOF swivel arm.",
+              read_only=True),
+    ParamSpec("rate_hz", 100.0, "Control rate (Hz): one step and one /joint_command point per period.",
+              in_range(1.0, 1000.0), read_only=True),
+    ParamSpec("scene", "", "Initial scene: name in config/scenes or a YAML path ('' = none). Its table "
+              "stays when obstacles arrive on the obstacles topic.", read_only=True),
+    ParamSpec("preferred_swivel", 0.0, "Preferred elbow swivel (rad), relative to swivel_reference; "
+              "may be changed at run time.", _finite),
+    ParamSpec("swivel_reference", "high", "What preferred_swivel is measured from: 'high' (highest elbow), "
+              "'low' (lowest elbow) or 'absolute' (the swivel angle itself).",
+              _one_of("high", "low", "absolute"), read_only=True),
+    ParamSpec("swivel_mode", "dynamics", "'dynamics' (swivel attractor + obstacle/limit force-lets) or "
+              "'fixed' (keep the start swivel).", _one_of("dynamics", "fixed"), read_only=True),
+    ParamSpec("max_speed", 0.4, "Largest end-effector speed (m/s).", positive, read_only=True),
+    ParamSpec("pos_tolerance", 1e-3, "Phase 'reached' below this position error (m).", positive,
+              read_only=True),
+    ParamSpec("ori_tolerance", 0.01, "Phase 'reached' below this orientation error (rad).", positive,
+              read_only=True),
+    ParamSpec("base_frame", "base_link", "Frame of goals and obstacles ('' frame_id means this one) and of "
+              "the published markers.", None),
+    ParamSpec("markers_rate_hz", 10.0, "RViz marker rate (Hz, 0 = none).", non_negative),
+    ParamSpec("resync_threshold", 0.2, "If the measured joints differ from the last command by more than "
+              "this (rad, any joint), the controller restarts from the measured state (e.g. after a halt).",
+              positive),
+    ParamSpec("joint_states_timeout_s", 0.5, "No joint_states for this long (s): stop commanding and warn.",
+              positive),
+    ParamSpec("duplicate_check_s", 0.5, "At start-up, watch the graph this long (s) for another node of "
+              "the same name and refuse to start if there is one (0 = no check).", non_negative,
+              read_only=True),
+]
+
+# ControllerState.phase strings (lower case) from the core's Phase (upper case names).
+_PHASE_MSG = {ph: getattr(ControllerState, ph.name) for ph in Phase}
+_COLOR = {
+    "arm": (0.8, 0.1, 0.1, 1.0),
+    "circle": (0.2, 0.6, 1.0, 0.8),
+    "heading": (1.0, 0.8, 0.0, 1.0),
+    "obstacle": (0.5, 0.5, 0.5, 0.7),
+    "goal_ok": (0.1, 0.9, 0.1, 0.9),
+    "goal_bad": (1.0, 0.1, 0.1, 0.9),
+    "table": (0.6, 0.45, 0.3, 0.5),
+}
+
+
+# ----------------------------------------------------------------------------------------------
+# Message <-> core conversions (plain functions, no state)
+# ----------------------------------------------------------------------------------------------
+def _quat_xyzw_from_yaw(yaw: float) -> tuple[float, float, float, float]:
+    return (0.0, 0.0, math.sin(yaw / 2.0), math.cos(yaw / 2.0))
+
+
+def marker_to_obstacle(m: Marker) -> tuple[Sphere | Cylinder | Box | None, str]:
+    """One RViz marker as an obstacle shape (base frame, m) and a note ('' or why it was changed).
+
+    SPHERE: radius = half the largest scale. CYLINDER: vertical; a tilted one becomes its bounding
+    sphere (conservative). CUBE: ``scale`` is the edge lengths; a rotation other than a yaw becomes the
+    axis-aligned bounding box. Other marker types give (None, reason).
+    """
+    p = (m.pose.position.x, m.pose.position.y, m.pose.position.z)
+    o = m.pose.orientation
+    q = np.array([o.w, o.x, o.y, o.z], dtype=float)
+    nq = float(np.linalg.norm(q))
+    R = np.eye(3) if nq < 1e-9 else quat_to_matrix(q / nq)  # RViz treats a zero quaternion as identity
+    sx, sy, sz = abs(m.scale.x), abs(m.scale.y), abs(m.scale.z)
+    name = f"{m.ns}/{m.id}"
+    vertical = abs(R[2, 2]) > 1.0 - 1e-6
+    if m.type == Marker.SPHERE:
+        note = "" if max(sx, sy, sz) - min(sx, sy, sz) < 1e-9 else "ellipsoid treated as its bounding sphere"
+        return Sphere(p, max(sx, sy, sz) / 2.0, name), note
+    if m.type == Marker.CYLINDER:
+        if vertical:
+            return Cylinder(p, max(sx, sy) / 2.0, sz, name), ""
+        r = math.hypot(max(sx, sy) / 2.0, sz / 2.0)
+        return Sphere(p, r, name), "tilted cylinder treated as its bounding sphere"
+    if m.type == Marker.CUBE:
+        if vertical:
+            yaw = math.atan2(R[1, 0], R[0, 0])
+            return Box(p, (sx, sy, sz), yaw, name), ""
+        ext = np.abs(R) @ np.array([sx, sy, sz])  # axis-aligned bounding box of the rotated cube
+        return Box(p, tuple(float(v) for v in ext), 0.0, name), "tilted cube treated as its bounding box"
+    return None, f"marker type {m.type} is not an obstacle shape (SPHERE, CYLINDER, CUBE)"
+
+
+def obstacle_to_marker(o: Sphere | Cylinder | Box, frame: str, ns: str, mid: int) -> Marker:
+    """RViz marker drawing an obstacle shape."""
+    m = Marker()
+    m.header.frame_id = frame
+    m.ns, m.id, m.action = ns, mid, Marker.ADD
+    m.pose.position = Point(x=o.center[0], y=o.center[1], z=o.center[2])
+    m.pose.orientation.w = 1.0
+    if isinstance(o, Sphere):
+        m.type = Marker.SPHERE
+        m.scale.x = m.scale.y = m.scale.z = 2.0 * o.radius
+    elif isinstance(o, Cylinder):
+        m.type = Marker.CYLINDER
+        m.scale.x = m.scale.y = 2.0 * o.radius
+        m.scale.z = o.height
+    else:
+        m.type = Marker.CUBE
+        m.scale.x, m.scale.y, m.scale.z = o.size
+        x, y, z, w = _quat_xyzw_from_yaw(o.yaw)
+        m.pose.orientation.x, m.pose.orientation.y, m.pose.orientation.z, m.pose.orientation.w = x, y, z, w
+    m.color = ColorRGBA(r=_COLOR["obstacle"][0], g=_COLOR["obstacle"][1], b=_COLOR["obstacle"][2],
+                        a=_COLOR["obstacle"][3])
+    return m
+
+
+def _color(key: str) -> ColorRGBA:
+    r, g, b, a = _COLOR[key]
+    return ColorRGBA(r=r, g=g, b=b, a=a)
+
+
+def _pt(v: Sequence[float]) -> Point:
+    return Point(x=float(v[0]), y=float(v[1]), z=float(v[2]))
+
+
+# ----------------------------------------------------------------------------------------------
+# The node
+# ----------------------------------------------------------------------------------------------
+class ControllerNode(Node):
+    """``controller``: attractor-dynamics reaching (see the module docstring for topics)."""
+
+    def __init__(self, *, context: Any = None, parameter_overrides: list[Any] | None = None,
+                 node_name: str = NODE_NAME, namespace: str | None = None) -> None:
+        super().__init__(node_name, namespace=namespace, context=context,
+                         parameter_overrides=parameter_overrides or [])
+        p = declare_params(self, PARAMS)
+        try:
+            self.arm = load_arm(p["arm"])
+            self.base_scene = load_scene(p["scene"]) if p["scene"] else Scene()
+            params = ControllerParams(
+                dt=1.0 / p["rate_hz"], preferred_swivel=float(p["preferred_swivel"]),
+                swivel_reference=p["swivel_reference"], swivel_mode=p["swivel_mode"],
+                pos_tolerance=float(p["pos_tolerance"]), ori_tolerance=float(p["ori_tolerance"]),
+                speed=SpeedParams(v_max=float(p["max_speed"])),
+            )
+            self.ctl = ReachController(self.arm, self.base_scene, params)
+        except (RedarmError, OSError) as exc:
+            raise ValueError(f"controller configuration: {exc}") from exc
+        check_unique_node_name(self, p["duplicate_check_s"])
+        self.period = 1.0 / p["rate_hz"]
+        self._names = list(self.arm.joint_names)
+        self._q_meas: np.ndarray | None = None
+        self._t_meas = -math.inf
+        self._started = False
+        self._pending_goal: np.ndarray | None = None
+        self._goal_T: np.ndarray | None = None
+        self._last_step = time.monotonic()
+        self._last_cmd: np.ndarray | None = None
+        self._markers: dict[tuple[str, int], Any] = {}
+        self._last_marker_ids: set[tuple[str, int]] = set()
+        self._warned: dict[str, float] = {}
+        self._last_phase: Phase | None = None
+        self._last_result: Any = None
+        self.steps = 0
+        # Wiring.
+        self.cmd_pub = self.create_publisher(JointTrajectory, "joint_command", QoSProfile(depth=10))
+        self.state_pub = self.create_publisher(ControllerState, "~/state", QoSProfile(depth=10))
+        self.marker_pub = self.create_publisher(MarkerArray, "~/markers", QoSProfile(depth=2))
+        self.create_subscription(PoseStamped, "goal_pose", self._on_goal, 10)
+        self.create_subscription(MarkerArray, "obstacles", self._on_obstacles, 10)
+        self.create_subscription(JointState, "joint_states", self._on_joint_states, 10)
+        self.create_timer(self.period, self._on_timer)
+        if p["markers_rate_hz"] > 0:
+            self.create_timer(1.0 / p["markers_rate_hz"], self._publish_markers)
+        self.add_post_set_parameters_callback(self._on_params_set)
+        self.get_logger().info(
+            f"controller ready: arm {self.arm.name}, {p['rate_hz']:g} Hz, scene "
+            f"{self.base_scene.name or '(none)'} with {len(self.base_scene)} obstacles, preferred swivel "
+            f"{p['preferred_swivel']:g} rad ({p['swivel_reference']}); waiting for joint_states"
+        )
+
+    # -- helpers ----------------------------------------------------------------------------------
+    def _warn_throttled(self, key: str, text: str, period_s: float = 2.0) -> None:
+        now = time.monotonic()
+        if now - self._warned.get(key, -math.inf) >= period_s:
+            self._warned[key] = now
+            self.get_logger().warning(text)
+
+    def _frame_ok(self, frame: str) -> bool:
+        return not frame or frame.lstrip("/") == self.get_parameter("base_frame").value
+
+    def _on_params_set(self, params: list[Parameter]) -> None:
+        for prm in params:
+            if prm.name == "preferred_swivel":
+                self.ctl.set_preferred_swivel(float(prm.value))
+                self.get_logger().info(f"preferred swivel now {float(prm.value):g} rad")
+
+    # -- inputs -----------------------------------------------------------------------------------
+    def _on_joint_states(self, msg: JointState) -> None:
+        pos = dict(zip(msg.name, msg.position, strict=False))
+        try:
+            q = np.array([pos[n] for n in self._names], dtype=float)
+        except KeyError:
+            missing = [n for n in self._names if n not in pos]
+            self._warn_throttled("js-names", f"joint_states lacks joints {missing}; ignored")
+            return
+        if not np.all(np.isfinite(q)):
+            self._warn_throttled("js-nan", "joint_states with NaN/inf ignored")
+            return
+        self._q_meas = q
+        self._t_meas = time.monotonic()
+
+    def _on_goal(self, msg: PoseStamped) -> None:
+        if not self._frame_ok(msg.header.frame_id):
+            self._reject_message(f"goal in frame {msg.header.frame_id!r} refused: give goals in "
+                                 f"{self.get_parameter('base_frame').value!r} (this node has no tf)")
+            return
+        try:
+            T = pose_msg_to_matrix(msg.pose, 1e-3)
+        except InvalidInputError as exc:
+            self._reject_message(f"goal refused: {exc}")
+            return
+        if not self._started:
+            self._pending_goal = T
+            self.get_logger().info("goal received before the first joint_states; it starts when the arm "
+                                   "state is known")
+            return
+        self._apply_goal(T)
+
+    def _apply_goal(self, T: np.ndarray) -> None:
+        retarget = self.ctl.phase in (Phase.REACHING, Phase.HOLDING)
+        check = self.ctl.set_goal(T)
+        p = T[:3, 3]
+        if check.accepted:
+            self._goal_T = T
+            self.get_logger().info(f"{'retarget to' if retarget else 'new goal'} ({p[0]:.3f}, {p[1]:.3f}, "
+                                   f"{p[2]:.3f}) m")
+        else:
+            self._goal_T = None
+            self.get_logger().warning(f"goal ({p[0]:.3f}, {p[1]:.3f}, {p[2]:.3f}) m rejected "
+                                      f"[{check.status.name}]: {check.message}; holding")
+
+    def _reject_message(self, text: str) -> None:
+        """A goal message that never reached the core (bad frame, NaN): log it and report it on ~/state."""
+        self.get_logger().warning(text)
+        st = self._state_msg(self._last_result)
+        st.phase = ControllerState.REJECTED
+        st.message = text
+        self.state_pub.publish(st)
+
+    def _on_obstacles(self, msg: MarkerArray) -> None:
+        changed = False
+        for m in msg.markers:
+            key = (m.ns, m.id)
+            if m.action == Marker.DELETEALL:
+                changed |= bool(self._markers)
+                self._markers.clear()
+            elif m.action == Marker.DELETE:
+                changed |= self._markers.pop(key, None) is not None
+            elif m.action == Marker.ADD:  # ADD and MODIFY share the value 0
+                if not self._frame_ok(m.header.frame_id):
+                    self._warn_throttled("obs-frame", f"obstacle {m.ns}/{m.id} in frame "
+                                         f"{m.header.frame_id!r} ignored (no tf here)")
+                    continue
+                try:
+                    shape, note = marker_to_obstacle(m)
+                except (InvalidInputError, ValueError) as exc:
+                    self._warn_throttled("obs-bad", f"obstacle {m.ns}/{m.id} ignored: {exc}")
+                    continue
+                if shape is None:
+                    self._warn_throttled("obs-type", f"obstacle {m.ns}/{m.id} ignored: {note}")
+                    continue
+                if note:
+                    self._warn_throttled("obs-note", f"obstacle {m.ns}/{m.id}: {note}")
+                self._markers[key] = shape
+                changed = True
+        if not changed:
+            return
+        scene = self.base_scene.with_obstacles(self._markers.values())
+        check = self.ctl.set_scene(scene)
+        self.get_logger().info(f"obstacles updated: {len(scene)} from the obstacles topic")
+        if check is not None:
+            self._goal_T = None
+            self.get_logger().warning(f"active goal dropped [{check.status.name}]: {check.message}; holding")
+
+    # -- the control step -------------------------------------------------------------------------
+    def _on_timer(self) -> None:
+        now = time.monotonic()
+        if self._q_meas is None:
+            self._warn_throttled("no-js", "no joint_states yet; not commanding", 5.0)
+            return
+        stale = now - self._t_meas > self.get_parameter("joint_states_timeout_s").value
+        if not self._started:
+            self.ctl.reset(self._q_meas)
+            self._started = True
+            self._last_step = now
+            self.get_logger().info("arm state known; controller running")
+            if self._pending_goal is not None:
+                self._apply_goal(self._pending_goal)
+                self._pending_goal = None
+        if stale:
+            self._warn_throttled("stale-js", "joint_states stopped; holding (not commanding)")
+            self._last_step = now
+            return
+        self._resync_if_needed()
+        dt = min(max(now - self._last_step, 0.0), 2.0 * self.period)
+        self._last_step = now
+        res = self.ctl.step(dt)
+        self.steps += 1
+        self._last_result = res
+        if res.phase is not self._last_phase:
+            if res.phase is Phase.REACHED:
+                self.get_logger().info(f"goal reached (distance {res.distance_to_goal:.2e} m, orientation "
+                                       f"error {res.orientation_error:.2e} rad)")
+            elif res.phase is Phase.HOLDING:
+                self.get_logger().warning(f"holding: {res.message}")
+            self._last_phase = res.phase
+        # Before the first goal nothing is commanded (the driver holds); afterwards every step is.
+        moving = self._last_cmd is not None and float(np.max(np.abs(res.q - self._last_cmd))) > 1e-12
+        if moving or res.phase in (Phase.REACHING, Phase.REACHED, Phase.HOLDING):
+            self._publish_command(res.q)
+        self.state_pub.publish(self._state_msg(res))
+
+    def _resync_if_needed(self) -> None:
+        """Restart from the measured joints when the arm is not where we commanded it (halt, homing)."""
+        q_cmd = self.ctl.q
+        if q_cmd is None or self._q_meas is None:
+            return
+        dev = float(np.max(np.abs(self._q_meas - q_cmd)))
+        if dev <= self.get_parameter("resync_threshold").value:
+            return
+        goal = self._goal_T
+        self.ctl.reset(self._q_meas)
+        self._last_cmd = None
+        if goal is not None:
+            self._warn_throttled("resync", f"arm is {dev:.3f} rad away from the command; re-planning from "
+                                 "the measured joints", 1.0)
+            check = self.ctl.set_goal(goal)
+            if not check.accepted:
+                self._goal_T = None
+        else:
+            self.get_logger().info(f"measured joints moved by {dev:.3f} rad; restarting from them")
+
+    def _publish_command(self, q: np.ndarray) -> None:
+        msg = JointTrajectory()
+        msg.joint_names = self._names
+        sec = int(self.period)
+        msg.points = [JointTrajectoryPoint(positions=[float(v) for v in q],
+                                           time_from_start=Duration(sec=sec,
+                                                                    nanosec=int((self.period - sec) * 1e9)))]
+        self.cmd_pub.publish(msg)
+        self._last_cmd = q.copy()
+
+    def _state_msg(self, res: Any) -> ControllerState:
+        st = ControllerState()
+        st.header.stamp = self.get_clock().now().to_msg()
+        st.header.frame_id = self.get_parameter("base_frame").value
+        if res is None:
+            st.phase = ControllerState.IDLE
+            st.swivel = st.swivel_desired = math.nan
+            st.clearance = st.distance_to_goal = st.orientation_error = math.inf
+            st.message = "waiting for joint_states"
+            return st
+        st.phase = _PHASE_MSG[res.phase]
+        st.swivel = float(res.swivel)
+        st.swivel_desired = float(res.swivel_desired)
+        st.clearance = float(res.clearance)
+        st.distance_to_goal = float(res.distance_to_goal)
+        st.orientation_error = float(res.orientation_error)
+        st.message = res.message
+        goal = self.ctl.goal
+        if goal is not None:
+            (gx, gy, gz), (w, x, y, z) = goal
+            st.goal.position = Point(x=gx, y=gy, z=gz)
+            o = st.goal.orientation
+            o.x, o.y, o.z, o.w = float(x), float(y), float(z), float(w)
+        return st
+
+    # -- RViz -------------------------------------------------------------------------------------
+    def _publish_markers(self) -> None:
+        q = self.ctl.q
+        if q is None:
+            return
+        frame = self.get_parameter("base_frame").value
+        stamp = self.get_clock().now().to_msg()
+        out: list[Marker] = []
+
+        def marker(ns: str, mid: int, mtype: int, color: str) -> Marker:
+            m = Marker()
+            m.header.frame_id, m.header.stamp = frame, stamp
+            m.ns, m.id, m.type, m.action = ns, mid, mtype, Marker.ADD
+            m.pose.orientation.w = 1.0
+            m.color = _color(color)
+            out.append(m)
+            return m
+
+        kp = self.arm.key_points(q)  # base, shoulder, elbow, wrist, tool
+        m = marker("arm", 0, Marker.LINE_STRIP, "arm")
+        m.scale.x = 0.03
+        m.points = [_pt(v) for v in kp]
+        m = marker("arm", 1, Marker.SPHERE, "arm")
+        m.pose.position = _pt(kp[2])
+        m.scale.x = m.scale.y = m.scale.z = 0.06
+        try:
+            C, n, rho = self.arm.elbow_circle(self.arm.fk(q))
+            a = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+            a /= np.linalg.norm(a)
+            b = np.cross(n, a)
+            m = marker("elbow_circle", 0, Marker.LINE_STRIP, "circle")
+            m.scale.x = 0.008
+            m.points = [_pt(C + rho * (math.cos(t) * a + math.sin(t) * b))
+                        for t in np.linspace(0.0, 2.0 * math.pi, 49)]
+        except RedarmError:
+            pass  # singular pose: no circle to draw
+        res = self._last_result
+        if res is not None and res.speed > 1e-4:
+            e = direction(*res.heading)
+            m = marker("heading", 0, Marker.ARROW, "heading")
+            m.scale.x, m.scale.y, m.scale.z = 0.01, 0.02, 0.03
+            m.points = [_pt(kp[4]), _pt(kp[4] + 0.15 * np.asarray(e))]
+        goal = self.ctl.goal
+        if goal is not None:
+            m = marker("goal", 0, Marker.ARROW, "goal_ok")
+            (gx, gy, gz), qg = goal
+            R = quat_to_matrix(qg)
+            m.scale.x, m.scale.y, m.scale.z = 0.01, 0.02, 0.03
+            m.points = [_pt((gx, gy, gz)), _pt(np.array([gx, gy, gz]) + 0.1 * R[:, 2])]
+        scene = self.ctl.scene
+        for i, o in enumerate(scene.obstacles):
+            out.append(obstacle_to_marker(o, frame, "obstacles", i))
+            out[-1].header.stamp = stamp
+        if scene.table_height is not None:
+            m = marker("table", 0, Marker.CUBE, "table")
+            m.pose.position = _pt((0.5, 0.0, scene.table_height - 0.01))
+            m.scale.x, m.scale.y, m.scale.z = 1.6, 1.6, 0.02
+        ids = {(mk.ns, mk.id) for mk in out}
+        for ns, mid in self._last_marker_ids - ids:  # e.g. an obstacle deleted, the goal gone
+            d = Marker()
+            d.header.frame_id, d.header.stamp = frame, stamp
+            d.ns, d.id, d.action = ns, mid, Marker.DELETE
+            out.append(d)
+        self._last_marker_ids = ids
+        self.marker_pub.publish(MarkerArray(markers=out))
+
+
+def pose_to_msg(T: np.ndarray) -> PoseStamped:
+    """PoseStamped (frame left empty) of a 4x4 pose; quaternion in message order x, y, z, w."""
+    msg = PoseStamped()
+    msg.pose.position = _pt(T[:3, 3])
+    w, x, y, z = matrix_to_quat(T[:3, :3])
+    o = msg.pose.orientation
+    o.x, o.y, o.z, o.w = float(x), float(y), float(z), float(w)
+    return msg
+
+
+__all__ = ["ControllerNode", "GoalStatus", "main", "marker_to_obstacle", "obstacle_to_marker", "pose_to_msg"]
+
+
+def main(args: Sequence[str] | None = None) -> int:
+    """Console entry point (``ros2 run redarm_ros controller``)."""
+    return run_node(ControllerNode, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,327 @@
+"""controller node in-process against an ideal arm (joint_command echoed to joint_states): reaching,
+retargeting mid-motion, rejection (out of reach, inside an obstacle, foreign frame), obstacles from a
+MarkerArray, markers and state, parameter validation; marker <-> obstacle conversion."""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import numpy as np
+import pytest
+
+rclpy = pytest.importorskip("rclpy")
+pytest.importorskip("redarm_interfaces", reason="redarm_interfaces not built (run scripts/setup_env.sh)")
+
+from geometry_msgs.msg import PoseStamped  # noqa: E402
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from redarm_interfaces.msg import ControllerState  # noqa: E402
+from sensor_msgs.msg import JointState  # noqa: E402
+from trajectory_msgs.msg import JointTrajectory  # noqa: E402
+from visualization_msgs.msg import Marker, MarkerArray  # noqa: E402
+
+from redarm_ros.control.obstacles import Box, Cylinder, Sphere  # noqa: E402
+from redarm_ros.kinematics import load_arm  # noqa: E402
+from redarm_ros.nodes.controller import (  # noqa: E402
+    ControllerNode,
+    marker_to_obstacle,
+    obstacle_to_marker,
+    pose_to_msg,
+)
+
+ARM = load_arm("pa10")
+# A comfortable start: elbow bent, tool in front of the robot at table height + 0.3 m.
+Q0 = np.array([0.0, 0.6, 0.0, 1.4, 0.0, 1.1, 0.0])
+
+
+class IdealArm:
+    """Test double of can_driver + hardware: the last commanded point becomes the measured state."""
+
+    def __init__(self, ctx: Any, q0: np.ndarray) -> None:
+        self.node = rclpy.create_node("fake_arm", context=ctx)
+        self.q = q0.astype(float).copy()
+        self.commands: list[np.ndarray] = []
+        self.pub = self.node.create_publisher(JointState, "joint_states", 10)
+        self.node.create_subscription(JointTrajectory, "joint_command", self._on_cmd, 100)
+        self.node.create_timer(0.01, self.publish)
+        self.publishing = True
+
+    def _on_cmd(self, msg: JointTrajectory) -> None:
+        assert list(msg.joint_names) == ARM.joint_names
+        assert len(msg.points) == 1
+        q = np.array(msg.points[0].positions)
+        self.commands.append(q)
+        self.q = q
+
+    def publish(self) -> None:
+        if self.publishing:
+            self.pub.publish(JointState(name=ARM.joint_names, position=[float(v) for v in self.q]))
+
+
+class Harness:
+    """Controller node + ideal arm + a probe (goals/obstacles out, state/markers in), one executor."""
+
+    def __init__(self, ctx: Any, q0: np.ndarray = Q0, **params: Any) -> None:
+        overrides = [Parameter("duplicate_check_s", value=0.0)]
+        overrides += [Parameter(k, value=v) for k, v in params.items()]
+        self.ctl = ControllerNode(context=ctx, parameter_overrides=overrides)
+        self.arm = IdealArm(ctx, q0)
+        self.probe = rclpy.create_node("probe", context=ctx)
+        self.goal_pub = self.probe.create_publisher(PoseStamped, "goal_pose", 10)
+        self.obs_pub = self.probe.create_publisher(MarkerArray, "obstacles", 10)
+        self.states: list[ControllerState] = []
+        self.markers: list[MarkerArray] = []
+        self.probe.create_subscription(ControllerState, "/controller/state", self.states.append, 100)
+        self.probe.create_subscription(MarkerArray, "/controller/markers", self.markers.append, 10)
+        self.ex = SingleThreadedExecutor(context=ctx)
+        for n in (self.ctl, self.arm.node, self.probe):
+            self.ex.add_node(n)
+
+    def spin_until(self, cond: Callable[[], bool], timeout: float) -> bool:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            self.ex.spin_once(timeout_sec=0.01)
+            if cond():
+                return True
+        return False
+
+    def wait_connected(self) -> None:
+        assert self.spin_until(lambda: self.goal_pub.get_subscription_count() > 0
+                               and self.ctl.cmd_pub.get_subscription_count() > 0
+                               and len(self.states) > 0, 10.0)
+
+    def send_goal(self, T: np.ndarray, frame: str = "base_link") -> None:
+        msg = pose_to_msg(T)
+        msg.header.frame_id = frame
+        self.goal_pub.publish(msg)
+
+    def phase(self) -> str:
+        return self.states[-1].phase if self.states else ""
+
+    def wait_phase(self, phase: str, timeout: float, after: int = 0) -> bool:
+        return self.spin_until(lambda: any(s.phase == phase for s in self.states[after:]), timeout)
+
+    def close(self) -> None:
+        self.ex.shutdown()
+        for n in (self.ctl, self.arm.node, self.probe):
+            n.destroy_node()
+
+
+@pytest.fixture
+def ctx(ros_env: Any) -> Iterator[Any]:
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=ros_env.domain_id)
+    yield context
+    rclpy.shutdown(context=context)
+
+
+@pytest.fixture
+def h(ctx: Any) -> Iterator[Harness]:
+    harness = Harness(ctx)
+    harness.wait_connected()
+    yield harness
+    harness.close()
+
+
+def goal_from(q0: np.ndarray, dp: tuple[float, float, float], rot: np.ndarray | None = None) -> np.ndarray:
+    T = ARM.fk(q0).copy()
+    T[:3, 3] += dp
+    if rot is not None:
+        T[:3, :3] = rot @ T[:3, :3]
+    return T
+
+
+def rot_z(a: float) -> np.ndarray:
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def max_joint_step(cmds: list[np.ndarray]) -> float:
+    return float(np.max(np.abs(np.diff(np.array(cmds), axis=0)))) if len(cmds) > 1 else 0.0
+
+
+def test_reaches_goal_and_holds(h: Harness) -> None:
+    assert h.phase() == ControllerState.IDLE
+    assert h.arm.commands == [], "nothing is commanded before the first goal"
+    T = goal_from(Q0, (0.05, 0.15, 0.05), rot_z(0.3))
+    h.send_goal(T)
+    assert h.wait_phase(ControllerState.REACHING, 5.0)
+    assert h.wait_phase(ControllerState.REACHED, 20.0), h.states[-1]
+    pe, re = ARM.pose_error(h.arm.q, T)
+    assert pe < 1e-3 and re < 0.01
+    st = h.states[-1]
+    assert st.distance_to_goal < 1e-3 and st.orientation_error < 0.01
+    assert st.goal.position.x == pytest.approx(T[0, 3])
+    assert math.isinf(st.clearance)  # no obstacles
+    # Continuous motion: joint steps bounded by the velocity limits over a period (with margin).
+    assert max_joint_step(h.arm.commands) <= 1.5 * float(np.max(ARM.max_vel)) * 0.01 + 1e-9
+    assert ARM.within_limits(np.array(h.arm.commands).min(axis=0), 1e-9)
+    # After REACHED the hand stays on the goal (the elbow may still settle towards its preferred swivel).
+    n = len(h.arm.commands)
+    h.spin_until(lambda: len(h.arm.commands) > n + 50, 3.0)
+    for q in h.arm.commands[n:]:
+        pe, re = ARM.pose_error(q, T)
+        assert pe < 1e-3 and re < 0.01
+
+
+def test_retarget_mid_motion_is_smooth(h: Harness) -> None:
+    T1 = goal_from(Q0, (0.0, 0.25, 0.0))
+    T2 = goal_from(Q0, (0.1, -0.1, 0.1))
+    h.send_goal(T1)
+    assert h.wait_phase(ControllerState.REACHING, 5.0)
+    h.spin_until(lambda: len(h.arm.commands) > 40, 5.0)
+    h.send_goal(T2)
+    n = len(h.states)
+    assert h.wait_phase(ControllerState.REACHED, 25.0, after=n)
+    pe, re = ARM.pose_error(h.arm.q, T2)
+    assert pe < 1e-3 and re < 0.01
+    assert max_joint_step(h.arm.commands) <= 1.5 * float(np.max(ARM.max_vel)) * 0.01 + 1e-9
+    # The state never went through REJECTED or IDLE on the way.
+    assert not any(s.phase in (ControllerState.REJECTED, ControllerState.IDLE) for s in h.states[n:])
+
+
+def test_out_of_reach_goal_rejected_arm_holds(h: Harness) -> None:
+    T = np.eye(4)
+    T[:3, 3] = (2.0, 0.0, 0.3)
+    q_before = h.arm.q.copy()
+    h.send_goal(T)
+    assert h.wait_phase(ControllerState.REJECTED, 5.0)
+    st = next(s for s in h.states if s.phase == ControllerState.REJECTED)
+    assert "reach" in st.message
+    h.spin_until(lambda: False, 0.3)
+    assert np.allclose(h.arm.q, q_before)
+    # A good goal afterwards is taken.
+    h.send_goal(goal_from(Q0, (0.0, 0.1, 0.0)))
+    assert h.wait_phase(ControllerState.REACHED, 20.0)
+
+
+def test_foreign_frame_and_nan_goal_rejected(h: Harness) -> None:
+    h.send_goal(goal_from(Q0, (0.0, 0.1, 0.0)), frame="camera")
+    assert h.wait_phase(ControllerState.REJECTED, 5.0)
+    assert "camera" in [s for s in h.states if s.phase == ControllerState.REJECTED][-1].message
+    msg = pose_to_msg(goal_from(Q0, (0.0, 0.1, 0.0)))
+    msg.pose.position.x = math.nan
+    n = len(h.states)
+    h.goal_pub.publish(msg)
+    assert h.wait_phase(ControllerState.REJECTED, 5.0, after=n)
+    assert h.arm.commands == []
+
+
+def _marker(mtype: int, pos: tuple[float, float, float], scale: tuple[float, float, float], mid: int = 0,
+            action: int = Marker.ADD) -> Marker:
+    m = Marker()
+    m.header.frame_id = "base_link"
+    m.ns, m.id, m.type, m.action = "test", mid, mtype, action
+    m.pose.position.x, m.pose.position.y, m.pose.position.z = pos
+    m.pose.orientation.w = 1.0
+    m.scale.x, m.scale.y, m.scale.z = scale
+    return m
+
+
+def test_goal_inside_obstacle_rejected_and_obstacles_on_topic(h: Harness) -> None:
+    T = goal_from(Q0, (0.0, 0.2, 0.0))
+    h.obs_pub.publish(MarkerArray(markers=[_marker(Marker.SPHERE, tuple(T[:3, 3]), (0.1, 0.1, 0.1))]))
+    assert h.spin_until(lambda: len(h.ctl.ctl.scene) == 1, 5.0)
+    h.send_goal(T)
+    assert h.wait_phase(ControllerState.REJECTED, 5.0)
+    assert "obstacle" in [s for s in h.states if s.phase == ControllerState.REJECTED][-1].message
+    # Clear the obstacles: the same goal is accepted and reached.
+    clear_all = _marker(Marker.SPHERE, (0, 0, 0), (1, 1, 1), action=Marker.DELETEALL)
+    h.obs_pub.publish(MarkerArray(markers=[clear_all]))
+    assert h.spin_until(lambda: len(h.ctl.ctl.scene) == 0, 5.0)
+    h.send_goal(T)
+    assert h.wait_phase(ControllerState.REACHED, 20.0)
+
+
+def test_obstacle_appearing_on_goal_drops_it(h: Harness) -> None:
+    T = goal_from(Q0, (0.0, 0.25, 0.0))
+    h.send_goal(T)
+    assert h.wait_phase(ControllerState.REACHING, 5.0)
+    h.obs_pub.publish(MarkerArray(markers=[_marker(Marker.CUBE, tuple(T[:3, 3]), (0.1, 0.1, 0.1))]))
+    n = len(h.states)
+    assert h.wait_phase(ControllerState.REJECTED, 5.0, after=n)
+    # It stops smoothly and then holds.
+    h.spin_until(lambda: False, 1.0)
+    k = len(h.arm.commands)
+    h.spin_until(lambda: False, 0.3)
+    assert np.allclose(h.arm.q, h.arm.commands[k - 1], atol=1e-6)
+    assert max_joint_step(h.arm.commands) <= 1.5 * float(np.max(ARM.max_vel)) * 0.01 + 1e-9
+
+
+def test_markers_published(h: Harness) -> None:
+    h.send_goal(goal_from(Q0, (0.0, 0.2, 0.0)))
+    h.obs_pub.publish(MarkerArray(markers=[_marker(Marker.CYLINDER, (0.5, -0.4, 0.1), (0.1, 0.1, 0.2))]))
+    assert h.spin_until(lambda: any({m.ns for m in ma.markers} >= {"arm", "elbow_circle", "goal", "obstacles",
+                                                                    "heading"} for ma in h.markers), 5.0)
+    ma = h.markers[-1]
+    circle = next(m for m in ma.markers if m.ns == "elbow_circle")
+    assert len(circle.points) > 20 and circle.header.frame_id == "base_link"
+    obs = next(m for m in ma.markers if m.ns == "obstacles")
+    assert obs.type == Marker.CYLINDER and obs.scale.z == pytest.approx(0.2)
+
+
+def test_goal_before_joint_states_waits(ctx: Any) -> None:
+    h = Harness(ctx)
+    try:
+        h.arm.publishing = False
+        assert h.spin_until(lambda: h.goal_pub.get_subscription_count() > 0, 10.0)
+        T = goal_from(Q0, (0.0, 0.1, 0.0))
+        h.send_goal(T)
+        h.spin_until(lambda: False, 0.3)
+        assert h.arm.commands == []
+        h.arm.publishing = True
+        assert h.wait_phase(ControllerState.REACHED, 20.0)
+        assert ARM.pose_error(h.arm.q, T)[0] < 1e-3
+    finally:
+        h.close()
+
+
+def test_parameters(ctx: Any) -> None:
+    h = Harness(ctx, preferred_swivel=0.2, rate_hz=50.0)
+    try:
+        node = h.ctl
+        assert node.ctl.params.preferred_swivel == pytest.approx(0.2)
+        assert node.set_parameters([Parameter("preferred_swivel", value=-0.4)])[0].successful
+        assert node.ctl.params.preferred_swivel == pytest.approx(-0.4)
+        assert not node.set_parameters([Parameter("preferred_swivel", value=math.nan)])[0].successful
+        assert not node.set_parameters([Parameter("rate_hz", value=10.0)])[0].successful  # read-only
+    finally:
+        h.close()
+    with pytest.raises(ValueError):
+        ControllerNode(context=ctx, node_name="ctl_bad", parameter_overrides=[
+            Parameter("duplicate_check_s", value=0.0), Parameter("arm", value="powercube6")])
+    with pytest.raises(ValueError):
+        ControllerNode(context=ctx, node_name="ctl_bad2", parameter_overrides=[
+            Parameter("duplicate_check_s", value=0.0), Parameter("swivel_mode", value="sideways")])
+
+
+def test_marker_obstacle_round_trip() -> None:
+    for shape in (Sphere((0.1, 0.2, 0.3), 0.05), Cylinder((0.4, 0.0, 0.1), 0.03, 0.2),
+                  Box((0.5, -0.1, 0.05), (0.1, 0.2, 0.1), 0.4)):
+        back, note = marker_to_obstacle(obstacle_to_marker(shape, "base_link", "x", 1))
+        assert note == ""
+        assert type(back) is type(shape)
+        assert np.allclose(back.center, shape.center)
+        for fld in ("radius", "height", "size", "yaw"):
+            if hasattr(shape, fld):
+                assert np.allclose(getattr(back, fld), getattr(shape, fld)), fld
+
+
+def test_marker_conversions_are_conservative() -> None:
+    m = _marker(Marker.CYLINDER, (0.3, 0.0, 0.2), (0.1, 0.1, 0.4))
+    m.pose.orientation.x, m.pose.orientation.w = math.sin(0.5), math.cos(0.5)  # tilted by 1 rad
+    shape, note = marker_to_obstacle(m)
+    assert isinstance(shape, Sphere) and shape.radius == pytest.approx(math.hypot(0.05, 0.2)) and note
+    m = _marker(Marker.SPHERE, (0.0, 0.0, 0.0), (0.1, 0.2, 0.1))
+    shape, note = marker_to_obstacle(m)
+    assert shape.radius == pytest.approx(0.1) and note
+    m = _marker(Marker.CUBE, (0.0, 0.0, 0.0), (0.2, 0.1, 0.1))
+    # 90 deg about y: the bounding box swaps x and z
+    m.pose.orientation.y, m.pose.orientation.w = math.sin(math.pi / 4), math.cos(math.pi / 4)
+    shape, _ = marker_to_obstacle(m)
+    assert np.allclose(shape.size, (0.1, 0.1, 0.2), atol=1e-9)
+    shape, note = marker_to_obstacle(_marker(Marker.ARROW, (0, 0, 0), (1, 1, 1)))
+    assert shape is None and "ARROW" not in note and "not an obstacle" in note
