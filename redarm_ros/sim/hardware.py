@@ -151,6 +151,8 @@ class HardwareSim:
         self.faults = faults or Faults()
         self.faults.validate()
         self.status_file = Path(status_file) if status_file else None
+        if self.status_file is not None:
+            self.status_file.parent.mkdir(parents=True, exist_ok=True)
         self.status_period = 1.0 / status_rate_hz if status_rate_hz > 0 else math.inf
         self.snapshot_dir = Path(snapshot_dir) if snapshot_dir else None
         self.snapshot_size = snapshot_size
@@ -161,7 +163,9 @@ class HardwareSim:
         self._rng = random.Random(self.faults.seed)
         self._stop = threading.Event()
         self._snapshot_requests: list[str | None] = []
-        self._lock = threading.Lock()  # faults / counters / snapshot requests between threads
+        # faults and snapshot requests between threads; reentrant because signal handlers (which run
+        # in the main thread, possibly inside a locked block) take it too
+        self._lock = threading.RLock()
         self._pending: list[tuple[float, int, can.Message, float]] = []  # delayed: (due, seq, msg, t_rx)
         self._seq = 0
         self._decoder = pc.FrameDecoder()
@@ -295,7 +299,7 @@ class HardwareSim:
         try:
             reopen()
             self.counters.bus_reopened += 1
-        except RedarmError as exc2:
+        except (RedarmError, can.CanError, OSError) as exc2:
             _LOG.info("reopen failed: %s", exc2)
 
     # -- physics side ---------------------------------------------------------------------------------
