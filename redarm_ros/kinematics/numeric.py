@@ -233,6 +233,8 @@ def solve_flow(
             Jv = np.cross(Z, p - Og).T  # (3, n): v_i = z_i x (p_end - o_i)
             e = pd - p
             g = Jv.T @ e
+            if clamp:  # joints pinned at a limit (or locked) do not move: leave them out of the step
+                g = np.where(((q <= lo) & (g < 0)) | ((q >= up) & (g > 0)), 0.0, g)
             if normalize:
                 nv = np.linalg.norm(Jv, axis=0)
                 g = np.where(nv > 1e-12, g / np.where(nv > 1e-12, nv, 1.0), 0.0)
