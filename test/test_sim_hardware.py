@@ -148,7 +148,7 @@ def test_toggle_silence_controls_and_status(rig):
     assert st["modules"][3]["flags"] == ["RAMP_END"]
 
 
-def test_command_line_helpers():
+def test_command_line_helpers(monkeypatch):
     assert strip_ros_args(["--arm", "pa10", "--ros-args", "-r", "__node:=sim", "--", "--gui"]) == [
         "--arm",
         "pa10",
@@ -163,3 +163,8 @@ def test_command_line_helpers():
         Faults(drop_replies=-0.1).validate()
     with pytest.raises(ValueError):
         Faults(delay_replies_ms=float("nan")).validate()
+    monkeypatch.setenv("REDARM_SIM_DROP_REPLIES", "0.25")
+    monkeypatch.setenv("REDARM_SIM_DIE_AFTER", "3")
+    args = build_parser().parse_args([])
+    assert (args.drop_replies, args.delay_replies, args.die_after, args.seed) == (0.25, 0.0, 3.0, 0)
+    assert build_parser().parse_args(["--drop-replies", "0.5"]).drop_replies == 0.5  # flags win over env

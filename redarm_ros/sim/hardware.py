@@ -533,14 +533,14 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument(
         "--drop-replies",
         type=float,
-        default=float(env(ENV_PREFIX + "DROP_REPLIES", "0") or 0),
+        default=env(ENV_PREFIX + "DROP_REPLIES") or "0",  # a str default goes through type=
         metavar="FRACTION",
         help="drop this fraction of replies (seeded)",
     )
     f.add_argument(
         "--delay-replies",
         type=float,
-        default=float(env(ENV_PREFIX + "DELAY_REPLIES", "0") or 0),
+        default=env(ENV_PREFIX + "DELAY_REPLIES") or "0",
         metavar="MS",
         help="delay every reply by MS milliseconds",
     )
@@ -560,11 +560,11 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument(
         "--die-after",
         type=float,
-        default=_env_float(ENV_PREFIX + "DIE_AFTER"),
+        default=env(ENV_PREFIX + "DIE_AFTER") or None,
         metavar="S",
         help="SIGKILL itself after S seconds (a crash)",
     )
-    f.add_argument("--seed", type=int, default=int(env(ENV_PREFIX + "SEED", "0") or 0), help="fault RNG seed")
+    f.add_argument("--seed", type=int, default=env(ENV_PREFIX + "SEED") or "0", help="fault RNG seed")
     ap.add_argument("--log-level", default="INFO", help="logging level (DEBUG, INFO, WARNING)")
     return ap
 
@@ -581,11 +581,6 @@ def strip_ros_args(argv: Sequence[str]) -> list[str]:
         elif not skipping:
             out.append(a)
     return out
-
-
-def _env_float(name: str) -> float | None:
-    v = os.environ.get(name)
-    return float(v) if v else None
 
 
 def main(argv: Sequence[str] | None = None) -> int:
