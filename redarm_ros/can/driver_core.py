@@ -404,16 +404,16 @@ class PowerCubeArmDriver:
                     timeout_s=self.reply_timeout_s,
                 )
 
-    def _command_all(self, cmd: Command, *, require: bool = True) -> list[int]:
+    def _command_all(self, cmd: Command, *, require: bool = True, attempts: int = 2) -> list[int]:
         items = [(j, j, p.command(mid, cmd), _is_ack(cmd)) for j, mid in enumerate(self.module_ids)]
-        res = self._transact(items)
+        res = self._transact(items, attempts=attempts)
         if require:
             self._require_all(res, list(range(self.n)), cmd.name)
         return [self.module_ids[j] for j in range(self.n) if j in res]
 
     def _halt_all(self) -> list[int]:
         """HALT every module (acks collected, not required) and broadcast haltAll as a backstop."""
-        acked = self._command_all(Command.HALT, require=False)
+        acked = self._command_all(Command.HALT, require=False, attempts=1)
         self._send(self._halt_all_msg)
         return acked
 

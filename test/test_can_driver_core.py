@@ -1,0 +1,539 @@
+"""Host-side PowerCube driver: scripted frame-by-frame tests on a fake clock (no threads), then the
+driver against emulated modules on a thread over an in-process virtual bus and over the loopback
+remote bus (reconnect)."""
+
+from __future__ import annotations
+
+import math
+import struct
+import time
+import uuid
+from collections import deque
+from collections.abc import Callable, Iterator
+
+import can
+import numpy as np
+import pytest
+
+from redarm_ros.can import protocol as p
+from redarm_ros.can.bus import open_bus
+from redarm_ros.can.bus_server import LoopbackBusServer
+from redarm_ros.can.driver_core import DriverState, PowerCubeArmDriver
+from redarm_ros.can.module_emulator import EmulatedArm, EmulatorRunner
+from redarm_ros.can.protocol import ActConfig, ActState
+from redarm_ros.can.testing import OpenBusTracker
+from redarm_ros.errors import BusError, BusTimeoutError, InvalidInputError, ModuleFaultError, RedarmError
+
+S = ActState
+N = 3
+IDS = [1, 2, 3]
+LOWER, UPPER = [-1.5] * N, [1.5] * N
+VMAX, AMAX = [1.0] * N, [10.0] * N
+
+
+@pytest.fixture(autouse=True)
+def _no_open_buses() -> Iterator[None]:
+    """Fail any test that leaves a CAN bus open (and close it)."""
+    with OpenBusTracker() as tracker:
+        yield
+    leaked = tracker.close_leaked()
+    if leaked:
+        pytest.fail(f"test left CAN buses open: {leaked}", pytrace=False)
+
+
+class FakeClock:
+    def __init__(self) -> None:
+        self.t = 50.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+Responder = Callable[[can.Message], list[can.Message]]
+
+
+class ScriptedBus(can.BusABC):
+    """Records every sent frame as (id, hex); replies come from ``responder`` and become
+    receivable ``delay_s`` later on the fake clock; a receive that has to wait advances the
+    clock (so deadlines pass without sleeping)."""
+
+    def __init__(self, clock: FakeClock, responder: Responder | None = None, delay_s: float = 0.0) -> None:
+        super().__init__(channel="scripted")
+        self.clock = clock
+        self.responder = responder
+        self.delay_s = delay_s
+        self.sent: list[tuple[int, str]] = []
+        self.rx: deque[can.Message] = deque()
+        self._ready: deque[float] = deque()
+        self.fail: BaseException | None = None
+
+    def inject(self, msg: can.Message) -> None:
+        """Queue a frame that is receivable at once."""
+        self.rx.append(msg)
+        self._ready.append(self.clock.t)
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        if self.fail is not None:
+            raise self.fail
+        self.sent.append((msg.arbitration_id, bytes(msg.data).hex(" ")))
+        if self.responder is not None:
+            for reply in self.responder(msg):
+                self.rx.append(reply)
+                self._ready.append(self.clock.t + self.delay_s)
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        if self.fail is not None:
+            raise self.fail
+        if self.rx:
+            wait = self._ready[0] - self.clock.t
+            if wait <= 0 or timeout is None or wait <= timeout:
+                self.clock.t += max(0.0, wait)
+                self._ready.popleft()
+                return self.rx.popleft(), False
+        if timeout:
+            self.clock.t += timeout
+        return None, False
+
+    def take(self) -> list[tuple[int, str]]:
+        out, self.sent = self.sent, []
+        return out
+
+
+def f32hex(x: float) -> str:
+    return struct.pack("<f", x).hex(" ")
+
+
+@pytest.fixture
+def clock() -> FakeClock:
+    return FakeClock()
+
+
+@pytest.fixture
+def arm(clock: FakeClock) -> EmulatedArm:
+    return EmulatedArm.kinematic(LOWER, UPPER, [2.0] * N, [20.0] * N, q0=[0.2, -0.1, 0.0], clock=clock)
+
+
+@pytest.fixture
+def scripted(clock: FakeClock, arm: EmulatedArm) -> Iterator[ScriptedBus]:
+    bus = ScriptedBus(clock, arm.handle)
+    yield bus
+    bus.shutdown()
+
+
+def make_driver(bus: can.BusABC, clock: Callable[[], float] = time.perf_counter, **kw) -> PowerCubeArmDriver:
+    return PowerCubeArmDriver(bus, IDS, LOWER, UPPER, VMAX, AMAX, clock=clock, **kw)
+
+
+# ------------------------------------------------------------------------------------------------
+# Scripted: discovery, init, the cycle byte by byte
+# ------------------------------------------------------------------------------------------------
+
+
+def test_discovery_reports_a_missing_module(clock: FakeClock, arm: EmulatedArm) -> None:
+    arm[3].silenced = True
+    bus = ScriptedBus(clock, arm.handle)
+    try:
+        report = make_driver(bus, clock).discover()
+        assert report.found == {1: 0x0D1A, 2: 0x0D1A} and report.missing == [3] and not report.complete
+        # the scan, then one retry for the silent id, as the vendor library's GETPARAM DEF_VERSION
+        assert bus.take() == [(0x0C1, "0a 1d"), (0x0C2, "0a 1d"), (0x0C3, "0a 1d"), (0x0C3, "0a 1d")]
+    finally:
+        bus.shutdown()
+
+
+def test_init_configures_resets_homes_and_holds(scripted: ScriptedBus, arm: EmulatedArm, clock) -> None:
+    drv = make_driver(scripted, clock)
+    with pytest.raises(RedarmError, match="init"):
+        drv.cycle([0.0] * N, 0.004)
+    assert scripted.take() == []
+    st = drv.init()
+    sent = scripted.take()
+    cfg_set = [s for s in sent if s[1].startswith("08 39")]
+    assert cfg_set == [(0x0E0 + i, "08 39 00 00 00 08") for i in IDS]  # SYNC_MOTION on
+    assert [(0x0E0 + i, "00") for i in IDS] == [s for s in sent if s[1] == "00"]  # RESET each
+    assert [(0x0E0 + i, "01") for i in IDS] == [s for s in sent if s[1] == "01"]  # HOME each
+    assert all(s & S.HOME_OK for s in st.states)
+    assert np.allclose(st.positions, 0.0) and drv.state is DriverState.READY
+    assert all(arm[i].config_bits & ActConfig.SYNC_MOTION for i in IDS)
+
+
+def test_init_with_a_missing_module_raises_timeout(clock: FakeClock, arm: EmulatedArm) -> None:
+    arm[2].silenced = True
+    bus = ScriptedBus(clock, arm.handle)
+    try:
+        with pytest.raises(BusTimeoutError) as info:
+            make_driver(bus, clock).init()
+        assert info.value.module_id == 2
+    finally:
+        bus.shutdown()
+
+
+def test_cycle_frames_byte_by_byte(scripted: ScriptedBus, clock: FakeClock) -> None:
+    drv = make_driver(scripted, clock, watchdog_refresh=True)
+    drv.init(home=False)
+    scripted.take()
+    q = np.array([0.201, -0.098, 0.003])
+    res = drv.cycle(q, 0.004)
+    assert scripted.take() == [
+        (0x0E1, "0b 10 " + f32hex(0.201) + " 04 00"),
+        (0x0E2, "0b 10 " + f32hex(-0.098) + " 04 00"),
+        (0x0E3, "0b 10 " + f32hex(0.003) + " 04 00"),
+        (0x100, "0f 00"),  # startMotionAll
+        (0x100, "07 00"),  # watchdog refresh
+    ]
+    assert res.replied.all() and res.lost == 0 and res.malformed == 0 and res.clamped == ()
+    # positions are the ones before the move (the modules had not moved yet)
+    assert res.positions == pytest.approx([0.2, -0.1, 0.0], abs=1e-6)
+    assert np.array_equal(res.targets, q)
+    assert all(s & S.RAMP_END for s in res.states) and res.fault == ""
+
+
+def test_cycle_duration_is_rounded_to_ms(scripted: ScriptedBus, clock: FakeClock) -> None:
+    drv = make_driver(scripted, clock)
+    drv.init(home=False)
+    scripted.take()
+    drv.cycle(None, 0.0104)
+    assert scripted.take()[0][1].endswith("0a 00")  # 10 ms
+    drv.cycle(None, 1e-5)
+    assert scripted.take()[0][1].endswith("01 00")  # at least 1 ms
+
+
+def test_nan_target_is_refused_before_anything_is_sent(scripted: ScriptedBus, clock: FakeClock) -> None:
+    drv = make_driver(scripted, clock)
+    drv.init(home=False)
+    scripted.take()
+    for bad in ([0.0, math.nan, 0.0], [0.0, 0.0, math.inf], [0.0, 0.0]):
+        with pytest.raises(InvalidInputError):
+            drv.cycle(bad, 0.004)
+    with pytest.raises(InvalidInputError):
+        drv.cycle([0.0] * N, 0.0)
+    assert scripted.take() == []
+
+
+def test_targets_clamped_to_limits_and_speed(scripted: ScriptedBus, clock: FakeClock) -> None:
+    drv = make_driver(scripted, clock)
+    drv.init(home=False)
+    res = drv.cycle([0.2, -0.1, 9.0], 0.01)  # joint 3: beyond the limit, and a 1.5 rad jump
+    assert res.clamped == (2,)
+    assert res.clamped_to_limits.tolist() == [False, False, True]
+    assert res.clamped_step.tolist() == [False, False, True]
+    assert res.targets[2] == pytest.approx(0.0 + 1.0 * 0.01)  # max_vel * dt from the held target
+    res = drv.cycle([0.2, -0.1, 9.0], 0.01)
+    assert res.targets[2] == pytest.approx(0.02)
+    res = drv.cycle([0.2, -0.1, 0.025], 0.01)
+    assert res.clamped == () and res.targets[2] == 0.025
+
+
+def test_hold_when_no_target(scripted: ScriptedBus, clock: FakeClock) -> None:
+    drv = make_driver(scripted, clock)
+    drv.init(home=False)
+    drv.cycle([0.21, -0.1, 0.0], 0.01)
+    res = drv.cycle(None, 0.01)
+    assert res.targets == pytest.approx([0.21, -0.1, 0.0])
+
+
+def test_latency_and_velocity_on_the_fake_clock(clock: FakeClock, arm: EmulatedArm) -> None:
+    bus = ScriptedBus(clock, arm.handle, delay_s=0.0005)  # every reply arrives 0.5 ms later
+    try:
+        drv = make_driver(bus, clock)
+        drv.init(home=False)
+        results = []
+        for k in range(40):  # joint 1 ramps at 0.01 rad per cycle
+            res = drv.cycle([0.2 + 0.01 * k, -0.1, 0.0], 0.01)
+            results.append(res)
+            clock.t += 0.01
+        assert res.latency_s == pytest.approx([0.0005] * N, abs=1e-9)
+        assert drv.stats[0].latency_max_ms == pytest.approx(0.5)
+        assert drv.stats[0].latency_median_ms == pytest.approx(0.5)
+        prev = results[-2]
+        v = (res.positions - prev.positions) / (res.stamp - prev.stamp)  # finite difference
+        assert res.velocities == pytest.approx(v)
+        assert res.velocities[0] == pytest.approx(1.0, rel=0.01)  # catching up at ACT_FMAXVEL
+        assert res.velocities[1] == pytest.approx(0.0, abs=1e-6)
+    finally:
+        bus.shutdown()
+
+
+# ------------------------------------------------------------------------------------------------
+# Scripted: faults
+# ------------------------------------------------------------------------------------------------
+
+
+def _halts(sent: list[tuple[int, str]]) -> list[tuple[int, str]]:
+    return [s for s in sent if s[1] in ("02", "02 00")]
+
+
+def test_silenced_module_halts_all_and_raises_once(scripted: ScriptedBus, arm: EmulatedArm, clock) -> None:
+    drv = make_driver(scripted, clock, max_missed=3)
+    drv.init(home=False)
+    drv.cycle(None, 0.004)
+    scripted.take()
+    arm[2].silenced = True
+    for k in range(2):
+        res = drv.cycle(None, 0.004)
+        assert res.lost == 1 and res.replied.tolist() == [True, False, True]
+        assert drv.stats[1].consecutive_misses == k + 1
+    assert _halts(scripted.take()) == []
+    with pytest.raises(BusTimeoutError) as info:
+        drv.cycle(None, 0.004)
+    assert info.value.module_id == 2 and info.value.timeout_s == drv.reply_timeout_s
+    assert info.value.cycle_result.fault.startswith("module 2 stopped answering")
+    assert _halts(scripted.take()) == [(0x0E1, "02"), (0x0E2, "02"), (0x0E3, "02"), (0x100, "02 00")]
+    assert drv.state is DriverState.FAULT and drv.stats[1].silent
+    # afterwards: no second raise, the cycle only holds the measured position
+    res = drv.cycle([1.0, 1.0, 1.0], 0.004)
+    assert res.holding and res.targets == pytest.approx(res.positions)
+    assert drv.stats[1].lost == 4
+    # the module comes back: recover resets all and holds
+    arm[2].silenced = False
+    st = drv.recover()
+    assert drv.state is DriverState.READY and not drv.stats[1].silent
+    assert not any(s & S.HALTED for s in st.states)
+
+
+def test_module_error_halts_all_and_reports_cause(scripted: ScriptedBus, arm: EmulatedArm, clock) -> None:
+    drv = make_driver(scripted, clock)
+    drv.init(home=False)
+    drv.cycle([0.3, -0.1, 0.0], 0.004)
+    with arm.lock:
+        arm[1].inject_fault(S.POWERFAULT)
+    scripted.take()
+    res = drv.cycle([0.3, -0.1, 0.0], 0.004)
+    assert res.fault == "module 1: ERROR|POWERFAULT"
+    assert res.faults == {1: S.ERROR | S.POWERFAULT}
+    assert drv.state is DriverState.FAULT
+    assert _halts(scripted.take()) == [(0x0E1, "02"), (0x0E2, "02"), (0x0E3, "02"), (0x100, "02 00")]
+    # ERROR refuses motion until RESET: holding cycles do not move anything
+    at = arm.positions()
+    clock.t += 1.0
+    res = drv.cycle([0.5, 0.5, 0.5], 0.004)
+    assert res.holding and res.fault == ""
+    assert arm.positions() == pytest.approx(at, abs=0.05)
+    drv.recover()
+    res = drv.cycle([0.35, -0.1, 0.0], 0.004)
+    assert not res.holding and res.fault == "" and drv.state is DriverState.READY
+
+
+def test_tow_error_state_frame_is_a_fault(scripted: ScriptedBus, clock: FakeClock) -> None:
+    drv = make_driver(scripted, clock)
+    drv.init(home=False)
+    scripted.inject(p.state_frame(3, S.ERROR | S.TOW_ERROR))  # unsolicited, before the cycle
+    res = drv.cycle(None, 0.004)
+    assert res.faults == {3: S.ERROR | S.TOW_ERROR} and "TOW_ERROR" in res.fault
+    assert drv.state is DriverState.FAULT
+
+
+def test_soft_limit_refusal_is_reported(clock: FakeClock) -> None:
+    # Module soft limits tighter than the driver's: the module refuses, the driver reports.
+    arm = EmulatedArm.kinematic([-0.5] * N, [0.5] * N, [2.0] * N, [20.0] * N, clock=clock)
+    bus = ScriptedBus(clock, arm.handle)
+    try:
+        drv = make_driver(bus, clock)
+        drv.init(home=False)
+        for k in range(1, 100):
+            res = drv.cycle([min(0.01 * k, 1.0), 0.0, 0.0], 0.01)
+            clock.t += 0.01
+            if res.fault:
+                break
+        assert res.faults == {1: S.ERROR | S.BEYOND_SOFT}
+        assert arm.positions()[0] <= 0.5
+        drv.recover()  # RESET clears BEYOND_SOFT; the module is inside its limits again
+        assert drv.state is DriverState.READY
+    finally:
+        bus.shutdown()
+
+
+def test_recover_fails_while_a_fault_persists(clock: FakeClock, arm: EmulatedArm) -> None:
+    def responder(msg: can.Message) -> list[can.Message]:
+        out = arm.handle(msg)
+        if (msg.arbitration_id, bytes(msg.data)) == (0x0E2, b"\x00"):  # RESET of module 2
+            with arm.lock:
+                arm[2].inject_fault(S.POWERFAULT)  # the cause is still there
+        return out
+
+    bus = ScriptedBus(clock, responder)
+    try:
+        drv = make_driver(bus, clock)
+        with pytest.raises(ModuleFaultError) as info:
+            drv.init(home=False)
+        assert info.value.module_id == 2 and info.value.state & S.POWERFAULT
+        with pytest.raises(ModuleFaultError):
+            drv.recover()
+        assert drv.state is DriverState.UNINITIALIZED
+    finally:
+        bus.shutdown()
+
+
+def test_malformed_and_late_frames_are_counted_and_ignored(clock: FakeClock, arm: EmulatedArm) -> None:
+    held: list[can.Message] = []
+    mode = {"delay": False, "garbage": False}
+
+    def responder(msg: can.Message) -> list[can.Message]:
+        out = arm.handle(msg)
+        if mode["garbage"] and msg.arbitration_id == 0x0E2:
+            junk = can.Message(arbitration_id=0x0A2, data=b"\x0b\x10\x00", is_extended_id=False)
+            nan = can.Message(
+                arbitration_id=0x0A2,
+                data=b"\x0b\x10" + struct.pack("<f", math.nan) + b"\x00\x00",
+                is_extended_id=False,
+            )
+            out = [junk, nan, *out]
+        if mode["delay"] and msg.arbitration_id == 0x0E3:
+            held.extend(out)  # answer later
+            return []
+        return out
+
+    bus = ScriptedBus(clock, responder)
+    try:
+        drv = make_driver(bus, clock, max_missed=5)
+        drv.init(home=False)
+        mode["garbage"] = True
+        res = drv.cycle(None, 0.004)
+        assert res.malformed == 2 and res.replied.all() and drv.stats[1].malformed == 2
+        mode["garbage"], mode["delay"] = False, True
+        res = drv.cycle(None, 0.004)
+        assert res.lost == 1 and not res.replied[2]
+        mode["delay"] = False
+        for m in held:  # the late reply shows up before the next cycle's
+            bus.inject(m)
+        res = drv.cycle(None, 0.004)
+        assert res.late == 1 and res.replied.all() and drv.stats[2].late == 1
+    finally:
+        bus.shutdown()
+
+
+def test_bus_failure_then_resync_never_replays_the_old_target(
+    scripted: ScriptedBus, clock: FakeClock
+) -> None:
+    drv = make_driver(scripted, clock)
+    drv.init(home=False)
+    drv.cycle([0.25, -0.1, 0.0], 0.01)
+    scripted.fail = OSError(32, "Broken pipe")
+    with pytest.raises(BusError, match="CAN bus failed"):
+        drv.cycle([0.26, -0.1, 0.0], 0.01)
+    scripted.fail = None  # "reopened" by its owner
+    clock.t += 1.0
+    res = drv.cycle([0.3, -0.1, 0.0], 0.01)
+    assert res.resynced and res.targets == pytest.approx(res.positions)  # held, not 0.3
+    res = drv.cycle([0.3, -0.1, 0.0], 0.01)
+    assert not res.resynced and res.targets[0] == pytest.approx(res.positions[0] + 0.01, abs=2e-3)
+
+
+def test_reconnect_needs_a_reopenable_bus(scripted: ScriptedBus, clock: FakeClock) -> None:
+    drv = make_driver(scripted, clock)
+    with pytest.raises(BusError, match="cannot be reopened"):
+        drv.reconnect()
+
+
+def test_constructor_validation(scripted: ScriptedBus) -> None:
+    with pytest.raises(InvalidInputError):
+        PowerCubeArmDriver(scripted, [1, 1, 2], LOWER, UPPER, VMAX, AMAX)
+    with pytest.raises(InvalidInputError):
+        PowerCubeArmDriver(scripted, [1, 2, 40], LOWER, UPPER, VMAX, AMAX)
+    with pytest.raises(InvalidInputError):
+        PowerCubeArmDriver(scripted, IDS, LOWER, UPPER[:2], VMAX, AMAX)
+    with pytest.raises(InvalidInputError):
+        PowerCubeArmDriver(scripted, IDS, UPPER, LOWER, VMAX, AMAX)
+    with pytest.raises(InvalidInputError):
+        PowerCubeArmDriver(scripted, IDS, LOWER, UPPER, [0.0] * N, AMAX)
+
+
+# ------------------------------------------------------------------------------------------------
+# Against emulated modules on a thread (real time), in-process virtual bus
+# ------------------------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def live() -> Iterator[tuple[PowerCubeArmDriver, EmulatedArm]]:
+    ch = f"drv-{uuid.uuid4().hex[:8]}"
+    host = can.Bus(interface="virtual", channel=ch)
+    dev = can.Bus(interface="virtual", channel=ch)
+    arm = EmulatedArm.kinematic(
+        LOWER, UPPER, [2.0] * N, [20.0] * N, q0=[0.3, -0.2, 0.1], watchdog_timeout_s=0.3
+    )
+    runner = EmulatorRunner(dev, arm, tick_s=0.002).start()
+    drv = PowerCubeArmDriver(host, IDS, LOWER, UPPER, VMAX, AMAX, reply_timeout_s=0.2)
+    try:
+        yield drv, arm
+    finally:
+        runner.stop()
+        host.shutdown()
+        dev.shutdown()
+
+
+def test_live_init_homes_and_follows_a_trajectory(live) -> None:
+    drv, arm = live
+    st = drv.init()
+    assert all(s & S.HOME_OK for s in st.states) and st.positions == pytest.approx([0.0] * N, abs=1e-6)
+    dt = 0.004
+    errs = []
+    for k in range(1, 250):  # smooth start from rest: 0.3 (1 - cos(pi t)), within the limits
+        target = 0.3 * (1 - math.cos(math.pi * k * dt)) * np.array([1.0, -1.0, 0.5])
+        res = drv.cycle(target, dt)
+        assert res.replied.all() and res.fault == ""
+        errs.append(np.max(np.abs(res.positions - res.targets)))
+        time.sleep(dt)
+    assert max(errs[10:]) < 0.05  # positions before the move trail the target by about a step
+    time.sleep(0.3)
+    assert arm.positions() == pytest.approx(res.targets, abs=1e-6)  # arrived on the last target
+    assert all(s.lost == 0 and s.replies == 249 for s in drv.stats)
+
+
+def test_live_watchdog_trips_when_cycles_stop(live) -> None:
+    drv, arm = live
+    drv.enable_watchdog = drv.watchdog_refresh = True
+    drv.init(home=False)
+    for _ in range(20):
+        assert drv.cycle(None, 0.01).fault == ""
+        time.sleep(0.01)
+    time.sleep(1.0)  # host "hangs": no traffic for longer than the 0.3 s watchdog
+    res = drv.cycle(None, 0.01)
+    assert res.fault and all(bits & S.COMM_ERROR for bits in res.faults.values())
+    assert drv.state is DriverState.FAULT
+    drv.recover()
+    assert drv.cycle(None, 0.01).fault == ""
+
+
+# ------------------------------------------------------------------------------------------------
+# Over the loopback remote bus: the bus dies and comes back
+# ------------------------------------------------------------------------------------------------
+
+
+def test_remote_bus_loss_reconnect_holds_measured_position() -> None:
+    server = LoopbackBusServer().start()
+    port = server.port
+    dev = open_bus(**server.client_config())
+    host = open_bus(**server.client_config())
+    arm = EmulatedArm.kinematic(LOWER, UPPER, [2.0] * N, [20.0] * N, homed=True)
+    runner = EmulatorRunner(dev, arm, tick_s=0.002).start()
+    try:
+        drv = PowerCubeArmDriver(host, IDS, LOWER, UPPER, VMAX, AMAX, reply_timeout_s=0.5)
+        drv.init(home=False)
+        for k in range(1, 30):
+            drv.cycle([0.004 * k, 0.0, 0.0], 0.01)
+            time.sleep(0.005)
+        server.stop()
+        with pytest.raises(BusError):
+            for _ in range(50):
+                drv.cycle([0.2, 0.0, 0.0], 0.01)
+        with pytest.raises(BusError):
+            drv.reconnect()  # no server yet
+        server = LoopbackBusServer(port=port).start()
+        deadline = time.monotonic() + 10.0
+        while True:  # the caller's backoff loop
+            try:
+                st = drv.reconnect()
+                break
+            except BusError:
+                assert time.monotonic() < deadline, "could not reconnect"
+                time.sleep(0.05)
+        held = st.positions.copy()
+        res = drv.cycle([0.2, 0.0, 0.0], 0.01)
+        assert not res.resynced  # reconnect() already re-read the positions
+        assert res.targets[0] == pytest.approx(min(0.2, held[0] + 0.01))
+        assert abs(res.targets[0] - held[0]) <= 0.01 + 1e-9  # no jump to a stale command
+    finally:
+        runner.stop()
+        host.shutdown()
+        dev.shutdown()
+        server.stop()
