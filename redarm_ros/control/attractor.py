@@ -102,8 +102,10 @@ class HeadingParams:
     sigma: its Gaussian width; d0: distance scale of ``exp(-d/d0)``; beta, range_margin: eq. 19.
     lam_up: elevation push over obstacles; clear_margin: height (m) above an obstacle top that the
     end effector should keep, reached ``edge_margin`` (m) before the obstacle's edge; d0_up: distance
-    scale of the elevation push. target_gate: width (m) of the
-    smooth gate that ignores obstacles lying beyond the target.
+    scale of the elevation push; edge_soft: smallest horizontal distance (m) used for the clearance
+    elevation (keeps it continuous over an obstacle). target_gate: width (m) of the smooth gate that
+    ignores obstacles lying beyond the target. max_turn_rate: clamp on |dphi/dt|, |dtheta/dt| (rad/s),
+    which bounds the lateral acceleration of the hand to ``speed * max_turn_rate``.
     """
 
     lam_tar: float = 12.0
@@ -115,6 +117,8 @@ class HeadingParams:
     lam_up: float = 40.0
     clear_margin: float = 0.09
     edge_margin: float = 0.04
+    edge_soft: float = 0.05
+    max_turn_rate: float = 8.0
     d0_up: float = 0.4
     target_gate: float = 0.03
 
@@ -185,12 +189,13 @@ class HeadingDynamics:
             rng = range_function(dphi_i, delta, p.beta, p.range_margin)
             # Height still needed to pass above the top with the margin (m).
             h_need = o.top + p.clear_margin - ee[2]
-            above = _logistic(h_need / 0.01)  # ~1 while below the clearance height
+            above = _logistic(h_need / 0.02)  # ~1 while below the clearance height
             f_phi += gate * above * obstacle_heading_term(phi, phi_i, d_i, delta, p.lam_obs, p.sigma, p.d0,
                                                           p.beta, p.range_margin)
             # Reach the clearance height a little before the near edge (the hand has a size).
-            near_c = near - p.edge_margin
-            far = min(dxy + rf, max(dxy_tar, near_c + 1e-3))
+            # Soft floor on the horizontal distance keeps theta_c continuous over the footprint.
+            near_c = max(near - p.edge_margin, p.edge_soft)
+            far = max(min(dxy + rf, dxy_tar), near_c)
             theta_c = max(math.atan2(h_need, near_c), math.atan2(h_need, far))
             if theta_c > theta:
                 w = gate * rng * math.exp(-max(d_i, 0.0) / p.d0_up)
@@ -201,8 +206,9 @@ class HeadingDynamics:
              obstacles: Sequence[Obstacle] = ()) -> tuple[float, float, HeadingRates]:
         """One Euler step of ``dt`` s; the elevation stays in [-pi/2, pi/2]."""
         r = self.rates(phi, theta, ee, target, obstacles)
-        phi_n = wrap_angle(phi + dt * r.dphi)
-        theta_n = max(-0.5 * math.pi, min(0.5 * math.pi, theta + dt * r.dtheta))
+        m = self.params.max_turn_rate
+        phi_n = wrap_angle(phi + dt * max(-m, min(m, r.dphi)))
+        theta_n = max(-0.5 * math.pi, min(0.5 * math.pi, theta + dt * max(-m, min(m, r.dtheta))))
         return phi_n, theta_n, r
 
 
@@ -306,7 +312,8 @@ def sector_forcelet(blocked: Sequence[bool], angles: Sequence[float], lam: float
 class SpeedParams:
     """Speed profile: ``v_des(d) = v_max * tanh(k * d / v_max)`` (m/s) for distance ``d`` (m) to the
     target, tracked by a critically damped second-order filter of natural frequency ``omega`` (rad/s),
-    so the speed and acceleration are continuous; ``a_max`` (m/s^2) caps the acceleration.
+    so the speed and acceleration are continuous; ``a_max`` (m/s^2) caps the acceleration and
+    ``j_max`` (m/s^3) its rate of change (the jerk along the path).
     Near the target ``v ~ k d``: with the filter the distance obeys a linear third-order equation
     with characteristic polynomial ``x^3 + 2 omega x^2 + omega^2 x + omega^2 k``, whose roots are all
     real (no overshoot of the target) iff ``k <= 4 omega / 27``; the defaults keep that margin."""
@@ -315,6 +322,7 @@ class SpeedParams:
     k: float = 2.5
     omega: float = 20.0
     a_max: float = 2.5
+    j_max: float = 25.0
 
     def __post_init__(self) -> None:
         for name, v in self.__dict__.items():
@@ -345,8 +353,9 @@ class SpeedProfile:
         if v_cap is not None:
             target = min(target, v_cap)
         # Semi-implicit Euler of v'' = w^2 (v_des - v) - 2 w v' (stable for w dt < 2).
-        jerk_free_acc = a + dt * (p.omega * p.omega * (target - v) - 2.0 * p.omega * a)
-        a_new = max(-p.a_max, min(p.a_max, jerk_free_acc))
+        a_filter = a + dt * (p.omega * p.omega * (target - v) - 2.0 * p.omega * a)
+        da = p.j_max * dt  # jerk limit, then acceleration limit
+        a_new = max(-p.a_max, min(p.a_max, max(a - da, min(a + da, a_filter))))
         v_new = max(0.0, v + dt * a_new)
         # Never overshoot the target speed downward into motion past the target: at d ~ 0 stop.
         if v_new > 0.0 and target == 0.0 and v_new * dt > d:

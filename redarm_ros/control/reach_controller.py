@@ -145,6 +145,8 @@ class ControllerParams:
     nearer).
     final_distance [m]: within this distance the motion direction blends into the straight line to
     the goal (the heading dynamics is singular at the goal).
+    workspace_margin [m]: within this distance of the inner shell of the wrist workspace (elbow at
+    its joint limit) or of the outer shell (arm stretched) the motion slides along the shell.
     pos_tolerance [m], ori_tolerance [rad]: REACHED when both errors are below.
     flip_ratio: a joint step above ``flip_ratio * max_vel * dt`` is a branch change, never taken.
     swivel_search_step [rad], swivel_search_count: search around the swivel when the IK has no
@@ -165,6 +167,7 @@ class ControllerParams:
     tangent_weight: float = 0.0
     tangent_distance: float = 0.15
     final_distance: float = 0.02
+    workspace_margin: float = 0.05
     pos_tolerance: float = 1e-3
     ori_tolerance: float = 0.01
     max_dt: float = 0.05
@@ -181,9 +184,9 @@ class ControllerParams:
         if self.swivel_mode not in ("dynamics", "fixed"):
             raise ConfigError(f"swivel_mode must be 'dynamics' or 'fixed', got {self.swivel_mode!r}",
                               field="swivel_mode", value=self.swivel_mode)
-        for name in ("dt", "lam_ori", "max_ori_rate", "tangent_distance", "final_distance", "pos_tolerance",
-                     "ori_tolerance",
-                     "max_dt", "flip_ratio", "swivel_search_step"):
+        for name in ("dt", "lam_ori", "max_ori_rate", "tangent_distance", "final_distance",
+                     "workspace_margin", "pos_tolerance", "ori_tolerance", "max_dt", "flip_ratio",
+                     "swivel_search_step"):
             v = getattr(self, name)
             if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
                 raise ConfigError(f"{name} must be finite and > 0, got {v!r}", field=name, value=v)
@@ -239,6 +242,7 @@ class ReachController:
         self._max_vel = np.asarray(arm.max_vel, float)
         self._inv_vel = 1.0 / self._max_vel
         self._wide = [j for j in range(7) if self._upper[j] - self._lower[j] > 2.0 * math.pi]
+        self._d_inner, self._d_outer = _wrist_shell(arm, self.geom)
         self._q: np.ndarray | None = None
         self._goal_p: Vec3 | None = None
         self._goal_q: Quat | None = None
@@ -470,6 +474,7 @@ class ReachController:
             m = ((1.0 - w) * e[0] + w * g[0], (1.0 - w) * e[1] + w * g[1], (1.0 - w) * e[2] + w * g[2])
             mn = math.sqrt(m[0] ** 2 + m[1] ** 2 + m[2] ** 2)
             e = (m[0] / mn, m[1] / mn, m[2] / mn) if mn > 1e-9 else g
+        e = self._workspace_slide(e, pos, rot)
         step_len = self._v * dt
         if goal_p is not None:
             step_len = min(step_len, dist)
@@ -491,6 +496,34 @@ class ReachController:
             self._prev_pos = pos
         self._update_phase()
         return self._result()
+
+    def _workspace_slide(self, e: Vec3, pos: Vec3, rot: Quat) -> Vec3:
+        """Remove the part of the motion direction that would take the wrist through the inner shell
+        (elbow at its joint limit) or the outer shell (arm stretched) of the workspace, smoothly within
+        ``workspace_margin`` of the shell: the hand then slides along the shell."""
+        m = self.params.workspace_margin
+        w_t = self.geom.wrist_in_tool
+        off = quat_rotate(rot, w_t)
+        ps = self.geom.shoulder
+        r = (pos[0] + off[0] - ps[0], pos[1] + off[1] - ps[1], pos[2] + off[2] - ps[2])
+        d = math.sqrt(r[0] ** 2 + r[1] ** 2 + r[2] ** 2)
+        if d < 1e-9:
+            return e
+        r = (r[0] / d, r[1] / d, r[2] / d)
+        radial = e[0] * r[0] + e[1] * r[1] + e[2] * r[2]
+        w = 0.0
+        if radial < 0.0:
+            w = _smoothstep((self._d_inner + m - d) / m)
+        elif radial > 0.0:
+            w = _smoothstep((d - (self._d_outer - m)) / m)
+        if w <= 0.0:
+            return e
+        f = w * radial
+        v = (e[0] - f * r[0], e[1] - f * r[1], e[2] - f * r[2])
+        n = math.sqrt(v[0] ** 2 + v[1] ** 2 + v[2] ** 2)
+        if n < 1e-6:
+            return e
+        return (v[0] / n, v[1] / n, v[2] / n)
 
     def _orientation_target(self, e: Vec3, dist: float) -> Quat:
         """Goal orientation, turned so that the tool axis leans towards the heading far from the goal."""
@@ -575,6 +608,12 @@ class ReachController:
                 s_new = self.swivel_dyn.step(s0, s_des, dt, forces)
             self._s_des = s_des
             pick = self._select(self.arm.ik(T, s_new), q_prev, dt)
+            if (pick is None or pick[1] > 1.0 + 1e-9) and s_new != s0:
+                # Too fast for a joint (or no solution there): the elbow yields first, the hand path
+                # has priority.
+                yielded = self._yield_swivel(T, s0, s_new, q_prev, dt, math.inf if pick is None else pick[1])
+                if yielded is not None and (pick is None or yielded[2] < pick[1]):
+                    s_new, pick = yielded[0], (yielded[1], yielded[2])
             if pick is None or pick[1] > p.flip_ratio:
                 pick, s_new = self._search_swivel(T, s_new, q_prev, dt)
             if pick is None:
@@ -583,11 +622,6 @@ class ReachController:
                 self._v *= 0.5
                 continue
             q_new, ratio = pick
-            if ratio > 1.0 + 1e-9 and s_new != s0:
-                # Too fast for a joint: the elbow yields first (the hand path has priority).
-                yielded = self._yield_swivel(T, s0, s_new, q_prev, dt, ratio)
-                if yielded is not None:
-                    s_new, q_new, ratio = yielded
             if ratio > 1.0 + 1e-9:
                 # Too fast for a joint: shorten the whole step (pose and swivel) and retry once or twice.
                 scaled = self._scale_step(pos0, rot0, s0, new_pos, new_rot, s_new, q_prev, dt, ratio)
@@ -606,8 +640,9 @@ class ReachController:
         """Shorten only the swivel change so the joint velocities fit; None if the hand motion alone
         is already too fast (then the whole step is shortened)."""
         ds = wrap_angle(s1 - s0)
+        fracs = (0.98 / ratio, 0.5 / ratio, 0.0) if math.isfinite(ratio) else (0.5, 0.1, 0.0)
         best: tuple[float, np.ndarray, float] | None = None
-        for frac in (0.98 / ratio, 0.5 / ratio, 0.0):
+        for frac in fracs:
             s = wrap_angle(s0 + frac * ds)
             pick = self._select(self.arm.ik(T, s), q_prev, dt)
             if pick is None or pick[1] > self.params.flip_ratio:
@@ -649,23 +684,28 @@ class ReachController:
                 return None
             q, ratio = pick
             if ratio <= 1.0 + 1e-9:
-                # Tell the speed filter, so that the next steps slow down smoothly.
                 self._v *= frac
-                self._v_cap = self._v
                 return pos, rot, s, q, circle
         return None
 
     def _commit(self, q: np.ndarray, pos: Vec3, rot: Quat, s: float, circle: ElbowCircle, dt: float) -> None:
         moved = math.dist(pos, self._pos)
+        ratio = float(np.max(np.abs(q - self._q) * self._inv_vel)) / dt if dt > 0 else 0.0
         self._q = q
         self._pos = pos
         self._rot = rot
         self._s = s
         self._circle = circle
-        if self._v_cap is not None and moved >= 0.999 * self._v * dt:
-            # The cap was not binding in this step: relax it gradually.
-            self._v_cap = self._v_cap * 1.05 + 1e-3
-            if self._v_cap > self.speed_profile.params.v_max:
+        # Joint-speed budget for the speed filter: when a joint nears its velocity limit, cap the hand
+        # speed ahead of time (the filter then slows down with bounded jerk instead of being cut).
+        sp = self.speed_profile.params
+        v_now = moved / dt if dt > 0 else 0.0
+        if ratio > 0.85 and v_now > 1e-4:
+            cap = max(v_now * 0.85 / ratio, 0.02)
+            self._v_cap = cap if self._v_cap is None else min(cap, self._v_cap + sp.a_max * dt)
+        elif self._v_cap is not None:
+            self._v_cap += 0.5 * sp.a_max * dt
+            if self._v_cap > sp.v_max:
                 self._v_cap = None
         self._clear = links_clearance(circle.key_points(s), self.scene, self.params.capsules)
         if self._phase is Phase.HOLDING:
@@ -718,6 +758,26 @@ class ReachController:
         if self._circle is None:
             return None
         return self.swivel_dyn.forces(self._circle, self._s, self.scene, self.params.capsules)
+
+
+def _smoothstep(x: float) -> float:
+    """0 for x <= 0, 1 for x >= 1, C1 in between."""
+    if x <= 0.0:
+        return 0.0
+    if x >= 1.0:
+        return 1.0
+    return x * x * (3.0 - 2.0 * x)
+
+
+def _wrist_shell(arm: Any, geom: ArmGeometry) -> tuple[float, float]:
+    """Smallest and largest shoulder-wrist distance (m) allowed by the elbow joint's limits."""
+    l2, l3 = geom.upper, geom.fore
+    lo, hi = float(arm.lower[3]), float(arm.upper[3])
+    bend = max(abs(lo), abs(hi))
+    straight = 0.0 if lo <= 0.0 <= hi else min(abs(lo), abs(hi))
+    d_in = math.sqrt(max(l2 * l2 + l3 * l3 + 2.0 * l2 * l3 * math.cos(min(bend, math.pi)), 0.0))
+    d_out = math.sqrt(max(l2 * l2 + l3 * l3 + 2.0 * l2 * l3 * math.cos(straight), 0.0))
+    return d_in, d_out
 
 
 def _blend(pos0: Vec3, rot0: Quat, pos1: Vec3, rot1: Quat, t: float) -> tuple[Vec3, Quat]:
