@@ -69,6 +69,9 @@ _J7 = np.arange(7)[None, :]
 # alternatives per joint as affine maps angle -> sign * angle + shift: (7, 2), column 1 = flipped
 _ALT_SIGN = np.array([[1.0, 1.0 if j % 2 == 0 else -1.0] for j in range(7)])
 _ALT_SHIFT = np.array([[0.0, PI if j % 2 == 0 else 0.0] for j in range(7)])
+# per flip pattern the affine map of each joint (lists for the scalar path)
+_ALT_SIGN_L = [[float(_ALT_SIGN[j, k]) for j, k in enumerate(row)] for row in _ALT_INDEX.tolist()]
+_ALT_SHIFT_L = [[float(_ALT_SHIFT[j, k]) for j, k in enumerate(row)] for row in _ALT_INDEX.tolist()]
 
 
 def _wrap(x: float) -> float:
@@ -616,8 +619,9 @@ class SwivelArm(Arm):
             if tiny.any():
                 X = np.where(tiny, np.array([[0.0], [0.0], [1.0]]) - Z[2] * Z, X)
         X = X / np.sqrt((X * X).sum(0))
-        X = X - (X * Z).sum(0) * Z  # orthogonalise again: F - (F.Z)Z is tiny near the stretched elbow
-        X = X / np.sqrt((X * X).sum(0))
+        if s4 < 1e-4:  # orthogonalise again: F - (F.Z)Z is tiny next to F near the stretched elbow
+            X = X - (X * Z).sum(0) * Z
+            X = X / np.sqrt((X * X).sum(0))
         z0, z1, z2 = Z
         x0, x1, x2 = X
         y0, y1, y2 = z1 * x2 - z2 * x1, z2 * x0 - z0 * x2, z0 * x1 - z1 * x0
@@ -660,7 +664,7 @@ class SwivelArm(Arm):
         weights: Sequence[float] | None = None,
         samples: int = 36,
         fine_samples: int = 720,
-        refine: int = 4,
+        refine: int = 3,
         zoom: int = 3,
         timeout_s: float | None = None,
         **_ignored: Any,
@@ -703,11 +707,11 @@ class SwivelArm(Arm):
         ctx = self._pose_ctx(Tl, circ)
         s0 = self._swivel_lists(seed.tolist())
         step = TWO_PI / samples
-        pattern = step * 2.0 ** -np.arange(1, 13)
+        pattern = step * 2.0 ** -np.arange(1, 9)
         parts = [s0 + np.arange(samples) * step, s0 + pattern, s0 - pattern]
         # joint angles change fast with s where the elbow passes the base axis (theta2 -> 0) or the
         # forearm lines up with the tool axis (theta6 -> 0): look closely around those swivels too
-        spat = SING_WIDTH * 2.0 ** -np.arange(0, 10)
+        spat = SING_WIDTH * 2.0 ** -np.arange(0, 7)
         for sc in self._singular_swivels(ctx):
             parts += [np.array([sc]), sc + spat, sc - spat]
         s = np.concatenate(parts)
@@ -743,19 +747,16 @@ class SwivelArm(Arm):
             if cost[i, b] <= c_b:
                 s_b, c_b, q_b = float(s[i]), float(cost[i, b]), Q[i, b]
             h = max(abs(s_b - float(s[0])), h * 2.0**-11)
-        i = int(np.argmin(np.abs(s - s_b)))
         # bracketed 1-D refinement of branch b's distance over s (scalar solves): parabolic steps
         # when both bracket ends are feasible, else bisection towards an infeasible end (the optimum
         # often sits at a joint limit)
-        order = np.argsort(s)
-        pos = int(np.nonzero(order == i)[0][0])
         cb = cost[:, b]
-        sa, fa = (float(s[order[pos - 1]]), float(cb[order[pos - 1]])) if pos > 0 else (s_b - step, math.inf)
-        sc, fc = (
-            (float(s[order[pos + 1]]), float(cb[order[pos + 1]]))
-            if pos + 1 < len(s)
-            else (s_b + step, math.inf)
-        )
+        ds = np.remainder(s - s_b + PI, TWO_PI) - PI  # signed angular distance to the best sample
+        left = np.where(ds < -1e-15, ds, -np.inf)
+        right = np.where(ds > 1e-15, ds, np.inf)
+        il, ir = int(np.argmax(left)), int(np.argmin(right))
+        sa, fa = (s_b + float(ds[il]), float(cb[il])) if math.isfinite(left[il]) else (s_b - step, math.inf)
+        sc, fc = (s_b + float(ds[ir]), float(cb[ir])) if math.isfinite(right[ir]) else (s_b + step, math.inf)
         seed_l = seed.tolist()
         while iters < refine and sc - sa > 1e-9:
             if timeout_s is not None and time.perf_counter() - t0 > timeout_s:
@@ -816,27 +817,26 @@ class SwivelArm(Arm):
         w: np.ndarray,
     ) -> tuple[np.ndarray, float] | None:
         """Flip pattern ``branch`` at swivel s (scalar solve), each angle at its in-limit copy nearest the
-        seed. Returns (q, weighted squared distance to the seed) or None if a limit is violated."""
-        t1, t2, t3, t4, t5, t6, t7 = self._base_from_circle(Tl, circ, math.cos(s), math.sin(s))
-        alts = (
-            (t1, _wrap(t1 + PI)),
-            (t2, -t2),
-            (t3, _wrap(t3 + PI)),
-            (t4, -t4),
-            (t5, _wrap(t5 + PI)),
-            (t6, -t6),
-            (t7, _wrap(t7 + PI)),
-        )
-        pat = _ALT_INDEX[branch].tolist()
-        wl = w.tolist()
+        seed (same rule as :meth:`_sweep`). Returns (q, weighted squared distance to the seed) or None
+        if a limit is violated."""
+        base = self._base_from_circle(Tl, circ, math.cos(s), math.sin(s))
+        sg = _ALT_SIGN_L[branch]
+        sh = _ALT_SHIFT_L[branch]
         q = []
         cost = 0.0
-        for j in range(7):
-            cs = self._fit(j, alts[j][pat[j]])
-            if not cs:
+        wl = w.tolist()
+        for j, (t, r, lo, up, wj) in enumerate(
+            zip(base, seed, self._lower_l, self._upper_l, wl, strict=True)
+        ):
+            v = t * sg[j] + sh[j]
+            v -= TWO_PI * round((v - r) / TWO_PI)
+            if v > up:
+                v -= TWO_PI
+            elif v < lo:
+                v += TWO_PI
+            if v < lo - LIMIT_TOL or v > up + LIMIT_TOL:
                 return None
-            r = seed[j]
-            v = min(cs, key=lambda x, r=r: abs(x - r))
+            v = min(max(v, lo), up)
             q.append(v)
-            cost += wl[j] * (v - r) ** 2
+            cost += wj * (v - r) ** 2
         return np.array(q), cost
