@@ -2,11 +2,29 @@
 
 from __future__ import annotations
 
+import itertools
+import struct
+import threading
+import time
+import uuid
+
+import can
 import numpy as np
 import pytest
 
-from redarm_ros.can.driver_loop import Backoff, CommandMode, JointCommandSource, PeriodStats
-from redarm_ros.errors import InvalidInputError
+from redarm_ros.can.driver_core import PowerCubeArmDriver
+from redarm_ros.can.driver_loop import (
+    Backoff,
+    CommandMode,
+    CycleSample,
+    DriverLoop,
+    JointCommandSource,
+    LoopConfig,
+    LoopState,
+    PeriodStats,
+)
+from redarm_ros.can.module_emulator import EmulatedArm, EmulatorRunner
+from redarm_ros.errors import BusError, InvalidInputError
 
 N = 3
 
@@ -105,3 +123,222 @@ def test_backoff_doubles_to_a_cap_and_resets() -> None:
     assert [b.next_delay() for _ in range(5)] == pytest.approx([0.1, 0.2, 0.4, 0.5, 0.5])
     b.reset()
     assert b.next_delay() == pytest.approx(0.1)
+
+
+# ------------------------------------------------------------------------------------------------
+# DriverLoop against the real driver core and emulated modules on an in-process virtual bus
+# ------------------------------------------------------------------------------------------------
+LOWER = [-2.0, -1.5, -2.0]
+UPPER = [2.0, 1.5, 2.0]
+VMAX = [1.0, 1.0, 2.0]
+AMAX = [5.0, 5.0, 10.0]
+
+
+class SilenceableArm(EmulatedArm):
+    """Emulated modules where chosen ids stop answering."""
+
+    silenced: set[int]
+
+    def handle(self, msg: can.Message) -> list[can.Message]:
+        out = super().handle(msg)
+        return [m for m in out if (m.arbitration_id & 0x1F) not in self.silenced]
+
+
+class FlakyBus(can.BusABC):
+    """A virtual bus that can be 'lost' on demand and reopened (like ReconnectingBus)."""
+
+    def __init__(self, channel: str) -> None:
+        self._channel = channel
+        self._bus: can.BusABC | None = can.Bus(interface="virtual", channel=channel)
+        self.lost = False
+        self.refuse_reopen = False
+        self.sent: list[can.Message] = []
+        super().__init__(channel=channel)
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        if self.lost or self._bus is None:
+            raise BusError("bus lost (test)")
+        self.sent.append(msg)
+        self._bus.send(msg, timeout)
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        if self.lost or self._bus is None:
+            raise BusError("bus lost (test)")
+        return self._bus.recv(timeout), False
+
+    def reopen(self) -> None:
+        if self.refuse_reopen:
+            raise BusError("server still down (test)")
+        if self._bus is not None:
+            self._bus.shutdown()
+        self._bus = can.Bus(interface="virtual", channel=self._channel)
+        self.lost = False
+
+    def shutdown(self) -> None:
+        if self._bus is not None:
+            self._bus.shutdown()
+            self._bus = None
+        super().shutdown()
+
+
+def wait_until(pred, timeout: float = 5.0, step: float = 0.01) -> bool:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if pred():
+            return True
+        time.sleep(step)
+    return pred()
+
+
+@pytest.fixture
+def rig():
+    """Emulated 3-module arm served on a virtual channel, a DriverLoop on the same channel."""
+    channel = f"loop-{uuid.uuid4().hex[:8]}"
+    dev_bus = can.Bus(interface="virtual", channel=channel)
+    arm = SilenceableArm.kinematic(LOWER, UPPER, VMAX, AMAX, q0=[0.3, -0.2, 0.1])
+    arm.silenced = set()
+    runner = EmulatorRunner(dev_bus, arm, tick_s=0.002).start()
+    host = FlakyBus(channel)
+    samples: list[CycleSample] = []
+    logs: list[tuple[int, str]] = []
+
+    def factory(bus):
+        return PowerCubeArmDriver(bus, [1, 2, 3], LOWER, UPPER, VMAX, AMAX, reply_timeout_s=0.02,
+                                  max_missed=3, home_timeout_s=10.0)
+
+    cfg = LoopConfig(rate_hz=100.0, poll_hz=20.0, hold_on_stream_stop_s=0.3, reconnect_first_s=0.02,
+                     reconnect_max_s=0.1)
+    loop = DriverLoop(factory, lambda: host, 3, cfg, on_sample=samples.append,
+                      log=lambda lvl, msg: logs.append((lvl, msg)))
+    rigs = {"arm": arm, "loop": loop, "host": host, "samples": samples, "logs": logs}
+    try:
+        yield rigs
+    finally:
+        loop.stop()
+        runner.stop()
+        dev_bus.shutdown()
+        host.shutdown()
+
+
+def start_running(rig) -> DriverLoop:
+    loop = rig["loop"].start()
+    assert wait_until(lambda: loop.state is LoopState.IDLE), loop.snapshot().reason
+    ok, msg = loop.request("init", timeout=20)
+    assert ok, msg
+    assert loop.state is LoopState.RUNNING
+    return loop
+
+
+def test_loop_polls_when_idle_and_refuses_commands(rig) -> None:
+    loop = rig["loop"].start()
+    assert wait_until(lambda: loop.state is LoopState.IDLE)
+    assert wait_until(lambda: len(rig["samples"]) >= 2)
+    np.testing.assert_allclose(rig["samples"][-1].positions, [0.3, -0.2, 0.1], atol=1e-6)
+    assert rig["samples"][-1].target is None
+    ok, why = loop.accepting_commands()
+    assert not ok and "idle" in why
+
+
+def test_loop_follows_a_trajectory_after_init(rig) -> None:
+    loop = start_running(rig)
+    arm = rig["arm"]
+    np.testing.assert_allclose(arm.positions(), [0.0, 0.0, 0.0], atol=1e-3)  # homed to 0
+    goal = np.array([0.4, -0.3, 0.5])
+    loop.commands.set_trajectory([0, 1, 2], [0.5, 1.0], np.array([goal / 2, goal]), start=time.monotonic())
+    assert wait_until(lambda: np.allclose(arm.positions(), goal, atol=2e-3), timeout=5)
+    snap = loop.snapshot()
+    assert snap.state is LoopState.RUNNING and snap.cycles > 50
+    assert snap.period["rate_hz"] == pytest.approx(100.0, rel=0.2)
+    assert all(s.lost == 0 for s in snap.module_stats)
+
+
+def test_limit_beyond_range_is_clamped_before_sending(rig) -> None:
+    loop = start_running(rig)
+    loop.commands.set_trajectory([1], [0.2], np.array([[3.0]]), start=time.monotonic())  # upper is 1.5
+    arm = rig["arm"]
+    assert wait_until(lambda: abs(arm.positions()[1] - 1.5) < 2e-3, timeout=5)
+    time.sleep(0.2)
+    assert arm.positions()[1] <= 1.5 + 1e-6
+    assert loop.snapshot().clamps > 0
+    assert any("clamped" in m for _l, m in rig["logs"])
+    fsteps = [struct.unpack_from("<f", bytes(m.data), 2)[0] for m in list(rig["host"].sent)
+              if m.arbitration_id == 0x0E2 and len(m.data) == 8 and m.data[1] == 0x10]
+    assert fsteps and max(fsteps) <= 1.5 + 1e-6
+
+
+def test_silent_module_halts_all_until_recover(rig) -> None:
+    loop = start_running(rig)
+    arm = rig["arm"]
+    loop.commands.set_trajectory([0, 1, 2], [2.0], np.array([[1.0, 1.0, 1.0]]), start=time.monotonic())
+    assert wait_until(lambda: arm.positions()[0] > 0.1)
+    arm.silenced = {2}
+    assert wait_until(lambda: loop.state is LoopState.HALTED, timeout=3)
+    snap = loop.snapshot()
+    assert "module 2" in snap.reason
+    q_halt = np.array(arm.positions())
+    time.sleep(0.3)
+    np.testing.assert_allclose(arm.positions(), q_halt, atol=0.05)  # braked, not following
+    assert not loop.accepting_commands()[0]
+    arm.silenced = set()
+    ok, msg = loop.request("recover", timeout=10)
+    assert ok, msg
+    q0 = np.array(arm.positions())
+    time.sleep(0.3)
+    # Recovered: holding where it stopped, the old trajectory is not resumed.
+    np.testing.assert_allclose(arm.positions(), q0, atol=1e-3)
+
+
+def test_halt_request_then_recover(rig) -> None:
+    loop = start_running(rig)
+    ok, msg = loop.request("halt")
+    assert ok and loop.state is LoopState.HALTED, msg
+    ok, msg = loop.request("recover")
+    assert ok and loop.state is LoopState.RUNNING, msg
+    ok, msg = loop.request("bogus")
+    assert not ok
+
+
+def test_bus_loss_reconnects_and_holds_measured_position(rig) -> None:
+    loop = start_running(rig)
+    arm = rig["arm"]
+    host = rig["host"]
+    loop.commands.set_trajectory([0], [3.0], np.array([[1.5]]), start=time.monotonic())
+    assert wait_until(lambda: arm.positions()[0] > 0.2)
+    host.refuse_reopen = True
+    host.lost = True
+    assert wait_until(lambda: loop.state is LoopState.CONNECTING, timeout=3)
+    time.sleep(0.3)  # several refused reopen attempts
+    q_gap = np.array(arm.positions())
+    host.refuse_reopen = False
+    assert wait_until(lambda: loop.state is LoopState.RUNNING, timeout=5), loop.snapshot().reason
+    time.sleep(0.3)
+    # The trajectory from before the loss is not resumed: the arm holds where it was.
+    np.testing.assert_allclose(arm.positions(), q_gap, atol=0.02)
+    snap = loop.snapshot()
+    assert snap.bus_losses == 1 and snap.connects == 2
+
+
+def test_stream_stop_holds(rig) -> None:
+    loop = start_running(rig)
+    arm = rig["arm"]
+    for k in itertools.count():
+        if k >= 20:
+            break
+        loop.commands.set_stream_target([2], [0.005 * k], time.monotonic())
+        time.sleep(0.01)
+    assert loop.commands.mode.value == "stream"
+    time.sleep(0.6)  # > hold_on_stream_stop_s
+    assert loop.commands.mode.value == "hold"
+    q = np.array(arm.positions())
+    assert q[2] == pytest.approx(0.095, abs=0.01)
+    time.sleep(0.2)
+    np.testing.assert_allclose(arm.positions(), q, atol=1e-3)
+
+
+def test_stop_is_prompt_and_closes_the_bus(rig) -> None:
+    loop = start_running(rig)
+    t0 = time.monotonic()
+    loop.stop()
+    assert time.monotonic() - t0 < 2.0
+    assert loop.state is LoopState.STOPPED
+    assert not any(t.name == "can-driver-loop" for t in threading.enumerate())

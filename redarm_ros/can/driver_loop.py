@@ -21,19 +21,31 @@ Units: seconds, radians; times are ``time.monotonic()`` seconds.
 from __future__ import annotations
 
 import enum
+import logging
+import queue
 import threading
+import time
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
-from redarm_ros.errors import InvalidInputError
+from redarm_ros.can.protocol import ActState
+from redarm_ros.errors import BusError, BusTimeoutError, InvalidInputError, RedarmError
+
+_LOG = logging.getLogger(__name__)
+_HOME_OK = int(ActState.HOME_OK)
 
 __all__ = [
     "Backoff",
     "CommandMode",
+    "DriverLoop",
     "JointCommandSource",
+    "LoopConfig",
+    "LoopSnapshot",
+    "LoopState",
     "PeriodStats",
 ]
 
@@ -275,3 +287,476 @@ class Backoff:
     def reset(self) -> None:
         """Start again from ``first``."""
         self._next = self.first
+
+
+# ------------------------------------------------------------------------------------------------
+# The loop thread
+# ------------------------------------------------------------------------------------------------
+
+
+class LoopState(enum.Enum):
+    """State of :class:`DriverLoop` (reported on /diagnostics)."""
+
+    CONNECTING = "connecting"  # bus not open (start-up or lost): retrying with backoff
+    IDLE = "idle"  # bus open, modules not initialised: state polled, no motion sent
+    RUNNING = "running"  # cyclic FSTEP stream at rate_hz, following commands or holding
+    HALTED = "halted"  # halted by request or fault: state polled, no motion until recover
+    STOPPED = "stopped"  # loop thread ended
+
+
+@dataclass(frozen=True)
+class LoopConfig:
+    """Timing of :class:`DriverLoop`: ``rate_hz`` cycle rate, ``poll_hz`` state polling when not running,
+    ``hold_on_stream_stop_s`` stream timeout, reconnect backoff (s), ``auto_init`` after connecting."""
+
+    rate_hz: float = 250.0
+    poll_hz: float = 10.0
+    hold_on_stream_stop_s: float = 0.5
+    reconnect_first_s: float = 0.1
+    reconnect_max_s: float = 2.0
+    auto_init: bool = False
+    clamp_log_interval_s: float = 1.0
+
+
+@dataclass
+class CycleSample:
+    """What one cycle (or state poll) measured: ``stamp`` (``time.time()`` s), ``positions`` (n,) rad,
+    ``velocities`` (n,) rad/s or None, ``target`` (n,) rad sent this cycle or None when polling."""
+
+    stamp: float
+    positions: np.ndarray
+    velocities: np.ndarray | None
+    target: np.ndarray | None
+
+
+@dataclass
+class LoopSnapshot:
+    """A consistent copy of the loop's status for diagnostics."""
+
+    state: LoopState
+    reason: str
+    period: dict[str, float]
+    cycles: int
+    overruns: int
+    connects: int
+    bus_losses: int
+    clamps: int
+    command_mode: CommandMode
+    missing_modules: list[int]
+    module_stats: object | None  # the driver's per-module statistics (driver-specific)
+    last_result: object | None  # the driver's last CycleResult
+    positions: np.ndarray | None
+
+
+class _Request:
+    def __init__(self, action: str) -> None:
+        self.action = action
+        self.done = threading.Event()
+        self.ok = False
+        self.message = ""
+
+
+LogFn = Callable[[int, str], None]
+
+
+def _default_log(level: int, message: str) -> None:
+    _LOG.log(level, "%s", message)
+
+
+class DriverLoop:
+    """The dedicated driver thread: connect, poll or cycle at absolute deadlines, serve requests.
+
+    Args:
+        driver_factory: ``f(bus) -> driver`` building a
+            :class:`~redarm_ros.can.driver_core.PowerCubeArmDriver` (or a stand-in with the same
+            methods) for an open bus.
+        open_bus: ``f() -> bus`` opening the CAN bus (raises :class:`BusError` when it cannot).
+            If the bus has ``reopen()`` (a :class:`~redarm_ros.can.bus.ReconnectingBus`), a lost
+            bus is reopened in place, else it is shut down and opened anew.
+        n: joint count.
+        config: timing, see :class:`LoopConfig`.
+        on_sample: called from the loop thread after every cycle / poll (keep it short: publish).
+        log: ``f(level, message)`` with :mod:`logging` levels (the node forwards to its logger).
+
+    The loop owns the bus: ``init``/``halt``/``recover`` run on its thread via :meth:`request`;
+    commands go to :attr:`commands` from any thread, but are only accepted while RUNNING.
+
+    Failure behaviour: a module that stops answering (the driver raises
+    :class:`BusTimeoutError`) or reports an error -> everything halted, state HALTED until
+    ``recover``. The bus lost (:class:`BusError`) -> state CONNECTING, reopened with backoff;
+    if the loop was RUNNING it resumes holding the *measured* position (the command it was
+    following is dropped, never replayed).
+    """
+
+    def __init__(
+        self,
+        driver_factory: Callable[[Any], Any],
+        open_bus: Callable[[], Any],
+        n: int,
+        config: LoopConfig = LoopConfig(),  # noqa: B008 - frozen dataclass, safe default
+        *,
+        on_sample: Callable[[CycleSample], None] | None = None,
+        log: LogFn = _default_log,
+    ) -> None:
+        self._driver_factory = driver_factory
+        self._open_bus = open_bus
+        self.n = int(n)
+        self.config = config
+        self.period_s = 1.0 / float(config.rate_hz)
+        self.commands = JointCommandSource(self.n, config.hold_on_stream_stop_s)
+        self.stats = PeriodStats(self.period_s)
+        self._on_sample = on_sample
+        self._log = log
+        self._lock = threading.Lock()
+        self._requests: queue.Queue[_Request] = queue.Queue()
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.bus: Any = None
+        self.driver: Any = None
+        self._state = LoopState.CONNECTING
+        self._reason = "starting"
+        self._resume = LoopState.IDLE  # state to return to after (re)connecting
+        self._initialised = False
+        self._connects = 0
+        self._bus_losses = 0
+        self._clamps = 0
+        self._missing: list[int] = []
+        self._last_result: Any = None
+        self._q_meas: np.ndarray | None = None
+        self._q_ref: np.ndarray | None = None
+        self._last_clamp_log = -1e9
+
+    # -- public API (any thread) ------------------------------------------------------------------
+    @property
+    def state(self) -> LoopState:
+        """The current state."""
+        with self._lock:
+            return self._state
+
+    def start(self) -> DriverLoop:
+        """Start the loop thread; returns self."""
+        if self._thread is None:
+            self._thread = threading.Thread(target=self._run, name="can-driver-loop", daemon=True)
+            self._thread.start()
+        return self
+
+    def stop(self, timeout: float = 5.0) -> None:
+        """Stop the thread and close the bus (modules keep their last, finished FSTEP)."""
+        self._stop.set()
+        self._wake.set()
+        if self._thread is not None:
+            self._thread.join(timeout)
+            self._thread = None
+        self._close_bus()
+        self._set_state(LoopState.STOPPED, "stopped")
+
+    def request(self, action: str, timeout: float = 60.0) -> tuple[bool, str]:
+        """Run ``init``, ``halt`` or ``recover`` on the loop thread; returns (success, message)."""
+        if action not in ("init", "halt", "recover"):
+            return False, f"unknown action {action!r}"
+        if self._thread is None or not self._thread.is_alive():
+            return False, "driver loop is not running"
+        req = _Request(action)
+        self._requests.put(req)
+        self._wake.set()
+        if not req.done.wait(timeout):
+            return False, f"{action} did not finish within {timeout:.0f} s"
+        return req.ok, req.message
+
+    def accepting_commands(self) -> tuple[bool, str]:
+        """Whether a new command would be followed now, and why not."""
+        with self._lock:
+            if self._state is LoopState.RUNNING:
+                return True, ""
+            return False, f"driver is {self._state.value} ({self._reason}); command ignored"
+
+    def snapshot(self) -> LoopSnapshot:
+        """A copy of the status for diagnostics."""
+        with self._lock:
+            state, reason = self._state, self._reason
+            last = self._last_result
+            q = None if self._q_meas is None else self._q_meas.copy()
+            missing = list(self._missing)
+            connects, losses, clamps = self._connects, self._bus_losses, self._clamps
+        drv = self.driver
+        mstats = getattr(drv, "stats", None) if drv is not None else None
+        return LoopSnapshot(
+            state=state,
+            reason=reason,
+            period=self.stats.summary(),
+            cycles=self.stats.cycles,
+            overruns=self.stats.overruns,
+            connects=connects,
+            bus_losses=losses,
+            clamps=clamps,
+            command_mode=self.commands.mode,
+            missing_modules=missing,
+            module_stats=mstats,
+            last_result=last,
+            positions=q,
+        )
+
+    # -- loop thread ------------------------------------------------------------------------------
+    def _set_state(self, state: LoopState, reason: str) -> None:
+        with self._lock:
+            self._state, self._reason = state, reason
+
+    def _run(self) -> None:
+        backoff = Backoff(self.config.reconnect_first_s, self.config.reconnect_max_s)
+        while not self._stop.is_set():
+            state = self.state
+            try:
+                if state is LoopState.CONNECTING:
+                    if not self._connect():
+                        delay = backoff.next_delay()
+                        self._serve_requests(refuse=f"CAN bus not connected ({self._reason})")
+                        self._stop.wait(delay)
+                        continue
+                    backoff.reset()
+                    continue
+                self._serve_requests()
+                if self.state is LoopState.RUNNING:
+                    self._run_cycles()
+                else:
+                    self._poll_once()
+                    self._wake.wait(1.0 / self.config.poll_hz)
+                    self._wake.clear()
+            except BusTimeoutError as exc:
+                # The driver core has already halted every module.
+                self._fault(f"module {exc.module_id} stopped answering: {exc}", halt=False)
+            except BusError as exc:
+                self._bus_lost(exc)
+            except Exception as exc:  # a bug must not leave the arm moving: halt and report
+                self._log(logging.ERROR, f"driver loop error: {exc!r}")
+                self._fault(f"internal error: {exc!r}")
+                self._stop.wait(0.1)
+        self._serve_requests(refuse="driver stopping")
+
+    def _connect(self) -> bool:
+        """Open (or reopen) the bus and discover the modules; False means retry later."""
+        resume = self._resume
+        try:
+            if self.driver is not None and self.bus is not None and hasattr(self.bus, "reopen"):
+                if resume is LoopState.RUNNING:
+                    # Reopen, re-read the positions and hold them: nothing from before is replayed.
+                    self.driver.reconnect()
+                else:
+                    self.bus.reopen()
+            else:
+                self._close_bus()
+                self.bus = self._open_bus()
+                self.driver = self._driver_factory(self.bus)
+            report = self.driver.discover()
+        except BusError as exc:  # includes BusTimeoutError: modules not (yet) answering
+            self._retry_reason(f"CAN bus not usable yet: {exc}")
+            return False
+        missing = list(getattr(report, "missing", []) or [])
+        if len(missing) == self.n:
+            self._retry_reason("CAN bus open, but no module answers discovery")
+            return False
+        with self._lock:
+            self._connects += 1
+            self._missing = missing
+        if missing:
+            self._log(logging.ERROR, f"modules not answering discovery: {missing}")
+        else:
+            self._log(logging.INFO, f"CAN bus connected, all {self.n} modules found")
+        self._q_meas = None
+        self._q_ref = None
+        if resume is LoopState.RUNNING and not missing:
+            self.commands.clear(None)
+            self._set_state(LoopState.RUNNING, "reconnected; holding measured position")
+            self._log(logging.WARNING, "CAN bus reconnected: holding the measured position")
+        elif resume is LoopState.RUNNING:
+            self._fault(f"modules {missing} missing after reconnect", halt=True)
+        elif resume is LoopState.HALTED:
+            self._set_state(LoopState.HALTED, self._halt_reason or "halted")
+        else:
+            self._set_state(LoopState.IDLE, "not initialised (call ~/init)")
+            if self.config.auto_init and not missing:
+                ok, msg = self._do("init")
+                self._log(logging.INFO if ok else logging.ERROR, f"auto init: {msg}")
+        return True
+
+    def _retry_reason(self, reason: str) -> None:
+        with self._lock:
+            first = self._reason != reason
+            self._reason = reason
+        if first:  # log each distinct reason once, not every retry
+            self._log(logging.WARNING, f"{reason}; retrying with backoff")
+
+    _halt_reason = ""
+
+    def _read_positions(self) -> np.ndarray:
+        st = self.driver.read_state()
+        q = np.array(_positions_of(st), dtype=float).reshape(self.n)
+        with self._lock:
+            self._q_meas = q
+        return q
+
+    def _poll_once(self) -> None:
+        try:
+            q = self._read_positions()
+        except BusTimeoutError:
+            return  # a silent module while halted: keep polling quietly; state stays
+        self._emit(CycleSample(time.time(), q, None, None))
+
+    def _emit(self, sample: CycleSample) -> None:
+        if self._on_sample is not None:
+            try:
+                self._on_sample(sample)
+            except Exception as exc:  # publishing must never stop the loop
+                self._log(logging.ERROR, f"on_sample failed: {exc!r}")
+
+    def _run_cycles(self) -> None:
+        """Cycle at absolute deadlines until the state changes, a request arrives, or stop."""
+        period = self.period_s
+        drv = self.driver
+        q_meas = self._q_meas if self._q_meas is not None else self._read_positions()
+        q_ref = self._q_ref if self._q_ref is not None else q_meas
+        next_t = time.monotonic()
+        last_start: float | None = None
+        while not self._stop.is_set() and self._requests.empty():
+            now = time.monotonic()
+            if now < next_t:
+                time.sleep(next_t - now)
+                now = time.monotonic()
+            if last_start is not None:
+                self.stats.add(now - last_start)
+            last_start = now
+            target = self.commands.sample(now, q_ref, q_meas)
+            result = drv.cycle(target, period)
+            q_meas = np.array(_positions_of(result), dtype=float)
+            sent = _sent_target_of(result, target)
+            q_ref = sent
+            with self._lock:
+                self._q_meas = q_meas
+                self._q_ref = q_ref
+                self._last_result = result
+            self._note_clamps(result, now)
+            self._emit(CycleSample(time.time(), q_meas, _velocities_of(result), sent))
+            fault = _fault_of(result)
+            if fault:
+                self._fault(fault, halt=False)  # the driver core has halted every module
+                return
+            next_t += period
+            late = time.monotonic() - next_t
+            if late > 0:
+                skipped = int(late // period) + 1
+                next_t += skipped * period
+                self.stats.add_overrun(skipped)
+                last_start = None  # the gap is an overrun, not a period sample
+
+    def _note_clamps(self, result: Any, now: float) -> None:
+        clamped = _clamps_of(result)
+        if not clamped:
+            return
+        with self._lock:
+            self._clamps += 1
+        if now - self._last_clamp_log >= self.config.clamp_log_interval_s:
+            self._last_clamp_log = now
+            self._log(logging.WARNING, f"joint target clamped to limits: {clamped}")
+
+    def _fault(self, reason: str, *, halt: bool = True) -> None:
+        """Halt everything (unless the driver core already did) and stay halted until recover."""
+        try:
+            if halt and self.driver is not None:
+                self.driver.halt()
+        except BusError as exc:
+            self._log(logging.ERROR, f"halt after fault failed: {exc}")
+        self.commands.clear(None)
+        self._halt_reason = reason
+        self._resume = LoopState.HALTED
+        self._set_state(LoopState.HALTED, reason)
+        self._log(logging.ERROR, f"HALTED: {reason} (call ~/recover)")
+
+    def _bus_lost(self, exc: BaseException) -> None:
+        prev = self.state
+        self._resume = prev if prev in (LoopState.RUNNING, LoopState.HALTED, LoopState.IDLE) else self._resume
+        with self._lock:
+            self._bus_losses += 1
+        self.commands.clear(None)
+        self._set_state(LoopState.CONNECTING, f"CAN bus lost: {exc}")
+        self._log(logging.ERROR, f"CAN bus lost ({exc}); reconnecting with backoff")
+
+    def _close_bus(self) -> None:
+        bus, self.bus = self.bus, None
+        if bus is not None:
+            try:
+                bus.shutdown()
+            except Exception as exc:  # a dead transport may complain; it is closed either way
+                self._log(logging.INFO, f"ignoring error closing the bus: {exc!r}")
+
+    def _serve_requests(self, refuse: str | None = None) -> None:
+        while True:
+            try:
+                req = self._requests.get_nowait()
+            except queue.Empty:
+                return
+            if refuse is not None:
+                req.ok, req.message = False, refuse
+            else:
+                req.ok, req.message = self._do(req.action)
+            req.done.set()
+
+    def _do(self, action: str) -> tuple[bool, str]:
+        drv = self.driver
+        try:
+            if action == "halt":
+                acked = drv.halt()
+                self.commands.clear(None)
+                self._halt_reason = "halted on request"
+                self._resume = LoopState.HALTED
+                self._set_state(LoopState.HALTED, self._halt_reason)
+                return True, f"all modules halted (acknowledged by {acked})"
+            st = drv.init() if action == "init" else drv.recover()
+        except BusTimeoutError as exc:
+            self._fault(f"{action} failed: module {exc.module_id} did not answer: {exc}")
+            return False, f"{action} failed: {exc}"
+        except BusError as exc:
+            self._bus_lost(exc)
+            return False, f"{action} failed: {exc}"
+        except RedarmError as exc:  # e.g. ModuleFaultError: a module still in error
+            self._fault(f"{action} failed: {exc}")
+            return False, f"{action} failed: {exc}"
+        q = np.array(_positions_of(st), dtype=float).reshape(self.n)
+        with self._lock:
+            self._q_meas = q
+            self._missing = []
+        # Fresh start: hold the measured position, drop whatever was commanded before.
+        self.commands.clear(q)
+        self._q_ref = q
+        self._resume = LoopState.RUNNING
+        self._halt_reason = ""
+        self._set_state(LoopState.RUNNING, f"{action} done; holding position")
+        note = ""
+        states = getattr(st, "states", None)
+        if states is not None and action == "recover":
+            not_homed = [i + 1 for i, b in enumerate(states) if not int(b) & _HOME_OK]
+            if not_homed:
+                note = f"; joints {not_homed} report no HOME_OK (a restarted module? ~/init homes)"
+        return True, f"{action} done; holding position {np.round(q, 4).tolist()}{note}"
+
+
+# -- adapters to the driver core's result objects (kept in one place) -----------------------------
+def _positions_of(obj: Any) -> np.ndarray:
+    return np.asarray(getattr(obj, "positions", obj), dtype=float)
+
+
+def _velocities_of(obj: Any) -> np.ndarray | None:
+    v = getattr(obj, "velocities", None)
+    return None if v is None else np.asarray(v, dtype=float)
+
+
+def _sent_target_of(result: Any, target: np.ndarray) -> np.ndarray:
+    sent = getattr(result, "targets", None)
+    return np.array(target if sent is None else sent, dtype=float)
+
+
+def _clamps_of(result: Any) -> Any:
+    return getattr(result, "clamped", None)
+
+
+def _fault_of(result: Any) -> str:
+    return str(getattr(result, "fault", "") or "")

@@ -1,0 +1,425 @@
+"""CAN driver node ``can_driver``: PowerCube (M5) modules on a CAN bus as a ROS 2 joint interface.
+
+Wiring only. The protocol and the per-cycle work are in
+:class:`redarm_ros.can.driver_core.PowerCubeArmDriver`; the cyclic thread, command
+interpolation and failure handling are in :class:`redarm_ros.can.driver_loop.DriverLoop`.
+This module declares parameters, converts messages, and publishes.
+
+Interface (docs/can_driver.md has the details):
+
+* publishes ``/joint_states`` (sensor_msgs/JointState, every cycle; at ``poll_hz`` while not
+  running) and ``/diagnostics`` (diagnostic_msgs/DiagnosticArray, ~2 Hz);
+* subscribes ``/joint_command`` (trajectory_msgs/JointTrajectory: one or more points,
+  ``time_from_start`` honoured by interpolation per cycle) and ``/joint_command_state``
+  (sensor_msgs/JointState: streamed position targets; one topic cannot carry two types);
+* services ``~/init`` (reset + home, then hold), ``~/halt``, ``~/recover`` (std_srvs/Trigger).
+
+Run: ``ros2 run redarm_ros can_driver --ros-args --params-file config/can_driver.yaml
+-p can.channel:=ws://127.0.0.1:PORT/`` (or ``python -m redarm_ros.nodes.can_driver``).
+
+Units: rad, rad/s, s. Joint names and limits come from the arm model (config/arms/<arm>.yaml).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import yaml
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import QoSProfile
+from sensor_msgs.msg import JointState
+from std_srvs.srv import Trigger
+from trajectory_msgs.msg import JointTrajectory
+
+from redarm_ros.can import protocol as pc
+from redarm_ros.can.bus import open_bus
+from redarm_ros.can.driver_core import PowerCubeArmDriver
+from redarm_ros.can.driver_loop import CycleSample, DriverLoop, LoopConfig, LoopSnapshot, LoopState
+from redarm_ros.errors import ConfigError, InvalidInputError, RedarmError
+from redarm_ros.kinematics import load_arm
+from redarm_ros.nodes._common import ParamSpec, declare_params, in_range, non_negative, positive, run_node
+
+NODE_NAME = "can_driver"
+DIAGNOSTICS_PERIOD_S = 0.5
+
+
+def _non_empty_string(value: Any) -> str | None:
+    return None if isinstance(value, str) and value else "must be a non-empty string"
+
+
+def _module_ids(value: Any) -> str | None:
+    if value is None:
+        return None
+    ids = list(value)
+    if not all(isinstance(i, int) and 1 <= i <= 31 for i in ids) or len(set(ids)) != len(ids):
+        return "must be distinct module ids in 1..31 (empty: 1..n)"
+    return None
+
+
+def _yaml_mapping(value: Any) -> str | None:
+    try:
+        parse_can_config(value)
+    except ConfigError as exc:
+        return str(exc)
+    return None
+
+
+def _positive_int(value: Any) -> str | None:
+    return None if isinstance(value, int) and value >= 1 else "must be an integer >= 1"
+
+
+PARAMS = [
+    ParamSpec("arm", "pa10", "Arm model (config/arms/<name>.yaml or a path): joint names, limits.",
+              _non_empty_string, read_only=True),
+    ParamSpec("module_ids", Parameter.Type.INTEGER_ARRAY,
+              "CAN module id of each joint, in joint order (unset or empty: 1..n).", _module_ids,
+              read_only=True),
+    ParamSpec("rate_hz", 250.0, "Cycle rate of the FSTEP stream (Hz).", in_range(1.0, 1000.0),
+              read_only=True),
+    ParamSpec("poll_hz", 10.0, "State polling rate while not running (idle/halted), Hz.",
+              in_range(0.5, 100.0), read_only=True),
+    ParamSpec("can.interface", "", "python-can interface (empty: CAN_INTERFACE / config files).",
+              read_only=True),
+    ParamSpec("can.channel", "", "python-can channel (empty: CAN_CHANNEL / config files).", read_only=True),
+    ParamSpec("can.config", "", "More python-can keywords as a YAML/JSON mapping, e.g. '{bitrate: 500000}'.",
+              _yaml_mapping, read_only=True),
+    ParamSpec("reply_timeout_s", 0.02, "How long a cycle waits for the modules' replies (s).",
+              in_range(1e-4, 1.0), read_only=True),
+    ParamSpec("max_missed_replies", 3, "Consecutive missed replies after which a module counts as silent "
+              "(everything is halted).", _positive_int, read_only=True),
+    ParamSpec("hold_on_stream_stop_s", 0.5, "A /joint_command_state stream older than this (s) is "
+              "dropped and the measured position held.", positive),
+    ParamSpec("auto_init", False, "Run ~/init (reset + home) by itself once the bus is up.", read_only=True),
+    ParamSpec("reconnect_max_s", 2.0, "Longest wait between reconnect attempts to a lost bus (s).",
+              positive, read_only=True),
+    ParamSpec("frame_id", "", "header.frame_id of /joint_states.", None),
+    ParamSpec("watchdog", True, "Arm the modules' watchdog at init and refresh it every cycle (a stalled "
+              "or dead driver then halts the arm).",
+              None, read_only=True),
+    ParamSpec("request_timeout_s", 60.0, "Longest a ~/init, ~/halt or ~/recover call may take (s).",
+              non_negative),
+]
+
+
+def parse_can_config(text: Any) -> dict[str, Any]:
+    """The ``can.config`` parameter (YAML/JSON mapping text, empty = none) as a dict.
+
+    Raises:
+        ConfigError: not a mapping with string keys.
+    """
+    if text is None or (isinstance(text, str) and not text.strip()):
+        return {}
+    try:
+        value = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"can.config is not valid YAML: {exc}", field="can.config", value=text) from exc
+    if not isinstance(value, dict) or not all(isinstance(k, str) for k in value):
+        raise ConfigError("can.config must be a mapping like '{bitrate: 500000}'", field="can.config",
+                          value=text)
+    return value
+
+
+def map_joint_names(names: Sequence[str], model_names: Sequence[str]) -> list[int]:
+    """Model joint indices of ``names`` (empty ``names``: all joints in model order).
+
+    Raises:
+        InvalidInputError: an unknown or repeated name.
+    """
+    if not names:
+        return list(range(len(model_names)))
+    index = {n: i for i, n in enumerate(model_names)}
+    unknown = [n for n in names if n not in index]
+    if unknown:
+        raise InvalidInputError(f"unknown joint names {unknown}; this arm has {list(model_names)}",
+                                field="joint_names", value=list(names))
+    if len(set(names)) != len(names):
+        raise InvalidInputError("repeated joint names", field="joint_names", value=list(names))
+    return [index[n] for n in names]
+
+
+def _duration_s(d: Any) -> float:
+    return float(d.sec) + float(d.nanosec) * 1e-9
+
+
+class CanDriverNode(Node):
+    """The ``can_driver`` node (importable for in-process tests; see the module docstring)."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__(kwargs.pop("node_name", NODE_NAME), **kwargs)
+        p = declare_params(self, PARAMS)
+        try:
+            self.arm = load_arm(p["arm"])
+        except (RedarmError, OSError) as exc:
+            raise ValueError(f"arm {p['arm']!r}: {exc}") from exc
+        n = self.arm.n
+        ids = list(p["module_ids"] or range(1, n + 1))
+        if len(ids) != n:
+            raise ValueError(f"module_ids has {len(ids)} ids but arm {self.arm.name} has {n} joints")
+        self.module_ids = ids
+        self.joint_names = list(self.arm.joint_names)
+        can_kwargs = {"interface": p["can.interface"], "channel": p["can.channel"],
+                      **parse_can_config(p["can.config"])}
+        self._frame_id = p["frame_id"]
+        self._request_timeout_s = float(p["request_timeout_s"])
+
+        def make_driver(bus: Any) -> PowerCubeArmDriver:
+            return PowerCubeArmDriver(
+                bus, ids, self.arm.lower, self.arm.upper, self.arm.max_vel, self.arm.max_acc,
+                reply_timeout_s=float(p["reply_timeout_s"]),
+                max_missed=int(p["max_missed_replies"]),
+                watchdog_refresh=bool(p["watchdog"]),
+                enable_watchdog=bool(p["watchdog"]),
+            )
+
+        cfg = LoopConfig(
+            rate_hz=float(p["rate_hz"]), poll_hz=float(p["poll_hz"]),
+            hold_on_stream_stop_s=float(p["hold_on_stream_stop_s"]),
+            reconnect_max_s=float(p["reconnect_max_s"]), auto_init=bool(p["auto_init"]),
+        )
+        # Wiring: publishers, subscriptions, services, the diagnostics timer.
+        self._js_pub = self.create_publisher(JointState, "joint_states", QoSProfile(depth=10))
+        self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", QoSProfile(depth=10))
+        self.create_subscription(JointTrajectory, "joint_command", self._on_trajectory, 10)
+        self.create_subscription(JointState, "joint_command_state", self._on_joint_state_command, 10)
+        services = MutuallyExclusiveCallbackGroup()  # init may take seconds; keep topics flowing
+        for action in ("init", "halt", "recover"):
+            self.create_service(Trigger, f"~/{action}", self._trigger(action), callback_group=services)
+        self.create_timer(DIAGNOSTICS_PERIOD_S, self._publish_diagnostics)
+        self.add_post_set_parameters_callback(self._on_params_set)
+        self._warn_times: dict[str, float] = {}
+        self._warn_lock = threading.Lock()
+        self.loop = DriverLoop(make_driver, lambda: open_bus(**can_kwargs), n, cfg,
+                               on_sample=self._publish_joint_state, log=self._log)
+        self.loop.start()
+        iface = can_kwargs.get("interface") or "$CAN_INTERFACE"
+        chan = can_kwargs.get("channel") or "$CAN_CHANNEL"
+        self.get_logger().info(
+            f"{NODE_NAME} ready: arm {self.arm.name} ({n} joints, modules {ids}) "
+            f"at {cfg.rate_hz:g} Hz on {iface}:{chan}"
+        )
+
+    # -- life cycle ---------------------------------------------------------------------------------
+    def close(self) -> None:
+        """Stop the driver thread and close the bus (called by main() before destroy_node)."""
+        self.loop.stop()
+
+    def destroy_node(self) -> None:
+        """Stop the loop first so nothing publishes on a destroyed node."""
+        self.loop.stop()
+        super().destroy_node()
+
+    def _on_params_set(self, params: list[Parameter]) -> None:
+        for prm in params:
+            if prm.name == "hold_on_stream_stop_s":
+                self.loop.commands.stream_timeout_s = float(prm.value)
+            elif prm.name == "frame_id":
+                self._frame_id = str(prm.value)
+            elif prm.name == "request_timeout_s":
+                self._request_timeout_s = float(prm.value)
+
+    # -- logging (called from the loop thread too) ------------------------------------------------------
+    def _log(self, level: int, message: str) -> None:
+        logger = self.get_logger()
+        if level >= logging.ERROR:
+            logger.error(message)
+        elif level >= logging.WARNING:
+            logger.warning(message)
+        elif level >= logging.INFO:
+            logger.info(message)
+        else:
+            logger.debug(message)
+
+    def _warn_throttled(self, key: str, message: str, period_s: float = 2.0) -> None:
+        now = time.monotonic()
+        with self._warn_lock:
+            if now - self._warn_times.get(key, -1e9) < period_s:
+                return
+            self._warn_times[key] = now
+        self.get_logger().warning(message)
+
+    # -- commands -------------------------------------------------------------------------------------
+    def _accepting(self) -> bool:
+        ok, why = self.loop.accepting_commands()
+        if not ok:
+            self._warn_throttled("not-running", why)
+        return ok
+
+    def _warn_beyond_limits(self, index: Sequence[int], q: np.ndarray) -> None:
+        lo, hi = self.arm.lower[list(index)], self.arm.upper[list(index)]
+        bad = np.nonzero((q < lo) | (q > hi))
+        if bad[0].size:
+            j = [self.joint_names[index[k]] for k in sorted(set(bad[-1].tolist()))]
+            self._warn_throttled("limits", f"command beyond joint limits for {j}: clamped to the limits")
+
+    def _on_trajectory(self, msg: JointTrajectory) -> None:
+        if not self._accepting():
+            return
+        if not msg.points:
+            # An empty trajectory stops the arm where it is.
+            self.loop.commands.clear(None)
+            self.get_logger().info("empty trajectory: holding position")
+            return
+        try:
+            index = map_joint_names(list(msg.joint_names), self.joint_names)
+            if any(len(pt.positions) != len(index) for pt in msg.points):
+                raise InvalidInputError(f"every point needs {len(index)} positions", field="points")
+            points = np.array([pt.positions for pt in msg.points], dtype=float)
+            times = [_duration_s(pt.time_from_start) for pt in msg.points]
+            start = time.monotonic()
+            stamp = msg.header.stamp
+            if stamp.sec or stamp.nanosec:
+                # A stamped trajectory starts at its stamp (ROS clock), mapped onto the monotonic clock.
+                ahead = (stamp.sec + stamp.nanosec * 1e-9) - self.get_clock().now().nanoseconds * 1e-9
+                start += ahead
+            self.loop.commands.set_trajectory(index, times, points, start)
+        except InvalidInputError as exc:
+            self._warn_throttled("bad-trajectory", f"trajectory refused: {exc}", 0.5)
+            return
+        self._warn_beyond_limits(index, points)
+
+    def _on_joint_state_command(self, msg: JointState) -> None:
+        if not self._accepting():
+            return
+        try:
+            index = map_joint_names(list(msg.name), self.joint_names)
+            q = np.array(msg.position, dtype=float)
+            if q.size != len(index):
+                raise InvalidInputError(f"{q.size} positions for {len(index)} joints", field="position")
+            self.loop.commands.set_stream_target(index, q, time.monotonic())
+        except InvalidInputError as exc:
+            self._warn_throttled("bad-joint-state", f"joint state command refused: {exc}", 0.5)
+            return
+        self._warn_beyond_limits(index, q[None, :])
+
+    # -- services ---------------------------------------------------------------------------------------
+    def _trigger(self, action: str) -> Any:
+        def callback(_req: Trigger.Request, resp: Trigger.Response) -> Trigger.Response:
+            ok, message = self.loop.request(action, self._request_timeout_s)
+            resp.success, resp.message = ok, message
+            (self.get_logger().info if ok else self.get_logger().error)(f"~/{action}: {message}")
+            return resp
+
+        return callback
+
+    # -- publishing -------------------------------------------------------------------------------------
+    def _publish_joint_state(self, s: CycleSample) -> None:
+        msg = JointState()
+        msg.header.stamp = self.get_clock().now().to_msg()
+        msg.header.frame_id = self._frame_id
+        msg.name = self.joint_names
+        msg.position = s.positions.tolist()
+        if s.velocities is not None:
+            msg.velocity = s.velocities.tolist()
+        self._js_pub.publish(msg)
+
+    def _publish_diagnostics(self) -> None:
+        snap = self.loop.snapshot()
+        arr = DiagnosticArray()
+        arr.header.stamp = self.get_clock().now().to_msg()
+        arr.status = [self._loop_status(snap), *self._module_statuses(snap)]
+        self._diag_pub.publish(arr)
+
+    def _loop_status(self, snap: LoopSnapshot) -> DiagnosticStatus:
+        st = DiagnosticStatus(name=f"{NODE_NAME}: loop", hardware_id=f"{self.arm.name}")
+        if snap.state is LoopState.RUNNING:
+            st.level = DiagnosticStatus.OK
+        elif snap.state is LoopState.IDLE:
+            st.level = DiagnosticStatus.WARN
+        else:
+            st.level = DiagnosticStatus.ERROR
+        st.message = f"{snap.state.value}: {snap.reason}"
+        per = snap.period
+        values = {
+            "state": snap.state.value,
+            "reason": snap.reason,
+            "command_mode": snap.command_mode.value,
+            "rate_hz_target": f"{self.loop.config.rate_hz:g}",
+            "rate_hz_achieved": f"{per['rate_hz']:.1f}",
+            "period_error_median_ms": f"{per['period_err_median_ms']:.3f}",
+            "period_error_p99_ms": f"{per['period_err_p99_ms']:.3f}",
+            "period_error_max_ms": f"{per['period_err_max_ms']:.3f}",
+            "cycles": str(snap.cycles),
+            "overruns": str(snap.overruns),
+            "bus_connects": str(snap.connects),
+            "bus_losses": str(snap.bus_losses),
+            "clamped_cycles": str(snap.clamps),
+            "missing_modules": str(snap.missing_modules),
+        }
+        st.values = [KeyValue(key=k, value=v) for k, v in values.items()]
+        return st
+
+    def _module_statuses(self, snap: LoopSnapshot) -> list[DiagnosticStatus]:
+        out = []
+        for j, mid in enumerate(self.module_ids):
+            info = module_info(snap, j, mid)
+            st = DiagnosticStatus(
+                name=f"{NODE_NAME}: module {mid} ({self.joint_names[j]})", hardware_id=f"powercube:{mid}"
+            )
+            st.level, st.message = info.pop("_level"), info.pop("_message")
+            st.values = [KeyValue(key=k, value=str(v)) for k, v in info.items()]
+            out.append(st)
+        return out
+
+
+_ERROR_BITS = (pc.ActState.ERROR | pc.ActState.POWERFAULT | pc.ActState.TOW_ERROR | pc.ActState.COMM_ERROR
+               | pc.ActState.CPU_OVERLOAD | pc.ActState.BEYOND_HARD | pc.ActState.BEYOND_SOFT)
+
+
+def state_bit_names(bits: int) -> list[str]:
+    """Names of the ACT_STATE bits set in ``bits`` (e.g. ['HOME_OK', 'MOTION'])."""
+    return [f.name for f in pc.ActState if f.name and f.value & bits == f.value and f.value]
+
+
+def module_info(snap: LoopSnapshot, j: int, module_id: int) -> dict[str, Any]:
+    """Diagnostic values of joint ``j`` / ``module_id`` from a loop snapshot (driver-core adapter)."""
+    info: dict[str, Any] = {"module_id": module_id}
+    level, message = DiagnosticStatus.OK, "ok"
+    if module_id in snap.missing_modules:
+        level, message = DiagnosticStatus.ERROR, "not found at discovery"
+    if snap.positions is not None:
+        info["position_rad"] = f"{snap.positions[j]:.5f}"
+    res = snap.last_result
+    bits = None
+    if res is not None and getattr(res, "states", None) is not None:
+        bits = int(res.states[j])
+    if bits is not None:
+        info["state_bits"] = f"0x{bits:08x}"
+        info["state"] = " ".join(state_bit_names(bits)) or "-"
+        err = bits & int(_ERROR_BITS)
+        info["errors"] = " ".join(state_bit_names(err)) or "-"
+        if err:
+            level, message = DiagnosticStatus.ERROR, "error bits: " + info["errors"]
+    ms = snap.module_stats
+    if ms is not None:
+        try:
+            s = ms[j]
+        except (TypeError, IndexError, KeyError):
+            s = None
+        if s is not None:
+            for key in ("latency_median_ms", "latency_max_ms", "lost", "malformed", "late"):
+                if hasattr(s, key):
+                    v = getattr(s, key)
+                    info[key] = f"{v:.3f}" if isinstance(v, float) else v
+            if getattr(s, "silent", False) and level != DiagnosticStatus.ERROR:
+                level, message = DiagnosticStatus.ERROR, "not answering"
+    if snap.state is LoopState.HALTED and f"module {module_id} " in snap.reason:
+        level, message = DiagnosticStatus.ERROR, snap.reason
+    info["_level"], info["_message"] = level, message
+    return info
+
+
+def main(args: Sequence[str] | None = None) -> int:
+    """Console entry point (``ros2 run redarm_ros can_driver``): the standard main()."""
+    return run_node(lambda: CanDriverNode(), args, multithreaded=True)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,227 @@
+"""In-process tests of the can_driver node: emulated modules on a python-can virtual bus.
+
+The node runs in this process (its own rclpy context, executor on a thread); a client node in the
+same context calls its services, publishes commands and reads /joint_states and /diagnostics.
+Cross-process behaviour over the loopback bus is in test_hil_can_driver.py.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+import uuid
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import can
+import numpy as np
+import pytest
+
+rclpy = pytest.importorskip("rclpy")
+
+from builtin_interfaces.msg import Duration  # noqa: E402
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
+from rclpy.executors import MultiThreadedExecutor  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from sensor_msgs.msg import JointState  # noqa: E402
+from std_srvs.srv import Trigger  # noqa: E402
+from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint  # noqa: E402
+
+from redarm_ros.can.driver_loop import LoopState  # noqa: E402
+from redarm_ros.can.module_emulator import EmulatedArm, EmulatorRunner  # noqa: E402
+from redarm_ros.errors import ConfigError, InvalidInputError  # noqa: E402
+from redarm_ros.kinematics import load_arm  # noqa: E402
+from redarm_ros.nodes.can_driver import (  # noqa: E402
+    CanDriverNode,
+    map_joint_names,
+    parse_can_config,
+    state_bit_names,
+)
+
+ARM = load_arm("pa10")
+
+
+def test_parse_can_config() -> None:
+    assert parse_can_config("") == {}
+    assert parse_can_config("{bitrate: 500000, fd: false}") == {"bitrate": 500000, "fd": False}
+    with pytest.raises(ConfigError):
+        parse_can_config("[1, 2]")
+    with pytest.raises(ConfigError):
+        parse_can_config("{a: [")
+
+
+def test_map_joint_names() -> None:
+    names = ["a", "b", "c"]
+    assert map_joint_names([], names) == [0, 1, 2]
+    assert map_joint_names(["c", "a"], names) == [2, 0]
+    with pytest.raises(InvalidInputError, match="unknown"):
+        map_joint_names(["x"], names)
+    with pytest.raises(InvalidInputError, match="repeated"):
+        map_joint_names(["a", "a"], names)
+
+
+def test_state_bit_names() -> None:
+    assert state_bit_names(0x2 | 0x800) == ["HOME_OK", "MOTION"]
+    assert state_bit_names(0) == []
+
+
+class Rig:
+    """Emulated PA10 modules + the driver node + a client node, all in one rclpy context."""
+
+    def __init__(self, ctx: Any, overrides: dict[str, Any] | None = None) -> None:
+        self.channel = f"node-{uuid.uuid4().hex[:8]}"
+        self.dev_bus = can.Bus(interface="virtual", channel=self.channel)
+        q0 = np.clip(np.full(ARM.n, 0.05), ARM.lower, ARM.upper)
+        self.arm = EmulatedArm.kinematic(ARM.lower, ARM.upper, ARM.max_vel, ARM.max_acc, q0=q0)
+        self.runner = EmulatorRunner(self.dev_bus, self.arm, tick_s=0.002).start()
+        params = {"can.interface": "virtual", "can.channel": self.channel, "rate_hz": 100.0,
+                  "poll_hz": 20.0, "hold_on_stream_stop_s": 0.3, **(overrides or {})}
+        self.node = CanDriverNode(
+            context=ctx, parameter_overrides=[Parameter(k, value=v) for k, v in params.items()]
+        )
+        self.client = rclpy.create_node("can_driver_test_client", context=ctx)
+        self.states: list[JointState] = []
+        self.diags: list[DiagnosticArray] = []
+        self.client.create_subscription(JointState, "/joint_states", self.states.append, 50)
+        self.client.create_subscription(DiagnosticArray, "/diagnostics", self.diags.append, 10)
+        self.traj_pub = self.client.create_publisher(JointTrajectory, "/joint_command", 10)
+        self.js_pub = self.client.create_publisher(JointState, "/joint_command_state", 10)
+        self.executor = MultiThreadedExecutor(num_threads=3, context=ctx)
+        self.executor.add_node(self.node)
+        self.executor.add_node(self.client)
+        self._spin = threading.Thread(target=self.executor.spin, daemon=True)
+        self._spin.start()
+
+    def call(self, action: str, timeout: float = 30.0) -> Trigger.Response:
+        cli = self.client.create_client(Trigger, f"/can_driver/{action}")
+        assert cli.wait_for_service(timeout_sec=5.0)
+        fut = cli.call_async(Trigger.Request())
+        end = time.monotonic() + timeout
+        while not fut.done() and time.monotonic() < end:
+            time.sleep(0.01)
+        self.client.destroy_client(cli)
+        assert fut.done(), f"~/{action} did not answer"
+        return fut.result()
+
+    def close(self) -> None:
+        self.executor.shutdown(timeout_sec=2.0)
+        self._spin.join(2.0)
+        self.node.destroy_node()
+        self.client.destroy_node()
+        self.runner.stop()
+        self.dev_bus.shutdown()
+
+
+def wait_for(pred: Callable[[], bool], timeout: float = 5.0) -> bool:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if pred():
+            return True
+        time.sleep(0.01)
+    return pred()
+
+
+@pytest.fixture
+def rig(rclpy_context: Any) -> Iterator[Rig]:
+    r = Rig(rclpy_context)
+    try:
+        yield r
+    finally:
+        r.close()
+
+
+def trajectory(names: list[str], points: list[list[float]], times: list[float]) -> JointTrajectory:
+    msg = JointTrajectory()
+    msg.joint_names = names
+    for q, t in zip(points, times, strict=True):
+        sec = int(t)
+        msg.points.append(JointTrajectoryPoint(
+            positions=[float(v) for v in q], time_from_start=Duration(sec=sec, nanosec=int((t - sec) * 1e9))))
+    return msg
+
+
+def test_node_init_follow_trajectory_and_diagnostics(rig: Rig) -> None:
+    assert wait_for(lambda: rig.node.loop.state is LoopState.IDLE)
+    # Idle: joint states are polled and published with the model's names.
+    assert wait_for(lambda: len(rig.states) > 0)
+    assert list(rig.states[-1].name) == ARM.joint_names
+    # A command before init is ignored.
+    rig.traj_pub.publish(trajectory(ARM.joint_names[:1], [[0.5]], [0.1]))
+    time.sleep(0.3)
+    np.testing.assert_allclose(rig.arm.positions()[0], 0.05, atol=1e-6)
+
+    resp = rig.call("init")
+    assert resp.success, resp.message
+    np.testing.assert_allclose(rig.arm.positions(), 0.0, atol=1e-3)
+
+    names = [ARM.joint_names[1], ARM.joint_names[3]]
+    rig.traj_pub.publish(trajectory(names, [[0.2, -0.3], [0.3, -0.4]], [0.4, 0.8]))
+    goal = np.zeros(ARM.n)
+    goal[1], goal[3] = 0.3, -0.4
+    assert wait_for(lambda: np.allclose(rig.arm.positions(), goal, atol=2e-3), timeout=5)
+    js = rig.states[-1]
+    np.testing.assert_allclose(js.position, goal, atol=5e-3)
+    assert len(js.velocity) == ARM.n
+
+    assert wait_for(lambda: any(s.name == "can_driver: loop" and s.level == DiagnosticStatus.OK
+                                for d in rig.diags[-2:] for s in d.status), timeout=3)
+    last = rig.diags[-1]
+    loop_st = next(s for s in last.status if s.name == "can_driver: loop")
+    values = {kv.key: kv.value for kv in loop_st.values}
+    assert values["state"] == "running"
+    assert float(values["rate_hz_achieved"]) == pytest.approx(100.0, rel=0.2)
+    mods = [s for s in last.status if s.name.startswith("can_driver: module")]
+    assert len(mods) == ARM.n
+    mv = {kv.key: kv.value for kv in mods[0].values}
+    assert "HOME_OK" in mv["state"] and mv["errors"] == "-"
+    assert {"latency_median_ms", "lost", "malformed"} <= set(mv)
+
+
+def test_node_stream_command_limits_and_bad_input(rig: Rig) -> None:
+    assert wait_for(lambda: rig.node.loop.state is LoopState.IDLE)
+    assert rig.call("init").success
+    # Unknown joint name: refused, nothing moves, the node lives on.
+    rig.traj_pub.publish(trajectory(["nope"], [[1.0]], [0.1]))
+    bad = JointState(name=[ARM.joint_names[0]], position=[float("nan")])
+    rig.js_pub.publish(bad)
+    time.sleep(0.3)
+    np.testing.assert_allclose(rig.arm.positions(), 0.0, atol=1e-3)
+    # Streamed target beyond joint 2's limit (+-91 deg): clamped at the limit, never beyond.
+    j = 1
+    end = time.monotonic() + 3.0
+    while time.monotonic() < end and rig.arm.positions()[j] < ARM.upper[j] - 1e-3:
+        rig.js_pub.publish(JointState(name=[ARM.joint_names[j]], position=[3.0]))
+        time.sleep(0.02)
+    assert rig.arm.positions()[j] == pytest.approx(ARM.upper[j], abs=2e-3)
+    assert rig.arm.positions()[j] <= ARM.upper[j] + 1e-6
+    assert rig.node.loop.snapshot().clamps > 0
+
+
+def test_node_halt_and_recover_services(rig: Rig) -> None:
+    assert wait_for(lambda: rig.node.loop.state is LoopState.IDLE)
+    assert rig.call("init").success
+    r = rig.call("halt")
+    assert r.success and "halted" in r.message
+    assert rig.node.loop.state is LoopState.HALTED
+    r = rig.call("recover")
+    assert r.success, r.message
+    assert rig.node.loop.state is LoopState.RUNNING
+
+
+def test_node_parameters_validated(rclpy_context: Any) -> None:
+    with pytest.raises(ValueError, match="rate_hz"):
+        CanDriverNode(context=rclpy_context, parameter_overrides=[Parameter("rate_hz", value=-5.0)])
+    with pytest.raises(ValueError, match="module_ids"):
+        CanDriverNode(context=rclpy_context, parameter_overrides=[Parameter("module_ids", value=[1, 2])])
+    with pytest.raises(ValueError, match="arm"):
+        CanDriverNode(context=rclpy_context, parameter_overrides=[Parameter("arm", value="no_such_arm")])
+
+
+def test_node_runtime_parameter_updates(rig: Rig) -> None:
+    res = rig.node.set_parameters([Parameter("hold_on_stream_stop_s", value=-1.0)])
+    assert not res[0].successful
+    res = rig.node.set_parameters([Parameter("hold_on_stream_stop_s", value=1.5)])
+    assert res[0].successful
+    assert rig.node.loop.commands.stream_timeout_s == 1.5
+    res = rig.node.set_parameters([Parameter("rate_hz", value=100.0)])
+    assert not res[0].successful  # read-only: takes effect at start only
