@@ -22,7 +22,10 @@ setup(
     zip_safe=True,
     maintainer="redarm_ros maintainers",
     maintainer_email="maintainers@users.noreply.h-seed-e6cbaaac.example",
-    description="Redundant arm over CAN: swivel IK, attractor-dynamics controller, PowerCube driver, pybullet stand-in.",
+    description=(
+        "Redundant arm over CAN: swivel IK, attractor-dynamics controller, PowerCube driver, "
+        "pybullet stand-in."
+    ),
     license="Apache-2.0",
     tests_require=["pytest"],
     entry_points={
