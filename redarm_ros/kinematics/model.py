@@ -26,7 +26,7 @@ import numpy as np
 import yaml
 
 from redarm_ros.errors import ConfigError, InvalidInputError
-from redarm_ros.kinematics.quaternion import rotation_error
+from redarm_ros.kinematics.quaternion import matrix_to_quat, rotation_error
 from redarm_ros.kinematics.result import IKInfo, IKStatus
 
 _log = logging.getLogger(__name__)
@@ -274,6 +274,11 @@ class Arm:
         qa = self.check_q(q)
         R, p = self._fk_lists(qa.tolist())
         return np.array([R[0] + [p[0]], R[1] + [p[1]], R[2] + [p[2]], [0.0, 0.0, 0.0, 1.0]])
+
+    def fk_pq(self, q: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
+        """Tool position (3,) in m and orientation as a unit quaternion in (w, x, y, z) order (w >= 0)."""
+        T = self.fk(q)
+        return T[:3, 3].copy(), matrix_to_quat(T[:3, :3])
 
     def fk_frames(self, q: Sequence[float]) -> np.ndarray:
         """(n+1, 4, 4): base -> each joint frame (after its rotation); the last entry is the tool."""

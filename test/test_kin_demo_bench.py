@@ -1,0 +1,55 @@
+"""Smoke runs of the IK table demo and of the IK benchmark (tiny sizes, no speed assertions)."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from redarm_ros import ik_demo
+from redarm_ros.kinematics import load_arm
+from redarm_ros.kinematics.quaternion import qmul, qy, qz
+
+BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "ik_bench.py"
+
+
+def test_demo_prints_tables(capsys: pytest.CaptureFixture[str]) -> None:
+    assert ik_demo.main(["--reps", "1", "--arms", "pa10", "powercube6"]) == 0
+    out = capsys.readouterr().out
+    assert "=== pa10" in out and "=== powercube6" in out
+    assert out.count("nearest") >= 4 and "in limits" in out
+
+
+def test_benchmark_smoke(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    spec = importlib.util.spec_from_file_location("ik_bench", BENCH)
+    assert spec is not None and spec.loader is not None
+    bench = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, "ik_bench", bench)  # dataclasses look their module up there
+    spec.loader.exec_module(bench)
+    out_md = tmp_path / "ik_bench.md"
+    assert bench.main(["--n", "12", "--peer-n", "2", "--arms", "pa10", "--out", str(out_md)]) == 0
+    text = out_md.read_text()
+    for solver in ("ik(T, s) closed form", "ik_nearest", "ik_batch", "DLS", "Flow sequential", "ikpy"):
+        assert solver in text
+    assert "Targets" in text and "| pa10 |" in capsys.readouterr().out
+    # the ikpy chain built from our model has our forward kinematics
+    arm = load_arm("pa10")
+    chain = bench.ikpy_chain(arm)
+    q = np.array([0.3, -0.4, 0.5, 1.0, -0.2, 0.7, 0.1])
+    assert np.allclose(chain.forward_kinematics([0.0, *q, 0.0]), arm.fk(q), atol=1e-12)
+
+
+def test_fk_pq_quaternion_order() -> None:
+    arm = load_arm("pa10")
+    q = np.array([0.3, -0.4, 0.5, 1.0, -0.2, 0.7, 0.1])
+    p, quat = arm.fk_pq(q)
+    ref = np.array([1.0, 0.0, 0.0, 0.0])
+    for i, t in enumerate(q):
+        ref = qmul(ref, qz(t) if i % 2 == 0 else qy(t))
+    ref = ref if ref[0] >= 0 else -ref
+    assert np.allclose(quat, ref, atol=1e-12) and np.allclose(p, arm.fk(q)[:3, 3])
