@@ -15,8 +15,8 @@ SANDBOX := scripts/ros_sandbox.sh
 DEMO_MODULE ?= $(if $(wildcard redarm_ros/demo.py redarm_ros/demo/__init__.py),redarm_ros.demo,redarm_ros.ik_demo)
 DEMO_ARGS ?=
 PYTEST_ARGS ?=
-# Every benchmark takes --quick (a smoke run of a few seconds); `make bench BENCH_ARGS=` runs them in full.
-BENCH_ARGS ?= --quick
+# Extra arguments for every benchmark; `make bench BENCH_FULL=1` runs them in full (see scripts/run_benchmarks.sh).
+BENCH_ARGS ?=
 
 .PHONY: setup test lint demo bench clean distclean
 
@@ -42,12 +42,9 @@ test: setup
 demo: setup
 	$(SANDBOX) $(PY) -m $(DEMO_MODULE) $(DEMO_ARGS)
 
+# Smoke runs (--quick --no-write where supported) unless BENCH_FULL=1.
 bench: setup
-	@rc=0; for b in benchmarks/*.py; do \
-	    [ -e "$$b" ] || continue; \
-	    echo "+ $$b $(BENCH_ARGS)"; \
-	    $(SANDBOX) $(PY) "$$b" $(BENCH_ARGS) || { echo "make bench: $$b failed"; rc=1; }; \
-	done; exit $$rc
+	$(SANDBOX) scripts/run_benchmarks.sh $(BENCH_ARGS)
 
 # Build products, caches and stamps; the venv stays (`make distclean` removes it too).
 clean:
