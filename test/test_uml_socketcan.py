@@ -228,3 +228,71 @@ def test_socketcan_pingpong_between_two_processes(scenario_run: ScenarioRun) -> 
     assert r["received"] == r["count"] == 1000
     assert r["lost"] == 0 and r["mismatches"] == 0
     assert r["bus"]["interface"] == "socketcan"
+
+
+# --------------------------------------------------------------------------------------------
+# HIL: PowerCubeArmDriver (this process) against redarm-sim (its own process) over socketcan
+# --------------------------------------------------------------------------------------------
+
+N_MODULES = 7  # PA10: module ids 1..7
+TRACK_TOL_RAD = 0.05  # measured vs previously commanded, during motion (about 7 cycles of lag)
+FINAL_TOL_RAD = 0.01  # after the hold, driver's reading and the simulator's own joint state
+
+
+@pytest.mark.uml
+@pytest.mark.slow
+def test_hil_discovers_every_module(scenario_run: ScenarioRun) -> None:
+    disc = scenario_run.get("hil").get("discovery")
+    assert disc is not None, scenario_run.get("hil")
+    assert disc["found"] == list(range(1, N_MODULES + 1)) and disc["missing"] == []
+
+
+@pytest.mark.uml
+@pytest.mark.slow
+def test_hil_init_homes_every_module(scenario_run: ScenarioRun) -> None:
+    init = scenario_run.get("hil").get("init")
+    assert init is not None, scenario_run.get("hil")
+    assert init["home_ok"] == [True] * N_MODULES
+    assert init["errors"] == {} and init["state"] == "ready"
+
+
+@pytest.mark.uml
+@pytest.mark.slow
+def test_hil_trajectory_followed_within_tolerance(scenario_run: ScenarioRun) -> None:
+    hil = scenario_run.get("hil")
+    tr = hil.get("trajectory")
+    assert tr is not None, hil
+    assert "fault" not in hil, hil.get("fault")
+    assert tr["state"] == "ready"
+    assert tr["max_delta_rad"] >= 0.5  # a real move, not a hold
+    assert tr["tracking_err_max_rad"] is not None and tr["tracking_err_max_rad"] < TRACK_TOL_RAD, tr
+    assert tr["final_err_max_rad"] < FINAL_TOL_RAD, tr
+    assert tr["sim_final_err_max_rad"] < FINAL_TOL_RAD, tr  # the plant itself, from its status file
+    # A rare lost reply in the slow guest is tolerated (the driver faults only after 5 in a row).
+    assert tr["lost_replies"] <= 0.01 * tr["cycles"] * N_MODULES, tr
+
+
+@pytest.mark.uml
+@pytest.mark.slow
+def test_hil_survives_malformed_frames(scenario_run: ScenarioRun) -> None:
+    hil = scenario_run.get("hil")
+    mal = hil.get("malformed")
+    assert mal is not None, hil
+    assert mal["injected"] == mal["to_modules"] + mal["to_host"]
+    assert mal["sim_counted"] >= mal["to_modules"], mal  # counted and skipped, not crashed
+    assert mal["sim_handler_errors"] == 0, mal
+    assert mal["driver_counted"] >= mal["to_host"], mal
+    assert mal["driver_state_after"] == "ready", mal
+    # The trajectory went on after the injection (mid-move) to the end, and the sim stopped cleanly.
+    assert hil["trajectory"]["final_err_max_rad"] < FINAL_TOL_RAD
+    assert hil["sim_rc"] == 0, hil
+
+
+@pytest.mark.uml
+@pytest.mark.slow
+def test_hil_halt_and_recover(scenario_run: ScenarioRun) -> None:
+    hr = scenario_run.get("hil").get("halt_recover")
+    assert hr is not None, scenario_run.get("hil")
+    assert hr["halt_acked"] == list(range(1, N_MODULES + 1))
+    assert hr["cycle_holding_after_halt"] and hr["halted_bits"] == [True] * N_MODULES
+    assert hr["state_after_recover"] == "ready" and hr["recover_errors"] == {}

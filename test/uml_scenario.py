@@ -26,11 +26,13 @@ import signal
 import statistics
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 from typing import Any
 
 import can
+import numpy as np
 
 _LOG = logging.getLogger("uml_scenario")
 HERE = Path(__file__).resolve()
@@ -78,21 +80,29 @@ def cmd_echo(ns: argparse.Namespace) -> int:
 
 def _start_child(args: list[str], ready: str, timeout_s: float) -> subprocess.Popen[str]:
     """Start ``python uml_scenario.py ARGS`` and wait for its readiness line."""
-    proc = subprocess.Popen(
-        [sys.executable, str(HERE), *args],
-        stdout=subprocess.PIPE,
-        text=True,
-    )
+    return _start_child_cmd([sys.executable, str(HERE), *args], ready, timeout_s)
+
+
+def _start_child_cmd(cmd: list[str], ready: str, timeout_s: float) -> subprocess.Popen[str]:
+    """Start ``cmd`` and wait until a line of its stdout starts with ``ready``."""
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True)
     deadline = time.monotonic() + timeout_s
     assert proc.stdout is not None
     while time.monotonic() < deadline:
         line = proc.stdout.readline()
         if not line:
             break
-        if line.strip() == ready:
+        if line.startswith(ready):
+            # Keep draining stdout so a chatty child never blocks on a full pipe.
+            threading.Thread(target=_drain, args=(proc.stdout,), daemon=True).start()
             return proc
     _stop_child(proc)
-    raise RuntimeError(f"child {args[0]} did not print {ready} within {timeout_s} s")
+    raise RuntimeError(f"child {cmd[1:3]} did not print {ready} within {timeout_s} s")
+
+
+def _drain(stream: Any) -> None:
+    for _line in stream:
+        pass
 
 
 def _stop_child(proc: subprocess.Popen[str], timeout_s: float = 10.0, grace_s: float = 0.0) -> int | None:
@@ -168,7 +178,200 @@ def cmd_pingpong(ns: argparse.Namespace) -> int:
     return 0 if result["ok"] else 1
 
 
-SUITE = ("pingpong",)
+# --------------------------------------------------------------------------------------------
+# HIL: the real driver core against the real redarm-sim, separate processes, one CAN bus
+# --------------------------------------------------------------------------------------------
+
+# Offsets (rad) from the homed position: every joint moves, all well inside the PA10 limits.
+HIL_DELTA = (0.40, -0.30, 0.50, 0.60, -0.40, 0.30, 0.50)
+
+
+def _min_jerk(s: float) -> float:
+    """Minimum-jerk blend 0..1 for s in [0, 1] (peak speed 1.875 / duration)."""
+    s = min(max(s, 0.0), 1.0)
+    return s * s * s * (10.0 - 15.0 * s + 6.0 * s * s)
+
+
+def _read_json(path: Path) -> dict[str, Any]:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
+
+
+def _bus_cli(ns: argparse.Namespace, prefix: str = "--can-") -> list[str]:
+    kw = _bus_kwargs(ns)
+    out: list[str] = []
+    if "interface" in kw:
+        out += [f"{prefix}interface", kw["interface"]]
+    if "channel" in kw:
+        out += [f"{prefix}channel", kw["channel"]]
+    return out
+
+
+def _malformed_frames() -> list[can.Message]:
+    """Well-formed CAN frames with malformed PowerCube content (each is valid for check=True).
+
+    To modules: FSTEP with a NaN target (module 3), SETMOVE cut short (module 3), an unknown
+    command byte (module 2), GETPARAM without its parameter byte (module 4). To the host: an
+    extended SETMOVE acknowledgement of module 5 cut to 3 bytes.
+    """
+    import struct
+
+    nan_fstep = struct.pack("<BBfH", 0x0B, 0x06, float("nan"), 20)
+    frames = [
+        (0x0E0 + 3, nan_fstep),
+        (0x0E0 + 3, bytes([0x0B, 0x06, 0x00])),
+        (0x0E0 + 2, bytes([0x55])),
+        (0x0C0 + 4, bytes([0x0A])),
+        (0x0A0 + 5, bytes([0x0B, 0x10, 0xFF])),
+    ]
+    return [can.Message(arbitration_id=i, data=d, is_extended_id=False, check=True) for i, d in frames]
+
+
+def cmd_hil(ns: argparse.Namespace) -> int:
+    """Discovery, init/home, a joint trajectory, malformed frames, halt/recover: driver core vs redarm-sim.
+
+    The simulator runs as its own process (``python -m redarm_ros.sim.hardware``); this process
+    owns a :class:`PowerCubeArmDriver` on its own bus. Timeouts are looser than the driver's
+    defaults because the UML guest has one slow CPU shared by both processes (see ``--reply-timeout``).
+    """
+    from redarm_ros.can.bus import open_bus, safe_shutdown
+    from redarm_ros.can.driver_core import DriverState, PowerCubeArmDriver
+    from redarm_ros.kinematics import load_arm
+
+    out = Path(ns.result).parent if ns.result else Path(os.environ.get("TMPDIR", "/tmp"))
+    status_path = out / "sim_status.json"
+    result: dict[str, Any] = {"ok": False, "bus": _bus_kwargs(ns), "cycle_hz": ns.rate,
+                              "reply_timeout_s": ns.reply_timeout, "sim_rate_hz": ns.sim_rate}
+    t_start = time.monotonic()
+    arm = load_arm(ns.arm)
+    sim = _start_child_cmd(
+        [sys.executable, "-m", "redarm_ros.sim.hardware", "--arm", ns.arm, "--rate", str(ns.sim_rate),
+         "--status-file", str(status_path), "--status-rate", "10", "--log-level", "WARNING",
+         *_bus_cli(ns)],
+        "REDARM_SIM_READY", ns.ready_timeout)
+    result["sim_start_s"] = round(time.monotonic() - t_start, 3)
+    bus = None
+    try:
+        bus = open_bus(**_bus_kwargs(ns))
+        drv = PowerCubeArmDriver(
+            bus, list(range(1, arm.n + 1)), arm.lower, arm.upper, arm.max_vel, arm.max_acc,
+            reply_timeout_s=ns.reply_timeout, max_missed=5, home_timeout_s=60.0, poll_interval_s=0.05,
+        )
+        # 1. discovery
+        rep = drv.discover()
+        result["discovery"] = {"found": sorted(rep.found), "missing": rep.missing,
+                               "versions": sorted(set(rep.found.values()))}
+        # 2. init: configure, reset, home
+        t0 = time.monotonic()
+        st = drv.init()
+        result["init"] = {
+            "duration_s": round(time.monotonic() - t0, 3),
+            "positions": [round(float(x), 5) for x in st.positions],
+            "home_ok": [bool(int(s) & 0x2) for s in st.states],
+            "errors": {str(k): int(v) for k, v in st.errors.items()},
+            "state": drv.state.value,
+        }
+        # 3. trajectory: minimum-jerk from the homed position to q0 + HIL_DELTA, then hold
+        q0 = np.asarray(st.positions, dtype=float)
+        goal = np.clip(q0 + np.asarray(HIL_DELTA[: arm.n]), arm.lower + 0.05, arm.upper - 0.05)
+        dt = 1.0 / ns.rate
+        n_move = int(round(ns.duration * ns.rate))
+        n_total = n_move + int(round(ns.hold * ns.rate))
+        inject_at = n_move // 2
+        track_err: list[float] = []
+        periods: list[float] = []
+        lost = late = malformed_seen = 0
+        latencies: list[float] = []
+        prev_target = q0.copy()
+        next_t = time.monotonic()
+        prev_start = None
+        injected = 0
+        for k in range(1, n_total + 1):
+            now = time.monotonic()
+            if now < next_t:
+                time.sleep(next_t - now)
+            start = time.monotonic()
+            if prev_start is not None:
+                periods.append(start - prev_start)
+            prev_start = start
+            next_t = max(next_t + dt, start)  # absolute deadlines; no catch-up burst after a stall
+            q_des = q0 + (goal - q0) * _min_jerk(k / n_move)
+            res = drv.cycle(q_des, dt)
+            lost += res.lost
+            late += res.late
+            malformed_seen += res.malformed
+            latencies.extend(float(x) for x in res.latency_s if np.isfinite(x))
+            if res.fault:
+                result["fault"] = res.fault
+                break
+            # The acknowledged position is the one before this cycle's move: compare with the
+            # previous cycle's commanded target (what the module was asked to reach by now).
+            if res.replied.all():
+                track_err.append(float(np.max(np.abs(res.positions - prev_target))))
+            prev_target = res.targets.copy()
+            if k == inject_at:
+                with can.Bus(**_bus_kwargs(ns)) as raw:
+                    for msg in _malformed_frames():
+                        raw.send(msg)
+                        injected += 1
+        final = drv.read_state()
+        final_err = np.abs(final.positions - goal)
+        time.sleep(0.3)  # let the simulator write a fresh status
+        sim_status = _read_json(status_path)
+        sim_q = np.asarray(sim_status.get("q", [np.nan] * arm.n), dtype=float)
+        result["trajectory"] = {
+            "cycles": len(periods) + 1,
+            "goal": [round(float(x), 5) for x in goal],
+            "max_delta_rad": float(np.max(np.abs(goal - q0))),
+            "tracking_err_max_rad": round(max(track_err), 5) if track_err else None,
+            "tracking_err_median_rad": round(float(np.median(track_err)), 5) if track_err else None,
+            "final_err_max_rad": round(float(final_err.max()), 5),
+            "sim_final_err_max_rad": round(float(np.max(np.abs(sim_q - goal))), 5),
+            "lost_replies": lost,
+            "late_replies": late,
+            "period_median_ms": round(statistics.median(periods) * 1e3, 3) if periods else None,
+            "period_max_ms": round(max(periods) * 1e3, 3) if periods else None,
+            "latency_median_ms": round(statistics.median(latencies) * 1e3, 3) if latencies else None,
+            "latency_max_ms": round(max(latencies) * 1e3, 3) if latencies else None,
+            "state": drv.state.value,
+        }
+        counters = sim_status.get("counters", {})
+        result["malformed"] = {
+            "injected": injected,
+            "to_modules": 4,
+            "to_host": 1,
+            "sim_counted": counters.get("malformed"),
+            "sim_handler_errors": counters.get("handler_errors"),
+            "driver_counted": drv.decoder.malformed,
+            "driver_cycle_counted": malformed_seen,
+            "driver_state_after": drv.state.value,
+        }
+        # 4. halt and recover
+        acked = drv.halt()
+        held = drv.cycle(goal, dt)
+        after_halt = drv.read_state()
+        rec = drv.recover()
+        result["halt_recover"] = {
+            "halt_acked": sorted(acked),
+            "cycle_holding_after_halt": bool(held.holding),
+            "halted_bits": [bool(int(s) & 0x4) for s in after_halt.states],
+            "state_after_recover": drv.state.value,
+            "recover_errors": {str(k): int(v) for k, v in rec.errors.items()},
+        }
+        result["module_stats"] = [s.as_dict() for s in drv.stats]
+        result["ok"] = drv.state is DriverState.READY
+    finally:
+        if bus is not None:
+            safe_shutdown(bus)
+        result["sim_rc"] = _stop_child(sim, grace_s=0.0)
+        result["duration_s"] = round(time.monotonic() - t_start, 3)
+        _write_result(ns.result, result)
+    return 0 if result["ok"] else 1
+
+
+SUITE = ("pingpong", "hil")
 
 
 def cmd_suite(ns: argparse.Namespace) -> int:
@@ -223,6 +426,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--timeout", type=float, default=1.0, help="per round trip [s]")
     p.add_argument("--ready-timeout", type=float, default=60.0, help="echo start-up [s]")
     p.set_defaults(func=cmd_pingpong)
+
+    p = sub.add_parser("hil", help="driver core against redarm-sim")
+    common(p)
+    p.add_argument("--arm", default="pa10")
+    p.add_argument("--rate", type=float, default=50.0, help="driver cycle rate [Hz]")
+    p.add_argument("--sim-rate", type=float, default=500.0, help="simulator physics rate [Hz]")
+    p.add_argument("--reply-timeout", type=float, default=0.1,
+                   help="driver reply timeout [s] (driver default 0.02; the guest is slow)")
+    p.add_argument("--duration", type=float, default=3.0, help="trajectory duration [s]")
+    p.add_argument("--hold", type=float, default=1.0, help="hold at the goal afterwards [s]")
+    p.add_argument("--ready-timeout", type=float, default=60.0, help="simulator start-up [s]")
+    p.set_defaults(func=cmd_hil)
 
     p = sub.add_parser("suite", help="every scenario in turn, results into --out")
     common(p)
