@@ -104,6 +104,12 @@ class Harness:
     def wait_phase(self, phase: str, timeout: float, after: int = 0) -> bool:
         return self.spin_until(lambda: any(s.phase == phase for s in self.states[after:]), timeout)
 
+    def wait_reached(self, timeout: float, after: int = 0) -> bool:
+        """REACHED (commanded pose within tolerance), then a short settle so the last command is in."""
+        ok = self.wait_phase(ControllerState.REACHED, timeout, after)
+        self.spin_until(lambda: False, 0.3)
+        return ok
+
     def close(self) -> None:
         self.ex.shutdown()
         for n in (self.ctl, self.arm.node, self.probe):
@@ -149,7 +155,7 @@ def test_reaches_goal_and_holds(h: Harness) -> None:
     T = goal_from(Q0, (0.05, 0.15, 0.05), rot_z(0.3))
     h.send_goal(T)
     assert h.wait_phase(ControllerState.REACHING, 5.0)
-    assert h.wait_phase(ControllerState.REACHED, 20.0), h.states[-1]
+    assert h.wait_reached(20.0), h.states[-1]
     pe, re = ARM.pose_error(h.arm.q, T)
     assert pe < 1e-3 and re < 0.01
     st = h.states[-1]
@@ -175,7 +181,7 @@ def test_retarget_mid_motion_is_smooth(h: Harness) -> None:
     h.spin_until(lambda: len(h.arm.commands) > 40, 5.0)
     h.send_goal(T2)
     n = len(h.states)
-    assert h.wait_phase(ControllerState.REACHED, 25.0, after=n)
+    assert h.wait_reached(25.0, after=n)
     pe, re = ARM.pose_error(h.arm.q, T2)
     assert pe < 1e-3 and re < 0.01
     assert max_joint_step(h.arm.commands) <= 1.5 * float(np.max(ARM.max_vel)) * 0.01 + 1e-9
@@ -195,7 +201,7 @@ def test_out_of_reach_goal_rejected_arm_holds(h: Harness) -> None:
     assert np.allclose(h.arm.q, q_before)
     # A good goal afterwards is taken.
     h.send_goal(goal_from(Q0, (0.0, 0.1, 0.0)))
-    assert h.wait_phase(ControllerState.REACHED, 20.0)
+    assert h.wait_reached(20.0)
 
 
 def test_foreign_frame_and_nan_goal_rejected(h: Harness) -> None:
@@ -233,7 +239,7 @@ def test_goal_inside_obstacle_rejected_and_obstacles_on_topic(h: Harness) -> Non
     h.obs_pub.publish(MarkerArray(markers=[clear_all]))
     assert h.spin_until(lambda: len(h.ctl.ctl.scene) == 0, 5.0)
     h.send_goal(T)
-    assert h.wait_phase(ControllerState.REACHED, 20.0)
+    assert h.wait_reached(20.0)
 
 
 def test_obstacle_appearing_on_goal_drops_it(h: Harness) -> None:
@@ -273,7 +279,7 @@ def test_goal_before_joint_states_waits(ctx: Any) -> None:
         h.spin_until(lambda: False, 0.3)
         assert h.arm.commands == []
         h.arm.publishing = True
-        assert h.wait_phase(ControllerState.REACHED, 20.0)
+        assert h.wait_reached(20.0)
         assert ARM.pose_error(h.arm.q, T)[0] < 1e-3
     finally:
         h.close()

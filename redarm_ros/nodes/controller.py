@@ -52,6 +52,8 @@ from redarm_ros.nodes._common import ParamSpec, declare_params, in_range, non_ne
 from redarm_ros.nodes.ik_service import check_unique_node_name, pose_msg_to_matrix
 
 NODE_NAME = "controller"
+STILL_WINDOW_S = 0.25  # s of joint_states looked at to decide that the arm stands still
+STILL_TOLERANCE = 1e-3  # rad: largest joint motion within that window of an arm standing still
 
 
 def _finite(value: Any) -> str | None:
@@ -87,9 +89,9 @@ PARAMS = [
     ParamSpec("base_frame", "base_link", "Frame of goals and obstacles ('' frame_id means this one) and of "
               "the published markers.", None),
     ParamSpec("markers_rate_hz", 10.0, "RViz marker rate (Hz, 0 = none).", non_negative),
-    ParamSpec("resync_threshold", 0.2, "If the measured joints differ from the last command by more than "
-              "this (rad, any joint), the controller restarts from the measured state (e.g. after a halt).",
-              positive),
+    ParamSpec("resync_threshold", 0.2, "If the arm stands still while its measured joints differ from the "
+              "last command by more than this (rad, any joint), the controller restarts from the measured "
+              "state (after a halt, homing, a collision).", positive),
     ParamSpec("joint_states_timeout_s", 0.5, "No joint_states for this long (s): stop commanding and warn.",
               positive),
     ParamSpec("duplicate_check_s", 0.5, "At start-up, watch the graph this long (s) for another node of "
@@ -214,6 +216,8 @@ class ControllerNode(Node):
         self._pending_goal: np.ndarray | None = None
         self._goal_T: np.ndarray | None = None
         self._last_step = time.monotonic()
+        self._last_dt = 1.0 / p["rate_hz"]
+        self._meas_hist: list[tuple[float, np.ndarray]] = []
         self._last_cmd: np.ndarray | None = None
         self._markers: dict[tuple[str, int], Any] = {}
         self._last_marker_ids: set[tuple[str, int]] = set()
@@ -268,6 +272,10 @@ class ControllerNode(Node):
             return
         self._q_meas = q
         self._t_meas = time.monotonic()
+        # A short history tells a halted arm (not moving) from one that merely lags the command.
+        self._meas_hist.append((self._t_meas, q))
+        while self._meas_hist and self._t_meas - self._meas_hist[0][0] > STILL_WINDOW_S:
+            self._meas_hist.pop(0)
 
     def _on_goal(self, msg: PoseStamped) -> None:
         if not self._frame_ok(msg.header.frame_id):
@@ -365,6 +373,7 @@ class ControllerNode(Node):
         dt = min(max(now - self._last_step, 0.0), 2.0 * self.period)
         self._last_step = now
         res = self.ctl.step(dt)
+        self._last_dt = dt
         self.steps += 1
         self._last_result = res
         if res.phase is not self._last_phase:
@@ -388,6 +397,13 @@ class ControllerNode(Node):
         dev = float(np.max(np.abs(self._q_meas - q_cmd)))
         if dev <= self.get_parameter("resync_threshold").value:
             return
+        # A moving arm lagging behind (acceleration limits, homing) is left alone; only a still one
+        # (halted, blocked) far from the command means the plan and the arm have parted.
+        hist = self._meas_hist
+        if not hist or hist[-1][0] - hist[0][0] < 0.8 * STILL_WINDOW_S:
+            return
+        if float(np.max(np.ptp(np.array([h[1] for h in hist]), axis=0))) > STILL_TOLERANCE:
+            return
         goal = self._goal_T
         self.ctl.reset(self._q_meas)
         self._last_cmd = None
@@ -401,12 +417,14 @@ class ControllerNode(Node):
             self.get_logger().info(f"measured joints moved by {dev:.3f} rad; restarting from them")
 
     def _publish_command(self, q: np.ndarray) -> None:
+        # The point is reached after the time the step covered (a late timer tick covers more motion),
+        # so the driver's velocity check sees the speed the controller planned.
+        dt = max(self._last_dt, 1e-3)
+        sec = int(dt)
         msg = JointTrajectory()
         msg.joint_names = self._names
-        sec = int(self.period)
         msg.points = [JointTrajectoryPoint(positions=[float(v) for v in q],
-                                           time_from_start=Duration(sec=sec,
-                                                                    nanosec=int((self.period - sec) * 1e9)))]
+                                           time_from_start=Duration(sec=sec, nanosec=int((dt - sec) * 1e9)))]
         self.cmd_pub.publish(msg)
         self._last_cmd = q.copy()
 
