@@ -186,8 +186,13 @@ def _collect(out_dir: Path) -> dict[str, dict[str, Any]]:
     return results
 
 
+# DDS isolation handed into the guest (the conftest's session fixture set these in os.environ).
+# ROS_LOG_DIR is not passed: the host's is read-only in the guest, which has its own on a tmpfs.
+_DDS_ENV_KEYS = ("FASTDDS_BUILTIN_TRANSPORTS", "ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE")
+
+
 @pytest.fixture(scope="module")
-def scenario_run(tmp_path_factory: pytest.TempPathFactory) -> ScenarioRun:
+def scenario_run(tmp_path_factory: pytest.TempPathFactory, ros_env: Any) -> ScenarioRun:
     """Run the scenario suite once: natively if REDARM_TEST_SOCKETCAN names a channel, else in UML."""
     out_dir = tmp_path_factory.mktemp("socketcan")
     python = sys.executable
@@ -206,7 +211,8 @@ def scenario_run(tmp_path_factory: pytest.TempPathFactory) -> ScenarioRun:
     guest = runner.run_guest(
         [python, *_suite_args("vcan0", out_dir)],
         out_dir,
-        env={"PYTHONPATH": str(REPO_ROOT), "PYTHONUNBUFFERED": "1"},
+        env={"PYTHONPATH": str(REPO_ROOT), "PYTHONUNBUFFERED": "1",
+             **{k: os.environ[k] for k in _DDS_ENV_KEYS if k in os.environ}},
         cwd=str(REPO_ROOT),
         timeout_s=GUEST_TIMEOUT_S,
     )
@@ -296,3 +302,23 @@ def test_hil_halt_and_recover(scenario_run: ScenarioRun) -> None:
     assert hr["halt_acked"] == list(range(1, N_MODULES + 1))
     assert hr["cycle_holding_after_halt"] and hr["halted_bits"] == [True] * N_MODULES
     assert hr["state_after_recover"] == "ready" and hr["recover_errors"] == {}
+
+
+# --------------------------------------------------------------------------------------------
+# ROS: the can_driver node (rclpy, Fast DDS over SHM) in the same setting
+# --------------------------------------------------------------------------------------------
+
+
+@pytest.mark.uml
+@pytest.mark.slow
+def test_ros_can_driver_node_follows_a_trajectory(scenario_run: ScenarioRun) -> None:
+    """~/init, a JointTrajectory on /joint_command followed on /joint_states, ~/halt, ~/recover."""
+    ros = scenario_run.get("ros")
+    assert ros.get("init", {}).get("success"), ros
+    tr = ros.get("trajectory")
+    assert tr is not None, ros
+    assert tr["reached"] and tr["final_err_max_rad"] < FINAL_TOL_RAD, tr
+    # /joint_states streams every cycle; a loaded one-CPU guest drops cycles, not the stream.
+    assert tr["joint_states_received"] > 0 and tr["joint_states_rate_hz"] > 0.2 * ros["rate_hz"], tr
+    assert ros["halt"]["success"] and ros["recover"]["success"], ros
+    assert ros["node_rc"] == 0 and ros["sim_rc"] == 0, ros

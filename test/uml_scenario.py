@@ -371,7 +371,147 @@ def cmd_hil(ns: argparse.Namespace) -> int:
     return 0 if result["ok"] else 1
 
 
-SUITE = ("pingpong", "hil")
+# --------------------------------------------------------------------------------------------
+# ROS: the can_driver node (its own process) against redarm-sim, driven from a client node
+# --------------------------------------------------------------------------------------------
+
+
+def _ros_env_defaults() -> None:
+    """Keep DDS on this machine: SHM transport only and a private domain, unless already set."""
+    import random
+
+    os.environ.setdefault("FASTDDS_BUILTIN_TRANSPORTS", "SHM")
+    os.environ.setdefault("ROS_DOMAIN_ID", str(random.SystemRandom().randint(1, 200)))
+    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    if os.environ["FASTDDS_BUILTIN_TRANSPORTS"] != "SHM":
+        raise RuntimeError("refusing to start DDS without FASTDDS_BUILTIN_TRANSPORTS=SHM")
+
+
+def cmd_ros(ns: argparse.Namespace) -> int:
+    """``can_driver`` node + ``redarm-sim`` over the bus; a client node calls ~/init, sends a
+    JointTrajectory on /joint_command, watches /joint_states, then ~/halt and ~/recover."""
+    _ros_env_defaults()
+    out = Path(ns.result).parent if ns.result else Path(os.environ.get("TMPDIR", "/tmp"))
+    result: dict[str, Any] = {"ok": False, "bus": _bus_kwargs(ns), "rate_hz": ns.rate,
+                              "reply_timeout_s": ns.reply_timeout, "domain_id": os.environ["ROS_DOMAIN_ID"]}
+    t_start = time.monotonic()
+    t0 = time.monotonic()
+    import rclpy
+    from builtin_interfaces.msg import Duration
+    from sensor_msgs.msg import JointState
+    from std_srvs.srv import Trigger
+    from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+
+    from redarm_ros.kinematics import load_arm
+
+    result["import_rclpy_s"] = round(time.monotonic() - t0, 3)
+    arm = load_arm(ns.arm)
+    sim = _start_child_cmd(
+        [sys.executable, "-m", "redarm_ros.sim.hardware", "--arm", ns.arm, "--rate", str(ns.sim_rate),
+         "--status-file", str(out / "ros_sim_status.json"), "--status-rate", "10", "--log-level", "WARNING",
+         *_bus_cli(ns)],
+        "REDARM_SIM_READY", ns.ready_timeout)
+    kw = _bus_kwargs(ns)
+    node_log = open(out / "can_driver_node.log", "w")  # closed in finally
+    node_cmd = [sys.executable, "-m", "redarm_ros.nodes.can_driver", "--ros-args",
+                "-p", f"arm:={ns.arm}", "-p", f"rate_hz:={float(ns.rate)}",
+                "-p", f"reply_timeout_s:={float(ns.reply_timeout)}", "-p", "max_missed_replies:=5",
+                "-p", "request_timeout_s:=60.0", "-p", f"watchdog:={ns.watchdog}"]
+    if "interface" in kw:
+        node_cmd += ["-p", f"can.interface:={kw['interface']}"]
+    if "channel" in kw:
+        node_cmd += ["-p", f"can.channel:={kw['channel']}"]
+    t0 = time.monotonic()
+    node_proc = subprocess.Popen(node_cmd, stdout=node_log, stderr=subprocess.STDOUT, text=True)
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    client = None
+    try:
+        client = rclpy.create_node("uml_scenario_client", context=ctx)
+        from rclpy.executors import SingleThreadedExecutor
+
+        ex = SingleThreadedExecutor(context=ctx)
+        ex.add_node(client)
+        latest: dict[str, Any] = {"q": None, "count": 0}
+
+        def on_js(msg: JointState) -> None:
+            if list(msg.name) == list(arm.joint_names):
+                latest["q"] = np.array(msg.position, dtype=float)
+                latest["count"] += 1
+
+        client.create_subscription(JointState, "/joint_states", on_js, 10)
+        pub = client.create_publisher(JointTrajectory, "/joint_command", 10)
+        services = {a: client.create_client(Trigger, f"/can_driver/{a}") for a in ("init", "halt", "recover")}
+
+        def spin_until(pred: Any, timeout_s: float) -> bool:
+            end = time.monotonic() + timeout_s
+            while time.monotonic() < end:
+                if pred():
+                    return True
+                if node_proc.poll() is not None:
+                    raise RuntimeError(f"can_driver exited with {node_proc.returncode}")
+                ex.spin_once(timeout_sec=0.02)
+            return bool(pred())
+
+        def call(action: str) -> dict[str, Any]:
+            t = time.monotonic()
+            fut = services[action].call_async(Trigger.Request())
+            # spin_once until done: spin_until_future_complete adds 20-80 ms per call here.
+            done = spin_until(fut.done, 90.0)
+            resp = fut.result() if done else None
+            return {"success": bool(resp and resp.success), "message": resp.message if resp else "timeout",
+                    "duration_s": round(time.monotonic() - t, 3)}
+
+        if not spin_until(lambda: services["init"].service_is_ready(), ns.ready_timeout):
+            raise RuntimeError("can_driver's ~/init service did not appear")
+        result["node_start_s"] = round(time.monotonic() - t0, 3)
+        result["init"] = call("init")
+        got_state = spin_until(lambda: latest["q"] is not None, 20.0)
+        result["joint_states_before"] = got_state
+        spin_until(lambda: pub.get_subscription_count() > 0, 20.0)
+        q0 = latest["q"].copy() if latest["q"] is not None else np.zeros(arm.n)
+        goal = np.clip(q0 + np.asarray(HIL_DELTA[: arm.n]), arm.lower + 0.05, arm.upper - 0.05)
+        traj = JointTrajectory()
+        traj.joint_names = list(arm.joint_names)
+        for frac, t_s in ((0.5, ns.duration / 2), (1.0, ns.duration)):
+            pt = JointTrajectoryPoint()
+            pt.positions = (q0 + (goal - q0) * frac).tolist()
+            pt.time_from_start = Duration(sec=int(t_s), nanosec=int((t_s % 1) * 1e9))
+            traj.points.append(pt)
+        count0 = latest["count"]
+        t_pub = time.monotonic()
+        pub.publish(traj)
+        reached = spin_until(
+            lambda: latest["q"] is not None and float(np.max(np.abs(latest["q"] - goal))) < ns.tolerance,
+            ns.duration + 15.0)
+        time_to_reach = time.monotonic() - t_pub
+        spin_until(lambda: False, 1.0)  # settle, then judge the final position
+        dt_js = time.monotonic() - t_pub
+        result["trajectory"] = {
+            "goal": [round(float(x), 5) for x in goal],
+            "reached": reached,
+            "time_to_reach_s": round(time_to_reach, 3),
+            "final_err_max_rad": round(float(np.max(np.abs(latest["q"] - goal))), 5),
+            "joint_states_received": latest["count"] - count0,
+            "joint_states_rate_hz": round((latest["count"] - count0) / dt_js, 1),
+        }
+        result["halt"] = call("halt")
+        result["recover"] = call("recover")
+        result["ok"] = bool(result["init"]["success"] and reached and result["halt"]["success"]
+                            and result["recover"]["success"])
+    finally:
+        if client is not None:
+            client.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+        result["node_rc"] = _stop_child(node_proc, grace_s=0.0)
+        node_log.close()
+        result["sim_rc"] = _stop_child(sim, grace_s=0.0)
+        result["duration_s"] = round(time.monotonic() - t_start, 3)
+        _write_result(ns.result, result)
+    return 0 if result["ok"] else 1
+
+
+SUITE = ("pingpong", "hil", "ros")
 
 
 def cmd_suite(ns: argparse.Namespace) -> int:
@@ -431,13 +571,30 @@ def build_parser() -> argparse.ArgumentParser:
     common(p)
     p.add_argument("--arm", default="pa10")
     p.add_argument("--rate", type=float, default=50.0, help="driver cycle rate [Hz]")
-    p.add_argument("--sim-rate", type=float, default=500.0, help="simulator physics rate [Hz]")
-    p.add_argument("--reply-timeout", type=float, default=0.1,
+    p.add_argument("--sim-rate", type=float, default=200.0,
+                   help="simulator physics rate [Hz] (sim default 1000; the guest has one slow CPU)")
+    p.add_argument("--reply-timeout", type=float, default=0.5,
                    help="driver reply timeout [s] (driver default 0.02; the guest is slow)")
     p.add_argument("--duration", type=float, default=3.0, help="trajectory duration [s]")
     p.add_argument("--hold", type=float, default=1.0, help="hold at the goal afterwards [s]")
     p.add_argument("--ready-timeout", type=float, default=60.0, help="simulator start-up [s]")
     p.set_defaults(func=cmd_hil)
+
+    p = sub.add_parser("ros", help="can_driver node against redarm-sim, driven over ROS")
+    common(p)
+    p.add_argument("--arm", default="pa10")
+    p.add_argument("--rate", type=float, default=50.0, help="node cycle rate [Hz] (node default 250)")
+    p.add_argument("--sim-rate", type=float, default=200.0,
+                   help="simulator physics rate [Hz] (sim default 1000; the guest has one slow CPU)")
+    p.add_argument("--reply-timeout", type=float, default=0.5,
+                   help="node reply_timeout_s [s] (node default 0.02; the guest is slow)")
+    p.add_argument("--watchdog", choices=("true", "false"), default="false",
+                   help="node 'watchdog' parameter (node default true; the modules' 100 ms watchdog "
+                        "cannot be held by a loaded one-CPU guest)")
+    p.add_argument("--duration", type=float, default=3.0, help="trajectory duration [s]")
+    p.add_argument("--tolerance", type=float, default=0.01, help="goal reached within [rad]")
+    p.add_argument("--ready-timeout", type=float, default=90.0, help="simulator / node start-up [s]")
+    p.set_defaults(func=cmd_ros)
 
     p = sub.add_parser("suite", help="every scenario in turn, results into --out")
     common(p)
