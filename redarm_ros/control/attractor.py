@@ -167,24 +167,21 @@ class HeadingDynamics:
         dx, dy, dz = target[0] - ee[0], target[1] - ee[1], target[2] - ee[2]
         phi_tar, theta_tar = heading_angles((dx, dy, dz), phi)
         dxy_tar = math.hypot(dx, dy)
-        # The azimuth matters in proportion to the horizontal part of the target direction.
-        dphi = math.cos(theta_tar) * target_attractor(phi, phi_tar, p.lam_tar)
+        # (Straight above/below the target heading_angles returns phi_tar = phi: no azimuth drive.)
+        dphi = target_attractor(phi, phi_tar, p.lam_tar)
         dtheta = target_attractor(theta, theta_tar, p.lam_tar)
         f_phi = 0.0
         f_theta = 0.0
         for o in obstacles:
-            c = o.center
-            ox, oy = c[0] - ee[0], c[1] - ee[1]
-            dxy = math.hypot(ox, oy)
-            rf = o.footprint_radius
-            near = dxy - rf
+            fp = o.footprint(ee[0], ee[1])
+            near = fp.near
             # Obstacles whose near edge lies beyond the target do not constrain the path.
             gate = _logistic((dxy_tar - near) / p.target_gate) if p.target_gate > 0 else 1.0
             if gate < 1e-6:
                 continue
-            phi_i = math.atan2(oy, ox) if dxy > 1e-12 else phi  # eq. (17)
+            phi_i = fp.direction  # eq. (17), for the middle of the footprint as seen from the hand
             d_i = o.signed_distance(ee)
-            delta = math.asin(min(1.0, rf / dxy)) if dxy > rf else 0.5 * math.pi
+            delta = fp.half_angle
             dphi_i = wrap_angle(phi - phi_i)
             rng = range_function(dphi_i, delta, p.beta, p.range_margin)
             # Height still needed to pass above the top with the margin (m).
@@ -195,7 +192,7 @@ class HeadingDynamics:
             # Reach the clearance height a little before the near edge (the hand has a size).
             # Soft floor on the horizontal distance keeps theta_c continuous over the footprint.
             near_c = max(near - p.edge_margin, p.edge_soft)
-            far = max(min(dxy + rf, dxy_tar), near_c)
+            far = max(min(fp.far, dxy_tar), near_c)
             theta_c = max(math.atan2(h_need, near_c), math.atan2(h_need, far))
             if theta_c > theta:
                 w = gate * rng * math.exp(-max(d_i, 0.0) / p.d0_up)

@@ -72,6 +72,30 @@ def _positive(value: Any, field_name: str) -> float:
 
 
 @dataclass(frozen=True)
+class Footprint:
+    """How a shape's footprint (its projection on the xy plane) is seen from a point (top view).
+
+    direction: azimuth (rad) of the middle of the footprint's angular extent; half_angle: half of that
+    extent (rad; pi/2 when the point is over the footprint); near / far: smallest and largest
+    horizontal distance (m) from the point to the footprint.
+    """
+
+    direction: float
+    half_angle: float
+    near: float
+    far: float
+
+
+def _circle_footprint(cx: float, cy: float, r: float, x: float, y: float) -> Footprint:
+    dx, dy = cx - x, cy - y
+    d = math.hypot(dx, dy)
+    direction = math.atan2(dy, dx) if d > 1e-12 else 0.0
+    if d <= r:
+        return Footprint(direction, 0.5 * math.pi, 0.0, d + r)
+    return Footprint(direction, math.asin(r / d), d - r, d + r)
+
+
+@dataclass(frozen=True)
 class Sphere:
     """Sphere: ``center`` (m, base frame), ``radius`` (m)."""
 
@@ -92,6 +116,10 @@ class Sphere:
     def footprint_radius(self) -> float:
         """Radius (m) of a vertical circle around ``center`` that covers the shape seen from above."""
         return self.radius
+
+    def footprint(self, x: float, y: float) -> Footprint:
+        """Top view of the shape from (x, y) (m)."""
+        return _circle_footprint(self.center[0], self.center[1], self.radius, x, y)
 
     def signed_distance(self, p: Sequence[float]) -> float:
         """Signed distance (m) from point ``p`` to the surface (negative inside)."""
@@ -130,6 +158,10 @@ class Cylinder:
     def footprint_radius(self) -> float:
         """Radius (m) of a vertical circle around ``center`` that covers the shape seen from above."""
         return self.radius
+
+    def footprint(self, x: float, y: float) -> Footprint:
+        """Top view of the shape from (x, y) (m)."""
+        return _circle_footprint(self.center[0], self.center[1], self.radius, x, y)
 
     def signed_distance(self, p: Sequence[float]) -> float:
         """Signed distance (m) from point ``p`` to the surface (negative inside)."""
@@ -190,6 +222,30 @@ class Box:
         c, s = self._cs
         dx, dy = p[0] - self.center[0], p[1] - self.center[1]
         return (c * dx + s * dy, -s * dx + c * dy, p[2] - self.center[2])
+
+    def footprint(self, x: float, y: float) -> Footprint:
+        """Top view of the shape from (x, y) (m): the exact rectangle, not a covering circle."""
+        lx, ly, _ = self._local((x, y, 0.0))
+        hx, hy = 0.5 * self.size[0], 0.5 * self.size[1]
+        ex, ey = max(abs(lx) - hx, 0.0), max(abs(ly) - hy, 0.0)
+        near = math.hypot(ex, ey)
+        c, s = self._cs
+        dx, dy = self.center[0] - x, self.center[1] - y
+        d = math.hypot(dx, dy)
+        direction = math.atan2(dy, dx) if d > 1e-12 else 0.0
+        far = 0.0
+        lo = hi = 0.0
+        for sx, sy in ((hx, hy), (hx, -hy), (-hx, hy), (-hx, -hy)):
+            cx = dx + c * sx - s * sy  # corner relative to the point
+            cy = dy + s * sx + c * sy
+            far = max(far, math.hypot(cx, cy))
+            a = math.atan2(cy, cx) - direction
+            a = (a + math.pi) % (2.0 * math.pi) - math.pi
+            lo, hi = min(lo, a), max(hi, a)
+        if near == 0.0:
+            return Footprint(direction, 0.5 * math.pi, 0.0, far)
+        mid = direction + 0.5 * (lo + hi)
+        return Footprint(math.atan2(math.sin(mid), math.cos(mid)), 0.5 * (hi - lo), near, far)
 
     def signed_distance(self, p: Sequence[float]) -> float:
         """Signed distance (m) from point ``p`` to the surface (negative inside)."""

@@ -50,7 +50,8 @@ class SwivelParams:
     obstacle amplitude is ``obs_ref / max(|d|, obs_min) - obs_ref / obs_influence`` (inverse distance).
     grad_scale: clearance gradient (m/rad) at which the force direction saturates (smooth sign).
     up_bias: m/rad added to the clearance gradient in the direction that raises the elbow, so that a
-    symmetric situation resolves upward (the arm passes above obstacles, never below).
+    symmetric situation resolves upward (the arm passes above obstacles, never below); keep it below
+    grad_scale so that it only breaks ties.
     sing_threshold: singularity measure (|sin| of the shoulder/wrist pitch) below which F_sing acts.
     lim_threshold: joint-limit margin (rad) below which F_lim acts.
     max_rate: clamp on |ds/dt| (rad/s).
@@ -66,7 +67,7 @@ class SwivelParams:
     obs_ref: float = 0.03
     obs_min: float = 0.005
     grad_scale: float = 0.02
-    up_bias: float = 0.05
+    up_bias: float = 0.01
     sing_threshold: float = 0.2
     lim_threshold: float = 0.3
     max_rate: float = 1.0
@@ -230,7 +231,8 @@ class SwivelDynamics:
         ptsm = circle.key_points_u(*um)
         # Elbow height slope along +s, used to resolve symmetric cases upward.
         dz = (ptsp[2][2] - ptsm[2][2]) / (2.0 * p.eps)
-        up_bias = p.up_bias * smooth_sign(dz, 1e-3)
+        # Tie-break only (|up_bias| < grad_scale), fading out at the top of the circle where dz ~ 0.
+        up_bias = p.up_bias * smooth_sign(dz, 0.05)
         f_obs = 0.0
         d0 = math.inf
         grad = 0.0

@@ -1,0 +1,436 @@
+"""Reproductions of the two papers' examples, written as PNG plots plus a metrics table.
+
+    python -m redarm_ros.control.reproductions --out repro_output            # full size
+    python -m redarm_ros.control.reproductions --out /tmp/r --quick          # reduced size (tests)
+
+Scenarios (PA10, 100 Hz, forward Euler):
+
+* ``swivel1`` -- swivel paper, example 1: the tool circles three times in a horizontal plane at
+  constant orientation near a spherical obstacle; the swivel follows eq. (32) with a fixed ``s_des``
+  for several values. Plots: s(t) with and without the obstacle; the elbow path on the shoulder sphere
+  S1 for ``s_des = -pi/2`` with (red) and without (dashed blue) the obstacle.
+* ``swivel2`` -- example 2: the same motion with a linearly increasing ``s_des``; integrated in the
+  swivel-quaternion form (no trigonometry in the loop). Same plots.
+* ``narrow`` -- attractor paper, "cluttered environment": a target on the table surrounded by three
+  obstacles (U shape, narrow passage); the hand passes over the front wall and dives behind it.
+* ``moved_target`` -- the target is displaced mid-reach (paper fig. 7).
+* ``appearing_obstacle`` -- an obstacle appears on the path mid-reach (paper fig. 8).
+
+For each scenario: reached / final position error, minimum clearance arm-obstacles (> 0 means
+collision-free; capsules from FK of the commanded joints), joint-limit margin, path length over
+straight-line length, peak tool jerk. Matplotlib (Agg) is imported only here.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import sys
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from redarm_ros.control.elbow import ArmGeometry, elbow_circle
+from redarm_ros.control.obstacles import ArmCapsules, Cylinder, Scene, Sphere, links_clearance, load_scene
+from redarm_ros.control.reach_controller import ControllerParams, ReachController
+from redarm_ros.control.simulate import Trajectory, evaluate, peak_jerk, run_controller
+from redarm_ros.control.swivel_dynamics import SwivelDynamics, SwivelParams, wrap_angle
+
+LOG = logging.getLogger(__name__)
+DT = 0.01
+
+
+@dataclass
+class ScenarioReport:
+    """Scores of one reproduction run (units: m, rad, m/s^3); ``reached`` is None for tracking runs."""
+
+    scenario: str
+    variant: str
+    reached: bool | None
+    pos_err: float
+    min_clearance: float
+    limit_margin: float
+    path_ratio: float
+    peak_jerk: float
+    note: str = ""
+
+
+def _pose(p: Sequence[float], R: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = p
+    return T
+
+
+def _down(yaw: float = 0.0) -> np.ndarray:
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([[c, s, 0.0], [s, -c, 0.0], [0.0, 0.0, -1.0]])
+
+
+# Tool pointing forward (+x), horizontal: keeps the PA10 wrist above the shoulder for the circles.
+_FORWARD = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])
+
+
+# ------------------------------------------------------------------------------------------------
+# Swivel paper examples
+# ------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class SwivelRun:
+    t: np.ndarray
+    s: np.ndarray
+    s_des: np.ndarray
+    elbow: np.ndarray
+    q: np.ndarray
+    clearance: np.ndarray
+
+
+def circle_path(t: float, period: float, center: Sequence[float], radius: float) -> np.ndarray:
+    """Tool position (m) on the horizontal circle at time t (s)."""
+    w = 2.0 * math.pi * t / period
+    return np.array([center[0] + radius * math.cos(w), center[1] + radius * math.sin(w), center[2]])
+
+
+def run_swivel_example(arm: Any, scene: Scene, s_des_fn: Any, laps: float = 3.0, period: float = 4.0,
+                       center: Sequence[float] = (0.5, 0.0, 0.62), radius: float = 0.12,
+                       quaternion_form: bool = False, params: SwivelParams | None = None,
+                       capsules: ArmCapsules | None = None) -> SwivelRun:
+    """Tool circling ``laps`` times at constant orientation; swivel from eq. (32); IK each step.
+
+    ``s_des_fn(t)`` gives the desired swivel (rad). With ``quaternion_form`` the state is the swivel
+    quaternion u and the loop uses no trigonometric call (probes r+/- u with constant cos/sin eps).
+    The joint solution at each step is the in-limit one nearest the previous (no branch flip).
+    """
+    caps = capsules or ArmCapsules()
+    geom = ArmGeometry.from_arm(arm)
+    dyn = SwivelDynamics(params or SwivelParams(lam_des=0.5, lam_obs=0.5, lam_sing=0.0, lam_lim=0.0,
+                                                max_rate=3.0, obs_influence=0.2))
+    n = int(round(laps * period / DT))
+    s = float(s_des_fn(0.0))
+    u = (math.cos(s), math.sin(s))
+    q_prev: np.ndarray | None = None
+    ts, ss, sds, elbows, qs, clears = [], [], [], [], [], []
+    for k in range(n + 1):
+        t = k * DT
+        T = _pose(circle_path(t, period, center, radius), _FORWARD)
+        circle = elbow_circle(geom, T)
+        sd = float(s_des_fn(t))
+        if k > 0:
+            if quaternion_form:
+                ud = (math.cos(sd), math.sin(sd))  # the desired value is an input, not in the loop
+                f = dyn.forces_u(circle, u, scene, caps)
+                u = dyn.step_u(u, ud, DT, f)
+                s = math.atan2(u[1], u[0])  # for plotting only
+            else:
+                f = dyn.forces(circle, s, scene, caps)
+                s = dyn.step(s, sd, DT, f)
+        sols = arm.ik_u(T, (u[0], u[1], 0.0)) if quaternion_form else arm.ik(T, s)
+        if sols.shape[0]:
+            if q_prev is None:  # start on the branch farthest from the joint limits
+                margins = np.min(np.minimum(sols - arm.lower, arm.upper - sols), axis=1)
+                q = sols[int(np.argmax(margins))]
+            else:
+                q = sols[int(np.argmin(np.max(np.abs(sols - q_prev), axis=1)))]
+            q_prev = q
+        qs.append(q_prev if q_prev is not None else np.full(arm.n, np.nan))
+        ts.append(t)
+        ss.append(s)
+        sds.append(sd)
+        elbows.append(circle.elbow(s))
+        clears.append(links_clearance(circle.key_points(s), scene, caps).distance)
+    return SwivelRun(np.array(ts), np.array(ss), np.array(sds), np.array(elbows), np.array(qs),
+                     np.array(clears))
+
+
+def _swivel_report(arm: Any, name: str, variant: str, run: SwivelRun) -> ScenarioReport:
+    q = run.q
+    valid = np.all(np.isfinite(q), axis=1)
+    qv = q[valid]
+    margin = float(np.min(np.minimum(qv - arm.lower, arm.upper - qv))) if valid.any() else -math.inf
+    note = "" if valid.all() else f"{int((~valid).sum())} steps without an in-limit IK solution"
+    if not note:
+        dev = np.abs([wrap_angle(a - b) for a, b in zip(run.s, run.s_des, strict=True)])
+        note = f"max abs(s - s_des) {dev.max():.2f} rad"
+    return ScenarioReport(name, variant, None, 0.0, float(np.min(run.clearance)), margin, float("nan"),
+                          peak_jerk(run.elbow, DT), note)
+
+
+def swivel_scene() -> Scene:
+    """The spherical obstacle of the swivel examples (config/scenes/swivel_sphere.yaml)."""
+    return load_scene("swivel_sphere")
+
+
+def reproduce_swivel(arm: Any, out: Path, quick: bool, example: int) -> list[ScenarioReport]:
+    """Swivel paper example 1 (fixed s_des) or 2 (ramp s_des, quaternion form)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    scene = swivel_scene()
+    empty = Scene()
+    laps = 1.0 if quick else 3.0
+    reports = []
+    if example == 1:
+        # The upper half of the elbow circle (s in [pi/2, 3pi/2]): with the PA10 shoulder limit of
+        # +/-91 deg the lower half has no in-limit solution for these tool poses.
+        # (s = pi, the elbow straight up, needs theta1 or theta3 at +/-180 deg: outside the limits.)
+        values = [-math.pi / 2, 3 * math.pi / 4] if quick else [
+            -math.pi / 2, -3 * math.pi / 4, -0.9 * math.pi, 3 * math.pi / 4, math.pi / 2]
+        runs = {}
+        for v in values:
+            runs[v] = (run_swivel_example(arm, scene, lambda t, v=v: v, laps),
+                       run_swivel_example(arm, empty, lambda t, v=v: v, laps))
+        fig, ax = plt.subplots(figsize=(8, 4.5))
+        for i, v in enumerate(values):
+            with_o, without = runs[v]
+            c = f"C{i}"
+            ax.plot(with_o.t, with_o.s, color=c, label=f"s_des = {v:+.2f}")
+            ax.plot(without.t, without.s, color=c, ls="--", lw=0.8)
+        ax.set_xlabel("t [s]")
+        ax.set_ylabel("swivel s [rad]")
+        ax.set_title("Example 1: s(t) for fixed s_des with the obstacle (solid), without (dashed)")
+        ax.legend(fontsize=8, loc="best")
+        fig.tight_layout()
+        fig.savefig(out / "swivel_example1_s.png", dpi=110)
+        plt.close(fig)
+        with_o, without = runs[-math.pi / 2]
+        _elbow_sphere_plot(arm, scene, with_o, without, out / "swivel_example1_elbow.png",
+                           "Example 1: elbow on S1, s_des = -pi/2")
+        for v in values:
+            reports.append(_swivel_report(arm, "swivel1", f"s_des={v:+.2f} obstacle", runs[v][0]))
+            reports.append(_swivel_report(arm, "swivel1", f"s_des={v:+.2f} free", runs[v][1]))
+    else:
+        period = 4.0
+        total = laps * period
+
+        def ramp(t: float) -> float:  # from pi/2 (elbow left) over the top to 3pi/2 (right, the ball)
+            return wrap_angle(0.5 * math.pi + math.pi * t / total)
+
+        with_o = run_swivel_example(arm, scene, ramp, laps, quaternion_form=True)
+        without = run_swivel_example(arm, empty, ramp, laps, quaternion_form=True)
+        fig, ax = plt.subplots(figsize=(8, 4.5))
+        ax.plot(with_o.t, np.unwrap(with_o.s), "r", label="s with obstacle")
+        ax.plot(without.t, np.unwrap(without.s), "b--", lw=0.8, label="s without obstacle")
+        ax.plot(with_o.t, np.unwrap(with_o.s_des), "k:", label="s_des (ramp)")
+        ax.set_xlabel("t [s]")
+        ax.set_ylabel("swivel s [rad] (unwrapped)")
+        ax.set_title("Example 2: linearly increasing s_des, swivel-quaternion form")
+        ax.legend(fontsize=8)
+        fig.tight_layout()
+        fig.savefig(out / "swivel_example2_s.png", dpi=110)
+        plt.close(fig)
+        _elbow_sphere_plot(arm, scene, with_o, without, out / "swivel_example2_elbow.png",
+                           "Example 2: elbow on S1, ramp s_des")
+        reports.append(_swivel_report(arm, "swivel2", "ramp obstacle", with_o))
+        reports.append(_swivel_report(arm, "swivel2", "ramp free", without))
+    return reports
+
+
+def _elbow_sphere_plot(arm: Any, scene: Scene, with_o: SwivelRun, without: SwivelRun, path: Path,
+                       title: str) -> None:
+    import matplotlib.pyplot as plt
+
+    geom = ArmGeometry.from_arm(arm)
+    ps = np.asarray(geom.shoulder)
+    fig = plt.figure(figsize=(6.5, 6))
+    ax = fig.add_subplot(111, projection="3d")
+    u, v = np.mgrid[0:2 * np.pi:40j, 0:np.pi:20j]
+    r = geom.upper
+    ax.plot_wireframe(ps[0] + r * np.cos(u) * np.sin(v), ps[1] + r * np.sin(u) * np.sin(v),
+                      ps[2] + r * np.cos(v), color="0.85", lw=0.4)
+    ax.plot(*with_o.elbow.T, "r", lw=1.5, label="elbow, with obstacle")
+    ax.plot(*without.elbow.T, "b--", lw=1.0, label="elbow, without obstacle")
+    for o in scene.obstacles:
+        if isinstance(o, Sphere):
+            c = np.asarray(o.center)
+            rr = o.radius
+            ax.plot_surface(c[0] + rr * np.cos(u) * np.sin(v), c[1] + rr * np.sin(u) * np.sin(v),
+                            c[2] + rr * np.cos(v), color="red", alpha=0.35, lw=0)
+    ax.scatter(*ps, color="k", s=20)
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_zlabel("z [m]")
+    ax.set_title(title, fontsize=10)
+    ax.legend(fontsize=8, loc="upper left")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+# ------------------------------------------------------------------------------------------------
+# Attractor paper scenarios
+# ------------------------------------------------------------------------------------------------
+
+
+def _start(arm: Any, p: Sequence[float], yaw: float = 0.0) -> np.ndarray:
+    q, info = arm.ik_nearest(_pose(p, _down(yaw)), np.array([0.0, 0.6, 0.0, 1.6, 0.0, 1.0, 0.0]))
+    if q is None:
+        raise RuntimeError(f"no start posture for {p}: {info.message}")
+    return q
+
+
+def _reach_report(arm: Any, name: str, variant: str, scene: Scene, tr: Trajectory, T_goal: np.ndarray,
+                  note: str = "") -> ScenarioReport:
+    m = evaluate(arm, scene, tr.q, T_goal, DT, tr.step_s, tr.reached_at)
+    return ScenarioReport(name, variant, m.reached, m.pos_err, m.min_clearance, m.limit_margin,
+                          m.path_ratio, m.peak_jerk, note)
+
+
+def _reach_plot(arm: Any, scenes: list[tuple[float, Scene]], tr: Trajectory, goals: list[np.ndarray],
+                path: Path, title: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Circle, Polygon
+
+    fig, axes = plt.subplots(2, 2, figsize=(11, 8))
+    top, side, dist, sw = axes.ravel()
+    for t0, scene in scenes:
+        alpha = 0.35 if t0 == 0.0 else 0.2
+        for o in scene.obstacles:
+            c = o.center
+            if isinstance(o, Sphere | Cylinder):
+                top.add_patch(Circle(c[:2], o.footprint_radius, color="C3", alpha=alpha))
+                fr, bottom = o.footprint_radius, o.top - 2 * (o.top - c[2])
+                side.add_patch(Polygon([[c[0] - fr, bottom], [c[0] + fr, bottom], [c[0] + fr, o.top],
+                                        [c[0] - fr, o.top]], color="C3", alpha=alpha))
+            else:
+                cy, sy = math.cos(o.yaw), math.sin(o.yaw)
+                hx, hy, hz = o.half
+                corners = [(c[0] + cy * x - sy * y, c[1] + sy * x + cy * y)
+                           for x, y in ((-hx, -hy), (hx, -hy), (hx, hy), (-hx, hy))]
+                top.add_patch(Polygon(corners, color="C3", alpha=alpha))
+                xs = [p[0] for p in corners]
+                side.add_patch(Polygon([[min(xs), c[2] - hz], [max(xs), c[2] - hz], [max(xs), c[2] + hz],
+                                        [min(xs), c[2] + hz]], color="C3", alpha=alpha))
+    top.plot(tr.tool[:, 0], tr.tool[:, 1], "b", label="tool")
+    top.plot(tr.elbow[:, 0], tr.elbow[:, 1], "g", lw=0.8, label="elbow")
+    side.plot(tr.tool[:, 0], tr.tool[:, 2], "b", label="tool")
+    side.plot(tr.elbow[:, 0], tr.elbow[:, 2], "g", lw=0.8, label="elbow")
+    for i, g in enumerate(goals):
+        top.plot(g[0, 3], g[1, 3], "k*", ms=10, label="target" if i == 0 else None)
+        side.plot(g[0, 3], g[2, 3], "k*", ms=10)
+    side.axhline(0.0, color="0.4", lw=0.8)
+    top.set_aspect("equal")
+    side.set_aspect("equal")
+    top.set_xlabel("x [m]")
+    top.set_ylabel("y [m]")
+    top.set_title("top view")
+    side.set_xlabel("x [m]")
+    side.set_ylabel("z [m]")
+    side.set_title("side view (table at z = 0)")
+    top.legend(fontsize=8)
+    goal_pos = np.array([g[:3, 3] for g in goals])
+    # distance to the target active at each time
+    d = np.linalg.norm(tr.tool - goal_pos[-1], axis=1)
+    dist.plot(tr.t, d, "b", label="distance to (final) target [m]")
+    dist.plot(tr.t, np.clip(tr.clearance, -0.1, 0.5), "C3", label="clearance [m]")
+    dist.axhline(0.0, color="k", lw=0.6)
+    dist.set_xlabel("t [s]")
+    dist.legend(fontsize=8)
+    sw.plot(tr.t, np.unwrap(tr.swivel), "g", label="swivel s (unwrapped)")
+    sw.plot(tr.t, np.unwrap(tr.swivel_desired), "g:", label="preferred s_des")
+    sw.set_xlabel("t [s]")
+    sw.set_ylabel("[rad]")
+    sw.legend(fontsize=8)
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+NARROW_TARGET = (0.62, 0.0, 0.06)
+
+
+def reproduce_attractor(arm: Any, out: Path, quick: bool) -> list[ScenarioReport]:
+    """Narrow passage, moved target, appearing obstacle (attractor paper section IV-C)."""
+    reports = []
+    duration = 8.0
+    params = ControllerParams()
+    # 1. target surrounded by three obstacles
+    scene = load_scene("narrow_passage")
+    T = _pose(NARROW_TARGET, _down())
+    ctl = ReachController(arm, scene, params)
+    ctl.reset(_start(arm, (0.38, 0.15, 0.3)))
+    tr = run_controller(ctl, T, duration, DT)
+    _reach_plot(arm, [(0.0, scene)], tr, [T], out / "attractor_narrow_passage.png",
+                "Target surrounded by three obstacles (narrow passage)")
+    reports.append(_reach_report(arm, "narrow", "3 obstacles", scene, tr, T))
+    # 2. target displaced mid-reach (A -> B)
+    scene = load_scene("table_empty")
+    TA = _pose((0.6, -0.25, 0.1), _down())
+    TB = _pose((0.55, 0.25, 0.12), _down(0.6))
+    ctl = ReachController(arm, scene, params)
+    ctl.reset(_start(arm, (0.38, -0.15, 0.3)))
+    tr = run_controller(ctl, TA, duration, DT, events=[(0.9, lambda c: c.set_goal(TB))])
+    _reach_plot(arm, [(0.0, scene)], tr, [TA, TB], out / "attractor_moved_target.png",
+                "Target displaced from A to B at t = 0.9 s")
+    reports.append(_reach_report(arm, "moved_target", "A->B at 0.9 s", scene, tr, TB))
+    # 3. obstacle appears on the path mid-reach
+    empty = load_scene("table_empty")
+    can = Cylinder((0.56, 0.0, 0.1), 0.05, 0.2, "appearing can")
+    with_can = Scene((can,), 0.0, "appeared")
+    T = _pose((0.68, -0.12, 0.08), _down())
+    ctl = ReachController(arm, empty, params)
+    ctl.reset(_start(arm, (0.36, 0.2, 0.2)))
+    tr = run_controller(ctl, T, duration, DT, events=[(0.4, lambda c: c.set_scene(with_can))])
+    _reach_plot(arm, [(0.4, with_can)], tr, [T], out / "attractor_appearing_obstacle.png",
+                "An obstacle appears on the path at t = 0.4 s")
+    reports.append(_reach_report(arm, "appearing_obstacle", "can at 0.4 s", with_can, tr, T,
+                                 "clearance scored against the can for the whole run"))
+    return reports
+
+
+def format_reports(reports: list[ScenarioReport]) -> str:
+    """Markdown table of the reports."""
+    lines = ["| scenario | variant | reached | final pos err (m) | min clearance (m) | joint-limit margin "
+             "(rad) | path / straight | peak jerk (m/s^3) | note |", "|---|---|---|---|---|---|---|---|---|"]
+    for r in reports:
+        reached = "-" if r.reached is None else ("yes" if r.reached else "NO")
+        lines.append(f"| {r.scenario} | {r.variant} | {reached} | {r.pos_err:.2e} | {r.min_clearance:.3f} | "
+                     f"{r.limit_margin:.3f} | {r.path_ratio:.3f} | {r.peak_jerk:.1f} | {r.note} |")
+    return "\n".join(lines)
+
+
+def run_all(out: Path, quick: bool = False, only: Sequence[str] = ("swivel1", "swivel2", "attractor"),
+            arm_name: str = "pa10") -> list[ScenarioReport]:
+    """Run the selected reproductions, write PNGs, ``reproductions.md`` and ``reproductions.json``."""
+    from redarm_ros.kinematics import load_arm
+
+    out.mkdir(parents=True, exist_ok=True)
+    arm = load_arm(arm_name)
+    reports: list[ScenarioReport] = []
+    if "swivel1" in only:
+        reports += reproduce_swivel(arm, out, quick, 1)
+    if "swivel2" in only:
+        reports += reproduce_swivel(arm, out, quick, 2)
+    if "attractor" in only:
+        reports += reproduce_attractor(arm, out, quick)
+    table = format_reports(reports)
+    (out / "reproductions.md").write_text(f"# Reproductions ({'quick' if quick else 'full'})\n\n{table}\n")
+    (out / "reproductions.json").write_text(json.dumps([asdict(r) for r in reports], indent=1))
+    return reports
+
+
+def main(argv: list[str] | None = None) -> int:
+    """CLI entry point."""
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--out", default="repro_output", help="output directory for PNGs and tables")
+    ap.add_argument("--quick", action="store_true", help="reduced size (fewer laps and s_des values)")
+    ap.add_argument("--only", default="swivel1,swivel2,attractor", help="comma-separated subset")
+    args = ap.parse_args(argv)
+    reports = run_all(Path(args.out), args.quick, [s.strip() for s in args.only.split(",") if s.strip()])
+    sys.stdout.write(format_reports(reports) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
