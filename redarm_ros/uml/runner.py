@@ -158,6 +158,8 @@ def find_uml() -> UmlKernel:
             f"no UML kernel modules with {CAN_MODULES[-1]} under {UML_MODULE_ROOT} "
             "(package user-mode-linux; or set REDARM_UML_MODULES)"
         )
+    if not GUEST_INIT.is_file():
+        raise UmlUnavailableError(f"{GUEST_INIT} is missing from this installation of redarm_ros")
     tool_path = "/usr/sbin:/usr/bin:/sbin:/bin"
     missing = [t for t in _GUEST_TOOLS if shutil.which(t, path=tool_path) is None]
     if missing:
