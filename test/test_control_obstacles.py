@@ -17,6 +17,7 @@ from redarm_ros.control.obstacles import (
     links_clearance,
     load_scene,
     obstacle_from_dict,
+    obstacle_from_marker,
 )
 from redarm_ros.errors import ConfigError, InvalidInputError
 
@@ -181,3 +182,21 @@ def test_bundled_scenes_load() -> None:
         for o in scene.obstacles:
             if scene.table_height is not None:  # table-top scenes: obstacles rest on or above the table
                 assert o.center[2] - (o.top - o.center[2]) >= scene.table_height - 1e-9
+
+
+def test_obstacle_from_marker_fields() -> None:
+    yaw = 0.4
+    q = (0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2))  # ROS order x, y, z, w
+    box = obstacle_from_marker(1, (0.5, 0.1, 0.1), q, (0.2, 0.1, 0.2), "crate")
+    assert isinstance(box, Box) and box.yaw == pytest.approx(yaw) and box.size == (0.2, 0.1, 0.2)
+    ball = obstacle_from_marker("sphere", (0.5, 0.0, 0.3), (0, 0, 0, 0), (0.1, 0.1, 0.1))
+    assert isinstance(ball, Sphere) and ball.radius == pytest.approx(0.05)
+    can = obstacle_from_marker(3, (0.4, 0.0, 0.1), (0, 0, 0, 1), (0.08, 0.08, 0.2))
+    assert isinstance(can, Cylinder) and can.radius == pytest.approx(0.04) and can.height == 0.2
+    tilted = (math.sin(0.3), 0.0, 0.0, math.cos(0.3))
+    with pytest.raises(InvalidInputError, match="tilted"):
+        obstacle_from_marker(3, (0.4, 0.0, 0.1), tilted, (0.08, 0.08, 0.2))
+    with pytest.raises(InvalidInputError, match="marker type"):
+        obstacle_from_marker(4, (0, 0, 0), (0, 0, 0, 1), (1, 1, 1))
+    with pytest.raises(InvalidInputError):
+        obstacle_from_marker(2, (0, 0, 0), (0, 0, 0, 1), (0, 0, 0))

@@ -492,6 +492,58 @@ def obstacle_from_dict(d: Mapping[str, Any]) -> Obstacle:
         raise ConfigError(f"{kind} obstacle: {exc}", value=dict(d)) from exc
 
 
+#: visualization_msgs/Marker type constants accepted by :func:`obstacle_from_marker`.
+MARKER_CUBE, MARKER_SPHERE, MARKER_CYLINDER = 1, 2, 3
+
+
+def obstacle_from_marker(kind: int | str, position: Sequence[float], orientation_xyzw: Sequence[float],
+                         scale: Sequence[float], name: str = "", tilt_tolerance: float = 0.05) -> Obstacle:
+    """Shape from the fields of a ``visualization_msgs/Marker`` (no ROS import needed).
+
+    ``kind``: Marker type (CUBE 1, SPHERE 2, CYLINDER 3) or "cube"/"box"/"sphere"/"cylinder";
+    ``position`` (m) is the centre, ``orientation_xyzw`` the quaternion in ROS order (x, y, z, w),
+    ``scale`` (m) the full sizes as RViz draws them (sphere: diameter in x; cylinder: diameter in x,
+    height in z). Boxes keep the yaw of the orientation; cylinders must stand upright and boxes must
+    not be tilted (within ``tilt_tolerance`` rad), spheres ignore the orientation.
+
+    Raises:
+        InvalidInputError: unknown type, non-finite values, zero size, or a tilted cylinder/box.
+    """
+    names = {MARKER_CUBE: "box", MARKER_SPHERE: "sphere", MARKER_CYLINDER: "cylinder", "cube": "box",
+             "box": "box", "sphere": "sphere", "cylinder": "cylinder"}
+    key = kind.lower() if isinstance(kind, str) else int(kind)
+    if key not in names:
+        raise InvalidInputError(f"unsupported marker type {kind!r} (CUBE, SPHERE or CYLINDER)", field="type",
+                                value=kind)
+    shape = names[key]
+    center = _vec3(position, "position")
+    sc = _vec3(scale, "scale")
+    try:
+        qx, qy, qz, qw = (float(v) for v in orientation_xyzw)
+    except (TypeError, ValueError) as exc:
+        raise InvalidInputError("orientation must be 4 numbers (x, y, z, w)", field="orientation",
+                                value=orientation_xyzw) from exc
+    n = math.sqrt(qx * qx + qy * qy + qz * qz + qw * qw)
+    if not math.isfinite(n):
+        raise InvalidInputError("orientation must be finite", field="orientation", value=orientation_xyzw)
+    if n < 1e-9:  # RViz treats an all-zero quaternion as identity
+        qx, qy, qz, qw = 0.0, 0.0, 0.0, 1.0
+    else:
+        qx, qy, qz, qw = qx / n, qy / n, qz / n, qw / n
+    if shape == "sphere":
+        return Sphere(center, 0.5 * max(sc), name)
+    # Tilt = angle between the shape's z axis and the vertical.
+    z_z = 1.0 - 2.0 * (qx * qx + qy * qy)
+    tilt = math.acos(max(-1.0, min(1.0, abs(z_z))))
+    if tilt > tilt_tolerance:
+        raise InvalidInputError(f"{shape} {name!r} is tilted by {tilt:.3f} rad; only upright ones are "
+                                "supported", field="orientation", value=orientation_xyzw)
+    if shape == "cylinder":
+        return Cylinder(center, 0.5 * max(sc[0], sc[1]), sc[2], name)
+    yaw = math.atan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
+    return Box(center, sc, yaw, name)
+
+
 @dataclass(frozen=True)
 class Scene:
     """Obstacles plus an optional table top (``table_height``: z of the table surface in m, or None)."""

@@ -279,6 +279,16 @@ class ReachController:
         return self._s
 
     @property
+    def elbow_circle(self) -> ElbowCircle | None:
+        """Elbow circle of the current commanded pose (centre, normal, radius, basis), for display."""
+        return self._circle
+
+    @property
+    def heading_direction(self) -> Vec3:
+        """Unit vector (base frame) of the current end-effector heading."""
+        return direction(self._phi, self._theta)
+
+    @property
     def goal(self) -> tuple[Vec3, Quat] | None:
         """Active goal as (position m, quaternion w,x,y,z) or None."""
         if self._goal_p is None or self._goal_q is None:
