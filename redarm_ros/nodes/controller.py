@@ -42,8 +42,18 @@ from std_msgs.msg import ColorRGBA
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 from visualization_msgs.msg import Marker, MarkerArray
 
-from redarm_ros.control.attractor import SpeedParams, direction
-from redarm_ros.control.obstacles import Box, Cylinder, Scene, Sphere, load_scene
+from redarm_ros.control.attractor import SpeedParams
+from redarm_ros.control.obstacles import (
+    MARKER_CUBE,
+    MARKER_CYLINDER,
+    MARKER_SPHERE,
+    Box,
+    Cylinder,
+    Scene,
+    Sphere,
+    load_scene,
+    obstacle_from_marker,
+)
 from redarm_ros.control.reach_controller import ControllerParams, GoalStatus, Phase, ReachController
 from redarm_ros.errors import InvalidInputError, RedarmError
 from redarm_ros.kinematics import load_arm
@@ -122,33 +132,24 @@ def _quat_xyzw_from_yaw(yaw: float) -> tuple[float, float, float, float]:
 def marker_to_obstacle(m: Marker) -> tuple[Sphere | Cylinder | Box | None, str]:
     """One RViz marker as an obstacle shape (base frame, m) and a note ('' or why it was changed).
 
-    SPHERE: radius = half the largest scale. CYLINDER: vertical; a tilted one becomes its bounding
-    sphere (conservative). CUBE: ``scale`` is the edge lengths; a rotation other than a yaw becomes the
-    axis-aligned bounding box. Other marker types give (None, reason).
+    The conversion is the core's :func:`~redarm_ros.control.obstacles.obstacle_from_marker` (SPHERE,
+    upright CYLINDER, CUBE with a yaw). A tilted cylinder or cube, which the core refuses, is kept as
+    its bounding sphere rather than dropped: an obstacle the controller ignores could be hit. Other
+    marker types give (None, reason).
     """
     p = (m.pose.position.x, m.pose.position.y, m.pose.position.z)
     o = m.pose.orientation
-    q = np.array([o.w, o.x, o.y, o.z], dtype=float)
-    nq = float(np.linalg.norm(q))
-    R = np.eye(3) if nq < 1e-9 else quat_to_matrix(q / nq)  # RViz treats a zero quaternion as identity
-    sx, sy, sz = abs(m.scale.x), abs(m.scale.y), abs(m.scale.z)
+    scale = (abs(m.scale.x), abs(m.scale.y), abs(m.scale.z))
     name = f"{m.ns}/{m.id}"
-    vertical = abs(R[2, 2]) > 1.0 - 1e-6
-    if m.type == Marker.SPHERE:
-        note = "" if max(sx, sy, sz) - min(sx, sy, sz) < 1e-9 else "ellipsoid treated as its bounding sphere"
-        return Sphere(p, max(sx, sy, sz) / 2.0, name), note
-    if m.type == Marker.CYLINDER:
-        if vertical:
-            return Cylinder(p, max(sx, sy) / 2.0, sz, name), ""
-        r = math.hypot(max(sx, sy) / 2.0, sz / 2.0)
-        return Sphere(p, r, name), "tilted cylinder treated as its bounding sphere"
-    if m.type == Marker.CUBE:
-        if vertical:
-            yaw = math.atan2(R[1, 0], R[0, 0])
-            return Box(p, (sx, sy, sz), yaw, name), ""
-        ext = np.abs(R) @ np.array([sx, sy, sz])  # axis-aligned bounding box of the rotated cube
-        return Box(p, tuple(float(v) for v in ext), 0.0, name), "tilted cube treated as its bounding box"
-    return None, f"marker type {m.type} is not an obstacle shape (SPHERE, CYLINDER, CUBE)"
+    if m.type not in (MARKER_CUBE, MARKER_SPHERE, MARKER_CYLINDER):
+        return None, f"marker type {m.type} is not an obstacle shape (SPHERE, CYLINDER, CUBE)"
+    try:
+        return obstacle_from_marker(m.type, p, (o.x, o.y, o.z, o.w), scale, name), ""
+    except InvalidInputError as exc:
+        if "tilted" not in str(exc):
+            raise
+    radius = 0.5 * math.sqrt(sum(v * v for v in scale))
+    return Sphere(p, radius, name), "tilted shape kept as its bounding sphere"
 
 
 def obstacle_to_marker(o: Sphere | Cylinder | Box, frame: str, ns: str, mid: int) -> Marker:
@@ -478,20 +479,14 @@ class ControllerNode(Node):
         m = marker("arm", 1, Marker.SPHERE, "arm")
         m.pose.position = _pt(kp[2])
         m.scale.x = m.scale.y = m.scale.z = 0.06
-        try:
-            C, n, rho = self.arm.elbow_circle(self.arm.fk(q))
-            a = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
-            a /= np.linalg.norm(a)
-            b = np.cross(n, a)
+        circle = self.ctl.elbow_circle  # None at a singular pose: nothing to draw
+        if circle is not None:
             m = marker("elbow_circle", 0, Marker.LINE_STRIP, "circle")
             m.scale.x = 0.008
-            m.points = [_pt(C + rho * (math.cos(t) * a + math.sin(t) * b))
-                        for t in np.linspace(0.0, 2.0 * math.pi, 49)]
-        except RedarmError:
-            pass  # singular pose: no circle to draw
+            m.points = [_pt(circle.elbow(t)) for t in np.linspace(0.0, 2.0 * math.pi, 49)]
         res = self._last_result
         if res is not None and res.speed > 1e-4:
-            e = direction(*res.heading)
+            e = self.ctl.heading_direction
             m = marker("heading", 0, Marker.ARROW, "heading")
             m.scale.x, m.scale.y, m.scale.z = 0.01, 0.02, 0.03
             m.points = [_pt(kp[4]), _pt(kp[4] + 0.15 * np.asarray(e))]
