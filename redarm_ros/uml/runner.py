@@ -167,6 +167,22 @@ def find_uml() -> UmlKernel:
             f"guest tools missing on the shared root: {', '.join(missing)} "
             "(insmod is in package kmod, ip in iproute2: scripts/setup_uml.sh)"
         )
+    try:
+        if Path("/proc/sys/kernel/yama/ptrace_scope").read_text().strip() == "3":
+            raise UmlUnavailableError("ptrace is disabled (kernel.yama.ptrace_scope=3); UML needs it")
+    except OSError:
+        pass  # no Yama: ptrace is governed by permissions only
+    probe = subprocess.run(
+        [sys.executable, "-m", "redarm_ros.uml.fpu", "true"],
+        capture_output=True,
+        text=True,
+        timeout=30,
+        env={"PATH": "/usr/bin:/bin", "PYTHONPATH": str(Path(__file__).resolve().parents[2])},
+        check=False,
+    )
+    if probe.returncode != 0:
+        why = probe.stderr.strip() or f"exit {probe.returncode}"
+        raise UmlUnavailableError(f"cannot run linux.uml under the FXSAVE-only seccomp filter: {why}")
     return UmlKernel(Path(binary), modules)
 
 
