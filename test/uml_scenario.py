@@ -3,14 +3,18 @@
 Not a test module (pytest collects ``test_*.py`` only); ``test_uml_socketcan.py``
 runs it as a separate program, inside the guest or on the host's own vcan.
 
-Sub-commands (each writes a JSON result with ``"ok"`` and the measurements):
+Sub-commands (each prints, and with ``--result`` writes, a JSON result with ``"ok"`` and the
+measurements):
 
 * ``echo``: answer every frame on ``--request-id`` with the same data on
   ``--reply-id`` until ``--count`` frames were answered or ``--idle`` seconds
   pass without one; prints ``ECHO_READY`` once the bus is open.
 * ``pingpong``: start ``echo`` as a second process, send ``--count`` frames and
   time each round trip; every reply must carry the data that was sent.
-* ``hil``: the hardware-in-the-loop scenario (see :func:`run_hil`).
+* ``hil``: the real driver core against the real ``redarm-sim`` (see :func:`cmd_hil`).
+* ``ros``: the ``can_driver`` ROS node against ``redarm-sim``, driven by a client node
+  (see :func:`cmd_ros`).
+* ``suite``: all of the above in turn, ``result_<name>.json`` each into ``--out``.
 
 The bus is opened from python-can configuration: ``--interface``/``--channel``
 or, when absent, ``CAN_INTERFACE``/``CAN_CHANNEL`` as everywhere in redarm_ros.
