@@ -36,7 +36,6 @@ Conventions and choices (also in docs/kinematics.md):
 
 from __future__ import annotations
 
-import logging
 import math
 import time
 from collections.abc import Sequence
@@ -50,8 +49,6 @@ from redarm_ros.kinematics.result import IKInfo, IKStatus
 
 __all__ = ["SwivelArm", "FLIP_PATTERNS"]
 
-_log = logging.getLogger(__name__)
-
 PI = math.pi
 TWO_PI = 2.0 * math.pi
 REACH_TOL = 1e-9  # m; a wrist this far beyond the reach sphere still counts as (just) reachable
@@ -64,6 +61,7 @@ AXIS_TOL2 = 1e-24  # (1e-12)^2: a wrist within 1e-12 * D of the base axis counts
 # flip pattern k -> (f2, f4, f6); per joint which of the two alternatives (base, flipped) to use
 FLIP_PATTERNS = [((k >> 2) & 1, (k >> 1) & 1, k & 1) for k in range(8)]
 _ALT_INDEX = np.array([[f2, f2, f2 ^ f4, f4, f4 ^ f6, f6, f6] for f2, f4, f6 in FLIP_PATTERNS])
+_ALT_INDEX_L = _ALT_INDEX.tolist()
 # the same flips as affine maps: angle -> sign * angle + shift (shift a multiple of pi, not wrapped)
 _J7 = np.arange(7)[None, :]
 # alternatives per joint as affine maps angle -> sign * angle + shift: (7, 2), column 1 = flipped
@@ -107,6 +105,9 @@ class SwivelArm(Arm):
         self._L = tuple(L)
         # joints whose range reaches beyond (-pi, pi]: more than one 2*pi copy may fit
         self._wide = [lo < -PI or up > PI for lo, up in zip(self._lower_l, self._upper_l, strict=True)]
+        self._very_wide = [
+            lo < -3 * PI or up > 3 * PI for lo, up in zip(self._lower_l, self._upper_l, strict=True)
+        ]
         self._lo2 = self.lower[:, None]
         self._up2 = self.upper[:, None]
         self._shifts = []
@@ -267,31 +268,53 @@ class SwivelArm(Arm):
         out.sort(key=abs)
         return out
 
+    def _fit0(self, j: int, x: float) -> float | None:
+        """In-limit 2*pi copy of angle x nearest to 0 for joint j, or None."""
+        lo, up = self._lower_l[j], self._upper_l[j]
+        v = x - TWO_PI * round(x / TWO_PI)
+        if lo - LIMIT_TOL <= v <= up + LIMIT_TOL:
+            return min(max(v, lo), up)
+        if not self._wide[j]:
+            return None
+        if self._very_wide[j]:
+            c = self._fit(j, x)
+            return c[0] if c else None
+        for c in (v - TWO_PI, v + TWO_PI) if v > 0 else (v + TWO_PI, v - TWO_PI):
+            if lo - LIMIT_TOL <= c <= up + LIMIT_TOL:
+                return min(max(c, lo), up)
+        return None
+
     def _expand(self, base: tuple[float, ...], all_copies: bool = False) -> list[list[float]]:
         """All flip combinations of a base solution that fit the limits (each joint's copy nearest 0)."""
         t1, t2, t3, t4, t5, t6, t7 = base
         alts = (
-            (t1, _wrap(t1 + PI)),
+            (t1, t1 + PI),
             (t2, -t2),
-            (t3, _wrap(t3 + PI)),
+            (t3, t3 + PI),
             (t4, -t4),
-            (t5, _wrap(t5 + PI)),
+            (t5, t5 + PI),
             (t6, -t6),
-            (t7, _wrap(t7 + PI)),
+            (t7, t7 + PI),
         )
-        fits = [[self._fit(j, a) for a in pair] for j, pair in enumerate(alts)]
         out: list[list[float]] = []
-        for pat in _ALT_INDEX.tolist():
-            cols = [fits[j][pat[j]] for j in range(7)]
+        if not all_copies:
+            f0 = self._fit0
+            fits = [(f0(j, a), f0(j, b)) for j, (a, b) in enumerate(alts)]
+            for pat in _ALT_INDEX_L:
+                row = [fits[0][pat[0]], fits[1][pat[1]], fits[2][pat[2]], fits[3][pat[3]]]
+                row += [fits[4][pat[4]], fits[5][pat[5]], fits[6][pat[6]]]
+                if None not in row:
+                    out.append(row)  # type: ignore[arg-type]
+            return out
+        fitl = [[self._fit(j, _wrap(a)) for a in pair] for j, pair in enumerate(alts)]
+        for pat in _ALT_INDEX_L:
+            cols = [fitl[j][pat[j]] for j in range(7)]
             if not all(cols):
                 continue
-            if not all_copies:
-                out.append([c[0] for c in cols])
-            else:
-                rows: list[list[float]] = [[]]
-                for c in cols:
-                    rows = [r + [v] for r in rows for v in c]
-                out.extend(rows)
+            rows: list[list[float]] = [[]]
+            for c in cols:
+                rows = [r + [v] for r in rows for v in c]
+            out.extend(rows)
         return out
 
     # ------------------------------------------------------------------ public IK
