@@ -105,7 +105,10 @@ class HeadingParams:
     scale of the elevation push; edge_soft: smallest horizontal distance (m) used for the clearance
     elevation (keeps it continuous over an obstacle). target_gate: width (m) of the smooth gate that
     ignores obstacles lying beyond the target. max_turn_rate: clamp on |dphi/dt|, |dtheta/dt| (rad/s),
-    which bounds the lateral acceleration of the hand to ``speed * max_turn_rate``.
+    which bounds the lateral acceleration of the hand to ``speed * max_turn_rate``. slow_distance (m),
+    slow_min: an obstacle ahead that the hand is not yet above scales the speed down towards
+    ``slow_min`` as its distance falls below ``slow_distance`` (the speed dynamics of the dynamic
+    approach to navigation), which buys time for the elevation to rise.
     """
 
     lam_tar: float = 12.0
@@ -121,6 +124,8 @@ class HeadingParams:
     max_turn_rate: float = 8.0
     d0_up: float = 0.4
     target_gate: float = 0.03
+    slow_distance: float = 0.15
+    slow_min: float = 0.3
 
     def __post_init__(self) -> None:
         for name, v in self.__dict__.items():
@@ -139,6 +144,7 @@ class HeadingRates:
     theta_tar: float
     obstacle_phi: float = 0.0
     obstacle_theta: float = 0.0
+    speed_factor: float = 1.0
 
 
 class HeadingDynamics:
@@ -157,11 +163,13 @@ class HeadingDynamics:
         the end effector is above the obstacle top plus ``clear_margin`` (it can pass above) and for
         obstacles beyond the target.
 
-        Elevation: ``-lam_tar sin(theta - theta_tar) + sum_i g_i``, where ``g_i`` pulls the elevation
-        up, and only up, towards the clearance elevation ``theta_c,i`` that passes ``clear_margin``
-        above the obstacle's top edge (near edge when below the top, far edge when above), weighted by
-        the azimuth range function (only obstacles ahead count) and ``exp(-d_i / d0_up)``:
-        ``g_i = lam_up * w_i * max(0, sin(theta_c,i - theta))``.
+        Elevation: ``-(1 - b) lam_tar sin(theta - theta_tar) + sum_i g_i``, where ``g_i`` pulls the
+        elevation up, and only up, towards the clearance elevation ``theta_c,i`` that passes
+        ``clear_margin`` above the obstacle's top edge (near edge when below the top, far edge when
+        above), weighted by the azimuth range function (only obstacles ahead count) and
+        ``exp(-d_i / d0_up)``: ``g_i = lam_up * w_i * max(0, sin(theta_c,i - theta))``. ``b`` in [0, 1]
+        measures how much an obstacle ahead, not yet cleared, blocks the way; it suspends a downward
+        target pull (competitive dynamics) so that the elevation does settle at ``theta_c``.
         """
         p = self.params
         dx, dy, dz = target[0] - ee[0], target[1] - ee[1], target[2] - ee[2]
@@ -172,6 +180,8 @@ class HeadingDynamics:
         dtheta = target_attractor(theta, theta_tar, p.lam_tar)
         f_phi = 0.0
         f_theta = 0.0
+        speed_factor = 1.0
+        blocked = 0.0
         for o in obstacles:
             fp = o.footprint(ee[0], ee[1])
             near = fp.near
@@ -197,7 +207,16 @@ class HeadingDynamics:
             if theta_c > theta:
                 w = gate * rng * math.exp(-max(d_i, 0.0) / p.d0_up)
                 f_theta += p.lam_up * w * math.sin(min(theta_c, 0.5 * math.pi) - theta)
-        return HeadingRates(dphi + f_phi, dtheta + f_theta, phi_tar, theta_tar, f_phi, f_theta)
+                # Blocking the way and not yet cleared: slow down while the elevation rises.
+                block = gate * rng * above * min(1.0, math.sin(min(theta_c, 0.5 * math.pi) - theta) / 0.3)
+                slow = p.slow_min + (1.0 - p.slow_min) * min(1.0, max(d_i, 0.0) / p.slow_distance)
+                speed_factor = min(speed_factor, 1.0 - block * (1.0 - slow))
+                blocked = max(blocked, gate * rng * above * math.exp(-max(d_i, 0.0) / p.d0_up))
+        # Competition: an obstacle that blocks the way suspends the target's pull on the elevation
+        # (only when that pull is downward), so the elevation settles at the clearance elevation.
+        if dtheta < 0.0:
+            dtheta *= 1.0 - blocked
+        return HeadingRates(dphi + f_phi, dtheta + f_theta, phi_tar, theta_tar, f_phi, f_theta, speed_factor)
 
     def step(self, phi: float, theta: float, dt: float, ee: Sequence[float], target: Sequence[float],
              obstacles: Sequence[Obstacle] = ()) -> tuple[float, float, HeadingRates]:
@@ -316,8 +335,8 @@ class SpeedParams:
     real (no overshoot of the target) iff ``k <= 4 omega / 27``; the defaults keep that margin."""
 
     v_max: float = 0.4
-    k: float = 2.5
-    omega: float = 20.0
+    k: float = 5.0
+    omega: float = 40.0
     a_max: float = 2.5
     j_max: float = 25.0
 
@@ -349,11 +368,22 @@ class SpeedProfile:
         target = self.desired(d)
         if v_cap is not None:
             target = min(target, v_cap)
-        # Semi-implicit Euler of v'' = w^2 (v_des - v) - 2 w v' (stable for w dt < 2).
-        a_filter = a + dt * (p.omega * p.omega * (target - v) - 2.0 * p.omega * a)
-        da = p.j_max * dt  # jerk limit, then acceleration limit
-        a_new = max(-p.a_max, min(p.a_max, max(a - da, min(a + da, a_filter))))
-        v_new = max(0.0, v + dt * a_new)
+        # Semi-implicit Euler of v'' = w^2 (v_des - v) - 2 w v', sub-stepped so that w h <= 0.5.
+        n = max(1, math.ceil(p.omega * dt / 0.5))
+        h = dt / n
+        da = p.j_max * h  # jerk limit, then acceleration limit
+        v_new, a_new = v, a
+        for _ in range(n):
+            a_filter = a_new + h * (p.omega * p.omega * (target - v_new) - 2.0 * p.omega * a_new)
+            if a_filter > 0.0:  # jerk-limited approach of the target speed from below (no overshoot):
+                # ramping a down by j h per step gains a^2 / (2 j) + a h / 2 more speed.
+                jh2 = 0.5 * da
+                room = max(target - v_new, 0.0)
+                a_filter = min(a_filter, -jh2 + math.sqrt(jh2 * jh2 + 2.0 * p.j_max * room))
+            a_new = max(-p.a_max, min(p.a_max, max(a_new - da, min(a_new + da, a_filter))))
+            v_new = max(0.0, v_new + h * a_new)
+            if v_new > p.v_max:  # residual overshoot of at most j_max h^2
+                v_new, a_new = p.v_max, min(a_new, 0.0)
         # Never overshoot the target speed downward into motion past the target: at d ~ 0 stop.
         if v_new > 0.0 and target == 0.0 and v_new * dt > d:
             v_new = d / dt if dt > 0 else 0.0

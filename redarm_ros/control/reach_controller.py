@@ -465,9 +465,13 @@ class ReachController:
         # 1-2. heading and speed
         if goal_p is not None:
             dist = math.dist(pos, goal_p)
-            self._phi, self._theta, _ = self.heading_dyn.step(self._phi, self._theta, dt, pos, goal_p,
-                                                              obstacles)
-            self._v, self._a = self.speed_profile.step(self._v, self._a, dist, dt, self._v_cap)
+            self._phi, self._theta, rates = self.heading_dyn.step(self._phi, self._theta, dt, pos, goal_p,
+                                                                  obstacles)
+            cap = self._v_cap
+            if rates.speed_factor < 1.0:
+                v_obs = rates.speed_factor * self.speed_profile.params.v_max
+                cap = v_obs if cap is None else min(cap, v_obs)
+            self._v, self._a = self.speed_profile.step(self._v, self._a, dist, dt, cap)
         else:  # no goal: decelerate along the current heading
             sp = self.speed_profile.params
             self._a = max(-sp.a_max, min(0.0, self._a - dt * sp.omega * sp.omega * self._v))
