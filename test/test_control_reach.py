@@ -236,3 +236,17 @@ def test_params_and_arm_validation(arm) -> None:
         ctl.set_preferred_swivel(math.inf)
     r = ctl.step(DT)  # no goal: holds
     assert r.phase is Phase.IDLE and math.isinf(r.distance_to_goal)
+
+
+def test_params_from_dict() -> None:
+    p = ControllerParams.from_dict({"preferred_swivel": 0.3, "speed": {"v_max": 0.25},
+                                    "capsules": {"radii": [0.1, 0.07, 0.06, 0.04]}})
+    assert p.preferred_swivel == 0.3 and p.speed.v_max == 0.25 and p.speed.k == ControllerParams().speed.k
+    assert p.capsules.radii == (0.1, 0.07, 0.06, 0.04)
+    assert ControllerParams.from_dict(None) == ControllerParams()
+    with pytest.raises(ConfigError, match="unknown controller parameter"):
+        ControllerParams.from_dict({"prefered_swivel": 0.3})
+    with pytest.raises(ConfigError, match="unknown speed"):
+        ControllerParams.from_dict({"speed": {"vmax": 1.0}})
+    with pytest.raises(ConfigError):
+        ControllerParams.from_dict({"speed": {"v_max": -1.0}})

@@ -24,7 +24,7 @@ from __future__ import annotations
 import enum
 import logging
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
 import numpy as np
@@ -200,6 +200,44 @@ class ControllerParams:
     def with_(self, **changes: Any) -> ControllerParams:
         """A copy with some fields changed."""
         return replace(self, **changes)
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any] | None) -> ControllerParams:
+        """Parameters from a (YAML-like) dict; nested dicts for ``heading``, ``swivel``, ``speed`` and
+        ``capsules``, e.g. ``{"preferred_swivel": 0.3, "speed": {"v_max": 0.25}}``. Missing keys keep
+        their defaults.
+
+        Raises:
+            ConfigError: unknown key or bad value (the message names it).
+        """
+        if not d:
+            return cls()
+        if not isinstance(d, dict):
+            raise ConfigError("controller parameters must be a mapping", value=d)
+        nested = {"heading": HeadingParams, "swivel": SwivelParams, "speed": SpeedParams,
+                  "capsules": ArmCapsules}
+        known = {f.name for f in fields(cls)}
+        kwargs: dict[str, Any] = {}
+        for key, value in d.items():
+            if key not in known:
+                raise ConfigError(f"unknown controller parameter {key!r}; known: {sorted(known)}", field=key)
+            if key in nested:
+                sub = nested[key]
+                sub_known = {f.name for f in fields(sub)}
+                if not isinstance(value, dict):
+                    raise ConfigError(f"{key} must be a mapping", field=key, value=value)
+                bad = set(value) - sub_known
+                if bad:
+                    raise ConfigError(f"unknown {key} parameter(s) {sorted(bad)}; known: {sorted(sub_known)}",
+                                      field=f"{key}.{sorted(bad)[0]}")
+                vals = {k: (tuple(v) if isinstance(v, list) else v) for k, v in value.items()}
+                try:
+                    kwargs[key] = sub(**vals)
+                except InvalidInputError as exc:
+                    raise ConfigError(f"{key}: {exc}", field=f"{key}.{exc.field}", value=exc.value) from exc
+            else:
+                kwargs[key] = value
+        return cls(**kwargs)
 
 
 def _swivel_low(circle: ElbowCircle) -> float | None:
