@@ -67,6 +67,8 @@ FAULT_BITS = (
     | ActState.POW_INTEGRAL_ERR
 )
 _LATENCY_WINDOW = 1024
+_SHORT_ERROR = int(p.ShortState.ERROR)
+_LONG_ONLY = ~p.LONG_BITS_WITH_SHORT  # ACT_STATE bits a short state cannot report
 
 
 class DriverState(Enum):
@@ -719,6 +721,7 @@ class PowerCubeArmDriver:
         remaining = n
         deadline = stamp + self.reply_timeout_s
         reply_index = self._reply_index
+        fstep_ack = p.fstep_ext_ack_fields
         while remaining:
             left = deadline - clock()
             if left <= 0:
@@ -733,20 +736,21 @@ class PowerCubeArmDriver:
                 if js is not None:
                     self._note_state_frame(msg, js)
                 continue
-            frame = self.decoder.decode(msg)
-            if frame is None:
-                self.stats[j].malformed += 1
+            fields = fstep_ack(msg)
+            if fields is None:  # anything else: full decode (counts malformed frames)
+                frame = self.decoder.decode(msg)
+                if frame is None:
+                    self.stats[j].malformed += 1
                 continue
-            if isinstance(frame, p.SetMoveExtAck) and frame.mode is MoveMode.FSTEP_EXT:
-                if replied[j]:  # a second ack in one cycle: the first was a late one
-                    self.stats[j].late += 1
-                    late += 1
-                    continue
-                replied[j] = True
-                remaining -= 1
-                self._q_meas[j] = frame.position
-                short[j] = int(frame.short_state)
-                latency[j] = t - t_sent[j]
+            if replied[j]:  # a second ack in one cycle: the first was a late one
+                self.stats[j].late += 1
+                late += 1
+                continue
+            replied[j] = True
+            remaining -= 1
+            self._q_meas[j] = fields[0]
+            short[j] = fields[1]
+            latency[j] = t - t_sent[j]
 
         # bookkeeping
         lost = 0
@@ -758,9 +762,7 @@ class PowerCubeArmDriver:
                 s.silent = False
                 s.add_latency(float(latency[j]))
                 # keep the long-only bits (HOME_OK, causes) from the last full read
-                long_bits = int(p.long_state_from_short(int(short[j])))
-                keep = int(self._states[j]) & ~int(p.long_state_from_short(0xFF))
-                self._states[j] = keep | long_bits
+                self._states[j] = (int(self._states[j]) & _LONG_ONLY) | p.LONG_BITS_OF_SHORT[int(short[j])]
             else:
                 s.lost += 1
                 lost += 1
@@ -798,7 +800,7 @@ class PowerCubeArmDriver:
         # faults: ERROR in a short state, or a state frame with fault bits
         faults = dict(self._pending_faults)
         self._pending_faults.clear()
-        errored = [j for j in range(n) if replied[j] and short[j] & p.ShortState.ERROR]
+        errored = np.flatnonzero(short & _SHORT_ERROR).tolist()
         if errored and self.state is not DriverState.FAULT:
             self._halt_all()
             for j in errored:

@@ -93,6 +93,13 @@ STICKY_BITS = (
 SOFT_LIMIT_TOLERANCE = 1e-4
 #: Any of these bits refuses motion until RESET.
 MOTION_BLOCKING = ActState.ERROR | ActState.HALTED
+# Plain-int copies for the per-frame path (IntFlag arithmetic costs microseconds per operation).
+_ERROR, _HALTED, _HOME_OK = int(ActState.ERROR), int(ActState.HALTED), int(ActState.HOME_OK)
+_MOVING = int(ActState.MOTION | ActState.INPROGRESS)
+_RAMP_END, _INPROGRESS = int(ActState.RAMP_END), int(ActState.INPROGRESS)
+_BLOCKING, _STICKY = int(MOTION_BLOCKING), int(STICKY_BITS)
+_CFG_SYNC, _CFG_WATCHDOG = int(ActConfig.SYNC_MOTION), int(ActConfig.WATCHDOG_ENABLE)
+_CFG_NO_ACK = int(ActConfig.DISABLE_ACK)
 
 
 def _f32(x: float) -> float:
@@ -359,7 +366,7 @@ class PowerCubeModule:
         self.plant = plant
         self.cfg = cfg
         self._clock = clock
-        self.sticky = ActState.HOME_OK if cfg.homed else ActState(0)
+        self._st = _HOME_OK if cfg.homed else 0  # sticky ACT_STATE bits
         self._homing = False
         self._pending: p.SetMoveRequest | None = None
         self._wd_deadline: float | None = None
@@ -401,19 +408,26 @@ class PowerCubeModule:
     @property
     def config_bits(self) -> ActConfig:
         """Current ACT_CONFIG."""
-        return ActConfig(int(self._params[Param.ACT_CONFIG]) & sum(ActConfig))
+        return ActConfig(self._cfg)
+
+    @property
+    def _cfg(self) -> int:
+        return int(self._params[Param.ACT_CONFIG])
+
+    @property
+    def sticky(self) -> ActState:
+        """The sticky ACT_STATE bits (errors, HALTED, HOME_OK)."""
+        return ActState(self._st)
 
     def state(self) -> ActState:
         """ACT_STATE now: the sticky bits plus motion bits from the plant."""
         self._update()
-        moving = self.plant.in_motion()
-        st = self.sticky
-        if moving:
-            st |= ActState.MOTION | ActState.INPROGRESS
-        else:
-            st |= ActState.RAMP_END
+        return ActState(self._state_bits())
+
+    def _state_bits(self) -> int:
+        st = self._st | (_MOVING if self.plant.in_motion() else _RAMP_END)
         if self._homing:
-            st |= ActState.INPROGRESS
+            st |= _INPROGRESS
         return st
 
     def short_state(self) -> p.ShortState:
@@ -440,13 +454,13 @@ class PowerCubeModule:
     def _update(self) -> None:
         if self._homing and not self.plant.in_motion():
             self._homing = False
-            if not self.sticky & MOTION_BLOCKING:
-                self.sticky |= ActState.HOME_OK
+            if not self._st & _BLOCKING:
+                self._st |= _HOME_OK
         if self._wd_deadline is not None and self._clock() > self._wd_deadline:
             self._wd_deadline = None  # re-armed by RESET
             logger.warning("module %d: watchdog expired, halting", self.module_id)
             self._fault(ActState.HALTED | ActState.COMM_ERROR)
-        if not self.sticky & ActState.ERROR:
+        if not self._st & _ERROR:
             pos = self.plant.position()
             lo, hi = self._params[Param.ACT_FMINPOS], self._params[Param.ACT_FMAXPOS]
             if pos < lo - SOFT_LIMIT_TOLERANCE or pos > hi + SOFT_LIMIT_TOLERANCE:
@@ -454,13 +468,13 @@ class PowerCubeModule:
 
     def _fault(self, bits: ActState) -> None:
         """Set ERROR plus ``bits``, stop the plant, drop a pending move; queue a state frame."""
-        was_error = bool(self.sticky & ActState.ERROR)
-        self.sticky |= ActState.ERROR | bits
+        was_error = bool(self._st & _ERROR)
+        self._st |= _ERROR | int(bits)
         self._pending = None
         self._homing = False
         self.plant.halt()
         if not was_error:
-            self._out.append(p.state_frame(self.module_id, self.sticky))
+            self._out.append(p.state_frame(self.module_id, self._st))
 
     def inject_fault(self, bits: ActState) -> None:
         """Test hook: raise a fault (e.g. POWERFAULT, TOW_ERROR) as the hardware would."""
@@ -477,19 +491,20 @@ class PowerCubeModule:
         if self.silenced:
             return []
         self.requests += 1
-        out = self.tick()
+        self._update()  # time-driven effects first (a watchdog that expired before this frame)
         if isinstance(frame, p.Broadcast):
             _BROADCAST_HANDLERS[frame.command](self, frame)
-            return out + self.tick()
+            out, self._out = self._out, []
+            return out
         self._refresh_watchdog()
         reply = _REQUEST_HANDLERS[type(frame)](self, frame)
-        out += self.tick()
+        out, self._out = self._out, []  # state frames queued by a fault (the handler's or earlier)
         if reply is not None:
             out.insert(0, reply)
         return out
 
     def _ack(self, msg: can.Message) -> can.Message | None:
-        return None if self.config_bits & ActConfig.DISABLE_ACK else msg
+        return None if self._cfg & _CFG_NO_ACK else msg
 
     # simple commands
     def _on_command(self, frame: p.CommandRequest) -> can.Message | None:
@@ -497,17 +512,17 @@ class PowerCubeModule:
         return self._ack(p.command_ack(self.module_id, frame.command))
 
     def _reset(self) -> None:
-        self.sticky &= ~STICKY_BITS
+        self._st &= ~_STICKY
         self._pending = None
         self._homing = False
         self.plant.halt()
-        if self.config_bits & ActConfig.WATCHDOG_ENABLE:
+        if self._cfg & _CFG_WATCHDOG:
             self._wd_deadline = self._clock() + self.cfg.watchdog_timeout_s
 
     def _home(self) -> None:
-        if self.sticky & MOTION_BLOCKING:
+        if self._st & _BLOCKING:
             return
-        self.sticky &= ~ActState.HOME_OK
+        self._st &= ~_HOME_OK
         self._homing = True
         self.plant.command_position(
             self.cfg.home_position,
@@ -517,7 +532,7 @@ class PowerCubeModule:
         )
 
     def _halt(self) -> None:
-        self.sticky |= ActState.HALTED
+        self._st |= _HALTED
         self._pending = None
         self._homing = False
         self.plant.halt()
@@ -539,11 +554,11 @@ class PowerCubeModule:
         return p.get_param_reply(self.module_id, frame.param, self._read_param(frame.param))
 
     def _set_config(self, value: float | int) -> None:
-        old = self.config_bits
+        old = self._cfg
         self._params[Param.ACT_CONFIG] = int(value)
-        if not old & ActConfig.WATCHDOG_ENABLE and self.config_bits & ActConfig.WATCHDOG_ENABLE:
+        if not old & _CFG_WATCHDOG and self._cfg & _CFG_WATCHDOG:
             self._wd_deadline = self._clock() + self.cfg.watchdog_timeout_s
-        elif not self.config_bits & ActConfig.WATCHDOG_ENABLE:
+        elif not self._cfg & _CFG_WATCHDOG:
             self._wd_deadline = None
 
     def _set_clamped(self, param: Param, value: float | int) -> None:
@@ -554,18 +569,19 @@ class PowerCubeModule:
     # motion
     def _on_setmove(self, frame: p.SetMoveRequest) -> can.Message | None:
         before = self.plant.position()
-        if self.config_bits & ActConfig.SYNC_MOTION:
-            if not self.sticky & MOTION_BLOCKING:
+        if self._cfg & _CFG_SYNC:
+            if not self._st & _BLOCKING:
                 self._pending = frame
         else:
             self._start_move(frame)
         self._move_mode = int(frame.mode)
         if frame.mode.extended:
-            return p.set_move_ext_ack(self.module_id, frame.mode, before, self.short_state(), 0)
+            short = p.short_bits_from_long(self._state_bits())
+            return p.set_move_ext_ack(self.module_id, frame.mode, before, short, 0)
         return self._ack(p.set_move_ack(self.module_id, frame.mode))
 
     def _start_move(self, frame: p.SetMoveRequest) -> None:
-        if self.sticky & MOTION_BLOCKING:
+        if self._st & _BLOCKING:
             return
         _MOVE_HANDLERS[frame.mode.base](self, frame)
 
@@ -649,7 +665,7 @@ _MOVE_HANDLERS: dict[MoveMode, Callable[[PowerCubeModule, p.SetMoveRequest], Non
 }
 
 _DYNAMIC_PARAMS: dict[Param, Callable[[PowerCubeModule], float | int]] = {
-    Param.ACT_STATE: lambda m: int(m.state()),
+    Param.ACT_STATE: lambda m: int(m._state_bits()),
     Param.ACT_FPOS: lambda m: _f32(m.plant.position()),
     Param.ACT_FVEL: lambda m: _f32(m.plant.velocity()),
     Param.ACT_FCUR: lambda m: _f32(m._fcur),
@@ -817,6 +833,7 @@ class EmulatorRunner:
         self.frames_out = 0
         self.max_handle_s = 0.0
         self.errors = 0
+        self._next_tick = 0.0
 
     def start(self) -> EmulatorRunner:
         """Start the thread; returns self."""
@@ -845,14 +862,18 @@ class EmulatorRunner:
             self.frames_out += 1
 
     def serve_once(self, timeout_s: float | None = None) -> None:
-        """Receive at most one frame (waiting ``timeout_s``), answer it, tick the modules."""
+        """Receive at most one frame (waiting ``timeout_s``) and answer it; every ``tick_s`` also
+        advance all modules' time-driven behaviour (a frame already updates its own module)."""
         msg = self.bus.recv(self.tick_s if timeout_s is None else timeout_s)
         if msg is not None:
             t0 = time.perf_counter()
             self.frames_in += 1
             self._send(self.bank.handle(msg))
             self.max_handle_s = max(self.max_handle_s, time.perf_counter() - t0)
-        self._send(self.bank.tick())
+        now = time.monotonic()
+        if now >= self._next_tick:
+            self._next_tick = now + self.tick_s
+            self._send(self.bank.tick())
 
     def _run(self) -> None:
         delay = 0.05

@@ -337,22 +337,34 @@ _SHORT_TO_LONG: Final = (
 )
 
 
-def short_state_from_long(state: int) -> ShortState:
-    """Map ACT_STATE bits onto the short state byte (bits without a short equivalent are dropped)."""
-    short = ShortState(0)
-    for s, long_bit in _SHORT_TO_LONG:
+_SHORT_TO_LONG_INT: Final = tuple((int(s), int(long_bit)) for s, long_bit in _SHORT_TO_LONG)
+# Enum construction and flag arithmetic cost microseconds; the hot paths use these int tables.
+#: ``LONG_BITS_OF_SHORT[b]``: the ACT_STATE bits (int) a short state byte ``b`` stands for.
+LONG_BITS_OF_SHORT: Final = tuple(
+    sum(long_bit for s, long_bit in _SHORT_TO_LONG_INT if b & s) for b in range(256)
+)
+#: The ACT_STATE bits that have a short-state equivalent.
+LONG_BITS_WITH_SHORT: Final = LONG_BITS_OF_SHORT[0xFF]
+_SHORT_MEMBERS: Final = tuple(ShortState(b) for b in range(256))
+
+
+def short_bits_from_long(state: int) -> int:
+    """:func:`short_state_from_long` as a plain int (hot path)."""
+    short = 0
+    for s, long_bit in _SHORT_TO_LONG_INT:
         if state & long_bit:
             short |= s
     return short
 
 
+def short_state_from_long(state: int) -> ShortState:
+    """Map ACT_STATE bits onto the short state byte (bits without a short equivalent are dropped)."""
+    return _SHORT_MEMBERS[short_bits_from_long(int(state))]
+
+
 def long_state_from_short(short: int) -> ActState:
     """Map a short state byte back onto the ACT_STATE bits it stands for (as the vendor library does)."""
-    state = ActState(0)
-    for s, long_bit in _SHORT_TO_LONG:
-        if short & s:
-            state |= long_bit
-    return state
+    return ActState(LONG_BITS_OF_SHORT[int(short) & 0xFF])
 
 
 # --------------------------------------------------------------------------------------------------
@@ -815,25 +827,30 @@ def _finite(msg: can.Message, x: float, what: str) -> float:
     return x
 
 
+_PARAMS_BY_BYTE: Final = {int(x): x for x in Param}
+_MODES_BY_BYTE: Final = {int(x): x for x in MoveMode}
+_COMMANDS_BY_BYTE: Final = {int(x): x for x in Command}
+
+
 def _parse_param(msg: can.Message, byte: int) -> Param:
-    try:
-        return Param(byte)
-    except ValueError:
-        raise _fail(msg, f"unknown parameter 0x{byte:02X}") from None
+    param = _PARAMS_BY_BYTE.get(byte)
+    if param is None:
+        raise _fail(msg, f"unknown parameter 0x{byte:02X}")
+    return param
 
 
 def _parse_mode(msg: can.Message, byte: int) -> MoveMode:
-    try:
-        return MoveMode(byte)
-    except ValueError:
-        raise _fail(msg, f"unknown SETMOVE mode 0x{byte:02X}") from None
+    mode = _MODES_BY_BYTE.get(byte)
+    if mode is None:
+        raise _fail(msg, f"unknown SETMOVE mode 0x{byte:02X}")
+    return mode
 
 
 def _parse_command(msg: can.Message, byte: int) -> Command:
-    try:
-        return Command(byte)
-    except ValueError:
-        raise _fail(msg, f"unknown command 0x{byte:02X}") from None
+    cmd = _COMMANDS_BY_BYTE.get(byte)
+    if cmd is None:
+        raise _fail(msg, f"unknown command 0x{byte:02X}")
+    return cmd
 
 
 def _unpack_value(msg: can.Message, param: Param, raw: bytes) -> float | int:
@@ -898,7 +915,7 @@ def _decode_reply(msg: can.Message, data: bytes, module_id: int) -> Reply:
         if mode.extended:
             _need_dlc(msg, data, _EXT_ACK.size, f"SETMOVE {mode.name} ack")
             _, _, x, short, dio = _EXT_ACK.unpack(data)
-            return SetMoveExtAck(module_id, mode, _finite(msg, x, "position"), ShortState(short), dio)
+            return SetMoveExtAck(module_id, mode, _finite(msg, x, "position"), _SHORT_MEMBERS[short], dio)
         _need_dlc(msg, data, 2, f"SETMOVE {mode.name} ack")
         return SetMoveAck(module_id, mode)
     raise _fail(msg, f"{cmd.name} is never acknowledged")
@@ -958,6 +975,20 @@ def decode(msg: can.Message) -> Frame:
     if not data:
         raise _fail(msg, "empty frame")
     return _DECODERS[kind](msg, data, module_id)
+
+
+def fstep_ext_ack_fields(msg: can.Message) -> tuple[float, int] | None:
+    """Fast path for the one reply a control cycle waits for: (position rad, short state bits)
+    if ``msg`` is a well-formed FSTEP_EXT acknowledgement (any module id; the caller routes by
+    id), else None, in which case the caller decodes it with :func:`decode` (which also rejects
+    a non-finite position as malformed)."""
+    data = msg.data
+    if len(data) != 8 or data[0] != 0x0B or data[1] != 0x10 or msg.dlc != 8 or msg.is_extended_id:
+        return None
+    _, _, x, short, _dio = _EXT_ACK.unpack(data)
+    if x - x != 0.0:  # NaN or inf
+        return None
+    return x, short
 
 
 class FrameDecoder:
