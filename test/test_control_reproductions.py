@@ -51,4 +51,5 @@ def test_reproductions_write_pngs_and_report(tmp_path) -> None:
         assert r["min_clearance"] > 0.0, key
         assert r["limit_margin"] >= 0.0, key
     assert by[("swivel1", "s_des=-1.57 obstacle")]["min_clearance"] > 0.0
+    assert by[("swivel1", "s_des=-1.57 ignoring it")]["min_clearance"] < 0.0
     assert by[("swivel2", "ramp obstacle")]["min_clearance"] > 0.0

@@ -100,12 +100,14 @@ def circle_path(t: float, period: float, center: Sequence[float], radius: float)
 def run_swivel_example(arm: Any, scene: Scene, s_des_fn: Any, laps: float = 3.0, period: float = 4.0,
                        center: Sequence[float] = (0.5, 0.0, 0.62), radius: float = 0.12,
                        quaternion_form: bool = False, params: SwivelParams | None = None,
-                       capsules: ArmCapsules | None = None) -> SwivelRun:
+                       capsules: ArmCapsules | None = None,
+                       score_scene: Scene | None = None) -> SwivelRun:
     """Tool circling ``laps`` times at constant orientation; swivel from eq. (32); IK each step.
 
     ``s_des_fn(t)`` gives the desired swivel (rad). With ``quaternion_form`` the state is the swivel
     quaternion u and the loop uses no trigonometric call (probes r+/- u with constant cos/sin eps).
     The joint solution at each step is the in-limit one nearest the previous (no branch flip).
+    ``score_scene``: scene the recorded clearance is measured against (default: ``scene``).
     """
     caps = capsules or ArmCapsules()
     geom = ArmGeometry.from_arm(arm)
@@ -143,7 +145,7 @@ def run_swivel_example(arm: Any, scene: Scene, s_des_fn: Any, laps: float = 3.0,
         ss.append(s)
         sds.append(sd)
         elbows.append(circle.elbow(s))
-        clears.append(links_clearance(circle.key_points(s), scene, caps).distance)
+        clears.append(links_clearance(circle.key_points(s), score_scene or scene, caps).distance)
     return SwivelRun(np.array(ts), np.array(ss), np.array(sds), np.array(elbows), np.array(qs),
                      np.array(clears))
 
@@ -157,8 +159,8 @@ def _swivel_report(arm: Any, name: str, variant: str, run: SwivelRun) -> Scenari
     if not note:
         dev = np.abs([wrap_angle(a - b) for a, b in zip(run.s, run.s_des, strict=True)])
         note = f"max abs(s - s_des) {dev.max():.2f} rad"
-    return ScenarioReport(name, variant, None, 0.0, float(np.min(run.clearance)), margin, float("nan"),
-                          peak_jerk(run.elbow, DT), note)
+    return ScenarioReport(name, variant, None, float("nan"), float(np.min(run.clearance)), margin,
+                          float("nan"), peak_jerk(run.elbow, DT), note + "; jerk of the elbow")
 
 
 def swivel_scene() -> Scene:
@@ -186,7 +188,7 @@ def reproduce_swivel(arm: Any, out: Path, quick: bool, example: int) -> list[Sce
         runs = {}
         for v in values:
             runs[v] = (run_swivel_example(arm, scene, lambda t, v=v: v, laps),
-                       run_swivel_example(arm, empty, lambda t, v=v: v, laps))
+                       run_swivel_example(arm, empty, lambda t, v=v: v, laps, score_scene=scene))
         fig, ax = plt.subplots(figsize=(8, 4.5))
         for i, v in enumerate(values):
             with_o, without = runs[v]
@@ -205,7 +207,7 @@ def reproduce_swivel(arm: Any, out: Path, quick: bool, example: int) -> list[Sce
                            "Example 1: elbow on S1, s_des = -pi/2")
         for v in values:
             reports.append(_swivel_report(arm, "swivel1", f"s_des={v:+.2f} obstacle", runs[v][0]))
-            reports.append(_swivel_report(arm, "swivel1", f"s_des={v:+.2f} free", runs[v][1]))
+            reports.append(_swivel_report(arm, "swivel1", f"s_des={v:+.2f} ignoring it", runs[v][1]))
     else:
         period = 4.0
         total = laps * period
@@ -214,7 +216,7 @@ def reproduce_swivel(arm: Any, out: Path, quick: bool, example: int) -> list[Sce
             return wrap_angle(0.5 * math.pi + math.pi * t / total)
 
         with_o = run_swivel_example(arm, scene, ramp, laps, quaternion_form=True)
-        without = run_swivel_example(arm, empty, ramp, laps, quaternion_form=True)
+        without = run_swivel_example(arm, empty, ramp, laps, quaternion_form=True, score_scene=scene)
         fig, ax = plt.subplots(figsize=(8, 4.5))
         ax.plot(with_o.t, np.unwrap(with_o.s), "r", label="s with obstacle")
         ax.plot(without.t, np.unwrap(without.s), "b--", lw=0.8, label="s without obstacle")
@@ -229,7 +231,7 @@ def reproduce_swivel(arm: Any, out: Path, quick: bool, example: int) -> list[Sce
         _elbow_sphere_plot(arm, scene, with_o, without, out / "swivel_example2_elbow.png",
                            "Example 2: elbow on S1, ramp s_des")
         reports.append(_swivel_report(arm, "swivel2", "ramp obstacle", with_o))
-        reports.append(_swivel_report(arm, "swivel2", "ramp free", without))
+        reports.append(_swivel_report(arm, "swivel2", "ramp ignoring it", without))
     return reports
 
 
@@ -393,10 +395,14 @@ def format_reports(reports: list[ScenarioReport]) -> str:
     """Markdown table of the reports."""
     lines = ["| scenario | variant | reached | final pos err (m) | min clearance (m) | joint-limit margin "
              "(rad) | path / straight | peak jerk (m/s^3) | note |", "|---|---|---|---|---|---|---|---|---|"]
+    def num(x: float, fmt: str) -> str:
+        return "-" if not math.isfinite(x) else format(x, fmt)
+
     for r in reports:
         reached = "-" if r.reached is None else ("yes" if r.reached else "NO")
-        lines.append(f"| {r.scenario} | {r.variant} | {reached} | {r.pos_err:.2e} | {r.min_clearance:.3f} | "
-                     f"{r.limit_margin:.3f} | {r.path_ratio:.3f} | {r.peak_jerk:.1f} | {r.note} |")
+        lines.append(f"| {r.scenario} | {r.variant} | {reached} | {num(r.pos_err, '.2e')} | "
+                     f"{num(r.min_clearance, '.3f')} | {num(r.limit_margin, '.3f')} | "
+                     f"{num(r.path_ratio, '.3f')} | {num(r.peak_jerk, '.1f')} | {r.note} |")
     return "\n".join(lines)
 
 
