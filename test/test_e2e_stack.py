@@ -162,7 +162,11 @@ def test_ik_then_goal_reached_by_the_simulated_arm(stack: Stack, client: Client)
     msg = pose_to_msg(T)
     msg.header.frame_id = "base_link"
     client.goal_pub.publish(msg)
-    reached = client.spin_until(lambda: client.seen(ControllerState.REACHED, n), 45.0)
+    def reached_this_goal() -> bool:  # a REACHED still in flight for an earlier goal does not count
+        return any(s.phase == ControllerState.REACHED and abs(s.goal.position.x - T[0, 3]) < 1e-6
+                   and abs(s.goal.position.y - T[1, 3]) < 1e-6 for s in client.states[n:])
+
+    reached = client.spin_until(reached_this_goal, 45.0)
     stack.check()
     assert reached, f"controller never reached the goal; last state: {client.states[-1]}"
     # The simulated arm follows the last commands within a few control periods.
