@@ -219,10 +219,6 @@ class LoopbackBusServer:
             self._thread.start()
         return self
 
-    def serve_forever(self) -> None:
-        """Serve in the calling thread until :meth:`stop` is called from another thread."""
-        self._server.serve_forever(poll_interval=0.1)
-
     def close_clients(self, wait_s: float = 5.0) -> None:
         """Close every client connection (clients see ``WebsocketClosed``) and wait until each
         connection's server-side bus is shut down (at most ``wait_s``); keep listening."""
