@@ -306,20 +306,29 @@ class Demo:
             self.say("stack up; moving to the ready pose through /joint_command")
             driver = stack.children["can_driver"]
 
+            def recover_if_halted(where: str) -> int:
+                # The driver halts every module when one answers too late (e.g. the simulator or the
+                # driver starved of CPU); it stays halted until ~/recover. Do what an operator would:
+                # recover, then carry on. Every halt is counted and reported.
+                new = _count(driver.output(), "HALTED:") - self.halts
+                if new <= 0:
+                    return 0
+                self.halts += new
+                ok, why = client.recover()
+                self.say(f"  the driver halted the arm ({where}); ~/recover: {why}")
+                client.spin_until(lambda: False, 0.8)  # the controller restarts from the still arm
+                return new
+
             def at_ready() -> bool:
                 st = stack.sim_status() or {}
                 return bool(st) and float(np.max(np.abs(np.asarray(st["q"]) - READY_Q))) < 1e-3
 
             for attempt in (1, 2):
-                halts0 = _count(driver.output(), "HALTED")
+                recover_if_halted("before the ready pose")
                 client.move_joints(list(arm.joint_names), READY_Q, 3.0)
                 if client.spin_until(at_ready, 20.0):
                     break
-                if attempt == 1 and _count(driver.output(), "HALTED") > halts0:
-                    self.halts += 1
-                    ok, why = client.recover()
-                    self.say(f"  the driver halted the arm on the way to the ready pose; ~/recover: {why}")
-                    client.spin_until(lambda: False, 0.8)
+                if attempt == 1 and _count(driver.output(), "HALTED:") > self.halts:
                     continue
                 self.say("the simulated arm did not reach the ready pose")
                 self._tail(log_path)
@@ -329,18 +338,12 @@ class Demo:
             seed = list(READY_Q)
             for i, goal in enumerate(GOALS, start=1):
                 stack.check()
-                halts0 = _count(driver.output(), "HALTED")
+                halts = recover_if_halted(f"before goal {i}")
                 res = self._one_goal(stack, client, CS, arm, goal, seed, i)
-                halts = _count(driver.output(), "HALTED") - halts0
-                if halts and not res.ok:
-                    # The driver halted the arm (a module reply came too late, e.g. while the simulator
-                    # rendered under load). Do what an operator would: recover, try the goal once more.
-                    self.halts += halts
-                    ok, why = client.recover()
-                    self.say(f"  goal {i} {goal.name}: the driver halted the arm; ~/recover: {why}")
-                    client.spin_until(lambda: False, 0.8)
+                if not res.ok and _count(driver.output(), "HALTED:") > self.halts:
+                    halts += recover_if_halted(f"during goal {i}")
                     res = self._one_goal(stack, client, CS, arm, goal, seed, i)
-                    res.note = (res.note + "; " if res.note else "") + f"retried after {halts} driver halt(s)"
+                    res.note = (res.note + "; " if res.note else "") + "retried after a driver halt"
                 res.driver_halts = halts
                 results.append(res)
                 st = stack.sim_status()
