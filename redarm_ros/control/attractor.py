@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from redarm_ros.control.obstacles import Obstacle
 from redarm_ros.control.swivel_dynamics import wrap_angle
@@ -105,7 +105,8 @@ class HeadingParams:
     scale of the elevation push; edge_soft: smallest horizontal distance (m) used for the clearance
     elevation (keeps it continuous over an obstacle). target_gate: width (m) of the smooth gate that
     ignores obstacles lying beyond the target. max_turn_rate: clamp on |dphi/dt|, |dtheta/dt| (rad/s),
-    which bounds the lateral acceleration of the hand to ``speed * max_turn_rate``. slow_distance (m),
+    which bounds the lateral acceleration of the hand to ``speed * max_turn_rate``; max_turn_acc
+    (rad/s^2) limits how fast those rates change (lateral jerk ``speed * max_turn_acc``). slow_distance (m),
     slow_min: an obstacle ahead that the hand is not yet above scales the speed down towards
     ``slow_min`` as its distance falls below ``slow_distance`` (the speed dynamics of the dynamic
     approach to navigation), which buys time for the elevation to rise.
@@ -122,6 +123,7 @@ class HeadingParams:
     edge_margin: float = 0.04
     edge_soft: float = 0.05
     max_turn_rate: float = 8.0
+    max_turn_acc: float = 80.0
     d0_up: float = 0.4
     target_gate: float = 0.03
     slow_distance: float = 0.15
@@ -145,6 +147,7 @@ class HeadingRates:
     obstacle_phi: float = 0.0
     obstacle_theta: float = 0.0
     speed_factor: float = 1.0
+    applied: tuple[float, float] = (0.0, 0.0)
 
 
 class HeadingDynamics:
@@ -219,13 +222,29 @@ class HeadingDynamics:
         return HeadingRates(dphi + f_phi, dtheta + f_theta, phi_tar, theta_tar, f_phi, f_theta, speed_factor)
 
     def step(self, phi: float, theta: float, dt: float, ee: Sequence[float], target: Sequence[float],
-             obstacles: Sequence[Obstacle] = ()) -> tuple[float, float, HeadingRates]:
-        """One Euler step of ``dt`` s; the elevation stays in [-pi/2, pi/2]."""
+             obstacles: Sequence[Obstacle] = (), prev_rates: tuple[float, float] | None = None
+             ) -> tuple[float, float, HeadingRates]:
+        """One Euler step of ``dt`` s; the elevation stays in [-pi/2, pi/2].
+
+        The applied rates are clamped to ``max_turn_rate``; with ``prev_rates`` (the rates applied in
+        the previous step) their change is also limited to ``max_turn_acc * dt``, which bounds the
+        lateral jerk of the hand when the target or the scene changes abruptly. The returned
+        :class:`HeadingRates` carries the applied rates in ``applied``.
+        """
         r = self.rates(phi, theta, ee, target, obstacles)
-        m = self.params.max_turn_rate
-        phi_n = wrap_angle(phi + dt * max(-m, min(m, r.dphi)))
-        theta_n = max(-0.5 * math.pi, min(0.5 * math.pi, theta + dt * max(-m, min(m, r.dtheta))))
-        return phi_n, theta_n, r
+        p = self.params
+        m = p.max_turn_rate
+        dphi = max(-m, min(m, r.dphi))
+        dtheta = max(-m, min(m, r.dtheta))
+        if prev_rates is not None:
+            da = p.max_turn_acc * dt
+            dphi = max(prev_rates[0] - da, min(prev_rates[0] + da, dphi))
+            dtheta = max(prev_rates[1] - da, min(prev_rates[1] + da, dtheta))
+        phi_n = wrap_angle(phi + dt * dphi)
+        theta_n = max(-0.5 * math.pi, min(0.5 * math.pi, theta + dt * dtheta))
+        if theta_n in (-0.5 * math.pi, 0.5 * math.pi):
+            dtheta = 0.0
+        return phi_n, theta_n, replace(r, applied=(dphi, dtheta))
 
 
 def _logistic(x: float) -> float:

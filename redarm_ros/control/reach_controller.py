@@ -296,6 +296,8 @@ class ReachController:
         self._v = 0.0
         self._a = 0.0
         self._v_cap: float | None = None
+        self._turn = (0.0, 0.0)  # heading rates applied in the last step (rad/s)
+        self._ratio = 0.0  # largest joint speed / limit in the last step
         self._prev_pos: Vec3 | None = None
         self._circle: ElbowCircle | None = None
         self._clear = Clearance(math.inf, -1, -1)
@@ -353,6 +355,8 @@ class ReachController:
         self._v = 0.0
         self._a = 0.0
         self._v_cap = None
+        self._turn = (0.0, 0.0)
+        self._ratio = 0.0
         self._prev_pos = None
         self._goal_p = None
         self._goal_q = None
@@ -452,6 +456,7 @@ class ReachController:
         if self._v < 1e-6:  # starting from rest: head straight at the goal
             gp, cp = self._goal_p, self._pos
             self._phi, self._theta = heading_angles((gp[0] - cp[0], gp[1] - cp[1], gp[2] - cp[2]), self._phi)
+            self._turn = (0.0, 0.0)
         self._phase = Phase.REACHING
         self._message = ""
         return check
@@ -504,7 +509,8 @@ class ReachController:
         if goal_p is not None:
             dist = math.dist(pos, goal_p)
             self._phi, self._theta, rates = self.heading_dyn.step(self._phi, self._theta, dt, pos, goal_p,
-                                                                  obstacles)
+                                                                  obstacles, self._turn)
+            self._turn = rates.applied
             cap = self._v_cap
             if rates.speed_factor < 1.0:
                 v_obs = rates.speed_factor * self.speed_profile.params.v_max
@@ -752,8 +758,11 @@ class ReachController:
         # speed ahead of time (the filter then slows down with bounded jerk instead of being cut).
         sp = self.speed_profile.params
         v_now = moved / dt if dt > 0 else 0.0
-        if ratio > 0.85 and v_now > 1e-4:
-            cap = max(v_now * 0.85 / ratio, 0.02)
+        # Extrapolate the joint-speed ratio a few steps ahead: it can grow fast while the arm turns.
+        predicted = ratio + 4.0 * max(ratio - self._ratio, 0.0)
+        self._ratio = ratio
+        if predicted > 0.85 and v_now > 1e-4:
+            cap = max(v_now * 0.85 / predicted, 0.02)
             self._v_cap = cap if self._v_cap is None else min(cap, self._v_cap + sp.a_max * dt)
         elif self._v_cap is not None:
             self._v_cap += 0.5 * sp.a_max * dt
