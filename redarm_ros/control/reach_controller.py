@@ -298,7 +298,6 @@ class ReachController:
         self._v_cap: float | None = None
         self._turn = (0.0, 0.0)  # heading rates applied in the last step (rad/s)
         self._ratio = 0.0  # largest joint speed / limit in the last step
-        self._prev_pos: Vec3 | None = None
         self._circle: ElbowCircle | None = None
         self._clear = Clearance(math.inf, -1, -1)
 
@@ -357,7 +356,6 @@ class ReachController:
         self._v_cap = None
         self._turn = (0.0, 0.0)
         self._ratio = 0.0
-        self._prev_pos = None
         self._goal_p = None
         self._goal_q = None
         self._phase = Phase.IDLE
@@ -516,12 +514,10 @@ class ReachController:
                 v_obs = rates.speed_factor * self.speed_profile.params.v_max
                 cap = v_obs if cap is None else min(cap, v_obs)
             self._v, self._a = self.speed_profile.step(self._v, self._a, dist, dt, cap)
-        else:  # no goal: decelerate along the current heading
-            sp = self.speed_profile.params
-            self._a = max(-sp.a_max, min(0.0, self._a - dt * sp.omega * sp.omega * self._v))
-            self._v = max(0.0, self._v + dt * self._a) if self._v > 1e-4 else 0.0
-            if self._v == 0.0:
-                self._a = 0.0
+        else:  # no goal: decelerate along the current heading (jerk-limited, like any speed change)
+            self._v, self._a = self.speed_profile.step(self._v, self._a, math.inf, dt, 0.0)
+            if self._v < 1e-4:
+                self._v, self._a = 0.0, 0.0
         e = direction(self._phi, self._theta)
         if goal_p is not None and dist < p.final_distance:
             # Final approach: blend towards the straight line so that a heading which ended up
@@ -549,9 +545,7 @@ class ReachController:
             gain = min(gain, 1.0)
             new_rot = quat_normalize(quat_mul(quat_from_rotvec((gain * w[0], gain * w[1], gain * w[2])), rot))
         # 4-5. swivel and IK (with velocity scaling / swivel search / hold)
-        ok = self._advance(new_pos, new_rot, dt)
-        if ok:
-            self._prev_pos = pos
+        self._advance(new_pos, new_rot, dt)
         self._update_phase()
         return self._result()
 
