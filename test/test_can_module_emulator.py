@@ -462,3 +462,13 @@ def test_runner_watchdog_trips_on_real_time(vbus) -> None:
         # nothing more is sent: the module halts by itself and says so on 0x061
         frame = _expect(host, timeout=5.0)
         assert isinstance(frame, p.StateFrame) and frame.state & S.COMM_ERROR
+
+
+def test_runner_stops_when_its_plain_bus_is_shut_down(vbus) -> None:
+    host, dev = vbus
+    arm = EmulatedArm.kinematic([-1.0], [1.0], [2.0], [20.0])
+    runner = EmulatorRunner(dev, arm, tick_s=0.005).start()
+    dev.shutdown()  # the owner closed the bus before stopping the runner
+    runner.join(5.0)
+    assert not runner.running and runner.errors >= 1
+    runner.stop()

@@ -843,6 +843,16 @@ class EmulatorRunner:
             self._thread.start()
         return self
 
+    @property
+    def running(self) -> bool:
+        """True while the serving thread is alive."""
+        return self._thread is not None and self._thread.is_alive()
+
+    def join(self, timeout_s: float | None = None) -> None:
+        """Wait for the serving thread to end by itself (e.g. after its bus was shut down)."""
+        if self._thread is not None:
+            self._thread.join(timeout_s)
+
     def stop(self, timeout_s: float = 2.0) -> None:
         """Stop the thread (the bus stays open: its owner closes it)."""
         self._stop.set()
@@ -895,6 +905,16 @@ class EmulatorRunner:
                     reopen()
                 except BusError:
                     continue
+            except can.CanError as exc:  # a plain python-can bus failing (no reopen)
+                self.errors += 1
+                if getattr(self.bus, "_is_shutdown", False):
+                    logger.info("emulator: bus shut down, stopping")
+                    return
+                logger.warning("emulator: CAN error (%s); retrying in %.2f s", exc, delay)
+                if self._stop.wait(delay):
+                    return
+                delay = min(2.0, delay * 2)
             except Exception:  # keep serving: one bad dispatch must not kill the device side
                 self.errors += 1
                 logger.exception("emulator: error while serving a frame")
+                self._stop.wait(self.tick_s)  # never spin on a repeating error
