@@ -104,6 +104,7 @@ class GoalResult:
     ok: bool = False
     note: str = ""
     driver_halts: int = 0
+    diagnostics: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass
@@ -402,6 +403,16 @@ class Demo:
         else:
             client.spin_until(lambda: False, 0.5)  # let a rejected goal's stop settle for the snapshot
         pe, re = self.tool_error(stack, T)
+        last = client.states[-1][1] if client.states else None
+        st = stack.sim_status() or {}
+        # Where a miss comes from: the command (controller) or the tracking (driver + simulated arm).
+        diag = {
+            "controller_phase": last.phase if last is not None else "",
+            "controller_distance_m": float(last.distance_to_goal) if last is not None else math.nan,
+            "controller_message_last": last.message if last is not None else "",
+            "sim_setpoint_gap_rad": float(np.max(np.abs(np.subtract(st["q"], st["q_setpoint"]))))
+            if "q_setpoint" in st else math.nan,
+        }
         clear = [m.clearance for _, m in client.states[n:] if math.isfinite(m.clearance)]
         reached = hit is not None and not rejected and pe < POS_TOL_M and re < ROT_TOL_RAD
         if goal.reachable:
@@ -416,6 +427,7 @@ class Demo:
             controller_message=message, pos_err_m=pe, rot_err_rad=re, time_s=t_end - t0,
             min_clearance_m=min(clear) if clear else math.inf,
             snapshot=None if snap is None else str(snap.relative_to(self.output)), ok=ok, note=goal.note,
+            diagnostics=diag,
         )
 
     def _rates(self, stack: Stack, client: DemoClient) -> dict[str, Any]:
