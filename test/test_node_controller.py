@@ -332,3 +332,13 @@ def test_marker_conversions_are_conservative() -> None:
     assert shape.radius == pytest.approx(0.1)  # an ellipsoid is bounded by its largest axis
     shape, note = marker_to_obstacle(_marker(Marker.ARROW, (0, 0, 0), (1, 1, 1)))
     assert shape is None and "not an obstacle" in note
+
+
+def test_second_controller_of_the_same_name_refuses_to_start(h: Harness, ctx: Any) -> None:
+    """The harness runs /controller; another one in the same domain must refuse (graph check)."""
+    with pytest.raises(RuntimeError, match="already running"):
+        ControllerNode(context=ctx, parameter_overrides=[Parameter("duplicate_check_s", value=1.0)])
+    # A remapped name is fine.
+    other = ControllerNode(context=ctx, node_name="controller_2",
+                           parameter_overrides=[Parameter("duplicate_check_s", value=0.3)])
+    other.destroy_node()
