@@ -223,20 +223,33 @@ def _interpolate(tr: _Trajectory, now: float) -> np.ndarray:
 
 
 class PeriodStats:
-    """Achieved cycle periods against the nominal one (window of the last ``window`` cycles)."""
+    """Achieved cycle timing against the nominal period (window of the last ``window`` cycles).
+
+    :meth:`start` is called with every cycle's start time; the period between two cycles is a
+    sample unless ticks were skipped in between (an overrun, counted separately). The achieved
+    rate counts every cycle over the window's time span, overruns included.
+    """
 
     def __init__(self, period_s: float, window: int = 2500) -> None:
         self.period_s = float(period_s)
         self._periods: deque[float] = deque(maxlen=window)
+        self._starts: deque[float] = deque(maxlen=window)
         self._lock = threading.Lock()
         self.cycles = 0
         self.overruns = 0  # ticks skipped because a cycle ended after the next deadline
 
+    def start(self, t: float, *, after_overrun: bool = False) -> None:
+        """Record a cycle starting at ``t`` (s); ``after_overrun``: ticks were skipped before it."""
+        with self._lock:
+            if self._starts and not after_overrun:
+                self._periods.append(t - self._starts[-1])
+            self._starts.append(t)
+            self.cycles += 1
+
     def add(self, period_s: float) -> None:
-        """Record one measured period (s) between consecutive cycle starts."""
+        """Record one measured period (s) directly (no start time)."""
         with self._lock:
             self._periods.append(period_s)
-            self.cycles += 1
 
     def add_overrun(self, skipped: int) -> None:
         """Record ``skipped`` ticks that were dropped because the loop fell behind."""
@@ -244,25 +257,28 @@ class PeriodStats:
             self.overruns += int(skipped)
 
     def reset(self) -> None:
-        """Forget the window (counters stay)."""
+        """Forget the window (counters stay); call when cycling resumes after a pause."""
         with self._lock:
             self._periods.clear()
+            self._starts.clear()
 
     def summary(self) -> dict[str, float]:
-        """``rate_hz``, ``period_err_median_ms``, ``period_err_p99_ms``, ``period_err_max_ms`` (abs error)."""
+        """``rate_hz`` (cycles per second over the window), absolute period errors in ms
+        (``period_err_median_ms``, ``period_err_p99_ms``, ``period_err_max_ms``), ``samples``."""
         with self._lock:
             p = np.fromiter(self._periods, dtype=float)
+            starts = list(self._starts)
+        rate = 0.0
+        if len(starts) >= 2 and starts[-1] > starts[0]:
+            rate = (len(starts) - 1) / (starts[-1] - starts[0])
+        elif p.size:
+            rate = float(1.0 / p.mean())
         if p.size == 0:
-            return {
-                "rate_hz": 0.0,
-                "period_err_median_ms": 0.0,
-                "period_err_p99_ms": 0.0,
-                "period_err_max_ms": 0.0,
-                "samples": 0,
-            }
+            return {"rate_hz": rate, "period_err_median_ms": 0.0, "period_err_p99_ms": 0.0,
+                    "period_err_max_ms": 0.0, "samples": 0}
         err = np.abs(p - self.period_s) * 1e3
         return {
-            "rate_hz": float(1.0 / p.mean()),
+            "rate_hz": float(rate),
             "period_err_median_ms": float(np.median(err)),
             "period_err_p99_ms": float(np.percentile(err, 99)),
             "period_err_max_ms": float(err.max()),
@@ -616,15 +632,14 @@ class DriverLoop:
         q_meas = self._q_meas if self._q_meas is not None else self._read_positions()
         q_ref = self._q_ref if self._q_ref is not None else q_meas
         next_t = time.monotonic()
-        last_start: float | None = None
+        gap = True  # the first cycle after a pause has no period
         while not self._stop.is_set() and self._requests.empty():
             now = time.monotonic()
             if now < next_t:
                 time.sleep(next_t - now)
                 now = time.monotonic()
-            if last_start is not None:
-                self.stats.add(now - last_start)
-            last_start = now
+            self.stats.start(now, after_overrun=gap)
+            gap = False
             target = self.commands.sample(now, q_ref, q_meas)
             result = drv.cycle(target, period)
             q_meas = np.array(_positions_of(result), dtype=float)
@@ -646,7 +661,7 @@ class DriverLoop:
                 skipped = int(late // period) + 1
                 next_t += skipped * period
                 self.stats.add_overrun(skipped)
-                last_start = None  # the gap is an overrun, not a period sample
+                gap = True  # the gap is an overrun, not a period sample
 
     def _note_clamps(self, result: Any, now: float) -> None:
         clamped = _clamps_of(result)
