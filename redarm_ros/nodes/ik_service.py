@@ -24,7 +24,6 @@ import numpy as np
 from geometry_msgs.msg import Pose
 from rclpy.node import Node
 from redarm_interfaces.srv import SolveIK
-from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectoryPoint
 
 from redarm_ros.errors import InvalidInputError, RedarmError, UnreachableError
@@ -230,8 +229,9 @@ class IKFrontEnd:
                 field="swivel",
                 value=swivel,
             )
-        sols = np.asarray(arm.ik(T, swivel), dtype=float).reshape(-1, arm.n)
-        if len(sols) == 0:
+        # Every in-limit 2*pi copy of every solution: the answer is the one nearest the seed.
+        copies = np.asarray(arm.ik(T, swivel, all_copies=True), dtype=float).reshape(-1, arm.n)
+        if len(copies) == 0:
             # Tell "unreachable" from "reachable but not at this swivel / not within the limits".
             _, info = arm.ik_nearest(T, q_seed)
             if info.status is IKStatus.OUT_OF_REACH:
@@ -245,13 +245,10 @@ class IKFrontEnd:
                 f"no solution within the joint limits at swivel {swivel:.4f} rad{hint}",
                 swivel=swivel,
             )
-        # Solutions come wrapped near 0; the answer is the one nearest the seed (2*pi copies included).
-        copies = np.asarray(arm.ik(T, swivel, all_copies=True), dtype=float).reshape(-1, arm.n)
-        pool = copies if len(copies) else sols
-        q = pool[int(np.argmin(((pool - q_seed) ** 2).sum(axis=1)))]
-        return IKAnswer(
-            IKStatus.SUCCESS, "", q=q, solutions=sols if all_solutions else None, swivel=float(arm.swivel(q))
-        )
+        q = copies[int(np.argmin(((copies - q_seed) ** 2).sum(axis=1)))]
+        # `solutions` lists each solution once, wrapped near 0 (the closed form's default).
+        sols = np.asarray(arm.ik(T, swivel), dtype=float).reshape(-1, arm.n) if all_solutions else None
+        return IKAnswer(IKStatus.SUCCESS, "", q=q, solutions=sols, swivel=float(arm.swivel(q)))
 
     @staticmethod
     def _solve_nearest(
@@ -403,12 +400,11 @@ class IKServiceNode(Node):
         resp.position_error = float(ans.position_error)
         resp.orientation_error = float(ans.orientation_error)
         if ans.q is not None and ans.status in (IKStatus.SUCCESS, IKStatus.TIMEOUT):
-            js = JointState()
+            js = resp.solution
             js.header.stamp = self.get_clock().now().to_msg()
             js.header.frame_id = base_frame
             js.name = ans.joint_names
-            js.position = [float(v) for v in ans.q]
-            resp.solution = js
+            js.position = ans.q.tolist()
         if ans.solutions is not None:
             resp.solutions = [
                 JointTrajectoryPoint(positions=[float(v) for v in row]) for row in ans.solutions
