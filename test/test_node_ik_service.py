@@ -357,7 +357,9 @@ def test_cross_process_service_and_duplicate_refused(procs: Any, ctx: Any) -> No
         assert call(_bad("nan_position")).status == R.INVALID_INPUT
         assert call(_bad("unknown_arm")).status == R.INVALID_INPUT
 
-        second = procs.start("ik_service_2", python_module_cmd("redarm_ros.nodes.ik_service"))
+        # Discovery under load can take over a second: give the newcomer a generous window.
+        second = procs.start("ik_service_2", python_module_cmd("redarm_ros.nodes.ik_service", "--ros-args",
+                                                               "-p", "duplicate_check_s:=5.0"))
         second.expect_exit()
         second.wait_for_line(r"already running", timeout=30.0)
         deadline = time.monotonic() + 15.0
@@ -367,6 +369,12 @@ def test_cross_process_service_and_duplicate_refused(procs: Any, ctx: Any) -> No
         assert first.is_running()
         resp = call(make_request(GOOD_T, "pa10"))
         assert resp.status == R.SUCCESS, resp.message
+        # One forced past the start-up check (duplicate_check_s 0): the running node notices and says so.
+        third = procs.start("ik_service_3", python_module_cmd("redarm_ros.nodes.ik_service", "--ros-args",
+                                                              "-p", "duplicate_check_s:=0.0"),
+                            ready=r"serving /ik_service/solve_ik", ready_timeout=30.0)
+        first.wait_for_line(r"another node named /ik_service is running in this domain", timeout=20.0)
+        procs.stop(third)
     finally:
         executor.shutdown()
         call.node.destroy_node()

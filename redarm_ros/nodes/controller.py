@@ -59,7 +59,7 @@ from redarm_ros.errors import InvalidInputError, RedarmError
 from redarm_ros.kinematics import load_arm
 from redarm_ros.kinematics.quaternion import matrix_to_quat, quat_to_matrix
 from redarm_ros.nodes._common import ParamSpec, declare_params, in_range, non_negative, positive, run_node
-from redarm_ros.nodes.ik_service import check_unique_node_name, pose_msg_to_matrix
+from redarm_ros.nodes.ik_service import check_unique_node_name, pose_msg_to_matrix, watch_duplicates
 
 NODE_NAME = "controller"
 STILL_WINDOW_S = 0.25  # s of joint_states looked at to decide that the arm stands still
@@ -104,7 +104,7 @@ PARAMS = [
               "state (after a halt, homing, a collision).", positive),
     ParamSpec("joint_states_timeout_s", 0.5, "No joint_states for this long (s): stop commanding and warn.",
               positive),
-    ParamSpec("duplicate_check_s", 0.5, "At start-up, watch the graph this long (s) for another node of "
+    ParamSpec("duplicate_check_s", 1.0, "At start-up, watch the graph this long (s) for another node of "
               "the same name and refuse to start if there is one (0 = no check).", non_negative,
               read_only=True),
 ]
@@ -209,6 +209,7 @@ class ControllerNode(Node):
         except (RedarmError, OSError) as exc:
             raise ValueError(f"controller configuration: {exc}") from exc
         check_unique_node_name(self, p["duplicate_check_s"])
+        watch_duplicates(self)
         self.period = 1.0 / p["rate_hz"]
         self._names = list(self.arm.joint_names)
         self._q_meas: np.ndarray | None = None

@@ -87,7 +87,7 @@ PARAMS = [
     ),
     ParamSpec(
         "duplicate_check_s",
-        0.5,
+        1.0,
         "At start-up, watch the ROS graph this long (s) for another node of the same name and "
         "refuse to start if there is one (0 = no check).",
         non_negative,
@@ -303,6 +303,24 @@ def check_unique_node_name(node: Node, wait_s: float) -> None:
         time.sleep(0.05)
 
 
+def watch_duplicates(node: Node, period_s: float = 2.0) -> None:
+    """Keep looking (timer) for a node of the same name that the start-up check could not see yet
+    (slow discovery under load) or that started later; log an error once per appearance."""
+    me = (node.get_name(), node.get_namespace())
+    state = {"seen": False}
+
+    def check() -> None:
+        count = sum(1 for nm_ns in node.get_node_names_and_namespaces() if tuple(nm_ns) == me)
+        if count > 1 and not state["seen"]:
+            node.get_logger().error(
+                f"another node named {node.get_fully_qualified_name()} is running in this domain: calls "
+                "and topics now reach both; stop one or remap its name (--ros-args -r __node:=<name>)"
+            )
+        state["seen"] = count > 1
+
+    node.create_timer(period_s, check)
+
+
 class IKServiceNode(Node):
     """``ik_service``: serves ``~/solve_ik`` (redarm_interfaces/srv/SolveIK) for the configured arms."""
 
@@ -332,6 +350,7 @@ class IKServiceNode(Node):
         except InvalidInputError as exc:
             raise ValueError(str(exc)) from exc
         check_unique_node_name(self, p["duplicate_check_s"])
+        watch_duplicates(self)
         self.requests = 0
         self.failures = 0
         self.srv = self.create_service(SolveIK, "~/solve_ik", self._on_solve)
