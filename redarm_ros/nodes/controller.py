@@ -225,6 +225,7 @@ class ControllerNode(Node):
         self._last_marker_ids: set[tuple[str, int]] = set()
         self._warned: dict[str, float] = {}
         self._last_phase: Phase | None = None
+        self._last_message = ""
         self._last_result: Any = None
         self.steps = 0
         # Wiring.
@@ -385,6 +386,10 @@ class ControllerNode(Node):
             elif res.phase is Phase.HOLDING:
                 self.get_logger().warning(f"holding: {res.message}")
             self._last_phase = res.phase
+        elif res.phase is Phase.REACHING and res.message and res.message != self._last_message:
+            # The core cannot make progress for a reason it states (e.g. a singular start pose).
+            self.get_logger().warning(f"not moving: {res.message}")
+        self._last_message = res.message
         # Before the first goal nothing is commanded (the driver holds); afterwards every step is.
         moving = self._last_cmd is not None and float(np.max(np.abs(res.q - self._last_cmd))) > 1e-12
         if moving or res.phase in (Phase.REACHING, Phase.REACHED, Phase.HOLDING):
