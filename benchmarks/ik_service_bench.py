@@ -150,10 +150,12 @@ def main(argv: list[str] | None = None) -> int:
         node.destroy_node()
         rclpy.shutdown(context=ctx)
 
+    load = os.getloadavg()[0]
     lines.append(f"# ik_service round trip ({args.arm}, {calls} requests per mode)\n")
     lines.append(
         f"Machine: {platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}; "
-        "node and client in separate processes, Fast DDS over SHM; client loops on spin_once.\n"
+        f"load average at the end {load:.1f}; node and client in separate processes, Fast DDS over "
+        "SHM; client loops on spin_once.\n"
     )
     lines.append("| mode | requests | solved % | median ms | p90 ms | p99 ms | max ms |")
     lines.append("|---|---|---|---|---|---|---|")
