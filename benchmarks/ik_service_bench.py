@@ -28,6 +28,20 @@ import numpy as np
 
 from redarm_ros.procs import ProcessGroup, python_module_cmd, random_domain_id
 
+FLOOR_SERVER = """
+import rclpy
+from rclpy.executors import ExternalShutdownException
+from std_srvs.srv import Trigger
+rclpy.init()
+node = rclpy.create_node("bench_floor")
+node.create_service(Trigger, "~/trigger", lambda req, resp: resp)
+print("floor ready", flush=True)
+try:
+    rclpy.spin(node)
+except (KeyboardInterrupt, ExternalShutdownException):
+    pass
+rclpy.try_shutdown()
+"""
 RESULTS = Path(__file__).resolve().parent / "results" / "ik_service_bench.md"
 REPO = Path(__file__).resolve().parents[1]
 
@@ -117,6 +131,8 @@ def main(argv: list[str] | None = None) -> int:
                 f"default_arm:={args.arm}",
             ),
         )
+        # The floor: the same round trip to an empty std_srvs/Trigger service in its own process.
+        group.start("floor", [sys.executable, "-c", FLOOR_SERVER], ready="floor ready")
         ctx = rclpy.Context()
         rclpy.init(context=ctx, domain_id=group.domain_id)
         node = rclpy.create_node("ik_bench_client", context=ctx)
@@ -137,7 +153,21 @@ def main(argv: list[str] | None = None) -> int:
 
         for r in modes["swivel"][:50]:  # warm-up (discovery, caches)
             call(r)
+        from std_srvs.srv import Trigger
+
+        floor_cli = node.create_client(Trigger, "/bench_floor/trigger")
+        while not floor_cli.service_is_ready():
+            ex.spin_once(timeout_sec=0.05)
         results: dict[str, tuple[list[float], int]] = {}
+        times = []
+        for i in range(calls + 50):
+            t = time.perf_counter()
+            fut = floor_cli.call_async(Trigger.Request())
+            while not fut.done():
+                ex.spin_once(timeout_sec=0.1)
+            if i >= 50:
+                times.append(time.perf_counter() - t)
+        results["floor: empty Trigger service"] = (times, calls)
         for name, reqs in modes.items():
             times, ok = [], 0
             for r in reqs:
