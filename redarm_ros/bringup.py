@@ -101,6 +101,7 @@ class StackConfig:
     can_channel: str | None = None
     log_level: str = "info"
     ready_timeout_s: float = 60.0
+    auto_init: bool = False  # real hardware: let can_driver reset + home by itself (the sim always does)
     extra_args: dict[str, list[str]] = field(default_factory=dict)  # per child: appended arguments
 
 
@@ -201,7 +202,9 @@ class Stack:
                 params = {
                     "arm": cfg.arm,
                     "rate_hz": f"{cfg.driver_rate_hz:g}",
-                    "auto_init": "true",
+                    # Homing moves the arm: automatic only on the simulator, a real arm waits for ~/init
+                    # (or --auto-init).
+                    "auto_init": "true" if cfg.hardware == "sim" or cfg.auto_init else "false",
                     "can.interface": self.can_interface,
                 }
                 if self.can_channel:
@@ -320,6 +323,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     ap.add_argument("--can-interface", help="python-can interface for --hardware real (e.g. socketcan)")
     ap.add_argument("--can-channel", help="python-can channel for --hardware real (e.g. can0)")
+    ap.add_argument("--auto-init", action="store_true",
+                    help="--hardware real: let can_driver reset and home the modules by itself (moves the "
+                    "arm!); otherwise call /can_driver/init when ready. The simulator is always initialised")
     ap.add_argument("--no-controller", action="store_true", help="do not start the controller node")
     ap.add_argument("--no-ik-service", action="store_true", help="do not start the ik_service node")
     ap.add_argument("--scene", help="scene name (config/scenes) or YAML path, for simulator and controller")
@@ -361,6 +367,7 @@ def config_from_args(ns: argparse.Namespace) -> StackConfig:
         can_channel=ns.can_channel,
         log_level=ns.log_level,
         ready_timeout_s=ns.ready_timeout,
+        auto_init=ns.auto_init,
     )
 
 

@@ -168,7 +168,9 @@ def test_ik_then_goal_reached_by_the_simulated_arm(stack: Stack, client: Client)
 
     reached = client.spin_until(reached_this_goal, 45.0)
     stack.check()
-    assert reached, f"controller never reached the goal; last state: {client.states[-1]}"
+    halts = sum("HALTED:" in line for line in stack.children["can_driver"].output())
+    assert reached, (f"controller never reached the goal; last state: {client.states[-1]}; "
+                     f"driver halts: {halts}")
     # The simulated arm follows the last commands within a few control periods.
     ok = client.spin_until(lambda: all(e < t for e, t in zip(pose_err(sim_tool(stack), T), (POS_TOL, ROT_TOL),
                                                               strict=True)), 10.0)
