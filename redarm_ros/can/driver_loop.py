@@ -8,6 +8,9 @@ benchmarked without ROS:
   stream of position targets) into one joint target per cycle, and holds
   position when there is nothing to follow.
 * :class:`PeriodStats` measures the achieved cycle period against the nominal.
+* :class:`ReferenceShaper` turns the sampled target into what is sent: velocity- and
+  acceleration-limited, braking early enough to stop on a joint limit (targets beyond a limit
+  are clamped to it first and reported).
 * :class:`Backoff` spaces reconnect attempts.
 * :class:`DriverLoop` is the dedicated thread: absolute deadlines at
   ``rate_hz``, one ``driver.cycle()`` per tick, a state machine for faults
@@ -40,6 +43,8 @@ _HOME_OK = int(ActState.HOME_OK)
 
 __all__ = [
     "Backoff",
+    "ReferenceShaper",
+    "braking_speed",
     "CommandMode",
     "DriverLoop",
     "JointCommandSource",
@@ -220,6 +225,72 @@ def _interpolate(tr: _Trajectory, now: float) -> np.ndarray:
     a = 1.0 if t1 <= t0 else (t - t0) / (t1 - t0)
     q[tr.index] = p0 + a * (p1 - p0)
     return q
+
+
+def braking_speed(distance: np.ndarray, acc: np.ndarray, dt: float) -> np.ndarray:
+    """Largest speed (rad/s) from which a reference stepping every ``dt`` s, slowing by ``acc * dt``
+    per step, stops within ``distance`` (rad, >= 0): the discrete form of ``sqrt(2 a d)``."""
+    d = np.maximum(distance, 0.0)
+    adt = acc * dt
+    return adt * (np.sqrt(0.25 + 2.0 * d / (adt * dt)) - 0.5)
+
+
+class ReferenceShaper:
+    """Velocity- and acceleration-limited joint reference that follows a (moving) target.
+
+    Every cycle the reference moves toward the target with the target's own velocity fed
+    forward plus a braking-law correction, so a feasible trajectory is followed without lag,
+    while a jump is turned into a trapezoid. Limits enforced on the *reference* (what is sent):
+    ``|v| <= max_vel``, ``|dv/dt| <= max_acc``, and the reference slows down early enough to stop
+    on ``lower``/``upper`` at ``max_acc``: a target at (or clamped to) a joint limit is reached
+    without overshooting it, which a stream of FSTEPs arriving at full speed would do.
+
+    Arrays are (n,); units rad, rad/s, rad/s^2; ``dt`` is the nominal cycle period in s.
+    """
+
+    def __init__(self, lower: np.ndarray, upper: np.ndarray, max_vel: np.ndarray, max_acc: np.ndarray,
+                 dt: float) -> None:
+        self.lower = np.asarray(lower, dtype=float)
+        self.upper = np.asarray(upper, dtype=float)
+        self.max_vel = np.asarray(max_vel, dtype=float)
+        self.max_acc = np.asarray(max_acc, dtype=float)
+        self.dt = float(dt)
+        self.r: np.ndarray | None = None
+        self.v = np.zeros_like(self.lower)
+        self._g_prev: np.ndarray | None = None
+
+    def reset(self, q: np.ndarray) -> None:
+        """Start from rest at ``q`` (rad): after init, recover, reconnect."""
+        self.r = np.clip(np.array(q, dtype=float), self.lower, self.upper)
+        self.v = np.zeros_like(self.r)
+        self._g_prev = None
+
+    def step(self, target: np.ndarray) -> np.ndarray:
+        """Advance one cycle toward ``target`` (n,) rad (already within the limits); returns the reference."""
+        if self.r is None:
+            self.reset(target)
+            return self.r.copy()  # type: ignore[union-attr]
+        dt, a, vmax = self.dt, self.max_acc, self.max_vel
+        g = np.clip(target, self.lower, self.upper)
+        u = np.zeros_like(g) if self._g_prev is None else np.clip((g - self._g_prev) / dt, -vmax, vmax)
+        self._g_prev = g
+        r, v = self.r, self.v
+        # Tracking error against where the target was: with u fed forward, r then lands on g.
+        e = (g - u * dt) - r
+        v_des = u + np.sign(e) * braking_speed(np.abs(e), a, dt)
+        v_des = np.clip(v_des, -vmax, vmax)
+        # Never faster toward a joint limit than allows stopping on it.
+        v_des = np.minimum(v_des, braking_speed(self.upper - r, a, dt))
+        v_des = np.maximum(v_des, -braking_speed(r - self.lower, a, dt))
+        v_new = v + np.clip(v_des - v, -a * dt, a * dt)
+        r_new = r + v_new * dt
+        # Land exactly on a stationary target instead of dithering around it.
+        land = (np.abs(g - r_new) <= a * dt * dt) & (np.abs(v) <= a * dt) & (u == 0)
+        r_new = np.where(land, g, r_new)
+        v_new = np.where(land, 0.0, v_new)
+        self.r = np.clip(r_new, self.lower, self.upper)
+        self.v = np.where((self.r == self.lower) | (self.r == self.upper), 0.0, v_new)
+        return self.r.copy()
 
 
 class PeriodStats:
@@ -631,6 +702,10 @@ class DriverLoop:
         drv = self.driver
         q_meas = self._q_meas if self._q_meas is not None else self._read_positions()
         q_ref = self._q_ref if self._q_ref is not None else q_meas
+        shaper = self._make_shaper()
+        if shaper is not None:
+            shaper.reset(q_ref)
+        lo, hi = _limits_of(drv)
         next_t = time.monotonic()
         gap = True  # the first cycle after a pause has no period
         while not self._stop.is_set() and self._requests.empty():
@@ -641,15 +716,22 @@ class DriverLoop:
             self.stats.start(now, after_overrun=gap)
             gap = False
             target = self.commands.sample(now, q_ref, q_meas)
-            result = drv.cycle(target, period)
+            beyond: tuple[int, ...] = ()
+            if lo is not None and hi is not None:
+                clipped = np.clip(target, lo, hi)
+                if not np.array_equal(clipped, target):
+                    beyond = tuple(int(j) for j in np.flatnonzero(clipped != target))
+                    target = clipped
+            ref = shaper.step(target) if shaper is not None else target
+            result = drv.cycle(ref, period)
             q_meas = np.array(_positions_of(result), dtype=float)
-            sent = _sent_target_of(result, target)
+            sent = _sent_target_of(result, ref)
             q_ref = sent
             with self._lock:
                 self._q_meas = q_meas
                 self._q_ref = q_ref
                 self._last_result = result
-            self._note_clamps(result, now)
+            self._note_clamps(result, now, beyond)
             self._emit(CycleSample(time.time(), q_meas, _velocities_of(result), sent))
             fault = _fault_of(result)
             if fault:
@@ -663,15 +745,26 @@ class DriverLoop:
                 self.stats.add_overrun(skipped)
                 gap = True  # the gap is an overrun, not a period sample
 
-    def _note_clamps(self, result: Any, now: float) -> None:
-        clamped = _clamps_of(result)
+    def _make_shaper(self) -> ReferenceShaper | None:
+        drv = self.driver
+        try:
+            lo, hi = _limits_of(drv)
+            vmax, amax = np.asarray(drv.max_vel, dtype=float), np.asarray(drv.max_acc, dtype=float)
+        except AttributeError:
+            return None
+        if lo is None or hi is None:
+            return None
+        return ReferenceShaper(lo, hi, vmax, amax, self.period_s)
+
+    def _note_clamps(self, result: Any, now: float, beyond: tuple[int, ...] = ()) -> None:
+        clamped = tuple(sorted(set(beyond) | set(_clamps_of(result) or ())))
         if not clamped:
             return
         with self._lock:
             self._clamps += 1
         if now - self._last_clamp_log >= self.config.clamp_log_interval_s:
             self._last_clamp_log = now
-            self._log(logging.WARNING, f"joint target clamped to limits: {clamped}")
+            self._log(logging.WARNING, f"joint target clamped to the joint or speed limits: joints {clamped}")
 
     def _fault(self, reason: str, *, halt: bool = True) -> None:
         """Halt everything (unless the driver core already did) and stay halted until recover."""
@@ -771,6 +864,13 @@ def _sent_target_of(result: Any, target: np.ndarray) -> np.ndarray:
 
 def _clamps_of(result: Any) -> Any:
     return getattr(result, "clamped", None)
+
+
+def _limits_of(driver: Any) -> tuple[np.ndarray | None, np.ndarray | None]:
+    lo, hi = getattr(driver, "lower", None), getattr(driver, "upper", None)
+    if lo is None or hi is None:
+        return None, None
+    return np.asarray(lo, dtype=float), np.asarray(hi, dtype=float)
 
 
 def _fault_of(result: Any) -> str:

@@ -304,13 +304,19 @@ class CanDriverNode(Node):
         def callback(_req: Trigger.Request, resp: Trigger.Response) -> Trigger.Response:
             ok, message = self.loop.request(action, self._request_timeout_s)
             resp.success, resp.message = ok, message
-            (self.get_logger().info if ok else self.get_logger().error)(f"~/{action}: {message}")
+            # One call site per severity: rclpy refuses a severity change at the same line.
+            if ok:
+                self.get_logger().info(f"~/{action}: {message}")
+            else:
+                self.get_logger().error(f"~/{action}: {message}")
             return resp
 
         return callback
 
     # -- publishing -------------------------------------------------------------------------------------
     def _publish_joint_state(self, s: CycleSample) -> None:
+        if not self.context.ok():
+            return  # shutting down: rclpy's context is gone before the loop thread stops
         msg = JointState()
         msg.header.stamp = self.get_clock().now().to_msg()
         msg.header.frame_id = self._frame_id

@@ -1,0 +1,402 @@
+"""Hardware-in-the-loop: bus server + ``redarm-sim --arm pa10`` + ``can_driver`` as separate processes.
+
+Every test starts its own stack over the loopback remote CAN bus (127.0.0.1, ephemeral port). The
+test process is an rclpy client in its own context: it calls ``/can_driver/init``, publishes
+``/joint_command``, reads ``/joint_states`` and ``/diagnostics``, and checks what the simulated arm
+really did through the simulator's JSON status file (pybullet joint positions, setpoints, tool pose,
+module states). Fault scenarios use the simulator's control file and a CAN client of the test's own.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import threading
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import can
+import numpy as np
+import pytest
+
+rclpy = pytest.importorskip("rclpy")
+
+from builtin_interfaces.msg import Duration  # noqa: E402
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from sensor_msgs.msg import JointState  # noqa: E402
+from std_srvs.srv import Trigger  # noqa: E402
+from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint  # noqa: E402
+
+from redarm_ros.kinematics import load_arm  # noqa: E402
+from redarm_ros.procs import ManagedProcess, ProcessGroup, python_module_cmd  # noqa: E402
+
+pytestmark = pytest.mark.hil
+
+ARM = load_arm("pa10")
+N = ARM.n
+
+
+def wait_for(pred: Callable[[], Any], timeout: float, step: float = 0.02) -> Any:
+    end = time.monotonic() + timeout
+    while True:
+        v = pred()
+        if v or time.monotonic() > end:
+            return v
+        time.sleep(step)
+
+
+class Client:
+    """The test's rclpy side: services, command publisher, joint state and diagnostics subscribers."""
+
+    def __init__(self, ctx: Any) -> None:
+        self.node = rclpy.create_node("hil_client", context=ctx)
+        self.lock = threading.Lock()
+        self.joint_states: list[JointState] = []
+        self.diags: list[DiagnosticArray] = []
+        self.node.create_subscription(JointState, "/joint_states", self._on_js, 50)
+        self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag, 10)
+        self.traj_pub = self.node.create_publisher(JointTrajectory, "/joint_command", 10)
+        self.clients = {a: self.node.create_client(Trigger, f"/can_driver/{a}")
+                        for a in ("init", "halt", "recover")}
+        self.executor = SingleThreadedExecutor(context=ctx)
+        self.executor.add_node(self.node)
+        self._thread = threading.Thread(target=self._spin, daemon=True)
+        self._stop = threading.Event()
+        self._thread.start()
+
+    def _spin(self) -> None:
+        # spin_once in a loop: spin_until_future_complete adds tens of ms per call (DESIGN 5).
+        while not self._stop.is_set():
+            self.executor.spin_once(timeout_sec=0.05)
+
+    def _on_js(self, msg: JointState) -> None:
+        with self.lock:
+            self.joint_states.append(msg)
+            del self.joint_states[:-200]
+
+    def _on_diag(self, msg: DiagnosticArray) -> None:
+        with self.lock:
+            self.diags.append(msg)
+
+    def call(self, action: str, timeout: float = 30.0) -> Trigger.Response:
+        cli = self.clients[action]
+        assert cli.wait_for_service(timeout_sec=10.0), f"/can_driver/{action} not available"
+        fut = cli.call_async(Trigger.Request())
+        assert wait_for(fut.done, timeout), f"/can_driver/{action} did not answer in {timeout} s"
+        return fut.result()
+
+    def last_q(self) -> np.ndarray | None:
+        with self.lock:
+            return np.array(self.joint_states[-1].position) if self.joint_states else None
+
+    def send_trajectory(self, q_points: list[np.ndarray], times: list[float],
+                        joints: list[int] | None = None) -> None:
+        idx = list(range(N)) if joints is None else joints
+        msg = JointTrajectory()
+        msg.joint_names = [ARM.joint_names[j] for j in idx]
+        for q, t in zip(q_points, times, strict=True):
+            sec = int(t)
+            msg.points.append(JointTrajectoryPoint(
+                positions=[float(q[j]) for j in idx],
+                time_from_start=Duration(sec=sec, nanosec=int(round((t - sec) * 1e9)))))
+        self.traj_pub.publish(msg)
+
+    def diag_since(self, t0_ns: int) -> list[dict[str, tuple[int, str, dict[str, str]]]]:
+        """Diagnostics arrays stamped after ``t0_ns``: name -> (level, message, values)."""
+        out = []
+        with self.lock:
+            arrays = list(self.diags)
+        for arr in arrays:
+            if arr.header.stamp.sec * 10**9 + arr.header.stamp.nanosec < t0_ns:
+                continue
+            out.append({s.name: (_level(s.level), s.message, {kv.key: kv.value for kv in s.values})
+                        for s in arr.status})
+        return out
+
+    def now_ns(self) -> int:
+        return self.node.get_clock().now().nanoseconds
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(2.0)
+        self.executor.shutdown(timeout_sec=1.0)
+        self.node.destroy_node()
+
+
+def _level(level: Any) -> int:
+    return level[0] if isinstance(level, (bytes, bytearray)) else int(level)
+
+
+ERROR = _level(DiagnosticStatus.ERROR)
+OK = _level(DiagnosticStatus.OK)
+
+
+class Stack:
+    """Bus server, simulator and driver node in a ProcessGroup; helpers to read the sim's status."""
+
+    def __init__(self, procs: ProcessGroup, canbus: Any, tmp: Path) -> None:
+        self.procs = procs
+        self.canbus = canbus
+        self.tmp = tmp
+        self.status_file = tmp / "sim_status.json"
+        self.control_file = tmp / "sim_control.json"
+        self.sim: ManagedProcess | None = None
+        self.driver: ManagedProcess | None = None
+
+    def start_sim(self, *extra: str, name: str = "sim", initial_q: np.ndarray | None = None
+                  ) -> ManagedProcess:
+        args = ["--arm", "pa10", *self.canbus.cli_args(), "--status-file", str(self.status_file),
+                "--status-rate", "50", "--control-file", str(self.control_file), "--log-level", "WARNING",
+                *extra]
+        if initial_q is not None:
+            # One "=" argument: a leading negative value would otherwise read as an option.
+            args.append("--initial-q=" + ",".join(f"{v:.9g}" for v in initial_q))
+        self.sim = self.procs.start(name, python_module_cmd("redarm_ros.sim.hardware", *args),
+                                    ready=r"REDARM_SIM_READY", ready_timeout=30)
+        return self.sim
+
+    def start_driver(self, **params: Any) -> ManagedProcess:
+        p = {"arm": "pa10", "can.interface": "remote", "can.channel": self.canbus.channel, "rate_hz": 250.0,
+             "reconnect_max_s": 0.5, **params}
+        ros_args = ["--ros-args", "--log-level", "can_driver:=info"]
+        for k, v in p.items():
+            val = str(v).lower() if isinstance(v, bool) else str(v)
+            ros_args += ["-p", f"{k}:={val}"]
+        cmd = python_module_cmd("redarm_ros.nodes.can_driver", *ros_args)
+        self.driver = self.procs.start("can_driver", cmd, ready=r"can_driver ready", ready_timeout=30)
+        self.driver.wait_for_line(r"CAN bus connected", 30, from_start=True)
+        return self.driver
+
+    def status(self) -> dict[str, Any]:
+        for _ in range(50):
+            try:
+                return json.loads(self.status_file.read_text())
+            except (FileNotFoundError, json.JSONDecodeError):
+                time.sleep(0.02)
+        raise AssertionError("simulator status file unreadable")
+
+    def sim_q(self) -> np.ndarray:
+        return np.array(self.status()["q"])
+
+    def control(self, **kv: Any) -> None:
+        tmp = self.control_file.with_suffix(".tmp")
+        tmp.write_text(json.dumps(kv))
+        tmp.replace(self.control_file)
+
+    def wait_sim_at(self, q: np.ndarray, tol: float, timeout: float) -> np.ndarray:
+        got = wait_for(lambda: np.max(np.abs(self.sim_q() - q)) < tol, timeout)
+        qs = self.sim_q()
+        assert got, f"simulated arm at {np.round(qs, 4).tolist()}, expected {np.round(q, 4).tolist()}"
+        return qs
+
+
+@pytest.fixture
+def client(rclpy_context: Any) -> Iterator[Client]:
+    c = Client(rclpy_context)
+    try:
+        yield c
+    finally:
+        c.close()
+
+
+@pytest.fixture
+def stack(procs: ProcessGroup, canbus_server: Any, tmp_path: Path) -> Stack:
+    return Stack(procs, canbus_server, tmp_path)
+
+
+def goal_pose() -> np.ndarray:
+    """A reachable joint goal well inside the limits (rad)."""
+    return np.array([0.3, -0.25, 0.2, 0.4, -0.3, 0.25, 0.2])
+
+
+def init_and_check(client: Client, stack: Stack) -> None:
+    r = client.call("init")
+    assert r.success, r.message
+    stack.wait_sim_at(np.zeros(N), 2e-3, 10)  # homed
+
+
+def test_hil_nominal_trajectory_followed(stack: Stack, client: Client) -> None:
+    stack.start_sim()
+    stack.start_driver()
+    init_and_check(client, stack)
+    q1 = goal_pose()
+    client.send_trajectory([q1 / 2, q1], [0.8, 1.6])
+    stack.wait_sim_at(q1, 2e-3, 10)
+    assert wait_for(lambda: client.last_q() is not None and np.allclose(client.last_q(), q1, atol=3e-3), 5)
+    # The tool pose pybullet reports is the model's FK of where the joints went.
+    st = stack.status()
+    np.testing.assert_allclose(st["tool"]["position"], ARM.fk(np.array(st["q"]))[:3, 3], atol=1e-4)
+    np.testing.assert_allclose(st["tool"]["position"], ARM.fk(q1)[:3, 3], atol=3e-3)
+    # Diagnostics: loop OK and running, every module present with no error bits.
+    t0 = client.now_ns()
+    assert wait_for(lambda: client.diag_since(t0), 5)
+    d = client.diag_since(t0)[-1]
+    level, msg, values = d["can_driver: loop"]
+    assert level == OK and values["state"] == "running", msg
+    assert int(values["cycles"]) > 100
+    for j in range(N):
+        lv, m, v = d[f"can_driver: module {j + 1} ({ARM.joint_names[j]})"]
+        assert lv == OK and v["errors"] == "-" and "HOME_OK" in v["state"], (j, m, v)
+
+
+def test_hil_dropped_replies_still_followed(stack: Stack, client: Client) -> None:
+    stack.start_sim("--seed", "7")
+    # A lossy bus: a module counts as silent only after 8 misses in a row (0.05**8 per cycle).
+    stack.start_driver(max_missed_replies=8)
+    init_and_check(client, stack)
+    # Drops start after init: the driver core's configuration requests are retried only once,
+    # so init itself is not expected to survive a 5 % loss (see docs/can_driver.md).
+    stack.control(drop_replies=0.05)
+    assert wait_for(lambda: stack.status()["faults"]["drop_replies"] == 0.05, 5)
+    q1 = goal_pose()
+    client.send_trajectory([q1], [1.5])
+    stack.wait_sim_at(q1, 2e-3, 10)
+    t0 = client.now_ns()
+    assert wait_for(lambda: client.diag_since(t0), 5)
+    d = client.diag_since(t0)[-1]
+    assert d["can_driver: loop"][2]["state"] == "running"
+    lost = sum(int(d[k][2]["lost"]) for k in d if k.startswith("can_driver: module"))
+    assert lost > 0  # the drops were real and counted
+    assert stack.status()["counters"]["dropped_replies"] > 0
+
+
+def test_hil_silent_module_halts_all_until_recover(stack: Stack, client: Client) -> None:
+    stack.start_sim()
+    stack.start_driver()
+    init_and_check(client, stack)
+    far = np.array([1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+    client.send_trajectory([far], [3.0])  # 1/3 rad/s on joint 1
+    assert wait_for(lambda: stack.sim_q()[0] > 0.1, 5)
+    t0 = client.now_ns()
+    stack.control(silence=[3])
+    assert wait_for(lambda: stack.status()["faults"]["silenced"] == [3], 5)
+    stack.driver.wait_for_line(r"HALTED: module 3 stopped answering", 5)
+
+    # Everything stops (braking), well short of the goal, and stays stopped.
+    time.sleep(0.5)
+    q_stop = stack.sim_q()
+    time.sleep(0.5)
+    np.testing.assert_allclose(stack.sim_q(), q_stop, atol=1e-4)
+    assert q_stop[0] < 0.9
+    mods = {m["id"]: m for m in stack.status()["modules"]}
+    assert all("HALTED" in mods[i]["flags"] for i in (1, 2, 4, 5, 6, 7))
+    # Reported on /diagnostics: loop ERROR (halted), module 3 ERROR.
+    assert wait_for(lambda: any(d["can_driver: loop"][0] == ERROR for d in client.diag_since(t0)), 5)
+    d = [d for d in client.diag_since(t0) if d["can_driver: loop"][0] == ERROR][-1]
+    assert d["can_driver: loop"][2]["state"] == "halted"
+    assert d[f"can_driver: module 3 ({ARM.joint_names[2]})"][0] == ERROR
+    # A command while halted is ignored.
+    client.send_trajectory([np.zeros(N)], [0.5])
+    time.sleep(0.5)
+    np.testing.assert_allclose(stack.sim_q(), q_stop, atol=1e-4)
+    # Recover only after the module speaks again.
+    stack.control(silence=[])
+    assert wait_for(lambda: stack.status()["faults"]["silenced"] == [], 5)
+    r = client.call("recover")
+    assert r.success, r.message
+    time.sleep(0.5)
+    np.testing.assert_allclose(stack.sim_q(), q_stop, atol=1e-3)  # holds, old goal not resumed
+    q2 = q_stop.copy()
+    q2[1] = -0.2
+    client.send_trajectory([q2], [1.0])
+    stack.wait_sim_at(q2, 2e-3, 8)
+
+
+def test_hil_simulator_killed_and_restarted(stack: Stack, client: Client) -> None:
+    sim = stack.start_sim()
+    stack.start_driver()
+    init_and_check(client, stack)
+    target = np.array([0.0, 0.0, 0.0, 1.2, 0.0, 0.0, 0.0])
+    client.send_trajectory([target], [2.5])
+    assert wait_for(lambda: stack.sim_q()[3] > 0.3, 5)
+    sim.kill()  # a crash: SIGKILL, no clean-up
+    q_crash = np.array(stack.status()["q"])  # last status written before the crash
+    stack.driver.wait_for_line(r"HALTED: module \d+ stopped answering", 5)
+
+    # Power back on where the arm stood (modules fresh: not homed, default config).
+    stack.start_sim(name="sim_restarted", initial_q=q_crash)
+    r = client.call("recover")
+    assert r.success, r.message
+    q_after = stack.sim_q()
+    np.testing.assert_allclose(q_after, q_crash, atol=1e-3)
+    # No stale command: the arm does not continue toward the old target.
+    time.sleep(1.0)
+    st = stack.status()
+    np.testing.assert_allclose(st["q"], q_after, atol=1e-3)
+    assert max(abs(np.array(st["q_setpoint"]) - q_after)) < 1e-3
+    # And it drives again.
+    q2 = q_after.copy()
+    q2[3] = 0.2
+    client.send_trajectory([q2], [1.5])
+    stack.wait_sim_at(q2, 2e-3, 8)
+
+
+def test_hil_malformed_frames_ignored_and_counted(stack: Stack, client: Client) -> None:
+    stack.start_sim()
+    stack.start_driver()
+    init_and_check(client, stack)
+    q1 = goal_pose()
+    client.send_trajectory([q1], [1.5])
+    stack.wait_sim_at(q1, 2e-3, 10)
+    nan = bytes([0x00, 0x00, 0xC0, 0x7F])  # float32 NaN, little-endian
+    garbage = [
+        # Host-bound "replies" the driver must refuse: truncated ext ack, NaN position, unknown mode.
+        can.Message(arbitration_id=0x0A2, data=[0x0B, 0x10, 0x00], is_extended_id=False),
+        can.Message(arbitration_id=0x0A3, data=[0x0B, 0x10, *nan, 0x00, 0x00], is_extended_id=False),
+        can.Message(arbitration_id=0x0A4, data=[0x0B, 0x7E, 0, 0, 0, 0, 0, 0], is_extended_id=False),
+        # Module-bound nonsense the simulator must refuse: unknown command, FSTEP to NaN, short SETPARAM.
+        can.Message(arbitration_id=0x0E1, data=[0x55, 0x01], is_extended_id=False),
+        can.Message(arbitration_id=0x0E2, data=[0x0B, 0x10, *nan, 0x04, 0x00], is_extended_id=False),
+        can.Message(arbitration_id=0x0E5, data=[0x08, 0x3C], is_extended_id=False),
+    ]
+    bus = can.Bus(**stack.canbus.kwargs)
+    try:
+        for _ in range(20):
+            for m in garbage:
+                bus.send(m)
+            time.sleep(0.01)
+    finally:
+        bus.shutdown()
+    time.sleep(0.5)
+    # Nothing moved wrongly: still holding the goal, driver still running.
+    np.testing.assert_allclose(stack.sim_q(), q1, atol=2e-3)
+    t0 = client.now_ns()
+    assert wait_for(lambda: client.diag_since(t0), 5)
+    d = client.diag_since(t0)[-1]
+    assert d["can_driver: loop"][2]["state"] == "running"
+    malformed = {int(k.split()[2]): int(v[2]["malformed"])
+                 for k, v in d.items() if k.startswith("can_driver: module")}
+    assert malformed[2] > 0 and malformed[3] > 0 and malformed[4] > 0, malformed
+    assert stack.status()["counters"]["malformed"] > 0
+    # And it still follows commands.
+    client.send_trajectory([np.zeros(N)], [1.5])
+    stack.wait_sim_at(np.zeros(N), 2e-3, 10)
+
+
+def test_hil_command_beyond_joint_limit_clamped(stack: Stack, client: Client) -> None:
+    stack.start_sim()
+    stack.start_driver()
+    init_and_check(client, stack)
+    j = 1  # +-91 deg
+    beyond = np.zeros(N)
+    beyond[j] = ARM.upper[j] + 0.5
+    client.send_trajectory([beyond], [1.0])
+    worst_setpoint = -math.inf
+    end = time.monotonic() + 4.0
+    while time.monotonic() < end:
+        st = stack.status()
+        worst_setpoint = max(worst_setpoint, st["q_setpoint"][j], st["q"][j])
+        time.sleep(0.02)
+    st = stack.status()
+    assert st["q"][j] == pytest.approx(ARM.upper[j], abs=2e-3)  # went to the limit ...
+    assert worst_setpoint <= ARM.upper[j] + 1e-5  # ... and was never commanded beyond it
+    mod = next(m for m in st["modules"] if m["id"] == j + 1)
+    assert "ERROR" not in mod["flags"] and "BEYOND_SOFT" not in mod["flags"]
+    stack.driver.wait_for_line(r"clamped", 2, from_start=True)
+    t0 = client.now_ns()
+    assert wait_for(lambda: client.diag_since(t0), 5)
+    values = client.diag_since(t0)[-1]["can_driver: loop"][2]
+    assert int(values["clamped_cycles"]) > 0 and values["state"] == "running"
