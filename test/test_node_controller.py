@@ -44,6 +44,7 @@ class IdealArm:
         self.node = rclpy.create_node("fake_arm", context=ctx)
         self.q = q0.astype(float).copy()
         self.commands: list[np.ndarray] = []
+        self.segment_starts_ok = True  # every two-point message starts at the previous command
         self.pub = self.node.create_publisher(JointState, "joint_states", 10)
         self.node.create_subscription(JointTrajectory, "joint_command", self._on_cmd, 100)
         self.node.create_timer(0.01, self.publish)
@@ -51,8 +52,15 @@ class IdealArm:
 
     def _on_cmd(self, msg: JointTrajectory) -> None:
         assert list(msg.joint_names) == ARM.joint_names
-        assert len(msg.points) == 1
-        q = np.array(msg.points[0].positions)
+        # One step per message: [previous command at t=0,] new command at t=dt > 0.
+        assert len(msg.points) in (1, 2)
+        end = msg.points[-1]
+        assert end.time_from_start.sec * 1e9 + end.time_from_start.nanosec > 0
+        if len(msg.points) == 2:
+            assert msg.points[0].time_from_start.sec == msg.points[0].time_from_start.nanosec == 0
+            self.segment_starts_ok &= bool(self.commands) and np.allclose(msg.points[0].positions,
+                                                                          self.commands[-1])
+        q = np.array(end.positions)
         self.commands.append(q)
         self.q = q
 
@@ -165,6 +173,7 @@ def test_reaches_goal_and_holds(h: Harness) -> None:
     # Continuous motion: joint steps bounded by the velocity limits over a period (with margin).
     assert max_joint_step(h.arm.commands) <= 1.5 * float(np.max(ARM.max_vel)) * 0.01 + 1e-9
     assert ARM.within_limits(np.array(h.arm.commands).min(axis=0), 1e-9)
+    assert h.arm.segment_starts_ok
     # After REACHED the hand stays on the goal (the elbow may still settle towards its preferred swivel).
     n = len(h.arm.commands)
     h.spin_until(lambda: len(h.arm.commands) > n + 50, 3.0)

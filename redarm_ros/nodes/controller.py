@@ -424,14 +424,21 @@ class ControllerNode(Node):
             self.get_logger().info(f"measured joints moved by {dev:.3f} rad; restarting from them")
 
     def _publish_command(self, q: np.ndarray) -> None:
-        # The point is reached after the time the step covered (a late timer tick covers more motion),
-        # so the driver's velocity check sees the speed the controller planned.
+        """One control step as a self-contained segment: the previous command at t = 0, the new one at
+        t = the step's duration (a late timer tick covers more motion, so the driver sees the speed the
+        controller planned). The driver interpolates between the two commands, whatever its own
+        (shaped, possibly lagging) reference is; the first command after a (re)start is one point."""
         dt = max(self._last_dt, 1e-3)
         sec = int(dt)
+        end = JointTrajectoryPoint(positions=q.tolist(),
+                                   time_from_start=Duration(sec=sec, nanosec=int((dt - sec) * 1e9)))
         msg = JointTrajectory()
         msg.joint_names = self._names
-        msg.points = [JointTrajectoryPoint(positions=[float(v) for v in q],
-                                           time_from_start=Duration(sec=sec, nanosec=int((dt - sec) * 1e9)))]
+        if self._last_cmd is None:
+            msg.points = [end]
+        else:
+            start = JointTrajectoryPoint(positions=self._last_cmd.tolist(), time_from_start=Duration())
+            msg.points = [start, end]
         self.cmd_pub.publish(msg)
         self._last_cmd = q.copy()
 
