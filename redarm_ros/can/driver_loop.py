@@ -305,6 +305,7 @@ class PeriodStats:
         self.period_s = float(period_s)
         self._periods: deque[float] = deque(maxlen=window)
         self._starts: deque[float] = deque(maxlen=window)
+        self._busy: deque[float] = deque(maxlen=window)
         self._lock = threading.Lock()
         self.cycles = 0
         self.overruns = 0  # ticks skipped because a cycle ended after the next deadline
@@ -316,6 +317,11 @@ class PeriodStats:
                 self._periods.append(t - self._starts[-1])
             self._starts.append(t)
             self.cycles += 1
+
+    def busy(self, seconds: float) -> None:
+        """Record how long one cycle's work took (s): sending, waiting for replies, publishing."""
+        with self._lock:
+            self._busy.append(seconds)
 
     def add(self, period_s: float) -> None:
         """Record one measured period (s) directly (no start time)."""
@@ -332,21 +338,26 @@ class PeriodStats:
         with self._lock:
             self._periods.clear()
             self._starts.clear()
+            self._busy.clear()
 
     def summary(self) -> dict[str, float]:
         """``rate_hz`` (cycles per second over the window), absolute period errors in ms
-        (``period_err_median_ms``, ``period_err_p99_ms``, ``period_err_max_ms``), ``samples``."""
+        (``period_err_median_ms``, ``period_err_p99_ms``, ``period_err_max_ms``), ``samples``, and
+        the time a cycle's work took (``busy_median_ms``, ``busy_p99_ms``)."""
         with self._lock:
             p = np.fromiter(self._periods, dtype=float)
             starts = list(self._starts)
+            busy = np.fromiter(self._busy, dtype=float) * 1e3
         rate = 0.0
         if len(starts) >= 2 and starts[-1] > starts[0]:
             rate = (len(starts) - 1) / (starts[-1] - starts[0])
         elif p.size:
             rate = float(1.0 / p.mean())
+        out = {"busy_median_ms": float(np.median(busy)) if busy.size else 0.0,
+               "busy_p99_ms": float(np.percentile(busy, 99)) if busy.size else 0.0}
         if p.size == 0:
             return {"rate_hz": rate, "period_err_median_ms": 0.0, "period_err_p99_ms": 0.0,
-                    "period_err_max_ms": 0.0, "samples": 0}
+                    "period_err_max_ms": 0.0, "samples": 0, **out}
         err = np.abs(p - self.period_s) * 1e3
         return {
             "rate_hz": float(rate),
@@ -354,6 +365,7 @@ class PeriodStats:
             "period_err_p99_ms": float(np.percentile(err, 99)),
             "period_err_max_ms": float(err.max()),
             "samples": int(p.size),
+            **out,
         }
 
 
@@ -433,6 +445,10 @@ class LoopSnapshot:
     module_stats: object | None  # the driver's per-module statistics (driver-specific)
     last_result: object | None  # the driver's last CycleResult
     positions: np.ndarray | None
+    latency: dict[str, float] | None = None  # reply latency over the window: median/p99/max ms
+    frames_tx: int = 0  # frames sent by cycles (FSTEP per joint, STARTMOVE, watchdog refresh)
+    frames_rx: int = 0  # replies received by cycles
+    frames_per_s: float = 0.0  # (tx + rx) per second over the last snapshot interval
 
 
 class _Request:
@@ -513,6 +529,11 @@ class DriverLoop:
         self._q_meas: np.ndarray | None = None
         self._q_ref: np.ndarray | None = None
         self._last_clamp_log = -1e9
+        # Reply latencies (s) of the last cycles, all joints, and frame counters.
+        self._latencies: deque[float] = deque(maxlen=2500 * self.n)
+        self._frames_tx = 0
+        self._frames_rx = 0
+        self._fps_mark = (time.monotonic(), 0)
 
     # -- public API (any thread) ------------------------------------------------------------------
     @property
@@ -568,6 +589,17 @@ class DriverLoop:
             connects, losses, clamps = self._connects, self._bus_losses, self._clamps
         drv = self.driver
         mstats = getattr(drv, "stats", None) if drv is not None else None
+        with self._lock:
+            lat = np.fromiter(self._latencies, dtype=float)
+            tx, rx = self._frames_tx, self._frames_rx
+            now = time.monotonic()
+            t_prev, f_prev = self._fps_mark
+            fps = (tx + rx - f_prev) / (now - t_prev) if now > t_prev else 0.0
+            self._fps_mark = (now, tx + rx)
+        latency = None
+        if lat.size:
+            latency = {"median_ms": float(np.median(lat) * 1e3),
+                       "p99_ms": float(np.percentile(lat, 99) * 1e3), "max_ms": float(lat.max() * 1e3)}
         return LoopSnapshot(
             state=state,
             reason=reason,
@@ -582,6 +614,10 @@ class DriverLoop:
             module_stats=mstats,
             last_result=last,
             positions=q,
+            latency=latency,
+            frames_tx=tx,
+            frames_rx=rx,
+            frames_per_s=fps,
         )
 
     # -- loop thread ------------------------------------------------------------------------------
@@ -706,6 +742,7 @@ class DriverLoop:
         if shaper is not None:
             shaper.reset(q_ref)
         lo, hi = _limits_of(drv)
+        frames_per_cycle = self.n + 1 + (1 if getattr(drv, "watchdog_refresh", False) else 0)
         next_t = time.monotonic()
         gap = True  # the first cycle after a pause has no period
         while not self._stop.is_set() and self._requests.empty():
@@ -727,20 +764,30 @@ class DriverLoop:
             q_meas = np.array(_positions_of(result), dtype=float)
             sent = _sent_target_of(result, ref)
             q_ref = sent
+            lat = getattr(result, "latency_s", None)
             with self._lock:
                 self._q_meas = q_meas
                 self._q_ref = q_ref
                 self._last_result = result
+                self._frames_tx += frames_per_cycle
+                if lat is not None:
+                    ok = lat[np.isfinite(lat)]
+                    self._latencies.extend(ok.tolist())
+                    self._frames_rx += int(ok.size)
             self._note_clamps(result, now, beyond)
             self._emit(CycleSample(time.time(), q_meas, _velocities_of(result), sent))
             fault = _fault_of(result)
             if fault:
                 self._fault(fault, halt=False)  # the driver core has halted every module
                 return
+            end = time.monotonic()
+            self.stats.busy(end - now)
             next_t += period
-            late = time.monotonic() - next_t
-            if late > 0:
-                skipped = int(late // period) + 1
+            # A cycle that ran into the next tick delays that tick (it starts at once); only
+            # ticks missed entirely are skipped, so the grid is kept and no burst follows.
+            behind = end - next_t
+            if behind >= period:
+                skipped = int(behind // period)
                 next_t += skipped * period
                 self.stats.add_overrun(skipped)
                 gap = True  # the gap is an overrun, not a period sample

@@ -23,6 +23,7 @@ Units: rad, rad/s, s. Joint names and limits come from the arm model (config/arm
 from __future__ import annotations
 
 import logging
+import sys
 import threading
 import time
 from collections.abc import Sequence
@@ -352,13 +353,22 @@ class CanDriverNode(Node):
             "period_error_median_ms": f"{per['period_err_median_ms']:.3f}",
             "period_error_p99_ms": f"{per['period_err_p99_ms']:.3f}",
             "period_error_max_ms": f"{per['period_err_max_ms']:.3f}",
+            "cycle_busy_median_ms": f"{per['busy_median_ms']:.3f}",
+            "cycle_busy_p99_ms": f"{per['busy_p99_ms']:.3f}",
             "cycles": str(snap.cycles),
             "overruns": str(snap.overruns),
             "bus_connects": str(snap.connects),
             "bus_losses": str(snap.bus_losses),
             "clamped_cycles": str(snap.clamps),
             "missing_modules": str(snap.missing_modules),
+            "frames_per_s": f"{snap.frames_per_s:.0f}",
+            "frames_tx": str(snap.frames_tx),
+            "frames_rx": str(snap.frames_rx),
         }
+        if snap.latency is not None:
+            values["reply_latency_median_ms"] = f"{snap.latency['median_ms']:.3f}"
+            values["reply_latency_p99_ms"] = f"{snap.latency['p99_ms']:.3f}"
+            values["reply_latency_max_ms"] = f"{snap.latency['max_ms']:.3f}"
         st.values = [KeyValue(key=k, value=v) for k, v in values.items()]
         return st
 
@@ -422,8 +432,14 @@ def module_info(snap: LoopSnapshot, j: int, module_id: int) -> dict[str, Any]:
     return info
 
 
+# The loop thread must get the GIL back promptly when its deadline comes while an executor
+# thread runs Python; the default 5 ms switch interval would show up as period jitter.
+SWITCH_INTERVAL_S = 5e-4
+
+
 def main(args: Sequence[str] | None = None) -> int:
     """Console entry point (``ros2 run redarm_ros can_driver``): the standard main()."""
+    sys.setswitchinterval(SWITCH_INTERVAL_S)
     return run_node(lambda: CanDriverNode(), args, multithreaded=True)
 
 
