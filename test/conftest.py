@@ -128,12 +128,15 @@ class CanBusServer:
         return ["--can-interface", str(self.kwargs["interface"]), "--can-channel", self.channel]
 
 
-def start_canbus_server(group: ProcessGroup, name: str = "canbus") -> CanBusServer:
-    """Start ``redarm-canbus`` (``python -m redarm_ros.can.bus_server``) in ``group``; wait for its port."""
+def start_canbus_server(group: ProcessGroup, name: str = "canbus", port: int = 0) -> CanBusServer:
+    """Start ``redarm-canbus`` (``python -m redarm_ros.can.bus_server``) in ``group``; wait for its port.
+
+    ``port`` 0 picks an ephemeral one; pass a previous server's port to restart "the same bus".
+    """
     pytest.importorskip("redarm_ros.can.bus_server", reason="redarm_ros.can.bus_server not written yet")
     proc = group.start(
         name,
-        python_module_cmd("redarm_ros.can.bus_server", "--host", "127.0.0.1", "--port", "0"),
+        python_module_cmd("redarm_ros.can.bus_server", "--host", "127.0.0.1", "--port", str(port)),
         ready=r"REDARM_CANBUS_PORT=(\d+)",
         ready_timeout=20.0,
     )
