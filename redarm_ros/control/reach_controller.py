@@ -38,7 +38,15 @@ from redarm_ros.control.attractor import (
     heading_angles,
 )
 from redarm_ros.control.elbow import ArmGeometry, ElbowCircle, elbow_circle
-from redarm_ros.control.obstacles import TABLE, ArmCapsules, Clearance, Scene, links_clearance
+from redarm_ros.control.joint_limits import brake_step, braking_speed, velocity_bounds
+from redarm_ros.control.obstacles import (
+    TABLE,
+    ArmCapsules,
+    Clearance,
+    Scene,
+    links_clearance,
+    min_distance,
+)
 from redarm_ros.control.rotations import (
     matrix_from_quat,
     quat_angle,
@@ -152,6 +160,21 @@ class ControllerParams:
     swivel_search_step [rad], swivel_search_count: search around the swivel when the IK has no
     continuous solution there.
     goal_scan: number of swivel samples used to check a goal.
+    max_ori_acc [rad/s^2], max_swivel_acc [rad/s^2]: how fast the orientation rate and the swivel
+    rate may change (they would otherwise jump when a goal is set or an obstacle appears).
+    collision_margin [m]: the guard never commands a configuration whose clearance is below this
+    margin and lower than the clearance of the previous command; it brakes and holds instead.
+    elbow_priority_clearance [m]: below this clearance of the upper arm/forearm the elbow has
+    priority over the hand (the hand step is shortened so that the swivel moves at its full rate).
+    stop_share (0..1]: the hand is slowed so that the clearance to the obstacles the arm would lose
+    while braking at its joint acceleration limits stays below this share of the clearance left.
+    joint_brake_share (0..1]: share of the joints' acceleration limits that the hand may use to speed
+    up or brake along its path (the rest absorbs the orientation and swivel motion and the path's
+    bends); it bounds the speed filter's acceleration and the speed from which it can stop at the goal.
+    max_lag [s]: when the command lags the reference by more than this (at full joint speed), the
+    hand speed is capped.
+    unfold_pitch [rad]: (shoulder, elbow, wrist) pitch of the posture the arm unfolds to, in joint
+    space, when it starts stretched (no elbow circle, e.g. after homing to q = 0).
     """
 
     dt: float = 0.01
@@ -175,6 +198,14 @@ class ControllerParams:
     swivel_search_step: float = 0.03
     swivel_search_count: int = 10
     goal_scan: int = 72
+    max_ori_acc: float = 6.0
+    max_swivel_acc: float = 8.0
+    collision_margin: float = 0.0
+    elbow_priority_clearance: float = 0.08
+    stop_share: float = 0.5
+    unfold_pitch: tuple[float, float, float] = (0.4, 1.2, 1.0)
+    joint_brake_share: float = 0.5
+    max_lag: float = 0.03
 
     def __post_init__(self) -> None:
         if self.swivel_reference not in ("high", "low", "absolute"):
@@ -186,13 +217,28 @@ class ControllerParams:
                               field="swivel_mode", value=self.swivel_mode)
         for name in ("dt", "lam_ori", "max_ori_rate", "tangent_distance", "final_distance",
                      "workspace_margin", "pos_tolerance", "ori_tolerance", "max_dt", "flip_ratio",
-                     "swivel_search_step"):
+                     "swivel_search_step", "max_ori_acc", "max_swivel_acc", "elbow_priority_clearance",
+                     "stop_share", "joint_brake_share", "max_lag"):
             v = getattr(self, name)
             if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
                 raise ConfigError(f"{name} must be finite and > 0, got {v!r}", field=name, value=v)
         if not (0.0 <= self.tangent_weight <= 1.0):
             raise ConfigError("tangent_weight must be in [0, 1]", field="tangent_weight",
                               value=self.tangent_weight)
+        for name in ("joint_brake_share", "stop_share"):
+            if getattr(self, name) > 1.0:
+                raise ConfigError(f"{name} must be in (0, 1]", field=name, value=getattr(self, name))
+        if not (math.isfinite(self.collision_margin) and self.collision_margin >= 0.0):
+            raise ConfigError("collision_margin must be finite and >= 0", field="collision_margin",
+                              value=self.collision_margin)
+        try:
+            pitch = tuple(float(v) for v in self.unfold_pitch)
+        except (TypeError, ValueError):
+            pitch = ()
+        if len(pitch) != 3 or not all(math.isfinite(v) for v in pitch) or abs(pitch[1]) < 0.2:
+            raise ConfigError("unfold_pitch must be 3 finite angles (rad) with an elbow pitch of at least "
+                              "0.2 rad", field="unfold_pitch", value=self.unfold_pitch)
+        object.__setattr__(self, "unfold_pitch", pitch)
         if not math.isfinite(self.preferred_swivel):
             raise ConfigError("preferred_swivel must be finite", field="preferred_swivel",
                               value=self.preferred_swivel)
@@ -279,6 +325,7 @@ class ReachController:
         self._upper = np.asarray(arm.upper, float)
         self._max_vel = np.asarray(arm.max_vel, float)
         self._inv_vel = 1.0 / self._max_vel
+        self._max_acc = np.asarray(arm.max_acc, float)
         self._wide = [j for j in range(7) if self._upper[j] - self._lower[j] > 2.0 * math.pi]
         self._d_inner, self._d_outer = _wrist_shell(arm, self.geom)
         self._q: np.ndarray | None = None
@@ -300,6 +347,20 @@ class ReachController:
         self._ratio = 0.0  # largest joint speed / limit in the last step
         self._circle: ElbowCircle | None = None
         self._clear = Clearance(math.inf, -1, -1)
+        # Two joint states: the reference ``_q`` (IK of the dynamics' pose, velocity-limited) and the
+        # command ``_qc`` that tracks it within the velocity and acceleration limits (what is sent).
+        self._qc = np.zeros(7)
+        self._qd = np.zeros(7)  # command velocity of the last step (rad/s)
+        self._qrd = np.zeros(7)  # reference velocity of the last step (rad/s)
+        self._v_ref = 0.0  # tool speed of the reference in the last step (m/s)
+        self._cpos: Vec3 = (0.0, 0.0, 0.0)  # tool pose of the command (m, w x y z)
+        self._crot: Quat = (1.0, 0.0, 0.0, 0.0)
+        self._w_ori = 0.0  # orientation rate of the last step (rad/s)
+        self._sdot = 0.0  # swivel rate of the last step (rad/s)
+        self._obs_clear = math.inf  # clearance to the obstacles (not the table) of the last command (m)
+        self._obs_rate = 0.0  # how fast it shrank (m/s, > 0 approaching)
+        self._obstacles_only = Scene(self.scene.obstacles, None)
+        self._unfold: np.ndarray | None = None  # joint-space unfold target (rad) while unfolding
 
     # ------------------------------------------------------------------ properties
     @property
@@ -310,7 +371,7 @@ class ReachController:
     @property
     def q(self) -> np.ndarray | None:
         """Last commanded joint positions (rad), None before :meth:`reset`."""
-        return None if self._q is None else self._q.copy()
+        return None if self._q is None else self._qc.copy()
 
     @property
     def swivel(self) -> float:
@@ -360,12 +421,20 @@ class ReachController:
         self._goal_q = None
         self._phase = Phase.IDLE
         self._message = ""
+        self._qc = qa.copy()
+        self._qd = np.zeros(7)
+        self._qrd = np.zeros(7)
+        self._cpos, self._crot = self._pos, self._rot
+        self._w_ori = 0.0
+        self._sdot = 0.0
+        self._unfold = None
+        self._obs_rate = 0.0
         try:
             self._circle = elbow_circle(self.geom, T)
-            self._clear = links_clearance(self._circle.key_points(self._s), self.scene, self.params.capsules)
-        except UnreachableError:  # singular reset pose (wrist on the shoulder): no circle yet
+        except UnreachableError:  # singular reset pose (arm stretched): no circle yet, unfold first
             self._circle = None
-            self._clear = Clearance(math.inf, -1, -1)
+        self._clear = min_distance(self.arm, qa, self.scene, self.params.capsules)
+        self._obs_clear = min_distance(self.arm, qa, self._obstacles_only, self.params.capsules).distance
 
     def set_scene(self, scene: Scene) -> GoalCheck | None:
         """Replace the obstacles (e.g. from the node's MarkerArray). Re-checks the active goal; if it
@@ -374,8 +443,12 @@ class ReachController:
         if not isinstance(scene, Scene):
             raise InvalidInputError("scene must be a Scene", field="scene", value=scene)
         self.scene = scene
-        if self._circle is not None and self._q is not None:
-            self._clear = links_clearance(self._circle.key_points(self._s), scene, self.params.capsules)
+        self._obstacles_only = Scene(scene.obstacles, None)
+        if self._q is not None:
+            self._clear = min_distance(self.arm, self._qc, scene, self.params.capsules)
+            self._obs_clear = min_distance(self.arm, self._qc, self._obstacles_only,
+                                           self.params.capsules).distance
+            self._obs_rate = 0.0
         if self._goal_p is not None and self._goal_q is not None:
             T = self._goal_matrix()
             check = self.check_goal(T)
@@ -494,10 +567,19 @@ class ReachController:
         if not math.isfinite(dt) or dt < 0.0:
             raise InvalidInputError(f"dt must be finite and >= 0, got {dt!r}", field="dt", value=dt)
         dt = min(dt, p.max_dt)
-        if dt == 0.0 or (self._goal_p is None and self._v <= 0.0):
+        if dt == 0.0:
             return self._result()
-        if self._circle is None:  # singular start: no circle to work on
-            self._message = "start pose has no elbow circle (wrist at the shoulder)"
+        if (self._goal_p is None and self._v <= 0.0) or (self._circle is None and self._goal_p is None):
+            self._unfold = None
+            if np.any(self._qd != 0.0) or not np.array_equal(self._q, self._qc):
+                self._qrd = np.zeros(7)  # the reference stands: the command brakes onto it
+                self._track(dt)
+            return self._result()
+        if self._circle is None or self._unfold is not None:
+            # Stretched arm (e.g. homed to q = 0): no elbow circle, so no swivel and an ill-conditioned
+            # IK. Unfold in joint space to a bent posture first, then reach from rest.
+            self._unfold_step(dt)
+            self._update_phase()
             return self._result()
 
         pos, rot = self._pos, self._rot
@@ -513,7 +595,21 @@ class ReachController:
             if rates.speed_factor < 1.0:
                 v_obs = rates.speed_factor * self.speed_profile.params.v_max
                 cap = v_obs if cap is None else min(cap, v_obs)
-            self._v, self._a = self.speed_profile.step(self._v, self._a, dist, dt, cap)
+            v_stop = self._joint_braking_speed(dist)
+            if v_stop is not None:
+                cap = v_stop if cap is None else min(cap, v_stop)
+            if self._obs_rate > 1e-4 and self._v > 1e-3:
+                # Stopping distance: the clearance the arm would lose while its joints brake at their
+                # acceleration limits (~ rate * t_stop / 2, which grows with the square of the speed)
+                # must stay within stop_share of the clearance left; the swivel meanwhile turns the
+                # elbow away.
+                t_stop = float(np.max(np.abs(self._qd) / self._max_acc))
+                loss = self._obs_rate * (0.5 * t_stop + dt)
+                room = p.stop_share * max(self._obs_clear - p.collision_margin, 0.0)
+                if loss > room:
+                    v_stop = self._v * math.sqrt(room / loss)
+                    cap = v_stop if cap is None else min(cap, v_stop)
+            self._v, self._a = self.speed_profile.step(self._v, self._a, dist, dt, cap, self._hand_acc())
         else:  # no goal: decelerate along the current heading (jerk-limited, like any speed change)
             self._v, self._a = self.speed_profile.step(self._v, self._a, math.inf, dt, 0.0)
             if self._v < 1e-4:
@@ -539,15 +635,45 @@ class ReachController:
             target_rot = self._orientation_target(e, dist if goal_p is not None else 0.0)
             w = rotvec_between(rot, target_rot)
             wn = math.sqrt(w[0] ** 2 + w[1] ** 2 + w[2] ** 2)
-            gain = p.lam_ori * dt
-            if wn * p.lam_ori > p.max_ori_rate:
-                gain = p.max_ori_rate * dt / wn
-            gain = min(gain, 1.0)
+            # Rate of the attractor, clamped, and changed by at most max_ori_acc per second (braking
+            # in time): without this the rate jumps when a goal is set.
+            ori_acc = self._joint_share_acc(self._w_ori, p.max_ori_acc)
+            rate = min(p.lam_ori * wn, p.max_ori_rate, float(braking_speed(wn, ori_acc, dt)))
+            rate = max(0.0, min(rate, self._w_ori + ori_acc * dt))
+            gain = min(rate * dt / wn, 1.0) if wn > 1e-12 else 0.0
             new_rot = quat_normalize(quat_mul(quat_from_rotvec((gain * w[0], gain * w[1], gain * w[2])), rot))
         # 4-5. swivel and IK (with velocity scaling / swivel search / hold)
         self._advance(new_pos, new_rot, dt)
         self._update_phase()
         return self._result()
+
+    def _hand_acc(self) -> float | None:
+        """Largest hand acceleration (m/s^2) along the path that keeps every joint within
+        ``joint_brake_share`` of its acceleration limit, with joint speeds proportional to the hand
+        speed (``dq/ds = qdot / v``); None when the hand is (nearly) at rest."""
+        a = self._joint_share_acc(self._v_ref, math.inf)
+        return None if math.isinf(a) else a
+
+    def _joint_share_acc(self, rate: float, default: float) -> float:
+        """Largest rate of change of ``rate`` (a hand speed or an orientation rate) that keeps every
+        joint within ``joint_brake_share`` of its acceleration limit, the joint velocities of the last
+        reference step taken as proportional to ``rate``; ``default`` caps it and is used at rest."""
+        if rate < 1e-4:  # from rest: a gentle first step, the ratio is measured from the next one
+            return min(default, 0.1 * float(np.min(self._max_acc)))
+        qd = np.abs(self._qrd)
+        mask = qd > 1e-6
+        if not np.any(mask):
+            return default
+        a = float(np.min(self._max_acc[mask] / qd[mask])) * rate * self.params.joint_brake_share
+        return max(min(a, default), 1e-3)
+
+    def _joint_braking_speed(self, dist: float) -> float | None:
+        """Hand speed (m/s) from which the hand can still stop within the remaining ``dist`` (m) at the
+        acceleration of :meth:`_hand_acc` (the speed filter's own ``a_max`` would outrun slow joints)."""
+        a_hand = self._hand_acc()
+        if a_hand is None:
+            return None
+        return math.sqrt(2.0 * a_hand * max(dist, 0.0))
 
     def _workspace_slide(self, e: Vec3, pos: Vec3, rot: Quat) -> Vec3:
         """Remove the part of the motion direction that would take the wrist through the inner shell
@@ -658,6 +784,16 @@ class ReachController:
                 margins = self._limit_margins(T, circle, s0, q_prev)
                 forces = self.swivel_dyn.forces(circle, s0, self.scene, p.capsules, margins)
                 s_new = self.swivel_dyn.step(s0, s_des, dt, forces)
+                # The swivel rate changes by at most max_swivel_acc per second.
+                sd = wrap_angle(s_new - s0) / dt
+                s_acc = self._joint_share_acc(abs(self._sdot), p.max_swivel_acc)
+                sd = max(self._sdot - s_acc * dt, min(self._sdot + s_acc * dt, sd))
+                s_new = wrap_angle(s0 + sd * dt)
+                if forces.clearance < p.elbow_priority_clearance and s_new != s0:
+                    # An obstacle is close to the upper arm/forearm: the hand yields to the elbow.
+                    shortened = self._yield_hand(pos0, rot0, new_pos, new_rot, s_new, q_prev, dt)
+                    if shortened is not None:
+                        new_pos, new_rot, T, circle = shortened
             self._s_des = s_des
             pick = self._select(self.arm.ik(T, s_new), q_prev, dt)
             if (pick is None or pick[1] > 1.0 + 1e-9) and s_new != s0:
@@ -681,11 +817,36 @@ class ReachController:
                     new_pos, new_rot = _blend(pos0, rot0, new_pos, new_rot, 0.5)
                     continue
                 new_pos, new_rot, s_new, q_new, circle = scaled
-            self._commit(q_new, new_pos, new_rot, s_new, circle, dt)
-            return True
+            return self._commit(q_new, new_pos, new_rot, s_new, circle, dt)
         self._hold("no joint solution continuous with the current configuration "
                    "(joint limits or singularity)")
+        self._track(dt)  # the command brakes onto the (standing) reference
         return False
+
+    def _yield_hand(self, pos0: Vec3, rot0: Quat, pos1: Vec3, rot1: Quat, s: float, q_prev: np.ndarray,
+                    dt: float) -> tuple[Vec3, Quat, np.ndarray, ElbowCircle] | None:
+        """Shorten the hand step (not the swivel change) until the joint velocities fit; None if the
+        whole hand step fits already or no shortening helps."""
+        frac = 1.0
+        for _ in range(4):
+            pos, rot = _blend(pos0, rot0, pos1, rot1, frac)
+            T = np.eye(4)
+            T[:3, :3] = matrix_from_quat(rot)
+            T[:3, 3] = pos
+            try:
+                circle = elbow_circle(self.geom, T)
+            except UnreachableError:
+                return None
+            pick = self._select(self.arm.ik(T, s), q_prev, dt)
+            if pick is None or pick[1] > self.params.flip_ratio:
+                return None
+            if pick[1] <= 1.0 + 1e-9:
+                if frac >= 1.0:
+                    return None
+                self._v *= frac
+                return pos, rot, T, circle
+            frac = 0.0 if frac < 0.1 else frac * 0.9 / pick[1]
+        return None
 
     def _yield_swivel(self, T: np.ndarray, s0: float, s1: float, q_prev: np.ndarray, dt: float,
                       ratio: float) -> tuple[float, np.ndarray, float] | None:
@@ -740,45 +901,214 @@ class ReachController:
                 return pos, rot, s, q, circle
         return None
 
-    def _commit(self, q: np.ndarray, pos: Vec3, rot: Quat, s: float, circle: ElbowCircle, dt: float) -> None:
+    def _commit(self, q: np.ndarray, pos: Vec3, rot: Quat, s: float, circle: ElbowCircle | None,
+                dt: float) -> bool:
+        """Take ``q`` (the IK of the proposed pose, within the velocity limits) as the new reference and
+        move the command towards it within the velocity and acceleration limits, through the guard.
+        Returns False if the guard refused the command (the arm brakes and holds)."""
+        p = self.params
+        assert self._q is not None
+        qr_d = (q - self._q) / dt
         moved = math.dist(pos, self._pos)
-        ratio = float(np.max(np.abs(q - self._q) * self._inv_vel)) / dt if dt > 0 else 0.0
-        self._q = q
-        self._pos = pos
-        self._rot = rot
-        self._s = s
-        self._circle = circle
-        # Joint-speed budget for the speed filter: when a joint nears its velocity limit, cap the hand
-        # speed ahead of time (the filter then slows down with bounded jerk instead of being cut).
+        ratio = float(np.max(np.abs(q - self._q) * self._inv_vel)) / dt
+        self._sdot = wrap_angle(s - self._s) / dt if p.swivel_mode != "fixed" else 0.0
+        self._w_ori = quat_angle(self._rot, rot) / dt
+        self._q, self._qrd = q, qr_d
+        self._pos, self._rot, self._s, self._circle = pos, rot, s, circle
+        if self._message.startswith("collision guard"):
+            self._message = ""
+        if not self._track(dt):
+            return False
+        # Speed budget for the hand: when a joint nears its velocity limit, when the reference asks
+        # a joint for much of its acceleration, or when the command lags behind the reference, cap
+        # the hand speed ahead of time (the filter then slows down with bounded jerk).
         sp = self.speed_profile.params
-        v_now = moved / dt if dt > 0 else 0.0
-        # Extrapolate the joint-speed ratio a few steps ahead: it can grow fast while the arm turns.
-        predicted = ratio + 4.0 * max(ratio - self._ratio, 0.0)
+        v_now = moved / dt
+        self._v_ref = v_now
+        predicted = ratio + 4.0 * max(ratio - self._ratio, 0.0)  # the ratio can grow fast in turns
         self._ratio = ratio
+        cap = math.inf
         if predicted > 0.85 and v_now > 1e-4:
             cap = max(v_now * 0.85 / predicted, 0.02)
+        lag = float(np.max(np.abs(self._q - self._qc) * self._inv_vel))  # s at full joint speed
+        if lag > p.max_lag and v_now > 1e-3:
+            cap = min(cap, max(v_now * p.max_lag / lag, 0.02))
+        if math.isfinite(cap):
             self._v_cap = cap if self._v_cap is None else min(cap, self._v_cap + sp.a_max * dt)
         elif self._v_cap is not None:
             self._v_cap += 0.5 * sp.a_max * dt
             if self._v_cap > sp.v_max:
                 self._v_cap = None
-        self._clear = links_clearance(circle.key_points(s), self.scene, self.params.capsules)
         if self._phase is Phase.HOLDING:
             self._phase = Phase.REACHING
             self._message = ""
+        return True
 
-    def _hold(self, why: str) -> None:
+    def _track(self, dt: float) -> bool:
+        """Move the command ``_qc`` one step towards the reference ``_q`` within the joint velocity,
+        acceleration and position limits (time-optimal per joint: the reference velocity plus the
+        speed from which the lag can still be braked away), then check it with the collision guard.
+        Returns False if the guard refused it (then the arm brakes and holds)."""
+        qc, qd = self._qc, self._qd
+        e = self._q - qc
+        v_des = np.clip(self._qrd, -self._max_vel, self._max_vel) + \
+            np.sign(e) * braking_speed(np.abs(e), self._max_acc, dt)
+        lo, hi = velocity_bounds(qc, qd, dt, self._max_vel, self._max_acc, self._lower, self._upper)
+        v = np.clip(v_des, lo, hi)
+        small = np.abs(e) <= 1e-12  # land exactly on a resting reference
+        v = np.where(small & (np.abs(self._qrd) <= 1e-12) & (lo <= 0.0) & (hi >= 0.0), 0.0, v)
+        q_new = np.clip(qc + v * dt, self._lower, self._upper)
+        snap = (np.abs(self._q - q_new) <= 1e-12)
+        q_new = np.where(snap, self._q, q_new)
+        return self._command(q_new, (q_new - qc) / dt, dt)
+
+    def _command(self, q: np.ndarray, qd: np.ndarray, dt: float) -> bool:
+        """Commit command ``q`` (rad) moving at ``qd`` (rad/s) if the guard allows it; otherwise brake."""
+        clear = min_distance(self.arm, q, self.scene, self.params.capsules)
+        if not self._clear_enough(clear.distance):
+            self._guard_stop(clear, dt)
+            return False
+        c_prev = self._clear.distance
+        c = clear.distance
+        self._set_command(q, qd, clear, dt)
+        if c < c_prev and math.isfinite(c_prev):
+            # Predictive: at the rate the clearance shrinks, braking at the joint acceleration limits
+            # (about t_stop / 2 at that rate) must still end above the margin; otherwise stop the
+            # hand now (the command then brakes onto the reference path, which is clear).
+            t_stop = float(np.max(np.abs(qd) / self._max_acc))
+            if not self._clear_enough(c - (c_prev - c) / dt * (0.5 * t_stop + dt)) and self._v > 0.0:
+                self._v = 0.0
+                self._a = 0.0
+                self._message = (f"collision guard: stopping the hand, {c:.3f} m from the scene and "
+                                 "closing in faster than the joints can brake")
+        return True
+
+    def _set_command(self, q: np.ndarray, qd: np.ndarray, clear: Clearance, dt: float) -> None:
+        obs = math.inf
+        if self._obstacles_only.obstacles:
+            obs = min_distance(self.arm, q, self._obstacles_only, self.params.capsules).distance
+        both = math.isfinite(self._obs_clear) and math.isfinite(obs)
+        self._obs_rate = (self._obs_clear - obs) / dt if both else 0.0
+        self._obs_clear = obs
+        self._qc = q
+        self._qd = qd
+        self._clear = clear
+        T = np.asarray(self.arm.fk(q), float)
+        self._cpos = (float(T[0, 3]), float(T[1, 3]), float(T[2, 3]))
+        self._crot = quat_from_matrix(T[:3, :3])
+
+    def _resync_reference(self) -> None:
+        """Make the reference the command (after a guard stop): pose, swivel and circle from FK."""
+        self._q = self._qc.copy()
+        self._qrd = np.zeros(7)
+        T = np.asarray(self.arm.fk(self._qc), float)
+        self._pos = (float(T[0, 3]), float(T[1, 3]), float(T[2, 3]))
+        self._rot = quat_from_matrix(T[:3, :3])
+        try:
+            self._circle = elbow_circle(self.geom, T)
+            self._s = float(self.arm.swivel(self._qc))
+        except UnreachableError:
+            self._circle = None
+        self._sdot = 0.0
+        self._w_ori = 0.0
         self._v = 0.0
         self._a = 0.0
+
+    def _clear_enough(self, c: float) -> bool:
+        """The guard: a command may not go below ``collision_margin`` unless it gets no closer than the
+        previous command (so an arm started in collision can still move out)."""
+        return c >= self.params.collision_margin or c >= self._clear.distance - 1e-9
+
+    def _guard_stop(self, bad: Clearance, dt: float) -> None:
+        what = "the table" if bad.obstacle == TABLE else f"obstacle {bad.obstacle}"
+        if 0 <= bad.obstacle < len(self.scene.obstacles) and self.scene.obstacles[bad.obstacle].name:
+            what += f" {self.scene.obstacles[bad.obstacle].name!r}"
+        link = ("base", "upper arm", "forearm", "hand")[bad.link] if 0 <= bad.link < 4 else "arm"
+        braked = self._brake(dt)
+        self._resync_reference()
+        self._hold(f"collision guard: the next step would bring the {link} to {bad.distance:.3f} m of "
+                   f"{what}; {'braking' if braked else 'holding'}")
+
+    def _brake(self, dt: float) -> bool:
+        """One step of the hardest allowed joint braking, if the guard lets it through; otherwise stop
+        where the arm is (an emergency stop: the only command that may exceed the acceleration limit).
+        Returns True if a braking step was commanded."""
+        if not np.any(self._qd != 0.0):
+            return False
+        q_b, v_b = brake_step(self._qc, self._qd, dt, self._max_acc, self._lower, self._upper)
+        clear = min_distance(self.arm, q_b, self.scene, self.params.capsules)
+        if self._clear_enough(clear.distance):
+            self._set_command(q_b, v_b, clear, dt)
+            return True
+        LOG.warning("emergency stop: even braking would bring the arm within %.3f m of the scene",
+                    clear.distance)
+        self._qd = np.zeros(7)
+        return False
+
+    def _hold(self, why: str) -> None:
+        """Stop the hand (the command then brakes onto the reference) and report HOLDING with ``why``."""
+        self._v = 0.0
+        self._a = 0.0
+        self._qrd = np.zeros(7)
         if self._goal_p is not None:
             self._phase = Phase.HOLDING
         self._message = why
 
+    def _unfold_target(self) -> np.ndarray:
+        """Bent posture to unfold to from a stretched one: the arm turned (joint 1) so that it bends
+        towards the goal, pitches ``unfold_pitch`` for shoulder, elbow and wrist, rolls unchanged."""
+        q = self._qc.copy()
+        sign = 1.0
+        if self._goal_p is not None and math.hypot(self._goal_p[0], self._goal_p[1]) > 1e-6:
+            az = math.atan2(self._goal_p[1], self._goal_p[0])
+            d = wrap_angle(az - q[0])
+            if abs(d) > 0.5 * math.pi:  # bend backwards rather than turn by more than 90 deg
+                d = wrap_angle(d - math.pi)
+                sign = -1.0
+            if self._lower[0] <= q[0] + d <= self._upper[0]:
+                q[0] += d
+        p2, p4, p6 = self.params.unfold_pitch
+        roll3 = 1.0 if math.cos(q[2]) >= 0.0 else -1.0
+        roll5 = 1.0 if math.cos(q[4]) >= 0.0 else -1.0
+        q[1] = sign * p2
+        q[3] = sign * roll3 * p4
+        q[5] = sign * roll3 * roll5 * p6
+        return np.clip(q, self._lower, self._upper)
+
+    def _unfold_step(self, dt: float) -> None:
+        """One joint-space step of the unfold: the reference jumps to the bent posture and the command
+        moves there time-optimally within the joint limits, through the collision guard; at rest there
+        the Cartesian loop takes over from rest."""
+        if self._unfold is None:
+            self._unfold = self._unfold_target()
+            LOG.info("stretched start (no elbow circle): unfolding in joint space to %s",
+                     np.round(self._unfold, 3).tolist())
+        self._q = self._unfold.copy()
+        self._qrd = np.zeros(7)
+        if not self._track(dt):
+            return
+        self._message = "unfolding from a stretched posture (no elbow circle) in joint space"
+        if self._phase is Phase.HOLDING:
+            self._phase = Phase.REACHING
+        if np.array_equal(self._qc, self._unfold) and not np.any(self._qd != 0.0):
+            self._unfold = None
+            self._resync_reference()
+            self._s_fixed = self._s
+            self._message = ""
+            self._phi, self._theta = self._heading_to_goal()
+            self._turn = (0.0, 0.0)
+
+    def _heading_to_goal(self) -> tuple[float, float]:
+        if self._goal_p is None:
+            return self._phi, self._theta
+        gp, cp = self._goal_p, self._pos
+        return heading_angles((gp[0] - cp[0], gp[1] - cp[1], gp[2] - cp[2]), self._phi)
+
     def _update_phase(self) -> None:
         if self._goal_p is None or self._goal_q is None or self._phase is Phase.HOLDING:
             return
-        d = math.dist(self._pos, self._goal_p)
-        err = quat_angle(self._rot, self._goal_q)
+        d = math.dist(self._cpos, self._goal_p)
+        err = quat_angle(self._crot, self._goal_q)
         if d <= self.params.pos_tolerance and err <= self.params.ori_tolerance:
             self._phase = Phase.REACHED
         else:
@@ -787,13 +1117,13 @@ class ReachController:
     def _result(self) -> StepResult:
         assert self._q is not None
         if self._goal_p is not None and self._goal_q is not None:
-            d = math.dist(self._pos, self._goal_p)
-            err = quat_angle(self._rot, self._goal_q)
+            d = math.dist(self._cpos, self._goal_p)
+            err = quat_angle(self._crot, self._goal_q)
         else:
             d = math.inf
             err = math.inf
         return StepResult(
-            q=self._q.copy(),
+            q=self._qc.copy(),
             phase=self._phase,
             swivel=self._s,
             swivel_desired=self._s_des,
@@ -804,7 +1134,7 @@ class ReachController:
             orientation_error=err,
             heading=(self._phi, self._theta),
             speed=self._v,
-            position=self._pos,
+            position=self._cpos,
             message=self._message,
         )
 

@@ -1,0 +1,115 @@
+"""Per-joint velocity and acceleration limits for one control step (numpy only, no ROS).
+
+The controller produces a joint target each step; :func:`limit_step` turns it into a command that
+respects, per joint, ``|v| <= max_vel``, ``|v - v_prev| <= max_acc * dt`` and the joint position limits,
+braking onto those limits in time (the command never needs more than ``max_acc`` to stop before a
+limit). Velocities are finite differences of commanded positions over ``dt``. Units: rad, rad/s,
+rad/s^2, s.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+
+class LimitMode(enum.Enum):
+    """How :func:`limit_step` had to change the target."""
+
+    EXACT = "exact"  # the target itself fits every limit
+    SCALED = "scaled"  # the whole joint step was shortened by ``alpha`` (same direction: path kept)
+    CLIPPED = "clipped"  # joints were limited one by one (the direction changed: path left)
+
+
+@dataclass(frozen=True)
+class LimitedStep:
+    """Result of :func:`limit_step`: command ``q`` (rad), its velocity ``v`` (rad/s), the ``mode`` and,
+    for SCALED/EXACT, the fraction ``alpha`` of the requested step that was taken."""
+
+    q: np.ndarray
+    v: np.ndarray
+    mode: LimitMode
+    alpha: float
+
+
+def braking_speed(distance: np.ndarray | float, acc: np.ndarray | float, dt: float) -> np.ndarray:
+    """Largest speed (rad/s) from which a joint ``distance`` rad away from a stop can still stop there
+    with deceleration ``acc`` (rad/s^2) applied in steps of ``dt`` s (the discrete stopping distance
+    ``v^2 / (2 a) + v dt / 2``); never more than ``distance / dt`` (no overshoot in one step)."""
+    d = np.maximum(np.asarray(distance, float), 0.0)
+    a = np.asarray(acc, float)
+    v = a * (-0.5 * dt + np.sqrt(0.25 * dt * dt + 2.0 * d / a))
+    return np.minimum(v, d / dt)
+
+
+def velocity_bounds(q_prev: np.ndarray, v_prev: np.ndarray, dt: float, max_vel: np.ndarray,
+                    max_acc: np.ndarray, lower: np.ndarray, upper: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Per-joint interval (rad/s) of velocities allowed this step: velocity limit, acceleration limit
+    around ``v_prev`` and braking onto the position limits. Where the braking bound contradicts the
+    acceleration bound (the joint already moves too fast towards a limit) the position limit wins."""
+    lo = np.maximum(v_prev - max_acc * dt, -max_vel)
+    hi = np.minimum(v_prev + max_acc * dt, max_vel)
+    hi_pos = braking_speed(upper - q_prev, max_acc, dt)
+    lo_pos = -braking_speed(q_prev - lower, max_acc, dt)
+    hi = np.minimum(hi, hi_pos)
+    lo = np.maximum(lo, lo_pos)
+    bad = lo > hi
+    if np.any(bad):  # only after an external reset / emergency stop: brake as hard as allowed
+        mid = np.where(v_prev > 0.0, hi, lo)
+        lo = np.where(bad, mid, lo)
+        hi = np.where(bad, mid, hi)
+    return lo, hi
+
+
+def limit_step(q_prev: np.ndarray, v_prev: np.ndarray, q_target: np.ndarray, dt: float,
+               max_vel: np.ndarray, max_acc: np.ndarray, lower: np.ndarray, upper: np.ndarray
+               ) -> LimitedStep:
+    """Command for one step of ``dt`` s from ``q_prev`` (rad, moving at ``v_prev`` rad/s) towards
+    ``q_target`` (rad) within the velocity, acceleration and position limits.
+
+    First the whole step is scaled by the largest ``alpha`` in [0, 1] that fits every joint (the
+    joint-space direction, hence the path, is kept); if no common scale exists (a joint must brake
+    while another must not, e.g. the path bends), each joint is clipped to its own interval.
+    """
+    lo, hi = velocity_bounds(q_prev, v_prev, dt, max_vel, max_acc, lower, upper)
+    v_des = (q_target - q_prev) / dt
+    a_lo, a_hi = 0.0, 1.0
+    feasible = True
+    for j in range(v_des.shape[0]):
+        vd = float(v_des[j])
+        if abs(vd) < 1e-12:
+            if lo[j] > 1e-12 or hi[j] < -1e-12:
+                feasible = False
+                break
+            continue
+        x, y = lo[j] / vd, hi[j] / vd
+        if x > y:
+            x, y = y, x
+        a_lo, a_hi = max(a_lo, x), min(a_hi, y)
+        if a_lo > a_hi + 1e-12:
+            feasible = False
+            break
+    if feasible and a_lo <= min(a_hi, 1.0) + 1e-12:
+        alpha = max(min(a_hi, 1.0), a_lo)
+        if alpha >= 1.0 - 1e-12:
+            q = np.clip(q_target, lower, upper)
+            return LimitedStep(q, (q - q_prev) / dt, LimitMode.EXACT, 1.0)
+        v = alpha * v_des
+        q = np.clip(q_prev + v * dt, lower, upper)
+        return LimitedStep(q, (q - q_prev) / dt, LimitMode.SCALED, alpha)
+    v = np.clip(v_des, lo, hi)
+    q = np.clip(q_prev + v * dt, lower, upper)
+    return LimitedStep(q, (q - q_prev) / dt, LimitMode.CLIPPED, math.nan)
+
+
+def brake_step(q_prev: np.ndarray, v_prev: np.ndarray, dt: float, max_acc: np.ndarray,
+               lower: np.ndarray, upper: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """One step of the hardest allowed braking (each joint's speed reduced towards 0 by
+    ``max_acc * dt``); returns ``(q, v)``."""
+    v = np.sign(v_prev) * np.maximum(np.abs(v_prev) - max_acc * dt, 0.0)
+    q = np.clip(q_prev + v * dt, lower, upper)
+    return q, (q - q_prev) / dt
