@@ -159,8 +159,10 @@ class Stack:
         return self.sim
 
     def start_driver(self, **params: Any) -> ManagedProcess:
+        # reply_timeout_s 0.05 (default 0.02): margin for a loaded 2-core CI machine; a silent module
+        # is still detected after 3 x 50 ms.
         p = {"arm": "pa10", "can.interface": "remote", "can.channel": self.canbus.channel, "rate_hz": 250.0,
-             "reconnect_max_s": 0.5, **params}
+             "reconnect_max_s": 0.5, "reply_timeout_s": 0.05, **params}
         ros_args = ["--ros-args", "--log-level", "can_driver:=info"]
         for k, v in p.items():
             val = str(v).lower() if isinstance(v, bool) else str(v)
