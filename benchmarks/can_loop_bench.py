@@ -8,7 +8,8 @@ Two ways of driving it:
   deadlines, one ``PowerCubeArmDriver.cycle()`` per tick: 7 FSTEP_EXT + STARTMOVE + watchdog
   refresh out, 7 extended replies in) running in this process, no ROS;
 * ``node``: the ``can_driver`` ROS node as its own process; the numbers are the node's own
-  measurements read from its ``/diagnostics`` (window: the last 2500 cycles), plus the rate at
+  measurements read from its ``/diagnostics`` (windows: the last 2500 periods, the last 500
+  cycles' reply latencies), plus the rate at
   which ``/joint_states`` arrive in this process.
 
 Measured per run: achieved cycle rate, absolute period error |period - 1/rate| (median, p99, max),
@@ -147,8 +148,7 @@ def run_core(can_kwargs: dict[str, Any], rate: float, seconds: float) -> RunResu
         times, pts = sine_trajectory(arm, seconds + 2)
         loop.commands.set_trajectory(list(range(arm.n)), times, pts, time.monotonic())
         time.sleep(1.0)  # settle into the stream, then measure a fresh window
-        loop.stats.reset()
-        loop._latencies.clear()  # noqa: SLF001 - benchmark-only: start the latency window here
+        loop.reset_measurements()
         lost0 = sum(s.lost for s in loop.driver.stats)
         snap0 = loop.snapshot()
         t0 = time.monotonic()
@@ -335,8 +335,8 @@ def main(argv: list[str] | None = None) -> int:
         "excluded, those are counted as overruns); cycle busy = time from a cycle's start to the end of "
         "its work (9 frames out, 7 replies in); reply latency = FSTEP_EXT sent -> its extended reply "
         "received. `core` = DriverLoop + PowerCubeArmDriver in the benchmark process; `node` = the "
-        "can_driver node process, numbers from its /diagnostics (last 2500 cycles; replies lost since "
-        "start).",
+        "can_driver node process, numbers from its /diagnostics (periods: last 2500 cycles, latencies: "
+        "last 500; replies lost since start).",
         "",
         HEADER,
         SEP,

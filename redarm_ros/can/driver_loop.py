@@ -520,7 +520,6 @@ class DriverLoop:
         self._state = LoopState.CONNECTING
         self._reason = "starting"
         self._resume = LoopState.IDLE  # state to return to after (re)connecting
-        self._initialised = False
         self._connects = 0
         self._bus_losses = 0
         self._clamps = 0
@@ -529,8 +528,10 @@ class DriverLoop:
         self._q_meas: np.ndarray | None = None
         self._q_ref: np.ndarray | None = None
         self._last_clamp_log = -1e9
-        # Reply latencies (s) of the last cycles, all joints, and frame counters.
-        self._latencies: deque[float] = deque(maxlen=2500 * self.n)
+        self._halt_reason = ""
+        # Reply latencies (s) of the last 500 cycles, all joints (small: diagnostics run in
+        # another thread and numpy holds the GIL while it sorts), and frame counters.
+        self._latencies: deque[float] = deque(maxlen=500 * self.n)
         self._frames_tx = 0
         self._frames_rx = 0
         self._fps_mark = (time.monotonic(), 0)
@@ -571,6 +572,12 @@ class DriverLoop:
         if not req.done.wait(timeout):
             return False, f"{action} did not finish within {timeout:.0f} s"
         return req.ok, req.message
+
+    def reset_measurements(self) -> None:
+        """Start fresh timing and latency windows (counters such as cycles and overruns stay)."""
+        self.stats.reset()
+        with self._lock:
+            self._latencies.clear()
 
     def accepting_commands(self) -> tuple[bool, str]:
         """Whether a new command would be followed now, and why not."""
@@ -708,8 +715,6 @@ class DriverLoop:
             self._reason = reason
         if first:  # log each distinct reason once, not every retry
             self._log(logging.WARNING, f"{reason}; retrying with backoff")
-
-    _halt_reason = ""
 
     def _read_positions(self) -> np.ndarray:
         st = self.driver.read_state()
