@@ -15,7 +15,7 @@ Scores are computed from the joint trajectories (FK + capsules), not from the co
 Success = tool within 1 mm / 0.01 rad of the goal within 8 s, and clearance > 0 at every step.
 
     .venv/bin/python benchmarks/reach_bench.py --scenes 200       # writes benchmarks/results/reach_bench.md
-    .venv/bin/python benchmarks/reach_bench.py --scenes 10 --no-write
+    .venv/bin/python benchmarks/reach_bench.py --quick --no-write     # smoke run: 6 scenes
 """
 
 from __future__ import annotations
@@ -53,6 +53,7 @@ DT = 0.01
 DURATION = 8.0
 V_MAX = 0.4  # m/s, same cap for every method
 RESULTS = Path(__file__).resolve().parent / "results" / "reach_bench.md"
+QUICK_SCENES = 6
 Q_HOME = np.array([0.0, 0.5, 0.0, 1.5, 0.0, 1.0, 0.0])
 
 
@@ -253,9 +254,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scenes", type=int, default=200, help="number of random scenes (default 200)")
     ap.add_argument("--seed", type=int, default=1000, help="seed of the first scene")
     ap.add_argument("--methods", default="attractor,fixed,dls")
+    ap.add_argument("--quick", action="store_true",
+                    help=f"smoke run: {QUICK_SCENES} scenes (overrides --scenes)")
     ap.add_argument("--no-write", action="store_true", help="do not write benchmarks/results/reach_bench.md")
     ap.add_argument("--verbose", action="store_true", help="one line per scene and method")
     args = ap.parse_args(argv)
+    if args.quick:
+        args.scenes = QUICK_SCENES
     arm = load_arm("pa10")
     caps = ArmCapsules()
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
@@ -308,8 +313,11 @@ def main(argv: list[str] | None = None) -> int:
         f"{m} {min(x.limit_margin for x in res[m]):.3f}" for m in methods))
     lines.append("Largest joint speed / limit (max over scenes): " + ", ".join(
         f"{m} {max(x.max_vel_ratio for x in res[m]):.3f}" for m in methods))
+    lines.append("Largest joint acceleration / limit (max over scenes): " + ", ".join(
+        f"{m} {max(x.max_acc_ratio for x in res[m]):.3f}" for m in methods))
     lines.append("")
-    lines.append(f"Run: `python benchmarks/reach_bench.py --scenes {args.scenes}` on {platform.machine()}, "
+    cmd = "--quick" if args.quick else f"--scenes {args.scenes}"
+    lines.append(f"Run: `python benchmarks/reach_bench.py {cmd}` on {platform.machine()}, "
                  f"Python {platform.python_version()}, {elapsed:.0f} s wall.")
     text = "\n".join(lines)
     print(text)

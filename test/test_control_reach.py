@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from redarm_ros.control.obstacles import ArmCapsules, Cylinder, Scene, load_scene, min_distance
+from redarm_ros.control.obstacles import ArmCapsules, Cylinder, Scene, Sphere, load_scene, min_distance
 from redarm_ros.control.reach_controller import (
     ControllerParams,
     GoalStatus,
@@ -43,11 +43,15 @@ def q_start(arm):
     return q
 
 
-def check_trajectory(arm, q: np.ndarray) -> None:
-    """Joint limits hold, and no step exceeds the joint velocity limits (so no branch flip)."""
+def check_trajectory(arm, q: np.ndarray, from_rest: bool = True) -> None:
+    """Joint limits hold, no step exceeds the joint velocity limits (so no branch flip) and no joint
+    exceeds its acceleration limit (second difference of the commands, from rest at the start)."""
     assert np.all(q >= arm.lower - 1e-12) and np.all(q <= arm.upper + 1e-12)
     steps = np.abs(np.diff(q, axis=0)) / (np.asarray(arm.max_vel) * DT)
     assert steps.max() <= 1.0 + 1e-6
+    qq = np.vstack([q[:1], q]) if from_rest else q
+    acc = np.abs(np.diff(qq, n=2, axis=0)) / (np.asarray(arm.max_acc) * DT * DT)
+    assert acc.max() <= 1.0 + 1e-6
 
 
 def test_reaches_goal_on_empty_table_with_straight_path(arm, q_start) -> None:
@@ -119,7 +123,7 @@ def test_swivel_dynamics_moves_elbow_away_from_an_obstacle(arm) -> None:
     assert abs(r.swivel - s_before) > 0.1
     assert after > before + 0.03
     assert np.linalg.norm(arm.fk(r.q)[:3, 3] - arm.fk(q0)[:3, 3]) < 1e-3  # the hand stayed
-    check_trajectory(arm, np.array(qs))
+    check_trajectory(arm, np.array(qs), from_rest=False)
 
 
 def test_goal_rejections(arm, q_start) -> None:
@@ -190,7 +194,7 @@ def test_rejected_goal_mid_motion_stops_smoothly(arm, q_start) -> None:
         qs.append(r.q)
     assert speeds[-1] == 0.0 and r.phase is Phase.REJECTED
     assert np.max(np.abs(np.diff(speeds))) < 0.05
-    check_trajectory(arm, np.array(qs))
+    check_trajectory(arm, np.array(qs), from_rest=False)
 
 
 def test_obstacle_appearing_mid_reach_invalidating_the_goal(arm, q_start) -> None:
@@ -250,3 +254,155 @@ def test_params_from_dict() -> None:
         ControllerParams.from_dict({"speed": {"vmax": 1.0}})
     with pytest.raises(ConfigError):
         ControllerParams.from_dict({"speed": {"v_max": -1.0}})
+
+
+def demo_pose(p, yaw: float = 0.0) -> np.ndarray:
+    """The demo's goal convention: tool z down (rotation by pi about x), then yaw about base z."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    T = np.eye(4)
+    T[:3, :3] = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ np.diag([1.0, -1.0, -1.0])
+    T[:3, 3] = p
+    return T
+
+
+READY = np.array([0.0, 0.5, 0.0, 1.3, 0.0, 1.0, 0.0])  # the demo's ready pose
+DEMO_BALL = Scene((Sphere((0.22, -0.20, 0.70), 0.07, "ball"),), 0.0)
+
+
+def run_sequence(arm, scene: Scene, q0: np.ndarray, goals, per_goal: float = 15.0,
+                 params: ControllerParams | None = None):
+    """Reach ``goals`` one after the other (each until REACHED or ``per_goal`` s); returns the
+    commanded joint trajectory, the final phase of each goal and the messages seen."""
+    ctl = ReachController(arm, scene, params)
+    ctl.reset(q0)
+    qs = [ctl.q]
+    phases = []
+    messages = set()
+    for T in goals:
+        assert ctl.set_goal(T).accepted
+        for _ in range(int(per_goal / DT)):
+            r = ctl.step(DT)
+            qs.append(r.q)
+            if r.message:
+                messages.add(r.message)
+            if r.phase is Phase.REACHED:
+                break
+        phases.append(r.phase)
+    return np.array(qs), phases, messages
+
+
+@pytest.mark.parametrize("name", ["pa10", "powercube7"])
+def test_singular_start_unfolds_and_reaches(name: str) -> None:
+    """From q = 0 (stretched straight up, where homing leaves the arm) a table goal is reached: a
+    joint-space unfold first, then the normal loop; continuous, in limits, collision-free."""
+    arm = load_arm(name)
+    scene = Scene((), 0.0)
+    T = demo_pose([0.5, 0.0, 0.3]) if name == "pa10" else demo_pose([0.4, 0.0, 0.25])
+    qs, phases, messages = run_sequence(arm, scene, np.zeros(7), [T])
+    assert phases == [Phase.REACHED]
+    assert any("unfold" in m for m in messages)
+    check_trajectory(arm, qs)
+    m = evaluate(arm, scene, qs, T, DT)
+    assert m.reached and m.collision_free
+
+
+def test_singular_start_goal_behind_the_arm() -> None:
+    """The unfold bends towards the goal (here behind the base's zero direction)."""
+    arm = load_arm("pa10")
+    T = demo_pose([-0.45, 0.2, 0.3])
+    qs, phases, _ = run_sequence(arm, Scene((), 0.0), np.zeros(7), [T])
+    assert phases == [Phase.REACHED]
+    check_trajectory(arm, qs)
+
+
+def test_demo_sequence_never_passes_through_the_ball(arm) -> None:
+    """READY -> left -> front right past the ball (issue 5): the forearm once passed through the ball
+    (clearance -0.065 m, as of a2d82c7). Now no command has negative clearance: the guard holds the
+    arm against the ball (and says so) when the dynamics find no clear step."""
+    goals = [demo_pose([0.30, 0.45, 0.35], -0.4), demo_pose([0.50, -0.30, 0.25], 0.0)]
+    qs, phases, messages = run_sequence(arm, DEMO_BALL, READY, goals)
+    clear = [min_distance(arm, q, DEMO_BALL).distance for q in qs]
+    assert min(clear) >= 0.0
+    assert phases[0] is Phase.REACHED
+    assert phases[1] in (Phase.REACHED, Phase.HOLDING)
+    if phases[1] is Phase.HOLDING:
+        assert any(m.startswith("collision guard") and "ball" in m for m in messages)
+    check_trajectory(arm, qs)
+
+
+SEQUENCE_SCENES = ["table_cylinder", "narrow_passage", "swivel_sphere", "demo_ball"]
+
+
+@pytest.mark.parametrize("scene_name", SEQUENCE_SCENES)
+def test_goal_sequences_are_collision_free(arm, scene_name: str) -> None:
+    """Random (seeded) sequences of three accepted goals: no command ever has negative clearance,
+    whatever the dynamics do (the guard holds instead), and every joint limit holds."""
+    scene = DEMO_BALL if scene_name == "demo_ball" else load_scene(scene_name)
+    rng = np.random.default_rng(SEQUENCE_SCENES.index(scene_name) + 11)
+    probe = ReachController(arm, scene)
+    goals = []
+    while len(goals) < 3:
+        p = [rng.uniform(0.3, 0.7), rng.uniform(-0.45, 0.45), rng.uniform(0.08, 0.4)]
+        T = demo_pose(p, rng.uniform(-0.6, 0.6))
+        if probe.check_goal(T).accepted and all(o.signed_distance(p) > 0.05 for o in scene.obstacles):
+            goals.append(T)
+    qs, phases, messages = run_sequence(arm, scene, READY, goals, per_goal=8.0)
+    assert min_distance(arm, qs[0], scene).distance > 0.0
+    clear = np.array([min_distance(arm, q, scene).distance for q in qs])
+    assert clear.min() >= 0.0, (clear.min(), phases, messages)
+    check_trajectory(arm, qs)
+    assert phases.count(Phase.REACHED) >= 2
+
+
+def _ball_ahead_of_the_forearm(arm, q_start, gap: float):
+    """Reach from q_start for 0.8 s, then a ball ``gap`` m ahead of the forearm capsule, in the
+    direction the forearm moves; returns (controller, commands so far, scene with the ball)."""
+    ctl = ReachController(arm, Scene((), 0.0))
+    ctl.reset(q_start)
+    ctl.set_goal(pose([0.65, -0.15, 0.08]))
+    qs = [ctl.q]
+    for _ in range(80):
+        qs.append(ctl.step(DT).q)
+    kp0, kp1 = arm.key_points(qs[-2]), arm.key_points(qs[-1])
+    mid = 0.5 * (np.asarray(kp1[2]) + np.asarray(kp1[3]))
+    move = mid - 0.5 * (np.asarray(kp0[2]) + np.asarray(kp0[3]))
+    ahead = mid + (ArmCapsules().radii[2] + 0.03 + gap) * move / np.linalg.norm(move)
+    obstacles = Scene((Sphere(tuple(ahead), 0.03, "ball"),), 0.0)
+    assert 0.0 < min_distance(arm, qs[-1], obstacles).distance < gap + 0.01
+    assert ctl.set_scene(obstacles) is None  # the goal is still fine
+    return ctl, qs, obstacles
+
+
+def test_guard_brakes_in_time_for_an_obstacle_ahead(arm, q_start) -> None:
+    """A ball appears 8 cm ahead of the moving forearm (the goal stays valid): the arm brakes
+    within its acceleration limits and never touches it."""
+    ctl, qs, obstacles = _ball_ahead_of_the_forearm(arm, q_start, 0.08)
+    for _ in range(600):
+        qs.append(ctl.step(DT).q)
+    clear = [min_distance(arm, q, obstacles).distance for q in qs]
+    assert min(clear) >= 0.0
+    check_trajectory(arm, np.array(qs))
+
+
+def test_guard_emergency_stop_rather_than_collide(arm, q_start) -> None:
+    """A ball appears 1 cm ahead of the moving forearm: too close to brake within the acceleration
+    limits, so the guard stops the arm (the one case where it exceeds them) and reports it."""
+    ctl, qs, obstacles = _ball_ahead_of_the_forearm(arm, q_start, 0.01)
+    messages = set()
+    for _ in range(300):
+        r = ctl.step(DT)
+        qs.append(r.q)
+        messages.add(r.message)
+    clear = [min_distance(arm, q, obstacles).distance for q in qs]
+    assert min(clear) >= 0.0
+    assert any(m.startswith("collision guard") for m in messages)
+
+
+def test_new_parameters_are_validated() -> None:
+    with pytest.raises(ConfigError):
+        ControllerParams(collision_margin=-0.01)
+    with pytest.raises(ConfigError):
+        ControllerParams(joint_brake_share=1.5)
+    with pytest.raises(ConfigError):
+        ControllerParams.from_dict({"unfold_pitch": [0.4, 0.0, 1.0]})
+    assert ControllerParams.from_dict({"unfold_pitch": [0.3, 1.0, 0.8]}).unfold_pitch == (0.3, 1.0, 0.8)

@@ -37,11 +37,12 @@ class LimitedStep:
 
 def braking_speed(distance: np.ndarray | float, acc: np.ndarray | float, dt: float) -> np.ndarray:
     """Largest speed (rad/s) from which a joint ``distance`` rad away from a stop can still stop there
-    with deceleration ``acc`` (rad/s^2) applied in steps of ``dt`` s (the discrete stopping distance
-    ``v^2 / (2 a) + v dt / 2``); never more than ``distance / dt`` (no overshoot in one step)."""
+    with deceleration ``acc`` (rad/s^2) applied in steps of ``dt`` s: one step at that speed plus the
+    braking distance ``v^2 / (2 a)`` (which bounds the discrete one, ``<= v^2 / (2 a) + v dt / 2 +
+    a dt^2 / 8``, from above); never more than ``distance / dt`` (no overshoot in one step)."""
     d = np.maximum(np.asarray(distance, float), 0.0)
     a = np.asarray(acc, float)
-    v = a * (-0.5 * dt + np.sqrt(0.25 * dt * dt + 2.0 * d / a))
+    v = a * (-dt + np.sqrt(dt * dt + 2.0 * d / a))
     return np.minimum(v, d / dt)
 
 

@@ -171,6 +171,8 @@ class ControllerParams:
     joint_brake_share (0..1]: share of the joints' acceleration limits that the hand may use to speed
     up or brake along its path (the rest absorbs the orientation and swivel motion and the path's
     bends); it bounds the speed filter's acceleration and the speed from which it can stop at the goal.
+    guard_step [m]: the guard samples the braking path every this much travel of the arm, and asks
+    that much more clearance at the samples.
     max_lag [s]: when the command lags the reference by more than this (at full joint speed), the
     hand speed is capped.
     unfold_pitch [rad]: (shoulder, elbow, wrist) pitch of the posture the arm unfolds to, in joint
@@ -206,6 +208,7 @@ class ControllerParams:
     unfold_pitch: tuple[float, float, float] = (0.4, 1.2, 1.0)
     joint_brake_share: float = 0.5
     max_lag: float = 0.03
+    guard_step: float = 0.005
 
     def __post_init__(self) -> None:
         if self.swivel_reference not in ("high", "low", "absolute"):
@@ -218,7 +221,7 @@ class ControllerParams:
         for name in ("dt", "lam_ori", "max_ori_rate", "tangent_distance", "final_distance",
                      "workspace_margin", "pos_tolerance", "ori_tolerance", "max_dt", "flip_ratio",
                      "swivel_search_step", "max_ori_acc", "max_swivel_acc", "elbow_priority_clearance",
-                     "stop_share", "joint_brake_share", "max_lag"):
+                     "stop_share", "joint_brake_share", "max_lag", "guard_step"):
             v = getattr(self, name)
             if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
                 raise ConfigError(f"{name} must be finite and > 0, got {v!r}", field=name, value=v)
@@ -968,20 +971,61 @@ class ReachController:
         if not self._clear_enough(clear.distance):
             self._guard_stop(clear, dt)
             return False
-        c_prev = self._clear.distance
-        c = clear.distance
+        stop = self._braking_clearance(q, qd, clear.distance, dt)
+        if stop is not None and not self._clear_enough_from(stop.distance, clear.distance):
+            # Braking from the new state at the acceleration limits would run into the scene: do
+            # not take it; brake from the current state instead (its own braking path was checked).
+            self._guard_stop(stop, dt)
+            return False
         self._set_command(q, qd, clear, dt)
-        if c < c_prev and math.isfinite(c_prev):
-            # Predictive: at the rate the clearance shrinks, braking at the joint acceleration limits
-            # (about t_stop / 2 at that rate) must still end above the margin; otherwise stop the
-            # hand now (the command then brakes onto the reference path, which is clear).
-            t_stop = float(np.max(np.abs(qd) / self._max_acc))
-            if not self._clear_enough(c - (c_prev - c) / dt * (0.5 * t_stop + dt)) and self._v > 0.0:
-                self._v = 0.0
-                self._a = 0.0
-                self._message = (f"collision guard: stopping the hand, {c:.3f} m from the scene and "
-                                 "closing in faster than the joints can brake")
         return True
+
+    def _braking_clearance(self, q: np.ndarray, qd: np.ndarray, c: float, dt: float) -> Clearance | None:
+        """Smallest clearance along the hardest allowed braking from ``q`` moving at ``qd`` (sampled
+        every ``guard_step`` m of possible travel and lowered by that much), or None if no point of the
+        arm can travel ``c - collision_margin`` before the joints stop (each joint turns at most
+        ``qd^2 / (2 a) + |qd| dt`` more, moving points at most its lever arm times that)."""
+        p = self.params
+        turn = qd * qd / (2.0 * self._max_acc) + np.abs(qd) * dt  # rad still to go per joint
+        if not np.any(turn > 0.0):
+            return None
+        kp = np.asarray(self.arm.key_points(q), float)
+        lever = self._levers(kp)
+        if c - float(np.dot(lever, turn)) >= p.collision_margin:
+            return None
+        # March along the braking path; a sample with clearance cb proves the next cb - margin of
+        # travel safe (no point moves farther), so samples are sparse away from the scene.
+        worst: Clearance | None = None
+        n = int(float(np.max(np.abs(qd) / self._max_acc)) / dt) + 2
+        k = np.arange(1, n + 1)[:, None]
+        v = np.sign(qd) * np.maximum(np.abs(qd) - k * self._max_acc * dt, 0.0)  # brake_step, closed form
+        path = np.clip(q + dt * np.cumsum(v, axis=0), self._lower, self._upper)
+        moved = np.cumsum(np.abs(np.diff(np.vstack([q, path]), axis=0)) @ lever)
+        at, gap = 0.0, max(c - p.collision_margin, p.guard_step)
+        while True:
+            i = min(int(np.searchsorted(moved, at + gap)), n - 1)
+            cb = min_distance(self.arm, path[i], self.scene, p.capsules)
+            room = cb.distance - p.collision_margin
+            if room < p.guard_step and i < n - 1:  # dense sampling: ask guard_step more
+                cb = Clearance(cb.distance - p.guard_step, cb.link, cb.obstacle)
+            if worst is None or cb.distance < worst.distance:
+                worst = cb
+            if i >= n - 1:
+                return worst
+            at, gap = float(moved[i]), max(room, p.guard_step)
+
+    def _levers(self, kp: np.ndarray) -> np.ndarray:
+        """Per joint, the largest distance (m) from it to a point of the arm it moves (key points
+        plus the thickest capsule): shoulder joints 1-3, elbow joint 4, wrist joints 5-7."""
+        r = max(self.params.capsules.radii)
+        sh = max(float(np.linalg.norm(kp[i] - kp[1])) for i in (2, 3, 4)) + r
+        el = max(float(np.linalg.norm(kp[i] - kp[2])) for i in (3, 4)) + r
+        wr = float(np.linalg.norm(kp[4] - kp[3])) + r
+        return np.array([sh, sh, sh, el, wr, wr, wr])
+
+    def _clear_enough_from(self, c: float, c_from: float) -> bool:
+        """Like :meth:`_clear_enough`, relative to a clearance ``c_from`` instead of the last one."""
+        return c >= self.params.collision_margin or c >= c_from - 1e-9
 
     def _set_command(self, q: np.ndarray, qd: np.ndarray, clear: Clearance, dt: float) -> None:
         obs = math.inf

@@ -48,7 +48,8 @@ class ReachMetrics:
     pos_err [m], ori_err [rad]: final errors; min_clearance [m] (> 0: collision-free, computed from q);
     limit_margin [rad]: smallest distance of any joint to its limit; path_length [m] of the tool;
     straight [m]: start-goal distance; path_ratio = path_length / straight; peak_jerk [m/s^3] of the
-    tool; max_vel_ratio: largest joint speed over its limit; step_median_us / step_p99_us [us].
+    tool; max_vel_ratio: largest joint speed over its limit; max_acc_ratio: largest joint acceleration
+    (second difference of q over dt^2) over its limit; step_median_us / step_p99_us [us].
     """
 
     reached: bool
@@ -64,6 +65,7 @@ class ReachMetrics:
     max_vel_ratio: float
     step_median_us: float
     step_p99_us: float
+    max_acc_ratio: float = 0.0
 
     @property
     def collision_free(self) -> bool:
@@ -173,6 +175,7 @@ def evaluate(arm: Any, scene: Scene, q: np.ndarray, T_goal: np.ndarray, dt: floa
     upper = np.asarray(arm.upper)
     margin = float(np.min(np.minimum(q - lower, upper - q)))
     vel = np.max(np.abs(np.diff(q, axis=0)) / (np.asarray(arm.max_vel) * dt), initial=0.0)
+    acc = np.max(np.abs(np.diff(q, n=2, axis=0)) / (np.asarray(arm.max_acc) * dt * dt), initial=0.0)
     plen = path_length(tool)
     straight = float(np.linalg.norm(tool[0] - T_goal[:3, 3]))
     steps = np.asarray(step_s if step_s is not None else [math.nan]) * 1e6
@@ -190,4 +193,5 @@ def evaluate(arm: Any, scene: Scene, q: np.ndarray, T_goal: np.ndarray, dt: floa
         max_vel_ratio=float(vel),
         step_median_us=float(np.median(steps)),
         step_p99_us=float(np.percentile(steps, 99)),
+        max_acc_ratio=float(acc),
     )

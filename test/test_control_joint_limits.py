@@ -1,0 +1,79 @@
+"""joint_limits: the per-step velocity/acceleration/position limiter and braking helpers."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from redarm_ros.control.joint_limits import (
+    LimitMode,
+    brake_step,
+    braking_speed,
+    limit_step,
+    velocity_bounds,
+)
+
+DT = 0.01
+VMAX = np.array([1.0, 2.0, 6.0])
+AMAX = np.array([2.0, 4.0, 12.0])
+LO = np.array([-1.0, -2.0, -3.0])
+HI = np.array([1.0, 2.0, 3.0])
+
+
+def test_exact_when_the_target_fits() -> None:
+    q0 = np.zeros(3)
+    v0 = np.array([0.5, -0.5, 1.0])
+    target = q0 + (v0 + 0.5 * AMAX * DT) * DT
+    r = limit_step(q0, v0, target, DT, VMAX, AMAX, LO, HI)
+    assert r.mode is LimitMode.EXACT and np.allclose(r.q, target)
+
+
+def test_scaled_keeps_the_direction() -> None:
+    q0 = np.zeros(3)
+    target = np.array([0.01, 0.02, 0.03])  # from rest: 1, 2, 3 rad/s asked, 0.02 .. 0.12 allowed
+    r = limit_step(q0, np.zeros(3), target, DT, VMAX, AMAX, LO, HI)
+    assert r.mode is LimitMode.SCALED
+    assert 0.0 < r.alpha < 1.0
+    assert np.allclose(r.q / np.linalg.norm(r.q), target / np.linalg.norm(target))
+    assert np.all(np.abs(r.v) <= AMAX * DT + 1e-12)
+
+
+def test_clipped_when_one_joint_must_brake_and_another_speed_up() -> None:
+    q0 = np.zeros(3)
+    v0 = np.array([1.0, 0.0, 0.0])
+    target = np.array([-0.01, 0.01, 0.0])  # reverse joint 0 at once, start joint 1
+    r = limit_step(q0, v0, target, DT, VMAX, AMAX, LO, HI)
+    assert r.mode is LimitMode.CLIPPED
+    assert np.all(np.abs(r.v - v0) <= AMAX * DT + 1e-12)
+
+
+def test_braking_speed_stops_on_the_spot() -> None:
+    for d in (0.0, 1e-6, 1e-3, 0.1, 1.0):
+        v = float(braking_speed(d, 2.0, DT))
+        # simulate: move at v, then brake by a*dt each step; never pass the stop point
+        q, vel = 0.0, v
+        while vel > 0.0:
+            q += vel * DT
+            vel = max(vel - 2.0 * DT, 0.0)
+        assert q <= d + 1e-12
+
+
+def test_random_steps_always_respect_every_limit() -> None:
+    rng = np.random.default_rng(7)
+    q = np.zeros(3)
+    v = np.zeros(3)
+    for _ in range(3000):
+        target = q + rng.normal(0.0, 0.05, 3)  # including targets beyond the position limits
+        r = limit_step(q, v, target, DT, VMAX, AMAX, LO, HI)
+        assert np.all(r.q >= LO) and np.all(r.q <= HI)
+        assert np.all(np.abs(r.v) <= VMAX + 1e-9)
+        assert np.all(np.abs(r.v - v) <= AMAX * DT + 1e-9)
+        # the joints can always still stop before a limit
+        lo, hi = velocity_bounds(r.q, r.v, DT, VMAX, AMAX, LO, HI)
+        assert np.all(lo <= hi + 1e-12)
+        q, v = r.q, r.v
+
+
+def test_brake_step() -> None:
+    q, v = brake_step(np.zeros(3), np.array([1.0, -0.01, 0.0]), DT, AMAX, LO, HI)
+    assert np.allclose(v, [1.0 - 2.0 * DT, 0.0, 0.0])
+    assert np.allclose(q, v * DT)
