@@ -1151,12 +1151,26 @@ class ReachController:
     def _update_phase(self) -> None:
         if self._goal_p is None or self._goal_q is None or self._phase is Phase.HOLDING:
             return
+        p = self.params
         d = math.dist(self._cpos, self._goal_p)
         err = quat_angle(self._crot, self._goal_q)
-        if d <= self.params.pos_tolerance and err <= self.params.ori_tolerance:
+        if d <= p.pos_tolerance and err <= p.ori_tolerance and self._settled():
             self._phase = Phase.REACHED
         else:
             self._phase = Phase.REACHING
+
+    def _settled(self) -> bool:
+        """The reference is at the goal too and the command, braking now, would stay within half the
+        position tolerance (so REACHED does not flicker while the command catches up)."""
+        p = self.params
+        assert self._goal_p is not None and self._goal_q is not None
+        if math.dist(self._pos, self._goal_p) > p.pos_tolerance or \
+                quat_angle(self._rot, self._goal_q) > p.ori_tolerance:
+            return False
+        if not np.any(self._qd != 0.0):
+            return True
+        lever = self._levers(np.asarray(self.arm.key_points(self._qc), float))
+        return float(np.dot(lever, self._qd * self._qd / (2.0 * self._max_acc))) <= 0.5 * p.pos_tolerance
 
     def _result(self) -> StepResult:
         assert self._q is not None
