@@ -382,10 +382,12 @@ class SpeedProfile:
         """Advance speed ``v`` (m/s) and acceleration ``a`` (m/s^2) by ``dt`` (s); returns ``(v, a)``.
 
         ``v_cap`` optionally lowers the target speed (e.g. joint-velocity limits); ``a_limit`` (m/s^2)
-        optionally lowers ``a_max`` for this step (e.g. joint-acceleration limits).
+        optionally lowers ``a_max`` for speeding up in this step (e.g. joint-acceleration limits).
         """
         p = self.params
-        a_max = p.a_max if a_limit is None else max(min(p.a_max, a_limit), 1e-3)
+        # a_limit bounds speeding up only: braking keeps a_max, so the stop at the target stays
+        # smooth (a late stop would be worse for the joints than a brisk one).
+        a_up = p.a_max if a_limit is None else max(min(p.a_max, a_limit), 1e-3)
         target = self.desired(d)
         if v_cap is not None:
             target = min(target, v_cap)
@@ -401,7 +403,7 @@ class SpeedProfile:
                 jh2 = 0.5 * da
                 room = max(target - v_new, 0.0)
                 a_filter = min(a_filter, -jh2 + math.sqrt(jh2 * jh2 + 2.0 * p.j_max * room))
-            a_new = max(-a_max, min(a_max, max(a_new - da, min(a_new + da, a_filter))))
+            a_new = max(-p.a_max, min(a_up, max(a_new - da, min(a_new + da, a_filter))))
             v_new = max(0.0, v_new + h * a_new)
             if v_new > p.v_max:  # residual overshoot of at most j_max h^2
                 v_new, a_new = p.v_max, min(a_new, 0.0)

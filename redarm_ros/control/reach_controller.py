@@ -173,6 +173,8 @@ class ControllerParams:
     bends); it bounds the speed filter's acceleration and the speed from which it can stop at the goal.
     guard_step [m]: the guard samples the braking path every this much travel of the arm, and asks
     that much more clearance at the samples.
+    slide_band [m]: within this clearance of the hand to an obstacle or the table, the part of the
+    motion towards it is removed (fully at contact): the hand slides along it.
     max_lag [s]: when the command lags the reference by more than this (at full joint speed), the
     hand speed is capped.
     unfold_pitch [rad]: (shoulder, elbow, wrist) pitch of the posture the arm unfolds to, in joint
@@ -209,6 +211,7 @@ class ControllerParams:
     joint_brake_share: float = 0.5
     max_lag: float = 0.03
     guard_step: float = 0.005
+    slide_band: float = 0.03
 
     def __post_init__(self) -> None:
         if self.swivel_reference not in ("high", "low", "absolute"):
@@ -221,7 +224,7 @@ class ControllerParams:
         for name in ("dt", "lam_ori", "max_ori_rate", "tangent_distance", "final_distance",
                      "workspace_margin", "pos_tolerance", "ori_tolerance", "max_dt", "flip_ratio",
                      "swivel_search_step", "max_ori_acc", "max_swivel_acc", "elbow_priority_clearance",
-                     "stop_share", "joint_brake_share", "max_lag", "guard_step"):
+                     "stop_share", "joint_brake_share", "max_lag", "guard_step", "slide_band"):
             v = getattr(self, name)
             if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
                 raise ConfigError(f"{name} must be finite and > 0, got {v!r}", field=name, value=v)
@@ -357,6 +360,7 @@ class ReachController:
         self._qrd = np.zeros(7)  # reference velocity of the last step (rad/s)
         self._v_ref = 0.0  # tool speed of the reference in the last step (m/s)
         self._cpos: Vec3 = (0.0, 0.0, 0.0)  # tool pose of the command (m, w x y z)
+        self._ctool_speed = 0.0  # m/s
         self._crot: Quat = (1.0, 0.0, 0.0, 0.0)
         self._w_ori = 0.0  # orientation rate of the last step (rad/s)
         self._sdot = 0.0  # swivel rate of the last step (rad/s)
@@ -428,6 +432,7 @@ class ReachController:
         self._qd = np.zeros(7)
         self._qrd = np.zeros(7)
         self._cpos, self._crot = self._pos, self._rot
+        self._ctool_speed = 0.0
         self._w_ori = 0.0
         self._sdot = 0.0
         self._unfold = None
@@ -628,6 +633,8 @@ class ReachController:
             mn = math.sqrt(m[0] ** 2 + m[1] ** 2 + m[2] ** 2)
             e = (m[0] / mn, m[1] / mn, m[2] / mn) if mn > 1e-9 else g
         e = self._workspace_slide(e, pos, rot)
+        if goal_p is None or dist > p.final_distance:  # (the goal itself was checked clear)
+            e = self._obstacle_slide(e)
         step_len = self._v * dt
         if goal_p is not None:
             step_len = min(step_len, dist)
@@ -701,6 +708,39 @@ class ReachController:
             return e
         f = w * radial
         v = (e[0] - f * r[0], e[1] - f * r[1], e[2] - f * r[2])
+        n = math.sqrt(v[0] ** 2 + v[1] ** 2 + v[2] ** 2)
+        if n < 1e-6:
+            return e
+        return (v[0] / n, v[1] / n, v[2] / n)
+
+    def _obstacle_slide(self, e: Vec3) -> Vec3:
+        """Within ``slide_band`` of an obstacle or the table, remove (smoothly, fully at contact) the
+        part of the motion direction that takes the hand closer to it: the hand slides along the
+        surface instead of pressing into it, where the guard would stop it for good."""
+        band = self.params.slide_band
+        if self._circle is None:
+            return e
+        kp = [tuple(float(c) for c in v) for v in self._circle.key_points(self._s)]
+        caps = self.params.capsules
+        c0 = links_clearance(kp, self.scene, caps, (3,)).distance
+        if c0 >= band:
+            return e
+        h = 1e-3
+        g = []
+        for axis in range(3):
+            shifted = [list(v) for v in kp]
+            shifted[3][axis] += h
+            shifted[4][axis] += h
+            g.append((links_clearance(shifted, self.scene, caps, (3,)).distance - c0) / h)
+        gn = math.sqrt(g[0] ** 2 + g[1] ** 2 + g[2] ** 2)
+        if gn < 1e-6:
+            return e
+        g = [gi / gn for gi in g]
+        toward = e[0] * g[0] + e[1] * g[1] + e[2] * g[2]
+        if toward >= 0.0:
+            return e
+        w = _smoothstep((band - c0) / band)
+        v = (e[0] - w * toward * g[0], e[1] - w * toward * g[1], e[2] - w * toward * g[2])
         n = math.sqrt(v[0] ** 2 + v[1] ** 2 + v[2] ** 2)
         if n < 1e-6:
             return e
@@ -1038,7 +1078,9 @@ class ReachController:
         self._qd = qd
         self._clear = clear
         T = np.asarray(self.arm.fk(q), float)
-        self._cpos = (float(T[0, 3]), float(T[1, 3]), float(T[2, 3]))
+        cpos = (float(T[0, 3]), float(T[1, 3]), float(T[2, 3]))
+        self._ctool_speed = math.dist(cpos, self._cpos) / dt
+        self._cpos = cpos
         self._crot = quat_from_matrix(T[:3, :3])
 
     def _resync_reference(self) -> None:
@@ -1160,17 +1202,15 @@ class ReachController:
             self._phase = Phase.REACHING
 
     def _settled(self) -> bool:
-        """The reference is at the goal too and the command, braking now, would stay within half the
-        position tolerance (so REACHED does not flicker while the command catches up)."""
+        """The reference is at the goal too and the commanded tool has (nearly) stopped: below
+        ``pos_tolerance`` per 0.1 s (so REACHED does not flicker while the command catches up; the
+        elbow may still be settling on its swivel, which does not move the tool)."""
         p = self.params
         assert self._goal_p is not None and self._goal_q is not None
         if math.dist(self._pos, self._goal_p) > p.pos_tolerance or \
                 quat_angle(self._rot, self._goal_q) > p.ori_tolerance:
             return False
-        if not np.any(self._qd != 0.0):
-            return True
-        lever = self._levers(np.asarray(self.arm.key_points(self._qc), float))
-        return float(np.dot(lever, self._qd * self._qd / (2.0 * self._max_acc))) <= 0.5 * p.pos_tolerance
+        return self._ctool_speed <= p.pos_tolerance / 0.1
 
     def _result(self) -> StepResult:
         assert self._q is not None
