@@ -1202,15 +1202,22 @@ class ReachController:
             self._phase = Phase.REACHING
 
     def _settled(self) -> bool:
-        """The reference is at the goal too and the commanded tool has (nearly) stopped: below
-        ``pos_tolerance`` per 0.1 s (so REACHED does not flicker while the command catches up; the
-        elbow may still be settling on its swivel, which does not move the tool)."""
+        """The reference is at the goal too, the commanded tool has (nearly) stopped (below
+        ``pos_tolerance`` per 0.1 s) and so have the joints (below 5 % of their velocity limits, within
+        1 mrad of the reference): REACHED neither flickers while the command catches up nor comes
+        while the elbow still swings about its swivel, which a real (lagging) arm would turn into tool
+        error."""
         p = self.params
         assert self._goal_p is not None and self._goal_q is not None
         if math.dist(self._pos, self._goal_p) > p.pos_tolerance or \
                 quat_angle(self._rot, self._goal_q) > p.ori_tolerance:
             return False
-        return self._ctool_speed <= p.pos_tolerance / 0.1
+        if self._ctool_speed > p.pos_tolerance / 0.1:
+            return False
+        # The joints too (the elbow settling on its swivel moves no tool, but a tracking arm lags in
+        # every joint): nearly at rest and on the reference.
+        return float(np.max(np.abs(self._qd) / self._max_vel)) <= 0.05 and \
+            float(np.max(np.abs(self._q - self._qc))) <= 1e-3
 
     def _result(self) -> StepResult:
         assert self._q is not None
