@@ -270,11 +270,15 @@ class HardwareSim:
 
     def _bus_loop(self) -> None:
         backoff = 0.05
+        backlog = False
         while not self._stop.is_set():
             now = time.monotonic()
             self._flush_pending(now)
-            self._tick(now)
-            timeout = 0.01
+            if not backlog:
+                # Tick only once the queue is drained: after this thread waited for the CPU, frames
+                # that already arrived must refresh the modules' watchdogs before they are checked.
+                self._tick(now)
+            timeout = 0.0 if backlog else 0.01
             if self._pending:
                 timeout = max(0.0, min(timeout, self._pending[0][0] - now))
             try:
@@ -284,6 +288,7 @@ class HardwareSim:
                 backoff = min(2.0, backoff * 2)
                 continue
             backoff = 0.05
+            backlog = msg is not None
             if msg is not None:
                 self.handle_frame(msg, time.monotonic())
 
