@@ -94,8 +94,9 @@ PARAMS = [
               _yaml_mapping, read_only=True),
     ParamSpec("reply_timeout_s", 0.02, "How long a cycle waits for the modules' replies (s).",
               in_range(1e-4, 1.0), read_only=True),
-    ParamSpec("max_missed_replies", 3, "Consecutive missed replies after which a module counts as silent "
-              "(everything is halted).", _positive_int, read_only=True),
+    ParamSpec("max_missed_replies", 5, "Consecutive missed replies after which a module counts as silent "
+              "(everything is halted); with reply_timeout_s 0.02 a module may be quiet for 100 ms.",
+              _positive_int, read_only=True),
     ParamSpec("hold_on_stream_stop_s", 0.5, "A /joint_command_state stream older than this (s) is "
               "dropped and the measured position held.", positive),
     ParamSpec("auto_init", False, "Run ~/init (reset + home) by itself once the bus is up.", read_only=True),
