@@ -133,7 +133,7 @@ def run_core(can_kwargs: dict[str, Any], rate: float, seconds: float) -> RunResu
 
     def factory(bus: Any) -> PowerCubeArmDriver:
         return PowerCubeArmDriver(bus, list(range(1, arm.n + 1)), arm.lower, arm.upper, arm.max_vel,
-                                  arm.max_acc, reply_timeout_s=0.02, max_missed=3, watchdog_refresh=True,
+                                  arm.max_acc, reply_timeout_s=0.02, max_missed=5, watchdog_refresh=True,
                                   enable_watchdog=True)
 
     loop = DriverLoop(factory, lambda: open_bus(**can_kwargs), arm.n, LoopConfig(rate_hz=rate))
@@ -323,42 +323,53 @@ def main(argv: list[str] | None = None) -> int:
                     results.append(r)
                     print(row(r), flush=True)
     load_after = os.getloadavg()[0]
-    n = 7
-    lines = [
-        "# CAN driver loop benchmark (`benchmarks/can_loop_bench.py`)",
-        "",
-        f"Machine: {platform.node()}, {os.cpu_count()} CPUs, Python {platform.python_version()}, "
-        f"1-min load average {load_before:.2f} before / {load_after:.2f} after (other jobs share the CPUs); "
-        f"{seconds:g} s measured per run; arm {ARM_NAME} (7 modules) in `redarm-sim` (pybullet 1 kHz) "
-        "over the loopback python-can-remote bus (`redarm-canbus`, 127.0.0.1); the arm follows a slow sine "
-        "on every joint. Period error = |start-to-start period - 1/rate| (periods after skipped ticks "
-        "excluded, those are counted as overruns); cycle busy = time from a cycle's start to the end of "
-        "its work (9 frames out, 7 replies in); reply latency = FSTEP_EXT sent -> its extended reply "
-        "received. `core` = DriverLoop + PowerCubeArmDriver in the benchmark process; `node` = the "
-        "can_driver node process, numbers from its /diagnostics (periods: last 2500 cycles, latencies: "
-        "last 500; replies lost since start).",
+    run = "\n".join([
+        f"## Run {time.strftime('%Y-%m-%d %H:%M')} — {seconds:g} s per mode and rate, 1-min load average "
+        f"{load_before:.2f} before / {load_after:.2f} after",
         "",
         HEADER,
         SEP,
         *[row(r) for r in results],
+        "",
+        f"Command: `.venv/bin/python benchmarks/can_loop_bench.py --seconds {seconds:g} --rates "
+        f"{args.rates} --modes {args.modes}`",
+        "",
+    ])
+    print()
+    print(run)
+    if not args.no_write:
+        # Newest run first; earlier runs are kept: on a shared machine the spread is the result.
+        earlier: list[str] = []
+        if RESULTS.exists():
+            old = RESULTS.read_text()
+            earlier = ["## Run " + part.strip() + "\n" for part in old.split("\n## Run ")[1:]]
+        RESULTS.parent.mkdir(parents=True, exist_ok=True)
+        RESULTS.write_text("\n".join([results_preamble(), run, *earlier]))
+        print(f"wrote {RESULTS}")
+    return 0
+
+
+def results_preamble(n: int = 7) -> str:
+    """The fixed part of the results file: setup, definitions, the physical ceiling."""
+    return "\n".join([
+        "# CAN driver loop benchmark (`benchmarks/can_loop_bench.py`)",
+        "",
+        f"Machine: {platform.node()}, {os.cpu_count()} CPUs, Python {platform.python_version()}; other jobs "
+        "share the CPUs (see each run's load average). Arm "
+        f"{ARM_NAME} (7 modules) in `redarm-sim` (pybullet 1 kHz) over the loopback python-can-remote bus "
+        "(`redarm-canbus`, 127.0.0.1); the arm follows a slow sine on every joint. Period error = "
+        "|start-to-start period - 1/rate| (periods after skipped ticks excluded, those are counted as "
+        "overruns); cycle busy = time from a cycle's start to the end of its work (9 frames out, 7 replies "
+        "in); reply latency = FSTEP_EXT sent -> its extended reply received. `core` = DriverLoop + "
+        "PowerCubeArmDriver in the benchmark process; `node` = the can_driver node process, numbers from "
+        "its /diagnostics (periods: last 2500 cycles, latencies: last 500; replies lost since start).",
         "",
         "Physical ceiling for one cycle (7 FSTEP_EXT + 7 replies of 8 bytes, STARTMOVE and watchdog "
         "refresh of 2 bytes, 11-bit ids, without/with worst-case bit stuffing):",
         "",
         *budget_table(n),
         "",
-        f"Command: `.venv/bin/python benchmarks/can_loop_bench.py --seconds {seconds:g} --rates "
-        f"{args.rates} --modes {args.modes}`",
-        "",
-    ]
-    text = "\n".join(lines)
-    print()
-    print(text)
-    if not args.no_write:
-        RESULTS.parent.mkdir(parents=True, exist_ok=True)
-        RESULTS.write_text(text)
-        print(f"wrote {RESULTS}")
-    return 0
+    ])
 
 
 if __name__ == "__main__":
