@@ -78,7 +78,8 @@ class Rig:
         # of ms: generous reply timeouts, and no module watchdog (it is exercised by the HIL tests).
         params = {"can.interface": "virtual", "can.channel": self.channel, "rate_hz": 100.0,
                   "poll_hz": 20.0, "hold_on_stream_stop_s": 0.3, "reply_timeout_s": 0.1,
-                  "max_missed_replies": 5, "watchdog": False, **(overrides or {})}
+                  "max_missed_replies": 5, "watchdog": False, "duplicate_check_s": 0.0,
+                  **(overrides or {})}
         self.node = CanDriverNode(
             context=ctx, parameter_overrides=[Parameter(k, value=v) for k, v in params.items()]
         )
@@ -216,12 +217,16 @@ def test_node_halt_and_recover_services(rig: Rig) -> None:
 
 
 def test_node_parameters_validated(rclpy_context: Any) -> None:
+    # A refused node stays in this context's graph until shutdown: skip the duplicate-name check.
+    no_dup = Parameter("duplicate_check_s", value=0.0)
     with pytest.raises(ValueError, match="rate_hz"):
-        CanDriverNode(context=rclpy_context, parameter_overrides=[Parameter("rate_hz", value=-5.0)])
+        CanDriverNode(context=rclpy_context, parameter_overrides=[Parameter("rate_hz", value=-5.0), no_dup])
     with pytest.raises(ValueError, match="module_ids"):
-        CanDriverNode(context=rclpy_context, parameter_overrides=[Parameter("module_ids", value=[1, 2])])
+        CanDriverNode(context=rclpy_context,
+                      parameter_overrides=[Parameter("module_ids", value=[1, 2]), no_dup])
     with pytest.raises(ValueError, match="arm"):
-        CanDriverNode(context=rclpy_context, parameter_overrides=[Parameter("arm", value="no_such_arm")])
+        CanDriverNode(context=rclpy_context,
+                      parameter_overrides=[Parameter("arm", value="no_such_arm"), no_dup])
 
 
 def test_node_runtime_parameter_updates(rig: Rig) -> None:
@@ -232,3 +237,16 @@ def test_node_runtime_parameter_updates(rig: Rig) -> None:
     assert rig.node.loop.commands.stream_timeout_s == 1.5
     res = rig.node.set_parameters([Parameter("rate_hz", value=100.0)])
     assert not res[0].successful  # read-only: takes effect at start only
+
+
+def test_second_driver_with_the_same_name_refuses_to_start(rig: Rig, rclpy_context: Any) -> None:
+    """Two drivers on one bus would fight over the modules: the second one must not start."""
+    with pytest.raises(RuntimeError, match="already running"):
+        CanDriverNode(
+            context=rclpy_context,
+            parameter_overrides=[
+                Parameter("can.interface", value="virtual"),
+                Parameter("can.channel", value=rig.channel),
+                Parameter("duplicate_check_s", value=1.0),
+            ],
+        )

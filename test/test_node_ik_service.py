@@ -20,7 +20,8 @@ from redarm_interfaces.srv import SolveIK  # noqa: E402
 
 from redarm_ros.kinematics import load_arm  # noqa: E402
 from redarm_ros.kinematics.quaternion import matrix_to_quat  # noqa: E402
-from redarm_ros.nodes.ik_service import IKServiceNode, pose_msg_to_matrix  # noqa: E402
+from redarm_ros.nodes._common import pose_msg_to_matrix  # noqa: E402
+from redarm_ros.nodes.ik_service import IKServiceNode  # noqa: E402
 from redarm_ros.procs import python_module_cmd  # noqa: E402
 
 ARMS = ["pa10", "pa10_7c", "powercube6", "powercube7"]

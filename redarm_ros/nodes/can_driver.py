@@ -46,7 +46,16 @@ from redarm_ros.can.driver_core import PowerCubeArmDriver
 from redarm_ros.can.driver_loop import CycleSample, DriverLoop, LoopConfig, LoopSnapshot, LoopState
 from redarm_ros.errors import ConfigError, InvalidInputError, RedarmError
 from redarm_ros.kinematics import load_arm
-from redarm_ros.nodes._common import ParamSpec, declare_params, in_range, non_negative, positive, run_node
+from redarm_ros.nodes._common import (
+    ParamSpec,
+    check_unique_node_name,
+    declare_params,
+    in_range,
+    non_negative,
+    positive,
+    run_node,
+    watch_duplicates,
+)
 
 NODE_NAME = "can_driver"
 DIAGNOSTICS_PERIOD_S = 0.5
@@ -99,6 +108,9 @@ PARAMS = [
               _positive_int, read_only=True),
     ParamSpec("hold_on_stream_stop_s", 0.5, "A /joint_command_state stream older than this (s) is "
               "dropped and the measured position held.", positive),
+    ParamSpec("duplicate_check_s", 1.0, "At start-up, watch the ROS graph this long (s) for another "
+              "can_driver of the same name and refuse to start (two drivers on one bus would fight over "
+              "the modules; 0 = no check).", non_negative, read_only=True),
     ParamSpec("auto_init", False, "Run ~/init (reset + home) by itself once the bus is up.", read_only=True),
     ParamSpec("reconnect_max_s", 2.0, "Longest wait between reconnect attempts to a lost bus (s).",
               positive, read_only=True),
@@ -157,6 +169,9 @@ class CanDriverNode(Node):
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(kwargs.pop("node_name", NODE_NAME), **kwargs)
         p = declare_params(self, PARAMS)
+        # Before the bus is opened: a second driver must never send a frame.
+        check_unique_node_name(self, float(p["duplicate_check_s"]))
+        watch_duplicates(self)
         try:
             self.arm = load_arm(p["arm"])
         except (RedarmError, OSError) as exc:

@@ -58,8 +58,17 @@ from redarm_ros.control.reach_controller import ControllerParams, GoalStatus, Ph
 from redarm_ros.errors import InvalidInputError, RedarmError
 from redarm_ros.kinematics import load_arm
 from redarm_ros.kinematics.quaternion import matrix_to_quat, quat_to_matrix
-from redarm_ros.nodes._common import ParamSpec, declare_params, in_range, non_negative, positive, run_node
-from redarm_ros.nodes.ik_service import check_unique_node_name, pose_msg_to_matrix, watch_duplicates
+from redarm_ros.nodes._common import (
+    ParamSpec,
+    check_unique_node_name,
+    declare_params,
+    in_range,
+    non_negative,
+    pose_msg_to_matrix,
+    positive,
+    run_node,
+    watch_duplicates,
+)
 
 NODE_NAME = "controller"
 STILL_WINDOW_S = 0.25  # s of joint_states looked at to decide that the arm stands still

@@ -15,22 +15,28 @@ converted to the kinematics core's (w, x, y, z) here.
 from __future__ import annotations
 
 import math
-import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from geometry_msgs.msg import Pose
 from rclpy.node import Node
 from redarm_interfaces.srv import SolveIK
 from trajectory_msgs.msg import JointTrajectoryPoint
 
 from redarm_ros.errors import InvalidInputError, RedarmError, UnreachableError
 from redarm_ros.kinematics import load_arm
-from redarm_ros.kinematics.quaternion import pose_to_matrix
 from redarm_ros.kinematics.result import IKInfo, IKStatus
-from redarm_ros.nodes._common import ParamSpec, declare_params, non_negative, positive, run_node
+from redarm_ros.nodes._common import (
+    ParamSpec,
+    check_unique_node_name,
+    declare_params,
+    non_negative,
+    pose_msg_to_matrix,
+    positive,
+    run_node,
+    watch_duplicates,
+)
 
 NODE_NAME = "ik_service"
 
@@ -115,36 +121,6 @@ class IKAnswer:
     position_error: float = math.nan
     orientation_error: float = math.nan
     joint_names: list[str] = field(default_factory=list)
-
-
-def pose_msg_to_matrix(pose: Pose, quaternion_tolerance: float) -> np.ndarray:
-    """4x4 base->tool transform from a geometry_msgs/Pose (quaternion x, y, z, w).
-
-    Raises:
-        InvalidInputError: NaN/inf anywhere, a zero quaternion, or | |q| - 1 | > quaternion_tolerance.
-    """
-    p = (pose.position.x, pose.position.y, pose.position.z)
-    o = pose.orientation
-    q_wxyz = (o.w, o.x, o.y, o.z)
-    if not all(math.isfinite(v) for v in (*p, *q_wxyz)):
-        raise InvalidInputError(
-            f"target pose contains NaN or inf: position {p}, orientation (x, y, z, w) {(o.x, o.y, o.z, o.w)}",
-            field="target.pose",
-        )
-    norm = math.sqrt(sum(v * v for v in q_wxyz))
-    if norm < 1e-9:
-        raise InvalidInputError(
-            "target orientation is the zero quaternion (all of x, y, z, w are 0); "
-            "the identity is (0, 0, 0, 1)",
-            field="target.pose.orientation",
-        )
-    if abs(norm - 1.0) > quaternion_tolerance:
-        raise InvalidInputError(
-            f"target orientation is not a unit quaternion: norm {norm:.6g} differs from 1 by "
-            f"more than {quaternion_tolerance:g}",
-            field="target.pose.orientation",
-        )
-    return pose_to_matrix(p, [v / norm for v in q_wxyz], tol=1e-9)
 
 
 class IKFrontEnd:
@@ -279,48 +255,6 @@ def _closed_form(arm: Any) -> bool:
 # ----------------------------------------------------------------------------------------------
 # The node
 # ----------------------------------------------------------------------------------------------
-def check_unique_node_name(node: Node, wait_s: float) -> None:
-    """Watch the graph for ``wait_s`` seconds; raise RuntimeError if another node has our name.
-
-    Discovery takes a moment, so a duplicate started just before us may appear only after a few tens
-    of ms; the check polls instead of looking once.
-    """
-    if wait_s <= 0:
-        return
-    me = (node.get_name(), node.get_namespace())
-    deadline = time.monotonic() + wait_s
-    while True:
-        count = sum(1 for nm_ns in node.get_node_names_and_namespaces() if tuple(nm_ns) == me)
-        if count > 1:
-            fq = node.get_fully_qualified_name()
-            raise RuntimeError(
-                f"another node named {fq} is already running in ROS_DOMAIN_ID "
-                f"{node.context.get_domain_id()}; refusing to start a second one "
-                f"(remap the name with --ros-args -r __node:=<name> to run both)"
-            )
-        if time.monotonic() >= deadline:
-            return
-        time.sleep(0.05)
-
-
-def watch_duplicates(node: Node, period_s: float = 2.0) -> None:
-    """Keep looking (timer) for a node of the same name that the start-up check could not see yet
-    (slow discovery under load) or that started later; log an error once per appearance."""
-    me = (node.get_name(), node.get_namespace())
-    state = {"seen": False}
-
-    def check() -> None:
-        count = sum(1 for nm_ns in node.get_node_names_and_namespaces() if tuple(nm_ns) == me)
-        if count > 1 and not state["seen"]:
-            node.get_logger().error(
-                f"another node named {node.get_fully_qualified_name()} is running in this domain: calls "
-                "and topics now reach both; stop one or remap its name (--ros-args -r __node:=<name>)"
-            )
-        state["seen"] = count > 1
-
-    node.create_timer(period_s, check)
-
-
 class IKServiceNode(Node):
     """``ik_service``: serves ``~/solve_ik`` (redarm_interfaces/srv/SolveIK) for the configured arms."""
 
