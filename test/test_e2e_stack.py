@@ -26,6 +26,7 @@ from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from redarm_interfaces.msg import ControllerState  # noqa: E402
 from redarm_interfaces.srv import SolveIK  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
+from std_srvs.srv import Trigger  # noqa: E402
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint  # noqa: E402
 
 from redarm_ros.bringup import Stack, StackConfig  # noqa: E402
@@ -136,12 +137,22 @@ def client(stack: Stack, ros_env: Any) -> Iterator[Client]:
         traj = JointTrajectory(joint_names=ARM.joint_names)
         traj.points = [JointTrajectoryPoint(positions=[float(v) for v in READY_Q],
                                             time_from_start=Duration(sec=3))]
-        c.cmd_pub.publish(traj)
 
         def at_ready() -> bool:
             return float(np.max(np.abs(np.array(stack.sim_status()["q"]) - READY_Q))) < 1e-3
 
-        assert c.spin_until(at_ready, 20.0), f"arm not at the ready pose: {stack.sim_status()['q']}"
+        # On a starved 2-core CI machine the modules' 100 ms watchdog can halt the arm while the stack
+        # starts; the documented way out is ~/recover, so the set-up recovers (twice at most) and says so.
+        recover = c.node.create_client(Trigger, "/can_driver/recover")
+        for attempt in range(3):
+            c.cmd_pub.publish(traj)
+            if c.spin_until(at_ready, 15.0):
+                break
+            assert attempt < 2, f"arm not at the ready pose: {stack.sim_status()['q']}"
+            assert c.spin_until(recover.service_is_ready, 5.0)
+            fut = recover.call_async(Trigger.Request())
+            assert c.spin_until(fut.done, 15.0) and fut.result().success, "~/recover failed"
+            print(f"e2e set-up: driver halted before the ready pose; recovered ({fut.result().message})")
         c.spin_until(lambda: False, 0.6)  # the controller sees a still arm away from its plan: resync
         yield c
     finally:
