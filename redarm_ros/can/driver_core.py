@@ -322,11 +322,25 @@ class PowerCubeArmDriver:
         except Exception as exc:
             raise self._lost(exc, "receive") from exc
 
-    def _note_state_frame(self, msg: can.Message, j: int) -> None:
+    def _route(self, msg: can.Message) -> int | None:
+        """Joint index of a reply frame; a state frame is recorded here and, like a foreign id, gives None."""
+        j = self._reply_index.get(msg.arbitration_id)
+        if j is None:
+            js = self._state_index.get(msg.arbitration_id)
+            if js is not None:
+                self._note_state_frame(msg, js)
+        return j
+
+    def _decode_counted(self, msg: can.Message, j: int) -> p.Frame | None:
+        """Decode a frame of joint ``j``; a malformed one is counted and gives None."""
         frame = self.decoder.decode(msg)
         if frame is None:
             self.stats[j].malformed += 1
-        elif isinstance(frame, p.StateFrame):
+        return frame
+
+    def _note_state_frame(self, msg: can.Message, j: int) -> None:
+        frame = self._decode_counted(msg, j)
+        if isinstance(frame, p.StateFrame):
             self._states[j] = int(frame.state)
             if frame.state & FAULT_BITS:
                 self._pending_faults[self.module_ids[j]] = frame.state
@@ -335,16 +349,11 @@ class PowerCubeArmDriver:
         """Read what is already queued (stale replies of earlier cycles); returns late ext acks."""
         late = 0
         while (msg := self._recv(0.0)) is not None:
-            j = self._reply_index.get(msg.arbitration_id)
+            j = self._route(msg)
             if j is None:
-                js = self._state_index.get(msg.arbitration_id)
-                if js is not None:
-                    self._note_state_frame(msg, js)
                 continue
-            frame = self.decoder.decode(msg)
-            if frame is None:
-                self.stats[j].malformed += 1
-            elif isinstance(frame, p.SetMoveExtAck):
+            frame = self._decode_counted(msg, j)
+            if isinstance(frame, p.SetMoveExtAck):
                 self.stats[j].late += 1
                 late += 1
         return late
@@ -379,15 +388,11 @@ class PowerCubeArmDriver:
                 msg = self._recv(left)
                 if msg is None:
                     continue
-                j = self._reply_index.get(msg.arbitration_id)
+                j = self._route(msg)
                 if j is None:
-                    js = self._state_index.get(msg.arbitration_id)
-                    if js is not None:
-                        self._note_state_frame(msg, js)
                     continue
-                frame = self.decoder.decode(msg)
+                frame = self._decode_counted(msg, j)
                 if frame is None:
-                    self.stats[j].malformed += 1
                     continue
                 for key, jj, _msg, match in todo:
                     if jj == j and key not in results and match(frame):
@@ -569,9 +574,7 @@ class PowerCubeArmDriver:
         while (left := end - self._clock()) > 0:
             msg = self._recv(left)
             if msg is not None:
-                js = self._state_index.get(msg.arbitration_id)
-                if js is not None:
-                    self._note_state_frame(msg, js)
+                self._route(msg)  # records state frames; replies here are stale and dropped
 
     def _raise_on_errors(self, st: ArmState, during: str) -> None:
         errs = st.errors
@@ -720,7 +723,6 @@ class PowerCubeArmDriver:
         short = np.zeros(n, dtype=np.int64)
         remaining = n
         deadline = stamp + self.reply_timeout_s
-        reply_index = self._reply_index
         fstep_ack = p.fstep_ext_ack_fields
         while remaining:
             left = deadline - clock()
@@ -730,17 +732,12 @@ class PowerCubeArmDriver:
             if msg is None:
                 continue
             t = clock()
-            j = reply_index.get(msg.arbitration_id)
+            j = self._route(msg)
             if j is None:
-                js = self._state_index.get(msg.arbitration_id)
-                if js is not None:
-                    self._note_state_frame(msg, js)
                 continue
             fields = fstep_ack(msg)
             if fields is None:  # anything else: full decode (counts malformed frames)
-                frame = self.decoder.decode(msg)
-                if frame is None:
-                    self.stats[j].malformed += 1
+                self._decode_counted(msg, j)
                 continue
             if replied[j]:  # a second ack in one cycle: the first was a late one
                 self.stats[j].late += 1
