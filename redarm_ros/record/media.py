@@ -54,7 +54,8 @@ def plot_tool_path(tl: Timeline, arm: Any, scene: dict[str, Any], names: Sequenc
     pos = np.asarray(goal_positions, dtype=float)
     x0, x1, y0, y1, z0, z1 = limits
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.8), dpi=100)
-    views = ((axes[0], 0, 1, "x (m)", "y (m)", "from above"), (axes[1], 0, 2, "x (m)", "z (m)", "from the side"))
+    views = ((axes[0], 0, 1, "x (m)", "y (m)", "from above"),
+             (axes[1], 0, 2, "x (m)", "z (m)", "from the side"))
     for ax, i, j, xl, yl, title in views:
         lims = ((x0, x1), (y0, y1) if j == 1 else (z0, z1))
         ax.plot(path[:, i], path[:, j], color="tab:blue", lw=1.2, label="simulated tool")
@@ -130,7 +131,8 @@ def make_media(mcap: str | Path, out_dir: str | Path, *, size: tuple[int, int] =
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Console entry point: ``python -m redarm_ros.record.media [MCAP] [--out DIR]``."""
-    ap = argparse.ArgumentParser(prog="python -m redarm_ros.record.media", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="python -m redarm_ros.record.media",
+                                 description=__doc__.splitlines()[0])
     ap.add_argument("mcap", nargs="?", default="demo_output/demo.mcap", help="the demo's recording")
     ap.add_argument("--out", default="docs/media", help="output directory (default docs/media)")
     ap.add_argument("--size", default="480x360", help="GIF size WIDTHxHEIGHT (default 480x360)")
