@@ -197,3 +197,7 @@ def _no_leftover_children() -> Iterator[None]:
                 pass
         pytest.fail("test left child processes running (now killed): "
                     + "; ".join(f"{p}: {c}" for p, c in left.items()), pytrace=False)
+
+
+# An MCAP recording of every failing HIL run that talks ROS, kept in .build/test_failures/ (see there).
+from hil_recording import _hil_recording, pytest_runtest_makereport  # noqa: E402, F401
