@@ -33,6 +33,7 @@ ROS_NODES = {
     "controller": "redarm_ros.nodes.controller:main",
     "can_driver": "redarm_ros.nodes.can_driver:main",
     "sim": "redarm_ros.sim.hardware:main",
+    "view": "redarm_ros.nodes.view:main",
 }
 
 # Third-party import name -> rosdep keys that satisfy it (any one of them).

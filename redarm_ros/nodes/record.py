@@ -203,7 +203,8 @@ class RecorderNode(Node):
 
 def build_parser() -> argparse.ArgumentParser:
     """The ``redarm-record`` argument parser."""
-    ap = argparse.ArgumentParser(prog="redarm-record", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="redarm-record", description="Write ROS 2 topics to an MCAP file "
+                                 "with their schemas, as `ros2 bag record -s mcap` would.")
     ap.add_argument("topics", nargs="*", help="topics to record (e.g. /joint_states /goal_pose)")
     ap.add_argument("-a", "--all", action="store_true", help="record every topic (see --exclude)")
     ap.add_argument("-o", "--output", help="MCAP file to write (default redarm_YYYYmmdd-HHMMSS.mcap)")

@@ -204,7 +204,8 @@ def _load_scene(name: str) -> dict[str, Any]:
 
 def build_parser() -> argparse.ArgumentParser:
     """The shorthand options of ``redarm-view`` (each sets the parameter of the same name)."""
-    ap = argparse.ArgumentParser(prog="redarm-view", description=__doc__.splitlines()[0],
+    ap = argparse.ArgumentParser(prog="redarm-view",
+                                 description="The arm in a web browser, live from ROS topics (viser).",
                                  epilog="Anything after --ros-args goes to ROS (e.g. -p goal_stream_hz:=10).")
     ap.add_argument("--host", help="bind address (default 127.0.0.1)")
     ap.add_argument("--port", type=int, help="TCP port (default 8080; 0 = any free port)")
