@@ -137,11 +137,11 @@ def test_scene_markers_draw_table_and_obstacles() -> None:
 
 def test_status_panel_text_and_rates() -> None:
     s = Status(phase="reaching", swivel=math.radians(30), swivel_desired=math.radians(45), clearance=math.inf,
-               distance_to_goal=0.0123, driver_state="running", driver_message="running: ok",
+               distance_to_goal=0.0123, driver_state="running", driver_message="running: 7 modules",
                rates_hz={"/joint_states": 249.6})
     text = s.markdown()
     for needle in ("| phase | reaching |", "30.0 deg (desired 45.0 deg)", "| clearance | inf |",
-                   "0.0123 m", "running: running: ok", "| rate /joint_states | 249.6 Hz |"):
+                   "0.0123 m", "| driver | running: 7 modules |", "| rate /joint_states | 249.6 Hz |"):
         assert needle in text, (needle, text)
     assert "| swivel | - (desired -) |" in Status().markdown()
     r = RateMeter(window_s=2.0)

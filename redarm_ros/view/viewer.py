@@ -116,14 +116,20 @@ class Status:
                        f"(desired {num(math.degrees(self.swivel_desired), '.1f', ' deg')})"),
             ("clearance", num(self.clearance, ".3f", " m")),
             ("distance to goal", num(self.distance_to_goal, ".4f", " m")),
-            ("driver", (self.driver_state or "-")
-             + (f": {self.driver_message}" if self.driver_message else "")),
+            ("driver", _driver_text(self.driver_state, self.driver_message)),
         ]
         rows += [(f"rate {k}", f"{v:.1f} Hz") for k, v in self.rates_hz.items()]
         if self.message:
             rows.append(("message", self.message))
         body = "\n".join(f"| {k} | {_md_escape(v)} |" for k, v in rows)
         return "| | |\n|---|---|\n" + body
+
+
+def _driver_text(state: str, message: str) -> str:
+    # The driver's loop message usually starts with its state ("halted: module 1 ..."): say it once.
+    if message and (not state or message.startswith(state)):
+        return message
+    return (state or "-") + (f": {message}" if message else "")
 
 
 def _md_escape(text: str) -> str:
