@@ -172,7 +172,8 @@ def test_recorder_node_records_what_is_published(rclpy_context: Any, tmp_path: P
 
 
 def test_redarm_record_process_writes_a_complete_file(procs: Any, rclpy_context: Any, tmp_path: Path) -> None:
-    """The console tool over DDS: started, fed, stopped with SIGINT; the file has its summary."""
+    """The console tool over DDS: started, fed, stopped with SIGINT while messages keep arriving; the
+    file is whole (no torn record) and has its summary."""
     from rclpy.executors import SingleThreadedExecutor
 
     from redarm_ros.procs import python_module_cmd
@@ -196,12 +197,22 @@ def test_redarm_record_process_writes_a_complete_file(procs: Any, rclpy_context:
             js.publish(_joint_state(i))
             i += 1
             ex.spin_once(timeout_sec=0.02)
-        time.sleep(0.3)
+        # Stop it in the middle of a dense stream and keep publishing until it has exited.
+        rec.expect_exit()
+        end = time.monotonic() + 0.5
+        while time.monotonic() < end:
+            js.publish(_joint_state(i))
+            i += 1
+            time.sleep(0.0002)
+        rec.send_signal(2)
+        end = time.monotonic() + 30
+        while rec.popen.poll() is None and time.monotonic() < end:
+            js.publish(_joint_state(i))
+            i += 1
+            time.sleep(0.0002)
     finally:
         ex.shutdown(timeout_sec=1.0)
         node.destroy_node()
-    rec.expect_exit()
-    rec.send_signal(2)
     m = rec.wait_for_line(r"recorded (\d+) messages on (\d+) topics", 20)
     assert rec.popen.wait(timeout=20) == 0
     _, topics = summarize(path)

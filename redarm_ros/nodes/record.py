@@ -20,6 +20,7 @@ import logging
 import re
 import signal
 import sys
+import threading
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -223,14 +224,11 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
-def _raise_keyboard_interrupt(signum: int, _frame: FrameType | None) -> None:
-    raise KeyboardInterrupt(f"signal {signum}")
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     """Console entry point. Exit codes: 0 recorded and closed, 1 bad arguments or start-up failure."""
     import rclpy
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+    from rclpy.signals import SignalHandlerOptions
 
     args_all = list(sys.argv[1:] if argv is None else argv)
     ros_args = args_all[args_all.index("--ros-args"):] if "--ros-args" in args_all else []
@@ -240,8 +238,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         _LOG.error("name topics to record, or --all")
         return 1
     out = Path(ns.output or time.strftime("redarm_%Y%m%d-%H%M%S.mcap"))
-    signal.signal(signal.SIGTERM, _raise_keyboard_interrupt)
-    rclpy.init(args=[sys.argv[0], *ros_args])
+    # Ctrl-C / SIGTERM only set a flag that the spin loop checks: an exception raised in the middle of
+    # appending a message would leave a torn record inside the chunk being built.
+    stop = threading.Event()
+
+    def request_stop(_signum: int, _frame: FrameType | None) -> None:
+        stop.set()
+
+    signal.signal(signal.SIGINT, request_stop)
+    signal.signal(signal.SIGTERM, request_stop)
+    rclpy.init(args=[sys.argv[0], *ros_args], signal_handler_options=SignalHandlerOptions.NO)
     writer: Ros2McapWriter | None = None
     node: RecorderNode | None = None
     try:
@@ -259,16 +265,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         ex.add_node(node)
         deadline = time.monotonic() + ns.duration if ns.duration > 0 else None
         try:
-            while deadline is None or time.monotonic() < deadline:
+            while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
                 ex.spin_once(timeout_sec=0.1)
-        except (KeyboardInterrupt, ExternalShutdownException):
+        except ExternalShutdownException:
             pass
         finally:
             ex.shutdown(timeout_sec=1.0)
     finally:
-        # A second Ctrl-C must not leave the file without its summary.
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
-        signal.signal(signal.SIGTERM, signal.SIG_IGN)
         if node is not None:
             node.destroy_node()
         if writer is not None:
