@@ -35,8 +35,8 @@ from redarm_ros.procs import python_module_cmd  # noqa: E402
 pytestmark = pytest.mark.slow
 
 ARM = load_arm("pa10")
-POSE_A = np.array([0.3, 0.5, 0.0, 1.3, 0.0, 1.0, 0.0])
-POSE_B = np.array([-1.2, -0.3, 0.0, 1.9, 0.0, -0.8, 0.0])  # turned the other way, elbow bent further
+POSE_A = np.array([-0.5, 0.5, 0.0, 1.3, 0.0, 1.0, 0.0])  # tool (and gizmo) mid-screen
+POSE_B = np.array([1.2, -0.3, 0.0, 1.9, 0.0, -0.8, 0.0])  # turned the other way, elbow bent further
 GIZMO_PLANE_RGB = np.array([171, 231, 193])  # the translucent green plane handle of viser's gizmo
 TIMEOUT = 90.0  # software WebGL on a busy two-core machine is slow; deadlines, not speed checks
 
