@@ -45,6 +45,7 @@ setup(
             "redarm-canbus = redarm_ros.can.bus_server:main",
             "redarm-bringup = redarm_ros.bringup:main",
             "redarm-demo = redarm_ros.demo:main",
+            # ROS nodes with their own command line: the browser view and the MCAP recorder
             "redarm-view = redarm_ros.nodes.view:main",
             "redarm-record = redarm_ros.nodes.record:main",
         ],
