@@ -30,6 +30,7 @@ lint: setup
 # is reported and not treated as a failure.
 test: setup
 	@if [ -f scripts/setup_uml.sh ]; then bash scripts/setup_uml.sh; fi  # UML guest for SocketCAN tests
+	@if [ -f scripts/setup_chromium.sh ]; then bash scripts/setup_chromium.sh; fi  # headless Chromium for the browser test
 	@rc=0; \
 	echo "+ ruff check ."; $(VENV)/bin/ruff check . || rc=$$?; \
 	echo "+ pytest $(PYTEST_ARGS)"; \

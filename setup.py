@@ -39,11 +39,15 @@ setup(
             "controller = redarm_ros.nodes.controller:main",
             "can_driver = redarm_ros.nodes.can_driver:main",
             "sim = redarm_ros.sim.hardware:main",
+            "view = redarm_ros.nodes.view:main",
             # ROS-free tools
             "redarm-sim = redarm_ros.sim.hardware:main",
             "redarm-canbus = redarm_ros.can.bus_server:main",
             "redarm-bringup = redarm_ros.bringup:main",
             "redarm-demo = redarm_ros.demo:main",
+            # ROS nodes with their own command line: the browser view and the MCAP recorder
+            "redarm-view = redarm_ros.nodes.view:main",
+            "redarm-record = redarm_ros.nodes.record:main",
         ],
     },
 )

@@ -6,7 +6,8 @@ Starts, in order, each waiting for its readiness line:
 2. ``redarm-sim``     - the pybullet arm answering as PowerCube modules on that bus;
 3. ``can_driver``     - the ROS driver node (``/joint_states``, ``/joint_command``, ``~/init``...);
 4. ``ik_service``     - the SolveIK service node;
-5. ``controller``     - the attractor-dynamics reaching controller (``/goal_pose``).
+5. ``controller``     - the attractor-dynamics reaching controller (``/goal_pose``);
+6. ``view``           - with ``--view``: the browser view (``redarm-view``, http://127.0.0.1:8080/).
 
 Every child gets the workplace DDS rules (``FASTDDS_BUILTIN_TRANSPORTS=SHM``, its own
 ``ROS_DOMAIN_ID``: the caller's if set, else a random one in 1..200), its output is forwarded line by
@@ -48,6 +49,7 @@ READY = {
     "can_driver": r"can_driver ready:",
     "ik_service": r"serving /\S*solve_ik",
     "controller": r"controller ready:",
+    "view": r"view ready: (http://\S+)",
 }
 
 
@@ -102,6 +104,8 @@ class StackConfig:
     log_level: str = "info"
     ready_timeout_s: float = 60.0
     auto_init: bool = False  # real hardware: let can_driver reset + home by itself (the sim always does)
+    view: bool = False  # also start the browser view (redarm-view) on 127.0.0.1:view_port
+    view_port: int = 8080
     extra_args: dict[str, list[str]] = field(default_factory=dict)  # per child: appended arguments
 
 
@@ -229,6 +233,12 @@ class Stack:
                     python_module_cmd("redarm_ros.nodes.controller", *self._ros_args("controller", params)),
                     READY["controller"],
                 )
+            if cfg.view:
+                params = {"arm": cfg.arm, "port": str(int(cfg.view_port))}
+                if cfg.scene and not cfg.controller:  # the controller's markers already show its scene
+                    params["scene"] = cfg.scene
+                view_cmd = python_module_cmd("redarm_ros.nodes.view", *self._ros_args("view", params))
+                self._start("view", view_cmd, READY["view"])
         except BaseException:
             self.stop()
             raise
@@ -329,6 +339,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--no-controller", action="store_true", help="do not start the controller node")
     ap.add_argument("--no-ik-service", action="store_true", help="do not start the ik_service node")
     ap.add_argument("--scene", help="scene name (config/scenes) or YAML path, for simulator and controller")
+    ap.add_argument("--view", action="store_true",
+                    help="also start the browser view (redarm-view) on http://127.0.0.1:VIEW_PORT/")
+    ap.add_argument("--view-port", type=int, default=8080, help="port of the browser view (default 8080)")
     ap.add_argument("--gui", action="store_true", help="open the pybullet GUI (needs a display)")
     ap.add_argument("--status-file", type=Path, help="where the simulator writes its JSON status")
     ap.add_argument("--snapshot-dir", type=Path, help="where the simulator writes PNG snapshots")
@@ -368,6 +381,8 @@ def config_from_args(ns: argparse.Namespace) -> StackConfig:
         log_level=ns.log_level,
         ready_timeout_s=ns.ready_timeout,
         auto_init=ns.auto_init,
+        view=ns.view,
+        view_port=ns.view_port,
     )
 
 
@@ -390,6 +405,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         _LOG.info(
             "stack up: %s; Ctrl-C to stop", ", ".join(f"{n} (pid {c.pid})" for n, c in stack.children.items())
         )
+        if "view" in stack.children:
+            _LOG.info("browser view: %s", stack.children["view"].ready_match.group(1))  # type: ignore[attr-defined]
         stack.wait()
     except KeyboardInterrupt:
         _LOG.info("stopping (Ctrl-C)")

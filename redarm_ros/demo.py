@@ -9,13 +9,19 @@ ROS client:
 2. for each goal asks ``/ik_service/solve_ik`` about it and sends it on ``/goal_pose``; the
    controller's ``~/state`` tells when it is reached (or rejected); the errors are then measured on
    the *simulated* arm's tool (pybullet link state, from the simulator's status file), not on the
-   command; a PNG snapshot of the simulated arm is taken after each goal;
-3. prints a table, writes ``<output>/report.json`` (per goal ``reached``, ``pos_err_m``,
-   ``rot_err_rad``, ``time_s``, ...; loop-rate statistics of controller, driver and simulator) and
-   the PNGs in ``<output>/snapshots``; the children's output goes to ``<output>/stack.log``.
+   command; a PNG snapshot of the simulated arm (its measured joints, with the goal drawn) is
+   rendered after each goal;
+3. records the run with ``redarm-record`` into ``<output>/demo.mcap`` (joint states, commands, goals,
+   controller state and markers, diagnostics, the URDF on ``/robot_description`` and ``/tf`` computed
+   from the joint states), then renders ``<output>/demo.gif`` from that recording;
+4. prints a table, writes ``<output>/report.json`` (per goal ``reached``, ``pos_err_m``,
+   ``rot_err_rad``, ``time_s``, ...; loop-rate statistics of controller, driver and simulator; the
+   recording's topic counts) and the PNGs in ``<output>/snapshots``; the children's output goes to
+   ``<output>/stack.log``.
 
-Exit code 0 only if every reachable goal was reached within 1 mm / 0.01 rad on the simulated tool
-and the out-of-reach goal was reported as such; 1 otherwise; 2 if the stack could not start.
+Exit code 0 only if every reachable goal was reached within 1 mm / 0.01 rad on the simulated tool,
+the out-of-reach goal was reported as such and the recording (and GIF, unless ``--gif-fps 0``) was
+written; 1 otherwise; 2 if the stack could not start.
 Units: m, rad, s. See docs/demo.md.
 """
 
@@ -25,6 +31,7 @@ import argparse
 import json
 import math
 import os
+import re
 import sys
 import time
 from collections.abc import Callable
@@ -36,10 +43,15 @@ import numpy as np
 import yaml
 
 from redarm_ros.bringup import Stack, StackConfig
-from redarm_ros.procs import random_domain_id
+from redarm_ros.procs import python_module_cmd, random_domain_id
 
 POS_TOL_M = 1e-3
 ROT_TOL_RAD = 0.01
+# What redarm-record writes into <output>/demo.mcap (plus /tf, computed from /joint_states).
+RECORDED_TOPICS = ("/joint_states", "/joint_command", "/goal_pose", "/controller/state",
+                   "/controller/markers", "/diagnostics", "/robot_description", "/obstacles")
+# Topics the demo waits for the recorder to subscribe to before it moves the arm.
+RECORD_BEFORE_START = ("/joint_states", "/goal_pose", "/controller/state", "/robot_description")
 # Where the driver's homing leaves the PA10 (all zeros) the arm is stretched straight up: no elbow
 # circle, so the demo first moves to this ready pose (elbow bent) in joint space.
 READY_Q = (0.0, 0.5, 0.0, 1.3, 0.0, 1.0, 0.0)
@@ -168,6 +180,23 @@ class DemoClient:
                                       lambda m: self.states.append((time.monotonic(), m)), 100)
         self.node.create_subscription(JointState, "joint_states",
                                       lambda m: self.joint_times.append(time.monotonic()), 100)
+        self.description_pub: Any = None
+
+    def publish_robot_description(self, urdf: str) -> bool:
+        """Publish ``urdf`` on /robot_description (latched) unless another node already does.
+
+        Returns True if this client publishes it.
+        """
+        from rclpy.qos import DurabilityPolicy, QoSProfile
+        from std_msgs.msg import String
+
+        self.spin_until(lambda: False, 1.0)  # discovery: see a publisher the stack may have
+        if self.node.count_publishers("/robot_description") > 0:
+            return False
+        qos = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self.description_pub = self.node.create_publisher(String, "/robot_description", qos)
+        self.description_pub.publish(String(data=urdf))
+        return True
 
     def spin_until(self, cond: Callable[[], bool], timeout: float) -> bool:
         deadline = time.monotonic() + timeout
@@ -228,6 +257,11 @@ class Demo:
         self.snap_dir = self.output / "snapshots"
         self.t_start = time.monotonic()
         self.halts = 0  # driver halts recovered from (reported; a healthy run has none)
+        self.mcap_path = self.output / "demo.mcap"
+        self.gif_path = self.output / "demo.gif"
+        self.size = _size(args.snapshot_size)
+        self._renderer: Any = None
+        self._outcome: tuple[list[GoalResult], dict[str, Any]] | None = None
 
     def say(self, text: str) -> None:
         self.out.write(text + "\n")
@@ -252,14 +286,15 @@ class Demo:
     def run(self) -> int:
         self.output.mkdir(parents=True, exist_ok=True)
         self.snap_dir.mkdir(parents=True, exist_ok=True)
-        for old in self.snap_dir.glob("*.png"):
-            old.unlink()
+        for old in [*self.snap_dir.glob("*.png"), self.mcap_path, self.gif_path]:
+            old.unlink(missing_ok=True)
         scene_path = self.output / "scene.yaml"
         scene_path.write_text(yaml.safe_dump(DEMO_SCENE, sort_keys=False), encoding="utf-8")
         log_path = self.output / "stack.log"
         domain = int(os.environ["ROS_DOMAIN_ID"])
-        # Rendering runs in the simulator's process and holds the GIL: a small image keeps the
-        # modules' reply gap well below the driver's silence limit (3 missed 20 ms replies).
+        # The simulator renders only start.png (before the driver connects) and final.png (after it is
+        # gone): rendering holds its process for tens of ms, longer than the driver's reply limit. The
+        # pictures in between are rendered here, from the simulated arm's measured joints.
         cfg = StackConfig(arm="pa10", scene=str(scene_path), snapshot_dir=self.snap_dir,
                           status_file=self.output / "sim_status.json", log_level=self.args.log_level,
                           control_rate_hz=self.args.control_rate, driver_rate_hz=self.args.driver_rate,
@@ -272,15 +307,24 @@ class Demo:
             try:
                 stack.start()
                 stack.children["can_driver"].wait_for_line(r"init done", timeout=30.0, from_start=True)
+                # The recorder, a child like the others: stopped first, so its file is complete.
+                stack.children["record"] = stack.group.start("record", python_module_cmd(
+                    "redarm_ros.nodes.record", "-o", str(self.mcap_path), *RECORDED_TOPICS,
+                    "--tf-from-joint-states", "--arm", "pa10"), ready=r"record ready", ready_timeout=30.0)
             except Exception as exc:  # noqa: BLE001 - report, show the log tail, exit 2
                 self.say(f"the stack did not come up: {exc}")
                 stack.close()
                 self._tail(log_path)
                 return 2
             try:
-                return self._run_goals(stack, log_path)
+                code = self._run_goals(stack, log_path)
             finally:
-                stack.close()
+                stack.close()  # stops the recorder first (reverse start order): the MCAP is complete
+            if self._renderer is not None:
+                self._renderer.close()
+            if self._outcome is None:
+                return code
+            return self._finish(*self._outcome)
 
     def _tail(self, log_path: Path, n: int = 30) -> None:
         try:
@@ -304,6 +348,16 @@ class Demo:
                 self.say("no joint_states / controller state / ik_service from the stack")
                 self._tail(log_path)
                 return 2
+            from redarm_ros.sim.urdf import build_urdf
+
+            if client.publish_robot_description(build_urdf(arm)):
+                self.say("no /robot_description in the stack: the demo publishes the generated URDF")
+            recorder = stack.children["record"]
+            for topic in RECORD_BEFORE_START:
+                try:
+                    recorder.wait_for_line(rf"recording {re.escape(topic)} ", 15.0, from_start=True)
+                except Exception:  # noqa: BLE001 - a missing topic is reported, the run goes on
+                    self.say(f"warning: the recorder has not subscribed to {topic}")
             self.say("stack up; moving to the ready pose through /joint_command")
             driver = stack.children["can_driver"]
 
@@ -335,7 +389,7 @@ class Demo:
                 self._tail(log_path)
                 return 1
             client.spin_until(lambda: False, 0.6)  # the controller restarts from the still arm
-            stack.request_snapshot("ready")
+            self.snapshot(stack, arm, "ready")
             seed = list(READY_Q)
             for i, goal in enumerate(GOALS, start=1):
                 stack.check()
@@ -355,9 +409,29 @@ class Demo:
             rates = self._rates(stack, client)
         finally:
             client.close()
-        success = all(r.ok for r in results)
-        self._report(results, rates, success)
-        return 0 if success else 1
+        self._outcome = (results, rates)
+        return 0 if all(r.ok for r in results) else 1
+
+    def snapshot(self, stack: Stack, arm: Any, name: str, goal: Goal | None = None,
+                 goal_ok: bool = True) -> Path | None:
+        """Render ``<snapshots>/<name>.png``: the simulated arm at its measured joints (simulator status),
+        in the demo scene, with ``goal`` drawn. None if the simulator reported no joints yet."""
+        from redarm_ros.kinematics.quaternion import matrix_to_quat
+        from redarm_ros.record.animate import SceneRenderer
+        from redarm_ros.sim.png import write_png
+
+        st = stack.sim_status() or {}
+        if "q" not in st:
+            return None
+        if self._renderer is None:
+            self._renderer = SceneRenderer(arm, DEMO_SCENE, self.size)
+        g = None
+        if goal is not None:
+            w, x, y, z = matrix_to_quat(goal.matrix()[:3, :3])
+            g = (np.asarray(goal.position, float), np.array([x, y, z, w]))
+        path = self.snap_dir / f"{name}.png"
+        write_png(path, self._renderer.render(st["q"], g, goal_ok=goal_ok))
+        return path
 
     def _one_goal(self, stack: Stack, client: DemoClient, CS: Any, arm: Any, goal: Goal, seed: list[float],
                   index: int) -> GoalResult:
@@ -428,7 +502,7 @@ class Demo:
             ok = reached
         else:
             ok = rejected and "reach" in message and ik_status == "OUT_OF_REACH"
-        snap = stack.request_snapshot(f"goal_{index}_{goal.name}")
+        snap = self.snapshot(stack, arm, f"goal_{index}_{goal.name}", goal, goal_ok=not rejected)
         return GoalResult(
             name=goal.name, position=[float(v) for v in goal.position], quaternion_xyzw=[x, y, z, w],
             reachable_expected=goal.reachable, ik_status=ik_status,
@@ -456,7 +530,59 @@ class Demo:
             "simulator_physics": asdict(sim),
         }
 
-    def _report(self, results: list[GoalResult], rates: dict[str, Any], success: bool) -> None:
+    def _finish(self, results: list[GoalResult], rates: dict[str, Any]) -> int:
+        """After the stack stopped: read the recording back, render the GIF, write the report."""
+        recording = self._recording_summary()
+        animation = self._animation() if self.args.gif_fps > 0 else {"gif": None}
+        ok = all(r.ok for r in results) and recording["ok"] and (self.args.gif_fps <= 0 or animation["ok"])
+        self._report(results, rates, ok, recording, animation)
+        return 0 if ok else 1
+
+    def _recording_summary(self) -> dict[str, Any]:
+        from redarm_ros.record.mcap_io import summarize
+
+        try:
+            profile, topics = summarize(self.mcap_path)
+        except Exception as exc:  # noqa: BLE001 - a broken recording is reported, not raised
+            return {"file": self.mcap_path.name, "ok": False, "error": repr(exc)}
+        counts = {t: s.count for t, s in sorted(topics.items()) if t != "*"}
+        # What the demo promises: the joint states of the whole run, the URDF and /tf for 3-D viewers.
+        ok = counts.get("/joint_states", 0) >= 1000 and counts.get("/tf", 0) > 0 \
+            and counts.get("/robot_description", 0) > 0 and topics["*"].monotonic
+        return {"file": self.mcap_path.name, "profile": profile, "messages": counts,
+                "log_time_monotonic": topics["*"].monotonic,
+                "schemas": {t: s.schema_name for t, s in sorted(topics.items()) if t != "*"}, "ok": ok}
+
+    def _animation(self) -> dict[str, Any]:
+        from redarm_ros.kinematics import load_arm
+        from redarm_ros.record.animate import (
+            DEMO_CAMERA,
+            SceneRenderer,
+            frames,
+            goal_caption,
+            load_timeline,
+            write_gif,
+        )
+
+        arm = load_arm("pa10")
+        t0 = time.monotonic()
+        try:
+            tl = load_timeline(self.mcap_path, arm.joint_names)
+            r = SceneRenderer(arm, DEMO_SCENE, self.size, camera=DEMO_CAMERA)
+            try:
+                cap = goal_caption([g.name for g in GOALS], [g.position for g in GOALS])
+                n = write_gif(self.gif_path, frames(tl, r, fps=self.args.gif_fps, caption=cap),
+                              fps=self.args.gif_fps, palette_extra=[r.swatch()])
+            finally:
+                r.close()
+        except Exception as exc:  # noqa: BLE001 - reported in the table and the report
+            return {"gif": self.gif_path.name, "ok": False, "error": repr(exc)}
+        return {"gif": self.gif_path.name, "ok": True, "frames": n, "fps": self.args.gif_fps,
+                "size": list(self.size), "bytes": self.gif_path.stat().st_size,
+                "render_s": round(time.monotonic() - t0, 1)}
+
+    def _report(self, results: list[GoalResult], rates: dict[str, Any], success: bool,
+                recording: dict[str, Any], animation: dict[str, Any]) -> None:
         snaps = sorted(str(p.relative_to(self.output)) for p in self.snap_dir.glob("*.png"))
         report = {
             "arm": "pa10",
@@ -466,6 +592,8 @@ class Demo:
             "goals": [asdict(r) for r in results],
             "loop_rates": rates,
             "snapshots": snaps,
+            "recording": recording,
+            "animation": animation,
             "success": success,
             "driver_halts_recovered": self.halts,
             "wall_time_s": time.monotonic() - self.t_start,
@@ -495,12 +623,28 @@ class Demo:
         if self.halts:
             self.say(f"note: the driver halted the arm {self.halts} time(s) (late module replies, e.g. CPU "
                      "starvation); the demo recovered with ~/recover and retried")
+        msgs = recording.get("messages", {})
+        self.say(f"recording: {self.mcap_path} ({sum(msgs.values())} messages; " + ", ".join(
+            f"{t} {msgs.get(t, 0)}" for t in ("/joint_states", "/tf", "/robot_description", "/goal_pose"))
+            + (")" if recording["ok"] else f") INCOMPLETE {recording.get('error', '')}"))
+        if animation.get("gif"):
+            self.say(f"animation: {self.gif_path} ({animation.get('frames', 0)} frames at "
+                     f"{self.args.gif_fps:g} fps, {self.size[0]}x{self.size[1]})"
+                     if animation["ok"] else f"animation FAILED: {animation.get('error')}")
         self.say(f"report: {path}; snapshots: {len(snaps)} PNGs in {self.snap_dir}")
         self.say("demo " + ("PASSED" if success else "FAILED"))
 
 
 def _same_position(p: Any, q: tuple[float, float, float], tol: float = 1e-6) -> bool:
     return abs(p.x - q[0]) < tol and abs(p.y - q[1]) < tol and abs(p.z - q[2]) < tol
+
+
+def _size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in str(text).lower().split("x"))
+    except ValueError as exc:
+        raise SystemExit(f"--snapshot-size must be WIDTHxHEIGHT, got {text!r}") from exc
+    return w, h
 
 
 def _count(lines: list[str], needle: str) -> int:
@@ -548,7 +692,10 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--settle", type=float, default=0.5,
                     help="seconds the simulated tool must stay within tolerance before the final "
                     "error is read")
-    ap.add_argument("--snapshot-size", default="400x300", help="PNG size WIDTHxHEIGHT (default 400x300)")
+    ap.add_argument("--snapshot-size", default="640x480",
+                    help="size of the PNG snapshots and the GIF, WIDTHxHEIGHT (default 640x480)")
+    ap.add_argument("--gif-fps", type=float, default=10.0,
+                    help="frame rate of <output>/demo.gif (recording time; 0 = no GIF)")
     ap.add_argument("--log-level", default="info", choices=("debug", "info", "warn", "error"),
                     help="log level of the ROS nodes (their output goes to <output>/stack.log)")
     return ap

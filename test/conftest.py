@@ -197,3 +197,9 @@ def _no_leftover_children() -> Iterator[None]:
                 pass
         pytest.fail("test left child processes running (now killed): "
                     + "; ".join(f"{p}: {c}" for p, c in left.items()), pytrace=False)
+
+
+# An MCAP recording of every failing HIL run that talks ROS, kept in .build/test_failures/ (see there).
+# (A copy of this file elsewhere, as test_conftest_fixtures makes, goes without.)
+if (Path(__file__).parent / "hil_recording.py").is_file():
+    from hil_recording import _hil_recording, pytest_runtest_makereport  # noqa: F401

@@ -26,7 +26,8 @@ def test_demo_passes_and_reports(procs: Any, tmp_path: Path) -> None:
     cmd = python_module_cmd("redarm_ros.demo", "--output", str(out), "--log-level", "warn")
     demo = procs.start("demo", cmd)
     demo.expect_exit()
-    demo.wait_for_line(r"demo (PASSED|FAILED)", timeout=240.0)
+    # About 70 s on a quiet machine (45 s of motion, then the GIF); far longer when it is starved.
+    demo.wait_for_line(r"demo (PASSED|FAILED)", timeout=420.0)
     rc = demo.popen.wait(timeout=60.0)
     text = "\n".join(demo.output())
     assert rc == 0, text[-4000:]
@@ -54,3 +55,24 @@ def test_demo_passes_and_reports(procs: Any, tmp_path: Path) -> None:
     assert len(set(blobs)) > 1
     # The table was printed.
     assert "pos err mm" in text and "out_of_reach" in text
+    # Snapshots and the GIF are 640x480; the GIF shows the run (frames of the arm moving).
+    import imageio.v3 as iio
+
+    from redarm_ros.record.mcap_io import summarize
+
+    assert {iio.imread(p).shape[:2] for p in pngs} == {(480, 640)}
+    gif = iio.imread(out / "demo.gif", index=None)
+    assert gif.shape[0] >= 50 and gif.shape[1:3] == (480, 640), gif.shape
+    assert report["animation"]["ok"] and report["recording"]["ok"], (report["animation"], report["recording"])
+    # The recording: ROS 2 profile, every demo topic with its schema, /tf for 3-D viewers, in time order.
+    profile, topics = summarize(out / "demo.mcap")
+    assert profile == "ros2"
+    assert topics["/joint_states"].count >= 1000
+    assert topics["/goal_pose"].count == len(GOALS)
+    for topic in ("/tf", "/robot_description", "/joint_command", "/controller/state", "/controller/markers",
+                  "/diagnostics"):
+        assert topics[topic].count > 0, topic
+    assert topics["/tf"].schema_name == "tf2_msgs/msg/TFMessage"
+    encodings = {(s.schema_encoding, s.message_encoding) for t, s in topics.items() if t != "*"}
+    assert encodings == {("ros2msg", "cdr")}
+    assert topics["*"].monotonic

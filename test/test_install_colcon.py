@@ -39,8 +39,9 @@ NODES = {
     "controller": "redarm_ros.nodes.controller",
     "can_driver": "redarm_ros.nodes.can_driver",
     "sim": "redarm_ros.sim.hardware",
+    "view": "redarm_ros.nodes.view",
 }
-TOOLS = ["redarm-sim", "redarm-canbus", "redarm-bringup", "redarm-demo"]
+TOOLS = ["redarm-sim", "redarm-canbus", "redarm-bringup", "redarm-demo", "redarm-view", "redarm-record"]
 START_GRACE_S = 6.0
 
 pytestmark = pytest.mark.slow

@@ -33,6 +33,7 @@ ROS_NODES = {
     "controller": "redarm_ros.nodes.controller:main",
     "can_driver": "redarm_ros.nodes.can_driver:main",
     "sim": "redarm_ros.sim.hardware:main",
+    "view": "redarm_ros.nodes.view:main",
 }
 
 # Third-party import name -> rosdep keys that satisfy it (any one of them).
@@ -47,12 +48,18 @@ ROSDEP_KEYS: dict[str, tuple[str, ...]] = {
     "pytest": ("python3-pytest",),
     "hypothesis": ("python3-hypothesis",),
     "ikpy": ("python3-ikpy-pip",),
+    "imageio": ("python3-imageio",),
+    "PIL": ("python3-pil",),
 }
 # ROS packages a real install needs that no registry here has (ros2 launch); not importable here.
 REAL_INSTALL_ONLY = {"launch", "launch_ros"}
 # Imports with no rosdep key at all; they are pip-only and documented in docs/setup.md.
 PIP_ONLY = {
     "can_remote": "python-can-remote: the loopback test bus only; no Debian package or rosdep key",
+    "viser": "viser: the browser view (redarm-view); pip only",
+    "mcap": "mcap: MCAP recordings (redarm-record); pip only",
+    "mcap_ros2": "mcap-ros2-support: ROS 2 schemas for MCAP recordings; pip only",
+    "websocket": "websocket-client: the browser test's DevTools client; pip only",
 }
 
 
