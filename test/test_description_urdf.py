@@ -33,8 +33,6 @@ from redarm_ros.sim.urdf import build_urdf
 
 REPO = Path(__file__).resolve().parents[1]
 ARMS = sorted(p.stem for p in (REPO / "config" / "arms").glob("*.yaml"))
-# Both sides are exact float64 maths on 17-digit text; what is left is rounding in the products.
-FK_TOL = 1e-9
 # pybullet hands link states back through float32.
 PB_TOL = 1e-6
 
@@ -44,24 +42,9 @@ def _description(arm: str) -> str:
     return build_urdf(load_arm(arm), prefix="")
 
 
-def check_urdf_matches_fk(urdf: str, arm_name: str, count: int = 200, seed: int = 7) -> float:
-    """Largest |position| / |rotation entry| difference between the URDF's root -> tool transform and
-    ``arm.fk`` over ``count`` random in-limit configurations (asserted below FK_TOL)."""
-    arm = load_arm(arm_name)
-    joints = urdf_chain.chain(urdf, "tool")
-    assert urdf_chain.movable(joints) == list(arm.joint_names)
-    rng = np.random.default_rng(seed)
-    worst = 0.0
-    for _ in range(count):
-        q = rng.uniform(arm.lower, arm.upper)
-        worst = max(worst, float(np.abs(urdf_chain.fk(joints, q) - arm.fk(q)).max()))
-    assert worst < FK_TOL, f"{arm_name}: URDF tool differs from arm.fk by {worst:.3g}"
-    return worst
-
-
 @pytest.mark.parametrize("arm", ARMS)
 def test_description_matches_fk(arm: str) -> None:
-    check_urdf_matches_fk(_description(arm), arm)
+    urdf_chain.check_matches_fk(_description(arm), arm)
 
 
 def test_reader_sees_a_wrong_origin() -> None:
@@ -73,7 +56,7 @@ def test_reader_sees_a_wrong_origin() -> None:
     xyz[2] += 1e-3
     origin.set("xyz", " ".join(repr(v) for v in xyz))
     with pytest.raises(AssertionError, match="differs from arm.fk"):
-        check_urdf_matches_fk(ET.tostring(root, encoding="unicode"), "pa10", count=5)
+        urdf_chain.check_matches_fk(ET.tostring(root, encoding="unicode"), "pa10", count=5)
 
 
 @pytest.mark.parametrize("arm", ARMS)
@@ -154,7 +137,7 @@ def test_pip_install_installs_one_urdf_per_arm(pip_prefix: Path) -> None:
 def test_pip_installed_urdf_is_the_published_one_and_matches_fk(pip_prefix: Path, arm: str) -> None:
     text = (pip_prefix / "share" / "redarm_ros" / "urdf" / f"{arm}.urdf").read_text(encoding="utf-8")
     assert text == _description(arm)
-    check_urdf_matches_fk(text, arm)
+    urdf_chain.check_matches_fk(text, arm)
 
 
 @pip_install

@@ -3,7 +3,7 @@
 Written from the URDF specification (joint ``origin`` = xyz + fixed-axis roll/pitch/yaw,
 ``R = Rz(yaw) Ry(pitch) Rx(roll)``; a revolute joint rotates its child about ``axis`` in the joint
 frame), independently of :mod:`redarm_ros.sim.urdf`, so it checks the generator rather than
-repeating it. numpy + stdlib only.
+repeating it. :func:`check_matches_fk` compares a URDF with an arm model's ``fk``.
 """
 
 from __future__ import annotations
@@ -13,6 +13,9 @@ import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 
 import numpy as np
+
+# Both sides are float64 maths on 17-digit text; what is left is rounding in the products.
+FK_TOL = 1e-9
 
 
 @dataclass(frozen=True)
@@ -96,3 +99,21 @@ def fk(joints: list[UrdfJoint], q: np.ndarray) -> np.ndarray:
 def movable(joints: list[UrdfJoint]) -> list[str]:
     """Names of the movable joints of a chain, in order."""
     return [j.name for j in joints if j.type != "fixed"]
+
+
+def check_matches_fk(urdf: str, arm_name: str, count: int = 200, seed: int = 7) -> float:
+    """Assert that the URDF's base -> ``tool`` transform equals ``load_arm(arm_name).fk`` (every entry
+    within FK_TOL) over ``count`` random in-limit configurations, and that its movable joints are the
+    model's; return the largest difference."""
+    from redarm_ros.kinematics import load_arm
+
+    arm = load_arm(arm_name)
+    joints = chain(urdf, "tool")
+    assert movable(joints) == list(arm.joint_names)
+    rng = np.random.default_rng(seed)
+    worst = 0.0
+    for _ in range(count):
+        q = rng.uniform(arm.lower, arm.upper)
+        worst = max(worst, float(np.abs(fk(joints, q) - arm.fk(q)).max()))
+    assert worst < FK_TOL, f"{arm_name}: URDF tool differs from arm.fk by {worst:.3g}"
+    return worst
