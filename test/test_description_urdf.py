@@ -71,6 +71,20 @@ def test_frames_are_the_documented_ones(arm: str) -> None:
     assert root.get("name") == model.name
 
 
+@pytest.mark.parametrize("arm", ARMS)
+def test_link_frames_are_the_models_joint_frames(arm: str) -> None:
+    """docs/nodes.md: link_i is joint i's frame, ``arm.fk_frames(q)[i-1]``; tool is ``arm.fk(q)``."""
+    model = load_arm(arm)
+    urdf = _description(arm)
+    rng = np.random.default_rng(5)
+    qs = [rng.uniform(model.lower, model.upper) for _ in range(20)]
+    for i in range(1, model.n + 1):
+        joints = urdf_chain.chain(urdf, f"link_{i}")
+        for q in qs:
+            frames = model.fk_frames(q)
+            assert np.abs(urdf_chain.fk(joints, q[:i]) - frames[i - 1]).max() < urdf_chain.FK_TOL
+
+
 # -- pip install . ---------------------------------------------------------------------------------
 _BLOCKED = ("pybullet", "rclpy", "can")
 
