@@ -1,7 +1,8 @@
 """Simulated redarm stack for a real ROS 2 Jazzy install: ``ros2 launch redarm_ros redarm_sim.launch.py``.
 
-Starts the loopback CAN bus server, the pybullet hardware stand-in, can_driver, ik_service and the
-controller (the same set as ``redarm-bringup``, which needs no ``launch`` package). Arguments:
+Starts the loopback CAN bus server, the pybullet hardware stand-in, can_driver, ik_service, the
+controller and the robot description (the same set as ``redarm-bringup``, which needs no ``launch``
+package). Arguments:
 
 * ``arm`` (pa10): arm model for the simulator, the driver and the controller;
 * ``scene`` (''): scene name (config/scenes) or YAML path, shown by the simulator and avoided by
@@ -12,7 +13,14 @@ controller (the same set as ``redarm-bringup``, which needs no ``launch`` packag
 * ``can_port`` (29536), ``can_interface`` (socketcan), ``can_channel`` (vcan0);
 * ``controller`` (true), ``ik_service`` (true): start those nodes;
 * ``gui`` (false): pybullet GUI; ``snapshot_dir``, ``status_file`` (''): simulator outputs;
-* ``shm_only`` (true): ``FASTDDS_BUILTIN_TRANSPORTS=SHM`` so no DDS packet leaves the machine.
+* ``shm_only`` (true): ``FASTDDS_BUILTIN_TRANSPORTS=SHM`` so no DDS packet leaves the machine;
+* ``robot_state_publisher`` (auto): ``auto`` starts robot_state_publisher with the arm's URDF when that
+  package is installed (it publishes ``/robot_description`` and the tf tree from ``/joint_states``),
+  else the package's ``description`` node (``/robot_description`` only); ``true``/``false`` force it;
+* ``rviz`` (false): start rviz2 with ``config/redarm.rviz`` (the arm, the controller's markers, the goal).
+
+The URDF is ``share/redarm_ros/urdf/<arm>.urdf`` (generated at build time) for a bundled arm, or
+generated from the model for an arm given as a YAML path.
 
 Simulator defaults (rate, scene, ...) come from ``config/sim.yaml``; node parameters from
 ``config/<node>.yaml``. This file is not imported by the tests (launch/launch_ros are not
@@ -22,7 +30,7 @@ installable on the build machines); test/test_launch_file.py checks it with ``as
 import os
 
 import yaml
-from ament_index_python.packages import get_package_share_directory
+from ament_index_python.packages import PackageNotFoundError, get_package_share_directory
 from launch.actions import DeclareLaunchArgument, ExecuteProcess, OpaqueFunction, SetEnvironmentVariable
 from launch.conditions import IfCondition
 from launch.substitutions import LaunchConfiguration
@@ -36,6 +44,25 @@ PACKAGE = "redarm_ros"
 
 def _truthy(value: str) -> bool:
     return value.strip().lower() in ("1", "true", "yes", "on")
+
+
+def _installed(package: str) -> bool:
+    try:
+        get_package_share_directory(package)
+    except PackageNotFoundError:
+        return False
+    return True
+
+
+def _robot_description(share: str, arm: str) -> str:
+    """The installed URDF of a bundled arm, else one generated from the model (a YAML path)."""
+    path = os.path.join(share, "urdf", f"{arm}.urdf")
+    if os.path.isfile(path):
+        with open(path, encoding="utf-8") as fh:
+            return fh.read()
+    from redarm_ros.nodes.description import robot_description
+
+    return robot_description(arm)
 
 
 def _stack(context, *args, **kwargs):
@@ -92,6 +119,24 @@ def _stack(context, *args, **kwargs):
             package=PACKAGE, executable="controller", name="controller", output="screen",
             parameters=[os.path.join(config, "controller.yaml"), {"arm": arm, "scene": scene}],
         ))
+    rsp = arg("robot_state_publisher")
+    if rsp == "true" or (rsp == "auto" and _installed("robot_state_publisher")):
+        # robot_state_publisher publishes /robot_description itself (transient local) and the tf tree.
+        actions.append(Node(
+            package="robot_state_publisher", executable="robot_state_publisher",
+            name="robot_state_publisher", output="screen",
+            parameters=[{"robot_description": _robot_description(share, arm)}],
+        ))
+    else:
+        actions.append(Node(
+            package=PACKAGE, executable="description", name="description", output="screen",
+            parameters=[os.path.join(config, "description.yaml"), {"arm": arm}],
+        ))
+    if _truthy(arg("rviz")):
+        actions.append(Node(
+            package="rviz2", executable="rviz2", name="rviz2", output="screen",
+            arguments=["-d", os.path.join(config, "redarm.rviz")],
+        ))
     return actions
 
 
@@ -112,6 +157,11 @@ def generate_launch_description():
         DeclareLaunchArgument("status_file", default_value=""),
         DeclareLaunchArgument("shm_only", default_value="true",
                               description="FASTDDS_BUILTIN_TRANSPORTS=SHM (DDS stays on this machine)"),
+        DeclareLaunchArgument("robot_state_publisher", default_value="auto",
+                              choices=["auto", "true", "false"],
+                              description="auto: robot_state_publisher if installed, else the description "
+                              "node"),
+        DeclareLaunchArgument("rviz", default_value="false", description="rviz2 with config/redarm.rviz"),
         SetEnvironmentVariable("FASTDDS_BUILTIN_TRANSPORTS", "SHM",
                                condition=IfCondition(LaunchConfiguration("shm_only"))),
         OpaqueFunction(function=_stack),

@@ -7,7 +7,8 @@ Starts, in order, each waiting for its readiness line:
 3. ``can_driver``     - the ROS driver node (``/joint_states``, ``/joint_command``, ``~/init``...);
 4. ``ik_service``     - the SolveIK service node;
 5. ``controller``     - the attractor-dynamics reaching controller (``/goal_pose``);
-6. ``view``           - with ``--view``: the browser view (``redarm-view``, http://127.0.0.1:8080/).
+6. ``description``    - the arm's URDF on ``/robot_description`` (transient local).
+7. ``view``           - with ``--view``: the browser view (``redarm-view``, http://127.0.0.1:8080/).
 
 Every child gets the workplace DDS rules (``FASTDDS_BUILTIN_TRANSPORTS=SHM``, its own
 ``ROS_DOMAIN_ID``: the caller's if set, else a random one in 1..200), its output is forwarded line by
@@ -49,6 +50,7 @@ READY = {
     "can_driver": r"can_driver ready:",
     "ik_service": r"serving /\S*solve_ik",
     "controller": r"controller ready:",
+    "description": r"description ready:",
     "view": r"view ready: (http://\S+)",
 }
 
@@ -91,6 +93,7 @@ class StackConfig:
     hardware: str = "sim"
     ik_service: bool = True
     controller: bool = True
+    description: bool = True
     scene: str | None = None
     gui: bool = False
     status_file: Path | None = None
@@ -233,6 +236,13 @@ class Stack:
                     python_module_cmd("redarm_ros.nodes.controller", *self._ros_args("controller", params)),
                     READY["controller"],
                 )
+            if cfg.description:
+                self._start(
+                    "description",
+                    python_module_cmd("redarm_ros.nodes.description",
+                                      *self._ros_args("description", {"arm": cfg.arm})),
+                    READY["description"],
+                )
             if cfg.view:
                 params = {"arm": cfg.arm, "port": str(int(cfg.view_port))}
                 if cfg.scene and not cfg.controller:  # the controller's markers already show its scene
@@ -321,7 +331,7 @@ def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(
         prog="redarm-bringup",
         description="Start the simulated redarm stack (bus server, simulator, can_driver, ik_service, "
-        "controller) as supervised processes; Ctrl-C stops them all.",
+        "controller, description) as supervised processes; Ctrl-C stops them all.",
     )
     ap.add_argument("--arm", default="pa10", help="arm model (config/arms/<name>.yaml), default pa10")
     ap.add_argument(
@@ -338,6 +348,8 @@ def build_parser() -> argparse.ArgumentParser:
                     "arm!); otherwise call /can_driver/init when ready. The simulator is always initialised")
     ap.add_argument("--no-controller", action="store_true", help="do not start the controller node")
     ap.add_argument("--no-ik-service", action="store_true", help="do not start the ik_service node")
+    ap.add_argument("--no-description", action="store_true",
+                    help="do not start the description node (/robot_description)")
     ap.add_argument("--scene", help="scene name (config/scenes) or YAML path, for simulator and controller")
     ap.add_argument("--view", action="store_true",
                     help="also start the browser view (redarm-view) on http://127.0.0.1:VIEW_PORT/")
@@ -368,6 +380,7 @@ def config_from_args(ns: argparse.Namespace) -> StackConfig:
         hardware=ns.hardware,
         ik_service=not ns.no_ik_service,
         controller=not ns.no_controller,
+        description=not ns.no_description,
         scene=ns.scene,
         gui=ns.gui,
         status_file=ns.status_file,

@@ -74,7 +74,7 @@ def test_ctrl_c_stops_all_children(procs: Any) -> None:
     )
     m = bringup.wait_for_line(UP, timeout=60.0)
     pids = _child_pids(m)
-    assert set(pids) == {"ik_service"}
+    assert set(pids) == {"ik_service", "description"}
     assert all(_alive(p) for p in pids.values())
     bringup.expect_exit()
     bringup.send_signal(signal.SIGINT)  # what a terminal Ctrl-C delivers to the foreground process
@@ -137,12 +137,13 @@ def test_child_that_cannot_start_is_reported() -> None:
 
 @pytest.mark.hil
 def test_full_stack_ctrl_c_stops_everything(procs: Any) -> None:
-    """The simulated stack (bus server, simulator, driver, ik_service, controller): SIGINT stops all."""
+    """The simulated stack (bus server, simulator, driver, ik_service, controller, description): SIGINT
+    stops all."""
     pytest.importorskip("redarm_ros.nodes.can_driver", reason="can_driver node not written yet")
     pytest.importorskip("redarm_ros.sim.hardware", reason="simulator not written yet")
     bringup = procs.start("bringup", python_module_cmd("redarm_ros.bringup", "--log-level", "warn"))
     pids = _child_pids(bringup.wait_for_line(UP, timeout=90.0))
-    assert set(pids) == {"canbus", "sim", "can_driver", "ik_service", "controller"}
+    assert set(pids) == {"canbus", "sim", "can_driver", "ik_service", "controller", "description"}
     assert all(_alive(p) for p in pids.values())
     bringup.expect_exit()
     bringup.send_signal(signal.SIGINT)
