@@ -180,23 +180,6 @@ class DemoClient:
                                       lambda m: self.states.append((time.monotonic(), m)), 100)
         self.node.create_subscription(JointState, "joint_states",
                                       lambda m: self.joint_times.append(time.monotonic()), 100)
-        self.description_pub: Any = None
-
-    def publish_robot_description(self, urdf: str) -> bool:
-        """Publish ``urdf`` on /robot_description (latched) unless another node already does.
-
-        Returns True if this client publishes it.
-        """
-        from rclpy.qos import DurabilityPolicy, QoSProfile
-        from std_msgs.msg import String
-
-        self.spin_until(lambda: False, 1.0)  # discovery: see a publisher the stack may have
-        if self.node.count_publishers("/robot_description") > 0:
-            return False
-        qos = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        self.description_pub = self.node.create_publisher(String, "/robot_description", qos)
-        self.description_pub.publish(String(data=urdf))
-        return True
 
     def spin_until(self, cond: Callable[[], bool], timeout: float) -> bool:
         deadline = time.monotonic() + timeout
@@ -348,10 +331,6 @@ class Demo:
                 self.say("no joint_states / controller state / ik_service from the stack")
                 self._tail(log_path)
                 return 2
-            from redarm_ros.sim.urdf import build_urdf
-
-            if client.publish_robot_description(build_urdf(arm)):
-                self.say("no /robot_description in the stack: the demo publishes the generated URDF")
             recorder = stack.children["record"]
             for topic in RECORD_BEFORE_START:
                 try:
