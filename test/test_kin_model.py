@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from redarm_ros.errors import ConfigError, InvalidInputError
-from redarm_ros.kinematics import Arm, load_arm
+from redarm_ros.kinematics import Arm, has_analytic_ik, has_swivel, load_arm
 from redarm_ros.kinematics.quaternion import qmul, quat_to_matrix, qy, qz, rotation_error
 
 ARMS = ["pa10", "pa10_7c", "powercube7", "powercube6"]
@@ -180,12 +180,14 @@ def test_generic_chain_yaml_reproduces_pa10(tmp_path: Path) -> None:
     path.write_text("\n".join(lines) + "\n")
     chain = load_arm(path)
     pa10 = load_arm("pa10")
-    assert chain.kind == "chain" and not chain.has_swivel
+    assert chain.kind == "chain" and not chain.has_swivel and not has_swivel(chain)
     for q in _rand_q(chain, 10, 5):
         assert np.allclose(chain.fk(q), pa10.fk(q), atol=1e-12)
         assert np.allclose(chain.key_points(q), pa10.key_points(q), atol=1e-12)
-    with pytest.raises(NotImplementedError):
-        chain.ik(pa10.fk(np.zeros(7)), 0.0)
+    # a generic chain has no closed form: the capability protocols say so (and it has no `ik`)
+    assert not has_analytic_ik(chain) and not hasattr(chain, "ik")
+    assert has_swivel(pa10) and has_analytic_ik(pa10) and pa10.has_swivel
+    assert has_analytic_ik(load_arm("powercube6")) and not has_swivel(load_arm("powercube6"))
 
 
 @pytest.mark.parametrize(
