@@ -70,13 +70,16 @@ def check_finite_array(
     if isinstance(x, np.ndarray) and x.dtype.kind == "f":
         a = x if x.dtype == np.float64 else x.astype(float)
     else:
-        if np.iscomplexobj(x):
+        try:
+            a0 = np.asarray(x)
+        except (TypeError, ValueError) as exc:  # nested sequences of different lengths
+            raise InvalidInputError(f"{field} is ragged: {exc}", field=field, value=x) from exc
+        if a0.dtype.kind == "c":
             raise InvalidInputError(f"{field} must be real, got complex values", field=field, value=x)
         try:
-            a = np.asarray(x, dtype=float)
+            a = a0.astype(float)
         except (TypeError, ValueError) as exc:
-            why = "ragged or non-numeric" if isinstance(exc, ValueError) else "not numeric"
-            raise InvalidInputError(f"{field} is {why}: {exc}", field=field, value=x) from exc
+            raise InvalidInputError(f"{field} is not numeric: {exc}", field=field, value=x) from exc
     if shape is not None and (
         a.ndim != len(shape)
         or any(want is not None and got != want for got, want in zip(a.shape, shape, strict=True))
