@@ -81,8 +81,8 @@ LIMIT_TOL = 1e-10  # rad, as ik: an angle this close outside a limit counts as o
 DEGEN_SIN = 1e-12  # as ik: |sin theta2| (|sin theta6|) below this uses the theta1 = 0 (theta5 = 0) convention
 TANGENT_TOL = 1e-9  # |e0| / hypot(e1, e2) up to 1 + this still gives a (touching) root
 MERGE_TOL = 1e-12  # rad; samples of the nearest search closer than this are one sample
-GRID = 32  # uniform swivel samples of the nearest search
-DIRECTIONS = 8  # equal-angle samples per pivot joint: atan2(Y, X) = k pi / DIRECTIONS
+GRID = 16  # uniform swivel samples of the nearest search
+DIRECTIONS = 4  # equal-angle samples per pivot joint: atan2(Y, X) = k pi / DIRECTIONS
 BIG = 1e30  # cost of an out-of-limit alternative (finite, so pattern sums stay one matrix product)
 DEPTH_MARGIN = 3.0  # a candidate basin may lie this many times its parabolic depth below its sample
 _DEBUG: list | None = None
@@ -114,14 +114,6 @@ _GRID_S = np.arange(GRID) * (TWO_PI / GRID) - PI
 # rows of the coefficient table K (const, cos s, sin s): pivot X rows, pivot Y rows, hinge Z rows
 # 0..3: X1, X3, X5, X7   4..7: Y1, Y3, Y5, Y7   8, 9: Z2, Z6
 _PIVOT_JOINTS = (0, 2, 4, 6)
-
-
-def _cross(a: tuple[float, ...], b: tuple[float, ...]) -> tuple[float, float, float]:
-    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
-
-
-def _dot(a: tuple[float, ...], b: tuple[float, ...]) -> float:
-    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
 
 def wrap(s: np.ndarray) -> np.ndarray:
@@ -291,40 +283,58 @@ class SwivelFunctions:
 
 
 def swivel_functions(arm: SwivelArm, Tl: list[list[float]], circ: tuple[float, ...]) -> SwivelFunctions:
-    """Build the closed-form joint functions of pose Tl (nested lists) with elbow circle ``circ``."""
+    """Build the closed-form joint functions of pose Tl (nested lists) with elbow circle ``circ``.
+
+    A vector v turning with the arm is Rot(m, s) v0 = (m.v0) m + cos s (v0 - (m.v0) m) + sin s (m x v0),
+    so its component along a fixed t is (m.v0)(m.t) + cos s (v0.t - (m.v0)(m.t)) + sin s (m x v0).t.
+    """
     zx, zy, zz, x3x, x3y, x3z, y3x, y3y, y3z, t4, c4, s4 = arm._frame3(circ, 1.0, 0.0)  # noqa: SLF001
-    a0 = arm._rot_qa(circ, 1.0, 0.0)  # noqa: SLF001
-    a1 = arm._rot_qa(circ, 0.0, 1.0)  # noqa: SLF001
-    m = _cross(a0, a1)  # qA k qA*: the axis the self-motion turns about
-    z3 = (zx, zy, zz)
-    x3 = (x3x, x3y, x3z)
-    y3 = (y3x, y3y, y3z)
+    a0x, a0y, a0z = arm._rot_qa(circ, 1.0, 0.0)  # noqa: SLF001
+    a1x, a1y, a1z = arm._rot_qa(circ, 0.0, 1.0)  # noqa: SLF001
+    mx, my, mz = a0y * a1z - a0z * a1y, a0z * a1x - a0x * a1z, a0x * a1y - a0y * a1x  # qA k qA*
+    # m . v and m x v of the shoulder frame's axes (those of frame 4 follow linearly)
+    dz3 = mx * zx + my * zy + mz * zz
+    cz = (my * zz - mz * zy, mz * zx - mx * zz, mx * zy - my * zx)
+    dx3 = mx * x3x + my * x3y + mz * x3z
+    cx = (my * x3z - mz * x3y, mz * x3x - mx * x3z, mx * x3y - my * x3x)
+    dy3 = mx * y3x + my * y3y + mz * y3z
+    cy = (my * y3z - mz * y3y, mz * y3x - mx * y3z, mx * y3y - my * y3x)
     x4 = (c4 * x3x - s4 * zx, c4 * x3y - s4 * zy, c4 * x3z - s4 * zz)
+    dx4, cx4 = c4 * dx3 - s4 * dz3, tuple(c4 * cx[i] - s4 * cz[i] for i in range(3))
     z4 = (s4 * x3x + c4 * zx, s4 * x3y + c4 * zy, s4 * x3z + c4 * zz)
+    dz4, cz4 = s4 * dx3 + c4 * dz3, tuple(s4 * cx[i] + c4 * cz[i] for i in range(3))
+    y3 = (y3x, y3y, y3z)
     r0, r1, r2 = Tl[0], Tl[1], Tl[2]
     tb = (r0[0], r1[0], r2[0])  # tool x
     ty = (r0[1], r1[1], r2[1])  # tool y
     ta = (r0[2], r1[2], r2[2])  # tool z (approach)
 
-    def coef(v: tuple[float, ...], t: tuple[float, ...], sg: float = 1.0) -> list[float]:
-        # sg * (Rot(m, s) v) . t = sg * [(m.v)(m.t) + cos s (v.t - (m.v)(m.t)) + sin s (m x v).t]
-        mv = _dot(m, v) * _dot(m, t)
-        return [sg * mv, sg * (_dot(v, t) - mv), sg * _dot(_cross(m, v), t)]
+    def coef(
+        v: tuple[float, ...], dv: float, cv: tuple[float, ...], t: tuple[float, ...], sg: float = 1.0
+    ) -> list[float]:
+        k0 = dv * (mx * t[0] + my * t[1] + mz * t[2])
+        vt = v[0] * t[0] + v[1] * t[1] + v[2] * t[2]
+        return [sg * k0, sg * (vt - k0), sg * (cv[0] * t[0] + cv[1] * t[1] + cv[2] * t[2])]
 
-    e0, e1, e2 = (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)
-    X1, Y1, Z2 = coef(z3, e0), coef(z3, e1), coef(z3, e2)
-    X5, Y5, Z6 = coef(x4, ta), coef(y3, ta), coef(z4, ta)
+    X1 = [dz3 * mx, zx - dz3 * mx, cz[0]]
+    Y1 = [dz3 * my, zy - dz3 * my, cz[1]]
+    Z2 = [dz3 * mz, zz - dz3 * mz, cz[2]]
+    X5, Y5, Z6 = coef(x4, dx4, cx4, ta), coef(y3, dy3, cy, ta), coef(z4, dz4, cz4, ta)
     # theta2 (theta6) 0 or pi on the whole circle: bound |(X, Y)| over the circle
     deg_sh = sum(math.hypot(X1[i], Y1[i]) for i in range(3)) <= DEGEN_SIN
     deg_wr = sum(math.hypot(X5[i], Y5[i]) for i in range(3)) <= DEGEN_SIN
     if deg_sh:  # R3 = Rz(theta3) Ry(0 or pi): theta3 = atan2(x3y, +-x3x), as ik
-        X3, Y3 = coef(x3, e0, 1.0 if Z2[0] >= 0.0 else -1.0), coef(x3, e1)
-    else:
-        X3, Y3 = coef(x3, e2, -1.0), coef(y3, e2)
+        sg = 1.0 if Z2[0] >= 0.0 else -1.0
+        X3 = [sg * dx3 * mx, sg * (x3x - dx3 * mx), sg * cx[0]]
+        Y3 = [dx3 * my, x3y - dx3 * my, cx[1]]
+    else:  # theta3 = atan2(R3[2,1], -R3[2,0])
+        X3 = [-dx3 * mz, -(x3z - dx3 * mz), -cx[2]]
+        Y3 = [dy3 * mz, y3z - dy3 * mz, cy[2]]
     if deg_wr:
-        X7, Y7 = coef(x4, tb, 1.0 if Z6[0] >= 0.0 else -1.0), coef(y3, tb)
-    else:
-        X7, Y7 = coef(z4, tb, -1.0), coef(z4, ty)
+        X7 = coef(x4, dx4, cx4, tb, 1.0 if Z6[0] >= 0.0 else -1.0)
+        Y7 = coef(y3, dy3, cy, tb)
+    else:  # theta7 = atan2(W[2,1], -W[2,0])
+        X7, Y7 = coef(z4, dz4, cz4, tb, -1.0), coef(z4, dz4, cz4, ty)
     Kl = [X1, X3, X5, X7, Y1, Y3, Y5, Y7, Z2, Z6]
     return SwivelFunctions(np.array(Kl), Kl, t4, deg_sh, deg_wr)
 
@@ -560,17 +570,17 @@ def _sample_swivels(
 
     Critical: the closed-form roots (limits, stationary points, and for a joint with several in-limit
     copies where it is opposite the ``seed``, where the nearest copy switches) and the hinge extremes.
-    Plain: the
-    uniform grid, the equal-angle roots of the pivot joints, the seed's own swivel and the mid point
-    between every two neighbouring critical swivels, so that every arc between two neighbouring
-    samples has a plain end (which decides the open arc's feasibility: no critical swivel inside).
+    Plain: the uniform grid, the equal-angle roots of the pivot joints, the seed's own swivel and the
+    mid point between every two neighbouring critical swivels, so that every arc between two
+    neighbouring samples has a plain end (which decides the open arc's feasibility: no critical swivel
+    inside).
     """
     Ec, Ed = fn.equations(tab, seed)
     nc = len(Ec)
     rp, rm = roots(np.concatenate([Ec, Ed]))
     crit = np.concatenate([rp[:nc], rm[:nc], fn.extremes()])
     crit = np.sort(wrap(crit[crit == crit]))
-    mids = (crit + np.append(crit[1:], crit[0] + TWO_PI)) * 0.5
+    mids = (crit + np.append(crit[1:], crit[:1] + TWO_PI)) * 0.5
     plain = np.concatenate([rp[nc:], rm[nc:], _GRID_S, mids, [s_seed or 0.0]])
     S = np.concatenate([crit, wrap(plain[plain == plain])])
     flag = np.zeros(len(S), bool)
@@ -624,24 +634,24 @@ def nearest(
     bs, idx = np.nonzero((c0 < 0.5 * BIG) & (c0 <= cp[:, :-2]) & (c0 <= cp[:, 2:]))
     if len(bs) == 0:
         return NearestResult(None, -1, math.inf, 8 * M, 0, 0, False, [])
-    Sx = np.concatenate([[S[-1] - TWO_PI], S, [S[0] + TWO_PI]]).tolist()
-    trip = cp[bs[:, None], idx[:, None] + np.arange(3)].tolist()  # (fm, f0, fp) per candidate
-    bl, il = bs.tolist(), idx.tolist()
+    Sx = np.concatenate([[S[-1] - TWO_PI], S, [S[0] + TWO_PI]])
     # parabola through the three samples: its vertex starts the refinement, its depth below the sample
     # (times DEPTH_MARGIN) bounds how much lower the basin may be; candidates are refined in bound order
-    cands = []
-    half = 0.5 * BIG
-    for b, i, (fm, f0, fp) in zip(bl, il, trip, strict=True):
-        sm, s0, sp = Sx[i], Sx[i + 1], Sx[i + 2]
-        xv, lb = s0, f0
-        if fm < half and fp < half:
-            d1 = (fp - f0) / (sp - s0)
-            curv = 2.0 * (d1 - (f0 - fm) / (s0 - sm)) / (sp - sm)
-            if curv > 0.0:
-                xv = 0.5 * (s0 + sp) - d1 / curv
-                lb = f0 - DEPTH_MARGIN * 0.5 * curv * (xv - s0) ** 2
-        cands.append((lb, b, i, xv))
-    cands.sort()
+    # (one whose bound is above the best sample can never win: the best sample's basin comes first)
+    sm, s0, sp = Sx[idx], Sx[idx + 1], Sx[idx + 2]
+    fm, f0, fp = cp[bs, idx], cp[bs, idx + 1], cp[bs, idx + 2]
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        d1 = (fp - f0) / (sp - s0)
+        curv = 2.0 * (d1 - (f0 - fm) / (s0 - sm)) / (sp - sm)
+        inner = (fm < 0.5 * BIG) & (fp < 0.5 * BIG) & (curv > 0.0)
+        xv = np.where(inner, 0.5 * (s0 + sp) - d1 / curv, s0)
+        lb = np.where(inner, f0 - DEPTH_MARGIN * 0.5 * curv * (xv - s0) ** 2, f0)
+    fbest = float(f0.min())
+    keep = np.nonzero(lb <= fbest + 1e-12 * (1.0 + fbest))[0]
+    cands = sorted(
+        zip(lb[keep].tolist(), bs[keep].tolist(), idx[keep].tolist(), xv[keep].tolist(), strict=True)
+    )
+    Sx = Sx.tolist()
     if _DEBUG is not None:
         _DEBUG.append(cands)
     w_l = w.tolist()

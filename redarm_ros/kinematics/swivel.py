@@ -914,16 +914,54 @@ class SwivelArm(Arm):
             raise InvalidInputError(f"weights must be >= 0, got {w.tolist()}", field="weights", value=weights)
         return w
 
+    def _fk_zyz(self, q: Sequence[float]) -> tuple[tuple[float, ...], tuple[float, float, float]]:
+        """Scalar FK of this z,y,z,y,z,y,z arm (same result as the generic chain FK, 3x fewer operations):
+        (R as its columns x0 x1 x2 y0 y1 y2 z0 z1 z2, p). q: 7 floats (rad), not validated."""
+        L1, L2, L3, L4 = self._L
+        cos, sin = math.cos, math.sin
+        xa, xb, xc, ya, yb, yc, za, zb, zc = 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0
+        px, py, pz = 0.0, 0.0, L1
+        for j in range(7):
+            c, s = cos(q[j]), sin(q[j])
+            if j % 2 == 0:  # R Rz: x' = c x + s y, y' = c y - s x
+                xa, xb, xc, ya, yb, yc = (
+                    c * xa + s * ya,
+                    c * xb + s * yb,
+                    c * xc + s * yc,
+                    c * ya - s * xa,
+                    c * yb - s * xb,
+                    c * yc - s * xc,
+                )
+            else:  # R Ry: x' = c x - s z, z' = s x + c z; then the next link along z
+                xa, xb, xc, za, zb, zc = (
+                    c * xa - s * za,
+                    c * xb - s * zb,
+                    c * xc - s * zc,
+                    s * xa + c * za,
+                    s * xb + c * zb,
+                    s * xc + c * zc,
+                )
+                Lk = (L2, L3, L4)[j // 2]
+                px, py, pz = px + Lk * za, py + Lk * zb, pz + Lk * zc
+        return (xa, xb, xc, ya, yb, yc, za, zb, zc), (px, py, pz)
+
     def _pose_err_lists(self, q: list[float], Tl: list[list[float]]) -> tuple[float, float]:
         """(position error m, rotation error rad) of fk(q) against the nested-list pose Tl."""
-        R, p = self._fk_lists(q)
-        pe = math.sqrt(sum((p[i] - Tl[i][3]) ** 2 for i in range(3)))
-        # residual rotation Rd R^T: angle = atan2(|skew|/2, (trace - 1)/2)
-        M = [[sum(Tl[i][k] * R[j][k] for k in range(3)) for j in range(3)] for i in range(3)]
-        vx, vy, vz = M[2][1] - M[1][2], M[0][2] - M[2][0], M[1][0] - M[0][1]
-        re = math.atan2(
-            0.5 * math.sqrt(vx * vx + vy * vy + vz * vz), 0.5 * (M[0][0] + M[1][1] + M[2][2] - 1.0)
-        )
+        (xa, xb, xc, ya, yb, yc, za, zb, zc), (px, py, pz) = self._fk_zyz(q)
+        r0, r1, r2 = Tl[0], Tl[1], Tl[2]
+        pe = math.sqrt((px - r0[3]) ** 2 + (py - r1[3]) ** 2 + (pz - r2[3]) ** 2)
+        # residual rotation M = Rd R^T: angle = atan2(|skew(M)| / 2, (trace(M) - 1) / 2)
+        m00 = r0[0] * xa + r0[1] * ya + r0[2] * za
+        m11 = r1[0] * xb + r1[1] * yb + r1[2] * zb
+        m22 = r2[0] * xc + r2[1] * yc + r2[2] * zc
+        m21 = r2[0] * xb + r2[1] * yb + r2[2] * zb
+        m12 = r1[0] * xc + r1[1] * yc + r1[2] * zc
+        m02 = r0[0] * xc + r0[1] * yc + r0[2] * zc
+        m20 = r2[0] * xa + r2[1] * ya + r2[2] * za
+        m10 = r1[0] * xa + r1[1] * ya + r1[2] * za
+        m01 = r0[0] * xb + r0[1] * yb + r0[2] * zb
+        vx, vy, vz = m21 - m12, m02 - m20, m10 - m01
+        re = math.atan2(0.5 * math.sqrt(vx * vx + vy * vy + vz * vz), 0.5 * (m00 + m11 + m22 - 1.0))
         return pe, abs(re)
 
     def _branch_eval(
