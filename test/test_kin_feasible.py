@@ -434,3 +434,21 @@ def test_feasible_measure_matches_intervals() -> None:
         for iv in ivs:
             cover |= _in_ivs(iv, S)
         assert abs(cover.mean() * TWO_PI - w[i]) < 1e-3
+
+
+@pytest.mark.parametrize("t4", [math.pi, -math.pi, 0.0])
+def test_folded_and_stretched_with_open_elbow_limits(t4: float) -> None:
+    """theta4 = +-pi (folded: the wrist back at the shoulder side) needs elbow limits beyond +-pi."""
+    arm = load_arm(
+        "pa10", lower=[-3.0, -1.6, -3.0, -3.3, -4.4, -2.8, -6.2], upper=[3.0, 1.6, 3.0, 3.3, 4.4, 2.8, 6.2]
+    )
+    rng = np.random.default_rng(13)
+    for _ in range(15):
+        q = rng.uniform(arm.lower, arm.upper)
+        q[3] = t4
+        T = arm.fk(q)
+        for seed in ((arm.lower + arm.upper) / 2, q):
+            qn, info = arm.ik_nearest(T, seed)
+            assert info.status is IKStatus.SUCCESS, info.message
+            assert _solved(arm, qn, T)
+            assert float(np.sum((qn - seed) ** 2)) <= _bench().dense_nearest(arm, T, seed) + 1e-6

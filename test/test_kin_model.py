@@ -212,3 +212,47 @@ def test_bad_pose_rejected() -> None:
             arm.check_pose(B)
         with pytest.raises(InvalidInputError):
             arm.ik(B, 0.0)  # type: ignore[arg-type]
+
+
+def test_kinematics_modules_import_without_a_cycle() -> None:
+    """Every import between kinematics modules (also inside functions; not the type-checking-only ones)
+    points down one layering: no module needs one that needs it back."""
+    import ast
+
+    pkg = Path(__file__).resolve().parents[1] / "redarm_ros" / "kinematics"
+    graph: dict[str, set[str]] = {}
+    for path in pkg.glob("*.py"):
+        tree = ast.parse(path.read_text())
+        skip: set[int] = set()
+        for node in ast.walk(tree):  # `if TYPE_CHECKING:` blocks are for annotations only
+            if isinstance(node, ast.If) and getattr(node.test, "id", "") == "TYPE_CHECKING":
+                skip.update(id(n) for b in node.body for n in ast.walk(b))
+        deps = set()
+        for node in ast.walk(tree):
+            if id(node) in skip:
+                continue
+            if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("redarm_ros.kinematics."):
+                deps.add(node.module.rsplit(".", 1)[1])
+            elif isinstance(node, ast.Import):
+                deps.update(
+                    a.name.rsplit(".", 1)[1]
+                    for a in node.names
+                    if a.name.startswith("redarm_ros.kinematics.")
+                )
+        graph[path.stem] = deps - {path.stem}
+    state: dict[str, int] = {}
+
+    def visit(mod: str, trail: list[str]) -> None:
+        if state.get(mod) == 1:
+            raise AssertionError(f"import cycle: {' -> '.join(trail + [mod])}")
+        if state.get(mod) == 2:
+            return
+        state[mod] = 1
+        for dep in graph.get(mod, ()):
+            visit(dep, trail + [mod])
+        state[mod] = 2
+
+    for mod in graph:
+        visit(mod, [])
+    assert "swivel" not in graph["model"] and "loader" in graph["__init__"]
+    assert not (graph["numeric"] & {"model", "swivel", "powercube6", "loader"})

@@ -317,13 +317,19 @@ class Arm:
         offending row and the reason; ``value`` holds the indices of every offending row.
         """
         a = check_finite_array(Ts, field, (None, 4, 4))
-        R = a[:, :3, :3]
+        if len(a) == 0:
+            return a
         p = a[:, :3, 3]
-        pos_bad = np.abs(p).max(axis=1) > POSITION_RANGE if len(a) else np.zeros(0, bool)
-        bottom_bad = np.abs(a[:, 3, :] - (0.0, 0.0, 0.0, 1.0)).max(axis=1) > 1e-9 if len(a) else pos_bad
-        G = np.einsum("mki,mkj->mij", R, R)
-        err = np.abs(G - np.eye(3)).max(axis=(1, 2)) if len(a) else np.zeros(0)
-        det = np.linalg.det(R) if len(a) else np.zeros(0)
+        pos_bad = np.abs(p).max(axis=1) > POSITION_RANGE
+        bottom_bad = np.abs(a[:, 3, :] - (0.0, 0.0, 0.0, 1.0)).max(axis=1) > 1e-9
+        # columns c0, c1, c2 of R: unit length, mutually orthogonal, c0 x c1 . c2 > 0 (as check_pose)
+        c = [[a[:, i, j] for i in range(3)] for j in range(3)]
+        err = np.zeros(len(a))
+        for j, k in ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2)):
+            d = c[j][0] * c[k][0] + c[j][1] * c[k][1] + c[j][2] * c[k][2]
+            err = np.maximum(err, np.abs(d - 1.0) if j == k else np.abs(d))
+        (a0, a1, a2), (b0, b1, b2), (c0, c1, c2) = c
+        det = c0 * (a1 * b2 - a2 * b1) + c1 * (a2 * b0 - a0 * b2) + c2 * (a0 * b1 - a1 * b0)
         rot_bad = ~((err <= ORTHO_TOL) & (det > 0.0))
         for bad, why in (
             (pos_bad, f"position out of range (|coordinate| <= {POSITION_RANGE:g} m)"),

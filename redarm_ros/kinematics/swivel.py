@@ -32,6 +32,10 @@ Conventions and choices (also in docs/kinematics.md):
     theta3 (theta7) takes the whole rotation;
   - wrist at the shoulder (only reachable when L2 = L3): n = k is taken as the reference;
   - out of reach: ``ik`` returns no rows; ``elbow_circle`` raises UnreachableError with the distance.
+
+Over the whole circle (``feasible_swivels``, ``ik_nearest``, ``ik_nearest_batch``) the joint angles are
+closed-form functions of the swivel (:mod:`.feasible`): the in-limit swivels are exact interval unions
+and the nearest solution to a seed is the global optimum.
 """
 
 from __future__ import annotations
@@ -82,9 +86,6 @@ AXIS_TOL2 = 1e-24  # (1e-12)^2: a wrist within 1e-12 * D of the base axis counts
 FLIP_PATTERNS = [((k >> 2) & 1, (k >> 1) & 1, k & 1) for k in range(8)]
 _ALT_INDEX = np.array([[f2, f2, f2 ^ f4, f4, f4 ^ f6, f6, f6] for f2, f4, f6 in FLIP_PATTERNS])
 _ALT_INDEX_L = _ALT_INDEX.tolist()
-_J7_T = np.arange(7)[:, None]
-_ALT_INDEX_T = _ALT_INDEX.T  # (7, 8): per joint, the alternative each flip pattern uses
-# the same flips as affine maps: angle -> sign * angle + shift (shift a multiple of pi, not wrapped)
 _J7 = np.arange(7)[None, :]
 # alternatives per joint as affine maps angle -> sign * angle + shift: (7, 2), column 1 = flipped
 _ALT_SIGN = np.array([[1.0, 1.0 if j % 2 == 0 else -1.0] for j in range(7)])
@@ -169,7 +170,12 @@ class SwivelArm(Arm):
 
     @staticmethod
     def _rot_qa(circ: tuple[float, ...], ux: float, uy: float) -> tuple[float, float, float]:
-        """qA u qA* for u = (ux, uy, 0): the shortest rotation k -> n applied to u (eq. 14-15)."""
+        """qA u qA* for u = (ux, uy, 0): the shortest rotation k -> n applied to u (eq. 14-15).
+
+        Scalar on purpose: it is on the path of every ``ik`` call (about 18 us in all); measured on the
+        2-core test machine, this takes 0.9 us, ``qrotate(shortest_rotation(n), u)`` of :mod:`.quaternion`
+        30 us.
+        """
         dx, dy, dz, D, rxy2, nx, ny, nz, _ = circ
         if D == 0.0 or (dz >= 0.0 and rxy2 <= AXIS_TOL2 * D * D):
             return ux, uy, 0.0
@@ -667,23 +673,22 @@ class SwivelArm(Arm):
     def _flips_fit(self, th: np.ndarray, reach: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(7, m) base angles -> (Q (m, 8, 7) at the in-limit copy nearest 0 or NaN, valid (m, 8))."""
         tab = self._tables
-        X = th[:, None, :] * tab.sign3 + tab.shift_lot  # alternative minus (lower - tol)
+        # pose-major layout (m, 7, 2) so that the (m, 8, 7) answer is gathered contiguously
+        X = th.T[:, :, None] * tab.sign3[:, :, 0] + tab.shift_lot[:, :, 0]  # alternative - (lower - tol)
         Xm = X - TWO_PI * np.floor(X * (1.0 / TWO_PI))
-        feas = Xm <= tab.width3
-        V = Xm + tab.lot3  # lowest copy >= lower - tol
+        feas = Xm <= tab.width3[:, :, 0]
+        V = Xm + tab.lot3[:, :, 0]  # lowest copy >= lower - tol
         if len(tab.wide):  # more copies fit: the one in (-pi, pi] if it fits, as ik (else the nearest)
             wj = tab.wide
-            Vw = V[wj]
-            kmax = np.maximum(np.floor((tab.width3[wj] - Xm[wj]) * (1.0 / TWO_PI)), 0.0)
-            V[wj] = Vw + TWO_PI * np.clip(np.floor((PI - Vw) * (1.0 / TWO_PI)), 0.0, kmax)
-        V = np.clip(V, tab.lo3, tab.up3)
-        V[~feas] = np.nan
-        Q = V[_J7_T, _ALT_INDEX_T].transpose(2, 1, 0)  # (m, 8, 7)
-        valid = ~np.isnan(Q).any(axis=2) & reach[:, None]
+            Vw = V[:, wj]
+            kmax = np.maximum(np.floor((tab.width3[wj, :, 0] - Xm[:, wj]) * (1.0 / TWO_PI)), 0.0)
+            V[:, wj] = Vw + TWO_PI * np.clip(np.floor((PI - Vw) * (1.0 / TWO_PI)), 0.0, kmax)
+        np.clip(V, tab.lo3[:, :, 0], tab.up3[:, :, 0], out=V)
+        valid = feas[:, _J7, _ALT_INDEX].all(axis=2) & reach[:, None]
+        Q = V[:, _J7, _ALT_INDEX]
         Q[~valid] = np.nan
         return Q, valid
 
-    # ------------------------------------------------------------------ feasible swivels, nearest solution
     def swivel_functions(self, T: np.ndarray) -> SwivelFunctions:
         """The closed-form joint functions of pose T along the swivel circle (see :mod:`.feasible`).
 
