@@ -119,14 +119,20 @@ def ok(arm: Arm, q: np.ndarray | None, T: np.ndarray, position_only: bool = Fals
 def dense_nearest(arm: SwivelArm, T: np.ndarray, seed: np.ndarray, n: int = DENSE) -> float:
     """Reference optimum: min over n swivels x 8 flip patterns x in-limit 2*pi copies of |q - seed|^2.
 
-    Built only from the public ``ik_batch`` (copies enumerated per joint, the cost is separable).
+    Built only from the public ``ik_batch`` (its rows hold each angle's in-limit copy nearest 0); for a
+    joint whose range exceeds 2*pi every other in-limit copy is enumerated (the cost is separable).
     """
     S = np.arange(n) * (TWO_PI / n) - math.pi
     Q, valid = arm.ik_batch(np.broadcast_to(T, (n, 4, 4)), S)
-    C = Q[..., None] + np.arange(-3, 4) * TWO_PI  # (n, 8, 7, 7 copies)
-    inl = (C >= arm.lower[:, None] - 1e-10) & (C <= arm.upper[:, None] + 1e-10)
-    d = np.where(inl, (C - seed[:, None]) ** 2, np.inf).min(axis=-1).sum(axis=-1)
-    d[~valid] = np.inf
+    Qv = Q[valid]  # (k, 7)
+    if len(Qv) == 0:
+        return math.inf
+    wide = (arm.upper - arm.lower) >= TWO_PI - 1e-9
+    d = ((Qv[:, ~wide] - seed[~wide]) ** 2).sum(axis=1)
+    if wide.any():
+        C = Qv[:, wide, None] + np.arange(-2, 3) * TWO_PI  # (k, w, 5)
+        lo, up = arm.lower[wide, None] - 1e-10, arm.upper[wide, None] + 1e-10
+        d = d + np.where((C >= lo) & (C <= up), (C - seed[wide, None]) ** 2, np.inf).min(axis=2).sum(axis=1)
     return float(d.min())
 
 
