@@ -144,7 +144,7 @@ def feasible_width(arm: SwivelArm, Ts: np.ndarray) -> np.ndarray:
     r = np.nonzero(reach)[0]
     if len(r):
         with np.errstate(invalid="ignore"):
-            width[r] = feasible_measure_batch(K[r], t4[r], dsh[r], dwr[r], arm._tables)[0]  # noqa: SLF001
+            width[r] = feasible_measure_batch(K[r], t4[r], dsh[r], dwr[r], arm._interval_tables)[0]  # noqa: SLF001
     return width
 
 

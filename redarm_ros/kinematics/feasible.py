@@ -78,11 +78,13 @@ PI = math.pi
 TWO_PI = 2.0 * math.pi
 INV_2PI = 1.0 / TWO_PI
 LIMIT_TOL = 1e-10  # rad, as ik: an angle this close outside a limit counts as on it (and is clipped)
+SEARCH_ROOT_TOL = LIMIT_TOL - 1e-13  # rad beyond a limit at the critical swivels of the nearest search
+INTERVAL_ROOT_TOL = 0.5 * LIMIT_TOL  # rad beyond a limit at the ends of feasible_swivels' intervals
 DEGEN_SIN = 1e-12  # as ik: |sin theta2| (|sin theta6|) below this uses the theta1 = 0 (theta5 = 0) convention
 TANGENT_TOL = 1e-9  # |e0| / hypot(e1, e2) up to 1 + this still gives a (touching) root
 MERGE_TOL = 1e-12  # rad; samples of the nearest search closer than this are one sample
 GRID = 16  # uniform swivel samples of the nearest search
-DIRECTIONS = 4  # equal-angle samples per pivot joint: atan2(Y, X) = k pi / DIRECTIONS
+DIRECTIONS = 8  # equal-angle samples per pivot joint: atan2(Y, X) = k pi / DIRECTIONS
 BIG = 1e30  # cost of an out-of-limit alternative (finite, so pattern sums stay one matrix product)
 DEPTH_MARGIN = 3.0  # a candidate basin may lie this many times its parabolic depth below its sample
 _DEBUG: list | None = None
@@ -123,9 +125,18 @@ def wrap(s: np.ndarray) -> np.ndarray:
 
 
 class LimitTables:
-    """Per-arm constants of the feasible-set computations: limits (rad) in the shapes they are used in."""
+    """Per-arm constants of the feasible-set computations: limits (rad) in the shapes they are used in.
 
-    def __init__(self, lower: np.ndarray, upper: np.ndarray) -> None:
+    ``root_tol`` (rad): the limit-crossing roots are where a joint is this far beyond its limit. ``ik``
+    accepts an angle up to LIMIT_TOL beyond a limit (and clips it), and near a joint's stationary point
+    that widens the feasible swivels by ~sqrt(2 LIMIT_TOL / theta'') (about 1e-5 rad). The nearest search
+    uses almost all of it (SEARCH_ROOT_TOL: its optimum may sit there, and a solve that round-off pushes
+    past the tolerance falls back to a swivel beside it); the public intervals keep half of it as a
+    margin (INTERVAL_ROOT_TOL), so that ``ik`` at an interval end accepts the joint even where its
+    computation is ill-conditioned (theta2 or theta6 near 0).
+    """
+
+    def __init__(self, lower: np.ndarray, upper: np.ndarray, root_tol: float = SEARCH_ROOT_TOL) -> None:
         self.lower = np.asarray(lower, dtype=float)
         self.upper = np.asarray(upper, dtype=float)
         self.lo_l = self.lower.tolist()
@@ -138,10 +149,10 @@ class LimitTables:
         self.wide = np.nonzero(self.upper - self.lower >= TWO_PI - 2 * LIMIT_TOL)[0]
         self.wide_l = self.wide.tolist()
         piv = list(_PIVOT_JOINTS)
-        lim = np.stack([self.lower[piv], self.upper[piv]], axis=1)  # (4, 2)
+        lim = np.stack([self.lower[piv] - root_tol, self.upper[piv] + root_tol], axis=1)  # (4, 2)
         self.piv_s = np.sin(lim)[:, :, None]
         self.piv_c = np.cos(lim)[:, :, None]
-        hin = np.stack([self.lower[[1, 5]], self.upper[[1, 5]]], axis=1)  # (2, 2)
+        hin = np.stack([self.lower[[1, 5]] - root_tol, self.upper[[1, 5]] + root_tol], axis=1)  # (2, 2)
         self.hinge_cos = np.cos(hin)
         # linear equation rows as one matrix product with K: E = Lmat @ K + Coff. Rows: per pivot joint
         # its two limits (8), per hinge joint its two limits (4), then per pivot joint the DIRECTIONS

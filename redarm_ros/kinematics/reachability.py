@@ -99,7 +99,7 @@ def capability_map(
     pts = np.nonzero(inside)[0]
     K = len(Rs)
     per = max(1, chunk // K)
-    tab = arm._tables  # noqa: SLF001 - the arm's limit tables
+    tab = arm._interval_tables  # noqa: SLF001 - the arm's limit tables (those of feasible_swivels)
     for k0 in range(0, len(pts), per):
         idx = pts[k0 : k0 + per]
         T = np.zeros((len(idx), K, 4, 4))

@@ -49,6 +49,7 @@ import numpy as np
 
 from redarm_ros.errors import InvalidInputError, UnreachableError
 from redarm_ros.kinematics.feasible import (
+    INTERVAL_ROOT_TOL,
     LimitTables,
     SwivelFunctions,
     feasible_intervals,
@@ -131,7 +132,8 @@ class SwivelArm(Arm):
         self._very_wide = [
             lo < -3 * PI or up > 3 * PI for lo, up in zip(self._lower_l, self._upper_l, strict=True)
         ]
-        self._tables = LimitTables(self.lower, self.upper)
+        self._tables = LimitTables(self.lower, self.upper)  # the nearest search's
+        self._interval_tables = LimitTables(self.lower, self.upper, INTERVAL_ROOT_TOL)  # feasible_swivels'
         self._shifts = []
         for lo, up in zip(self._lower_l, self._upper_l, strict=True):
             kmax = int(math.ceil(max(abs(lo), abs(up)) / TWO_PI)) + 1
@@ -711,7 +713,7 @@ class SwivelArm(Arm):
         :class:`UnreachableError` (with ``distance``) if the wrist is out of reach.
         """
         fn = self.swivel_functions(T)
-        return feasible_intervals(fn, self._tables)
+        return feasible_intervals(fn, self._interval_tables)
 
     def ik_nearest(
         self,
@@ -806,11 +808,11 @@ class SwivelArm(Arm):
         The closed-form functions and ``ik`` agree to round-off, except exactly at a singular swivel
         (theta2 or theta6 at 0 there: ``ik`` uses its theta1 = 0 convention, the functions the limit from
         one side) and at a limit (1e-10 rad tolerance). If the solve is infeasible there or costlier than
-        predicted, the swivels 1e-9 rad to either side are tried, then the next candidates.
+        predicted, the swivels 1e-9 and 1e-7 rad to either side are tried, then the next candidates.
         """
         best: tuple[np.ndarray, float, int, float] | None = None
         for pred, s, b in ranked[:4]:
-            for sv in (s, s - 1e-9, s + 1e-9):
+            for sv in (s, s - 1e-9, s + 1e-9, s - 1e-7, s + 1e-7):
                 r = self._branch_eval(Tl, circ, sv, b, seed, w)
                 if r is not None and (best is None or r[1] < best[3]):
                     best = (r[0], math.remainder(sv, TWO_PI), b, r[1])
