@@ -733,8 +733,11 @@ def _angles_np(
     K: np.ndarray, t4: np.ndarray, deg_sh: np.ndarray, deg_wr: np.ndarray, S: np.ndarray
 ) -> np.ndarray:
     """(m, 7, M) base-pattern angles at the swivels S (m, M) of m poses with coefficients K (m, 10, 3)."""
-    c, sn = np.cos(S), np.sin(S)
-    P = K[:, :, 0:1] + K[:, :, 1:2] * c[:, None, :] + K[:, :, 2:3] * sn[:, None, :]  # (m, 10, M)
+    CS = np.empty((S.shape[0], 3, S.shape[1]))
+    CS[:, 0] = 1.0
+    np.cos(S, out=CS[:, 1])
+    np.sin(S, out=CS[:, 2])
+    P = np.matmul(K, CS)  # (m, 10, M)
     th = np.empty((S.shape[0], 7, S.shape[1]))
     th[:, 0::2] = np.arctan2(P[:, 4:8], P[:, 0:4])
     XY = P[:, 0:7:2]
@@ -929,11 +932,12 @@ def nearest_batch(
         Ew = E[:, wj]
         kmax = np.maximum(np.floor((tab.width3[wj] - Xm[:, wj]) * INV_2PI), 0.0)
         E[:, wj] = Ew + TWO_PI * np.clip(np.rint(Ew * -INV_2PI), 0.0, kmax)
-    cost = np.einsum("bk,mkn->mbn", _SEL, np.where(feas, E * E * w[:, None, None], BIG).reshape(m, 14, M))
+    Cj = E * E * w[:, None, None]
+    np.copyto(Cj, BIG, where=~feas)
+    cost = np.matmul(_SEL, Cj.reshape(m, 14, M))  # (m, 8, M)
     # ---- candidates: sample-wise local minima per pattern; neighbours skip twins (gap <= MERGE_TOL)
-    left = np.concatenate([cost[:, :, -1:], cost[:, :, :-1]], axis=2)
-    right = np.concatenate([cost[:, :, 1:], cost[:, :, :1]], axis=2)
-    cm, cb, ci = np.nonzero((cost < 0.5 * BIG) & (cost <= left) & (cost <= right))
+    cp = np.concatenate([cost[:, :, -1:], cost, cost[:, :, :1]], axis=2)
+    cm, cb, ci = np.nonzero((cost < 0.5 * BIG) & (cost <= cp[:, :, :-2]) & (cost <= cp[:, :, 2:]))
     best_s = np.full(m, np.nan)
     best_b = np.full(m, -1)
     best_f = np.full(m, np.inf)
@@ -955,9 +959,9 @@ def nearest_batch(
         xv = np.where(inner, 0.5 * (s0 + sr) - d1 / curv, s0)
         lb = np.where(inner, f0 - DEPTH_MARGIN * 0.5 * curv * (xv - s0) ** 2, f0)
     # refine the candidates whose bound is below the pose's best sample, at most BATCH_CANDIDATES each
-    fmin = np.full(m, np.inf)
-    np.minimum.at(fmin, cm, f0)
-    sel = lb <= fmin[cm] + 1e-12 * (1.0 + fmin[cm])
+    starts = np.flatnonzero(np.concatenate([[True], cm[1:] != cm[:-1]]))  # cm is sorted (C order)
+    fmin = np.repeat(np.minimum.reduceat(f0, starts), np.diff(np.append(starts, len(cm))))
+    sel = lb <= fmin + 1e-12 * (1.0 + fmin)
     order = np.lexsort((lb, cm))
     sel_o = sel[order]
     rank = np.zeros(len(order), int)
@@ -1027,9 +1031,11 @@ def nearest_batch(
     keep0 = f0 <= bf
     bx = np.where(keep0, s0, bx)
     bf = np.where(keep0, f0, bf)
-    # per pose the best candidate (ties: the first in bound order)
-    np.minimum.at(best_f, cm, bf)
-    win = bf <= best_f[cm]
+    # per pose the best candidate (ties: the first in bound order); take keeps each pose's run together
+    starts = np.flatnonzero(np.concatenate([[True], cm[1:] != cm[:-1]]))
+    gmin = np.minimum.reduceat(bf, starts)
+    best_f[cm[starts]] = gmin
+    win = bf <= np.repeat(gmin, np.diff(np.append(starts, len(cm))))
     wi = np.nonzero(win)[0][::-1]  # reverse so that the first winner of each pose is written last
     best_s[cm[wi]] = wrap(bx[wi])
     best_b[cm[wi]] = cb[wi]

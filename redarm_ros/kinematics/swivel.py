@@ -828,13 +828,14 @@ class SwivelArm(Arm):
         q_seeds: Any,
         *,
         weights: Sequence[float] | None = None,
-        chunk: int = 512,
+        chunk: int = 128,
     ) -> IKBatchResult:
         """:meth:`ik_nearest` for m poses at once, vectorised over the poses (same search, same optimum).
 
         Ts: (m, 4, 4); q_seeds: (m, 7) or one (7,) seed for all (rad); ``weights`` (7,) >= 0. Malformed
         input raises :class:`InvalidInputError` (naming the row). ``chunk`` poses are solved per pass
-        (memory: about 30 kB per pose). Returns an :class:`IKBatchResult` (q NaN where no solution).
+        (about 100 kB of temporaries per pose; 128 keep them in cache). Returns an
+        :class:`IKBatchResult` (q NaN where no solution).
         """
         Ts = self.check_poses(Ts)
         m = len(Ts)
