@@ -87,7 +87,6 @@ GRID = 16  # uniform swivel samples of the nearest search
 DIRECTIONS = 8  # equal-angle samples per pivot joint: atan2(Y, X) = k pi / DIRECTIONS
 BIG = 1e30  # cost of an out-of-limit alternative (finite, so pattern sums stay one matrix product)
 DEPTH_MARGIN = 3.0  # a candidate basin may lie this many times its parabolic depth below its sample
-_DEBUG: list | None = None
 
 # flip pattern b -> (f2, f4, f6) = bits of b (f2 most significant); per joint which alternative
 ALT_INDEX = np.array(
@@ -99,8 +98,6 @@ ALT_INDEX = np.array(
 # alternative 1 of a joint as an affine map of the base angle: theta -> sign * theta + shift
 ALT_SIGN = np.array([[1.0, 1.0 if j % 2 == 0 else -1.0] for j in range(7)])
 ALT_SHIFT = np.array([[0.0, PI if j % 2 == 0 else 0.0] for j in range(7)])
-_SIGN1 = ALT_SIGN[:, 1:2]
-_SHIFT1 = ALT_SHIFT[:, 1:2]
 _ALT_L = ALT_INDEX.tolist()
 _SIGN_L = [[float(ALT_SIGN[j, a]) for j, a in enumerate(row)] for row in ALT_INDEX.tolist()]
 _SHIFT_L = [[float(ALT_SHIFT[j, a]) for j, a in enumerate(row)] for row in ALT_INDEX.tolist()]
@@ -109,8 +106,6 @@ _SEL = np.zeros((8, 14))
 for _b in range(8):
     for _j in range(7):
         _SEL[_b, 2 * _j + ALT_INDEX[_b, _j]] = 1.0
-_DIR_ANG = np.arange(DIRECTIONS) * (PI / DIRECTIONS)
-_DIR_S, _DIR_C = np.sin(_DIR_ANG)[None, :, None], np.cos(_DIR_ANG)[None, :, None]
 _GRID_S = np.arange(GRID) * (TWO_PI / GRID) - PI
 
 # rows of the coefficient table K (const, cos s, sin s): pivot X rows, pivot Y rows, hinge Z rows
@@ -357,9 +352,9 @@ def roots(E: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     where the cos/sin part vanishes (the function is constant along the circle).
     """
     e1, e2 = E[:, 1], E[:, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        r = -E[:, 0] / np.sqrt(e1 * e1 + e2 * e2)
-    r[np.abs(r) > 1.0 + TANGENT_TOL] = np.nan  # also NaN (0/0) where the cos/sin part vanishes
+    # a vanishing cos/sin part gives |r| ~ 1e300 (no root), without a division warning
+    r = -E[:, 0] / np.maximum(np.sqrt(e1 * e1 + e2 * e2), 1e-300)
+    r[np.abs(r) > 1.0 + TANGENT_TOL] = np.nan
     phi = np.arctan2(e2, e1)
     d = np.arccos(np.clip(r, -1.0, 1.0))
     return phi + d, phi - d
@@ -590,10 +585,11 @@ def _sample_swivels(
     nc = len(Ec)
     rp, rm = roots(np.concatenate([Ec, Ed]))
     crit = np.concatenate([rp[:nc], rm[:nc], fn.extremes()])
-    crit = np.sort(wrap(crit[crit == crit]))
+    # (np.remainder: slow per element but one call; these arrays are small)
+    crit = np.sort(np.remainder(crit[crit == crit] + PI, TWO_PI) - PI)
     mids = (crit + np.append(crit[1:], crit[:1] + TWO_PI)) * 0.5
     plain = np.concatenate([rp[nc:], rm[nc:], _GRID_S, mids, [s_seed or 0.0]])
-    S = np.concatenate([crit, wrap(plain[plain == plain])])
+    S = np.concatenate([crit, np.remainder(plain[plain == plain] + PI, TWO_PI) - PI])
     flag = np.zeros(len(S), bool)
     flag[: len(crit)] = True
     order = np.argsort(S)
@@ -663,8 +659,6 @@ def nearest(
         zip(lb[keep].tolist(), bs[keep].tolist(), idx[keep].tolist(), xv[keep].tolist(), strict=True)
     )
     Sx = Sx.tolist()
-    if _DEBUG is not None:
-        _DEBUG.append(cands)
     w_l = w.tolist()
     lo, up = tab.lo_l, tab.up_l
     lot = (tab.lower - LIMIT_TOL).tolist()
