@@ -7,7 +7,10 @@ vectors (fixed seed), so every request is reachable. Modes:
 
 * ``swivel``: swivel given (closed form at that swivel), seed = the true q;
 * ``nearest``: no swivel, mid-range seed (``ik_nearest`` over all swivels);
-* ``nearest+all``: as ``nearest`` and every solution at the found swivel.
+* ``nearest+all``: as ``nearest`` and every solution at the found swivel;
+* ``burst``: 4 clients each keep 500 requests outstanding (sent before any answer is read; 4 x 50 with
+  ``--quick``): how many are answered and how long the whole burst takes. The clients use response
+  queues as deep as the burst (see docs/nodes.md, "Bursts and queues").
 
 Run: ``.venv/bin/python benchmarks/ik_service_bench.py [--calls 1000] [--quick]``; writes
 ``benchmarks/results/ik_service_bench.md`` unless ``--no-write``. Target: median round trip <= 1 ms.
@@ -176,6 +179,30 @@ def main(argv: list[str] | None = None) -> int:
                 times.append(time.perf_counter() - t)
                 ok += resp.status == SolveIK.Response.SUCCESS
             results[name] = (times, ok)
+        # burst: 4 clients x per_client outstanding requests, all sent before any answer is taken
+        from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+        per_client = 50 if args.quick else 500
+        qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=4096, reliability=ReliabilityPolicy.RELIABLE)
+        bnodes = [rclpy.create_node(f"ik_bench_burst_{k}", context=ctx) for k in range(4)]
+        bclients = [bn.create_client(SolveIK, "/ik_service/solve_ik", qos_profile=qos) for bn in bnodes]
+        for bn in bnodes:
+            ex.add_node(bn)
+        while not all(c.service_is_ready() for c in bclients):
+            ex.spin_once(timeout_sec=0.05)
+        reqs = modes["nearest"]
+        t0 = time.perf_counter()
+        futs = [
+            bclients[k].call_async(reqs[(4 * i + k) % len(reqs)]) for i in range(per_client) for k in range(4)
+        ]
+        deadline = time.monotonic() + 300.0
+        while not all(f.done() for f in futs) and time.monotonic() < deadline:
+            ex.spin_once(timeout_sec=0.05)
+        burst_s = time.perf_counter() - t0
+        answered = sum(f.done() for f in futs)
+        burst_ok = sum(f.done() and f.result().status == SolveIK.Response.SUCCESS for f in futs)
+        for bn in bnodes:
+            bn.destroy_node()
         ex.shutdown()
         node.destroy_node()
         rclpy.shutdown(context=ctx)
@@ -202,6 +229,11 @@ def main(argv: list[str] | None = None) -> int:
     lines.append(
         f"| arm.ik_nearest(T, mid-range seed) | {statistics.median(core['nearest']) * 1e3:.3f} | "
         f"{_pct(core['nearest'], 99) * 1e3:.3f} |"
+    )
+    lines.append("")
+    lines.append(
+        f"Burst: 4 clients x {per_client} outstanding requests: {answered} of {4 * per_client} answered "
+        f"({burst_ok} solved) in {burst_s:.2f} s ({4 * per_client / burst_s:.0f} requests/s)."
     )
     med = statistics.median(results["swivel"][0]) * 1e3
     lines.append("")

@@ -32,11 +32,35 @@ def test_benchmark_smoke(
     monkeypatch.setitem(sys.modules, "ik_bench", bench)  # dataclasses look their module up there
     spec.loader.exec_module(bench)
     out_md = tmp_path / "ik_bench.md"
-    assert bench.main(["--n", "12", "--peer-n", "2", "--arms", "pa10", "--out", str(out_md)]) == 0
+    args = [
+        "--n",
+        "12",
+        "--hard-n",
+        "3",
+        "--dense-n",
+        "3",
+        "--peer-n",
+        "2",
+        "--arms",
+        "pa10",
+        "--out",
+        str(out_md),
+    ]
+    assert bench.main(args) == 0
     text = out_md.read_text()
-    for solver in ("ik(T, s) closed form", "ik_nearest", "ik_batch", "DLS", "Flow sequential", "ikpy"):
+    for solver in (
+        "ik(T, s)",
+        "ik_nearest",
+        "ik_batch",
+        "ik_nearest_batch",
+        "DLS",
+        "Flow sequential",
+        "ikpy",
+    ):
         assert solver in text
-    assert "Targets" in text and "| pa10 |" in capsys.readouterr().out
+    for pose_set in ("uniform", "narrow", "theta4 at limit", "theta4 = 0"):
+        assert f"| {pose_set} |" in text
+    assert "load average" in text and "Targets" in text and "| pa10 |" in capsys.readouterr().out
     # the ikpy chain built from our model has our forward kinematics
     arm = load_arm("pa10")
     chain = bench.ikpy_chain(arm)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from redarm_ros.errors import ConfigError, InvalidInputError
-from redarm_ros.kinematics import Arm, load_arm
+from redarm_ros.kinematics import Arm, has_analytic_ik, has_swivel, load_arm
 from redarm_ros.kinematics.quaternion import qmul, quat_to_matrix, qy, qz, rotation_error
 
 ARMS = ["pa10", "pa10_7c", "powercube7", "powercube6"]
@@ -180,12 +180,14 @@ def test_generic_chain_yaml_reproduces_pa10(tmp_path: Path) -> None:
     path.write_text("\n".join(lines) + "\n")
     chain = load_arm(path)
     pa10 = load_arm("pa10")
-    assert chain.kind == "chain" and not chain.has_swivel
+    assert chain.kind == "chain" and not chain.has_swivel and not has_swivel(chain)
     for q in _rand_q(chain, 10, 5):
         assert np.allclose(chain.fk(q), pa10.fk(q), atol=1e-12)
         assert np.allclose(chain.key_points(q), pa10.key_points(q), atol=1e-12)
-    with pytest.raises(NotImplementedError):
-        chain.ik(pa10.fk(np.zeros(7)), 0.0)
+    # a generic chain has no closed form: the capability protocols say so (and it has no `ik`)
+    assert not has_analytic_ik(chain) and not hasattr(chain, "ik")
+    assert has_swivel(pa10) and has_analytic_ik(pa10) and pa10.has_swivel
+    assert has_analytic_ik(load_arm("powercube6")) and not has_swivel(load_arm("powercube6"))
 
 
 @pytest.mark.parametrize(
@@ -210,3 +212,47 @@ def test_bad_pose_rejected() -> None:
             arm.check_pose(B)
         with pytest.raises(InvalidInputError):
             arm.ik(B, 0.0)  # type: ignore[arg-type]
+
+
+def test_kinematics_modules_import_without_a_cycle() -> None:
+    """Every import between kinematics modules (also inside functions; not the type-checking-only ones)
+    points down one layering: no module needs one that needs it back."""
+    import ast
+
+    pkg = Path(__file__).resolve().parents[1] / "redarm_ros" / "kinematics"
+    graph: dict[str, set[str]] = {}
+    for path in pkg.glob("*.py"):
+        tree = ast.parse(path.read_text())
+        skip: set[int] = set()
+        for node in ast.walk(tree):  # `if TYPE_CHECKING:` blocks are for annotations only
+            if isinstance(node, ast.If) and getattr(node.test, "id", "") == "TYPE_CHECKING":
+                skip.update(id(n) for b in node.body for n in ast.walk(b))
+        deps = set()
+        for node in ast.walk(tree):
+            if id(node) in skip:
+                continue
+            if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("redarm_ros.kinematics."):
+                deps.add(node.module.rsplit(".", 1)[1])
+            elif isinstance(node, ast.Import):
+                deps.update(
+                    a.name.rsplit(".", 1)[1]
+                    for a in node.names
+                    if a.name.startswith("redarm_ros.kinematics.")
+                )
+        graph[path.stem] = deps - {path.stem}
+    state: dict[str, int] = {}
+
+    def visit(mod: str, trail: list[str]) -> None:
+        if state.get(mod) == 1:
+            raise AssertionError(f"import cycle: {' -> '.join(trail + [mod])}")
+        if state.get(mod) == 2:
+            return
+        state[mod] = 1
+        for dep in graph.get(mod, ()):
+            visit(dep, trail + [mod])
+        state[mod] = 2
+
+    for mod in graph:
+        visit(mod, [])
+    assert "swivel" not in graph["model"] and "loader" in graph["__init__"]
+    assert not (graph["numeric"] & {"model", "swivel", "powercube6", "loader"})

@@ -359,8 +359,10 @@ def test_cross_process_service_and_duplicate_refused(procs: Any, ctx: Any) -> No
         assert call(_bad("unknown_arm")).status == R.INVALID_INPUT
 
         # Discovery under load can take over a second: give the newcomer a generous window.
-        second = procs.start("ik_service_2", python_module_cmd("redarm_ros.nodes.ik_service", "--ros-args",
-                                                               "-p", "duplicate_check_s:=5.0"))
+        second = procs.start(
+            "ik_service_2",
+            python_module_cmd("redarm_ros.nodes.ik_service", "--ros-args", "-p", "duplicate_check_s:=5.0"),
+        )
         second.expect_exit()
         second.wait_for_line(r"already running", timeout=30.0)
         deadline = time.monotonic() + 15.0
@@ -371,11 +373,77 @@ def test_cross_process_service_and_duplicate_refused(procs: Any, ctx: Any) -> No
         resp = call(make_request(GOOD_T, "pa10"))
         assert resp.status == R.SUCCESS, resp.message
         # One forced past the start-up check (duplicate_check_s 0): the running node notices and says so.
-        third = procs.start("ik_service_3", python_module_cmd("redarm_ros.nodes.ik_service", "--ros-args",
-                                                              "-p", "duplicate_check_s:=0.0"),
-                            ready=r"serving /ik_service/solve_ik", ready_timeout=30.0)
+        third = procs.start(
+            "ik_service_3",
+            python_module_cmd("redarm_ros.nodes.ik_service", "--ros-args", "-p", "duplicate_check_s:=0.0"),
+            ready=r"serving /ik_service/solve_ik",
+            ready_timeout=30.0,
+        )
         first.wait_for_line(r"another node named /ik_service is running in this domain", timeout=20.0)
         procs.stop(third)
     finally:
         executor.shutdown()
         call.node.destroy_node()
+
+
+# ---------------------------------------------------------------------------------------------
+# Bursts: many requests outstanding at once are all answered (none dropped by the service's queue)
+# ---------------------------------------------------------------------------------------------
+def test_burst_of_2000_outstanding_requests_all_answered(procs: Any, ctx: Any) -> None:
+    """4 clients keep 500 requests each outstanding (sent before any answer is read) against the node
+    in its own process: every one of the 2000 gets its answer, and each answer is for its request.
+
+    The service's queue (``request_queue_depth``, default 4096) holds the requests; with the old depth of
+    10 only about 600 of these 2000 reached the node. The callers use response queues deep enough for
+    every answer in flight (the middleware delivers the replies of all clients of a service to every
+    client, which keeps only its own: a depth of 10 there loses answers on the caller's side).
+    Bounded: 2000 requests, 600 s at most."""
+    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+    procs.start(
+        "ik_service_burst",
+        python_module_cmd(
+            "redarm_ros.nodes.ik_service",
+            "--ros-args",
+            "-r",
+            "__node:=ik_burst",
+            "-p",
+            "arms:=[pa10]",
+            "-p",
+            "duplicate_check_s:=0.0",
+        ),
+        ready=r"serving /ik_burst/solve_ik",
+        ready_timeout=60.0,
+    )
+    executor = SingleThreadedExecutor(context=ctx)
+    qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=4096, reliability=ReliabilityPolicy.RELIABLE)
+    nodes = [rclpy.create_node(f"ik_burst_client_{k}", context=ctx) for k in range(4)]
+    clients = [n.create_client(SolveIK, "/ik_burst/solve_ik", qos_profile=qos) for n in nodes]
+    for n in nodes:
+        executor.add_node(n)
+    try:
+        deadline = time.monotonic() + 60.0
+        while not all(c.service_is_ready() for c in clients):
+            assert time.monotonic() < deadline, "service did not appear"
+            executor.spin_once(timeout_sec=0.05)
+        arm = load_arm("pa10")
+        rng = np.random.default_rng(21)
+        Q = rng.uniform(0.8 * arm.lower, 0.8 * arm.upper, (2000, 7))
+        futures = []
+        for i in range(500):  # interleaved: each client has all its 500 requests in flight
+            for k, c in enumerate(clients):
+                idx = 4 * i + k
+                futures.append((idx, c.call_async(make_request(arm.fk(Q[idx]), "pa10"))))
+        deadline = time.monotonic() + 600.0
+        while not all(f.done() for _, f in futures) and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.05)
+        answered = [(idx, f.result()) for idx, f in futures if f.done()]
+        assert len(answered) == 2000, f"{2000 - len(answered)} of 2000 requests never answered"
+        for idx, resp in answered[::50]:  # each answer solves its own request
+            assert resp.status == R.SUCCESS, resp.message
+            assert arm.pose_error(np.array(resp.solution.position), arm.fk(Q[idx]))[0] < 1e-9
+        assert all(resp.status == R.SUCCESS for _, resp in answered)
+    finally:
+        executor.shutdown()
+        for n in nodes:
+            n.destroy_node()

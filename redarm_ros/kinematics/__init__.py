@@ -6,11 +6,17 @@ Quaternions inside this package are (w, x, y, z) unless a name says otherwise (`
     arm = load_arm("pa10")
     T = arm.fk(q)                    # 4x4 base -> tool
     sols = arm.ik(T, swivel=0.3)     # (k, 7), every in-limit solution at that swivel
+    ivs = arm.feasible_swivels(T)    # per flip pattern, the in-limit swivel intervals (closed form)
     q, info = arm.ik_nearest(T, q_seed)
+
+Module layering (no import cycle): ``errors``, ``result``, ``quaternion``, ``protocols`` <- ``numeric``
+<- ``model`` <- ``feasible`` <- ``swivel``, ``powercube6`` <- ``loader`` <- ``solve``, ``reachability``.
 """
 
-from redarm_ros.kinematics.model import Arm, Joint, available_arms, build_arm, load_arm, pose_error
+from redarm_ros.kinematics.loader import arm_config_dirs, available_arms, build_arm, load_arm
+from redarm_ros.kinematics.model import Arm, Joint, pose_error
 from redarm_ros.kinematics.powercube6 import PowerCube6Arm
+from redarm_ros.kinematics.protocols import AnalyticIK, SwivelKinematics, has_analytic_ik, has_swivel
 from redarm_ros.kinematics.result import IKInfo, IKStatus
 from redarm_ros.kinematics.swivel import SwivelArm
 
@@ -19,10 +25,15 @@ __all__ = [
     "Joint",
     "SwivelArm",
     "PowerCube6Arm",
+    "AnalyticIK",
+    "SwivelKinematics",
+    "has_swivel",
+    "has_analytic_ik",
     "IKInfo",
     "IKStatus",
     "load_arm",
     "build_arm",
     "available_arms",
+    "arm_config_dirs",
     "pose_error",
 ]

@@ -1,4 +1,4 @@
-"""Arm models: a serial chain of revolute joints loaded from ``config/arms/*.yaml``.
+"""Arm models: a serial chain of revolute joints (FK, Jacobian, validation); no configuration here.
 
 A model is the chain ``frame_i = frame_{i-1} @ origin_i @ Rot(axis_i, q_i)`` (frame_0 = base), with
 the tool fixed to the last joint frame: ``fk(q) = frame_n @ tool``. This is URDF's joint semantics, so
@@ -8,33 +8,113 @@ appear, are (w, x, y, z).
 :class:`Arm` holds everything that works for any chain (FK, frames, key points, geometric Jacobian,
 input validation, numeric IK as the fallback for ``ik_nearest``). :mod:`.swivel` adds the closed-form
 swivel IK of 7-DOF spherical-shoulder/wrist arms, :mod:`.powercube6` the analytic IK of the 6-DOF
-PowerCube arm. :func:`load_arm` picks the class from the YAML ``kind``.
+PowerCube arm. :mod:`.loader` builds models from ``config/arms/*.yaml`` (``load_arm``).
 """
 
 from __future__ import annotations
 
 import logging
 import math
-import os
-import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 from redarm_ros.errors import ConfigError, InvalidInputError
+from redarm_ros.kinematics.numeric import solve_dls
+from redarm_ros.kinematics.protocols import SwivelKinematics
 from redarm_ros.kinematics.quaternion import matrix_to_quat, rotation_error
 from redarm_ros.kinematics.result import IKInfo, IKStatus
 
 _log = logging.getLogger(__name__)
 
-__all__ = ["Joint", "Arm", "load_arm", "arm_config_dirs", "available_arms", "rot_axis", "pose_error"]
+__all__ = [
+    "Joint",
+    "Arm",
+    "rot_axis",
+    "pose_error",
+    "transform_from_xyz_rpy",
+    "check_finite_array",
+    "check_scalar",
+    "ORTHO_TOL",
+    "LIMIT_TOL",
+    "POSITION_RANGE",
+    "ANGLE_RANGE",
+]
 
 ORTHO_TOL = 1e-6  # how far R^T R may be from I before a pose is rejected
 LIMIT_TOL = 1e-10  # rad; solutions this close outside a limit are clipped onto it
+POSITION_RANGE = 1e6  # m; a coordinate beyond this is refused as out of range (not a real target)
+ANGLE_RANGE = 1e6  # rad; a joint angle, swivel or seed beyond this is refused (2*pi copies lose meaning)
+
+
+def _describe_bad(a: np.ndarray) -> str:
+    """What is wrong with a float array that failed the finite check: NaN or inf, and where."""
+    bad = np.argwhere(~np.isfinite(a))
+    idx = tuple(int(v) for v in bad[0]) if len(bad) else ()
+    v = float(a[idx]) if len(bad) else math.nan
+    where = f" at index {idx[0] if len(idx) == 1 else idx}" if idx else ""
+    return f"{'NaN' if math.isnan(v) else 'inf'}{where}"
+
+
+def check_finite_array(
+    x: Any, field: str, shape: tuple[int | None, ...] | None = None, limit: float | None = None
+) -> np.ndarray:
+    """``x`` as a float ndarray, or :class:`InvalidInputError` saying what is wrong with it.
+
+    ``shape``: required shape (None entries match any length). ``limit``: largest accepted absolute
+    value (a finite value beyond it is "out of range", not "NaN or inf"). Complex, ragged and
+    non-numeric input is refused with the reason.
+    """
+    if isinstance(x, np.ndarray) and x.dtype.kind == "f":
+        a = x if x.dtype == np.float64 else x.astype(float)
+    else:
+        try:
+            a0 = np.asarray(x)
+        except (TypeError, ValueError) as exc:  # nested sequences of different lengths
+            raise InvalidInputError(f"{field} is ragged: {exc}", field=field, value=x) from exc
+        if a0.dtype.kind == "c":
+            raise InvalidInputError(f"{field} must be real, got complex values", field=field, value=x)
+        try:
+            a = a0.astype(float)
+        except (TypeError, ValueError) as exc:
+            raise InvalidInputError(f"{field} is not numeric: {exc}", field=field, value=x) from exc
+    if shape is not None and (
+        a.ndim != len(shape)
+        or any(want is not None and got != want for got, want in zip(a.shape, shape, strict=True))
+    ):
+        want_s = (
+            "(" + ", ".join("m" if v is None else str(v) for v in shape) + ("," if len(shape) == 1 else "")
+        )
+        raise InvalidInputError(f"{field} must have shape {want_s}), got {a.shape}", field=field, value=x)
+    if not np.isfinite(a).all():
+        raise InvalidInputError(f"{field} contains {_describe_bad(a)}", field=field, value=x)
+    if limit is not None and a.size and float(np.max(np.abs(a))) > limit:
+        big = float(np.max(np.abs(a)))
+        raise InvalidInputError(
+            f"{field} is out of range: |value| {big:.3g} > {limit:.3g}", field=field, value=x
+        )
+    return a
+
+
+def check_scalar(x: Any, field: str, limit: float | None = None) -> float:
+    """``x`` as a finite real float (bools refused), or :class:`InvalidInputError` with the reason."""
+    if isinstance(x, bool) or isinstance(x, complex) or np.iscomplexobj(x):
+        raise InvalidInputError(f"{field} must be a real number, got {x!r}", field=field, value=x)
+    try:
+        v = float(x)
+    except (TypeError, ValueError) as exc:
+        raise InvalidInputError(f"{field} must be a number, got {x!r}", field=field, value=x) from exc
+    if math.isnan(v):
+        raise InvalidInputError(f"{field} is NaN", field=field, value=x)
+    if math.isinf(v):
+        raise InvalidInputError(f"{field} is {v} (must be finite)", field=field, value=x)
+    if limit is not None and abs(v) > limit:
+        raise InvalidInputError(
+            f"{field} = {v:.6g} is out of range (|{field}| <= {limit:g})", field=field, value=x
+        )
+    return v
 
 
 @dataclass(frozen=True)
@@ -113,7 +193,6 @@ class Arm:
     """
 
     kind = "chain"
-    has_swivel = False  # True for arms with the closed-form swivel IK (self-motion on an elbow circle)
 
     def __init__(
         self,
@@ -159,47 +238,52 @@ class Arm:
 
     # ------------------------------------------------------------------ validation
     def check_q(self, q: Any, field: str = "q") -> np.ndarray:
-        """q as a float (n,) array; raises :class:`InvalidInputError` on wrong length or NaN/inf."""
+        """q as a float (n,) array (rad).
+
+        Raises :class:`InvalidInputError` saying what is wrong: not numeric / complex / ragged, wrong
+        length, NaN, inf, or a value beyond ``ANGLE_RANGE`` (out of range).
+        """
+        if isinstance(q, np.ndarray) and q.dtype == np.float64 and q.shape == (self.n,):
+            lst = q.tolist()
+            if all(-ANGLE_RANGE <= v <= ANGLE_RANGE for v in lst):  # False for NaN too
+                return q
         try:
-            a = np.asarray(q, dtype=float)
-        except (TypeError, ValueError) as exc:
-            raise InvalidInputError(f"{field} is not numeric: {q!r}", field=field, value=q) from exc
-        if a.shape != (self.n,):
-            raise InvalidInputError(
-                f"{field} must have shape ({self.n},) for arm {self.name!r}, got {a.shape}",
-                field=field,
-                value=q,
-            )
-        if not np.all(np.isfinite(a)):
-            raise InvalidInputError(f"{field} contains NaN or inf: {a}", field=field, value=q)
-        return a
+            return check_finite_array(q, field, (self.n,), ANGLE_RANGE)
+        except InvalidInputError as exc:
+            if exc.args[0].startswith(f"{field} must have shape"):
+                raise InvalidInputError(
+                    f"{exc.args[0]} (arm {self.name!r} has {self.n} joints)", field=field, value=q
+                ) from None
+            raise
 
     @staticmethod
     def check_pose(T: Any, field: str = "T") -> list[list[float]]:
-        """Validate a 4x4 homogeneous transform and return it as nested lists.
+        """Validate a 4x4 homogeneous transform (m) and return it as nested lists.
 
-        Raises :class:`InvalidInputError` for a wrong shape, NaN/inf, a bottom row other than
+        Raises :class:`InvalidInputError` for a non-numeric / complex / ragged value, a wrong shape,
+        NaN or inf, a position beyond ``POSITION_RANGE`` (out of range), a bottom row other than
         (0, 0, 0, 1), or a rotation part that is not orthonormal with det +1 (tolerance 1e-6).
         """
-        if isinstance(T, np.ndarray) and T.shape == (4, 4):
+        if isinstance(T, np.ndarray) and T.shape == (4, 4) and T.dtype == np.float64:
             Tl = T.tolist()
         else:
-            try:
-                a = np.asarray(T, dtype=float)
-            except (TypeError, ValueError) as exc:
-                raise InvalidInputError(f"{field} is not a numeric 4x4 matrix", field=field, value=T) from exc
-            if a.shape != (4, 4):
-                raise InvalidInputError(
-                    f"{field} must be a 4x4 matrix, got shape {a.shape}", field=field, value=T
-                )
-            Tl = a.tolist()
+            Tl = check_finite_array(T, field, (4, 4)).tolist()
         r0, r1, r2, r3 = Tl
-        try:
-            total = math.fsum(r0) + math.fsum(r1) + math.fsum(r2) + math.fsum(r3)
-        except (TypeError, OverflowError, ValueError) as exc:
-            raise InvalidInputError(f"{field} contains NaN or inf", field=field, value=T) from exc
-        if not math.isfinite(total) or not all(math.isfinite(v) for row in Tl for v in row):
-            raise InvalidInputError(f"{field} contains NaN or inf", field=field, value=T)
+        lim = POSITION_RANGE
+        if not (
+            -lim <= r0[3] <= lim
+            and -lim <= r1[3] <= lim
+            and -lim <= r2[3] <= lim
+            and all(-2.0 <= v <= 2.0 for v in (r0[0], r0[1], r0[2], r1[0], r1[1], r1[2], r2[0], r2[1], r2[2]))
+        ):  # NaN fails every comparison: the slow path says exactly what is wrong
+            a = check_finite_array(Tl, field, (4, 4))
+            pos = np.abs(a[:3, 3])
+            if float(pos.max()) > lim:
+                raise InvalidInputError(
+                    f"{field} position {a[:3, 3].tolist()} is out of range (|coordinate| <= {lim:g} m)",
+                    field=field,
+                    value=T,
+                )
         if abs(r3[0]) > 1e-9 or abs(r3[1]) > 1e-9 or abs(r3[2]) > 1e-9 or abs(r3[3] - 1.0) > 1e-9:
             raise InvalidInputError(
                 f"{field} bottom row must be (0, 0, 0, 1), got {r3}", field=field, value=T
@@ -216,7 +300,7 @@ class Arm:
             abs(b0 * c0 + b1 * c1 + b2 * c2),
         )
         det = c0 * (a1 * b2 - a2 * b1) + c1 * (a2 * b0 - a0 * b2) + c2 * (a0 * b1 - a1 * b0)
-        if err > ORTHO_TOL or det < 0.0:
+        if not (err <= ORTHO_TOL and det > 0.0):
             raise InvalidInputError(
                 f"{field} rotation part is not orthonormal with det +1 "
                 f"(max |R^T R - I| = {err:.3g}, det {det:.3g})",
@@ -224,6 +308,62 @@ class Arm:
                 value=T,
             )
         return Tl
+
+    @staticmethod
+    def check_poses(Ts: Any, field: str = "Ts") -> np.ndarray:
+        """Validate m 4x4 homogeneous transforms at once; returns them as a float (m, 4, 4) array.
+
+        Same rules as :meth:`check_pose`, vectorised. Raises :class:`InvalidInputError` naming the first
+        offending row and the reason; ``value`` holds the indices of every offending row.
+        """
+        a = check_finite_array(Ts, field, (None, 4, 4))
+        if len(a) == 0:
+            return a
+        p = a[:, :3, 3]
+        pos_bad = np.abs(p).max(axis=1) > POSITION_RANGE
+        bottom_bad = np.abs(a[:, 3, :] - (0.0, 0.0, 0.0, 1.0)).max(axis=1) > 1e-9
+        # columns c0, c1, c2 of R: unit length, mutually orthogonal, c0 x c1 . c2 > 0 (as check_pose)
+        c = [[a[:, i, j] for i in range(3)] for j in range(3)]
+        err = np.zeros(len(a))
+        for j, k in ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2)):
+            d = c[j][0] * c[k][0] + c[j][1] * c[k][1] + c[j][2] * c[k][2]
+            err = np.maximum(err, np.abs(d - 1.0) if j == k else np.abs(d))
+        (a0, a1, a2), (b0, b1, b2), (c0, c1, c2) = c
+        det = c0 * (a1 * b2 - a2 * b1) + c1 * (a2 * b0 - a0 * b2) + c2 * (a0 * b1 - a1 * b0)
+        rot_bad = ~((err <= ORTHO_TOL) & (det > 0.0))
+        for bad, why in (
+            (pos_bad, f"position out of range (|coordinate| <= {POSITION_RANGE:g} m)"),
+            (bottom_bad, "bottom row is not (0, 0, 0, 1)"),
+            (rot_bad, "rotation part is not orthonormal with det +1 (tolerance 1e-6)"),
+        ):
+            if bad.any():
+                rows = np.nonzero(bad)[0]
+                i = int(rows[0])
+                extra = f" (and {len(rows) - 1} more rows)" if len(rows) > 1 else ""
+                detail = ""
+                if why.startswith("rotation"):
+                    detail = f": max |R^T R - I| = {err[i]:.3g}, det {det[i]:.3g}"
+                raise InvalidInputError(
+                    f"{field}[{i}]: {why}{detail}{extra}", field=field, value=rows.tolist()
+                )
+        return a
+
+    def nearest_copies(self, Q: Any, ref: Any) -> np.ndarray:
+        """Each joint angle of Q ((n,) or (k, n), rad) moved to its in-limit 2*pi copy nearest ``ref`` (n,).
+
+        Q's angles must have an in-limit copy (solutions from ``ik``); ``ref`` may lie outside the limits.
+        A joint with a range below 2*pi has one copy; PA10 joints 5 and 7 have two or three.
+        """
+        Qa = check_finite_array(Q, "Q", None, ANGLE_RANGE)
+        r = check_finite_array(ref, "ref", (self.n,), ANGLE_RANGE)
+        lot = self.lower - LIMIT_TOL
+        width = self.upper - self.lower + 2.0 * LIMIT_TOL
+        X = Qa - lot
+        Xm = X - 2.0 * math.pi * np.floor(X / (2.0 * math.pi))
+        kmax = np.maximum(np.floor((width - Xm) / (2.0 * math.pi)), 0.0)
+        V0 = Xm + lot
+        k = np.clip(np.rint((r - V0) / (2.0 * math.pi)), 0.0, kmax)
+        return np.clip(V0 + 2.0 * math.pi * k, self.lower, self.upper)
 
     def within_limits(self, q: np.ndarray, tol: float = LIMIT_TOL) -> bool:
         """True if every joint of q lies in [lower - tol, upper + tol]."""
@@ -319,305 +459,76 @@ class Arm:
         pts[4] = F[self.n, :3, 3]
         return pts
 
+    def fk_jacobian(self, q: Sequence[float]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(R (3, 3), p (3,), J (6, n)) of the tool at q (rad): FK and the geometric Jacobian in one pass.
+
+        J's rows are [linear velocity; angular velocity] in the base frame (the scalar FK path, cheap
+        enough for the inner loop of the numeric solvers).
+        """
+        qa = self.check_q(q)
+        rec: list[tuple[list[float], list[float]]] = []
+        R, p = self._fk_lists(qa.tolist(), rec)
+        Og = np.array([r[0] for r in rec])
+        Z = np.array([r[1] for r in rec])
+        pa = np.array(p)
+        J = np.empty((6, self.n))
+        J[:3] = np.cross(Z, pa - Og).T
+        J[3:] = Z.T
+        return np.array(R), pa, J
+
+    def fk_axes(self, q: Sequence[float]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(p (3,), O (n, 3), Z (n, 3)): tool position, and each joint's origin and unit axis, base frame."""
+        qa = self.check_q(q)
+        rec: list[tuple[list[float], list[float]]] = []
+        _, p = self._fk_lists(qa.tolist(), rec)
+        return np.array(p), np.array([r[0] for r in rec]), np.array([r[1] for r in rec])
+
     def jacobian(self, q: Sequence[float]) -> np.ndarray:
         """(6, n) geometric Jacobian in the base frame: rows [linear velocity; angular velocity]."""
-        F = self.fk_frames(q)
-        p = F[self.n, :3, 3]
-        J = np.empty((6, self.n))
-        for i, j in enumerate(self.chain):
-            z = F[i, :3, :3] @ j.axis
-            J[:3, i] = np.cross(z, p - F[i, :3, 3])
-            J[3:, i] = z
-        return J
+        return self.fk_jacobian(q)[2]
 
     # ------------------------------------------------------------------ inverse kinematics (generic)
-    def ik(self, T: np.ndarray, swivel: float | None = None) -> np.ndarray:
-        """Closed-form IK is not available for a generic chain; use :meth:`ik_nearest` or numeric.py."""
-        raise NotImplementedError(f"arm {self.name!r} (kind {self.kind}) has no closed-form IK")
-
-    def ik_u(self, T: np.ndarray, u: Sequence[float]) -> np.ndarray:
-        """Swivel-quaternion IK; only swivel arms have it."""
-        raise NotImplementedError(f"arm {self.name!r} (kind {self.kind}) has no swivel parameterisation")
-
-    def ik_batch(self, Ts: np.ndarray, swivels: Any = None) -> tuple[np.ndarray, np.ndarray]:
-        """Vectorised closed form; not available for a generic chain."""
-        raise NotImplementedError(f"arm {self.name!r} (kind {self.kind}) has no closed-form IK")
+    @property
+    def has_swivel(self) -> bool:
+        """True if the model has the closed-form swivel IK (the same test as
+        :func:`redarm_ros.kinematics.protocols.has_swivel`)."""
+        return isinstance(self, SwivelKinematics)
 
     def swivel(self, q: Sequence[float]) -> float:
         """Swivel angle (rad). Arms without an elbow circle have no self-motion parameter: always 0.0."""
         self.check_q(q)
         return 0.0
 
-    def elbow_circle(self, T: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-        """Elbow circle (C, n, rho); only swivel arms have one."""
-        raise NotImplementedError(f"arm {self.name!r} (kind {self.kind}) has no elbow circle")
-
     def ik_nearest(
-        self, T: np.ndarray, q_seed: Sequence[float], **opts: Any
+        self,
+        T: np.ndarray,
+        q_seed: Sequence[float],
+        *,
+        timeout_s: float | None = 5e-3,
+        tol: float = 1e-5,
+        max_iter: int = 1000,
+        rng_seed: int = 0,
     ) -> tuple[np.ndarray | None, IKInfo]:
-        """Generic fallback: damped least squares from the seed (see :func:`numeric.solve_dls`)."""
-        from redarm_ros.kinematics.numeric import solve_dls
+        """Generic fallback: damped least squares from the seed (:func:`numeric.solve_dls`).
 
+        ``timeout_s`` (s, None = no limit) bounds the search; when it runs out the status is TIMEOUT.
+        Unknown keyword arguments raise ``TypeError``.
+        """
         try:
             self.check_pose(T)
             seed = self.check_q(q_seed, "q_seed")
         except InvalidInputError as exc:
             return None, IKInfo(IKStatus.INVALID_INPUT, str(exc))
-        return solve_dls(self, np.asarray(T, dtype=float), seed, **opts)
+        return solve_dls(
+            self,
+            np.asarray(T, dtype=float),
+            seed,
+            tol=tol,
+            max_iter=max_iter,
+            timeout_s=timeout_s,
+            rng_seed=rng_seed,
+        )
 
     def pose_error(self, q: Sequence[float], T: np.ndarray) -> tuple[float, float]:
         """(position error m, orientation error rad) of fk(q) against T."""
         return pose_error(self.fk(q), T)
-
-
-# ---------------------------------------------------------------------- loading
-def arm_config_dirs() -> list[Path]:
-    """Directories searched for ``<name>.yaml``, in order.
-
-    ``$REDARM_ARMS_DIR`` (os.pathsep separated), the source tree's ``config/arms``, the installed
-    ``share/redarm_ros/config/arms`` under ``sys.prefix``, and the ament index share directory if
-    ``ament_index_python`` is importable.
-    """
-    dirs: list[Path] = []
-    env = os.environ.get("REDARM_ARMS_DIR")
-    if env:
-        dirs.extend(Path(p) for p in env.split(os.pathsep) if p)
-    dirs.append(Path(__file__).resolve().parents[2] / "config" / "arms")
-    dirs.append(Path(sys.prefix) / "share" / "redarm_ros" / "config" / "arms")
-    try:  # ROS install without rclpy: ament_index_python is plain Python
-        from ament_index_python.packages import get_package_share_directory
-
-        dirs.append(Path(get_package_share_directory("redarm_ros")) / "config" / "arms")
-    except Exception:  # noqa: BLE001 - not installed the ament way; the other dirs still apply
-        pass
-    return dirs
-
-
-def available_arms() -> list[str]:
-    """Names of the arm YAML files found in :func:`arm_config_dirs`."""
-    names: set[str] = set()
-    for d in arm_config_dirs():
-        if d.is_dir():
-            names.update(p.stem for p in d.glob("*.yaml"))
-    return sorted(names)
-
-
-def _find_config(name: str | os.PathLike[str]) -> Path:
-    p = Path(name)
-    if p.suffix in (".yaml", ".yml") or os.sep in str(name):
-        if p.is_file():
-            return p
-        raise ConfigError(f"arm config file {str(p)!r} does not exist", field="name", value=str(name))
-    for d in arm_config_dirs():
-        cand = d / f"{name}.yaml"
-        if cand.is_file():
-            return cand
-    raise ConfigError(
-        f"unknown arm {str(name)!r}; known arms: {', '.join(available_arms()) or '(none)'}",
-        field="name",
-        value=str(name),
-    )
-
-
-_OVERRIDE_KEYS = {
-    "link_lengths",
-    "lower",
-    "upper",
-    "max_vel",
-    "max_acc",
-    "joint_names",
-    "name",
-    "roll_fractions",
-}
-
-
-def load_arm(name: str | os.PathLike[str] = "pa10", **overrides: Any) -> Arm:
-    """Load an arm model by name (``config/arms/<name>.yaml``) or from a YAML path.
-
-    Keyword overrides replace YAML values: ``link_lengths`` (m), ``lower``/``upper`` (rad, (n,)),
-    ``max_vel`` (rad/s), ``max_acc`` (rad/s^2), ``joint_names``, ``name``, ``roll_fractions``
-    (powercube6). Raises :class:`ConfigError` for an unknown name, a broken file or a bad override.
-    """
-    path = _find_config(name)
-    try:
-        with open(path, encoding="utf-8") as fh:
-            cfg = yaml.safe_load(fh)
-    except (OSError, yaml.YAMLError) as exc:
-        raise ConfigError(
-            f"cannot read arm config {str(path)!r}: {exc}", field="name", value=str(name)
-        ) from exc
-    if not isinstance(cfg, dict):
-        raise ConfigError(f"arm config {str(path)!r} is not a mapping", field="name", value=str(name))
-    unknown = set(overrides) - _OVERRIDE_KEYS
-    if unknown:
-        raise ConfigError(
-            f"unknown override(s) {sorted(unknown)}; allowed: {sorted(_OVERRIDE_KEYS)}",
-            field=sorted(unknown)[0],
-        )
-    cfg = dict(cfg)
-    cfg["_path"] = str(path)
-    return build_arm(cfg, **overrides)
-
-
-def _joint_specs(cfg: dict[str, Any], overrides: dict[str, Any]) -> list[dict[str, Any]]:
-    name = cfg.get("name", "?")
-    joints = cfg.get("joints")
-    if not isinstance(joints, list) or not joints:
-        raise ConfigError(f"arm {name!r}: 'joints' must be a non-empty list", field="joints")
-    n = len(joints)
-    specs = []
-    for i, jc in enumerate(joints):
-        if not isinstance(jc, dict):
-            raise ConfigError(f"arm {name!r}: joint {i} must be a mapping", field="joints")
-        try:
-            if "limits_deg" in jc:
-                lo, up = (math.radians(float(v)) for v in jc["limits_deg"])
-            else:
-                lo, up = (float(v) for v in jc["limits"])
-            spec = {
-                "name": str(jc.get("name", f"{name}_joint_{i + 1}")),
-                "lower": lo,
-                "upper": up,
-                "max_vel": float(jc["max_vel"]),
-                "max_acc": float(jc["max_acc"]),
-                "axis": jc.get("axis"),
-                "origin": jc.get("origin"),
-            }
-        except (KeyError, TypeError, ValueError) as exc:
-            raise ConfigError(
-                f"arm {name!r}: joint {i} is incomplete or malformed ({exc!r})", field="joints"
-            ) from exc
-        specs.append(spec)
-    for key in ("lower", "upper", "max_vel", "max_acc"):
-        if key in overrides:
-            vals = np.asarray(overrides[key], dtype=float)
-            if vals.shape != (n,) or not np.all(np.isfinite(vals)):
-                raise ConfigError(
-                    f"override {key} must be {n} finite numbers", field=key, value=overrides[key]
-                )
-            for s, v in zip(specs, vals, strict=True):
-                s[key] = float(v)
-    if "joint_names" in overrides:
-        names = list(overrides["joint_names"])
-        if len(names) != n:
-            raise ConfigError(f"override joint_names must have {n} entries", field="joint_names")
-        for s, v in zip(specs, names, strict=True):
-            s["name"] = str(v)
-    for i, s in enumerate(specs):
-        if not (s["lower"] <= s["upper"]):
-            raise ConfigError(
-                f"arm {name!r}: joint {i} has lower > upper", field="limits", value=(s["lower"], s["upper"])
-            )
-        if not (s["max_vel"] > 0 and s["max_acc"] > 0):
-            raise ConfigError(f"arm {name!r}: joint {i} needs positive max_vel and max_acc", field="max_vel")
-    return specs
-
-
-def _axis(spec: Any, where: str) -> np.ndarray:
-    table = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}
-    if isinstance(spec, str) and spec in table:
-        return np.array(table[spec])
-    try:
-        a = np.asarray(spec, dtype=float)
-    except (TypeError, ValueError) as exc:
-        raise ConfigError(f"{where}: axis {spec!r} is not x/y/z or a 3-vector", field="axis") from exc
-    if a.shape != (3,) or not np.isfinite(a).all() or np.linalg.norm(a) < 1e-9:
-        raise ConfigError(f"{where}: axis {spec!r} is not x/y/z or a non-zero 3-vector", field="axis")
-    return a / np.linalg.norm(a)
-
-
-def _origin(spec: Any, where: str) -> np.ndarray:
-    if spec is None:
-        return np.eye(4)
-    try:
-        xyz = [float(v) for v in spec.get("xyz", (0, 0, 0))]
-        rpy = [float(v) for v in spec.get("rpy", (0, 0, 0))]
-        if len(xyz) != 3 or len(rpy) != 3:
-            raise ValueError("xyz and rpy need 3 values")
-    except (AttributeError, TypeError, ValueError) as exc:
-        raise ConfigError(
-            f"{where}: origin must be {{xyz: [..], rpy: [..]}} ({exc})", field="origin"
-        ) from exc
-    return transform_from_xyz_rpy(xyz, rpy)
-
-
-def _link_lengths(cfg: dict[str, Any], overrides: dict[str, Any], count: int) -> list[float]:
-    raw = overrides.get("link_lengths", cfg.get("link_lengths"))
-    try:
-        L = [float(v) for v in raw]
-    except (TypeError, ValueError) as exc:
-        raise ConfigError(f"link_lengths must be {count} numbers, got {raw!r}", field="link_lengths") from exc
-    if len(L) != count or not all(math.isfinite(v) and v > 0 for v in L):
-        raise ConfigError(
-            f"link_lengths must be {count} positive numbers (m), got {raw!r}", field="link_lengths", value=raw
-        )
-    return L
-
-
-def build_arm(cfg: dict[str, Any], **overrides: Any) -> Arm:
-    """Build an :class:`Arm` (or subclass) from a config mapping (the parsed YAML) plus overrides."""
-    from redarm_ros.kinematics.powercube6 import PowerCube6Arm
-    from redarm_ros.kinematics.swivel import SwivelArm
-
-    kind = cfg.get("kind", "chain")
-    name = str(overrides.get("name", cfg.get("name", "arm")))
-    cfg = dict(cfg)
-    cfg["name"] = name
-    specs = _joint_specs(cfg, overrides)
-    T = np.eye(4)
-
-    def mk(s: dict[str, Any], origin: np.ndarray, axis: np.ndarray) -> Joint:
-        return Joint(s["name"], origin, axis, s["lower"], s["upper"], s["max_vel"], s["max_acc"])
-
-    if kind == "swivel7":
-        if len(specs) != 7:
-            raise ConfigError(f"arm {name!r}: kind swivel7 needs exactly 7 joints", field="joints")
-        L1, L2, L3, L4 = _link_lengths(cfg, overrides, 4)
-        cfg["link_lengths"] = [L1, L2, L3, L4]
-        offsets = [0.0, L1, 0.0, L2, 0.0, L3, 0.0]
-        axes = "zyzyzyz"
-        chain = []
-        for i, s in enumerate(specs):
-            if s["axis"] is not None and _axis(s["axis"], name).tolist() != _axis(axes[i], name).tolist():
-                raise ConfigError(f"arm {name!r}: swivel7 joint {i + 1} axis must be {axes[i]}", field="axis")
-            o = np.eye(4)
-            o[2, 3] = offsets[i]
-            chain.append(mk(s, o, _axis(axes[i], name)))
-        T[2, 3] = L4
-        return SwivelArm(name, chain, T, (1, 3, 5), cfg)
-    if kind == "powercube6":
-        if len(specs) != 6:
-            raise ConfigError(f"arm {name!r}: kind powercube6 needs exactly 6 joints", field="joints")
-        L1, L23, L4, L56 = _link_lengths(cfg, overrides, 4)
-        cfg["link_lengths"] = [L1, L23, L4, L56]
-        f3, f6 = (float(v) for v in overrides.get("roll_fractions", cfg.get("roll_fractions", (0.5, 0.5))))
-        if not (0.0 <= f3 <= 1.0 and 0.0 <= f6 <= 1.0):
-            raise ConfigError("roll_fractions must lie in [0, 1]", field="roll_fractions")
-        cfg["roll_fractions"] = [f3, f6]
-        # standard DH of the paper's Tab. 1 (a = L1, L23, L4, L56; alpha1 = 90 deg) with the two roll
-        # joints inserted on the link axes (x of the DH frames) where they do not change eq. (2)-(4)
-        o2 = transform_from_xyz_rpy((L1, 0.0, 0.0), (math.pi / 2, 0.0, 0.0))
-        o3 = transform_from_xyz_rpy((f3 * L23, 0.0, 0.0), (0.0, 0.0, 0.0))
-        o4 = transform_from_xyz_rpy(((1.0 - f3) * L23, 0.0, 0.0), (0.0, 0.0, 0.0))
-        o5 = transform_from_xyz_rpy((L4, 0.0, 0.0), (0.0, 0.0, 0.0))
-        o6 = transform_from_xyz_rpy((f6 * L56, 0.0, 0.0), (0.0, 0.0, 0.0))
-        origins = [np.eye(4), o2, o3, o4, o5, o6]
-        axes6 = "zzxzzx"
-        chain = [mk(s, origins[i], _axis(axes6[i], name)) for i, s in enumerate(specs)]
-        T[0, 3] = (1.0 - f6) * L56
-        return PowerCube6Arm(name, chain, T, (1, 3, 4), cfg)
-    if kind == "chain":
-        chain = []
-        for i, s in enumerate(specs):
-            if s["axis"] is None:
-                raise ConfigError(f"arm {name!r}: joint {i} needs an axis", field="axis")
-            chain.append(
-                mk(s, _origin(s["origin"], f"{name} joint {i}"), _axis(s["axis"], f"{name} joint {i}"))
-            )
-        tool = _origin(cfg.get("tool"), f"{name} tool")
-        n = len(chain)
-        key = cfg.get("key_joints", [min(1, n - 1), min(n // 2, n - 1), max(n - 2, 0)])
-        return Arm(name, chain, tool, key, cfg)
-    raise ConfigError(
-        f"arm {name!r}: unknown kind {kind!r} (swivel7, powercube6, chain)", field="kind", value=kind
-    )

@@ -21,29 +21,23 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from redarm_ros.errors import InvalidInputError
-from redarm_ros.kinematics.model import Arm
 from redarm_ros.kinematics.quaternion import rotation_error
 from redarm_ros.kinematics.result import IKInfo, IKStatus
+
+if TYPE_CHECKING:  # the model imports this module for its ik_nearest fallback
+    from redarm_ros.kinematics.model import Arm
 
 __all__ = ["solve_dls", "solve_flow", "fk_jacobian"]
 
 
 def fk_jacobian(arm: Arm, q: Sequence[float]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(R (3, 3), p (3,), J (6, n)) of the tool for q (not validated): FK and geometric Jacobian."""
-    rec: list[tuple[list[float], list[float]]] = []
-    R, p = arm._fk_lists(q, rec)  # noqa: SLF001 - shared scalar FK of the model
-    Og = np.array([r[0] for r in rec])
-    Z = np.array([r[1] for r in rec])
-    pa = np.array(p)
-    J = np.empty((6, arm.n))
-    J[:3] = np.cross(Z, pa - Og).T
-    J[3:] = Z.T
-    return np.array(R), pa, J
+    """(R (3, 3), p (3,), J (6, n)) of the tool at q: the model's :meth:`Arm.fk_jacobian`."""
+    return arm.fk_jacobian(q)
 
 
 def _errors(R: np.ndarray, p: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, float, float]:
@@ -65,7 +59,6 @@ def solve_dls(
     stall_iters: int = 12,
     progress: float = 0.05,
     rng_seed: int = 0,
-    **_ignored: Any,
 ) -> tuple[np.ndarray | None, IKInfo]:
     """Damped least squares with full 6-D orientation for any arm.
 
@@ -90,7 +83,7 @@ def solve_dls(
     free = (up - lo) > 0.0
     q = np.clip(q, lo, up)
     rng = np.random.default_rng(rng_seed)
-    R, p, J = fk_jacobian(arm, q.tolist())
+    R, p, J = arm.fk_jacobian(q)
     e, pe, re = _errors(R, p, Td)
     cost = float(e @ e)
     lam = damping
@@ -117,7 +110,7 @@ def solve_dls(
             since_progress += 1
             continue
         qn = np.clip(q + dq, lo, up)
-        Rn, pn, Jn = fk_jacobian(arm, qn.tolist())
+        Rn, pn, Jn = arm.fk_jacobian(qn)
         en, pen, ren = _errors(Rn, pn, Td)
         cn = float(en @ en)
         if cn < cost:
@@ -135,7 +128,7 @@ def solve_dls(
         if restarts and since_progress >= stall_iters:
             n_restart += 1
             q = rng.uniform(lo, up)
-            R, p, J = fk_jacobian(arm, q.tolist())
+            R, p, J = arm.fk_jacobian(q)
             e, pe, re = _errors(R, p, Td)
             cost = float(e @ e)
             lam = damping
@@ -169,7 +162,6 @@ def solve_flow(
     timeout_s: float | None = 5e-3,
     stall_iters: int = 50,
     clamp: bool = True,
-    **_ignored: Any,
 ) -> tuple[np.ndarray | None, IKInfo]:
     """Ghotbi's "Flow" (Jacobian-transpose) IK for the tool position, any arm.
 
@@ -208,9 +200,7 @@ def solve_flow(
     status = IKStatus.TIMEOUT
     msg = ""
     while True:
-        rec: list[tuple[list[float], list[float]]] = []
-        _, p = arm._fk_lists(q.tolist(), rec)  # noqa: SLF001
-        p = np.array(p)
+        p, Og, Z = arm.fk_axes(q)
         err = float(np.linalg.norm(pd - p))
         if err < tol:
             status, msg = IKStatus.SUCCESS, "ok"
@@ -227,8 +217,6 @@ def solve_flow(
             msg = f"no convergence to {tol:g} m after {it} iterations (error {err:.3g} m)"
             break
         it += 1
-        Og = np.array([r[0] for r in rec])
-        Z = np.array([r[1] for r in rec])
         if variant == "batch":
             Jv = np.cross(Z, p - Og).T  # (3, n): v_i = z_i x (p_end - o_i)
             e = pd - p

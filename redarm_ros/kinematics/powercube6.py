@@ -22,13 +22,14 @@ pose's orientation, or given), a fixed phi5 (L4 and L56 folded into one rigid li
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 
 from redarm_ros.errors import InvalidInputError
-from redarm_ros.kinematics.model import LIMIT_TOL, Arm, Joint, pose_error
+from redarm_ros.kinematics.model import LIMIT_TOL, Arm, Joint, check_scalar, pose_error
 from redarm_ros.kinematics.result import IKInfo, IKStatus
 
 __all__ = ["PowerCube6Arm"]
@@ -109,11 +110,12 @@ class PowerCube6Arm(Arm):
         return [(0.0, 0.0), (PI, 0.0)]
 
     # ------------------------------------------------------------------ IK
-    def ik(self, T: np.ndarray, swivel: float | None = None, **_ignored: Any) -> np.ndarray:
+    def ik(self, T: np.ndarray, swivel: float | None = None) -> np.ndarray:
         """Every in-limit solution (k, 6), k <= 4, reaching pose T exactly with joint 3 at 0.
 
-        ``swivel`` is ignored (a 6-DOF arm has no self-motion). Returns (0, 6) if the position is out of
-        reach or the orientation is not reachable with joint 3 locked (approach outside the arm plane).
+        ``swivel`` is accepted for a uniform call signature and ignored (a 6-DOF arm has no
+        self-motion). Returns (0, 6) if the position is out of reach or the orientation is not
+        reachable with joint 3 locked (approach outside the arm plane).
         Raises :class:`InvalidInputError` for a malformed T.
         """
         Tl = self.check_pose(T)
@@ -233,36 +235,52 @@ class PowerCube6Arm(Arm):
         weights: Sequence[float] | None = None,
         position_only: bool = False,
         samples: int = 72,
-        **_ignored: Any,
+        timeout_s: float | None = None,
     ) -> tuple[np.ndarray | None, IKInfo]:
         """The analytic solution of T nearest to the seed (weighted squared joint distance).
 
         ``position_only=True`` ignores the orientation of T: the approach angle psi is scanned over
-        ``samples`` values (and the seed's own), the wrist roll kept at the seed's. Failure reasons:
-        INVALID_INPUT, OUT_OF_REACH (position, or orientation not reachable with joint 3 locked),
-        NO_SOLUTION_IN_LIMITS.
+        ``samples`` values (and the seed's own), the wrist roll kept at the seed's. ``timeout_s`` (s, None =
+        no limit) stops that scan early (status TIMEOUT with the best answer so far, if any); the full-pose
+        solve is closed form and bounded. Failure reasons: INVALID_INPUT, OUT_OF_REACH (position, or
+        orientation not reachable with joint 3 locked), NO_SOLUTION_IN_LIMITS, TIMEOUT.
         """
+        t0 = time.perf_counter()
+        timed_out = False
         try:
             Tl = self.check_pose(T)
             seed = self.check_q(q_seed, "q_seed")
             w = np.ones(6) if weights is None else np.asarray(weights, dtype=float)
             if w.shape != (6,) or not np.all(np.isfinite(w)) or np.any(w < 0):
                 raise InvalidInputError("weights must be 6 finite non-negative numbers", field="weights")
+            samples = int(check_scalar(samples, "samples", 1e6))
+            if samples < 1:
+                raise InvalidInputError(
+                    f"samples must be >= 1, got {samples}", field="samples", value=samples
+                )
+            if timeout_s is not None and not check_scalar(timeout_s, "timeout_s") >= 0.0:
+                raise InvalidInputError(
+                    "timeout_s must be >= 0 s or None", field="timeout_s", value=timeout_s
+                )
         except InvalidInputError as exc:
             return None, IKInfo(IKStatus.INVALID_INPUT, str(exc))
         if position_only:
             p = [Tl[0][3], Tl[1][3], Tl[2][3]]
             psi0 = seed[1] + seed[3] + seed[4]
-            rows = [
-                self.ik_position(p, psi=psi0 + k * TWO_PI / samples, roll=float(seed[5]))
-                for k in range(samples)
-            ]
+            rows = []
+            for k in range(samples):
+                if timeout_s is not None and time.perf_counter() - t0 > timeout_s:
+                    timed_out = True
+                    break
+                rows.append(self.ik_position(p, psi=psi0 + k * TWO_PI / samples, roll=float(seed[5])))
             sols = np.concatenate(rows) if rows else np.empty((0, 6))
             reason = "position out of reach or no solution within the joint limits"
         else:
             sl, reason = self._ik_pose(Tl)
             sols = np.array(sl) if sl else np.empty((0, 6))
         if len(sols) == 0:
+            if timed_out:
+                return None, IKInfo(IKStatus.TIMEOUT, f"timeout_s {timeout_s:g} s ran out before a solution")
             status = IKStatus.NO_SOLUTION_IN_LIMITS if "limits" in reason else IKStatus.OUT_OF_REACH
             return None, IKInfo(status, reason or "no solution", candidates=0)
         cost = ((sols - seed) ** 2 * w).sum(axis=1)
@@ -270,4 +288,7 @@ class PowerCube6Arm(Arm):
         Tq = self.fk(q)
         Td = np.asarray(T, dtype=float)
         pe, re = pose_error(Tq, Td)
+        if timed_out:
+            msg = f"timeout_s {timeout_s:g} s ran out: best of the {len(sols)} candidates scanned"
+            return q.copy(), IKInfo(IKStatus.TIMEOUT, msg, pos_err=pe, rot_err=re, candidates=len(sols))
         return q.copy(), IKInfo(IKStatus.SUCCESS, "ok", pos_err=pe, rot_err=re, candidates=len(sols))

@@ -5,6 +5,8 @@ from __future__ import annotations
 import enum
 from dataclasses import dataclass
 
+import numpy as np
+
 
 class IKStatus(enum.Enum):
     """Why an IK call ended."""
@@ -14,6 +16,7 @@ class IKStatus(enum.Enum):
     OUT_OF_REACH = "out_of_reach"
     INVALID_INPUT = "invalid_input"
     TIMEOUT = "timeout"
+    INTERNAL_ERROR = "internal_error"
 
 
 @dataclass
@@ -24,7 +27,8 @@ class IKInfo:
     radians (angle of the residual rotation); both are ``inf`` when no q was returned. ``swivel`` is the
     elbow swivel angle (rad) of the answer for swivel arms, else ``None``. ``iterations`` counts solver
     iterations (numeric solvers, or refinement steps of ``ik_nearest``) and ``candidates`` the joint
-    vectors that were examined.
+    vectors that were examined. ``branch`` is the flip pattern (f2, f4, f6) in binary (0..7, the row
+    order of ``ik``) of a swivel arm's answer, else ``None``.
     """
 
     status: IKStatus
@@ -34,8 +38,42 @@ class IKInfo:
     rot_err: float = float("inf")
     iterations: int = 0
     candidates: int = 0
+    branch: int | None = None
 
     @property
     def ok(self) -> bool:
         """True when a solution was returned."""
         return self.status is IKStatus.SUCCESS
+
+
+# IKBatchResult.status codes (the numbering of redarm_interfaces/srv/SolveIK)
+BATCH_SUCCESS = 0
+BATCH_NO_SOLUTION_IN_LIMITS = 1
+BATCH_OUT_OF_REACH = 2
+BATCH_STATUS = {
+    BATCH_SUCCESS: IKStatus.SUCCESS,
+    BATCH_NO_SOLUTION_IN_LIMITS: IKStatus.NO_SOLUTION_IN_LIMITS,
+    BATCH_OUT_OF_REACH: IKStatus.OUT_OF_REACH,
+}
+
+
+@dataclass
+class IKBatchResult:
+    """Answers of a batched nearest solve for m poses.
+
+    ``q`` (m, n) rad, NaN rows where there is no answer; ``swivel`` (m,) rad (NaN), ``branch`` (m,) flip
+    pattern 0..7 (-1), ``cost`` (m,) weighted squared distance to the seed in rad^2 (inf), ``status``
+    (m,) int8 codes: BATCH_SUCCESS 0, BATCH_NO_SOLUTION_IN_LIMITS 1, BATCH_OUT_OF_REACH 2 (the SolveIK
+    numbering; ``BATCH_STATUS`` maps them to :class:`IKStatus`).
+    """
+
+    q: np.ndarray
+    swivel: np.ndarray
+    branch: np.ndarray
+    cost: np.ndarray
+    status: np.ndarray
+
+    @property
+    def ok(self) -> np.ndarray:
+        """(m,) bool: a solution was returned."""
+        return self.status == BATCH_SUCCESS

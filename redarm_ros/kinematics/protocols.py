@@ -1,0 +1,61 @@
+"""What an arm model can do, as structural protocols: the one way to ask "does this arm have a swivel?".
+
+* :class:`AnalyticIK`: a closed-form ``ik(T, ...)`` returning every in-limit solution, ``ik_batch``
+  and ``ik_nearest`` (the swivel arms and the 6-DOF PowerCube arm).
+* :class:`SwivelKinematics`: a 7-DOF arm whose self-motion is the elbow swivel: ``ik(T, swivel)``,
+  ``ik_u``, ``swivel``, ``elbow_circle``, ``feasible_swivels`` and the batched nearest solve.
+
+Ask with :func:`has_swivel` / :func:`has_analytic_ik` (``isinstance`` against the protocol); a generic
+serial chain has neither and is solved numerically. This module imports nothing from the models, so
+every kinematics module can depend on it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any, Protocol, runtime_checkable
+
+import numpy as np
+
+__all__ = ["AnalyticIK", "SwivelKinematics", "has_swivel", "has_analytic_ik"]
+
+
+@runtime_checkable
+class AnalyticIK(Protocol):
+    """A model with a closed-form IK: every in-limit solution of a pose, and a batched form."""
+
+    name: str
+    n: int
+    lower: np.ndarray
+    upper: np.ndarray
+
+    def ik(self, T: np.ndarray, *args: Any, **kwargs: Any) -> np.ndarray: ...
+
+    def ik_batch(self, Ts: np.ndarray, *args: Any, **kwargs: Any) -> tuple[np.ndarray, np.ndarray]: ...
+
+    def ik_nearest(self, T: np.ndarray, q_seed: Sequence[float], **kwargs: Any) -> tuple[Any, Any]: ...
+
+
+@runtime_checkable
+class SwivelKinematics(AnalyticIK, Protocol):
+    """A 7-DOF arm parameterised by the elbow swivel angle s (rad): self-motion on the elbow circle."""
+
+    def ik_u(self, T: np.ndarray, u: Sequence[float], **kwargs: Any) -> np.ndarray: ...
+
+    def swivel(self, q: Sequence[float]) -> float: ...
+
+    def elbow_circle(self, T: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]: ...
+
+    def feasible_swivels(self, T: np.ndarray) -> list[np.ndarray]: ...
+
+    def ik_nearest_batch(self, Ts: np.ndarray, q_seeds: np.ndarray, **kwargs: Any) -> Any: ...
+
+
+def has_swivel(arm: object) -> bool:
+    """True if ``arm`` has the closed-form swivel IK (:class:`SwivelKinematics`)."""
+    return isinstance(arm, SwivelKinematics)
+
+
+def has_analytic_ik(arm: object) -> bool:
+    """True if ``arm`` has a closed-form ``ik`` listing every in-limit solution (:class:`AnalyticIK`)."""
+    return isinstance(arm, AnalyticIK)

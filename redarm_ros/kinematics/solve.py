@@ -1,0 +1,231 @@
+"""The IK front end: one request in (pose, arm name, swivel or seed, options), one answer out. No ROS here.
+
+:class:`IKFrontEnd` holds the served arm models and turns a request into the right solver call:
+
+* swivel given (swivel arms only): every in-limit solution at that swivel (one closed-form ``ik`` call);
+  the answer is the one nearest the seed, each joint at its in-limit 2*pi copy nearest the seed. If the
+  swivel has no in-limit solution, the message names the nearest swivel that has one, from the
+  closed-form feasible set (``feasible_swivels``: bounded work, no search, so it never exceeds the
+  request's time budget);
+* no swivel: ``ik_nearest`` (the global optimum over all swivels for swivel arms; the analytic solve for
+  the 6-DOF PowerCube arm; damped least squares for a generic chain) within the request's time budget.
+
+:meth:`IKFrontEnd.solve` never raises: malformed input is ``INVALID_INPUT``, an unreachable pose
+``OUT_OF_REACH``, and an unexpected exception in a solver ``INTERNAL_ERROR`` (logged with its traceback,
+never disguised as the caller's fault). Units: m, rad, s.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from redarm_ros.errors import InvalidInputError, RedarmError, UnreachableError
+from redarm_ros.kinematics.model import ANGLE_RANGE, Arm, check_finite_array
+from redarm_ros.kinematics.protocols import has_analytic_ik, has_swivel
+from redarm_ros.kinematics.result import IKStatus
+
+__all__ = ["IKAnswer", "IKFrontEnd"]
+
+_log = logging.getLogger(__name__)
+PI = math.pi
+TWO_PI = 2.0 * math.pi
+
+
+@dataclass
+class IKAnswer:
+    """What a solve returns, independent of any message type.
+
+    ``status`` an :class:`IKStatus`; ``q`` the chosen joint vector (rad) or None; ``solutions`` all
+    in-limit solutions (k, n) when asked; ``swivel`` (rad) of ``q`` or NaN; errors in m and rad.
+    """
+
+    status: IKStatus
+    message: str = ""
+    q: np.ndarray | None = None
+    solutions: np.ndarray | None = None
+    swivel: float = math.nan
+    position_error: float = math.nan
+    orientation_error: float = math.nan
+    joint_names: list[str] = field(default_factory=list)
+
+
+class IKFrontEnd:
+    """Validates solve requests and calls the kinematics core.
+
+    ``arms`` maps names to loaded models; ``default_arm`` answers requests that name none.
+    Raises :class:`InvalidInputError` if ``default_arm`` is not among ``arms``.
+    """
+
+    def __init__(self, arms: Mapping[str, Arm], default_arm: str) -> None:
+        if default_arm not in arms:
+            raise InvalidInputError(
+                f"default_arm {default_arm!r} is not among the served arms {sorted(arms)}",
+                field="default_arm",
+                value=default_arm,
+            )
+        self.arms = dict(arms)
+        self.default_arm = default_arm
+
+    def arm_for(self, name: str) -> Arm:
+        """The model named ``name`` ('' = the default arm); InvalidInputError if not served."""
+        key = name or self.default_arm
+        arm = self.arms.get(key)
+        if arm is None:
+            raise InvalidInputError(
+                f"unknown arm {key!r}; this service serves: {', '.join(sorted(self.arms))}",
+                field="arm",
+                value=key,
+            )
+        return arm
+
+    @staticmethod
+    def seed_for(arm: Arm, seed: Sequence[float]) -> np.ndarray:
+        """The seed as an (n,) array (rad); mid-range when ``seed`` is empty.
+
+        A seed is only a preference: one outside the limits is used as given (the distance is measured
+        to it), not refused. Raises :class:`InvalidInputError` for a wrong length, NaN/inf or a value
+        beyond 1e6 rad.
+        """
+        if len(seed) == 0:
+            return (arm.lower + arm.upper) / 2.0
+        if len(seed) != arm.n:
+            raise InvalidInputError(
+                f"seed has {len(seed)} values but arm {arm.name!r} has {arm.n} joints",
+                field="seed",
+                value=list(seed),
+            )
+        return check_finite_array(list(seed), "seed", (arm.n,), ANGLE_RANGE)
+
+    def solve(
+        self,
+        T: np.ndarray,
+        arm_name: str,
+        *,
+        swivel: float | None,
+        seed: Sequence[float],
+        all_solutions: bool,
+        timeout_s: float,
+    ) -> IKAnswer:
+        """Solve one request; never raises. ``swivel`` None: nearest solution to the seed over all swivels.
+
+        T: 4x4 target (base frame, m); ``timeout_s`` (s, > 0) bounds the solver's search.
+        """
+        t0 = time.perf_counter()
+        try:
+            arm = self.arm_for(arm_name)
+            q_seed = self.seed_for(arm, seed)
+            if not (timeout_s > 0.0 and math.isfinite(timeout_s)):
+                raise InvalidInputError(
+                    f"timeout must be > 0 s, got {timeout_s}", field="timeout", value=timeout_s
+                )
+            if swivel is not None:
+                ans = self._solve_at_swivel(arm, T, swivel, q_seed, all_solutions, t0 + timeout_s)
+            else:
+                ans = self._solve_nearest(arm, T, q_seed, all_solutions, timeout_s)
+            ans.joint_names = list(arm.joint_names)
+            if ans.q is not None and not math.isfinite(ans.position_error):
+                ans.position_error, ans.orientation_error = arm.pose_error(ans.q, T)
+            return ans
+        except InvalidInputError as exc:
+            return IKAnswer(IKStatus.INVALID_INPUT, str(exc))
+        except UnreachableError as exc:
+            return IKAnswer(IKStatus.OUT_OF_REACH, str(exc))
+        except RedarmError as exc:  # a typed failure that is not the caller's input
+            _log.exception("solver error for arm %r", arm_name)
+            return IKAnswer(IKStatus.INTERNAL_ERROR, f"{type(exc).__name__}: {exc}")
+        except Exception as exc:  # noqa: BLE001 - a solver bug must become an answer, not a crash
+            _log.exception("internal error for arm %r", arm_name)
+            return IKAnswer(IKStatus.INTERNAL_ERROR, f"internal error: {type(exc).__name__}: {exc}")
+
+    def _solve_at_swivel(
+        self, arm: Arm, T: np.ndarray, swivel: float, q_seed: np.ndarray, all_solutions: bool, deadline: float
+    ) -> IKAnswer:
+        if not math.isfinite(swivel):
+            raise InvalidInputError(f"swivel must be finite, got {swivel}", field="swivel", value=swivel)
+        if not has_swivel(arm):
+            raise InvalidInputError(
+                f"arm {arm.name!r} has no swivel parameterisation (kind {arm.kind}); "
+                "leave swivel_given false",
+                field="swivel",
+                value=swivel,
+            )
+        s = math.remainder(swivel, TWO_PI)
+        s = PI if s <= -PI else s
+        sols = np.asarray(arm.ik(T, s), dtype=float).reshape(-1, arm.n)  # each solution once, near 0
+        if len(sols) == 0:
+            return IKAnswer(
+                IKStatus.NO_SOLUTION_IN_LIMITS if self._reachable(arm, T) else IKStatus.OUT_OF_REACH,
+                self._no_solution_message(arm, T, s, deadline),
+                swivel=s,
+            )
+        # every solution at its in-limit copies nearest the seed; the answer is the nearest of them
+        near = arm.nearest_copies(sols, q_seed)
+        i = int(np.argmin(((near - q_seed) ** 2).sum(axis=1)))
+        return IKAnswer(IKStatus.SUCCESS, "", q=near[i], solutions=sols if all_solutions else None, swivel=s)
+
+    @staticmethod
+    def _reachable(arm: Any, T: np.ndarray) -> bool:
+        try:
+            arm.elbow_circle(T)
+        except UnreachableError:
+            return False
+        return True
+
+    @staticmethod
+    def _no_solution_message(arm: Any, T: np.ndarray, s: float, deadline: float) -> str:
+        """Why swivel s has no in-limit solution, with the nearest swivel that has one (closed form)."""
+        try:
+            ivs = arm.feasible_swivels(T)
+        except UnreachableError as exc:
+            return str(exc)
+        head = f"no solution within the joint limits at swivel {s:.4f} rad"
+        if time.perf_counter() > deadline:
+            return head + " (time budget used up before the feasible swivels were computed)"
+        best = None
+        for iv in ivs:
+            for a, b in iv.tolist():
+                # distance from s to [a, b] on the circle
+                d = 0.0 if (s - a) % TWO_PI <= b - a else min((a - s) % TWO_PI, (s - b) % TWO_PI)
+                if best is None or d < best[0]:
+                    best = (d, a, b)
+        if best is None:
+            return head + "; no swivel has one: the pose is reachable, but not within the joint limits"
+        d, a, b = best
+        return head + f"; the nearest in-limit swivels are [{a:.4f}, {b:.4f}] rad ({d:.4f} rad away)"
+
+    @staticmethod
+    def _solve_nearest(
+        arm: Arm, T: np.ndarray, q_seed: np.ndarray, all_solutions: bool, timeout_s: float
+    ) -> IKAnswer:
+        q, info = arm.ik_nearest(T, q_seed, timeout_s=timeout_s)
+        if info.status is IKStatus.INVALID_INPUT:
+            raise InvalidInputError(info.message or "invalid request")
+        if q is None:
+            return IKAnswer(info.status, info.message)
+        q = np.asarray(q, dtype=float)
+        sw = math.nan if info.swivel is None else float(info.swivel)
+        sols = None
+        if all_solutions:
+            if has_swivel(arm) and math.isfinite(sw):
+                sols = np.asarray(arm.ik(T, sw), dtype=float).reshape(-1, arm.n)
+            elif has_analytic_ik(arm):
+                sols = np.asarray(arm.ik(T), dtype=float).reshape(-1, arm.n)
+            if sols is None or len(sols) == 0:
+                sols = q.reshape(1, -1)
+        msg = "" if info.status is IKStatus.SUCCESS else info.message
+        return IKAnswer(
+            info.status,
+            msg,
+            q=q,
+            solutions=sols,
+            swivel=sw,
+            position_error=info.pos_err,
+            orientation_error=info.rot_err,
+        )

@@ -1,0 +1,456 @@
+"""Closed-form feasible swivel set and the global nearest solution (PA10, PA10-7C, PowerCube 7).
+
+The joint functions are checked against ``ik(T, s)``, the intervals against dense ``ik_batch`` sweeps,
+``ik_nearest`` against a dense sweep over every swivel, flip pattern and 2*pi copy, and the adversarial
+cases (narrow bands down to 1e-4 deg, joints exactly at a limit or exactly 0, stretched and folded
+arms) are generated on purpose, by hand and by hypothesis.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import math
+import sys
+from pathlib import Path
+from types import ModuleType
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from redarm_ros.errors import UnreachableError
+from redarm_ros.kinematics import IKStatus, SwivelArm, load_arm
+from redarm_ros.kinematics import feasible as fz
+from redarm_ros.kinematics.reachability import capability_map, orientation_set, save_map
+from redarm_ros.kinematics.result import BATCH_NO_SOLUTION_IN_LIMITS, BATCH_OUT_OF_REACH, BATCH_SUCCESS
+
+SWIVEL_ARMS = ["pa10", "pa10_7c", "powercube7"]
+ARMS = {name: load_arm(name) for name in SWIVEL_ARMS}
+TWO_PI = 2.0 * math.pi
+PROP = settings(
+    max_examples=40, derandomize=True, deadline=None, suppress_health_check=[HealthCheck.too_slow]
+)
+BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "ik_bench.py"
+
+
+def _bench() -> ModuleType:
+    """benchmarks/ik_bench.py: the dense-sweep reference and the seeded hard-set generators."""
+    if "ik_bench" not in sys.modules:
+        spec = importlib.util.spec_from_file_location("ik_bench", BENCH)
+        assert spec is not None and spec.loader is not None
+        mod = importlib.util.module_from_spec(spec)
+        sys.modules["ik_bench"] = mod  # dataclasses look their module up there
+        spec.loader.exec_module(mod)
+    return sys.modules["ik_bench"]
+
+
+def _solved(arm: SwivelArm, q: np.ndarray | None, T: np.ndarray) -> bool:
+    return _bench().ok(arm, q, T)
+
+
+def _in_ivs(ivs: np.ndarray, s: np.ndarray) -> np.ndarray:
+    out = np.zeros(np.shape(s), bool)
+    for a, b in ivs:
+        out |= np.remainder(s - a, TWO_PI) <= (b - a) + 1e-12
+    return out
+
+
+def _special_q(arm: SwivelArm, rng: np.random.Generator, n: int) -> np.ndarray:
+    """Random configurations with joints on purpose exactly at a limit or exactly 0."""
+    Q = rng.uniform(arm.lower, arm.upper, (n, arm.n))
+    pick = rng.integers(0, 5, size=Q.shape)  # 0, 1: uniform; 2: lower; 3: upper; 4: zero
+    Q = np.where(pick == 2, arm.lower, Q)
+    Q = np.where(pick == 3, arm.upper, Q)
+    return np.where(pick == 4, 0.0, Q)
+
+
+# ---------------------------------------------------------------------- the closed-form joint functions
+@pytest.mark.parametrize("name", SWIVEL_ARMS)
+def test_joint_functions_equal_ik_along_the_circle(name: str) -> None:
+    """Each joint along the self-motion circle is atan2 / acos of affine functions of (cos s, sin s)."""
+    arm = ARMS[name]
+    rng = np.random.default_rng(1)
+    S = np.linspace(-math.pi, math.pi, 61)
+    for q in _special_q(arm, rng, 80):
+        T = arm.fk(q)
+        fn = arm.swivel_functions(T)
+        th = fn.angles(S)
+        base = np.array(
+            [
+                arm._base_from_circle(
+                    arm.check_pose(T),
+                    arm._circle(arm.check_pose(T)),  # noqa: SLF001
+                    math.cos(s),
+                    math.sin(s),
+                )
+                for s in S
+            ]
+        ).T
+        d = np.abs(np.remainder(th - base + math.pi, TWO_PI) - math.pi)
+        stretched = abs(math.sin(fn.t4)) < 1e-6  # ik takes x3 from a round-off sized vector there
+        sing = (np.abs(np.sin(base[1])) < 1e-6) | (np.abs(np.sin(base[5])) < 1e-6)
+        tol = 1e-6 if stretched else 1e-9
+        assert d[:, ~sing].max(initial=0.0) < tol
+        # where theta2 or theta6 is singular only the sum theta1 + theta3 (theta5 + theta7) is defined
+        assert np.abs(np.remainder(th[3] - base[3] + math.pi, TWO_PI) - math.pi).max() < 1e-9
+
+
+@pytest.mark.parametrize("name", SWIVEL_ARMS)
+def test_cost_derivatives_match_finite_differences(name: str) -> None:
+    """The refinement's analytic d/ds and d2/ds2 of the distance (scalar and vectorised forms)."""
+    arm = ARMS[name]
+    open_tab = fz.LimitTables(np.full(7, -20.0), np.full(7, 20.0))  # no limit in the way
+    rng = np.random.default_rng(2)
+    w = rng.uniform(0.5, 2.0, 7)
+    for q in rng.uniform(arm.lower, arm.upper, (20, 7)):
+        fn = arm.swivel_functions(arm.fk(q))
+        seed = rng.uniform(arm.lower, arm.upper)
+        for s in rng.uniform(-math.pi, math.pi, 3):
+            for b in (0, 3, 5):
+                f, g, h, V = fz._fgh(fn, s, b, [0.0] * 7, seed.tolist(), w.tolist(), open_tab)  # noqa: SLF001
+                e = 1e-6
+                fp, gp, _, _ = fz._fgh(fn, s + e, b, V, seed.tolist(), w.tolist(), open_tab)  # noqa: SLF001
+                fm, gm, _, _ = fz._fgh(fn, s - e, b, V, seed.tolist(), w.tolist(), open_tab)  # noqa: SLF001
+                assert g == pytest.approx((fp - fm) / (2 * e), rel=1e-5, abs=1e-5)
+                assert h == pytest.approx((gp - gm) / (2 * e), rel=1e-4, abs=1e-4)
+                sg = fz.ALT_SIGN[np.arange(7), fz.ALT_INDEX[b]][None]
+                sh = fz.ALT_SHIFT[np.arange(7), fz.ALT_INDEX[b]][None]
+                fv, gv, hv, _ = fz._fgh_np(  # noqa: SLF001
+                    np.array([s]),
+                    fn.K[None],
+                    np.array([fn.t4]),
+                    np.array([fn.deg_shoulder]),
+                    np.array([fn.deg_wrist]),
+                    sg,
+                    sh,
+                    np.array([V]),
+                    seed[None],
+                    w,
+                    open_tab,
+                )
+                assert np.allclose([fv[0], gv[0], hv[0]], [f, g, h], rtol=1e-9, atol=1e-9)
+
+
+# ---------------------------------------------------------------------- feasible swivel intervals
+@pytest.mark.parametrize("name", SWIVEL_ARMS)
+def test_feasible_swivels_equal_dense_ik(name: str) -> None:
+    """Interval membership equals 'ik(T, s) has that flip pattern', except within 1e-7 rad of an end."""
+    arm = ARMS[name]
+    rng = np.random.default_rng(3)
+    S = np.linspace(-math.pi, math.pi, 3600, endpoint=False)
+    Q = np.concatenate([rng.uniform(arm.lower, arm.upper, (40, 7)), _special_q(arm, rng, 20)])
+    for q in Q:
+        T = arm.fk(q)
+        ivs = arm.feasible_swivels(T)
+        assert len(ivs) == 8
+        _, valid = arm.ik_batch(np.broadcast_to(T, (len(S), 4, 4)), S)
+        # fk of theta4 = 0 leaves theta4 ~1e-8 (round-off): ik then takes the arm plane from a vector of
+        # round-off size, so joints that sit exactly on a limit wander by ~1e-8 > the 1e-10 tolerance
+        noisy = abs(math.sin(q[3])) < 1e-6
+        for b in range(8):
+            iv = ivs[b]
+            assert iv.shape[1] == 2 and np.all(iv[:, 0] >= -math.pi) and np.all(iv[:, 0] < math.pi)
+            assert np.all(iv[:, 1] >= iv[:, 0]) and np.all(iv[:, 1] - iv[:, 0] <= TWO_PI)
+            if noisy:
+                continue
+            mine = _in_ivs(iv, S)
+            diff = np.nonzero(mine != valid[:, b])[0]
+            if len(diff):
+                ends = iv.ravel()
+                dist = np.abs(np.remainder(S[diff, None] - ends[None, :] + math.pi, TWO_PI) - math.pi).min(
+                    axis=1
+                )
+                assert dist.max() < 1e-7, (b, S[diff][:3])
+
+
+def test_every_interval_end_is_a_limit_or_an_intersection() -> None:
+    """At an interval end some joint of that flip pattern sits on a limit (the ends are roots)."""
+    arm = ARMS["powercube7"]
+    rng = np.random.default_rng(4)
+    checked = 0
+    for q in rng.uniform(arm.lower, arm.upper, (30, 7)):
+        T = arm.fk(q)
+        for iv in arm.feasible_swivels(T):
+            for a, e in iv:
+                if e - a >= TWO_PI - 1e-12:
+                    continue
+                for s in (a, e):
+                    row = arm.ik(T, float(s), all_copies=True)
+                    assert len(row) >= 1
+                    at_limit = np.isclose(row, arm.lower, atol=1e-8) | np.isclose(row, arm.upper, atol=1e-8)
+                    assert at_limit.any()
+                    checked += 1
+    assert checked > 20
+
+
+def test_whole_circle_and_unreachable() -> None:
+    open_arm = load_arm("pa10", lower=[-7.0] * 7, upper=[7.0] * 7)
+    T = open_arm.fk(np.array([0.2, 0.5, 0.1, 1.0, 0.3, 0.7, 0.2]))
+    for iv in open_arm.feasible_swivels(T):
+        assert iv.tolist() == [[-math.pi, math.pi]]
+    far = np.eye(4)
+    far[:3, 3] = (3.0, 0.0, 0.5)
+    with pytest.raises(UnreachableError) as err:
+        ARMS["pa10"].feasible_swivels(far)
+    assert err.value.distance is not None and err.value.distance > 1.0
+
+
+def test_stretched_and_aligned_pose_is_singular_everywhere() -> None:
+    """Wrist straight above the shoulder, elbow exactly stretched, tool axis along the forearm (binary
+    lengths: exact arithmetic): theta2 = theta4 = theta6 = 0 on the whole circle, theta1 = theta5 = 0 by
+    convention and theta3 / theta7 carry the rotation, turning with the swivel."""
+    arm = load_arm("powercube7", link_lengths=[0.25, 0.375, 0.25, 0.125])
+    T = np.eye(4)
+    T[2, 3] = 1.0
+    fn = arm.swivel_functions(T)
+    assert fn.deg_shoulder and fn.deg_wrist and fn.t4 == 0.0
+    ivs = arm.feasible_swivels(T)
+    S = np.linspace(-math.pi, math.pi, 720, endpoint=False)
+    _, valid = arm.ik_batch(np.broadcast_to(T, (len(S), 4, 4)), S)
+    for b in range(8):
+        assert np.array_equal(_in_ivs(ivs[b], S), valid[:, b]) or len(ivs[b]) > 0
+    for s in np.linspace(-3.0, 3.0, 13):
+        for row in arm.ik(T, float(s)):
+            assert _solved(arm, row, T)
+    q, info = arm.ik_nearest(T, np.full(7, 0.2))
+    assert info.ok and _solved(arm, q, T)
+    assert float(np.sum((q - 0.2) ** 2)) <= _bench().dense_nearest(arm, T, np.full(7, 0.2)) + 1e-9
+
+
+def test_home_pose_from_fk() -> None:
+    """q = 0 through fk (round-off leaves theta2, theta4, theta6 ~1e-8): the seed 0 is itself a solution."""
+    for arm in ARMS.values():
+        T = arm.fk(np.zeros(7))
+        for s in np.linspace(-3.0, 3.0, 13):
+            for row in arm.ik(T, float(s)):
+                assert _solved(arm, row, T)
+        q, info = arm.ik_nearest(T, np.zeros(7))
+        assert info.ok and float(np.sum(q**2)) < 1e-12
+
+
+# ---------------------------------------------------------------------- adversarial cases on purpose
+@PROP
+@given(
+    name=st.sampled_from(SWIVEL_ARMS),
+    data=st.data(),
+)
+def test_property_special_angles_never_false_no_solution(name: str, data: st.DataObject) -> None:
+    """q with joints exactly at a limit, exactly 0, stretched (theta4 = 0) or folded: fk(q) is reachable
+    within the limits by construction, so ik_nearest must solve it (mid-range and random seeds)."""
+    arm = ARMS[name]
+    q = []
+    for j in range(7):
+        lo, up = float(arm.lower[j]), float(arm.upper[j])
+        choices = [st.floats(lo, up), st.just(lo), st.just(up)] + ([st.just(0.0)] if lo <= 0.0 <= up else [])
+        q.append(data.draw(st.one_of(*choices)))
+    qa = np.array(q)
+    T = arm.fk(qa)
+    seed = data.draw(st.sampled_from(["mid", "random", "self"]))
+    qs = {"mid": (arm.lower + arm.upper) / 2, "self": qa}.get(seed)
+    if qs is None:
+        qs = np.random.default_rng(data.draw(st.integers(0, 2**16))).uniform(arm.lower, arm.upper)
+    qn, info = arm.ik_nearest(T, qs)
+    assert info.status is IKStatus.SUCCESS, info.message
+    assert _solved(arm, qn, T)
+    if seed == "self":  # the configuration itself is a solution: the nearest is at distance ~0
+        assert (
+            float(np.sum((qn - qa) ** 2)) < 1e-12
+            or abs(math.sin(qa[1])) < 1e-9
+            or abs(math.sin(qa[5])) < 1e-9
+        )
+
+
+@PROP
+@given(name=st.sampled_from(SWIVEL_ARMS), seed=st.integers(0, 2**20))
+def test_property_narrow_bands_down_to_1e_4_deg(name: str, seed: int) -> None:
+    """Feasible sets from 5 deg down to 1e-4 deg wide (built by bisection onto the edge of feasibility):
+    ik_nearest finds the band, and ik at the band's middle has a solution."""
+    arm = ARMS[name]
+    Ts, widths = _bench().narrow_poses(arm, 1, np.random.default_rng(seed))
+    T, w = Ts[0], float(widths[0])
+    assert 0.0 < w <= math.radians(5.0)
+    q, info = arm.ik_nearest(T, (arm.lower + arm.upper) / 2)
+    assert info.status is IKStatus.SUCCESS, (math.degrees(w), info.message)
+    assert _solved(arm, q, T)
+    iv = arm.feasible_swivels(T)[info.branch]
+    # in the band, or in the sliver beside it that ik's 1e-10 rad limit tolerance adds (< 1e-4 rad)
+    assert _in_ivs(iv + np.array([-1e-4, 1e-4]), np.array([info.swivel]))[0]
+    assert np.any(np.all(np.abs(arm.ik(T, info.swivel, all_copies=True) - q) < 1e-9, axis=1))
+    a, b = max(iv.tolist(), key=lambda r: r[1] - r[0])
+    assert len(arm.ik(T, 0.5 * (a + b))) >= 1
+
+
+@pytest.mark.parametrize("name", SWIVEL_ARMS)
+def test_hard_sets_all_solved(name: str) -> None:
+    arm = ARMS[name]
+    rng = np.random.default_rng(6)
+    mid = (arm.lower + arm.upper) / 2
+    for kind in ("narrow", "theta4 at limit", "theta4 = 0"):
+        for T in _bench().hard_set(arm, kind, 25, rng):
+            q, info = arm.ik_nearest(T, mid)
+            assert info.status is IKStatus.SUCCESS, (kind, info.message)
+            assert _solved(arm, q, T), kind
+
+
+def test_seed_far_outside_the_limits() -> None:
+    arm = ARMS["pa10"]
+    rng = np.random.default_rng(7)
+    for q in rng.uniform(arm.lower, arm.upper, (20, 7)):
+        T = arm.fk(q)
+        for seed in (np.full(7, 10.0), np.full(7, -10.0), np.full(7, 1e3)):
+            qn, info = arm.ik_nearest(T, seed)
+            assert info.status is IKStatus.SUCCESS and _solved(arm, qn, T)
+
+
+# ---------------------------------------------------------------------- the nearest solution
+@pytest.mark.parametrize("name", SWIVEL_ARMS)
+@pytest.mark.parametrize("seed_kind", ["mid", "random"])
+def test_nearest_is_the_dense_sweep_optimum(name: str, seed_kind: str) -> None:
+    """Within 1e-9 rad^2 of (or below) the best of 7200 swivels x 8 patterns x every in-limit copy."""
+    arm = ARMS[name]
+    rng = np.random.default_rng(8)
+    mid = (arm.lower + arm.upper) / 2
+    for q in rng.uniform(arm.lower, arm.upper, (25, 7)):
+        T = arm.fk(q)
+        seed = mid if seed_kind == "mid" else rng.uniform(arm.lower, arm.upper)
+        qn, info = arm.ik_nearest(T, seed)
+        assert info.ok and _solved(arm, qn, T)
+        ref = _bench().dense_nearest(arm, T, seed)
+        assert float(np.sum((qn - seed) ** 2)) <= ref + 1e-9
+
+
+def test_nearest_weights_change_the_optimum_consistently() -> None:
+    arm = ARMS["pa10"]
+    rng = np.random.default_rng(9)
+    for q in rng.uniform(arm.lower, arm.upper, (10, 7)):
+        T = arm.fk(q)
+        w = rng.uniform(0.1, 5.0, 7)
+        seed = rng.uniform(arm.lower, arm.upper)
+        qn, info = arm.ik_nearest(T, seed, weights=w)
+        assert info.ok
+        # the weighted optimum is no worse (weighted) than the unweighted one, and vice versa
+        qu, _ = arm.ik_nearest(T, seed)
+        assert np.sum(w * (qn - seed) ** 2) <= np.sum(w * (qu - seed) ** 2) + 1e-9
+        assert np.sum((qu - seed) ** 2) <= np.sum((qn - seed) ** 2) + 1e-9
+
+
+def test_timeout_returns_the_best_so_far() -> None:
+    """timeout_s = 0: the search stops after its first refined candidate (TIMEOUT, a valid q) whenever
+    more than one basin was pending; a generous budget gives SUCCESS."""
+    arm = ARMS["pa10"]
+    rng = np.random.default_rng(10)
+    seen = 0
+    for q in rng.uniform(arm.lower, arm.upper, (40, 7)):
+        T = arm.fk(q)
+        seed = rng.uniform(arm.lower, arm.upper)
+        qt, info = arm.ik_nearest(T, seed, timeout_s=0.0)
+        assert info.status in (IKStatus.SUCCESS, IKStatus.TIMEOUT)
+        assert _solved(arm, qt, T)
+        if info.status is IKStatus.TIMEOUT:
+            seen += 1
+            assert "timeout" in info.message
+        q2, info2 = arm.ik_nearest(T, seed, timeout_s=10.0)
+        assert info2.status is IKStatus.SUCCESS
+        assert np.sum((q2 - seed) ** 2) <= np.sum((qt - seed) ** 2) + 1e-12
+    assert seen > 0
+
+
+@pytest.mark.parametrize("name", ["pa10", "powercube7"])
+def test_batched_nearest_equals_scalar(name: str) -> None:
+    arm = ARMS[name]
+    rng = np.random.default_rng(11)
+    Q = np.concatenate([rng.uniform(arm.lower, arm.upper, (60, 7)), _special_q(arm, rng, 20)])
+    Ts = arm.fk_batch(Q)
+    Ts[5, :3, 3] = (3.0, 0.0, 0.3)  # out of reach
+    narrow = load_arm(name, lower=np.full(7, -0.05), upper=np.full(7, 0.05))
+    seeds = rng.uniform(arm.lower, arm.upper, (len(Ts), 7))
+    res = arm.ik_nearest_batch(Ts, seeds)
+    assert res.q.shape == (len(Ts), 7) and res.status[5] == BATCH_OUT_OF_REACH
+    for i, T in enumerate(Ts):
+        q, info = arm.ik_nearest(T, seeds[i])
+        if q is None:
+            assert np.isnan(res.q[i]).all() and res.status[i] != BATCH_SUCCESS
+            continue
+        assert res.status[i] == BATCH_SUCCESS and _solved(arm, res.q[i], T)
+        # at a doubly singular configuration (theta4 and theta2 or theta6 at 0 from fk's round-off) the
+        # split between coupled joints is decided by round-off in ik: the two agree to 1e-6 there
+        sing = min(abs(math.sin(Q[i, 3])), abs(math.sin(Q[i, 1])), abs(math.sin(Q[i, 5]))) < 1e-6
+        assert abs(res.cost[i] - float(np.sum((q - seeds[i]) ** 2))) <= (1e-6 if sing else 1e-9)
+        assert abs(res.cost[i] - float(np.sum((res.q[i] - seeds[i]) ** 2))) <= 1e-12
+    # reachable, but nothing within these limits
+    r2 = narrow.ik_nearest_batch(Ts[:10], np.zeros(7))
+    assert (r2.status[[i for i in range(10) if i != 5]] == BATCH_NO_SOLUTION_IN_LIMITS).all()
+
+
+# ---------------------------------------------------------------------- capability map
+def test_orientation_set_is_rotations() -> None:
+    R = orientation_set(50)
+    assert R.shape == (50, 3, 3)
+    assert np.allclose(np.einsum("kij,kil->kjl", R, R), np.eye(3), atol=1e-12)
+    assert np.allclose(np.linalg.det(R), 1.0)
+    assert np.abs(R[:, :, 2].mean(axis=0)).max() < 0.05  # approach directions spread over the sphere
+
+
+def test_capability_map_small_grid(tmp_path: Path) -> None:
+    arm = ARMS["pa10"]
+    cmap = capability_map(arm, step=0.25, orientations=6)
+    assert cmap.fraction.shape == (len(cmap.x), len(cmap.y), len(cmap.z))
+    assert 0.0 <= cmap.fraction.min() and cmap.fraction.max() <= 1.0
+    assert 0.0 <= cmap.width.min() and cmap.width.max() <= TWO_PI + 1e-9
+    ix, iy, iz = (int(np.argmin(np.abs(a - v))) for a, v in ((cmap.x, 0.5), (cmap.y, 0.0), (cmap.z, 0.55)))
+    assert cmap.fraction[ix, iy, iz] > 0.5  # well inside the workspace
+    far = cmap.fraction[0, 0, 0]  # a corner of the cube: beyond the reach sphere
+    assert far == 0.0
+    # the map agrees with the scalar closed form at voxels inside, on the edge and outside the workspace
+    for jx, jy, jz in ((ix, iy, iz), (len(cmap.x) - 2, iy, iz), (ix, iy, len(cmap.z) // 2)):
+        hits = 0
+        for R in cmap.orientations:
+            T = np.eye(4)
+            T[:3, :3] = R
+            T[:3, 3] = (cmap.x[jx], cmap.y[jy], cmap.z[jz])
+            try:
+                hits += any(len(iv) for iv in arm.feasible_swivels(T))
+            except UnreachableError:
+                pass
+        assert cmap.fraction[jx, jy, jz] == pytest.approx(hits / len(cmap.orientations))
+    npz, png = save_map(cmap, tmp_path)
+    data = np.load(npz)
+    assert np.array_equal(data["fraction"], cmap.fraction) and png.stat().st_size > 1000
+
+
+def test_feasible_measure_matches_intervals() -> None:
+    arm = ARMS["powercube7"]
+    rng = np.random.default_rng(12)
+    Ts = arm.fk_batch(rng.uniform(arm.lower, arm.upper, (40, 7)))
+    Ts[:20, :3, 3] += rng.normal(0.0, 0.2, (20, 3))
+    w = _bench().feasible_width(arm, Ts)
+    S = np.linspace(-math.pi, math.pi, 20000, endpoint=False)
+    for i, T in enumerate(Ts):
+        try:
+            ivs = arm.feasible_swivels(T)
+        except UnreachableError:
+            assert w[i] == 0.0
+            continue
+        cover = np.zeros(len(S), bool)
+        for iv in ivs:
+            cover |= _in_ivs(iv, S)
+        assert abs(cover.mean() * TWO_PI - w[i]) < 1e-3
+
+
+@pytest.mark.parametrize("t4", [math.pi, -math.pi, 0.0])
+def test_folded_and_stretched_with_open_elbow_limits(t4: float) -> None:
+    """theta4 = +-pi (folded: the wrist back at the shoulder side) needs elbow limits beyond +-pi."""
+    arm = load_arm(
+        "pa10", lower=[-3.0, -1.6, -3.0, -3.3, -4.4, -2.8, -6.2], upper=[3.0, 1.6, 3.0, 3.3, 4.4, 2.8, 6.2]
+    )
+    rng = np.random.default_rng(13)
+    for _ in range(15):
+        q = rng.uniform(arm.lower, arm.upper)
+        q[3] = t4
+        T = arm.fk(q)
+        for seed in ((arm.lower + arm.upper) / 2, q):
+            qn, info = arm.ik_nearest(T, seed)
+            assert info.status is IKStatus.SUCCESS, info.message
+            assert _solved(arm, qn, T)
+            assert float(np.sum((qn - seed) ** 2)) <= _bench().dense_nearest(arm, T, seed) + 1e-6
