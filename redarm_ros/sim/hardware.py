@@ -44,6 +44,8 @@ from typing import Any
 import can
 
 from redarm_ros.can import protocol as pc
+from redarm_ros.can import realtime
+from redarm_ros.can.module_emulator import wire_time
 from redarm_ros.errors import BusError, RedarmError
 from redarm_ros.sim.plant import PybulletPlant
 
@@ -54,6 +56,10 @@ MAX_BURST = 50  # steps caught up at once; a larger backlog is dropped (resync)
 CONTROL_POLL_S = 0.05
 SWITCH_INTERVAL_S = 5e-4
 OVERRUN_REPORT_S = 5.0  # log late steps at most this often
+# With real-time priority the physics loop must never keep a core: if it has not slept for this
+# long (stepping slower than real time), the process drops back to normal scheduling.
+RT_SPIN_LIMIT_S = 0.5
+DEFAULT_REALTIME_PRIORITY = 50
 ENV_PREFIX = "REDARM_SIM_"
 EXIT_BAD_ARGS = 2
 EXIT_NO_BUS = 3
@@ -159,6 +165,7 @@ class HardwareSim:
         self.control_file = Path(control_file) if control_file else None
         self.die_after_s = die_after_s
         self.counters = Counters()
+        self.realtime = False  # set by main() when SCHED_FIFO was granted (the spin guard applies)
         self.snapshots: list[str] = []
         self._rng = random.Random(self.faults.seed)
         self._stop = threading.Event()
@@ -234,7 +241,9 @@ class HardwareSim:
             return
         c.requests += 1
         try:
-            replies = self.emulator.handle(frame, silenced)
+            # The watchdog judges the host by when the frame was on the bus, not by when this
+            # process got to read it (see module_emulator.wire_time).
+            replies = self.emulator.handle(frame, silenced, wire_time(msg))
         except Exception:  # noqa: BLE001 - a bug in one request must not take the hardware down
             c.handler_errors += 1
             _LOG.exception("error handling %s", msg)
@@ -423,6 +432,7 @@ class HardwareSim:
             on_ready()
         t0 = time.monotonic()
         k = 0
+        last_sleep = t0
         next_status = t0
         next_control = t0
         next_report, reported = t0 + OVERRUN_REPORT_S, 0
@@ -455,6 +465,7 @@ class HardwareSim:
                         self.snapshot(name)
                     if reqs:  # rendering took a while: do not count the catch-up as overruns
                         t0 = time.monotonic() - k * period
+                        last_sleep = time.monotonic()  # nor as a spinning real-time loop
                 if now >= next_status:
                     next_status = now + self.status_period
                     self.write_status()
@@ -469,6 +480,13 @@ class HardwareSim:
                 delay = t0 + (k + 1) * period - time.monotonic()
                 if delay > 0:
                     time.sleep(delay)
+                    last_sleep = time.monotonic()
+                elif self.realtime and time.monotonic() - last_sleep > RT_SPIN_LIMIT_S:
+                    realtime.drop_priority()
+                    self.realtime = False
+                    _LOG.warning("physics cannot keep up with --rate %g Hz: dropped real-time priority "
+                                 "(a real-time loop that never sleeps would take a core from everyone)",
+                                 self.rate_hz)
         finally:
             self._stop.set()
             self._bus_thread.join(timeout=2.0)
@@ -570,6 +588,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="SIGKILL itself after S seconds (a crash)",
     )
     f.add_argument("--seed", type=int, default=env(ENV_PREFIX + "SEED") or "0", help="fault RNG seed")
+    ap.add_argument(
+        "--realtime-priority",
+        type=int,
+        default=int(env(ENV_PREFIX + "REALTIME_PRIORITY") or DEFAULT_REALTIME_PRIORITY),
+        metavar="N",
+        help="SCHED_FIFO priority of the simulator's threads (1..98, 0 = normal scheduling; "
+        f"default {DEFAULT_REALTIME_PRIORITY}); falls back to a raised nice level when not permitted",
+    )
     ap.add_argument("--log-level", default="INFO", help="logging level (DEBUG, INFO, WARNING)")
     return ap
 
@@ -650,6 +676,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     # The bus thread must get the GIL quickly when a frame arrives, even while the physics thread
     # computes: a shorter switch interval than the default 5 ms bounds that wait.
     sys.setswitchinterval(SWITCH_INTERVAL_S)
+    # The hardware stand-in must not be starved by the rest of the machine: real-time priority for
+    # the process (the bus thread created below inherits it), when permitted; one line says which.
+    prio = realtime.raise_priority(args.realtime_priority, who="redarm-sim")
+    (_LOG.info if prio.realtime or args.realtime_priority <= 0 else _LOG.warning)("%s", prio.message)
     ids = list(range(args.first_id, args.first_id + arm.n))
     sim = HardwareSim(
         plant,
@@ -664,6 +694,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         control_file=args.control_file,
         die_after_s=args.die_after,
     )
+    sim.realtime = prio.realtime
 
     def _stop(signum: int, _frame: object) -> None:
         _LOG.info("signal %d: stopping", signum)
