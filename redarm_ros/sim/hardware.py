@@ -180,6 +180,9 @@ class HardwareSim:
         self._start = time.monotonic()
         self.emulator = (emulator_factory or _default_emulator)(plant, self.module_ids)
         self._bus_thread = threading.Thread(target=self._bus_loop, name="sim-bus", daemon=True)
+        self._status_cond = threading.Condition()
+        self._status_mailbox: dict[str, Any] | None = None
+        self._status_thread = threading.Thread(target=self._status_writer, name="sim-status", daemon=True)
 
     # -- control from other threads / signal handlers -------------------------------------------------
     def request_stop(self) -> None:
@@ -354,13 +357,37 @@ class HardwareSim:
         }
 
     def write_status(self) -> None:
-        """Write :meth:`status` to the status file atomically (temp file + rename)."""
-        if self.status_file is None:
-            return
+        """Write :meth:`status` to the status file atomically (temp file + rename), now."""
+        if self.status_file is not None:
+            self._write_status_file(self.status())
+
+    def _write_status_file(self, status: dict[str, Any]) -> None:
+        assert self.status_file is not None
         tmp = self.status_file.with_name(f".{self.status_file.name}.{os.getpid()}.tmp")
         with open(tmp, "w", encoding="utf-8") as fh:
-            json.dump(self.status(), fh)
+            json.dump(status, fh)
         os.replace(tmp, self.status_file)
+
+    def _post_status(self) -> None:
+        """Hand the current status to the writer thread (the physics thread never waits for a disk)."""
+        if self.status_file is None:
+            return
+        with self._status_cond:
+            self._status_mailbox = self.status()  # the latest wins
+            self._status_cond.notify()
+
+    def _status_writer(self) -> None:
+        while True:
+            with self._status_cond:
+                while self._status_mailbox is None and not self._stop.is_set():
+                    self._status_cond.wait(0.5)
+                status, self._status_mailbox = self._status_mailbox, None
+            if status is None:
+                return  # stopping; run() writes the final status itself
+            try:
+                self._write_status_file(status)
+            except OSError as exc:
+                _LOG.warning("status file not written: %s", exc)
 
     def snapshot(self, name: str | None = None) -> str | None:
         """Render a PNG into the snapshot dir now (physics thread); returns its path."""
@@ -424,6 +451,7 @@ class HardwareSim:
         """Serve the bus and step physics in real time until :meth:`request_stop`."""
         period = 1.0 / self.rate_hz
         self._bus_thread.start()
+        self._status_thread.start()
         c = self.counters
         if self.snapshot_dir is not None:
             self.snapshot("start")
@@ -468,7 +496,7 @@ class HardwareSim:
                         last_sleep = time.monotonic()  # nor as a spinning real-time loop
                 if now >= next_status:
                     next_status = now + self.status_period
-                    self.write_status()
+                    self._post_status()
                 if now >= next_report:
                     next_report = now + OVERRUN_REPORT_S
                     if c.overruns > reported:
@@ -490,6 +518,9 @@ class HardwareSim:
         finally:
             self._stop.set()
             self._bus_thread.join(timeout=2.0)
+            with self._status_cond:
+                self._status_cond.notify()
+            self._status_thread.join(timeout=2.0)
             if self.snapshot_dir is not None:
                 try:
                     self.snapshot("final")
