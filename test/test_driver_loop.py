@@ -129,6 +129,23 @@ def test_period_stats() -> None:
     assert s2["rate_hz"] < s["rate_hz"]
 
 
+def test_period_totals_count_every_period_since_the_start() -> None:
+    st = PeriodStats(0.004, window=10)
+    t = 0.0
+    st.start(t)
+    for p in [0.004] * 198 + [0.0045, 0.012]:
+        t += p
+        st.start(t, after_overrun=p > 0.01)
+    tot = st.totals()
+    assert tot["periods"] == 200  # the window holds 10, the totals all of them, the overrun too
+    assert tot["period_err_max_ms"] == pytest.approx(8.0)
+    assert tot["period_err_p99_ms"] <= 0.55  # 99 % of the periods are within one 0.05 ms bin or two
+    st.start(t + 5.0, after_pause=True)  # cycling resumed after a pause: no period
+    assert st.totals()["period_err_max_ms"] == pytest.approx(8.0)
+    st.reset_totals()
+    assert st.totals()["periods"] == 0
+
+
 def make_shaper(dt: float = 0.004, margin: float = 0.0) -> ReferenceShaper:
     return ReferenceShaper(JointLimits([-1.5, -2.0], [1.5, 2.0], [1.0, 2.0], [2.0, 8.0]), dt, margin)
 

@@ -359,12 +359,21 @@ class ReferenceShaper:
         return self.r.copy()
 
 
+#: Bin width (s) of the since-start histogram of period errors, and its number of bins (errors beyond
+#: the last bin go into it): 0.05 ms bins up to 1 s.
+_HIST_BIN_S = 5e-5
+_HIST_BINS = 20000
+
+
 class PeriodStats:
     """Achieved cycle timing against the nominal period (window of the last ``window`` cycles).
 
     :meth:`start` is called with every cycle's start time; the period between two cycles is a
     sample unless ticks were skipped in between (an overrun, counted separately). The achieved
-    rate counts every cycle over the window's time span, overruns included.
+    rate counts every cycle over the window's time span, overruns included. Separately, every
+    start-to-start period since the start (or :meth:`reset_totals`), overruns and pauses between
+    runs of cycles excluded only by :meth:`reset`, goes into a histogram: :meth:`totals` gives its
+    p99 and max (what a long soak test reports).
     """
 
     def __init__(self, period_s: float, window: int = 2500) -> None:
@@ -375,14 +384,45 @@ class PeriodStats:
         self._lock = threading.Lock()
         self.cycles = 0
         self.overruns = 0  # ticks skipped because a cycle ended after the next deadline
+        self._hist = [0] * (_HIST_BINS + 1)
+        self._hist_max = 0.0
 
-    def start(self, t: float, *, after_overrun: bool = False) -> None:
-        """Record a cycle starting at ``t`` (s); ``after_overrun``: ticks were skipped before it."""
+    def start(self, t: float, *, after_overrun: bool = False, after_pause: bool = False) -> None:
+        """Record a cycle starting at ``t`` (s); ``after_overrun``: ticks were skipped before it;
+        ``after_pause``: cycling resumed after a pause (init, halt, reconnect): no period at all."""
         with self._lock:
-            if self._starts and not after_overrun:
-                self._periods.append(t - self._starts[-1])
+            if self._starts and not after_pause:
+                p = t - self._starts[-1]
+                if not after_overrun:
+                    self._periods.append(p)
+                err = abs(p - self.period_s)
+                self._hist[min(int(err / _HIST_BIN_S), _HIST_BINS)] += 1
+                if err > self._hist_max:
+                    self._hist_max = err
             self._starts.append(t)
             self.cycles += 1
+
+    def totals(self) -> dict[str, float]:
+        """Since the start: ``periods`` counted, ``period_err_p99_ms`` (bin resolution 0.05 ms) and
+        ``period_err_max_ms`` of every start-to-start period, overruns included."""
+        with self._lock:
+            hist, worst = list(self._hist), self._hist_max
+        total = sum(hist)
+        p99 = 0.0
+        if total:
+            rank, acc = 0.99 * total, 0
+            for i, c in enumerate(hist):
+                acc += c
+                if acc >= rank:
+                    p99 = (i + 1) * _HIST_BIN_S
+                    break
+        return {"periods": float(total), "period_err_p99_ms": p99 * 1e3, "period_err_max_ms": worst * 1e3}
+
+    def reset_totals(self) -> None:
+        """Start the since-start histogram afresh."""
+        with self._lock:
+            self._hist = [0] * (_HIST_BINS + 1)
+            self._hist_max = 0.0
 
     def busy(self, seconds: float) -> None:
         """Record how long one cycle's work took (s): sending, waiting for replies, publishing."""
@@ -400,7 +440,7 @@ class PeriodStats:
             self.overruns += int(skipped)
 
     def reset(self) -> None:
-        """Forget the window (counters stay); call when cycling resumes after a pause."""
+        """Forget the window (counters and the since-start histogram stay)."""
         with self._lock:
             self._periods.clear()
             self._starts.clear()
@@ -575,6 +615,7 @@ class LoopSnapshot:
     frames_per_s: float = 0.0  # (tx + rx) per second over the last snapshot interval
     implausible: int = 0  # measured positions refused by the plausibility check, all modules
     priority: str = ""  # the scheduling the loop thread got (one line)
+    totals: dict[str, float] | None = None  # since the start: PeriodStats.totals()
 
 
 class _Request:
@@ -723,8 +764,9 @@ class DriverLoop:
         return req.ok, req.message
 
     def reset_measurements(self) -> None:
-        """Start fresh timing and latency windows (counters such as cycles and overruns stay)."""
+        """Start fresh timing and latency windows and period totals (counters such as cycles stay)."""
         self.stats.reset()
+        self.stats.reset_totals()
         with self._lock:
             self._latencies.clear()
 
@@ -777,6 +819,7 @@ class DriverLoop:
             frames_per_s=fps,
             implausible=sum(s.implausible for s in mstats),
             priority=self._priority,
+            totals=self.stats.totals(),
         )
 
     # -- loop thread ------------------------------------------------------------------------------
@@ -960,15 +1003,16 @@ class DriverLoop:
         gc_every = max(1, int(round(0.2 / period)))  # young-generation collection about 5 times a second
         quiet_gc = self.config.quiet_gc
         next_t = time.monotonic()
-        gap = True  # the first cycle after a pause has no period
+        gap = False
+        first = True  # the first cycle after a pause (init, halt, reconnect) has no period
         k = 0
         while not self._stop.is_set() and self._requests.empty():
             now = time.monotonic()
             if now < next_t:
                 time.sleep(next_t - now)
                 now = time.monotonic()
-            self.stats.start(now, after_overrun=gap)
-            gap = False
+            self.stats.start(now, after_overrun=gap, after_pause=first)
+            gap = first = False
             target = self.commands.sample(now, q_ref, q_meas)
             clipped = np.clip(target, lo, hi)
             outside = clipped != target

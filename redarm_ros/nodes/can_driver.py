@@ -39,6 +39,7 @@ from typing import Any
 
 import numpy as np
 import yaml
+from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
@@ -173,6 +174,12 @@ def map_joint_names(names: Sequence[str], model_names: Sequence[str]) -> list[in
     if len(set(names)) != len(names):
         raise InvalidInputError("repeated joint names", field="joint_names", value=list(names))
     return [index[n] for n in names]
+
+
+def _stamp(t: float) -> Time:
+    """builtin_interfaces/Time of a wall-clock time ``t`` (s)."""
+    sec = int(t)
+    return Time(sec=sec, nanosec=int((t - sec) * 1e9))
 
 
 def _duration_s(d: Any) -> float:
@@ -390,7 +397,7 @@ class CanDriverNode(Node):
         if not self.context.ok():
             return  # shutting down: rclpy's context is gone before the loop thread stops
         msg = JointState()
-        msg.header.stamp = self.get_clock().now().to_msg()
+        msg.header.stamp = _stamp(s.stamp)  # when the cycle measured, not when it got published
         msg.header.frame_id = self._frame_id
         msg.name = self.joint_names
         msg.position = s.positions.tolist()
@@ -446,6 +453,9 @@ class CanDriverNode(Node):
             "fault_modules": str(list(snap.fault.module_ids)) if snap.fault is not None else "[]",
             "cycle_scheduling": snap.priority or "-",
         }
+        if snap.totals is not None:
+            values["period_error_p99_total_ms"] = f"{snap.totals['period_err_p99_ms']:.3f}"
+            values["period_error_max_total_ms"] = f"{snap.totals['period_err_max_ms']:.3f}"
         if snap.latency is not None:
             values["reply_latency_median_ms"] = f"{snap.latency['median_ms']:.3f}"
             values["reply_latency_p99_ms"] = f"{snap.latency['p99_ms']:.3f}"
