@@ -422,8 +422,10 @@ class _Child:
         self.out.put(("log", level, message))
 
     def run(self) -> int:
-        self.sender.start()
+        # Priority first: every thread started afterwards inherits it. A helper thread at normal
+        # priority could be preempted while holding the interpreter lock and stall the cycle.
         prio = realtime.raise_priority(self.spec.realtime_priority, who="can_driver cycle process")
+        self.sender.start()
         self.log(logging.INFO if prio.realtime or self.spec.realtime_priority <= 0 else logging.WARNING,
                  prio.message)
         # The process already has its priority (threads inherit it): the loop only freezes the GC.
