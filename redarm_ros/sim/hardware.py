@@ -112,6 +112,7 @@ class Counters:
     overruns: int = 0
     resyncs: int = 0
     max_lag_ms: float = 0.0
+    max_wire_gap_ms: float = 0.0  # longest silence between two frames for our modules, on the wire
     reply_latency_max_ms: float = 0.0
     reply_latency_sum_ms: float = 0.0
     snapshots: int = 0
@@ -176,6 +177,7 @@ class HardwareSim:
         self._pending: list[tuple[float, int, can.Message, float]] = []  # delayed: (due, seq, msg, t_rx)
         self._seq = 0
         self._decoder = pc.FrameDecoder()
+        self._last_wire: float | None = None
         self._control_sig: tuple[int, int] | None = None
         self._start = time.monotonic()
         self.emulator = (emulator_factory or _default_emulator)(plant, self.module_ids)
@@ -243,10 +245,14 @@ class HardwareSim:
             c.silenced_rx += 1
             return
         c.requests += 1
+        t_wire = wire_time(msg)
+        if self._last_wire is not None and t_wire - self._last_wire > c.max_wire_gap_ms * 1e-3:
+            c.max_wire_gap_ms = (t_wire - self._last_wire) * 1e3
+        self._last_wire = t_wire
         try:
             # The watchdog judges the host by when the frame was on the bus, not by when this
             # process got to read it (see module_emulator.wire_time).
-            replies = self.emulator.handle(frame, silenced, wire_time(msg))
+            replies = self.emulator.handle(frame, silenced, t_wire)
         except Exception:  # noqa: BLE001 - a bug in one request must not take the hardware down
             c.handler_errors += 1
             _LOG.exception("error handling %s", msg)
