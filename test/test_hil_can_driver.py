@@ -388,17 +388,19 @@ def test_hil_command_beyond_joint_limit_clamped(stack: Stack, client: Client) ->
     beyond[j] = ARM.upper[j] + 0.5
     client.send_trajectory([beyond], [1.0])
     worst_setpoint = worst_q = -math.inf
-    end = time.monotonic() + 4.0
-    while time.monotonic() < end:
+    end = time.monotonic() + 30.0
+    settled = 0
+    while time.monotonic() < end and settled < 25:  # until it has rested at the limit for 0.5 s
         st = stack.status()
         worst_setpoint = max(worst_setpoint, st["q_setpoint"][j])
         worst_q = max(worst_q, st["q"][j])
+        settled = settled + 1 if abs(st["q"][j] - (ARM.upper[j] - 1e-3)) < 1e-4 else 0
         time.sleep(0.02)
     st = stack.status()
-    assert st["q"][j] == pytest.approx(ARM.upper[j], abs=2e-3)  # went to the limit ...
-    assert worst_setpoint <= ARM.upper[j] + 1e-9  # ... was never commanded beyond it ...
-    assert worst_q <= ARM.upper[j] + 1e-3  # ... and did not overshoot it (pybullet's solver: ~1e-4)
-    mod = next(m for m in st["modules"] if m["id"] == j + 1)
+    # Went to the limit, short of it by the driver's 1 mrad margin ...
+    assert st["q"][j] == pytest.approx(ARM.upper[j] - 1e-3, abs=1e-4)
+    assert worst_setpoint <= ARM.upper[j] - 1e-3 + 1e-9  # ... was never commanded closer ...
+    assert worst_q <= ARM.upper[j] - 5e-4  # ... and did not overshoot (no BEYOND_SOFT at +1e-4)    mod = next(m for m in st["modules"] if m["id"] == j + 1)
     assert "ERROR" not in mod["flags"] and "BEYOND_SOFT" not in mod["flags"]
     stack.driver.wait_for_line(r"clamped", 2, from_start=True)
     t0 = client.now_ns()
