@@ -400,7 +400,8 @@ def test_hil_command_beyond_joint_limit_clamped(stack: Stack, client: Client) ->
     # Went to the limit, short of it by the driver's 1 mrad margin ...
     assert st["q"][j] == pytest.approx(ARM.upper[j] - 1e-3, abs=1e-4)
     assert worst_setpoint <= ARM.upper[j] - 1e-3 + 1e-9  # ... was never commanded closer ...
-    assert worst_q <= ARM.upper[j] - 5e-4  # ... and did not overshoot (no BEYOND_SOFT at +1e-4)    mod = next(m for m in st["modules"] if m["id"] == j + 1)
+    assert worst_q <= ARM.upper[j] - 5e-4  # ... and did not overshoot (no BEYOND_SOFT at +1e-4)
+    mod = next(m for m in st["modules"] if m["id"] == j + 1)
     assert "ERROR" not in mod["flags"] and "BEYOND_SOFT" not in mod["flags"]
     stack.driver.wait_for_line(r"clamped", 2, from_start=True)
     t0 = client.now_ns()
