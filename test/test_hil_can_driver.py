@@ -399,7 +399,9 @@ def test_hil_command_beyond_joint_limit_clamped(stack: Stack, client: Client) ->
     st = stack.status()
     # Went to the limit, short of it by the driver's 1 mrad margin ...
     assert st["q"][j] == pytest.approx(ARM.upper[j] - 1e-3, abs=1e-4)
-    assert worst_setpoint <= ARM.upper[j] - 1e-3 + 1e-9  # ... was never commanded closer ...
+    # ... was never commanded closer (float32 targets on the wire: the module's profile may end a few
+    # microradians past its last target) ...
+    assert worst_setpoint <= ARM.upper[j] - 1e-3 + 2e-5
     assert worst_q <= ARM.upper[j] - 5e-4  # ... and did not overshoot (no BEYOND_SOFT at +1e-4)
     mod = next(m for m in st["modules"] if m["id"] == j + 1)
     assert "ERROR" not in mod["flags"] and "BEYOND_SOFT" not in mod["flags"]
