@@ -393,6 +393,18 @@ def test_silent_module_halts_all_until_recover(rig) -> None:
     np.testing.assert_allclose(arm.positions(), q0, atol=1e-3)
 
 
+def test_a_request_made_before_start_waits_for_the_bus(rig) -> None:
+    loop = rig["loop"]
+    answer: list[tuple[bool, str]] = []
+    t = threading.Thread(target=lambda: answer.append(loop.request("init", timeout=30)))
+    t.start()  # e.g. ~/init called right after the node came up, before its cycle started
+    time.sleep(0.2)
+    loop.start()
+    t.join(40)
+    assert answer and answer[0][0], answer
+    assert loop.state is LoopState.RUNNING
+
+
 def test_halt_request_then_recover(rig) -> None:
     loop = start_running(rig)
     ok, msg = loop.request("halt")

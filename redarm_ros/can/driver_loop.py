@@ -619,8 +619,9 @@ class LoopSnapshot:
 
 
 class _Request:
-    def __init__(self, action: str) -> None:
+    def __init__(self, action: str, timeout: float) -> None:
         self.action = action
+        self.deadline = time.monotonic() + timeout  # the caller stops waiting then
         self.done = threading.Event()
         self.ok = False
         self.message = ""
@@ -685,6 +686,7 @@ class DriverLoop:
         self._requests: queue.Queue[_Request] = queue.Queue()
         self._wake = threading.Event()
         self._stop = threading.Event()
+        self._started = threading.Event()
         self._thread: threading.Thread | None = None
         self.bus: can.BusABC | None = None
         self.driver: ArmDriver | None = None
@@ -735,12 +737,14 @@ class DriverLoop:
             self._stopped = False
             self._thread = threading.Thread(target=self._run, name="can-driver-loop", daemon=True)
             self._thread.start()
+            self._started.set()
         return self
 
     def stop(self, timeout: float = 5.0) -> None:
         """Stop the thread and close the bus (modules keep their last, finished FSTEP)."""
         self._stop.set()
         self._wake.set()
+        self._started.set()  # release requests waiting for a start
         if self._thread is not None:
             self._thread.join(timeout)
             self._thread = None
@@ -754,9 +758,14 @@ class DriverLoop:
         """Run ``init``, ``halt`` or ``recover`` on the loop thread; returns (success, message)."""
         if action not in ("init", "halt", "recover"):
             return False, f"unknown action {action!r}"
-        if self._thread is None or not self._thread.is_alive():
+        t0 = time.monotonic()
+        if not self._stopped:
+            self._started.wait(timeout)  # a request made before start() waits for it
+        thread = self._thread
+        if thread is None or not thread.is_alive():
             return False, "driver loop is not running"
-        req = _Request(action)
+        timeout = max(0.0, timeout - (time.monotonic() - t0))
+        req = _Request(action, timeout)
         self._requests.put(req)
         self._wake.set()
         if not req.done.wait(timeout):
@@ -855,7 +864,10 @@ class DriverLoop:
                     if not self._connected:
                         if not self._connect():
                             delay = backoff.next_delay()
-                            self._serve_requests(refuse=f"CAN bus not connected ({self._reason})")
+                            # Before the first connection requests wait for it (a client calling
+                            # ~/init right after start-up); later, during an outage, they are refused.
+                            self._serve_requests(refuse=f"CAN bus not connected ({self._reason})",
+                                                 hold=self._connects == 0)
                             self._publish_state()
                             self._stop.wait(delay)
                             continue
@@ -1091,12 +1103,33 @@ class DriverLoop:
             except Exception as exc:  # a dead transport may complain; it is closed either way
                 self._log(logging.INFO, f"ignoring error closing the bus: {exc!r}")
 
-    def _serve_requests(self, refuse: str | None = None) -> None:
+    def _serve_requests(self, refuse: str | None = None, *, hold: bool = False) -> None:
+        """Run the queued requests; with ``refuse``, answer them with that instead; with ``hold``,
+        keep them queued (dropping those whose caller gave up)."""
+        if hold:
+            keep = []
+            while True:
+                try:
+                    req = self._requests.get_nowait()
+                except queue.Empty:
+                    break
+                if time.monotonic() < req.deadline:
+                    keep.append(req)
+                else:
+                    req.ok, req.message = False, f"{req.action}: {refuse}"
+                    req.done.set()
+            for req in keep:
+                self._requests.put(req)
+            return
         while True:
             try:
                 req = self._requests.get_nowait()
             except queue.Empty:
                 return
+            if time.monotonic() >= req.deadline:
+                req.ok, req.message = False, "the caller stopped waiting"
+                req.done.set()
+                continue  # never run a request nobody waits for any more
             if refuse is not None:
                 req.ok, req.message = False, refuse
             else:

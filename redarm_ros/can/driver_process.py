@@ -208,6 +208,7 @@ class DriverProcess:
         self._proc: subprocess.Popen[bytes] | None = None
         self._reader: threading.Thread | None = None
         self._stopping = False
+        self._started = threading.Event()
 
     # -- life cycle -------------------------------------------------------------------------------
     def start(self) -> DriverProcess:
@@ -229,11 +230,13 @@ class DriverProcess:
         self._send(("spec", self.spec))
         self._reader = threading.Thread(target=self._read, name="can-driver-process-reader", daemon=True)
         self._reader.start()
+        self._started.set()
         return self
 
     def stop(self, timeout: float = 10.0) -> None:
         """Stop the child's loop (it closes the bus) and wait for it to exit; kill it if it does not."""
         self._stopping = True
+        self._started.set()  # release requests waiting for a start that will not come
         proc = self._proc
         if proc is not None and proc.poll() is None:
             try:
@@ -284,6 +287,12 @@ class DriverProcess:
         """Run ``init``, ``halt`` or ``recover`` in the child; returns (success, message)."""
         if action not in ("init", "halt", "recover"):
             return False, f"unknown action {action!r}"
+        # A request made before the child runs (the node's start timer) waits for it, as the loop
+        # makes a request made before the first connection wait for that.
+        t0 = time.monotonic()
+        if not self._started.wait(timeout):
+            return False, f"{action}: the CAN cycle did not start within {timeout:.0f} s"
+        timeout = max(0.0, timeout - (time.monotonic() - t0))
         reply = self._ask(("req", action, float(timeout)), timeout + 5.0)
         if reply is None:
             return False, f"{action} did not finish within {timeout:.0f} s"
