@@ -253,6 +253,7 @@ class CanDriverNode(Node):
         self.refused: str | None = None
         self.on_refused: Callable[[str], None] | None = None
         self.started = False
+        self._start_lock = threading.Lock()
         self._created = time.monotonic()
         self._start_timer = self.create_timer(0.05, self._start_when_unique)
         watch_duplicates(self)
@@ -267,24 +268,38 @@ class CanDriverNode(Node):
     # -- life cycle ---------------------------------------------------------------------------------
     def _start_when_unique(self) -> None:
         """Timer: watch the graph for ``duplicate_check_s`` (a twin appears after DDS discovery), then
-        start the cycle; a twin of the same name means this driver never touches the bus."""
-        me = (self.get_name(), self.get_namespace())
-        twins = sum(1 for nm_ns in self.get_node_names_and_namespaces() if tuple(nm_ns) == me) - 1
-        if twins > 0:
+        start the cycle; a twin of the same name means this driver never touches the bus. Also
+        called by a service callback waiting for the start (an executor with a single thread would
+        otherwise never run the timer while the callback waits). Idempotent."""
+        with self._start_lock:
+            if self.started or self.refused is not None:
+                return
+            me = (self.get_name(), self.get_namespace())
+            twins = sum(1 for nm_ns in self.get_node_names_and_namespaces() if tuple(nm_ns) == me) - 1
+            if twins > 0:
+                self._start_timer.cancel()
+                self.refused = (
+                    f"another node named {self.get_fully_qualified_name()} is already running in "
+                    f"ROS_DOMAIN_ID {self.context.get_domain_id()}; refusing to start a second one (it would "
+                    "fight over the modules; remap the name with --ros-args -r __node:=<name> to run both)")
+                self.get_logger().error(self.refused)
+                if self.on_refused is not None:
+                    self.on_refused(self.refused)
+                return
+            if time.monotonic() - self._created < self._duplicate_check_s:
+                return
             self._start_timer.cancel()
-            self.refused = (
-                f"another node named {self.get_fully_qualified_name()} is already running in ROS_DOMAIN_ID "
-                f"{self.context.get_domain_id()}; refusing to start a second one (it would fight over the "
-                "modules; remap the name with --ros-args -r __node:=<name> to run both)")
-            self.get_logger().error(self.refused)
-            if self.on_refused is not None:
-                self.on_refused(self.refused)
-            return
-        if time.monotonic() - self._created < self._duplicate_check_s:
-            return
-        self._start_timer.cancel()
-        self.loop.start()
-        self.started = True
+            self.loop.start()
+            self.started = True
+
+    def _wait_for_start(self, timeout: float) -> bool:
+        """Block (a service callback) until the cycle is started, refused, or ``timeout`` s passed."""
+        end = time.monotonic() + timeout
+        while not self.started and self.refused is None and time.monotonic() < end:
+            self._start_when_unique()
+            if not self.started:
+                time.sleep(0.05)
+        return self.started
 
     def close(self) -> None:
         """Stop the CAN cycle and close the bus (called by main() before destroy_node)."""
@@ -381,7 +396,12 @@ class CanDriverNode(Node):
     # -- services ---------------------------------------------------------------------------------------
     def _trigger(self, action: str) -> Any:
         def callback(_req: Trigger.Request, resp: Trigger.Response) -> Trigger.Response:
-            ok, message = self.loop.request(action, self._request_timeout_s)
+            t0 = time.monotonic()
+            if self._wait_for_start(self._request_timeout_s):
+                left = max(0.0, self._request_timeout_s - (time.monotonic() - t0))
+                ok, message = self.loop.request(action, left)
+            else:
+                ok, message = False, self.refused or f"{action}: the CAN cycle did not start in time"
             resp.success, resp.message = ok, message
             # One call site per severity: rclpy refuses a severity change at the same line.
             if ok:
