@@ -228,6 +228,7 @@ class DriverProcess:
             theirs.close()
         self._conn = Connection(ours.detach())
         self._send(("spec", self.spec))
+        self._send(("stream_timeout", self.commands.stream_timeout_s))  # a change made before start()
         self._reader = threading.Thread(target=self._read, name="can-driver-process-reader", daemon=True)
         self._reader.start()
         self._started.set()
