@@ -397,12 +397,12 @@ def test_hil_command_beyond_joint_limit_clamped(stack: Stack, client: Client) ->
         settled = settled + 1 if abs(st["q"][j] - (ARM.upper[j] - 1e-3)) < 1e-4 else 0
         time.sleep(0.02)
     st = stack.status()
-    # Went to the limit, short of it by the driver's 1 mrad margin ...
+    # Went to the limit and rests there short of it by the driver's 1 mrad margin ...
     assert st["q"][j] == pytest.approx(ARM.upper[j] - 1e-3, abs=1e-4)
-    # ... was never commanded closer (float32 targets on the wire: the module's profile may end a few
-    # microradians past its last target) ...
-    assert worst_setpoint <= ARM.upper[j] - 1e-3 + 2e-5
-    assert worst_q <= ARM.upper[j] - 5e-4  # ... and did not overshoot (no BEYOND_SOFT at +1e-4)
+    # ... the module's profile never ran past the limit (a stream that pauses while the joint moves,
+    # e.g. the driver descheduled, is overshot as physics demands, but braked for the limit) ...
+    assert worst_setpoint <= ARM.upper[j] + 1e-9
+    assert worst_q <= ARM.upper[j] + 5e-5  # ... nor did the joint (BEYOND_SOFT trips at +1e-4)
     mod = next(m for m in st["modules"] if m["id"] == j + 1)
     assert "ERROR" not in mod["flags"] and "BEYOND_SOFT" not in mod["flags"]
     stack.driver.wait_for_line(r"clamped", 2, from_start=True)

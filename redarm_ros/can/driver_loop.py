@@ -729,7 +729,16 @@ class DriverLoop:
     def fault(self) -> Fault | None:
         """Why the loop is HALTED, if a fault halted it."""
         with self._lock:
-            return self._fault
+            return self._fault_locked()[0]
+
+    def _fault_locked(self) -> tuple[Fault | None, str]:
+        """(fault, reason): the loop's own, or the driver's when the driver has just faulted and the
+        loop thread has not caught up yet (the state is derived from the driver, so is this)."""
+        drv = self.driver
+        if self._fault is None and drv is not None and drv.state is DriverState.FAULT:
+            if drv.fault is not None:
+                return drv.fault, drv.fault.message
+        return self._fault, self._reason
 
     def start(self) -> DriverLoop:
         """Start the loop thread; returns self."""
@@ -785,12 +794,13 @@ class DriverLoop:
             state = self._state_locked()
             if state is LoopState.RUNNING:
                 return True, ""
-            return False, f"driver is {state.value} ({self._reason}); command ignored"
+            return False, f"driver is {state.value} ({self._fault_locked()[1]}); command ignored"
 
     def snapshot(self) -> LoopSnapshot:
         """A copy of the status for diagnostics."""
         with self._lock:
-            state, reason, fault = self._state_locked(), self._reason, self._fault
+            state = self._state_locked()
+            fault, reason = self._fault_locked()
             last = self._last_result
             q = None if self._q_meas is None else self._q_meas.copy()
             missing = list(self._missing)
@@ -841,7 +851,8 @@ class DriverLoop:
         if self._on_state is None:
             return
         with self._lock:
-            now = (self._state_locked(), self._reason, self._fault)
+            fault, reason = self._fault_locked()
+            now = (self._state_locked(), reason, fault)
         if now != self._published:
             self._published = now
             try:
