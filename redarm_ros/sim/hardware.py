@@ -60,6 +60,9 @@ OVERRUN_REPORT_S = 5.0  # log late steps at most this often
 # long (stepping slower than real time), the process drops back to normal scheduling.
 RT_SPIN_LIMIT_S = 0.5
 DEFAULT_REALTIME_PRIORITY = 50
+# How long a frame may have been under way (sender -> bus server -> this process) before it was
+# readable here; bounds how old a frame's own stamp may make it look (s).
+WIRE_TRANSIT_ALLOWANCE_S = 0.02
 ENV_PREFIX = "REDARM_SIM_"
 EXIT_BAD_ARGS = 2
 EXIT_NO_BUS = 3
@@ -178,6 +181,7 @@ class HardwareSim:
         self._seq = 0
         self._decoder = pc.FrameDecoder()
         self._last_wire: float | None = None
+        self._last_empty = time.monotonic()  # the bus thread last found nothing to read
         self._control_sig: tuple[int, int] | None = None
         self._start = time.monotonic()
         self.emulator = (emulator_factory or _default_emulator)(plant, self.module_ids)
@@ -245,7 +249,10 @@ class HardwareSim:
             c.silenced_rx += 1
             return
         c.requests += 1
-        t_wire = wire_time(msg)
+        # When the frame was on the bus, by its stamp; but never earlier than the last moment this
+        # thread saw the socket empty (less a transit allowance): a frame cannot have waited longer
+        # than that, so a wall-clock step cannot make it look old.
+        t_wire = max(wire_time(msg), self._last_empty - WIRE_TRANSIT_ALLOWANCE_S)
         if self._last_wire is not None and t_wire - self._last_wire > c.max_wire_gap_ms * 1e-3:
             c.max_wire_gap_ms = (t_wire - self._last_wire) * 1e3
         self._last_wire = t_wire
@@ -309,6 +316,8 @@ class HardwareSim:
             backlog = msg is not None
             if msg is not None:
                 self.handle_frame(msg, time.monotonic())
+            else:
+                self._last_empty = time.monotonic()
 
     def _on_bus_lost(self, exc: BaseException, delay: float) -> None:
         self.counters.bus_lost += 1
