@@ -406,16 +406,12 @@ class PeriodStats:
         """Since the start: ``periods`` counted, ``period_err_p99_ms`` (bin resolution 0.05 ms) and
         ``period_err_max_ms`` of every start-to-start period, overruns included."""
         with self._lock:
-            hist, worst = list(self._hist), self._hist_max
-        total = sum(hist)
+            hist, worst = np.array(self._hist, dtype=np.int64), self._hist_max
+        total = int(hist.sum())
         p99 = 0.0
         if total:
-            rank, acc = 0.99 * total, 0
-            for i, c in enumerate(hist):
-                acc += c
-                if acc >= rank:
-                    p99 = (i + 1) * _HIST_BIN_S
-                    break
+            i = int(np.searchsorted(np.cumsum(hist), 0.99 * total))
+            p99 = (i + 1) * _HIST_BIN_S
         return {"periods": float(total), "period_err_p99_ms": p99 * 1e3, "period_err_max_ms": worst * 1e3}
 
     def reset_totals(self) -> None:
