@@ -123,7 +123,9 @@ class Client:
 
     def close(self) -> None:
         self._stop.set()
-        self._thread.join(2.0)
+        self._thread.join(10.0)  # spin_once returns within 50 ms plus a callback
+        assert not self._thread.is_alive(), "client spin thread did not stop"
+        self.executor.remove_node(self.node)  # nothing may still dispatch to the node we destroy
         self.executor.shutdown(timeout_sec=1.0)
         self.node.destroy_node()
 
