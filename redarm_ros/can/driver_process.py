@@ -246,10 +246,11 @@ class DriverProcess:
             except (OSError, subprocess.TimeoutExpired):
                 proc.kill()
                 proc.wait(5.0)
-        if self._conn is not None:
-            self._conn.close()
+        # The child has exited: the reader sees the end of the socket; close it only afterwards.
         if self._reader is not None and self._reader is not threading.current_thread():
             self._reader.join(2.0)
+        if self._conn is not None:
+            self._conn.close()
         with self._lock:
             self._state, self._reason = LoopState.STOPPED, "stopped"
         self._fail_pending("driver process stopped")
@@ -371,7 +372,7 @@ class DriverProcess:
                     if entry is not None:
                         entry[1].append(msg[2])
                         entry[0].set()
-        except (EOFError, OSError):
+        except (EOFError, OSError, TypeError):  # TypeError: the connection was closed under us
             pass
         if not self._stopping:
             code = self._proc.wait(5.0) if self._proc is not None else None

@@ -255,7 +255,7 @@ class CanDriverNode(Node):
         self.started = False
         self._start_lock = threading.Lock()
         self._created = time.monotonic()
-        self._start_timer = self.create_timer(0.05, self._start_when_unique)
+        self._start_timer = self.create_timer(0.05, self._on_start_timer)
         watch_duplicates(self)
         iface = can_kwargs.get("interface") or "$CAN_INTERFACE"
         chan = can_kwargs.get("channel") or "$CAN_CHANNEL"
@@ -277,7 +277,6 @@ class CanDriverNode(Node):
             me = (self.get_name(), self.get_namespace())
             twins = sum(1 for nm_ns in self.get_node_names_and_namespaces() if tuple(nm_ns) == me) - 1
             if twins > 0:
-                self._start_timer.cancel()
                 self.refused = (
                     f"another node named {self.get_fully_qualified_name()} is already running in "
                     f"ROS_DOMAIN_ID {self.context.get_domain_id()}; refusing to start a second one (it would "
@@ -288,9 +287,16 @@ class CanDriverNode(Node):
                 return
             if time.monotonic() - self._created < self._duplicate_check_s:
                 return
-            self._start_timer.cancel()
             self.loop.start()
             self.started = True
+
+    def _on_start_timer(self) -> None:
+        """The start timer: try to start; once started (or refused) the timer cancels itself. Only
+        its own callback cancels it: a cancel from another thread can race the executor taking the
+        timer, which rclpy turns into an error."""
+        self._start_when_unique()
+        if self.started or self.refused is not None:
+            self._start_timer.cancel()
 
     def _wait_for_start(self, timeout: float) -> bool:
         """Block (a service callback) until the cycle is started, refused, or ``timeout`` s passed."""
