@@ -82,3 +82,12 @@ class ModuleFaultError(RedarmError):
         super().__init__(message)
         self.module_id = module_id
         self.state = state
+
+
+class ImplausibleMeasurementError(ModuleFaultError):
+    """A module reported a position it cannot have reached from the last one measured
+    (``module_id``; ``value``: the refused position in rad)."""
+
+    def __init__(self, message: str, *, module_id: int | None = None, value: float | None = None) -> None:
+        super().__init__(message, module_id=module_id)
+        self.value = value

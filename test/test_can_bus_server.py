@@ -163,3 +163,39 @@ def test_signal_stops_server_cleanly_and_clients_see_it(sig: int) -> None:
     finally:
         bus.shutdown()
         srv.stop()
+
+
+def test_frames_keep_their_sender_stamp_and_unstamped_ones_get_the_server_time() -> None:
+    with LoopbackBusServer() as server:
+        with open_bus(**server.client_config()) as a, open_bus(**server.client_config()) as b:
+            stamped = _msg(0x0E1)
+            stamped.timestamp = time.time() - 0.3  # sent 0.3 s ago (e.g. it waited in the sender)
+            a.send(stamped)
+            got = b.recv(5.0)
+            assert got is not None and got.timestamp == pytest.approx(stamped.timestamp, abs=1e-6)
+            t0 = time.time()
+            a.send(_msg(0x0E2))  # timestamp 0: stamped by the server on receipt
+            got = b.recv(5.0)
+            assert got is not None and t0 - 0.5 <= got.timestamp <= time.time() + 0.5
+            bogus = _msg(0x0E3)
+            bogus.timestamp = 12.5  # not a wall-clock time (e.g. a monotonic stamp): replaced
+            a.send(bogus)
+            got = b.recv(5.0)
+            assert got is not None and got.timestamp > t0 - 0.5
+
+
+def test_a_flood_leaves_no_unbounded_backlog_for_a_slow_reader() -> None:
+    # A reader that does not read during a flood afterwards finds a bounded backlog that ends with
+    # the newest frames, not the whole flood queued behind its next reply.
+    n = 20000
+    with LoopbackBusServer() as server:
+        with open_bus(**server.client_config()) as flood, open_bus(**server.client_config()) as slow:
+            for k in range(n):
+                flood.send(_msg(0x123, (k % 65536).to_bytes(2, "little")))
+            flood.send(_msg(0x7FF, b"\x01"))  # the last frame of the flood
+            got = []
+            while (m := slow.recv(1.0)) is not None:
+                got.append(m.arbitration_id)
+            assert 0x7FF in got[-5:]  # the newest traffic got through
+            assert len(got) < n // 2
+            assert server.overflowed_frames + server.skipped_frames > 0

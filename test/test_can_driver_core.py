@@ -18,11 +18,18 @@ import pytest
 from redarm_ros.can import protocol as p
 from redarm_ros.can.bus import open_bus
 from redarm_ros.can.bus_server import LoopbackBusServer
-from redarm_ros.can.driver_core import DriverState, PowerCubeArmDriver
+from redarm_ros.can.driver_core import DriverState, FaultKind, PowerCubeArmDriver
 from redarm_ros.can.module_emulator import EmulatedArm, EmulatorRunner
 from redarm_ros.can.protocol import ActConfig, ActState
 from redarm_ros.can.testing import OpenBusTracker
-from redarm_ros.errors import BusError, BusTimeoutError, InvalidInputError, ModuleFaultError, RedarmError
+from redarm_ros.errors import (
+    BusError,
+    BusTimeoutError,
+    ImplausibleMeasurementError,
+    InvalidInputError,
+    ModuleFaultError,
+    RedarmError,
+)
 
 S = ActState
 N = 3
@@ -93,6 +100,11 @@ class ScriptedBus(can.BusABC):
         if timeout:
             self.clock.t += timeout
         return None, False
+
+    def recv(self, timeout: float | None = None) -> can.Message | None:
+        # One wait on the fake clock: BusABC.recv would retry until *real* time ran out, advancing
+        # the fake clock by the timeout on every retry.
+        return self._recv_internal(timeout)[0]
 
     def take(self) -> list[tuple[int, str]]:
         out, self.sent = self.sent, []
@@ -185,7 +197,7 @@ def test_cycle_frames_byte_by_byte(scripted: ScriptedBus, clock: FakeClock) -> N
     # positions are the ones before the move (the modules had not moved yet)
     assert res.positions == pytest.approx([0.2, -0.1, 0.0], abs=1e-6)
     assert np.array_equal(res.targets, q)
-    assert all(s & S.RAMP_END for s in res.states) and res.fault == ""
+    assert all(s & S.RAMP_END for s in res.states) and res.fault is None
 
 
 def test_cycle_duration_is_rounded_to_ms(scripted: ScriptedBus, clock: FakeClock) -> None:
@@ -277,7 +289,7 @@ def test_silenced_module_halts_all_and_raises_once(scripted: ScriptedBus, arm: E
     with pytest.raises(BusTimeoutError) as info:
         drv.cycle(None, 0.004)
     assert info.value.module_id == 2 and info.value.timeout_s == drv.reply_timeout_s
-    assert info.value.cycle_result.fault.startswith("module 2 stopped answering")
+    assert str(info.value.cycle_result.fault).startswith("module 2 stopped answering")
     assert _halts(scripted.take()) == [(0x0E1, "02"), (0x0E2, "02"), (0x0E3, "02"), (0x100, "02 00")]
     assert drv.state is DriverState.FAULT and drv.stats[1].silent
     # afterwards: no second raise, the cycle only holds the measured position
@@ -299,19 +311,19 @@ def test_module_error_halts_all_and_reports_cause(scripted: ScriptedBus, arm: Em
         arm[1].inject_fault(S.POWERFAULT)
     scripted.take()
     res = drv.cycle([0.3, -0.1, 0.0], 0.004)
-    assert res.fault == "module 1: ERROR|POWERFAULT"
-    assert res.faults == {1: S.ERROR | S.POWERFAULT}
+    assert str(res.fault) == "module 1: ERROR|POWERFAULT" and res.fault.kind is FaultKind.MODULE_ERROR
+    assert res.fault.bits == {1: S.ERROR | S.POWERFAULT}
     assert drv.state is DriverState.FAULT
     assert _halts(scripted.take()) == [(0x0E1, "02"), (0x0E2, "02"), (0x0E3, "02"), (0x100, "02 00")]
     # ERROR refuses motion until RESET: holding cycles do not move anything
     at = arm.positions()
     clock.t += 1.0
     res = drv.cycle([0.5, 0.5, 0.5], 0.004)
-    assert res.holding and res.fault == ""
+    assert res.holding and res.fault is None
     assert arm.positions() == pytest.approx(at, abs=0.05)
     drv.recover()
     res = drv.cycle([0.35, -0.1, 0.0], 0.004)
-    assert not res.holding and res.fault == "" and drv.state is DriverState.READY
+    assert not res.holding and res.fault is None and drv.state is DriverState.READY
 
 
 def test_tow_error_state_frame_is_a_fault(scripted: ScriptedBus, clock: FakeClock) -> None:
@@ -319,7 +331,7 @@ def test_tow_error_state_frame_is_a_fault(scripted: ScriptedBus, clock: FakeCloc
     drv.init(home=False)
     scripted.inject(p.state_frame(3, S.ERROR | S.TOW_ERROR))  # unsolicited, before the cycle
     res = drv.cycle(None, 0.004)
-    assert res.faults == {3: S.ERROR | S.TOW_ERROR} and "TOW_ERROR" in res.fault
+    assert res.fault.bits == {3: S.ERROR | S.TOW_ERROR} and "TOW_ERROR" in str(res.fault)
     assert drv.state is DriverState.FAULT
 
 
@@ -335,10 +347,146 @@ def test_soft_limit_refusal_is_reported(clock: FakeClock) -> None:
             clock.t += 0.01
             if res.fault:
                 break
-        assert res.faults == {1: S.ERROR | S.BEYOND_SOFT}
+        assert res.fault.bits == {1: S.ERROR | S.BEYOND_SOFT}
         assert arm.positions()[0] <= 0.5
         drv.recover()  # RESET clears BEYOND_SOFT; the module is inside its limits again
         assert drv.state is DriverState.READY
+    finally:
+        bus.shutdown()
+
+
+def forged_ack(module_id: int, position: float) -> can.Message:
+    """A well-formed FSTEP_EXT acknowledgement claiming ``position`` (what a forging node would send)."""
+    return p.set_move_ext_ack(module_id, p.MoveMode.FSTEP_EXT, position, 0x20, 0)
+
+
+def test_forged_reply_is_refused_and_the_genuine_one_taken(clock: FakeClock, arm: EmulatedArm) -> None:
+    forge = {"on": False}
+
+    def responder(msg: can.Message) -> list[can.Message]:
+        out = arm.handle(msg)
+        if forge["on"] and msg.arbitration_id == 0x0E2:
+            out = [forged_ack(2, 1.4), *out]  # arrives first, 1.5 rad from where module 2 is
+        return out
+
+    bus = ScriptedBus(clock, responder)
+    try:
+        drv = make_driver(bus, clock)
+        drv.init(home=False)
+        forge["on"] = True
+        res = drv.cycle(None, 0.004)
+        assert res.implausible == 1 and res.replied.all() and res.fault is None
+        assert res.positions[1] == pytest.approx(-0.1, abs=1e-6)  # the genuine reply, not 1.4
+        assert drv.stats[1].implausible == 1 and drv.stats[1].last_implausible == pytest.approx(1.4)
+        assert drv.state is DriverState.READY
+    finally:
+        bus.shutdown()
+
+
+def test_only_implausible_replies_are_a_fault(clock: FakeClock, arm: EmulatedArm) -> None:
+    def responder(msg: can.Message) -> list[can.Message]:
+        if msg.arbitration_id == 0x0E3 and bytes(msg.data[:2]) == b"\x0b\x10":
+            arm.handle(msg)
+            return [forged_ack(3, 1.2)]  # module 3's encoder "jumps": every reply implausible
+        return arm.handle(msg)
+
+    bus = ScriptedBus(clock, responder)
+    try:
+        drv = make_driver(bus, clock, max_missed=3)
+        drv.init(home=False)
+        faults = []
+        for _ in range(3):
+            res = drv.cycle(None, 0.004)
+            assert res.positions[2] == pytest.approx(0.0, abs=1e-6)  # never the implausible value
+            faults.append(res.fault)
+        assert faults[:2] == [None, None]
+        assert faults[2].kind is FaultKind.IMPLAUSIBLE and faults[2].module_ids == (3,)
+        assert "implausible" in str(faults[2]) and drv.state is DriverState.FAULT
+        assert all(arm[i].state() & S.HALTED for i in IDS)
+    finally:
+        bus.shutdown()
+
+
+def test_implausible_position_read_is_refused(clock: FakeClock, arm: EmulatedArm) -> None:
+    mode = {"forge": False}
+
+    def responder(msg: can.Message) -> list[can.Message]:
+        out = arm.handle(msg)
+        if mode["forge"] and (msg.arbitration_id, bytes(msg.data)) == (0x0C1, b"\x0a\x3c"):
+            return [p.get_param_reply(1, p.Param.ACT_FPOS, 2.5)]  # instead of the genuine reply
+        return out
+
+    bus = ScriptedBus(clock, responder)
+    try:
+        drv = make_driver(bus, clock)
+        drv.init(home=False)
+        mode["forge"] = True
+        with pytest.raises(ImplausibleMeasurementError) as info:
+            drv.read_state()
+        assert info.value.module_id == 1 and info.value.value == pytest.approx(2.5)
+        mode["forge"] = False
+        assert drv.read_state().positions[0] == pytest.approx(0.2, abs=1e-6)
+        # init re-establishes the positions (homing): no reference, any position accepted
+        mode["forge"] = True
+        with pytest.raises(ImplausibleMeasurementError):
+            drv.recover()
+    finally:
+        bus.shutdown()
+
+
+def test_recover_restores_what_a_power_cycled_module_lost(clock: FakeClock, arm: EmulatedArm) -> None:
+    bus = ScriptedBus(clock, arm.handle)
+    try:
+        drv = make_driver(bus, clock, enable_watchdog=True)
+        drv.init(home=False)
+        assert arm[2].config_bits & ActConfig.WATCHDOG_ENABLE
+        # "Power cycle" module 2: factory configuration, factory limits, no watchdog.
+        with arm.lock:
+            fresh = type(arm[2])(2, arm[2].plant, arm[2].cfg, clock=clock)
+            arm.modules[2] = fresh
+        assert not fresh.config_bits & (ActConfig.WATCHDOG_ENABLE | ActConfig.SYNC_MOTION)
+        drv.recover()
+        cfg = arm[2].config_bits
+        assert cfg & ActConfig.WATCHDOG_ENABLE and cfg & ActConfig.SYNC_MOTION
+        assert not cfg & ActConfig.DISABLE_ACK
+        assert arm[2]._read_param(p.Param.ACT_FMAXVEL) == pytest.approx(VMAX[1])
+        assert arm[2]._read_param(p.Param.ACT_FMAXACC) == pytest.approx(AMAX[1])
+        # The watchdog is armed again: without refreshes the module halts by itself.
+        clock.t += 1.0
+        assert arm[2].state() & S.COMM_ERROR
+    finally:
+        bus.shutdown()
+
+
+def test_every_frame_is_stamped_with_its_send_time(clock: FakeClock, arm: EmulatedArm) -> None:
+    stamps: list[float] = []
+
+    def responder(msg: can.Message) -> list[can.Message]:
+        stamps.append(msg.timestamp)
+        return arm.handle(msg)
+
+    bus = ScriptedBus(clock, responder)
+    try:
+        drv = make_driver(bus, clock)
+        drv.init(home=False)
+        t0 = time.time()
+        drv.cycle(None, 0.004)
+        assert stamps and all(abs(t - t0) < 60.0 for t in stamps[-N - 1:])
+    finally:
+        bus.shutdown()
+
+
+def test_a_flood_of_foreign_frames_does_not_stall_the_cycle(clock: FakeClock, arm: EmulatedArm) -> None:
+    bus = ScriptedBus(clock, arm.handle)
+    try:
+        drv = make_driver(bus, clock)
+        drv.init(home=False)
+        for k in range(5000):  # a backlog far larger than one drain reads
+            bus.inject(can.Message(arbitration_id=0x123, data=[k % 256], is_extended_id=False))
+        res = drv.cycle(None, 0.004)  # the drain stops early; the receive loop skips the rest
+        while not res.replied.all():
+            res = drv.cycle(None, 0.004)
+        assert res.fault is None and drv.state is DriverState.READY
     finally:
         bus.shutdown()
 
@@ -470,7 +618,7 @@ def test_live_init_homes_and_follows_a_trajectory(live) -> None:
     for k in range(1, 250):  # smooth start from rest: 0.3 (1 - cos(pi t)), within the limits
         target = 0.3 * (1 - math.cos(math.pi * k * dt)) * np.array([1.0, -1.0, 0.5])
         res = drv.cycle(target, dt)
-        assert res.replied.all() and res.fault == ""
+        assert res.replied.all() and res.fault is None
         errs.append(np.max(np.abs(res.positions - res.targets)))
         time.sleep(dt)
     assert max(errs[10:]) < 0.05  # positions before the move trail the target by about a step
@@ -484,14 +632,14 @@ def test_live_watchdog_trips_when_cycles_stop(live) -> None:
     drv.enable_watchdog = drv.watchdog_refresh = True
     drv.init(home=False)
     for _ in range(20):
-        assert drv.cycle(None, 0.01).fault == ""
+        assert drv.cycle(None, 0.01).fault is None
         time.sleep(0.01)
     time.sleep(1.0)  # host "hangs": no traffic for longer than the 0.3 s watchdog
     res = drv.cycle(None, 0.01)
-    assert res.fault and all(bits & S.COMM_ERROR for bits in res.faults.values())
+    assert res.fault and all(bits & S.COMM_ERROR for bits in res.fault.bits.values())
     assert drv.state is DriverState.FAULT
     drv.recover()
-    assert drv.cycle(None, 0.01).fault == ""
+    assert drv.cycle(None, 0.01).fault is None
 
 
 # ------------------------------------------------------------------------------------------------

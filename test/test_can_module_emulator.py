@@ -4,6 +4,7 @@ plant, and the runner serving an in-process virtual bus."""
 from __future__ import annotations
 
 import math
+import time
 import uuid
 from collections.abc import Iterator
 
@@ -19,6 +20,7 @@ from redarm_ros.can.module_emulator import (
     ParamAccess,
     Plant,
     PowerCubeModule,
+    wire_time,
 )
 from redarm_ros.can.protocol import ActConfig, ActState, Param
 from redarm_ros.can.testing import OpenBusTracker
@@ -265,6 +267,42 @@ def test_watchdog_refreshed_by_any_addressed_traffic(clock: FakeClock) -> None:
     arm.handle(p.set_param(1, Param.ACT_CONFIG, 0))  # disarm
     clock.advance(1.0)
     assert not state_of(arm, 1) & S.ERROR
+
+
+def test_watchdog_judges_the_host_by_wire_time_not_by_when_frames_are_read(clock: FakeClock) -> None:
+    # The host refreshed every 50 ms, but the emulator read nothing for 300 ms (it was descheduled):
+    # the frames carry when they were on the bus, so the module does not blame the host.
+    m = make_arm(clock, n=1, config=int(ActConfig.WATCHDOG_ENABLE))[1]
+    t_armed = clock()
+    clock.advance(0.3)
+    for k in range(1, 7):
+        assert m.handle(p.Broadcast(p.BroadcastCommand.WATCHDOG_REFRESH, 0), t_armed + 0.05 * k) == []
+    assert m.tick() == [] and not m.state() & S.ERROR  # last refresh at +0.30, deadline +0.40
+    # A frame sent after a real gap (> 100 ms on the wire) is too late, however soon it is read.
+    out = decoded(m.handle(p.Broadcast(p.BroadcastCommand.WATCHDOG_REFRESH, 0), t_armed + 0.45))
+    assert out and out[0].state & S.COMM_ERROR
+
+
+def test_wire_time_converts_a_frame_stamp_to_the_module_clock() -> None:
+    now = {"t": 100.0}
+    clock = lambda: now["t"]  # noqa: E731
+    msg = p.watchdog_refresh_all()
+    assert wire_time(msg, clock) == 100.0  # unstamped: now
+    msg.timestamp = time.time() - 0.05
+    assert wire_time(msg, clock) == pytest.approx(99.95, abs=0.01)
+    msg.timestamp = time.time() + 5.0  # from the future: now
+    assert wire_time(msg, clock) == 100.0
+    msg.timestamp = time.time() - 60.0  # far too old to be a bus time: now
+    assert wire_time(msg, clock) == 100.0
+
+
+def test_soft_limit_change_reaches_the_plant(clock: FakeClock) -> None:
+    arm = make_arm(clock, n=1)
+    arm.handle(p.set_param(1, Param.ACT_FMAXPOS, 0.5))
+    arm.handle(p.fvel(1, 1.0))
+    clock.advance(3.0)
+    assert arm.positions()[0] <= 0.5 + 1e-9  # braked before the new soft limit
+    assert not state_of(arm, 1) & S.BEYOND_SOFT
 
 
 def test_disable_ack_suppresses_data_free_acks_only(clock: FakeClock) -> None:

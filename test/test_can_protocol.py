@@ -380,3 +380,19 @@ def test_decode_arbitrary_frames_never_crashes(arb_id: int, data: bytes) -> None
 def test_decode_fuzz_on_protocol_ids(arb_id: int, data: bytes) -> None:
     # Focus the fuzzer on ids that exist (random ids are mostly rejected by range).
     test_decode_arbitrary_frames_never_crashes.hypothesis.inner_test(arb_id, data)
+
+
+def test_patch_fstep_rewrites_a_built_frame_in_place() -> None:
+    msg = p.fstep(1, 0.0, 1)
+    p.patch_fstep(msg, 0.5, 4)
+    assert msg.arbitration_id == 0x0E1 and bytes(msg.data).hex(" ") == "0b 10 00 00 00 3f 04 00"
+    assert bytes(msg.data) == bytes(p.fstep(1, 0.5, 4).data)
+    plain = p.fstep(2, 0.0, 1, extended=False)
+    p.patch_fstep(plain, -1.25, 10)
+    assert bytes(plain.data) == bytes(p.fstep(2, -1.25, 10, extended=False).data)
+    for target, ms in ((math.nan, 4), (math.inf, 4), (0.1, -1), (0.1, 70000)):
+        with pytest.raises(InvalidInputError):
+            p.patch_fstep(msg, target, ms)
+    assert bytes(msg.data).hex(" ") == "0b 10 00 00 00 3f 04 00"  # unchanged after a refusal
+    with pytest.raises(InvalidInputError):
+        p.patch_fstep(p.framp(1, 0.3), 0.1, 4)

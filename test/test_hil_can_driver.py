@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import json
 import math
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -121,7 +123,9 @@ class Client:
 
     def close(self) -> None:
         self._stop.set()
-        self._thread.join(2.0)
+        self._thread.join(10.0)  # spin_once returns within 50 ms plus a callback
+        assert not self._thread.is_alive(), "client spin thread did not stop"
+        self.executor.remove_node(self.node)  # nothing may still dispatch to the node we destroy
         self.executor.shutdown(timeout_sec=1.0)
         self.node.destroy_node()
 
@@ -386,16 +390,21 @@ def test_hil_command_beyond_joint_limit_clamped(stack: Stack, client: Client) ->
     beyond[j] = ARM.upper[j] + 0.5
     client.send_trajectory([beyond], [1.0])
     worst_setpoint = worst_q = -math.inf
-    end = time.monotonic() + 4.0
-    while time.monotonic() < end:
+    end = time.monotonic() + 30.0
+    settled = 0
+    while time.monotonic() < end and settled < 25:  # until it has rested at the limit for 0.5 s
         st = stack.status()
         worst_setpoint = max(worst_setpoint, st["q_setpoint"][j])
         worst_q = max(worst_q, st["q"][j])
+        settled = settled + 1 if abs(st["q"][j] - (ARM.upper[j] - 1e-3)) < 1e-4 else 0
         time.sleep(0.02)
     st = stack.status()
-    assert st["q"][j] == pytest.approx(ARM.upper[j], abs=2e-3)  # went to the limit ...
-    assert worst_setpoint <= ARM.upper[j] + 1e-9  # ... was never commanded beyond it ...
-    assert worst_q <= ARM.upper[j] + 1e-3  # ... and did not overshoot it (pybullet's solver: ~1e-4)
+    # Went to the limit and rests there short of it by the driver's 1 mrad margin ...
+    assert st["q"][j] == pytest.approx(ARM.upper[j] - 1e-3, abs=1e-4)
+    # ... the module's profile never ran past the limit (a stream that pauses while the joint moves,
+    # e.g. the driver descheduled, is overshot as physics demands, but braked for the limit) ...
+    assert worst_setpoint <= ARM.upper[j] + 1e-9
+    assert worst_q <= ARM.upper[j] + 5e-5  # ... nor did the joint (BEYOND_SOFT trips at +1e-4)
     mod = next(m for m in st["modules"] if m["id"] == j + 1)
     assert "ERROR" not in mod["flags"] and "BEYOND_SOFT" not in mod["flags"]
     stack.driver.wait_for_line(r"clamped", 2, from_start=True)
@@ -440,4 +449,127 @@ def test_hil_bus_server_lost_and_back(stack: Stack, client: Client) -> None:
     q2 = q_gap.copy()
     q2[6] = 0.5
     client.send_trajectory([q2], [1.5])
+    stack.wait_sim_at(q2, 2e-3, 8)
+
+
+def _module_config(canbus: Any, module_id: int) -> int:
+    """ACT_CONFIG of a module, read with a CAN client of the test's own."""
+    from redarm_ros.can import protocol as pc
+
+    with can.Bus(**canbus.kwargs) as bus:
+        for _ in range(5):
+            bus.send(pc.get_param(module_id, pc.Param.ACT_CONFIG))
+            end = time.monotonic() + 1.0
+            while time.monotonic() < end:
+                msg = bus.recv(0.2)
+                if msg is None or msg.arbitration_id != 0x0A0 + module_id:
+                    continue
+                frame = pc.decode(msg)
+                if isinstance(frame, pc.GetParamReply) and frame.param is pc.Param.ACT_CONFIG:
+                    return int(frame.value)
+    raise AssertionError(f"module {module_id} did not answer GETPARAM ACT_CONFIG")
+
+
+def test_hil_recover_after_power_cycle_rearms_the_watchdog(stack: Stack, client: Client) -> None:
+    from redarm_ros.can.protocol import ActConfig
+
+    sim = stack.start_sim()
+    stack.start_driver()
+    init_and_check(client, stack)
+    q1 = goal_pose()
+    client.send_trajectory([q1], [1.0])
+    stack.wait_sim_at(q1, 2e-3, 10)
+    sim.kill()  # power lost: the restarted modules have factory settings (no watchdog, no sync)
+    stack.driver.wait_for_line(r"HALTED: module \d+ stopped answering", 10)
+    stack.start_sim(name="sim_restarted", initial_q=q1)
+    r = client.call("recover")
+    assert r.success, r.message
+    for mid in range(1, N + 1):
+        cfg = _module_config(stack.canbus, mid)
+        assert cfg & ActConfig.WATCHDOG_ENABLE and cfg & ActConfig.SYNC_MOTION, (mid, hex(cfg))
+    # The driver dies now: the modules must halt by themselves (their watchdog, 100 ms).
+    stack.driver.kill()
+
+    def all_halted() -> bool:
+        mods = stack.status()["modules"]
+        return all("HALTED" in m["flags"] and "COMM_ERROR" in m["flags"] for m in mods)
+
+    assert wait_for(all_halted, 10), stack.status()["modules"]
+    q_stop = stack.sim_q()
+    time.sleep(0.3)
+    np.testing.assert_allclose(stack.sim_q(), q_stop, atol=1e-4)
+
+
+def test_hil_forged_reply_is_never_published(stack: Stack, client: Client) -> None:
+    from redarm_ros.can import protocol as pc
+
+    stack.start_sim()
+    stack.start_driver()
+    init_and_check(client, stack)
+    q1 = goal_pose()
+    q1[2] = 0.2
+    client.send_trajectory([q1], [1.0])
+    stack.wait_sim_at(q1, 2e-3, 10)
+    # Another node answers for module 3 with a well-formed acknowledgement claiming 3.0 rad.
+    forged = pc.set_move_ext_ack(3, pc.MoveMode.FSTEP_EXT, 3.0, 0x20, 0)
+    with client.lock:
+        client.joint_states.clear()
+    with can.Bus(**stack.canbus.kwargs) as bus:
+        end = time.monotonic() + 1.0
+        while time.monotonic() < end:
+            bus.send(forged)
+            time.sleep(0.002)
+    time.sleep(0.3)
+    with client.lock:
+        seen = [np.array(js.position) for js in client.joint_states]
+    assert len(seen) > 50  # joint states kept flowing
+    assert max(abs(q[2] - 0.2) for q in seen) < 0.01  # never the forged 3.0 rad
+    np.testing.assert_allclose(stack.sim_q(), q1, atol=2e-3)
+    t0 = client.now_ns()
+    assert wait_for(lambda: client.diag_since(t0), 5)
+    d = client.diag_since(t0)[-1]
+    assert int(d[f"can_driver: module 3 ({ARM.joint_names[2]})"][2]["implausible"]) > 0
+    assert d["can_driver: loop"][2]["state"] == "running"
+
+
+FLOODER = """
+import sys, time, can
+bus = can.Bus(interface="remote", channel=sys.argv[1])
+junk = can.Message(arbitration_id=0x123, data=[0xAA] * 8, is_extended_id=False)
+sent, t0 = 0, time.monotonic()
+while (t := time.monotonic() - t0) < 5.0:
+    bus.send(junk)
+    sent += 1
+    if sent % 200 == 0 and sent > 20000 * t:
+        time.sleep(0.002)
+bus.shutdown()
+print(f"FLOODED {sent}", flush=True)
+"""
+
+
+def test_hil_recover_after_a_flood(stack: Stack, client: Client) -> None:
+    stack.start_sim()
+    stack.start_driver()
+    init_and_check(client, stack)
+    # 5 s of foreign frames at up to 20k frames/s from a node of its own (a process, so the rate is
+    # not limited by this test's interpreter); it prints how many it sent.
+    out = subprocess.run([sys.executable, "-c", FLOODER, stack.canbus.channel], capture_output=True,
+                         text=True, timeout=120, check=True).stdout
+    sent = int(out.split()[-1])
+    t_end = time.monotonic()
+    # The driver may have halted meanwhile (replies stuck behind the flood); ~/recover must work
+    # right after it, not seconds later (the bus keeps no backlog).
+    attempts = 0
+    while True:
+        attempts += 1
+        r = client.call("recover")
+        if r.success or attempts == 3:
+            break
+    took = time.monotonic() - t_end
+    print(f"flood: {sent} frames in 5 s ({sent / 5:.0f}/s); ~/recover succeeded after {took:.2f} s "
+          f"({attempts} call(s))")
+    assert r.success, r.message
+    q2 = stack.sim_q()
+    q2[0] += 0.2
+    client.send_trajectory([q2], [1.0])
     stack.wait_sim_at(q2, 2e-3, 8)

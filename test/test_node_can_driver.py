@@ -79,7 +79,7 @@ class Rig:
         params = {"can.interface": "virtual", "can.channel": self.channel, "rate_hz": 100.0,
                   "poll_hz": 20.0, "hold_on_stream_stop_s": 0.3, "reply_timeout_s": 0.1,
                   "max_missed_replies": 5, "watchdog": False, "duplicate_check_s": 0.0,
-                  **(overrides or {})}
+                  "realtime_priority": 0, **(overrides or {})}
         self.node = CanDriverNode(
             context=ctx, parameter_overrides=[Parameter(k, value=v) for k, v in params.items()]
         )
@@ -240,13 +240,43 @@ def test_node_runtime_parameter_updates(rig: Rig) -> None:
 
 
 def test_second_driver_with_the_same_name_refuses_to_start(rig: Rig, rclpy_context: Any) -> None:
-    """Two drivers on one bus would fight over the modules: the second one must not start."""
-    with pytest.raises(RuntimeError, match="already running"):
-        CanDriverNode(
-            context=rclpy_context,
-            parameter_overrides=[
-                Parameter("can.interface", value="virtual"),
-                Parameter("can.channel", value=rig.channel),
-                Parameter("duplicate_check_s", value=1.0),
-            ],
-        )
+    """Two drivers on one bus would fight over the modules: the second one must never start its cycle."""
+    assert wait_for(lambda: rig.node.started)
+    second = CanDriverNode(
+        context=rclpy_context,
+        parameter_overrides=[
+            Parameter("can.interface", value="virtual"),
+            Parameter("can.channel", value=rig.channel),
+            Parameter("duplicate_check_s", value=1.0),
+            Parameter("realtime_priority", value=0),
+        ],
+    )
+    refusals: list[str] = []
+    second.on_refused = refusals.append
+    rig.executor.add_node(second)
+    try:
+        assert wait_for(lambda: bool(refusals), timeout=10.0)  # the callback runs after `refused` is set
+        assert "already running" in refusals[0] and refusals == [second.refused]
+        time.sleep(1.2)  # past its duplicate window: still not started, the bus never opened
+        assert not second.started and second.loop.bus is None
+    finally:
+        rig.executor.remove_node(second)
+        second.destroy_node()
+
+
+def test_constructor_starts_nothing_and_declares_ranges(rclpy_context: Any) -> None:
+    before = {t.ident for t in threading.enumerate()}
+    node = CanDriverNode(context=rclpy_context, parameter_overrides=[
+        Parameter("can.interface", value="virtual"), Parameter("can.channel", value="unused"),
+        Parameter("duplicate_check_s", value=0.0)])
+    try:
+        assert {t.ident for t in threading.enumerate()} == before  # no thread started by __init__
+        assert not node.started and node.loop.bus is None
+        rate = node.describe_parameter("rate_hz").floating_point_range[0]
+        assert (rate.from_value, rate.to_value) == (1.0, 1000.0)
+        prio = node.describe_parameter("realtime_priority").integer_range[0]
+        assert (prio.from_value, prio.to_value) == (0, 98)
+        res = node.set_parameters([Parameter("hold_on_stream_stop_s", value=1e6)])
+        assert not res[0].successful  # beyond the declared range
+    finally:
+        node.destroy_node()

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from redarm_ros.sim.ramp import JointRamp, RampMode, braking_speed
+from redarm_ros.sim.ramp import STREAM_BUFFER, JointRamp, RampMode, braking_speed
 
 DT = 1e-3
 
@@ -82,20 +82,92 @@ def test_velocity_mode_brakes_before_the_limit_and_halt_stops():
     assert r.pos == held
 
 
-def test_streamed_steps_are_followed_without_lag():
-    # a host streaming one FSTEP per 10 ms cycle along a sine: after the start-up transient the
-    # setpoint is on the reference (feed-forward), with jitter it stays within a few mrad
+def _trapezoid_stream(goal: float, vmax: float, amax: float, dt: float) -> list[float]:
+    """A host's feasible stream: positions every dt of a time-optimal move from 0 to goal (discrete law)."""
+    p, v, out = 0.0, 0.0, []
+    while True:
+        v = min(v + amax * dt, vmax, braking_speed(goal - p, amax, dt))
+        p += v * dt
+        out.append(p)
+        if v == 0.0:
+            return out
+
+
+@pytest.mark.parametrize("jitter_ms", [0, 2, 5])
+def test_streamed_steps_are_followed_without_overtaking(jitter_ms: int):
+    # A host streaming one FSTEP per 10 ms cycle along a move at the joint's own limits (the hardest
+    # feasible stream), each step arriving up to half a step late on the host's grid: the setpoint
+    # never gets ahead of the latest target, keeps the limits, and ends exactly on the goal.
     rng = np.random.default_rng(2)
-    for jitter, tol in ((0, 1e-9), (1, 0.01)):
-        r = JointRamp(0.0, -3, 3, max_vel=2.0, max_acc=8.0)
-        err, ps = [], [r.pos]
-        for k in range(300):
-            r.command_position(0.5 * math.sin(2 * (k + 1) * 0.01), duration_s=0.01)
-            ps += _run(r, 10 + int(rng.integers(-jitter, jitter + 1)))
-            err.append(abs(r.ref - r.pos))
-        v, a = _vel_acc(ps)
-        assert max(err[60:]) < tol
-        assert np.abs(a).max() <= 8.0 * (1 + 1e-6)
+    vmax, amax = 2.0, 8.0
+    stream = _trapezoid_stream(1.2, vmax, amax, 0.01)
+    arrivals = [10 * k + int(rng.integers(0, jitter_ms + 1)) for k in range(len(stream))]  # ms
+    r = JointRamp(0.0, -3, 3, max_vel=vmax, max_acc=amax)
+    ps, ahead, latest, k = [r.pos], [], 0.0, 0
+    for t_ms in range(arrivals[-1] + 600):
+        while k < len(stream) and arrivals[k] <= t_ms:
+            r.command_position(stream[k], duration_s=0.01)
+            latest, k = stream[k], k + 1
+        ps.append(r.step(DT))
+        ahead.append(ps[-1] - latest)
+    v, a = _vel_acc(ps)
+    assert max(ahead) <= 1e-9
+    assert np.abs(v).max() <= vmax * (1 + 1e-9)
+    assert np.abs(a).max() <= amax * (1 + 1e-6)
+    assert ps[-1] == pytest.approx(1.2, abs=1e-12) and r.mode is RampMode.IDLE
+
+
+def test_smooth_stream_is_followed_one_step_behind():
+    # Along a sine within the limits the setpoint is the host's trajectory one step late: each step's
+    # target is reached one step after it was due.
+    r = JointRamp(0.0, -3, 3, max_vel=2.0, max_acc=8.0)
+    f = lambda t: 0.5 * math.sin(2 * t)  # noqa: E731
+    err = []
+    for k in range(300):
+        r.command_position(f((k + 1) * 0.01), duration_s=0.01)  # due at the end of this step
+        for i in range(10):
+            r.step(DT)
+            err.append(abs(r.pos - f(k * 0.01 + (i + 1) * DT - 0.01)))
+    # The chord midpoint vs the curve: |f"| d^2 / 8 = 2 * 0.01^2 / 8 = 2.5e-5 rad, nothing more.
+    assert max(err[1000:]) < 3e-5
+
+
+def test_a_late_step_is_buffered_and_a_full_buffer_skips_the_oldest():
+    r = JointRamp(0.0, -3, 3, max_vel=2.0, max_acc=8.0)
+    for k in range(10):  # ten steps at once (they waited in the bus): buffered, oldest skipped
+        r.command_position(0.001 * (k + 1), duration_s=0.004)
+    assert r.skipped_steps == 10 - 2 - STREAM_BUFFER  # one single move, one playing, the buffer
+    ps = _run(r, 1000)
+    assert ps[-1] == pytest.approx(0.01) and max(ps) <= 0.01 + 1e-12
+
+
+def test_a_stream_into_a_limit_brakes_in_time():
+    # A host streaming steps beyond the limit at full speed (targets clamped onto the limit): the
+    # setpoint brakes at the acceleration limit and stops on the limit, never slamming into it.
+    vmax, amax = 1.0, 2.0
+    r = JointRamp(0.0, -1.0, 1.0, max_vel=vmax, max_acc=amax)
+    ps = [r.pos]
+    for k in range(400):
+        r.command_position(0.004 * (k + 1), duration_s=0.004)  # 1 rad/s, on past the limit
+        ps += _run(r, 4)
+    ps += _run(r, 500)
+    v, a = _vel_acc(ps)
+    assert max(ps) <= 1.0 and ps[-1] == pytest.approx(1.0)
+    assert np.abs(a).max() <= amax * (1 + 1e-6)
+
+
+def test_position_and_velocity_moves_brake_for_moved_limits():
+    r = JointRamp(0.0, -2.0, 2.0, max_vel=1.0, max_acc=2.0)
+    r.command_position(1.9)
+    _run(r, 700)
+    assert r.vel == pytest.approx(1.0)
+    r.set_limits(-2.0, 1.2)  # the soft limit moves in front of the moving joint
+    ps = _run(r, 2000)
+    v, a = _vel_acc(ps)
+    assert max(ps) <= 1.2 and ps[-1] == pytest.approx(1.2)
+    assert np.abs(a).max() <= 2.0 * (1 + 1e-6)
+    with pytest.raises(ValueError):
+        r.set_limits(1.0, 0.0)
 
 
 def test_stream_end_brakes_within_the_acceleration_limit_and_settles_on_target():

@@ -308,7 +308,7 @@ def cmd_hil(ns: argparse.Namespace) -> int:
             malformed_seen += res.malformed
             latencies.extend(float(x) for x in res.latency_s if np.isfinite(x))
             if res.fault:
-                result["fault"] = res.fault
+                result["fault"] = str(res.fault)
                 break
             # The acknowledged position is the one before this cycle's move: compare with the
             # previous cycle's commanded target (what the module was asked to reach by now).

@@ -33,7 +33,7 @@ import logging
 import threading
 import time
 from collections.abc import Callable, Iterator
-from typing import Any
+from typing import Any, Protocol, runtime_checkable
 
 import can
 
@@ -186,6 +186,14 @@ def check_message(msg: can.Message) -> None:
         or (msg.is_remote_frame and msg.is_fd)
     ):
         raise InvalidInputError(f"refusing to send malformed CAN frame: {msg}", field="msg", value=msg)
+
+
+@runtime_checkable
+class ReopenableBus(Protocol):
+    """A bus that can reopen its transport in place after a failure (:class:`ReconnectingBus`)."""
+
+    def reopen(self) -> None:
+        """Open the same configuration again; raise :class:`BusError` if that fails."""
 
 
 class ReconnectingBus(can.BusABC):

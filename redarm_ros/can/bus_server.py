@@ -14,6 +14,23 @@ configuration ``interface="remote", channel="ws://127.0.0.1:<port>/"`` (see
 
 SIGINT/SIGTERM close every client connection (clients then see ``WebsocketClosed``) and exit 0.
 
+Like a real bus, it never holds on to old traffic (a flood must not leave seconds of backlog
+behind, during which the modules' replies would wait in line):
+
+* every frame keeps the time its sender put it on the bus (``msg.timestamp``, wall time; an
+  unstamped or implausible stamp is replaced by the server's receipt time), so receivers can judge
+  when a frame was sent, not when it arrived;
+* a client whose unread traffic in the server's socket exceeds :data:`INGRESS_BACKLOG_BYTES` (it
+  sends faster than the bus forwards) has frames skipped until it is back under, as a CAN
+  controller loses arbitration; skipped frames are counted;
+* each receiving client has a bounded queue (:data:`EGRESS_QUEUE` frames; the oldest is dropped
+  when it is full, counted) and a small socket send buffer, so a slow reader sees the latest
+  traffic rather than a growing backlog.
+
+The server process asks for real-time scheduling (``--realtime-priority``, SCHED_FIFO, default
+50, with a fallback and one log line when not permitted): it is the wire between the driver and
+the (simulated) modules.
+
 Python helpers: :class:`LoopbackBusServer` runs the server in a thread of this process (tests);
 :func:`start_bus_server` starts ``python -m redarm_ros.can.bus_server`` as a subprocess and waits
 until it is ready.
@@ -23,16 +40,20 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import fcntl
 import ipaddress
 import logging
 import os
+import queue
 import re
 import select
 import signal
 import socket
+import struct
 import subprocess
 import sys
 import tempfile
+import termios
 import threading
 import time
 import uuid
@@ -44,10 +65,21 @@ from typing import Any
 from can_remote.server import ClientRequestHandler, RemoteServer, RemoteServerProtocol
 from can_remote.websocket import WebSocket, get_accept_key
 
+from redarm_ros.can import realtime
 from redarm_ros.can.bus import check_message
 from redarm_ros.errors import BusError, InvalidInputError
 
 logger = logging.getLogger(__name__)
+
+#: Unread bytes in a client's server-side socket beyond which its frames are skipped (~650 frames).
+INGRESS_BACKLOG_BYTES = 16 * 1024
+#: Frames a receiving client's queue holds; when full the oldest is dropped.
+EGRESS_QUEUE = 512
+#: Kernel socket buffers of each client connection (bytes): small, so no backlog hides in them.
+SOCKET_BUFFER_BYTES = 64 * 1024
+#: A sender stamp may be this old (s) and still be taken as the time the frame went on the bus.
+MAX_STAMP_AGE_S = 1.0
+DEFAULT_REALTIME_PRIORITY = 50
 
 PORT_LINE = "REDARM_CANBUS_PORT"
 CHANNEL_LINE = "REDARM_CANBUS_CHANNEL"
@@ -97,12 +129,39 @@ def check_loopback(host: str) -> str:
 # --------------------------------------------------------------------------------------------------
 
 
-class _CheckedBus:
-    """Proxy for one client's server-side bus: ``send`` drops frames failing :func:`check_message`."""
+def _pending_bytes(sock: socket.socket) -> int:
+    """Bytes received by the kernel on ``sock`` and not read yet."""
+    try:
+        return struct.unpack("i", fcntl.ioctl(sock.fileno(), termios.FIONREAD, b"\0\0\0\0"))[0]
+    except OSError:
+        return 0
 
-    def __init__(self, bus: Any, server: _CheckedRemoteServer) -> None:
+
+class _DropOldestQueue(queue.Queue):  # type: ignore[type-arg]
+    """A receiving client's frame queue: never blocks the sender; when full, the oldest frame goes."""
+
+    def __init__(self, maxsize: int, server: _CheckedRemoteServer) -> None:
+        super().__init__(maxsize)
+        self._server = server
+
+    def put(self, item: object, block: bool = True, timeout: float | None = None) -> None:
+        with self.mutex:
+            if 0 < self.maxsize <= self._qsize():
+                self._get()
+                self._server.note_overflow()
+            self._put(item)
+            self.unfinished_tasks += 1
+            self.not_empty.notify()
+
+
+class _CheckedBus:
+    """Proxy for one client's server-side bus: ``send`` drops frames failing :func:`check_message`,
+    skips frames while the client's unread backlog is too large, and stamps unstamped frames."""
+
+    def __init__(self, bus: Any, server: _CheckedRemoteServer, sock: socket.socket | None = None) -> None:
         self._bus = bus
         self._server = server
+        self._sock = sock
 
     def send(self, msg: Any, timeout: float | None = None) -> None:
         try:
@@ -110,6 +169,12 @@ class _CheckedBus:
         except (InvalidInputError, AttributeError, TypeError) as exc:
             self._server.note_dropped(exc)
             return
+        if self._sock is not None and _pending_bytes(self._sock) > INGRESS_BACKLOG_BYTES:
+            self._server.note_skipped()
+            return
+        now = time.time()
+        if not (now - MAX_STAMP_AGE_S <= msg.timestamp <= now + 0.001):
+            msg.timestamp = now  # unstamped (or not a wall-clock stamp): on the bus now
         self._bus.send(msg, timeout)
 
     def __getattr__(self, name: str) -> Any:
@@ -120,9 +185,32 @@ class _CheckedProtocol(RemoteServerProtocol):
     def __init__(
         self, config: dict[str, Any], websocket: WebSocket, server: _CheckedRemoteServer, sock: socket.socket
     ) -> None:
+        self._checked_server = server  # before the library's __init__, which answers the client
         super().__init__(config, websocket)
-        self.bus = _CheckedBus(self.bus, server)
+        self.bus = _CheckedBus(self.bus, server, sock)
         self.sock = sock
+
+    def send_bus_response(self, channel_info: str) -> None:
+        # The client may send as soon as it has this answer: bound our queue first.
+        self._bound_queue(self.bus, self._checked_server)
+        super().send_bus_response(channel_info)
+
+    @staticmethod
+    def _bound_queue(bus: Any, server: _CheckedRemoteServer) -> None:
+        # python-can's virtual bus delivers into one unbounded, blocking queue per bus (listed in its
+        # channel): swap in a bounded one that drops the oldest frame instead of growing or blocking.
+        try:
+            from can.interfaces.virtual import channels_lock
+
+            with channels_lock:
+                i = next(k for k, q in enumerate(bus.channel) if q is bus.queue)
+                bounded = _DropOldestQueue(EGRESS_QUEUE, server)
+                while not bus.queue.empty():  # nothing already delivered is lost
+                    bounded.put(bus.queue.get_nowait())
+                bus.channel[i] = bounded
+                bus.queue = bounded
+        except (ImportError, AttributeError, StopIteration) as exc:  # another python-can layout
+            logger.warning("could not bound the client queue (%r): a slow client may build a backlog", exc)
 
 
 class _CheckedHandler(ClientRequestHandler):
@@ -137,6 +225,9 @@ class _CheckedHandler(ClientRequestHandler):
         chosen = "can.binary+json.v1" if "can.binary+json.v1" in offered else "can.json.v1"
         self.send_header("Sec-WebSocket-Protocol", chosen)
         self.end_headers()
+        for opt in (socket.SO_SNDBUF, socket.SO_RCVBUF):
+            with contextlib.suppress(OSError):
+                self.request.setsockopt(socket.SOL_SOCKET, opt, SOCKET_BUFFER_BYTES)
         server: _CheckedRemoteServer = self.server  # type: ignore[assignment]
         protocol = _CheckedProtocol(
             server.config, WebSocket(None, chosen, sock=self.request), server, self.request
@@ -153,6 +244,8 @@ class _CheckedRemoteServer(RemoteServer):
         super().__init__(host, port, **config)
         self.RequestHandlerClass = _CheckedHandler
         self.dropped = 0
+        self.skipped = 0
+        self.overflowed = 0
         self._drop_lock = threading.Lock()
 
     def note_dropped(self, exc: BaseException) -> None:
@@ -161,6 +254,22 @@ class _CheckedRemoteServer(RemoteServer):
             n = self.dropped
         if n == 1 or n % 100 == 0:
             logger.warning("dropped malformed CAN frame from a client (%d so far): %s", n, exc)
+
+    def note_skipped(self) -> None:
+        with self._drop_lock:
+            self.skipped += 1
+            n = self.skipped
+        if n == 1 or n % 10000 == 0:
+            logger.warning("a client sends faster than the bus forwards: skipping its backlog "
+                           "(%d frames so far)", n)
+
+    def note_overflow(self) -> None:
+        with self._drop_lock:
+            self.overflowed += 1
+            n = self.overflowed
+        if n == 1 or n % 10000 == 0:
+            logger.warning("a client reads slower than the bus delivers: dropping its oldest frames "
+                           "(%d so far)", n)
 
 
 class LoopbackBusServer:
@@ -181,7 +290,7 @@ class LoopbackBusServer:
         self.virtual_channel = channel or f"redarm-canbus-{os.getpid()}-{uuid.uuid4().hex[:8]}"
         try:
             self._server = _CheckedRemoteServer(
-                self.host, port, interface="virtual", channel=self.virtual_channel
+                self.host, port, interface="virtual", channel=self.virtual_channel, preserve_timestamps=True
             )
         except OSError as exc:
             raise BusError(f"cannot bind CAN bus server to {self.host}:{port}: {exc}") from exc
@@ -201,6 +310,16 @@ class LoopbackBusServer:
     def dropped_frames(self) -> int:
         """Malformed frames from clients that were dropped instead of reaching the bus."""
         return self._server.dropped
+
+    @property
+    def skipped_frames(self) -> int:
+        """Frames skipped because their sender's unread backlog was too large."""
+        return self._server.skipped
+
+    @property
+    def overflowed_frames(self) -> int:
+        """Frames dropped from full receive queues (slow readers)."""
+        return self._server.overflowed
 
     @property
     def client_count(self) -> int:
@@ -271,6 +390,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--port", type=int, default=0, help="TCP port, 0 = ephemeral (default)")
     ap.add_argument("--port-file", type=Path, help="write the chosen port to this file")
     ap.add_argument("--channel", help="virtual bus channel name (default: unique per process)")
+    ap.add_argument("--realtime-priority", type=int, default=DEFAULT_REALTIME_PRIORITY, metavar="N",
+                    help="SCHED_FIFO priority (1..98, 0 = normal scheduling; default "
+                    f"{DEFAULT_REALTIME_PRIORITY}); falls back to a raised nice level when not permitted")
     ap.add_argument("-v", "--verbose", action="count", default=0, help="more logging (-v info, -vv debug)")
     return ap
 
@@ -287,6 +409,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (InvalidInputError, BusError) as exc:
         print(f"redarm-canbus: {exc}", file=sys.stderr)
         return 2
+    # The wire between driver and modules must not be starved (threads created below inherit it).
+    prio = realtime.raise_priority(args.realtime_priority, who="redarm-canbus")
+    if not prio.realtime and args.realtime_priority > 0:
+        print(f"redarm-canbus: {prio.message}", file=sys.stderr)
+    else:
+        logger.info("%s", prio.message)
 
     stop = threading.Event()
 

@@ -12,17 +12,33 @@ Safety rules, all enforced before anything is sent:
 * a target with NaN/inf or the wrong shape is refused (:class:`InvalidInputError`, nothing sent);
 * targets are clamped to ``[lower, upper]`` and to a step of ``max_vel * dt`` from the previous
   commanded target; clamped joints are listed in :attr:`CycleResult.clamped`;
+* every measured position (extended acknowledgement or ACT_FPOS) is checked for plausibility: a
+  jump from the last accepted measurement of more than ``max_vel * (elapsed + reply_timeout_s) +
+  plausibility_margin_rad`` is refused (counted per module, never taken as the arm's state; the
+  cycle keeps waiting for a plausible reply from that module);
 * a module that misses ``max_missed`` consecutive replies -> every module is halted, the driver
   enters FAULT and :class:`BusTimeoutError` (``module_id``, ``timeout_s``) is raised once, with
-  the cycle's result in its ``cycle_result`` attribute;
+  the cycle's result in its ``cycle_result`` attribute; if the module answered only with
+  implausible positions meanwhile, the fault is :attr:`FaultKind.IMPLAUSIBLE` instead (no raise);
 * a module reporting ERROR (short state, or a state frame on 0x060+id) -> every module halted,
   its full ACT_STATE is read (POWERFAULT, TOW_ERROR, BEYOND_SOFT, ...) and reported in
-  :attr:`CycleResult.fault` / :attr:`CycleResult.faults`; the driver enters FAULT;
+  :attr:`CycleResult.fault` (a :class:`Fault`: kind, module ids, bits, message); the driver
+  enters FAULT;
 * in FAULT or HALTED a cycle only holds and polls (target = measured position, which halted
-  modules refuse anyway) until :meth:`recover` (or :meth:`init`);
+  modules refuse anyway) until :meth:`recover` (or :meth:`init`); :meth:`recover` restores
+  everything a power-cycled module lost (RESET, then ACT_CONFIG with SYNC_MOTION and
+  WATCHDOG_ENABLE, ACT_FMAXVEL/ACT_FMAXACC), so the watchdog is armed again afterwards;
 * a transport failure raises :class:`BusError`; the caller reopens the bus with backoff
   (:meth:`reconnect`, or ``bus.reopen()`` directly). The first use after a failure re-reads
   the positions and holds them: a command from before the loss is never replayed.
+
+The driver's state (:class:`DriverState`) changes only through one transition table
+(:data:`TRANSITIONS`, events :class:`DriverEvent`); the cyclic loop's state is derived from it.
+
+Every frame is built (and the cycle's FSTEP frames patched) by the codec,
+:mod:`redarm_ros.can.protocol`, and stamped with the wall time at which it is sent
+(``msg.timestamp``): buses that carry the sender's stamp (the loopback bus server) let the modules
+judge the host by when it sent, not by when they got to read.
 
 Threading: every public method takes one lock, so calls from different threads are serialised,
 but the intended use is one thread owning the driver (the node's loop thread) and calling
@@ -35,10 +51,9 @@ from __future__ import annotations
 
 import logging
 import math
-import struct
 import threading
 import time
-from collections.abc import Callable, Hashable, Sequence
+from collections.abc import Callable, Hashable, Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import Enum
 
@@ -46,12 +61,19 @@ import can
 import numpy as np
 
 from redarm_ros.can import protocol as p
-from redarm_ros.can.protocol import ActConfig, ActState, Command, MoveMode, Param
-from redarm_ros.errors import BusError, BusTimeoutError, InvalidInputError, ModuleFaultError, RedarmError
+from redarm_ros.can.protocol import ActConfig, ActState, Command, Param
+from redarm_ros.errors import (
+    BusError,
+    BusTimeoutError,
+    ImplausibleMeasurementError,
+    InvalidInputError,
+    ModuleFaultError,
+    RedarmError,
+)
+from redarm_ros.motion import JointLimits
 
 logger = logging.getLogger(__name__)
 
-_FSTEP_EXT = struct.Struct("<BBfH")
 #: Bits that make the driver halt everything and report.
 FAULT_BITS = (
     ActState.ERROR
@@ -67,6 +89,10 @@ FAULT_BITS = (
     | ActState.POW_INTEGRAL_ERR
 )
 _LATENCY_WINDOW = 1024
+#: A plausibility check allows this much (rad) beyond what the velocity limit explains.
+DEFAULT_PLAUSIBILITY_MARGIN = 0.02
+# A drain before a cycle or request reads at most this many frames (a flooded bus must not stall it).
+_DRAIN_MAX_FRAMES = 256
 _SHORT_ERROR = int(p.ShortState.ERROR)
 _LONG_ONLY = ~p.LONG_BITS_WITH_SHORT  # ACT_STATE bits a short state cannot report
 
@@ -80,6 +106,62 @@ class DriverState(Enum):
     FAULT = "fault"  # a module failed or stopped answering: cycles hold and poll until recover()
 
 
+class DriverEvent(Enum):
+    """What moves :class:`PowerCubeArmDriver` from one :class:`DriverState` to another."""
+
+    INIT_STARTED = "init_started"  # init() begins: not initialised until it succeeds
+    READY = "ready"  # init() or recover() succeeded
+    HALT = "halt"  # halt() was called
+    FAULT = "fault"  # a module stopped answering, reported an error or implausible positions
+
+
+#: The driver's one state machine: (state, event) -> next state. A pair not listed leaves the
+#: state unchanged (a halt while in FAULT keeps the fault until recover()).
+TRANSITIONS: dict[tuple[DriverState, DriverEvent], DriverState] = {
+    **{(st, DriverEvent.INIT_STARTED): DriverState.UNINITIALIZED for st in DriverState},
+    **{(st, DriverEvent.READY): DriverState.READY for st in DriverState},
+    **{(st, DriverEvent.FAULT): DriverState.FAULT for st in DriverState},
+    (DriverState.UNINITIALIZED, DriverEvent.HALT): DriverState.HALTED,
+    (DriverState.READY, DriverEvent.HALT): DriverState.HALTED,
+    (DriverState.HALTED, DriverEvent.HALT): DriverState.HALTED,
+}
+
+
+class FaultKind(Enum):
+    """Why the arm was halted without being asked to."""
+
+    SILENT = "silent"  # a module missed max_missed replies in a row
+    MODULE_ERROR = "module_error"  # a module reported ERROR (with its cause bits)
+    IMPLAUSIBLE = "implausible"  # a module's positions jumped further than it can move
+    REQUEST_FAILED = "request_failed"  # init or recover did not succeed
+    MISSING = "missing"  # modules missing when the bus came back
+    INTERNAL = "internal"  # a bug in the loop (it halts rather than keep moving)
+
+
+@dataclass(frozen=True)
+class Fault:
+    """Why the arm was halted, as data: ``kind``, the ``module_ids`` at fault (empty: none in
+    particular), their ACT_STATE fault ``bits`` (module id -> bits, for MODULE_ERROR) and a human
+    ``message`` (also ``str(fault)``)."""
+
+    kind: FaultKind
+    module_ids: tuple[int, ...]
+    message: str
+    bits: Mapping[int, ActState] = field(default_factory=dict)
+
+    def __str__(self) -> str:
+        return self.message
+
+    def involves(self, module_id: int) -> bool:
+        """True if module ``module_id`` is one of the modules at fault."""
+        return module_id in self.module_ids
+
+
+def fault_bit_names(bits: int) -> str:
+    """``"ERROR|POWERFAULT"``: names of the :data:`FAULT_BITS` set in ``bits``."""
+    return "|".join(b.name or "" for b in ActState if b & bits and b & FAULT_BITS)
+
+
 class ModuleStats:
     """Per-module statistics for diagnostics (counts since construction; latency over a window)."""
 
@@ -90,7 +172,10 @@ class ModuleStats:
         "late",
         "malformed",
         "consecutive_misses",
+        "consecutive_implausible",
         "silent",
+        "implausible",
+        "last_implausible",
         "_lat",
         "_k",
     )
@@ -102,7 +187,10 @@ class ModuleStats:
         self.late = 0  # replies that arrived after their deadline (or twice)
         self.malformed = 0  # frames from this module that the codec refused
         self.consecutive_misses = 0
+        self.consecutive_implausible = 0  # implausible positions since the last plausible one
         self.silent = False  # missed max_missed replies in a row (cleared by the next reply)
+        self.implausible = 0  # measured positions refused by the plausibility check
+        self.last_implausible = math.nan  # the last refused position (rad)
         self._lat = np.zeros(_LATENCY_WINDOW)
         self._k = 0
 
@@ -126,21 +214,39 @@ class ModuleStats:
         w = self._window()
         return float(w.max() * 1e3) if w.size else 0.0
 
+    def view(self) -> ModuleStatsView:
+        """A frozen copy of the values (for snapshots handed to other threads or processes)."""
+        return ModuleStatsView(
+            module_id=self.module_id, replies=self.replies, lost=self.lost, late=self.late,
+            malformed=self.malformed, implausible=self.implausible, silent=self.silent,
+            latency_median_ms=self.latency_median_ms, latency_max_ms=self.latency_max_ms,
+        )
+
     def as_dict(self) -> dict[str, float | int | bool]:
         """Plain values for logs and diagnostics."""
-        return {
-            "module_id": self.module_id,
-            "replies": self.replies,
-            "lost": self.lost,
-            "late": self.late,
-            "malformed": self.malformed,
-            "silent": self.silent,
-            "latency_median_ms": self.latency_median_ms,
-            "latency_max_ms": self.latency_max_ms,
-        }
+        return self.view().as_dict()
 
     def __repr__(self) -> str:
         return f"ModuleStats({self.as_dict()})"
+
+
+@dataclass(frozen=True)
+class ModuleStatsView:
+    """The values of one module's :class:`ModuleStats` at one moment (latencies in ms)."""
+
+    module_id: int
+    replies: int
+    lost: int
+    late: int
+    malformed: int
+    implausible: int
+    silent: bool
+    latency_median_ms: float
+    latency_max_ms: float
+
+    def as_dict(self) -> dict[str, float | int | bool]:
+        """Plain values for logs and diagnostics."""
+        return dict(self.__dict__)
 
 
 @dataclass(frozen=True)
@@ -174,11 +280,11 @@ class CycleResult:
     """What one :meth:`PowerCubeArmDriver.cycle` sent and measured (arrays in joint order)."""
 
     stamp: float  # clock time (s) when the commands went out
-    positions: np.ndarray  # (n,) rad, actual positions before this cycle's move (last known if no reply)
+    positions: np.ndarray  # (n,) rad, actual positions before this cycle's move (last plausible if none)
     velocities: np.ndarray  # (n,) rad/s, finite-difference estimate between cycles
     targets: np.ndarray  # (n,) rad actually commanded (after clamps)
     states: np.ndarray  # (n,) int, ACT_STATE bits (from the short state; last known if no reply)
-    replied: np.ndarray  # (n,) bool
+    replied: np.ndarray  # (n,) bool: a plausible reply arrived
     latency_s: np.ndarray  # (n,) s from a joint's command to its reply (NaN if none)
     clamped: tuple[int, ...] = ()  # joint indices whose target was clamped
     clamped_to_limits: np.ndarray | None = None  # (n,) bool: clamped into [lower, upper]
@@ -186,8 +292,8 @@ class CycleResult:
     lost: int = 0  # replies missing this cycle
     late: int = 0  # stale replies of earlier cycles seen this cycle
     malformed: int = 0  # malformed frames seen this cycle
-    fault: str = ""  # why the driver halted everything this cycle ("" if it did not)
-    faults: dict[int, ActState] = field(default_factory=dict)  # module id -> fault bits
+    implausible: int = 0  # replies refused by the plausibility check this cycle
+    fault: Fault | None = None  # why the driver halted everything this cycle (None: it did not)
     holding: bool = False  # True when the driver was not READY: the cycle only held and polled
     resynced: bool = False  # positions were re-read after a bus failure; target ignored this cycle
 
@@ -224,7 +330,12 @@ class PowerCubeArmDriver:
         sync_motion: set SYNC_MOTION at init so all joints start on the STARTMOVE broadcast.
         home_timeout_s: how long :meth:`init` waits for HOME_OK.
         poll_interval_s: ACT_STATE polling interval while homing.
+        plausibility_margin_rad: a measured position may differ from the last accepted one by
+            ``max_vel * (elapsed + reply_timeout_s)`` plus this much (rad); more is refused.
         clock: time source (s).
+
+    Raises:
+        InvalidInputError: bad module ids, limits, timeouts or margin.
     """
 
     def __init__(
@@ -243,32 +354,30 @@ class PowerCubeArmDriver:
         sync_motion: bool = True,
         home_timeout_s: float = 30.0,
         poll_interval_s: float = 0.02,
+        plausibility_margin_rad: float = DEFAULT_PLAUSIBILITY_MARGIN,
         clock: Callable[[], float] = time.perf_counter,
     ) -> None:
         ids = [int(i) for i in module_ids]
         n = len(ids)
         if n == 0 or len(set(ids)) != n or not all(p.MIN_MODULE_ID <= i <= p.MAX_MODULE_ID for i in ids):
             raise InvalidInputError(f"module ids must be unique ints in 1..31, got {ids}", field="module_ids")
-        arrays = {}
-        for name, v in (("lower", lower), ("upper", upper), ("max_vel", max_vel), ("max_acc", max_acc)):
-            a = np.array(v, dtype=float).reshape(-1)
-            if a.shape != (n,) or not np.all(np.isfinite(a)):
-                raise InvalidInputError(f"{name} must be {n} finite values", field=name, value=v)
-            arrays[name] = a
-        if np.any(arrays["lower"] > arrays["upper"]):
-            raise InvalidInputError("lower must not exceed upper", field="lower", value=lower)
-        if np.any(arrays["max_vel"] <= 0) or np.any(arrays["max_acc"] <= 0):
-            raise InvalidInputError("max_vel and max_acc must be > 0", field="max_vel")
+        limits = JointLimits(lower, upper, max_vel, max_acc)
+        if limits.n != n:
+            raise InvalidInputError(f"limits must have {n} values, one per module", field="lower",
+                                    value=lower)
         if not reply_timeout_s > 0 or max_missed < 1:
             raise InvalidInputError(
                 "reply_timeout_s must be > 0 and max_missed >= 1", field="reply_timeout_s"
             )
+        if not (math.isfinite(plausibility_margin_rad) and plausibility_margin_rad >= 0):
+            raise InvalidInputError("plausibility_margin_rad must be >= 0", field="plausibility_margin_rad",
+                                    value=plausibility_margin_rad)
         self.bus = bus
         self.module_ids = ids
         self.n = n
-        self.lower, self.upper = arrays["lower"], arrays["upper"]
-        self.max_vel, self.max_acc = arrays["max_vel"], arrays["max_acc"]
+        self.limits = limits
         self.reply_timeout_s = float(reply_timeout_s)
+        self.plausibility_margin_rad = float(plausibility_margin_rad)
         self.max_missed = int(max_missed)
         self.watchdog_refresh = bool(watchdog_refresh or enable_watchdog)
         self.enable_watchdog = bool(enable_watchdog)
@@ -278,6 +387,7 @@ class PowerCubeArmDriver:
         self._clock = clock
         self._lock = threading.Lock()
         self.state = DriverState.UNINITIALIZED
+        self.fault: Fault | None = None  # why the driver is in FAULT (None otherwise)
         self.stats = [ModuleStats(i) for i in ids]
         self.decoder = p.FrameDecoder()
         # Routing tables: reply id / state id -> joint index.
@@ -288,13 +398,48 @@ class PowerCubeArmDriver:
         self._startmove = p.start_motion_all()
         self._wd_refresh = p.watchdog_refresh_all()
         self._halt_all_msg = p.halt_all()
-        self._q_meas = np.zeros(n)  # last measured positions
+        self._q_meas = np.zeros(n)  # last measured (plausible) positions
+        self._t_meas = np.full(n, math.nan)  # clock time of each; NaN: no reference (accept any)
         self._q_cmd = np.zeros(n)  # last commanded target
         self._states = np.zeros(n, dtype=np.int64)
         self._prev_stamp: float | None = None
         self._prev_q: np.ndarray | None = None
         self._needs_resync = False
         self._pending_faults: dict[int, ActState] = {}
+
+    # -- limits, as arrays (rad, rad/s, rad/s^2) ----------------------------------------------------
+    @property
+    def lower(self) -> np.ndarray:
+        """Lower joint limits (rad)."""
+        return self.limits.lower
+
+    @property
+    def upper(self) -> np.ndarray:
+        """Upper joint limits (rad)."""
+        return self.limits.upper
+
+    @property
+    def max_vel(self) -> np.ndarray:
+        """Velocity limits (rad/s)."""
+        return self.limits.max_vel
+
+    @property
+    def max_acc(self) -> np.ndarray:
+        """Acceleration limits (rad/s^2)."""
+        return self.limits.max_acc
+
+    @property
+    def frames_per_cycle(self) -> int:
+        """Frames one :meth:`cycle` sends: an FSTEP per joint, STARTMOVE, the watchdog refresh."""
+        return self.n + 1 + int(self.watchdog_refresh)
+
+    def _fire(self, event: DriverEvent, fault: Fault | None = None) -> None:
+        """Apply one :data:`TRANSITIONS` entry; a FAULT records ``fault``, READY clears it."""
+        self.state = TRANSITIONS.get((self.state, event), self.state)
+        if event is DriverEvent.FAULT:
+            self.fault = fault
+        elif event is DriverEvent.READY or event is DriverEvent.INIT_STARTED:
+            self.fault = None
 
     # ------------------------------------------------------------------------------------------
     # transport helpers (translate any failure to BusError and remember to resync)
@@ -309,6 +454,7 @@ class PowerCubeArmDriver:
         return err
 
     def _send(self, msg: can.Message) -> None:
+        msg.timestamp = time.time()  # when it went on the bus (kept by buses that carry it)
         try:
             self.bus.send(msg)
         except InvalidInputError:
@@ -338,6 +484,32 @@ class PowerCubeArmDriver:
             self.stats[j].malformed += 1
         return frame
 
+    def _plausible(self, j: int, x: float, t: float) -> bool:
+        """Whether position ``x`` (rad) of joint ``j`` measured at clock time ``t`` is reachable from
+        the last accepted measurement; an implausible one is counted (and logged, rate-limited)."""
+        t0 = self._t_meas[j]
+        if t0 != t0:  # NaN: no reference yet
+            return True
+        dt = max(0.0, t - t0) + self.reply_timeout_s
+        bound = self.max_vel[j] * dt + self.plausibility_margin_rad
+        q0 = self._q_meas[j]
+        if abs(x - q0) <= bound:
+            return True
+        s = self.stats[j]
+        s.implausible += 1
+        s.consecutive_implausible += 1
+        s.last_implausible = float(x)
+        if s.implausible == 1 or s.implausible % 100 == 0:
+            logger.warning(
+                "module %d: implausible position %.4f rad refused (last %.4f rad %.3f s before; at most "
+                "%.4f rad reachable); %d so far", self.module_ids[j], x, q0, t - t0, bound, s.implausible)
+        return False
+
+    def _accept_position(self, j: int, x: float, t: float) -> None:
+        self._q_meas[j] = x
+        self._t_meas[j] = t
+        self.stats[j].consecutive_implausible = 0
+
     def _note_state_frame(self, msg: can.Message, j: int) -> None:
         frame = self._decode_counted(msg, j)
         if isinstance(frame, p.StateFrame):
@@ -346,9 +518,15 @@ class PowerCubeArmDriver:
                 self._pending_faults[self.module_ids[j]] = frame.state
 
     def _drain(self) -> int:
-        """Read what is already queued (stale replies of earlier cycles); returns late ext acks."""
+        """Read what is already queued (stale replies of earlier cycles); returns late ext acks.
+
+        At most :data:`_DRAIN_MAX_FRAMES` frames: on a flooded bus the rest is read (and skipped)
+        by the receive loop that follows, which has a deadline."""
         late = 0
-        while (msg := self._recv(0.0)) is not None:
+        for _ in range(_DRAIN_MAX_FRAMES):
+            msg = self._recv(0.0)
+            if msg is None:
+                break
             j = self._route(msg)
             if j is None:
                 continue
@@ -428,21 +606,40 @@ class PowerCubeArmDriver:
         items = []
         for j, mid in enumerate(self.module_ids):
             items.append(((j, "state"), j, p.get_param(mid, Param.ACT_STATE), _is_param(Param.ACT_STATE)))
-            items.append(((j, "pos"), j, p.get_param(mid, Param.ACT_FPOS), _is_param(Param.ACT_FPOS)))
+            items.append(((j, "pos"), j, p.get_param(mid, Param.ACT_FPOS), self._is_plausible_fpos(j)))
+        implausible0 = [s.implausible for s in self.stats]
         res = self._transact(items)
+        for j in range(self.n):
+            if (j, "pos") not in res and self.stats[j].implausible > implausible0[j]:
+                s = self.stats[j]
+                raise ImplausibleMeasurementError(
+                    f"module {self.module_ids[j]} reports an implausible position "
+                    f"{s.last_implausible:.4f} rad (last measured {self._q_meas[j]:.4f} rad); if the module "
+                    "was power-cycled without its position, ~init re-homes it",
+                    module_id=self.module_ids[j], value=s.last_implausible,
+                )
         self._require_all(res, [it[0] for it in items], "GETPARAM ACT_STATE/ACT_FPOS")
-        q = np.array([float(res[(j, "pos")].value) for j in range(self.n)])  # type: ignore[attr-defined]
+        t = self._clock()
+        for j in range(self.n):
+            self._accept_position(j, float(res[(j, "pos")].value), t)  # type: ignore[attr-defined]
         states = [ActState(int(res[(j, "state")].value)) for j in range(self.n)]  # type: ignore[attr-defined]
-        self._q_meas[:] = q
         self._states[:] = [int(s) for s in states]
         self._needs_resync = False
         self._prev_stamp = None
-        return ArmState(q.copy(), states)
+        return ArmState(self._q_meas.copy(), states)
+
+    def _is_plausible_fpos(self, j: int) -> _Matcher:
+        def match(f: p.Frame) -> bool:
+            return (isinstance(f, p.GetParamReply) and f.param is Param.ACT_FPOS
+                    and self._plausible(j, float(f.value), self._clock()))
+
+        return match
 
     def _hold_measured(self) -> None:
         self._q_cmd[:] = self._q_meas
         for s in self.stats:
             s.consecutive_misses = 0
+            s.consecutive_implausible = 0
             s.silent = False
 
     # ------------------------------------------------------------------------------------------
@@ -482,7 +679,8 @@ class PowerCubeArmDriver:
 
         Sets SYNC_MOTION (and WATCHDOG_ENABLE if asked) in ACT_CONFIG, clears DISABLE_ACK, writes
         ACT_FMAXVEL/ACT_FMAXACC, RESETs, HOMEs and polls ACT_STATE until every module has
-        HOME_OK (``home_timeout_s``).
+        HOME_OK (``home_timeout_s``). Homing establishes the positions anew: the plausibility
+        check starts from the positions read at the end.
 
         Raises:
             BusTimeoutError: a module did not answer, or homing did not finish in time.
@@ -490,7 +688,8 @@ class PowerCubeArmDriver:
             BusError: the bus failed.
         """
         with self._lock:
-            self.state = DriverState.UNINITIALIZED
+            self._fire(DriverEvent.INIT_STARTED)
+            self._t_meas[:] = math.nan
             self._configure_locked()
             self._command_all(Command.RESET)
             if home:
@@ -499,7 +698,7 @@ class PowerCubeArmDriver:
             self._raise_on_errors(st, "init")
             self._hold_measured()
             self._pending_faults.clear()
-            self.state = DriverState.READY
+            self._fire(DriverEvent.READY)
             logger.info("PowerCube arm initialised at %s", np.round(st.positions, 4).tolist())
             return st
 
@@ -581,7 +780,7 @@ class PowerCubeArmDriver:
         if errs:
             j, bits = next(iter(errs.items()))
             mid = self.module_ids[j]
-            names = "|".join(b.name or "" for b in ActState if b & st.states[j] and b & FAULT_BITS)
+            names = fault_bit_names(st.states[j])
             raise ModuleFaultError(
                 f"module {mid} in error during {during}: {names}", module_id=mid, state=int(bits)
             )
@@ -597,26 +796,33 @@ class PowerCubeArmDriver:
         """
         with self._lock:
             acked = self._halt_all()
-            if self.state is not DriverState.FAULT:
-                self.state = DriverState.HALTED
+            self._fire(DriverEvent.HALT)
             logger.warning("PowerCube arm halted (acknowledged by %s)", acked)
             return acked
 
     def recover(self) -> ArmState:
-        """RESET every module, re-read positions and hold them (READY again).
+        """Bring every module back as :meth:`init` left it, without homing; hold the measured position.
+
+        RESETs every module (clears ERROR, HALTED and the causes), then restores what a module
+        that was power-cycled meanwhile has lost: ACT_CONFIG (SYNC_MOTION, WATCHDOG_ENABLE when the
+        watchdog is on, no DISABLE_ACK) and ACT_FMAXVEL/ACT_FMAXACC; re-reads the positions (checked
+        for plausibility) and holds them (READY again). Modules without HOME_OK are reported by
+        the returned states (``~/init`` homes them).
 
         Raises:
             BusTimeoutError: a module did not answer.
-            ModuleFaultError: a module is still in error after the reset.
+            ModuleFaultError: a module is still in error after the reset, refused the configuration,
+                or reports an implausible position (:class:`ImplausibleMeasurementError`).
             BusError: the bus failed.
         """
         with self._lock:
             self._command_all(Command.RESET)
+            self._configure_locked()
             st = self._read_state_locked()
             self._raise_on_errors(st, "recover")
             self._hold_measured()
             self._pending_faults.clear()
-            self.state = DriverState.READY
+            self._fire(DriverEvent.READY)
             logger.info("PowerCube arm recovered, holding %s", np.round(st.positions, 4).tolist())
             return st
 
@@ -708,9 +914,10 @@ class PowerCubeArmDriver:
         malformed0 = self.decoder.malformed
         t_sent = np.empty(n)
         clock = self._clock
+        patch = p.patch_fstep
         for j in range(n):
             msg = self._fstep_msgs[j]
-            _FSTEP_EXT.pack_into(msg.data, 0, Command.SETMOVE, MoveMode.FSTEP_EXT, q[j], ms)
+            patch(msg, q[j], ms)
             self._send(msg)
             t_sent[j] = clock()
         self._send(self._startmove)
@@ -722,6 +929,7 @@ class PowerCubeArmDriver:
         latency = np.full(n, np.nan)
         short = np.zeros(n, dtype=np.int64)
         remaining = n
+        implausible = 0
         deadline = stamp + self.reply_timeout_s
         fstep_ack = p.fstep_ext_ack_fields
         while remaining:
@@ -743,9 +951,12 @@ class PowerCubeArmDriver:
                 self.stats[j].late += 1
                 late += 1
                 continue
+            if not self._plausible(j, fields[0], t):
+                implausible += 1  # never taken as the arm's state; a genuine reply may still come
+                continue
             replied[j] = True
             remaining -= 1
-            self._q_meas[j] = fields[0]
+            self._accept_position(j, fields[0], t)
             short[j] = fields[1]
             latency[j] = t - t_sent[j]
 
@@ -766,7 +977,7 @@ class PowerCubeArmDriver:
                 s.consecutive_misses += 1
                 if s.consecutive_misses >= self.max_missed and not s.silent:
                     s.silent = True
-                    silent.append(self.module_ids[j])
+                    silent.append(j)
         if self._prev_stamp is not None and stamp > self._prev_stamp and self._prev_q is not None:
             vel = (self._q_meas - self._prev_q) / (stamp - self._prev_stamp)
         else:
@@ -790,43 +1001,56 @@ class PowerCubeArmDriver:
             lost=lost,
             late=late,
             malformed=self.decoder.malformed - malformed0,
+            implausible=implausible,
             holding=holding,
             resynced=resynced,
         )
+        if self.state is DriverState.FAULT:
+            self._pending_faults.clear()
+            return result
 
         # faults: ERROR in a short state, or a state frame with fault bits
         faults = dict(self._pending_faults)
         self._pending_faults.clear()
         errored = np.flatnonzero(short & _SHORT_ERROR).tolist()
-        if errored and self.state is not DriverState.FAULT:
+        if errored or faults:
             self._halt_all()
             for j in errored:
                 faults.setdefault(self.module_ids[j], self._full_state(j))
-        elif faults and self.state is not DriverState.FAULT:
-            self._halt_all()
-        if faults and self.state is not DriverState.FAULT:
-            self.state = DriverState.FAULT
-            result.faults = faults
-            result.fault = "; ".join(
-                f"module {mid}: " + "|".join(b.name or "" for b in ActState if b & bits and b & FAULT_BITS)
-                for mid, bits in sorted(faults.items())
-            )
-            logger.error("PowerCube fault, all modules halted: %s", result.fault)
+            text = "; ".join(f"module {mid}: {fault_bit_names(bits)}" for mid, bits in sorted(faults.items()))
+            self._raise_fault(result, Fault(FaultKind.MODULE_ERROR, tuple(sorted(faults)), text, faults))
+            return result
 
-        if silent and self.state is not DriverState.FAULT:
+        if silent:
             self._halt_all()
-            self.state = DriverState.FAULT
-            result.fault = f"module {silent[0]} stopped answering ({self.max_missed} replies missed)"
-            logger.error("PowerCube %s; all modules halted", result.fault)
+            bad = [j for j in silent if self.stats[j].consecutive_implausible > 0]
+            if bad:
+                mids = tuple(self.module_ids[j] for j in bad)
+                st = self.stats[bad[0]]
+                self._raise_fault(result, Fault(
+                    FaultKind.IMPLAUSIBLE, mids,
+                    f"module {mids[0]} reports implausible positions ({st.last_implausible:.4f} rad, last "
+                    f"plausible {self._q_meas[bad[0]]:.4f} rad; {self.max_missed} replies refused)"))
+                return result
+            mid = self.module_ids[silent[0]]
+            self._raise_fault(result, Fault(
+                FaultKind.SILENT, tuple(self.module_ids[j] for j in silent),
+                f"module {mid} stopped answering ({self.max_missed} replies missed)"))
             err = BusTimeoutError(
-                f"module {silent[0]} missed {self.max_missed} consecutive replies "
+                f"module {mid} missed {self.max_missed} consecutive replies "
                 f"(timeout {self.reply_timeout_s:.3f} s each); all modules halted",
-                module_id=silent[0],
+                module_id=mid,
                 timeout_s=self.reply_timeout_s,
             )
             err.cycle_result = result  # type: ignore[attr-defined]
             raise err
         return result
+
+    def _raise_fault(self, result: CycleResult, fault: Fault) -> None:
+        """Enter FAULT (every module already halted) and put ``fault`` in ``result``."""
+        self._fire(DriverEvent.FAULT, fault)
+        result.fault = fault
+        logger.error("PowerCube fault, all modules halted: %s", fault.message)
 
     def _full_state(self, j: int) -> ActState:
         """ACT_STATE of joint j read with GETPARAM (to learn the cause behind a short ERROR bit)."""

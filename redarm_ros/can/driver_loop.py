@@ -1,4 +1,4 @@
-"""The cyclic driver loop around :class:`~redarm_ros.can.driver_core.PowerCubeArmDriver` (ROS-free).
+"""The cyclic driver loop around a PowerCube arm driver (ROS-free).
 
 The ROS node (``redarm_ros.nodes.can_driver``) is wiring only; everything that
 decides *what* is sent and *when* lives here so it can be tested and
@@ -9,14 +9,19 @@ benchmarked without ROS:
   position when there is nothing to follow.
 * :class:`PeriodStats` measures the achieved cycle period against the nominal.
 * :class:`ReferenceShaper` turns the sampled target into what is sent: velocity- and
-  acceleration-limited, braking early enough to stop on a joint limit (targets beyond a limit
-  are clamped to it first and reported).
+  acceleration-limited, staying :data:`DEFAULT_LIMIT_MARGIN` inside each joint limit and braking
+  early enough to stop there (targets beyond a limit are clamped to it first and reported). Its
+  limits and braking law are those of :mod:`redarm_ros.motion`.
 * :class:`Backoff` spaces reconnect attempts.
-* :class:`DriverLoop` is the dedicated thread: absolute deadlines at
-  ``rate_hz``, one ``driver.cycle()`` per tick, a state machine for faults
-  (a silent module halts all until ``recover``; a lost bus is reopened with
-  backoff and never resumes a stale command), and a request queue so that
-  init/halt/recover run on the loop thread (the bus has exactly one user).
+* :class:`DriverLoop` is the dedicated thread: absolute deadlines at ``rate_hz``, one
+  ``driver.cycle()`` per tick, and a request queue so that init/halt/recover run on the loop
+  thread (the bus has exactly one user). It drives any :class:`ArmDriver` (the protocol that
+  :class:`~redarm_ros.can.driver_core.PowerCubeArmDriver` implements). Its state is not a second
+  state machine: while the bus is up it is the driver's state seen through one table
+  (:data:`LOOP_STATE_OF`); a fault is data (:class:`~redarm_ros.can.driver_core.Fault`).
+
+:mod:`redarm_ros.can.driver_process` runs the same loop in a process of its own (the node's
+default), away from the ROS executor's interpreter lock and garbage collector.
 
 Units: seconds, radians; times are ``time.monotonic()`` seconds.
 """
@@ -31,28 +36,98 @@ import time
 from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Protocol
 
+import can
 import numpy as np
 
+from redarm_ros.can import realtime
+from redarm_ros.can.bus import ReopenableBus
+from redarm_ros.can.driver_core import (
+    ArmState,
+    CycleResult,
+    DiscoveryReport,
+    DriverState,
+    Fault,
+    FaultKind,
+    ModuleStats,
+    ModuleStatsView,
+)
 from redarm_ros.can.protocol import ActState
 from redarm_ros.errors import BusError, BusTimeoutError, InvalidInputError, RedarmError
+from redarm_ros.motion import JointLimits, braking_speed
 
 _LOG = logging.getLogger(__name__)
 _HOME_OK = int(ActState.HOME_OK)
 
 __all__ = [
+    "DEFAULT_LIMIT_MARGIN",
+    "LOOP_STATE_OF",
+    "ArmDriver",
     "Backoff",
-    "ReferenceShaper",
-    "braking_speed",
     "CommandMode",
+    "CycleSample",
     "DriverLoop",
     "JointCommandSource",
     "LoopConfig",
     "LoopSnapshot",
     "LoopState",
     "PeriodStats",
+    "ReferenceShaper",
+    "braking_speed",
+    "check_stream_target",
+    "check_trajectory",
 ]
+
+
+def _check_index(n: int, index: Sequence[int]) -> np.ndarray:
+    idx = np.asarray(index, dtype=int).reshape(-1)
+    if idx.size == 0:
+        raise InvalidInputError("command names no joint", field="joint_names", value=list(index))
+    if np.any(idx < 0) or np.any(idx >= n) or len(set(idx.tolist())) != idx.size:
+        raise InvalidInputError("joint indices out of range or repeated", field="joint_names",
+                                value=idx.tolist())
+    return idx
+
+
+def check_trajectory(
+    n: int, index: Sequence[int], times_s: Sequence[float], points: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Validated ``(index (m,), times (k,) s, points (k, m) rad)`` of a trajectory for an ``n``-joint arm.
+
+    Raises:
+        InvalidInputError: no joint, joints out of range or repeated, shape mismatch, NaN/inf,
+            negative or decreasing times.
+    """
+    idx = _check_index(n, index)
+    t = np.asarray(times_s, dtype=float).reshape(-1)
+    p = np.asarray(points, dtype=float)
+    if p.ndim != 2 or p.shape != (t.size, idx.size) or t.size == 0:
+        raise InvalidInputError(
+            f"trajectory needs points of shape ({t.size}, {idx.size}), got {p.shape}", field="points",
+            value=p.shape,
+        )
+    if not (np.all(np.isfinite(t)) and np.all(np.isfinite(p))):
+        raise InvalidInputError("trajectory contains NaN or inf", field="points")
+    if t[0] < 0 or np.any(np.diff(t) < 0):
+        raise InvalidInputError("time_from_start must be >= 0 and non-decreasing", field="times",
+                                value=t.tolist())
+    return idx, t, p
+
+
+def check_stream_target(n: int, index: Sequence[int], q: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
+    """Validated ``(index (m,), q (m,) rad)`` of a streamed target for an ``n``-joint arm.
+
+    Raises:
+        InvalidInputError: no joint, joints out of range or repeated, length mismatch, NaN/inf.
+    """
+    idx = _check_index(n, index)
+    qq = np.asarray(q, dtype=float).reshape(-1)
+    if qq.size != idx.size:
+        raise InvalidInputError(f"{qq.size} positions for {idx.size} joints", field="position")
+    if not np.all(np.isfinite(qq)):
+        raise InvalidInputError("target contains NaN or inf", field="position")
+    return idx, qq
 
 
 class CommandMode(enum.Enum):
@@ -107,16 +182,6 @@ class JointCommandSource:
         with self._lock:
             return self._mode
 
-    def _check_index(self, index: Sequence[int]) -> np.ndarray:
-        idx = np.asarray(index, dtype=int).reshape(-1)
-        if idx.size == 0:
-            raise InvalidInputError("command names no joint", field="joint_names", value=list(index))
-        if np.any(idx < 0) or np.any(idx >= self.n) or len(set(idx.tolist())) != idx.size:
-            raise InvalidInputError(
-                "joint indices out of range or repeated", field="joint_names", value=idx.tolist()
-            )
-        return idx
-
     def clear(self, hold_q: np.ndarray | None) -> None:
         """Drop any command and hold ``hold_q`` (n,) rad (None: hold the reference given to sample)."""
         with self._lock:
@@ -132,23 +197,9 @@ class JointCommandSource:
         """Follow a trajectory: ``points`` (k, m) rad for model joints ``index`` (m,) at ``times_s`` (k,).
 
         Raises:
-            InvalidInputError: empty, NaN/inf, shape mismatch, negative or decreasing times.
+            InvalidInputError: see :func:`check_trajectory` (the current command is kept).
         """
-        idx = self._check_index(index)
-        t = np.asarray(times_s, dtype=float).reshape(-1)
-        p = np.asarray(points, dtype=float)
-        if p.ndim != 2 or p.shape != (t.size, idx.size) or t.size == 0:
-            raise InvalidInputError(
-                f"trajectory needs points of shape ({t.size}, {idx.size}), got {p.shape}",
-                field="points",
-                value=p.shape,
-            )
-        if not (np.all(np.isfinite(t)) and np.all(np.isfinite(p))):
-            raise InvalidInputError("trajectory contains NaN or inf", field="points")
-        if t[0] < 0 or np.any(np.diff(t) < 0):
-            raise InvalidInputError(
-                "time_from_start must be >= 0 and non-decreasing", field="times", value=t.tolist()
-            )
+        idx, t, p = check_trajectory(self.n, index, times_s, points)
         with self._lock:
             self._traj = _Trajectory(idx, t, p, float(start))
             self._mode = CommandMode.TRAJECTORY
@@ -159,14 +210,9 @@ class JointCommandSource:
         """Follow the streamed target ``q`` (m,) rad for model joints ``index``, received at ``now``.
 
         Raises:
-            InvalidInputError: NaN/inf or length mismatch.
+            InvalidInputError: see :func:`check_stream_target` (the current command is kept).
         """
-        idx = self._check_index(index)
-        qq = np.asarray(q, dtype=float).reshape(-1)
-        if qq.size != idx.size:
-            raise InvalidInputError(f"{qq.size} positions for {idx.size} joints", field="position")
-        if not np.all(np.isfinite(qq)):
-            raise InvalidInputError("target contains NaN or inf", field="position")
+        idx, qq = check_stream_target(self.n, index, q)
         with self._lock:
             self._stream_index = idx
             self._stream_q = qq
@@ -227,70 +273,96 @@ def _interpolate(tr: _Trajectory, now: float) -> np.ndarray:
     return q
 
 
-def braking_speed(distance: np.ndarray, acc: np.ndarray, dt: float) -> np.ndarray:
-    """Largest speed (rad/s) from which a reference stepping every ``dt`` s, slowing by ``acc * dt``
-    per step, stops within ``distance`` (rad, >= 0): the discrete form of ``sqrt(2 a d)``."""
-    d = np.maximum(distance, 0.0)
-    adt = acc * dt
-    return adt * (np.sqrt(0.25 + 2.0 * d / (adt * dt)) - 0.5)
+#: How far (rad) the driver's reference stays inside each joint limit (the modules' soft limits):
+#: the modules refuse targets beyond their soft limit and trip BEYOND_SOFT 1e-4 rad past it, so the
+#: arm is never commanded closer than this to a limit (10x that tolerance).
+DEFAULT_LIMIT_MARGIN = 1e-3
 
 
 class ReferenceShaper:
     """Velocity- and acceleration-limited joint reference that follows a (moving) target.
 
     Every cycle the reference moves toward the target with the target's own velocity fed
-    forward plus a braking-law correction, so a feasible trajectory is followed without lag,
-    while a jump is turned into a trapezoid. Limits enforced on the *reference* (what is sent):
-    ``|v| <= max_vel``, ``|dv/dt| <= max_acc``, and the reference slows down early enough to stop
-    on ``lower``/``upper`` at ``max_acc``: a target at (or clamped to) a joint limit is reached
-    without overshooting it, which a stream of FSTEPs arriving at full speed would do.
+    forward plus a braking-law correction (:func:`redarm_ros.motion.braking_speed`), so a feasible
+    trajectory is followed without lag, while a jump is turned into a trapezoid. Limits enforced on
+    the *reference* (what is sent): ``|v| <= max_vel``, ``|dv/dt| <= max_acc``, and the reference
+    keeps ``margin`` (rad) inside every position limit and slows down early enough to stop on that
+    inset limit at ``max_acc``: a target at (or clamped to) a joint limit is reached ``margin`` short
+    of it, never overshooting, which a stream of FSTEPs arriving at full speed would otherwise do.
 
-    Arrays are (n,); units rad, rad/s, rad/s^2; ``dt`` is the nominal cycle period in s.
+    Args:
+        limits: the arm's joint limits (rad, rad/s, rad/s^2).
+        dt: the nominal cycle period (s).
+        margin: distance (rad, >= 0) kept from each position limit (:data:`DEFAULT_LIMIT_MARGIN`).
     """
 
-    def __init__(self, lower: np.ndarray, upper: np.ndarray, max_vel: np.ndarray, max_acc: np.ndarray,
-                 dt: float) -> None:
-        self.lower = np.asarray(lower, dtype=float)
-        self.upper = np.asarray(upper, dtype=float)
-        self.max_vel = np.asarray(max_vel, dtype=float)
-        self.max_acc = np.asarray(max_acc, dtype=float)
+    def __init__(self, limits: JointLimits, dt: float, margin: float = DEFAULT_LIMIT_MARGIN) -> None:
+        self.limits = limits.inset(margin)
+        self.margin = float(margin)
         self.dt = float(dt)
         self.r: np.ndarray | None = None
-        self.v = np.zeros_like(self.lower)
+        self.v = np.zeros(limits.n)
         self._g_prev: np.ndarray | None = None
+
+    @property
+    def lower(self) -> np.ndarray:
+        """Lowest reference (rad): the lower joint limits plus the margin."""
+        return self.limits.lower
+
+    @property
+    def upper(self) -> np.ndarray:
+        """Highest reference (rad): the upper joint limits minus the margin."""
+        return self.limits.upper
+
+    @property
+    def max_vel(self) -> np.ndarray:
+        """Velocity limits (rad/s)."""
+        return self.limits.max_vel
+
+    @property
+    def max_acc(self) -> np.ndarray:
+        """Acceleration limits (rad/s^2)."""
+        return self.limits.max_acc
 
     def reset(self, q: np.ndarray) -> None:
         """Start from rest at ``q`` (rad): after init, recover, reconnect."""
-        self.r = np.clip(np.array(q, dtype=float), self.lower, self.upper)
+        self.r = self.limits.clip(q)
         self.v = np.zeros_like(self.r)
         self._g_prev = None
 
     def step(self, target: np.ndarray) -> np.ndarray:
-        """Advance one cycle toward ``target`` (n,) rad (already within the limits); returns the reference."""
+        """Advance one cycle toward ``target`` (n,) rad (clamped into the inset limits); returns the
+        reference."""
         if self.r is None:
             self.reset(target)
             return self.r.copy()  # type: ignore[union-attr]
-        dt, a, vmax = self.dt, self.max_acc, self.max_vel
-        g = np.clip(target, self.lower, self.upper)
+        lim, dt = self.limits, self.dt
+        a, vmax = lim.max_acc, lim.max_vel
+        g = lim.clip(target)
         u = np.zeros_like(g) if self._g_prev is None else np.clip((g - self._g_prev) / dt, -vmax, vmax)
         self._g_prev = g
         r, v = self.r, self.v
         # Tracking error against where the target was: with u fed forward, r then lands on g.
         e = (g - u * dt) - r
-        v_des = u + np.sign(e) * braking_speed(np.abs(e), a, dt)
-        v_des = np.clip(v_des, -vmax, vmax)
-        # Never faster toward a joint limit than allows stopping on it.
-        v_des = np.minimum(v_des, braking_speed(self.upper - r, a, dt))
-        v_des = np.maximum(v_des, -braking_speed(r - self.lower, a, dt))
+        v_des = np.clip(u + np.sign(e) * braking_speed(np.abs(e), a, dt), -vmax, vmax)
+        # Never faster toward a limit than allows stopping on it (exact discrete law: no overshoot).
+        up, down = lim.stop_speeds(r, dt)
+        v_des = np.clip(v_des, -down, up)
         v_new = v + np.clip(v_des - v, -a * dt, a * dt)
         r_new = r + v_new * dt
         # Land exactly on a stationary target instead of dithering around it.
         land = (np.abs(g - r_new) <= a * dt * dt) & (np.abs(v) <= a * dt) & (u == 0)
         r_new = np.where(land, g, r_new)
         v_new = np.where(land, 0.0, v_new)
-        self.r = np.clip(r_new, self.lower, self.upper)
-        self.v = np.where((self.r == self.lower) | (self.r == self.upper), 0.0, v_new)
+        self.r = lim.clip(r_new)
+        self.v = np.where((self.r == lim.lower) | (self.r == lim.upper), 0.0, v_new)
         return self.r.copy()
+
+
+#: Bin width (s) of the since-start histogram of period errors, and its number of bins (errors beyond
+#: the last bin go into it): 0.05 ms bins up to 1 s.
+_HIST_BIN_S = 5e-5
+_HIST_BINS = 20000
 
 
 class PeriodStats:
@@ -298,7 +370,10 @@ class PeriodStats:
 
     :meth:`start` is called with every cycle's start time; the period between two cycles is a
     sample unless ticks were skipped in between (an overrun, counted separately). The achieved
-    rate counts every cycle over the window's time span, overruns included.
+    rate counts every cycle over the window's time span, overruns included. Separately, every
+    start-to-start period since the start (or :meth:`reset_totals`), overruns and pauses between
+    runs of cycles excluded only by :meth:`reset`, goes into a histogram: :meth:`totals` gives its
+    p99 and max (what a long soak test reports).
     """
 
     def __init__(self, period_s: float, window: int = 2500) -> None:
@@ -309,14 +384,41 @@ class PeriodStats:
         self._lock = threading.Lock()
         self.cycles = 0
         self.overruns = 0  # ticks skipped because a cycle ended after the next deadline
+        self._hist = [0] * (_HIST_BINS + 1)
+        self._hist_max = 0.0
 
-    def start(self, t: float, *, after_overrun: bool = False) -> None:
-        """Record a cycle starting at ``t`` (s); ``after_overrun``: ticks were skipped before it."""
+    def start(self, t: float, *, after_overrun: bool = False, after_pause: bool = False) -> None:
+        """Record a cycle starting at ``t`` (s); ``after_overrun``: ticks were skipped before it;
+        ``after_pause``: cycling resumed after a pause (init, halt, reconnect): no period at all."""
         with self._lock:
-            if self._starts and not after_overrun:
-                self._periods.append(t - self._starts[-1])
+            if self._starts and not after_pause:
+                p = t - self._starts[-1]
+                if not after_overrun:
+                    self._periods.append(p)
+                err = abs(p - self.period_s)
+                self._hist[min(int(err / _HIST_BIN_S), _HIST_BINS)] += 1
+                if err > self._hist_max:
+                    self._hist_max = err
             self._starts.append(t)
             self.cycles += 1
+
+    def totals(self) -> dict[str, float]:
+        """Since the start: ``periods`` counted, ``period_err_p99_ms`` (bin resolution 0.05 ms) and
+        ``period_err_max_ms`` of every start-to-start period, overruns included."""
+        with self._lock:
+            hist, worst = np.array(self._hist, dtype=np.int64), self._hist_max
+        total = int(hist.sum())
+        p99 = 0.0
+        if total:
+            i = int(np.searchsorted(np.cumsum(hist), 0.99 * total))
+            p99 = (i + 1) * _HIST_BIN_S
+        return {"periods": float(total), "period_err_p99_ms": p99 * 1e3, "period_err_max_ms": worst * 1e3}
+
+    def reset_totals(self) -> None:
+        """Start the since-start histogram afresh."""
+        with self._lock:
+            self._hist = [0] * (_HIST_BINS + 1)
+            self._hist_max = 0.0
 
     def busy(self, seconds: float) -> None:
         """Record how long one cycle's work took (s): sending, waiting for replies, publishing."""
@@ -334,7 +436,7 @@ class PeriodStats:
             self.overruns += int(skipped)
 
     def reset(self) -> None:
-        """Forget the window (counters stay); call when cycling resumes after a pause."""
+        """Forget the window (counters and the since-start histogram stay)."""
         with self._lock:
             self._periods.clear()
             self._starts.clear()
@@ -393,6 +495,42 @@ class Backoff:
 # ------------------------------------------------------------------------------------------------
 
 
+class ArmDriver(Protocol):
+    """What :class:`DriverLoop` needs from an arm driver (:class:`~redarm_ros.can.driver_core.
+    PowerCubeArmDriver` implements it; tests may pass stand-ins). Units: rad, s."""
+
+    n: int
+    limits: JointLimits
+    state: DriverState
+    fault: Fault | None
+    stats: Sequence[ModuleStats]
+
+    @property
+    def frames_per_cycle(self) -> int:
+        """Frames one :meth:`cycle` puts on the bus."""
+
+    def discover(self) -> DiscoveryReport:
+        """Scan for the modules."""
+
+    def read_state(self) -> ArmState:
+        """Read positions and states (no motion)."""
+
+    def init(self) -> ArmState:
+        """Configure, reset and home; READY, holding."""
+
+    def halt(self) -> list[int]:
+        """Halt every module; HALTED."""
+
+    def recover(self) -> ArmState:
+        """Reset and reconfigure; READY, holding."""
+
+    def reconnect(self) -> ArmState:
+        """Reopen the bus, re-read, hold."""
+
+    def cycle(self, q_target: np.ndarray | None, dt_s: float) -> CycleResult:
+        """One cycle toward ``q_target`` (None: hold)."""
+
+
 class LoopState(enum.Enum):
     """State of :class:`DriverLoop` (reported on /diagnostics)."""
 
@@ -403,10 +541,28 @@ class LoopState(enum.Enum):
     STOPPED = "stopped"  # loop thread ended
 
 
+#: The loop's state while the bus is up is the driver's, seen through this one table (no second
+#: state machine to keep in step): a lost bus shows CONNECTING and keeps the driver's state, so the
+#: loop comes back to where it was (holding the measured position if it was running).
+LOOP_STATE_OF: dict[DriverState, LoopState] = {
+    DriverState.UNINITIALIZED: LoopState.IDLE,
+    DriverState.READY: LoopState.RUNNING,
+    DriverState.HALTED: LoopState.HALTED,
+    DriverState.FAULT: LoopState.HALTED,
+}
+
+
 @dataclass(frozen=True)
 class LoopConfig:
-    """Timing of :class:`DriverLoop`: ``rate_hz`` cycle rate, ``poll_hz`` state polling when not running,
-    ``hold_on_stream_stop_s`` stream timeout, reconnect backoff (s), ``auto_init`` after connecting."""
+    """Settings of :class:`DriverLoop`.
+
+    ``rate_hz`` cycle rate, ``poll_hz`` state polling when not running, ``hold_on_stream_stop_s``
+    stream timeout, reconnect backoff (s), ``auto_init`` after connecting, ``limit_margin_rad`` kept
+    from each joint limit by the reference (:data:`DEFAULT_LIMIT_MARGIN`), ``realtime_priority``
+    (SCHED_FIFO priority for the loop thread, 0 = normal scheduling; see
+    :func:`redarm_ros.can.realtime.raise_priority`), ``quiet_gc`` (freeze the garbage collector at
+    start and collect young objects only in spare time between cycles; for a process of its own).
+    """
 
     rate_hz: float = 250.0
     poll_hz: float = 10.0
@@ -415,6 +571,9 @@ class LoopConfig:
     reconnect_max_s: float = 2.0
     auto_init: bool = False
     clamp_log_interval_s: float = 1.0
+    limit_margin_rad: float = DEFAULT_LIMIT_MARGIN
+    realtime_priority: int = 0
+    quiet_gc: bool = False
 
 
 @dataclass
@@ -430,7 +589,7 @@ class CycleSample:
 
 @dataclass
 class LoopSnapshot:
-    """A consistent copy of the loop's status for diagnostics."""
+    """A consistent copy of the loop's status for diagnostics (picklable)."""
 
     state: LoopState
     reason: str
@@ -442,24 +601,30 @@ class LoopSnapshot:
     clamps: int
     command_mode: CommandMode
     missing_modules: list[int]
-    module_stats: object | None  # the driver's per-module statistics (driver-specific)
-    last_result: object | None  # the driver's last CycleResult
+    module_stats: list[ModuleStatsView]  # per joint (empty before the first connection)
+    last_result: CycleResult | None
     positions: np.ndarray | None
+    fault: Fault | None = None  # why the loop is HALTED, as data (None: not halted by a fault)
     latency: dict[str, float] | None = None  # reply latency over the window: median/p99/max ms
     frames_tx: int = 0  # frames sent by cycles (FSTEP per joint, STARTMOVE, watchdog refresh)
     frames_rx: int = 0  # replies received by cycles
     frames_per_s: float = 0.0  # (tx + rx) per second over the last snapshot interval
+    implausible: int = 0  # measured positions refused by the plausibility check, all modules
+    priority: str = ""  # the scheduling the loop thread got (one line)
+    totals: dict[str, float] | None = None  # since the start: PeriodStats.totals()
 
 
 class _Request:
-    def __init__(self, action: str) -> None:
+    def __init__(self, action: str, timeout: float) -> None:
         self.action = action
+        self.deadline = time.monotonic() + timeout  # the caller stops waiting then
         self.done = threading.Event()
         self.ok = False
         self.message = ""
 
 
 LogFn = Callable[[int, str], None]
+StateFn = Callable[[LoopState, str, Fault | None], None]
 
 
 def _default_log(level: int, message: str) -> None:
@@ -470,35 +635,37 @@ class DriverLoop:
     """The dedicated driver thread: connect, poll or cycle at absolute deadlines, serve requests.
 
     Args:
-        driver_factory: ``f(bus) -> driver`` building a
-            :class:`~redarm_ros.can.driver_core.PowerCubeArmDriver` (or a stand-in with the same
-            methods) for an open bus.
+        driver_factory: ``f(bus) -> ArmDriver`` building the driver for an open bus (a
+            :class:`~redarm_ros.can.driver_core.PowerCubeArmDriver`).
         open_bus: ``f() -> bus`` opening the CAN bus (raises :class:`BusError` when it cannot).
-            If the bus has ``reopen()`` (a :class:`~redarm_ros.can.bus.ReconnectingBus`), a lost
-            bus is reopened in place, else it is shut down and opened anew.
+            If the bus is a :class:`~redarm_ros.can.bus.ReopenableBus` (a
+            :class:`~redarm_ros.can.bus.ReconnectingBus`), a lost bus is reopened in place and the
+            driver kept, else it is shut down, opened anew and a new driver built.
         n: joint count.
-        config: timing, see :class:`LoopConfig`.
+        config: see :class:`LoopConfig`.
         on_sample: called from the loop thread after every cycle / poll (keep it short: publish).
+        on_state: called from the loop thread whenever the state, reason or fault changes.
         log: ``f(level, message)`` with :mod:`logging` levels (the node forwards to its logger).
 
     The loop owns the bus: ``init``/``halt``/``recover`` run on its thread via :meth:`request`;
     commands go to :attr:`commands` from any thread, but are only accepted while RUNNING.
 
-    Failure behaviour: a module that stops answering (the driver raises
-    :class:`BusTimeoutError`) or reports an error -> everything halted, state HALTED until
-    ``recover``. The bus lost (:class:`BusError`) -> state CONNECTING, reopened with backoff;
-    if the loop was RUNNING it resumes holding the *measured* position (the command it was
-    following is dropped, never replayed).
+    Failure behaviour: a module that stops answering, reports an error or implausible positions
+    -> everything halted (by the driver), state HALTED with the :class:`Fault` until ``recover``.
+    The bus lost (:class:`BusError`) -> CONNECTING, reopened with backoff; if the driver was READY
+    it resumes holding the *measured* position (the command it was following is dropped, never
+    replayed).
     """
 
     def __init__(
         self,
-        driver_factory: Callable[[Any], Any],
-        open_bus: Callable[[], Any],
+        driver_factory: Callable[[can.BusABC], ArmDriver],
+        open_bus: Callable[[], can.BusABC],
         n: int,
         config: LoopConfig = LoopConfig(),  # noqa: B008 - frozen dataclass, safe default
         *,
         on_sample: Callable[[CycleSample], None] | None = None,
+        on_state: StateFn | None = None,
         log: LogFn = _default_log,
     ) -> None:
         self._driver_factory = driver_factory
@@ -509,26 +676,30 @@ class DriverLoop:
         self.commands = JointCommandSource(self.n, config.hold_on_stream_stop_s)
         self.stats = PeriodStats(self.period_s)
         self._on_sample = on_sample
+        self._on_state = on_state
         self._log = log
         self._lock = threading.Lock()
         self._requests: queue.Queue[_Request] = queue.Queue()
         self._wake = threading.Event()
         self._stop = threading.Event()
+        self._started = threading.Event()
         self._thread: threading.Thread | None = None
-        self.bus: Any = None
-        self.driver: Any = None
-        self._state = LoopState.CONNECTING
+        self.bus: can.BusABC | None = None
+        self.driver: ArmDriver | None = None
+        self._connected = False
+        self._stopped = False
         self._reason = "starting"
-        self._resume = LoopState.IDLE  # state to return to after (re)connecting
+        self._fault: Fault | None = None
+        self._published: tuple[LoopState, str, Fault | None] | None = None
         self._connects = 0
         self._bus_losses = 0
         self._clamps = 0
         self._missing: list[int] = []
-        self._last_result: Any = None
+        self._last_result: CycleResult | None = None
         self._q_meas: np.ndarray | None = None
         self._q_ref: np.ndarray | None = None
         self._last_clamp_log = -1e9
-        self._halt_reason = ""
+        self._priority = ""
         # Reply latencies (s) of the last 500 cycles, all joints (small: diagnostics run in
         # another thread and numpy holds the GIL while it sorts), and frame counters.
         self._latencies: deque[float] = deque(maxlen=500 * self.n)
@@ -539,34 +710,67 @@ class DriverLoop:
     # -- public API (any thread) ------------------------------------------------------------------
     @property
     def state(self) -> LoopState:
-        """The current state."""
+        """The current state (see :data:`LOOP_STATE_OF`)."""
         with self._lock:
-            return self._state
+            return self._state_locked()
+
+    def _state_locked(self) -> LoopState:
+        if self._stopped:
+            return LoopState.STOPPED
+        if not self._connected or self.driver is None:
+            return LoopState.CONNECTING
+        return LOOP_STATE_OF[self.driver.state]
+
+    @property
+    def fault(self) -> Fault | None:
+        """Why the loop is HALTED, if a fault halted it."""
+        with self._lock:
+            return self._fault_locked()[0]
+
+    def _fault_locked(self) -> tuple[Fault | None, str]:
+        """(fault, reason): the loop's own, or the driver's when the driver has just faulted and the
+        loop thread has not caught up yet (the state is derived from the driver, so is this)."""
+        drv = self.driver
+        if self._fault is None and drv is not None and drv.state is DriverState.FAULT:
+            if drv.fault is not None:
+                return drv.fault, drv.fault.message
+        return self._fault, self._reason
 
     def start(self) -> DriverLoop:
         """Start the loop thread; returns self."""
         if self._thread is None:
+            self._stopped = False
             self._thread = threading.Thread(target=self._run, name="can-driver-loop", daemon=True)
             self._thread.start()
+            self._started.set()
         return self
 
     def stop(self, timeout: float = 5.0) -> None:
         """Stop the thread and close the bus (modules keep their last, finished FSTEP)."""
         self._stop.set()
         self._wake.set()
+        self._started.set()  # release requests waiting for a start
         if self._thread is not None:
             self._thread.join(timeout)
             self._thread = None
         self._close_bus()
-        self._set_state(LoopState.STOPPED, "stopped")
+        with self._lock:
+            self._stopped = True
+            self._reason = "stopped"
+        self._publish_state()
 
     def request(self, action: str, timeout: float = 60.0) -> tuple[bool, str]:
         """Run ``init``, ``halt`` or ``recover`` on the loop thread; returns (success, message)."""
         if action not in ("init", "halt", "recover"):
             return False, f"unknown action {action!r}"
-        if self._thread is None or not self._thread.is_alive():
+        t0 = time.monotonic()
+        if not self._stopped:
+            self._started.wait(timeout)  # a request made before start() waits for it
+        thread = self._thread
+        if thread is None or not thread.is_alive():
             return False, "driver loop is not running"
-        req = _Request(action)
+        timeout = max(0.0, timeout - (time.monotonic() - t0))
+        req = _Request(action, timeout)
         self._requests.put(req)
         self._wake.set()
         if not req.done.wait(timeout):
@@ -574,35 +778,37 @@ class DriverLoop:
         return req.ok, req.message
 
     def reset_measurements(self) -> None:
-        """Start fresh timing and latency windows (counters such as cycles and overruns stay)."""
+        """Start fresh timing and latency windows and period totals (counters such as cycles stay)."""
         self.stats.reset()
+        self.stats.reset_totals()
         with self._lock:
             self._latencies.clear()
 
     def accepting_commands(self) -> tuple[bool, str]:
         """Whether a new command would be followed now, and why not."""
         with self._lock:
-            if self._state is LoopState.RUNNING:
+            state = self._state_locked()
+            if state is LoopState.RUNNING:
                 return True, ""
-            return False, f"driver is {self._state.value} ({self._reason}); command ignored"
+            return False, f"driver is {state.value} ({self._fault_locked()[1]}); command ignored"
 
     def snapshot(self) -> LoopSnapshot:
         """A copy of the status for diagnostics."""
         with self._lock:
-            state, reason = self._state, self._reason
+            state = self._state_locked()
+            fault, reason = self._fault_locked()
             last = self._last_result
             q = None if self._q_meas is None else self._q_meas.copy()
             missing = list(self._missing)
             connects, losses, clamps = self._connects, self._bus_losses, self._clamps
-        drv = self.driver
-        mstats = getattr(drv, "stats", None) if drv is not None else None
-        with self._lock:
             lat = np.fromiter(self._latencies, dtype=float)
             tx, rx = self._frames_tx, self._frames_rx
             now = time.monotonic()
             t_prev, f_prev = self._fps_mark
             fps = (tx + rx - f_prev) / (now - t_prev) if now > t_prev else 0.0
             self._fps_mark = (now, tx + rx)
+        drv = self.driver
+        mstats = [s.view() for s in drv.stats] if drv is not None else []
         latency = None
         if lat.size:
             latency = {"median_ms": float(np.median(lat) * 1e3),
@@ -621,90 +827,150 @@ class DriverLoop:
             module_stats=mstats,
             last_result=last,
             positions=q,
+            fault=fault,
             latency=latency,
             frames_tx=tx,
             frames_rx=rx,
             frames_per_s=fps,
+            implausible=sum(s.implausible for s in mstats),
+            priority=self._priority,
+            totals=self.stats.totals(),
         )
 
     # -- loop thread ------------------------------------------------------------------------------
-    def _set_state(self, state: LoopState, reason: str) -> None:
+    def _set_reason(self, reason: str, fault: Fault | None = None) -> None:
         with self._lock:
-            self._state, self._reason = state, reason
+            self._reason, self._fault = reason, fault
+
+    def _publish_state(self) -> None:
+        """Tell ``on_state`` about a change of state, reason or fault (loop thread)."""
+        if self._on_state is None:
+            return
+        with self._lock:
+            fault, reason = self._fault_locked()
+            now = (self._state_locked(), reason, fault)
+        if now != self._published:
+            self._published = now
+            try:
+                self._on_state(*now)
+            except Exception as exc:  # reporting must never stop the loop
+                self._log(logging.ERROR, f"on_state failed: {exc!r}")
 
     def _run(self) -> None:
-        backoff = Backoff(self.config.reconnect_first_s, self.config.reconnect_max_s)
-        while not self._stop.is_set():
-            state = self.state
-            try:
-                if state is LoopState.CONNECTING:
-                    if not self._connect():
-                        delay = backoff.next_delay()
-                        self._serve_requests(refuse=f"CAN bus not connected ({self._reason})")
-                        self._stop.wait(delay)
+        cfg = self.config
+        if cfg.realtime_priority > 0:
+            prio = realtime.raise_priority(cfg.realtime_priority, who="can_driver cycle thread")
+            self._priority = prio.message
+            self._log(logging.INFO if prio.realtime else logging.WARNING, prio.message)
+        if cfg.quiet_gc:
+            realtime.quiet_gc()
+        backoff = Backoff(cfg.reconnect_first_s, cfg.reconnect_max_s)
+        try:
+            while not self._stop.is_set():
+                try:
+                    if not self._connected:
+                        if not self._connect():
+                            delay = backoff.next_delay()
+                            # Before the first connection requests wait for it (a client calling
+                            # ~/init right after start-up); later, during an outage, they are refused.
+                            self._serve_requests(refuse=f"CAN bus not connected ({self._reason})",
+                                                 hold=self._connects == 0)
+                            self._publish_state()
+                            self._stop.wait(delay)
+                            continue
+                        backoff.reset()
+                        self._publish_state()
                         continue
-                    backoff.reset()
-                    continue
-                self._serve_requests()
-                if self.state is LoopState.RUNNING:
-                    self._run_cycles()
-                else:
-                    self._poll_once()
-                    self._wake.wait(1.0 / self.config.poll_hz)
-                    self._wake.clear()
-            except BusTimeoutError as exc:
-                # The driver core has already halted every module.
-                self._fault(f"module {exc.module_id} stopped answering: {exc}", halt=False)
-            except BusError as exc:
-                self._bus_lost(exc)
-            except Exception as exc:  # a bug must not leave the arm moving: halt and report
-                self._log(logging.ERROR, f"driver loop error: {exc!r}")
-                self._fault(f"internal error: {exc!r}")
-                self._stop.wait(0.1)
-        self._serve_requests(refuse="driver stopping")
+                    self._serve_requests()
+                    self._publish_state()
+                    if self.state is LoopState.RUNNING:
+                        self._run_cycles()
+                    else:
+                        self._poll_once()
+                        if cfg.quiet_gc:
+                            realtime.collect_young()
+                        self._wake.wait(1.0 / cfg.poll_hz)
+                        self._wake.clear()
+                except BusTimeoutError as exc:
+                    # A silent module: the driver core has already halted every module.
+                    self._halted_by(self._fault_of_timeout(exc), halt=False)
+                except BusError as exc:
+                    self._bus_lost(exc)
+                except Exception as exc:  # a bug must not leave the arm moving: halt and report
+                    self._log(logging.ERROR, f"driver loop error: {exc!r}")
+                    self._halted_by(Fault(FaultKind.INTERNAL, (), f"internal error: {exc!r}"))
+                    self._stop.wait(0.1)
+                self._publish_state()
+            self._serve_requests(refuse="driver stopping")
+        finally:
+            if cfg.quiet_gc:
+                realtime.restore_gc()
+
+    def _fault_of_timeout(self, exc: BusTimeoutError) -> Fault:
+        drv = self.driver
+        if drv is not None and drv.fault is not None:
+            base = drv.fault
+            return Fault(base.kind, base.module_ids, f"module {exc.module_id} stopped answering: {exc}",
+                         base.bits)
+        mids = (exc.module_id,) if exc.module_id is not None else ()
+        return Fault(FaultKind.SILENT, mids, f"module {exc.module_id} stopped answering: {exc}")
 
     def _connect(self) -> bool:
         """Open (or reopen) the bus and discover the modules; False means retry later."""
-        resume = self._resume
+        drv = self.driver
+        was_ready = drv is not None and drv.state is DriverState.READY
         try:
-            if self.driver is not None and self.bus is not None and hasattr(self.bus, "reopen"):
-                if resume is LoopState.RUNNING:
+            if drv is not None and isinstance(self.bus, ReopenableBus):
+                if was_ready:
                     # Reopen, re-read the positions and hold them: nothing from before is replayed.
-                    self.driver.reconnect()
+                    drv.reconnect()
                 else:
                     self.bus.reopen()
             else:
                 self._close_bus()
                 self.bus = self._open_bus()
-                self.driver = self._driver_factory(self.bus)
-            report = self.driver.discover()
+                drv = self.driver = self._driver_factory(self.bus)
+                was_ready = False
+            report = drv.discover()
         except BusError as exc:  # includes BusTimeoutError: modules not (yet) answering
             self._retry_reason(f"CAN bus not usable yet: {exc}")
             return False
-        missing = list(getattr(report, "missing", []) or [])
+        except RedarmError as exc:  # e.g. implausible positions on reconnect: halt and report
+            with self._lock:
+                self._connected = True
+            mid = getattr(exc, "module_id", None)
+            self._halted_by(Fault(FaultKind.IMPLAUSIBLE, (mid,) if mid is not None else (),
+                                  f"after reconnecting: {exc}"))
+            return True
+        missing = list(report.missing)
         if len(missing) == self.n:
             self._retry_reason("CAN bus open, but no module answers discovery")
             return False
         with self._lock:
             self._connects += 1
             self._missing = missing
+            self._connected = True
         if missing:
             self._log(logging.ERROR, f"modules not answering discovery: {missing}")
         else:
             self._log(logging.INFO, f"CAN bus connected, all {self.n} modules found")
         self._q_meas = None
         self._q_ref = None
-        if resume is LoopState.RUNNING and not missing:
+        if was_ready and not missing:
             self.commands.clear(None)
-            self._set_state(LoopState.RUNNING, "reconnected; holding measured position")
+            self._set_reason("reconnected; holding measured position")
             self._log(logging.WARNING, "CAN bus reconnected: holding the measured position")
-        elif resume is LoopState.RUNNING:
-            self._fault(f"modules {missing} missing after reconnect", halt=True)
-        elif resume is LoopState.HALTED:
-            self._set_state(LoopState.HALTED, self._halt_reason or "halted")
+        elif was_ready:
+            self._halted_by(Fault(FaultKind.MISSING, tuple(missing),
+                                  f"modules {missing} missing after reconnect"))
+        elif drv.state is not DriverState.UNINITIALIZED:
+            # Halted before the loss: still halted, for the same reason.
+            fault = self._fault
+            self._set_reason(fault.message if fault is not None else "halted", fault)
         else:
-            self._set_state(LoopState.IDLE, "not initialised (call ~/init)")
+            self._set_reason("not initialised (call ~/init)")
             if self.config.auto_init and not missing:
+                self._publish_state()
                 ok, msg = self._do("init")
                 self._log(logging.INFO if ok else logging.ERROR, f"auto init: {msg}")
         return True
@@ -717,8 +983,8 @@ class DriverLoop:
             self._log(logging.WARNING, f"{reason}; retrying with backoff")
 
     def _read_positions(self) -> np.ndarray:
-        st = self.driver.read_state()
-        q = np.array(_positions_of(st), dtype=float).reshape(self.n)
+        assert self.driver is not None
+        q = np.asarray(self.driver.read_state().positions, dtype=float).reshape(self.n)
         with self._lock:
             self._q_meas = q
         return q
@@ -728,6 +994,11 @@ class DriverLoop:
             q = self._read_positions()
         except BusTimeoutError:
             return  # a silent module while halted: keep polling quietly; state stays
+        except BusError:
+            raise
+        except RedarmError as exc:  # an implausible position: not published, reported
+            self._log(logging.WARNING, f"state poll refused: {exc}")
+            return
         self._emit(CycleSample(time.time(), q, None, None))
 
     def _emit(self, sample: CycleSample) -> None:
@@ -741,53 +1012,56 @@ class DriverLoop:
         """Cycle at absolute deadlines until the state changes, a request arrives, or stop."""
         period = self.period_s
         drv = self.driver
+        assert drv is not None
         q_meas = self._q_meas if self._q_meas is not None else self._read_positions()
         q_ref = self._q_ref if self._q_ref is not None else q_meas
-        shaper = self._make_shaper()
-        if shaper is not None:
-            shaper.reset(q_ref)
-        lo, hi = _limits_of(drv)
-        frames_per_cycle = self.n + 1 + (1 if getattr(drv, "watchdog_refresh", False) else 0)
+        shaper = ReferenceShaper(drv.limits, period, self.config.limit_margin_rad)
+        shaper.reset(q_ref)
+        lo, hi = drv.limits.lower, drv.limits.upper
+        frames_per_cycle = drv.frames_per_cycle
+        gc_every = max(1, int(round(0.2 / period)))  # young-generation collection about 5 times a second
+        quiet_gc = self.config.quiet_gc
         next_t = time.monotonic()
-        gap = True  # the first cycle after a pause has no period
+        gap = False
+        first = True  # the first cycle after a pause (init, halt, reconnect) has no period
+        k = 0
         while not self._stop.is_set() and self._requests.empty():
             now = time.monotonic()
             if now < next_t:
                 time.sleep(next_t - now)
                 now = time.monotonic()
-            self.stats.start(now, after_overrun=gap)
-            gap = False
+            self.stats.start(now, after_overrun=gap, after_pause=first)
+            gap = first = False
             target = self.commands.sample(now, q_ref, q_meas)
-            beyond: tuple[int, ...] = ()
-            if lo is not None and hi is not None:
-                clipped = np.clip(target, lo, hi)
-                if not np.array_equal(clipped, target):
-                    beyond = tuple(int(j) for j in np.flatnonzero(clipped != target))
-                    target = clipped
-            ref = shaper.step(target) if shaper is not None else target
+            clipped = np.clip(target, lo, hi)
+            outside = clipped != target
+            beyond = tuple(int(j) for j in np.flatnonzero(outside)) if outside.any() else ()
+            ref = shaper.step(clipped)
             result = drv.cycle(ref, period)
-            q_meas = np.array(_positions_of(result), dtype=float)
-            sent = _sent_target_of(result, ref)
-            q_ref = sent
-            lat = getattr(result, "latency_s", None)
+            q_meas = result.positions
+            q_ref = result.targets
+            lat = result.latency_s
+            ok = lat[np.isfinite(lat)]
             with self._lock:
                 self._q_meas = q_meas
                 self._q_ref = q_ref
                 self._last_result = result
                 self._frames_tx += frames_per_cycle
-                if lat is not None:
-                    ok = lat[np.isfinite(lat)]
-                    self._latencies.extend(ok.tolist())
-                    self._frames_rx += int(ok.size)
-            self._note_clamps(result, now, beyond)
-            self._emit(CycleSample(time.time(), q_meas, _velocities_of(result), sent))
-            fault = _fault_of(result)
-            if fault:
-                self._fault(fault, halt=False)  # the driver core has halted every module
+                self._latencies.extend(ok.tolist())
+                self._frames_rx += int(ok.size)
+            if beyond or result.clamped:
+                self._note_clamps(result, now, beyond)
+            self._emit(CycleSample(time.time(), q_meas, result.velocities, q_ref))
+            if result.fault is not None:
+                self._halted_by(result.fault, halt=False)  # the driver core has halted every module
                 return
             end = time.monotonic()
             self.stats.busy(end - now)
             next_t += period
+            k += 1
+            if quiet_gc and k % gc_every == 0 and next_t - end > 0.25 * period:
+                realtime.collect_young()  # in the slack before the next deadline
+                end = time.monotonic()
             # A cycle that ran into the next tick delays that tick (it starts at once); only
             # ticks missed entirely are skipped, so the grid is kept and no burst follows.
             behind = end - next_t
@@ -797,19 +1071,8 @@ class DriverLoop:
                 self.stats.add_overrun(skipped)
                 gap = True  # the gap is an overrun, not a period sample
 
-    def _make_shaper(self) -> ReferenceShaper | None:
-        drv = self.driver
-        try:
-            lo, hi = _limits_of(drv)
-            vmax, amax = np.asarray(drv.max_vel, dtype=float), np.asarray(drv.max_acc, dtype=float)
-        except AttributeError:
-            return None
-        if lo is None or hi is None:
-            return None
-        return ReferenceShaper(lo, hi, vmax, amax, self.period_s)
-
-    def _note_clamps(self, result: Any, now: float, beyond: tuple[int, ...] = ()) -> None:
-        clamped = tuple(sorted(set(beyond) | set(_clamps_of(result) or ())))
+    def _note_clamps(self, result: CycleResult, now: float, beyond: tuple[int, ...] = ()) -> None:
+        clamped = tuple(sorted(set(beyond) | set(result.clamped)))
         if not clamped:
             return
         with self._lock:
@@ -818,7 +1081,7 @@ class DriverLoop:
             self._last_clamp_log = now
             self._log(logging.WARNING, f"joint target clamped to the joint or speed limits: joints {clamped}")
 
-    def _fault(self, reason: str, *, halt: bool = True) -> None:
+    def _halted_by(self, fault: Fault, *, halt: bool = True) -> None:
         """Halt everything (unless the driver core already did) and stay halted until recover."""
         try:
             if halt and self.driver is not None:
@@ -826,19 +1089,18 @@ class DriverLoop:
         except BusError as exc:
             self._log(logging.ERROR, f"halt after fault failed: {exc}")
         self.commands.clear(None)
-        self._halt_reason = reason
-        self._resume = LoopState.HALTED
-        self._set_state(LoopState.HALTED, reason)
-        self._log(logging.ERROR, f"HALTED: {reason} (call ~/recover)")
+        self._set_reason(fault.message, fault)
+        self._log(logging.ERROR, f"HALTED: {fault.message} (call ~/recover)")
+        self._publish_state()
 
     def _bus_lost(self, exc: BaseException) -> None:
-        prev = self.state
-        self._resume = prev if prev in (LoopState.RUNNING, LoopState.HALTED, LoopState.IDLE) else self._resume
         with self._lock:
             self._bus_losses += 1
+            self._connected = False
         self.commands.clear(None)
-        self._set_state(LoopState.CONNECTING, f"CAN bus lost: {exc}")
+        self._set_reason(f"CAN bus lost: {exc}", self._fault)
         self._log(logging.ERROR, f"CAN bus lost ({exc}); reconnecting with backoff")
+        self._publish_state()
 
     def _close_bus(self) -> None:
         bus, self.bus = self.bus, None
@@ -848,82 +1110,74 @@ class DriverLoop:
             except Exception as exc:  # a dead transport may complain; it is closed either way
                 self._log(logging.INFO, f"ignoring error closing the bus: {exc!r}")
 
-    def _serve_requests(self, refuse: str | None = None) -> None:
+    def _serve_requests(self, refuse: str | None = None, *, hold: bool = False) -> None:
+        """Run the queued requests; with ``refuse``, answer them with that instead; with ``hold``,
+        keep them queued (dropping those whose caller gave up)."""
+        if hold:
+            keep = []
+            while True:
+                try:
+                    req = self._requests.get_nowait()
+                except queue.Empty:
+                    break
+                if time.monotonic() < req.deadline:
+                    keep.append(req)
+                else:
+                    req.ok, req.message = False, f"{req.action}: {refuse}"
+                    req.done.set()
+            for req in keep:
+                self._requests.put(req)
+            return
         while True:
             try:
                 req = self._requests.get_nowait()
             except queue.Empty:
                 return
+            if time.monotonic() >= req.deadline:
+                req.ok, req.message = False, "the caller stopped waiting"
+                req.done.set()
+                continue  # never run a request nobody waits for any more
             if refuse is not None:
                 req.ok, req.message = False, refuse
             else:
                 req.ok, req.message = self._do(req.action)
+            self._publish_state()  # the caller learns the new state no later than the answer
             req.done.set()
 
     def _do(self, action: str) -> tuple[bool, str]:
         drv = self.driver
+        assert drv is not None
         try:
             if action == "halt":
                 acked = drv.halt()
                 self.commands.clear(None)
-                self._halt_reason = "halted on request"
-                self._resume = LoopState.HALTED
-                self._set_state(LoopState.HALTED, self._halt_reason)
+                self._set_reason("halted on request")
                 return True, f"all modules halted (acknowledged by {acked})"
             st = drv.init() if action == "init" else drv.recover()
         except BusTimeoutError as exc:
-            self._fault(f"{action} failed: module {exc.module_id} did not answer: {exc}")
+            mids = (exc.module_id,) if exc.module_id is not None else ()
+            self._halted_by(Fault(FaultKind.REQUEST_FAILED, mids,
+                                  f"{action} failed: module {exc.module_id} did not answer: {exc}"))
             return False, f"{action} failed: {exc}"
         except BusError as exc:
             self._bus_lost(exc)
             return False, f"{action} failed: {exc}"
         except RedarmError as exc:  # e.g. ModuleFaultError: a module still in error
-            self._fault(f"{action} failed: {exc}")
+            mid = getattr(exc, "module_id", None)
+            self._halted_by(Fault(FaultKind.REQUEST_FAILED, (mid,) if mid is not None else (),
+                                  f"{action} failed: {exc}"))
             return False, f"{action} failed: {exc}"
-        q = np.array(_positions_of(st), dtype=float).reshape(self.n)
+        q = np.asarray(st.positions, dtype=float).reshape(self.n)
         with self._lock:
             self._q_meas = q
             self._missing = []
         # Fresh start: hold the measured position, drop whatever was commanded before.
         self.commands.clear(q)
         self._q_ref = q
-        self._resume = LoopState.RUNNING
-        self._halt_reason = ""
-        self._set_state(LoopState.RUNNING, f"{action} done; holding position")
+        self._set_reason(f"{action} done; holding position")
         note = ""
-        states = getattr(st, "states", None)
-        if states is not None and action == "recover":
-            not_homed = [i + 1 for i, b in enumerate(states) if not int(b) & _HOME_OK]
+        if action == "recover":
+            not_homed = [i + 1 for i, b in enumerate(st.states) if not int(b) & _HOME_OK]
             if not_homed:
                 note = f"; joints {not_homed} report no HOME_OK (a restarted module? ~/init homes)"
         return True, f"{action} done; holding position {np.round(q, 4).tolist()}{note}"
-
-
-# -- adapters to the driver core's result objects (kept in one place) -----------------------------
-def _positions_of(obj: Any) -> np.ndarray:
-    return np.asarray(getattr(obj, "positions", obj), dtype=float)
-
-
-def _velocities_of(obj: Any) -> np.ndarray | None:
-    v = getattr(obj, "velocities", None)
-    return None if v is None else np.asarray(v, dtype=float)
-
-
-def _sent_target_of(result: Any, target: np.ndarray) -> np.ndarray:
-    sent = getattr(result, "targets", None)
-    return np.array(target if sent is None else sent, dtype=float)
-
-
-def _clamps_of(result: Any) -> Any:
-    return getattr(result, "clamped", None)
-
-
-def _limits_of(driver: Any) -> tuple[np.ndarray | None, np.ndarray | None]:
-    lo, hi = getattr(driver, "lower", None), getattr(driver, "upper", None)
-    if lo is None or hi is None:
-        return None, None
-    return np.asarray(lo, dtype=float), np.asarray(hi, dtype=float)
-
-
-def _fault_of(result: Any) -> str:
-    return str(getattr(result, "fault", "") or "")

@@ -32,6 +32,10 @@ Behaviour (choices for what the M5 documentation leaves open are marked *choice*
   refreshed by the broadcast ``0x100 [07 00]``, by the WATCHDOG command, and by any other
   frame addressed to the module. If nothing arrives for ``watchdog_timeout_s`` (default
   0.1 s), the module halts and sets ERROR | HALTED | COMM_ERROR; a RESET re-arms it.
+  Time is *wall time on the wire*: a frame counts at the moment it was on the bus (its
+  ``timestamp``, see :func:`wire_time`), not when the emulator got to read it, so an emulator
+  that was itself descheduled judges the host as a real module would; the check without a
+  frame (:meth:`PowerCubeModule.tick`) runs after the receive queue has been drained.
 * DISABLE_ACK (ACT_CONFIG, *choice*): suppresses the acknowledgements that carry no data
   (simple commands, SETPARAM, plain SETMOVE); GETPARAM replies and extended SETMOVE
   acknowledgements are always sent.
@@ -70,6 +74,8 @@ from redarm_ros.errors import BusError, InvalidInputError
 logger = logging.getLogger(__name__)
 
 DEFAULT_WATCHDOG_TIMEOUT_S = 0.1
+#: A frame timestamp (wall time, s) older than this is not trusted as "when it was on the bus".
+MAX_STAMP_AGE_S = 10.0
 DEFAULT_FIRMWARE_VERSION = 0x0D1A  # reported as DEF_VERSION (u16); any value counts a module
 STICKY_BITS = (
     ActState.ERROR
@@ -107,6 +113,23 @@ def _f32(x: float) -> float:
     return struct.unpack("<f", struct.pack("<f", x))[0]
 
 
+def wire_time(msg: can.Message, clock: Callable[[], float] = time.monotonic) -> float:
+    """When ``msg`` was on the bus, on ``clock``'s time scale (s).
+
+    ``msg.timestamp`` is wall time (``time.time()``) set by whoever put the frame on the bus: the
+    kernel for SocketCAN, the sending bus for python-can's virtual bus, the sender (kept by the
+    server) for the loopback bus server. A stamp up to :data:`MAX_STAMP_AGE_S` old is converted
+    (``clock() - age``); a missing (0), future or older one counts as "now".
+    """
+    now = clock()
+    ts = msg.timestamp
+    if ts > 0.0:
+        age = time.time() - ts
+        if 0.0 < age <= MAX_STAMP_AGE_S:
+            return now - age
+    return now
+
+
 # --------------------------------------------------------------------------------------------------
 # Plant interface and a kinematic plant for tests
 # --------------------------------------------------------------------------------------------------
@@ -138,6 +161,10 @@ class Plant(Protocol):
 
     def in_motion(self) -> bool:
         """True while moving or about to."""
+
+    def set_travel_limits(self, lower: float, upper: float) -> None:
+        """The module's soft limits changed: keep the joint inside ``[lower, upper]`` from now on
+        (braking in time, never stopping dead)."""
 
 
 class _PlantMode(Enum):
@@ -308,6 +335,12 @@ class KinematicPlant:
             self._advance()
             return self._mode is not _PlantMode.IDLE
 
+    def set_travel_limits(self, lower: float, upper: float) -> None:
+        """Keep the joint inside ``[lower, upper]`` (rad) from now on."""
+        with self._lock:
+            self._advance()
+            self.lower, self.upper = float(lower), float(upper)
+
 
 # --------------------------------------------------------------------------------------------------
 # One module
@@ -370,6 +403,7 @@ class PowerCubeModule:
         self._homing = False
         self._pending: p.SetMoveRequest | None = None
         self._wd_deadline: float | None = None
+        self._now = clock()  # time of the frame being handled (wire time) or of the last tick
         self.silenced = False
         self.ignored_setparams = 0
         self.requests = 0
@@ -406,6 +440,11 @@ class PowerCubeModule:
     # -- derived state -------------------------------------------------------------------------
 
     @property
+    def clock(self) -> Callable[[], float]:
+        """The module's time source (s): frame times passed to :meth:`handle` use its scale."""
+        return self._clock
+
+    @property
     def config_bits(self) -> ActConfig:
         """Current ACT_CONFIG."""
         return ActConfig(self._cfg)
@@ -421,6 +460,7 @@ class PowerCubeModule:
 
     def state(self) -> ActState:
         """ACT_STATE now: the sticky bits plus motion bits from the plant."""
+        self._now = self._clock()
         self._update()
         return ActState(self._state_bits())
 
@@ -443,10 +483,13 @@ class PowerCubeModule:
     # -- time-driven behaviour -------------------------------------------------------------------
 
     def tick(self) -> list[can.Message]:
-        """Advance time-driven behaviour (homing end, watchdog, soft limits in FVEL).
+        """Advance time-driven behaviour (homing end, watchdog, soft limits in FVEL) to now.
 
-        Returns frames to send unsolicited (state frames when ERROR gets set).
+        Call it only after every frame already received has been handled (or the watchdog may
+        expire for frames that were waiting). Returns frames to send unsolicited (state frames
+        when ERROR gets set).
         """
+        self._now = self._clock()
         self._update()
         out, self._out = self._out, []
         return out
@@ -456,7 +499,7 @@ class PowerCubeModule:
             self._homing = False
             if not self._st & _BLOCKING:
                 self._st |= _HOME_OK
-        if self._wd_deadline is not None and self._clock() > self._wd_deadline:
+        if self._wd_deadline is not None and self._now > self._wd_deadline:
             self._wd_deadline = None  # re-armed by RESET
             logger.warning("module %d: watchdog expired, halting", self.module_id)
             self._fault(ActState.HALTED | ActState.COMM_ERROR)
@@ -482,15 +525,21 @@ class PowerCubeModule:
 
     def _refresh_watchdog(self) -> None:
         if self._wd_deadline is not None:
-            self._wd_deadline = self._clock() + self.cfg.watchdog_timeout_s
+            # Frames of several senders may reach us slightly out of wire order: never move back.
+            self._wd_deadline = max(self._wd_deadline, self._now + self.cfg.watchdog_timeout_s)
 
     # -- requests ----------------------------------------------------------------------------------
 
-    def handle(self, frame: p.Request) -> list[can.Message]:
-        """Apply one request (addressed to this module, or a broadcast); return the frames to send."""
+    def handle(self, frame: p.Request, t: float | None = None) -> list[can.Message]:
+        """Apply one request (addressed to this module, or a broadcast); return the frames to send.
+
+        ``t`` is when the frame was on the bus (the module clock's scale, see :func:`wire_time`;
+        default: now): the watchdog judges the host by it.
+        """
         if self.silenced:
             return []
         self.requests += 1
+        self._now = self._clock() if t is None else t
         self._update()  # time-driven effects first (a watchdog that expired before this frame)
         if isinstance(frame, p.Broadcast):
             _BROADCAST_HANDLERS[frame.command](self, frame)
@@ -517,7 +566,7 @@ class PowerCubeModule:
         self._homing = False
         self.plant.halt()
         if self._cfg & _CFG_WATCHDOG:
-            self._wd_deadline = self._clock() + self.cfg.watchdog_timeout_s
+            self._wd_deadline = self._now + self.cfg.watchdog_timeout_s
 
     def _home(self) -> None:
         if self._st & _BLOCKING:
@@ -557,7 +606,7 @@ class PowerCubeModule:
         old = self._cfg
         self._params[Param.ACT_CONFIG] = int(value)
         if not old & _CFG_WATCHDOG and self._cfg & _CFG_WATCHDOG:
-            self._wd_deadline = self._clock() + self.cfg.watchdog_timeout_s
+            self._wd_deadline = self._now + self.cfg.watchdog_timeout_s
         elif not self._cfg & _CFG_WATCHDOG:
             self._wd_deadline = None
 
@@ -565,6 +614,10 @@ class PowerCubeModule:
         lo_param, hi_param = _CLAMPED_PARAMS[param]
         lo = self._params[lo_param] if lo_param is not None else 0.0
         self._params[param] = _f32(min(max(float(value), lo), self._params[hi_param]))
+        if param in (Param.ACT_FMINPOS, Param.ACT_FMAXPOS):
+            # The plant brakes for the new soft limits (a real module's profile generator would).
+            self.plant.set_travel_limits(float(self._params[Param.ACT_FMINPOS]),
+                                         float(self._params[Param.ACT_FMAXPOS]))
 
     # motion
     def _on_setmove(self, frame: p.SetMoveRequest) -> can.Message | None:
@@ -735,11 +788,11 @@ class ModuleBank:
             if isinstance(frame, p.Broadcast):
                 out: list[can.Message] = []
                 for m in self.modules.values():
-                    out += m.handle(frame)
+                    out += m.handle(frame, wire_time(msg, m.clock))
                 return out
             if isinstance(frame, (p.CommandRequest, p.SetParamRequest, p.GetParamRequest, p.SetMoveRequest)):
                 module = self.modules.get(frame.module_id)
-                return [] if module is None else module.handle(frame)
+                return [] if module is None else module.handle(frame, wire_time(msg, module.clock))
             return []  # replies and state frames of other nodes
 
     def tick(self) -> list[can.Message]:
@@ -872,16 +925,21 @@ class EmulatorRunner:
             self.frames_out += 1
 
     def serve_once(self, timeout_s: float | None = None) -> None:
-        """Receive at most one frame (waiting ``timeout_s``) and answer it; every ``tick_s`` also
-        advance all modules' time-driven behaviour (a frame already updates its own module)."""
+        """Receive frames (waiting up to ``timeout_s`` for the first) and answer them; every
+        ``tick_s`` also advance all modules' time-driven behaviour (a frame already updates its
+        own module). Ticks come only after the frames already queued were handled, so frames that
+        waited while this thread was descheduled refresh the watchdogs first."""
         msg = self.bus.recv(self.tick_s if timeout_s is None else timeout_s)
-        if msg is not None:
+        for _ in range(256):
+            if msg is None:
+                break
             t0 = time.perf_counter()
             self.frames_in += 1
             self._send(self.bank.handle(msg))
             self.max_handle_s = max(self.max_handle_s, time.perf_counter() - t0)
+            msg = self.bus.recv(0.0)
         now = time.monotonic()
-        if now >= self._next_tick:
+        if now >= self._next_tick and msg is None:
             self._next_tick = now + self.tick_s
             self._send(self.bank.tick())
 

@@ -481,6 +481,7 @@ _U32: Final = struct.Struct("<I")
 _FSTEP: Final = struct.Struct("<BBfH")  # [0B][mode][f32][u16 ms]
 _FMOVE: Final = struct.Struct("<BBf")  # [0B][mode][f32]
 _EXT_ACK: Final = struct.Struct("<BBfBB")  # [0B][mode][f32 pos][u8 short][u8 dio]
+_FSTEP_MODES: Final = frozenset((0x06, 0x10))  # MoveMode.FSTEP, MoveMode.FSTEP_EXT
 
 
 def _message(arbitration_id: int, data: bytes | bytearray) -> can.Message:
@@ -620,6 +621,24 @@ def set_move(
 def fstep(module_id: int, target_rad: float, duration_ms: int, *, extended: bool = True) -> can.Message:
     """FSTEP(_EXT): reach ``target_rad`` in ``duration_ms`` milliseconds."""
     return set_move(module_id, MoveMode.FSTEP_EXT if extended else MoveMode.FSTEP, target_rad, duration_ms)
+
+
+def patch_fstep(msg: can.Message, target_rad: float, duration_ms: int) -> None:
+    """Rewrite the target and duration of a frame built by :func:`fstep` in place (same id and mode).
+
+    The hot path of a control cycle: the driver builds one FSTEP(_EXT) frame per joint once and
+    patches it every cycle instead of building a new message. Same layout and checks as
+    :func:`set_move`.
+
+    Raises:
+        InvalidInputError: ``msg`` is not an FSTEP/FSTEP_EXT frame, the target is NaN/inf, or the
+            duration is outside 0..65535 ms (the frame is left unchanged).
+    """
+    data = msg.data
+    if len(data) != _FSTEP.size or data[0] != Command.SETMOVE or data[1] not in _FSTEP_MODES:
+        raise InvalidInputError("not an FSTEP frame built by fstep()", field="msg", value=msg)
+    x = _check_float(target_rad, "target_rad")
+    _FSTEP.pack_into(data, 0, Command.SETMOVE, data[1], x, _check_duration_ms(duration_ms))
 
 
 def framp(module_id: int, target_rad: float, *, extended: bool = False) -> can.Message:

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 import rclpy
 from geometry_msgs.msg import Pose
-from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -37,7 +37,9 @@ Validator = Callable[[Any], str | None]
 class ParamSpec:
     """One node parameter: ``name``, ``default`` (fixes the type), ``description``, optional ``validate``.
 
-    ``read_only`` parameters can only be set at start-up (overrides / YAML).
+    ``read_only`` parameters can only be set at start-up (overrides / YAML). ``range`` (lo, hi),
+    for a float or integer parameter, is declared in the descriptor (``ros2 param describe`` shows
+    it, rclpy enforces it) and checked by the validator too.
     """
 
     name: str
@@ -45,6 +47,7 @@ class ParamSpec:
     description: str
     validate: Validator | None = None
     read_only: bool = False
+    range: tuple[float, float] | None = None
 
 
 def declare_params(node: Node, specs: Sequence[ParamSpec]) -> dict[str, Any]:
@@ -69,6 +72,8 @@ def declare_params(node: Node, specs: Sequence[ParamSpec]) -> dict[str, Any]:
                     return SetParametersResult(successful=False, reason=f"{p.name}: must be a number")
                 value = float(value)
             reason = spec.validate(value) if spec.validate is not None else None
+            if reason is None and spec.range is not None:
+                reason = in_range(*spec.range)(value)
             if reason is not None:
                 return SetParametersResult(successful=False, reason=f"{p.name}: {reason}")
         return SetParametersResult(successful=True)
@@ -79,6 +84,11 @@ def declare_params(node: Node, specs: Sequence[ParamSpec]) -> dict[str, Any]:
     for s in specs:
         desc = ParameterDescriptor(description=s.description, read_only=s.read_only,
                                    dynamic_typing=_is_float_param(s))
+        if s.range is not None and _is_float_param(s):
+            desc.floating_point_range = [FloatingPointRange(from_value=float(s.range[0]),
+                                                            to_value=float(s.range[1]), step=0.0)]
+        elif s.range is not None and isinstance(s.default, int) and not isinstance(s.default, bool):
+            desc.integer_range = [IntegerRange(from_value=int(s.range[0]), to_value=int(s.range[1]), step=1)]
         try:
             value = node.declare_parameter(s.name, s.default, desc).value
         except (rclpy.exceptions.InvalidParameterValueException,

@@ -14,6 +14,13 @@ Interface (docs/can_driver.md has the details):
   (sensor_msgs/JointState: streamed position targets; one topic cannot carry two types);
 * services ``~/init`` (reset + home, then hold), ``~/halt``, ``~/recover`` (std_srvs/Trigger).
 
+The cycle runs in a process of its own by default (:mod:`redarm_ros.can.driver_process`: real-time
+priority when permitted, garbage collector kept out of the cycle), so the executor of this node
+cannot delay it; ``separate_process:=false`` runs it in a thread of the node instead (python-can's
+in-process ``virtual`` interface needs that). Nothing is started by the constructor: a timer first
+watches the ROS graph for another driver of the same name (``duplicate_check_s``) and then starts
+the cycle.
+
 Run: ``ros2 run redarm_ros can_driver --ros-args --params-file config/can_driver.yaml
 -p can.channel:=ws://127.0.0.1:PORT/`` (or ``python -m redarm_ros.nodes.can_driver``).
 
@@ -26,11 +33,13 @@ import logging
 import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
 import yaml
+from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
@@ -41,21 +50,19 @@ from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
 
 from redarm_ros.can import protocol as pc
-from redarm_ros.can.bus import open_bus
-from redarm_ros.can.driver_core import PowerCubeArmDriver
-from redarm_ros.can.driver_loop import CycleSample, DriverLoop, LoopConfig, LoopSnapshot, LoopState
+from redarm_ros.can.driver_core import DEFAULT_PLAUSIBILITY_MARGIN
+from redarm_ros.can.driver_loop import (
+    DEFAULT_LIMIT_MARGIN,
+    CycleSample,
+    DriverLoop,
+    LoopConfig,
+    LoopSnapshot,
+    LoopState,
+)
+from redarm_ros.can.driver_process import DriverProcess, DriverSpec, build_loop
 from redarm_ros.errors import ConfigError, InvalidInputError, RedarmError
 from redarm_ros.kinematics import load_arm
-from redarm_ros.nodes._common import (
-    ParamSpec,
-    check_unique_node_name,
-    declare_params,
-    in_range,
-    non_negative,
-    positive,
-    run_node,
-    watch_duplicates,
-)
+from redarm_ros.nodes._common import ParamSpec, declare_params, run_node, watch_duplicates
 
 NODE_NAME = "can_driver"
 DIAGNOSTICS_PERIOD_S = 0.5
@@ -82,8 +89,8 @@ def _yaml_mapping(value: Any) -> str | None:
     return None
 
 
-def _positive_int(value: Any) -> str | None:
-    return None if isinstance(value, int) and value >= 1 else "must be an integer >= 1"
+class DuplicateNodeError(RuntimeError):
+    """Another node of the same name runs in this ROS domain: this driver must not touch the bus."""
 
 
 PARAMS = [
@@ -92,34 +99,44 @@ PARAMS = [
     ParamSpec("module_ids", Parameter.Type.INTEGER_ARRAY,
               "CAN module id of each joint, in joint order (unset or empty: 1..n).", _module_ids,
               read_only=True),
-    ParamSpec("rate_hz", 250.0, "Cycle rate of the FSTEP stream (Hz).", in_range(1.0, 1000.0),
-              read_only=True),
-    ParamSpec("poll_hz", 10.0, "State polling rate while not running (idle/halted), Hz.",
-              in_range(0.5, 100.0), read_only=True),
+    ParamSpec("rate_hz", 250.0, "Cycle rate of the FSTEP stream (Hz).", read_only=True, range=(1.0, 1000.0)),
+    ParamSpec("poll_hz", 10.0, "State polling rate while not running (idle/halted), Hz.", read_only=True,
+              range=(0.5, 100.0)),
     ParamSpec("can.interface", "", "python-can interface (empty: CAN_INTERFACE / config files).",
               read_only=True),
     ParamSpec("can.channel", "", "python-can channel (empty: CAN_CHANNEL / config files).", read_only=True),
     ParamSpec("can.config", "", "More python-can keywords as a YAML/JSON mapping, e.g. '{bitrate: 500000}'.",
               _yaml_mapping, read_only=True),
     ParamSpec("reply_timeout_s", 0.02, "How long a cycle waits for the modules' replies (s).",
-              in_range(1e-4, 1.0), read_only=True),
+              read_only=True, range=(1e-4, 1.0)),
     ParamSpec("max_missed_replies", 5, "Consecutive missed replies after which a module counts as silent "
               "(everything is halted); with reply_timeout_s 0.02 a module may be quiet for 100 ms.",
-              _positive_int, read_only=True),
+              read_only=True, range=(1, 1000)),
     ParamSpec("hold_on_stream_stop_s", 0.5, "A /joint_command_state stream older than this (s) is "
-              "dropped and the measured position held.", positive),
+              "dropped and the measured position held.", range=(0.001, 3600.0)),
     ParamSpec("duplicate_check_s", 1.0, "At start-up, watch the ROS graph this long (s) for another "
-              "can_driver of the same name and refuse to start (two drivers on one bus would fight over "
-              "the modules; 0 = no check).", non_negative, read_only=True),
+              "can_driver of the same name before starting the cycle, and refuse to start if there is one "
+              "(two drivers on one bus would fight over the modules; 0 = no wait).", read_only=True,
+              range=(0.0, 60.0)),
     ParamSpec("auto_init", False, "Run ~/init (reset + home) by itself once the bus is up.", read_only=True),
     ParamSpec("reconnect_max_s", 2.0, "Longest wait between reconnect attempts to a lost bus (s).",
-              positive, read_only=True),
+              read_only=True, range=(0.01, 60.0)),
     ParamSpec("frame_id", "", "header.frame_id of /joint_states.", None),
-    ParamSpec("watchdog", True, "Arm the modules' watchdog at init and refresh it every cycle (a stalled "
-              "or dead driver then halts the arm).",
-              None, read_only=True),
+    ParamSpec("watchdog", True, "Arm the modules' watchdog at init and recover and refresh it every cycle "
+              "(a stalled or dead driver then halts the arm).", None, read_only=True),
     ParamSpec("request_timeout_s", 60.0, "Longest a ~/init, ~/halt or ~/recover call may take (s).",
-              non_negative),
+              range=(0.0, 3600.0)),
+    ParamSpec("separate_process", True, "Run the CAN cycle in a process of its own, away from this node's "
+              "executor (false: a thread of this node; needed for the in-process 'virtual' interface).",
+              read_only=True),
+    ParamSpec("realtime_priority", 50, "SCHED_FIFO priority of the CAN cycle (1..98; 0 = normal "
+              "scheduling). Falls back to a raised nice level, with one log line, when not permitted.",
+              read_only=True, range=(0, 98)),
+    ParamSpec("limit_margin_rad", DEFAULT_LIMIT_MARGIN, "How far (rad) the commanded reference stays inside "
+              "each joint limit (the modules' soft limit).", read_only=True, range=(0.0, 0.1)),
+    ParamSpec("plausibility_margin_rad", DEFAULT_PLAUSIBILITY_MARGIN, "A measured position may differ from "
+              "the last one by max_vel * (elapsed + reply_timeout_s) plus this (rad); more is a fault.",
+              read_only=True, range=(0.0, 1.0)),
 ]
 
 
@@ -159,19 +176,28 @@ def map_joint_names(names: Sequence[str], model_names: Sequence[str]) -> list[in
     return [index[n] for n in names]
 
 
+def _stamp(t: float) -> Time:
+    """builtin_interfaces/Time of a wall-clock time ``t`` (s)."""
+    sec = int(t)
+    return Time(sec=sec, nanosec=int((t - sec) * 1e9))
+
+
 def _duration_s(d: Any) -> float:
     return float(d.sec) + float(d.nanosec) * 1e-9
 
 
 class CanDriverNode(Node):
-    """The ``can_driver`` node (importable for in-process tests; see the module docstring)."""
+    """The ``can_driver`` node (importable for in-process tests; see the module docstring).
+
+    The constructor only wires (parameters, topics, services, timers); the CAN cycle starts from a
+    timer once the duplicate-name window has passed. :attr:`refused` holds the reason if another
+    driver of the same name was seen (the cycle is then never started); ``on_refused``, if set,
+    is called with it (``main()`` uses that to end the process with exit code 1).
+    """
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(kwargs.pop("node_name", NODE_NAME), **kwargs)
         p = declare_params(self, PARAMS)
-        # Before the bus is opened: a second driver must never send a frame.
-        check_unique_node_name(self, float(p["duplicate_check_s"]))
-        watch_duplicates(self)
         try:
             self.arm = load_arm(p["arm"])
         except (RedarmError, OSError) as exc:
@@ -186,22 +212,21 @@ class CanDriverNode(Node):
                       **parse_can_config(p["can.config"])}
         self._frame_id = p["frame_id"]
         self._request_timeout_s = float(p["request_timeout_s"])
-
-        def make_driver(bus: Any) -> PowerCubeArmDriver:
-            return PowerCubeArmDriver(
-                bus, ids, self.arm.lower, self.arm.upper, self.arm.max_vel, self.arm.max_acc,
-                reply_timeout_s=float(p["reply_timeout_s"]),
-                max_missed=int(p["max_missed_replies"]),
-                watchdog_refresh=bool(p["watchdog"]),
-                enable_watchdog=bool(p["watchdog"]),
-            )
-
+        self._duplicate_check_s = float(p["duplicate_check_s"])
         cfg = LoopConfig(
             rate_hz=float(p["rate_hz"]), poll_hz=float(p["poll_hz"]),
             hold_on_stream_stop_s=float(p["hold_on_stream_stop_s"]),
             reconnect_max_s=float(p["reconnect_max_s"]), auto_init=bool(p["auto_init"]),
+            limit_margin_rad=float(p["limit_margin_rad"]),
         )
-        # Wiring: publishers, subscriptions, services, the diagnostics timer.
+        spec = DriverSpec(
+            module_ids=tuple(ids), lower=tuple(self.arm.lower), upper=tuple(self.arm.upper),
+            max_vel=tuple(self.arm.max_vel), max_acc=tuple(self.arm.max_acc), can_kwargs=can_kwargs,
+            loop=cfg, reply_timeout_s=float(p["reply_timeout_s"]), max_missed=int(p["max_missed_replies"]),
+            watchdog=bool(p["watchdog"]), plausibility_margin_rad=float(p["plausibility_margin_rad"]),
+            realtime_priority=int(p["realtime_priority"]),
+        )
+        # Wiring: publishers, subscriptions, services, timers. Nothing runs until the start timer.
         self._js_pub = self.create_publisher(JointState, "joint_states", QoSProfile(depth=10))
         self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", QoSProfile(depth=10))
         self.create_subscription(JointTrajectory, "joint_command", self._on_trajectory, 10)
@@ -213,23 +238,81 @@ class CanDriverNode(Node):
         self.add_post_set_parameters_callback(self._on_params_set)
         self._warn_times: dict[str, float] = {}
         self._warn_lock = threading.Lock()
-        self.loop = DriverLoop(make_driver, lambda: open_bus(**can_kwargs), n, cfg,
-                               on_sample=self._publish_joint_state, log=self._log)
-        self.loop.start()
+        self.separate_process = bool(p["separate_process"])
+        if self.separate_process and str(can_kwargs.get("interface") or "") == "virtual":
+            self.get_logger().warning("python-can's 'virtual' interface is in-process only: running the CAN "
+                                      "cycle in a thread of this node (separate_process ignored)")
+            self.separate_process = False
+        self.loop: DriverLoop | DriverProcess
+        if self.separate_process:
+            self.loop = DriverProcess(spec, on_sample=self._publish_joint_state, log=self._log)
+        else:
+            thread_cfg = replace(cfg, realtime_priority=int(p["realtime_priority"]))
+            self.loop = build_loop(replace(spec, loop=thread_cfg), on_sample=self._publish_joint_state,
+                                   log=self._log)
+        self.refused: str | None = None
+        self.on_refused: Callable[[str], None] | None = None
+        self.started = False
+        self._start_lock = threading.Lock()
+        self._created = time.monotonic()
+        self._start_timer = self.create_timer(0.05, self._on_start_timer)
+        watch_duplicates(self)
         iface = can_kwargs.get("interface") or "$CAN_INTERFACE"
         chan = can_kwargs.get("channel") or "$CAN_CHANNEL"
+        where = "its own process" if self.separate_process else "a thread"
         self.get_logger().info(
             f"{NODE_NAME} ready: arm {self.arm.name} ({n} joints, modules {ids}) "
-            f"at {cfg.rate_hz:g} Hz on {iface}:{chan}"
+            f"at {cfg.rate_hz:g} Hz on {iface}:{chan}, cycle in {where}"
         )
 
     # -- life cycle ---------------------------------------------------------------------------------
+    def _start_when_unique(self) -> None:
+        """Timer: watch the graph for ``duplicate_check_s`` (a twin appears after DDS discovery), then
+        start the cycle; a twin of the same name means this driver never touches the bus. Also
+        called by a service callback waiting for the start (an executor with a single thread would
+        otherwise never run the timer while the callback waits). Idempotent."""
+        with self._start_lock:
+            if self.started or self.refused is not None:
+                return
+            me = (self.get_name(), self.get_namespace())
+            twins = sum(1 for nm_ns in self.get_node_names_and_namespaces() if tuple(nm_ns) == me) - 1
+            if twins > 0:
+                self.refused = (
+                    f"another node named {self.get_fully_qualified_name()} is already running in "
+                    f"ROS_DOMAIN_ID {self.context.get_domain_id()}; refusing to start a second one (it would "
+                    "fight over the modules; remap the name with --ros-args -r __node:=<name> to run both)")
+                self.get_logger().error(self.refused)
+                if self.on_refused is not None:
+                    self.on_refused(self.refused)
+                return
+            if time.monotonic() - self._created < self._duplicate_check_s:
+                return
+            self.loop.start()
+            self.started = True
+
+    def _on_start_timer(self) -> None:
+        """The start timer: try to start; once started (or refused) the timer cancels itself. Only
+        its own callback cancels it: a cancel from another thread can race the executor taking the
+        timer, which rclpy turns into an error."""
+        self._start_when_unique()
+        if self.started or self.refused is not None:
+            self._start_timer.cancel()
+
+    def _wait_for_start(self, timeout: float) -> bool:
+        """Block (a service callback) until the cycle is started, refused, or ``timeout`` s passed."""
+        end = time.monotonic() + timeout
+        while not self.started and self.refused is None and time.monotonic() < end:
+            self._start_when_unique()
+            if not self.started:
+                time.sleep(0.05)
+        return self.started
+
     def close(self) -> None:
-        """Stop the driver thread and close the bus (called by main() before destroy_node)."""
+        """Stop the CAN cycle and close the bus (called by main() before destroy_node)."""
         self.loop.stop()
 
     def destroy_node(self) -> None:
-        """Stop the loop first so nothing publishes on a destroyed node."""
+        """Stop the cycle first so nothing publishes on a destroyed node."""
         self.loop.stop()
         super().destroy_node()
 
@@ -319,7 +402,12 @@ class CanDriverNode(Node):
     # -- services ---------------------------------------------------------------------------------------
     def _trigger(self, action: str) -> Any:
         def callback(_req: Trigger.Request, resp: Trigger.Response) -> Trigger.Response:
-            ok, message = self.loop.request(action, self._request_timeout_s)
+            t0 = time.monotonic()
+            if self._wait_for_start(self._request_timeout_s):
+                left = max(0.0, self._request_timeout_s - (time.monotonic() - t0))
+                ok, message = self.loop.request(action, left)
+            else:
+                ok, message = False, self.refused or f"{action}: the CAN cycle did not start in time"
             resp.success, resp.message = ok, message
             # One call site per severity: rclpy refuses a severity change at the same line.
             if ok:
@@ -335,7 +423,7 @@ class CanDriverNode(Node):
         if not self.context.ok():
             return  # shutting down: rclpy's context is gone before the loop thread stops
         msg = JointState()
-        msg.header.stamp = self.get_clock().now().to_msg()
+        msg.header.stamp = _stamp(s.stamp)  # when the cycle measured, not when it got published
         msg.header.frame_id = self._frame_id
         msg.name = self.joint_names
         msg.position = s.positions.tolist()
@@ -344,7 +432,13 @@ class CanDriverNode(Node):
         self._js_pub.publish(msg)
 
     def _publish_diagnostics(self) -> None:
-        snap = self.loop.snapshot()
+        if not self.started:
+            return  # nothing to report before the cycle runs (or after a refusal)
+        try:
+            snap = self.loop.snapshot()
+        except RedarmError as exc:  # the cycle process is gone
+            self._warn_throttled("no-snapshot", f"no driver status: {exc}", 5.0)
+            return
         arr = DiagnosticArray()
         arr.header.stamp = self.get_clock().now().to_msg()
         arr.status = [self._loop_status(snap), *self._module_statuses(snap)]
@@ -380,7 +474,14 @@ class CanDriverNode(Node):
             "frames_per_s": f"{snap.frames_per_s:.0f}",
             "frames_tx": str(snap.frames_tx),
             "frames_rx": str(snap.frames_rx),
+            "implausible_positions": str(snap.implausible),
+            "fault": snap.fault.kind.value if snap.fault is not None else "-",
+            "fault_modules": str(list(snap.fault.module_ids)) if snap.fault is not None else "[]",
+            "cycle_scheduling": snap.priority or "-",
         }
+        if snap.totals is not None:
+            values["period_error_p99_total_ms"] = f"{snap.totals['period_err_p99_ms']:.3f}"
+            values["period_error_max_total_ms"] = f"{snap.totals['period_err_max_ms']:.3f}"
         if snap.latency is not None:
             values["reply_latency_median_ms"] = f"{snap.latency['median_ms']:.3f}"
             values["reply_latency_p99_ms"] = f"{snap.latency['p99_ms']:.3f}"
@@ -411,39 +512,33 @@ def state_bit_names(bits: int) -> list[str]:
 
 
 def module_info(snap: LoopSnapshot, j: int, module_id: int) -> dict[str, Any]:
-    """Diagnostic values of joint ``j`` / ``module_id`` from a loop snapshot (driver-core adapter)."""
+    """Diagnostic values of joint ``j`` / ``module_id`` from a loop snapshot."""
     info: dict[str, Any] = {"module_id": module_id}
     level, message = DiagnosticStatus.OK, "ok"
     if module_id in snap.missing_modules:
         level, message = DiagnosticStatus.ERROR, "not found at discovery"
     if snap.positions is not None:
         info["position_rad"] = f"{snap.positions[j]:.5f}"
-    res = snap.last_result
-    bits = None
-    if res is not None and getattr(res, "states", None) is not None:
-        bits = int(res.states[j])
-    if bits is not None:
+    if snap.last_result is not None:
+        bits = int(snap.last_result.states[j])
         info["state_bits"] = f"0x{bits:08x}"
         info["state"] = " ".join(state_bit_names(bits)) or "-"
         err = bits & int(_ERROR_BITS)
         info["errors"] = " ".join(state_bit_names(err)) or "-"
         if err:
             level, message = DiagnosticStatus.ERROR, "error bits: " + info["errors"]
-    ms = snap.module_stats
-    if ms is not None:
-        try:
-            s = ms[j]
-        except (TypeError, IndexError, KeyError):
-            s = None
-        if s is not None:
-            for key in ("latency_median_ms", "latency_max_ms", "lost", "malformed", "late"):
-                if hasattr(s, key):
-                    v = getattr(s, key)
-                    info[key] = f"{v:.3f}" if isinstance(v, float) else v
-            if getattr(s, "silent", False) and level != DiagnosticStatus.ERROR:
-                level, message = DiagnosticStatus.ERROR, "not answering"
-    if snap.state is LoopState.HALTED and f"module {module_id} " in snap.reason:
-        level, message = DiagnosticStatus.ERROR, snap.reason
+    if j < len(snap.module_stats):
+        s = snap.module_stats[j]
+        info["latency_median_ms"] = f"{s.latency_median_ms:.3f}"
+        info["latency_max_ms"] = f"{s.latency_max_ms:.3f}"
+        info["lost"], info["malformed"], info["late"] = s.lost, s.malformed, s.late
+        info["implausible"] = s.implausible
+        if s.silent and level != DiagnosticStatus.ERROR:
+            level, message = DiagnosticStatus.ERROR, "not answering"
+        elif s.implausible and level == DiagnosticStatus.OK:
+            level, message = DiagnosticStatus.WARN, f"{s.implausible} implausible positions refused"
+    if snap.state is LoopState.HALTED and snap.fault is not None and snap.fault.involves(module_id):
+        level, message = DiagnosticStatus.ERROR, snap.fault.message
     info["_level"], info["_message"] = level, message
     return info
 
@@ -454,9 +549,24 @@ SWITCH_INTERVAL_S = 5e-4
 
 
 def main(args: Sequence[str] | None = None) -> int:
-    """Console entry point (``ros2 run redarm_ros can_driver``): the standard main()."""
+    """Console entry point (``ros2 run redarm_ros can_driver``): the standard main(); exit code 1 with
+    one error line if another driver of the same name runs."""
     sys.setswitchinterval(SWITCH_INTERVAL_S)
-    return run_node(lambda: CanDriverNode(), args, multithreaded=True)
+
+    def refuse(reason: str) -> None:
+        raise DuplicateNodeError(reason)
+
+    def make() -> CanDriverNode:
+        node = CanDriverNode()
+        node.on_refused = refuse
+        return node
+
+    try:
+        return run_node(make, args, multithreaded=True)
+    except DuplicateNodeError as exc:
+        logging.basicConfig()
+        logging.getLogger(NODE_NAME).error("could not start: %s", exc)
+        return 1
 
 
 if __name__ == "__main__":

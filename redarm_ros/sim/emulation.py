@@ -61,6 +61,9 @@ class _LimitedJoint:
     def in_motion(self) -> bool:
         return self._j.in_motion()
 
+    def set_travel_limits(self, lower: float, upper: float) -> None:
+        self._j.set_travel_limits(lower, upper)
+
 
 class PlantModules:
     """One emulated PowerCube module per joint of ``plant``, ids ``module_ids`` (joint order).
@@ -95,20 +98,25 @@ class PlantModules:
         """The emulated module with this id."""
         return self.bank.modules[module_id]
 
-    def handle(self, frame: pc.Frame, silenced: Collection[int] = ()) -> list[can.Message]:
-        """Frames to send for one decoded request or broadcast (silenced modules ignore it)."""
+    def handle(
+        self, frame: pc.Frame, silenced: Collection[int] = (), t: float | None = None
+    ) -> list[can.Message]:
+        """Frames to send for one decoded request or broadcast (silenced modules ignore it).
+
+        ``t`` is when the frame was on the bus (``time.monotonic`` scale; see
+        :func:`redarm_ros.can.module_emulator.wire_time`), default now."""
         out: list[can.Message] = []
         with self.bank.lock:
             if isinstance(frame, pc.Broadcast):
                 for mid, m in self.bank.modules.items():
                     if mid not in silenced:
-                        out += m.handle(frame)
+                        out += m.handle(frame, t)
                 return out
             mid = getattr(frame, "module_id", None)
             m = self.bank.modules.get(mid) if mid is not None else None
             if m is None or mid in silenced or not isinstance(frame, _REQUESTS):
                 return out
-            return m.handle(frame)
+            return m.handle(frame, t)
 
     def tick(self, silenced: Collection[int] = ()) -> list[can.Message]:
         """Advance the modules' time-driven behaviour; unsolicited frames of speaking modules."""

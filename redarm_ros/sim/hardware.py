@@ -44,6 +44,8 @@ from typing import Any
 import can
 
 from redarm_ros.can import protocol as pc
+from redarm_ros.can import realtime
+from redarm_ros.can.module_emulator import wire_time
 from redarm_ros.errors import BusError, RedarmError
 from redarm_ros.sim.plant import PybulletPlant
 
@@ -54,6 +56,13 @@ MAX_BURST = 50  # steps caught up at once; a larger backlog is dropped (resync)
 CONTROL_POLL_S = 0.05
 SWITCH_INTERVAL_S = 5e-4
 OVERRUN_REPORT_S = 5.0  # log late steps at most this often
+# With real-time priority the physics loop must never keep a core: if it has not slept for this
+# long (stepping slower than real time), the process drops back to normal scheduling.
+RT_SPIN_LIMIT_S = 0.5
+DEFAULT_REALTIME_PRIORITY = 50
+# How long a frame may have been under way (sender -> bus server -> this process) before it was
+# readable here; bounds how old a frame's own stamp may make it look (s).
+WIRE_TRANSIT_ALLOWANCE_S = 0.02
 ENV_PREFIX = "REDARM_SIM_"
 EXIT_BAD_ARGS = 2
 EXIT_NO_BUS = 3
@@ -106,6 +115,7 @@ class Counters:
     overruns: int = 0
     resyncs: int = 0
     max_lag_ms: float = 0.0
+    max_wire_gap_ms: float = 0.0  # longest silence between two frames for our modules, on the wire
     reply_latency_max_ms: float = 0.0
     reply_latency_sum_ms: float = 0.0
     snapshots: int = 0
@@ -159,6 +169,7 @@ class HardwareSim:
         self.control_file = Path(control_file) if control_file else None
         self.die_after_s = die_after_s
         self.counters = Counters()
+        self.realtime = False  # set by main() when SCHED_FIFO was granted (the spin guard applies)
         self.snapshots: list[str] = []
         self._rng = random.Random(self.faults.seed)
         self._stop = threading.Event()
@@ -169,10 +180,15 @@ class HardwareSim:
         self._pending: list[tuple[float, int, can.Message, float]] = []  # delayed: (due, seq, msg, t_rx)
         self._seq = 0
         self._decoder = pc.FrameDecoder()
+        self._last_wire: float | None = None
+        self._last_empty = time.monotonic()  # the bus thread last found nothing to read
         self._control_sig: tuple[int, int] | None = None
         self._start = time.monotonic()
         self.emulator = (emulator_factory or _default_emulator)(plant, self.module_ids)
         self._bus_thread = threading.Thread(target=self._bus_loop, name="sim-bus", daemon=True)
+        self._status_cond = threading.Condition()
+        self._status_mailbox: dict[str, Any] | None = None
+        self._status_thread = threading.Thread(target=self._status_writer, name="sim-status", daemon=True)
 
     # -- control from other threads / signal handlers -------------------------------------------------
     def request_stop(self) -> None:
@@ -233,8 +249,17 @@ class HardwareSim:
             c.silenced_rx += 1
             return
         c.requests += 1
+        # When the frame was on the bus, by its stamp; but never earlier than the last moment this
+        # thread saw the socket empty (less a transit allowance): a frame cannot have waited longer
+        # than that, so a wall-clock step cannot make it look old.
+        t_wire = max(wire_time(msg), self._last_empty - WIRE_TRANSIT_ALLOWANCE_S)
+        if self._last_wire is not None and t_wire - self._last_wire > c.max_wire_gap_ms * 1e-3:
+            c.max_wire_gap_ms = (t_wire - self._last_wire) * 1e3
+        self._last_wire = t_wire
         try:
-            replies = self.emulator.handle(frame, silenced)
+            # The watchdog judges the host by when the frame was on the bus, not by when this
+            # process got to read it (see module_emulator.wire_time).
+            replies = self.emulator.handle(frame, silenced, t_wire)
         except Exception:  # noqa: BLE001 - a bug in one request must not take the hardware down
             c.handler_errors += 1
             _LOG.exception("error handling %s", msg)
@@ -291,6 +316,8 @@ class HardwareSim:
             backlog = msg is not None
             if msg is not None:
                 self.handle_frame(msg, time.monotonic())
+            else:
+                self._last_empty = time.monotonic()
 
     def _on_bus_lost(self, exc: BaseException, delay: float) -> None:
         self.counters.bus_lost += 1
@@ -345,13 +372,37 @@ class HardwareSim:
         }
 
     def write_status(self) -> None:
-        """Write :meth:`status` to the status file atomically (temp file + rename)."""
-        if self.status_file is None:
-            return
+        """Write :meth:`status` to the status file atomically (temp file + rename), now."""
+        if self.status_file is not None:
+            self._write_status_file(self.status())
+
+    def _write_status_file(self, status: dict[str, Any]) -> None:
+        assert self.status_file is not None
         tmp = self.status_file.with_name(f".{self.status_file.name}.{os.getpid()}.tmp")
         with open(tmp, "w", encoding="utf-8") as fh:
-            json.dump(self.status(), fh)
+            json.dump(status, fh)
         os.replace(tmp, self.status_file)
+
+    def _post_status(self) -> None:
+        """Hand the current status to the writer thread (the physics thread never waits for a disk)."""
+        if self.status_file is None:
+            return
+        with self._status_cond:
+            self._status_mailbox = self.status()  # the latest wins
+            self._status_cond.notify()
+
+    def _status_writer(self) -> None:
+        while True:
+            with self._status_cond:
+                while self._status_mailbox is None and not self._stop.is_set():
+                    self._status_cond.wait(0.5)
+                status, self._status_mailbox = self._status_mailbox, None
+            if status is None:
+                return  # stopping; run() writes the final status itself
+            try:
+                self._write_status_file(status)
+            except OSError as exc:
+                _LOG.warning("status file not written: %s", exc)
 
     def snapshot(self, name: str | None = None) -> str | None:
         """Render a PNG into the snapshot dir now (physics thread); returns its path."""
@@ -415,6 +466,7 @@ class HardwareSim:
         """Serve the bus and step physics in real time until :meth:`request_stop`."""
         period = 1.0 / self.rate_hz
         self._bus_thread.start()
+        self._status_thread.start()
         c = self.counters
         if self.snapshot_dir is not None:
             self.snapshot("start")
@@ -423,6 +475,7 @@ class HardwareSim:
             on_ready()
         t0 = time.monotonic()
         k = 0
+        last_sleep = t0
         next_status = t0
         next_control = t0
         next_report, reported = t0 + OVERRUN_REPORT_S, 0
@@ -455,9 +508,10 @@ class HardwareSim:
                         self.snapshot(name)
                     if reqs:  # rendering took a while: do not count the catch-up as overruns
                         t0 = time.monotonic() - k * period
+                        last_sleep = time.monotonic()  # nor as a spinning real-time loop
                 if now >= next_status:
                     next_status = now + self.status_period
-                    self.write_status()
+                    self._post_status()
                 if now >= next_report:
                     next_report = now + OVERRUN_REPORT_S
                     if c.overruns > reported:
@@ -469,9 +523,19 @@ class HardwareSim:
                 delay = t0 + (k + 1) * period - time.monotonic()
                 if delay > 0:
                     time.sleep(delay)
+                    last_sleep = time.monotonic()
+                elif self.realtime and time.monotonic() - last_sleep > RT_SPIN_LIMIT_S:
+                    realtime.drop_priority()
+                    self.realtime = False
+                    _LOG.warning("physics cannot keep up with --rate %g Hz: dropped real-time priority "
+                                 "(a real-time loop that never sleeps would take a core from everyone)",
+                                 self.rate_hz)
         finally:
             self._stop.set()
             self._bus_thread.join(timeout=2.0)
+            with self._status_cond:
+                self._status_cond.notify()
+            self._status_thread.join(timeout=2.0)
             if self.snapshot_dir is not None:
                 try:
                     self.snapshot("final")
@@ -570,6 +634,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="SIGKILL itself after S seconds (a crash)",
     )
     f.add_argument("--seed", type=int, default=env(ENV_PREFIX + "SEED") or "0", help="fault RNG seed")
+    ap.add_argument(
+        "--realtime-priority",
+        type=int,
+        default=int(env(ENV_PREFIX + "REALTIME_PRIORITY") or DEFAULT_REALTIME_PRIORITY),
+        metavar="N",
+        help="SCHED_FIFO priority of the simulator's threads (1..98, 0 = normal scheduling; "
+        f"default {DEFAULT_REALTIME_PRIORITY}); falls back to a raised nice level when not permitted",
+    )
     ap.add_argument("--log-level", default="INFO", help="logging level (DEBUG, INFO, WARNING)")
     return ap
 
@@ -650,6 +722,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     # The bus thread must get the GIL quickly when a frame arrives, even while the physics thread
     # computes: a shorter switch interval than the default 5 ms bounds that wait.
     sys.setswitchinterval(SWITCH_INTERVAL_S)
+    # The hardware stand-in must not be starved by the rest of the machine: real-time priority for
+    # the process (the bus thread created below inherits it), when permitted; one line says which.
+    prio = realtime.raise_priority(args.realtime_priority, who="redarm-sim")
+    (_LOG.info if prio.realtime or args.realtime_priority <= 0 else _LOG.warning)("%s", prio.message)
     ids = list(range(args.first_id, args.first_id + arm.n))
     sim = HardwareSim(
         plant,
@@ -664,6 +740,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         control_file=args.control_file,
         die_after_s=args.die_after,
     )
+    sim.realtime = prio.realtime
 
     def _stop(signum: int, _frame: object) -> None:
         _LOG.info("signal %d: stopping", signum)

@@ -128,6 +128,13 @@ class JointPlant:
         with self._plant.lock:
             self.ramp.halt()
 
+    def set_travel_limits(self, lower: float, upper: float) -> None:
+        """Keep the setpoint inside ``[lower, upper]`` (rad, within the joint limits) from now on."""
+        lo = max(float(lower), float(self._plant.arm.lower[self.index]))
+        hi = min(float(upper), float(self._plant.arm.upper[self.index]))
+        with self._plant.lock:
+            self.ramp.set_limits(lo, hi)
+
     def hold(self) -> None:
         """Stop the setpoint where the joint measurably is now (after a reset)."""
         with self._plant.lock:

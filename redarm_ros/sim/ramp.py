@@ -1,23 +1,36 @@
-"""Per-joint online setpoint generator: trapezoidal moves, streamed steps, ramped velocity, halt.
+"""Per-joint online setpoint generator, as a module's firmware would run it: moves, streamed steps,
+ramped velocity, halt, and the position limits always in view.
 
-Pure Python (no numpy, no pybullet) so it is cheap to step at 1 kHz and easy to test.
+Pure Python (no numpy, no pybullet) so it is cheap to step at 1 kHz; the braking law is the one of
+:mod:`redarm_ros.motion` (:func:`~redarm_ros.motion.braking_speed_scalar`), shared with the CAN
+driver's reference shaper.
 
 Position moves track a *reference*. Every step the generator picks the velocity closest to
-``reference velocity + correction`` that (a) differs from the current velocity by at most ``acc * dt``
-and (b) is at most the velocity cap, where the correction is the largest speed from which the remaining
-error can still be closed with deceleration ``acc`` (exact in discrete time, :func:`braking_speed`).
+``reference velocity + correction`` that (a) differs from the current velocity by at most ``acc * dt``,
+(b) is at most the velocity cap and (c) still lets the joint stop on ``lower``/``upper`` braking at
+``acc`` (so no mode ever runs into a limit: the setpoint slows down in time instead of being clamped).
+The correction is the largest speed from which the remaining error can still be closed with
+deceleration ``acc`` (exact in discrete time).
 
 * A single move (FRAMP, or an FSTEP from rest) has a fixed reference at the target: the result is a
   time-optimal trapezoid (or triangle) that lands exactly on the target, never faster than the cap and
   never accelerating harder than ``acc``. An FSTEP's ``duration_s`` caps the cruise speed at
   ``distance / duration_s`` ("get there in that time"; arrival is later by the ramp time).
-* FSTEPs arriving back to back (a host streaming one step per cycle, each with the cycle time as
-  duration) form a stream: the reference runs linearly from the previous target to the new one over
-  ``duration_s`` and its velocity is fed forward, so a smooth stream is followed without lag. A new step
-  continues the stream if it arrives within :data:`STREAM_GRACE` durations of the previous one.
-  When the stream stops, the reference stops at the last target and the joint brakes at ``acc``; if it
-  was faster than ``sqrt(2 acc d)`` for the distance ``d`` left, it overshoots and comes back, as an
-  acceleration-limited joint must (a stream that ends abruptly asks for an infinite deceleration).
+* FSTEPs arriving back to back (a host streaming one step per cycle with the cycle time as duration;
+  each within :data:`STREAM_GRACE` durations of the previous one) form a *stream*, played back from a
+  small step buffer as servo drives interpolate cyclic setpoints: the reference is the C1 curve through
+  the midpoints of the host's steps, with each step's mean velocity at its midpoint (a cubic Hermite
+  piece between two midpoints; for steps of equal duration it is exactly a constant-acceleration
+  parabola). A host stream that respects the joint's velocity and acceleration limits therefore gives
+  a reference that respects them too, so the joint follows it exactly (feed-forward, no correction
+  needed) and never overtakes the stream: each step's target is reached one step after it was due.
+  A step that arrives while the previous one still plays waits in the buffer (at most
+  :data:`STREAM_BUFFER`; beyond that the oldest waiting step is skipped); when the buffer runs dry the
+  reference runs on to the last target at the last step's velocity and stops there, and a step that
+  arrives late continues smoothly from wherever the reference is. So arrival jitter does not reach the
+  reference. When the stream stops, the joint brakes onto the last target; a stream that stops faster
+  than ``acc`` allows is overshot by up to ``v^2 / 2 acc``, as an acceleration-limited joint must (but
+  never beyond a position limit).
 
 Acceleration is limited everywhere, velocity is capped everywhere, and the setpoint never leaves
 ``[lower, upper]``. Units: rad, rad/s, rad/s^2, s.
@@ -26,13 +39,43 @@ Acceleration is limited everywhere, velocity is capped everywhere, and the setpo
 from __future__ import annotations
 
 import math
+from collections import deque
 from enum import Enum
+
+from redarm_ros.motion import braking_speed_scalar
 
 # Below this distance (rad), with a speed that can stop in one step, a move snaps onto its target.
 SNAP_POS = 1e-9
 # An FSTEP continues the running stream if it arrives at most this many of its durations after the
 # previous one (covers host cycle jitter; a slower host gets single moves from rest).
 STREAM_GRACE = 2.0
+# Steps a stream may queue behind the one playing (a host running ahead, or a burst of steps that
+# waited in the bus); beyond that the oldest waiting step is skipped so the lag stays bounded.
+STREAM_BUFFER = 4
+
+__all__ = ["JointRamp", "RampMode", "STREAM_BUFFER", "STREAM_GRACE", "braking_speed"]
+
+#: The shared discrete braking law (re-exported for the callers of this module).
+braking_speed = braking_speed_scalar
+
+
+def _braking_distance(speed: float, acc: float, dt: float) -> float:
+    """Distance (rad) covered stopping from ``speed`` >= 0 (the next step's) braking at ``acc``:
+    the inverse of :func:`~redarm_ros.motion.braking_speed_scalar` (scalar form of
+    :func:`redarm_ros.motion.braking_distance`)."""
+    if speed <= 0.0:
+        return 0.0
+    adt = acc * dt
+    k = speed / adt
+    j = max(math.ceil(k) - 1, 0)
+    f = k - j
+    return adt * dt * ((j + 1) * f + j * (j + 1) / 2)
+
+
+class _Piece(Enum):
+    HERMITE = "hermite"  # towards the next step's midpoint
+    TAIL = "tail"  # buffer dry: on to the last target at the last step's velocity
+    HOLD = "hold"  # on the last target
 
 
 class RampMode(Enum):
@@ -44,32 +87,12 @@ class RampMode(Enum):
     HALT = "halt"  # braking to rest, then IDLE
 
 
-def braking_speed(dist: float, acc: float, dt: float) -> float:
-    """Largest speed (rad/s) for the next step from which the joint stops exactly after ``dist`` (rad).
-
-    Discrete time, semi-implicit Euler (``v += a dt; p += v dt``): a first speed ``(j + f) acc dt`` with
-    integer j >= 0 and 0 < f <= 1, followed by speeds falling by exactly ``acc dt`` per step down to
-    ``f acc dt`` and then 0, covers ``acc dt^2 ((j + 1) f + j (j + 1) / 2)``. Solving for j, f given
-    ``dist`` makes stops land exactly on the target without ever decelerating harder than ``acc``.
-    """
-    if dist <= 0.0:
-        return 0.0
-    adt = acc * dt
-    x = dist / (adt * dt)
-    j = max(0, math.ceil((math.sqrt(1.0 + 8.0 * x) - 3.0) / 2.0))
-    while (j + 1) * (j + 2) / 2 < x:  # guard the float rounding of the closed form
-        j += 1
-    while j > 0 and j * (j + 1) / 2 >= x:
-        j -= 1
-    f = (x - j * (j + 1) / 2) / (j + 1)
-    return (j + f) * adt
-
-
 class JointRamp:
     """Setpoint generator of one joint.
 
-    ``lower``/``upper`` (rad) bound the setpoint in every mode; ``max_vel`` (rad/s) and ``max_acc``
-    (rad/s^2) are the joint's hard limits: commanded limits are clamped to them.
+    ``lower``/``upper`` (rad) bound the setpoint in every mode (:meth:`set_limits` moves them, e.g. when
+    a module's soft limits change); ``max_vel`` (rad/s) and ``max_acc`` (rad/s^2) are the joint's hard
+    limits: commanded limits are clamped to them.
     """
 
     def __init__(self, pos: float, lower: float, upper: float, max_vel: float, max_acc: float) -> None:
@@ -86,15 +109,32 @@ class JointRamp:
         self.acc_limit = self.max_acc
         self.time = 0.0  # s, advanced by step()
         self.ref = self.pos  # position reference (rad)
-        self.ref_vel = 0.0  # its velocity while it runs (rad/s)
-        self.ref_left = 0.0  # s until the reference reaches the target
+        # Stream playback (see the module docstring). The reference runs through pieces: HERMITE from
+        # (_p0, _v0) to (_p1, _v1) over _tau s, TAIL at constant velocity _v0 from _p0 to the last
+        # target, or HOLD on the last target. _knot is the last target taken from the buffer, _knot_vel
+        # its step's mean velocity and _knot_dur its duration.
+        self._piece = _Piece.HOLD
+        self._p0 = self._p1 = self._v0 = self._v1 = 0.0
+        self._tau = self._s = 0.0
+        self._knot = self._knot_vel = self._knot_dur = 0.0
+        self._pending: deque[tuple[float, float]] = deque()  # (target, duration) waiting to play
+        self._streaming = False
         self._stream_until = -math.inf  # an FSTEP before this time continues the stream
+        self._single_end = 0.0  # when the last single FSTEP move was due to arrive
+        self.skipped_steps = 0  # stream steps dropped because the buffer was full
 
     # -- commands ---------------------------------------------------------------------------------
     def _limits(self, vel_limit: float | None, acc_limit: float | None) -> tuple[float, float]:
         v = self.max_vel if vel_limit is None or not vel_limit > 0 else min(float(vel_limit), self.max_vel)
         a = self.max_acc if acc_limit is None or not acc_limit > 0 else min(float(acc_limit), self.max_acc)
         return v, a
+
+    def set_limits(self, lower: float, upper: float) -> None:
+        """Move the position limits (rad); the setpoint brakes towards the new range from now on."""
+        if not (math.isfinite(lower) and math.isfinite(upper) and lower <= upper):
+            raise ValueError("limits must be finite with lower <= upper")
+        self.lower, self.upper = float(lower), float(upper)
+        self.target = min(max(self.target, self.lower), self.upper)
 
     def command_position(
         self,
@@ -113,15 +153,24 @@ class JointRamp:
         v, a = self._limits(vel_limit, acc_limit)
         target = min(max(float(target), self.lower), self.upper)
         dur = float(duration_s) if duration_s is not None and duration_s > 0 else 0.0
-        streaming = (
+        continues = (
             dur > 0 and self.mode in (RampMode.POSITION, RampMode.IDLE) and self.time <= self._stream_until
         )
-        if streaming:
-            d = target - self.ref
-            t = max(dur, abs(d) / v)
-            self.ref_vel, self.ref_left = d / t, t
+        if continues:
+            if not self._streaming:
+                # The previous step was a single move: the stream starts from where the joint is now,
+                # its last target being the knot, due at the end of that move's duration.
+                self._streaming = True
+                self._knot, self._knot_dur = self.ref, 0.0
+                self._p0, self._v0 = self.pos, self.vel
+                self._piece, self._s = _Piece.TAIL, 0.0
+                self._tau = max(0.0, self._single_end - self.time)
+            self._queue_step(target, dur)
         else:
-            self.ref, self.ref_vel, self.ref_left = target, 0.0, 0.0
+            self._streaming = False
+            self._pending.clear()
+            self.ref = target
+            self._single_end = self.time + dur
             if dur > 0:
                 v = min(v, max(abs(target - self.pos) / dur, 1e-9))
         self._stream_until = self.time + STREAM_GRACE * dur if dur > 0 else -math.inf
@@ -135,13 +184,13 @@ class JointRamp:
         _, a = self._limits(None, acc_limit)
         self.target_vel = max(-self.max_vel, min(self.max_vel, float(vel)))
         self.acc_limit = a
-        self._stream_until = -math.inf
+        self._end_stream()
         self.mode = RampMode.VELOCITY
 
     def halt(self, acc: float | None = None) -> None:
         """Brake to rest at ``acc`` (default: the joint's max acceleration) and then hold."""
         self.acc_limit = self.max_acc if acc is None or not acc > 0 else float(acc)
-        self._stream_until = -math.inf
+        self._end_stream()
         self.mode = RampMode.HALT
 
     def hold(self, pos: float | None = None) -> None:
@@ -150,20 +199,92 @@ class JointRamp:
             self.pos = min(max(float(pos), self.lower), self.upper)
         self.vel = 0.0
         self.target = self.ref = self.pos
-        self.ref_vel = self.ref_left = 0.0
-        self._stream_until = -math.inf
+        self._end_stream()
         self.mode = RampMode.IDLE
+
+    def _end_stream(self) -> None:
+        self._streaming = False
+        self._pending.clear()
+        self._piece = _Piece.HOLD
+        self._stream_until = -math.inf
 
     @property
     def active(self) -> bool:
         """True while the setpoint moves or will move."""
         return self.mode is not RampMode.IDLE or self.vel != 0.0
 
+    @property
+    def streaming(self) -> bool:
+        """True while a stream of steps is being played (or waits for its next step)."""
+        return self._streaming and self.mode is RampMode.POSITION
+
     # -- integration ------------------------------------------------------------------------------
     def _idle(self) -> float:
         self.vel = 0.0
         self.mode = RampMode.IDLE
         return self.pos
+
+    # -- stream playback ---------------------------------------------------------------------------
+    def _queue_step(self, target: float, dur: float) -> None:
+        """Take one streamed step: queue it behind a playing piece, or start playing it now."""
+        if self._piece is _Piece.HERMITE:
+            if len(self._pending) >= STREAM_BUFFER:
+                self._pending.popleft()
+                self.skipped_steps += 1
+            self._pending.append((target, dur))
+            return
+        # TAIL or HOLD (stream start, or the buffer ran dry): continue smoothly from the reference as it
+        # is now. The new step's midpoint is reached after the rest of the tail plus one and a half
+        # steps, so the next step (due one step from now) is already buffered when it is needed: half a
+        # step of arrival jitter is absorbed.
+        if self._piece is _Piece.TAIL:
+            p, v, left = self._p0 + self._v0 * self._s, self._v0, max(0.0, self._tau - self._s)
+        else:
+            p, v, left = self.ref, 0.0, 0.0
+        self._start_hermite(p, v, target, dur, left + 1.5 * dur)
+
+    def _start_hermite(self, p: float, v: float, target: float, dur: float, tau: float) -> None:
+        u = (target - self._knot) / dur
+        p1 = 0.5 * (self._knot + target)
+        delta, fastest = p1 - p, max(abs(v), abs(u))
+        if fastest > 0.0 and delta * v >= 0.0 and delta * u >= 0.0:
+            # Both end velocities point the way to go: a cubic stays monotone (never passes p1) if
+            # neither end speed exceeds 3 delta / tau (Fritsch and Carlson), so shorten tau if needed.
+            tau = min(tau, 3.0 * abs(delta) / fastest)
+        self._p0, self._v0 = p, v
+        self._p1, self._v1 = p1, u
+        self._tau, self._s = max(tau, 1e-9), 0.0
+        self._piece = _Piece.HERMITE
+        self._knot, self._knot_vel, self._knot_dur = target, u, dur
+
+    def _advance_reference(self, dt: float) -> float:
+        """Move the stream reference on by ``dt`` (s) through its pieces; returns its mean velocity."""
+        ref0 = self.ref
+        self._s += dt
+        while self._piece is not _Piece.HOLD and self._s >= self._tau:
+            self._s -= self._tau  # carry the rest into the next piece: no pause between steps
+            if self._piece is _Piece.HERMITE and self._pending:
+                target, dur = self._pending.popleft()
+                carry = self._s
+                self._start_hermite(self._p1, self._v1, target, dur, 0.5 * (self._knot_dur + dur))
+                self._s = carry
+            elif self._piece is _Piece.HERMITE:
+                # Buffer dry: run on to the last target at the last step's velocity.
+                self._p0, self._v0 = self._p1, self._v1
+                self._tau = 0.5 * self._knot_dur
+                self._piece = _Piece.TAIL
+            else:
+                self._piece, self._s = _Piece.HOLD, 0.0
+        if self._piece is _Piece.HERMITE:
+            t = self._s / self._tau
+            t2, t3 = t * t, t * t * t
+            self.ref = ((2 * t3 - 3 * t2 + 1) * self._p0 + (t3 - 2 * t2 + t) * self._tau * self._v0
+                        + (3 * t2 - 2 * t3) * self._p1 + (t3 - t2) * self._tau * self._v1)
+        elif self._piece is _Piece.TAIL:
+            self.ref = self._p0 + self._v0 * self._s
+        else:
+            self.ref = self._knot
+        return (self.ref - ref0) / dt
 
     def step(self, dt: float) -> float:
         """Advance by ``dt`` (s); returns the new setpoint position (rad)."""
@@ -173,41 +294,45 @@ class JointRamp:
             return self._idle()  # also zeroes the landing step's speed (at most acc * dt)
         dv = a * dt
         vcap = self.vel_limit
+        settled = False
         if mode is RampMode.POSITION:
-            # advance the reference; ff is its velocity over this step
             err = self.ref - self.pos  # tracking error before this step
-            if self.ref_left > dt:
-                ff = self.ref_vel
-                self.ref += ff * dt
-                self.ref_left -= dt
-            else:
-                ff = (self.target - self.ref) / dt if self.ref_left > 0 else 0.0
-                self.ref, self.ref_left = self.target, 0.0
-            settled = self.ref_left == 0.0 and ff == 0.0
+            ff = self._advance_reference(dt) if self._streaming else 0.0
+            settled = ff == 0.0 and self.ref == self.target and not self._pending
             if settled and abs(self.target - self.pos) <= SNAP_POS and abs(v) <= dv:
                 self.pos = self.target
                 return self._idle()
-            v_des = ff + math.copysign(braking_speed(abs(err), a, dt), err)
+            v_des = ff + math.copysign(braking_speed_scalar(abs(err), a, dt), err)
+            if ff != 0.0:
+                # Never overtake the reference: stay slow enough to stop where the reference could
+                # stop at the earliest (braking at ``acc``), so a lag is made up only where the joint
+                # has acceleration to spare and a reference braking at ``acc`` is never passed.
+                d_ref = _braking_distance(abs(ff), a, dt)
+                if ff > 0.0:
+                    v_des = min(v_des, braking_speed_scalar(err + d_ref, a, dt))
+                else:
+                    v_des = max(v_des, -braking_speed_scalar(d_ref - err, a, dt))
             v_des = max(-vcap, min(vcap, v_des))
         elif mode is RampMode.VELOCITY:
             v_des = self.target_vel
-            # never run into a joint limit: brake so as to stop on it
-            if v_des > 0:
-                v_des = min(v_des, braking_speed(self.upper - self.pos, a, dt))
-            elif v_des < 0:
-                v_des = max(v_des, -braking_speed(self.pos - self.lower, a, dt))
         else:  # HALT
             v_des = 0.0
+        # The limits in view in every mode: never faster towards one than allows stopping on it.
+        v_des = min(v_des, braking_speed_scalar(self.upper - self.pos, a, dt))
+        v_des = max(v_des, -braking_speed_scalar(self.pos - self.lower, a, dt))
         v_new = v + max(-dv, min(dv, v_des - v))
         p_new = self.pos + v_new * dt
-        if mode is RampMode.POSITION and settled:
+        if settled:
             e = self.target - self.pos
             if (self.target - p_new) * e <= 0.0 and abs(v_new) <= dv * (1 + 1e-9):
                 # reached at a speed it can stop from; keep that speed for one step (IDLE zeroes it)
                 self.vel = e / dt
                 self.pos, self.mode = self.target, RampMode.IDLE
+                self._streaming = False
                 return self.pos
         if p_new >= self.upper or p_new <= self.lower:
+            # Only reached when the joint already moved too fast towards a limit (it started outside
+            # the braking envelope, e.g. after set_limits): stop on the limit rather than pass it.
             p_clamped = min(max(p_new, self.lower), self.upper)
             v_new = (p_clamped - self.pos) / dt
             p_new = p_clamped

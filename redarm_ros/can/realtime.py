@@ -1,0 +1,123 @@
+"""Keep a time-critical thread or process from being starved: scheduling priority and garbage collection.
+
+Linux only for the priority part (elsewhere it reports "not supported"). Used by the CAN driver's
+cycle (:mod:`redarm_ros.can.driver_process`, :class:`~redarm_ros.can.driver_loop.DriverLoop`), the
+simulator (``redarm-sim``) and the loopback bus server (``redarm-canbus``): the chain that must
+answer within milliseconds while the rest of the machine may be busy.
+
+:func:`raise_priority` asks for ``SCHED_FIFO`` at a given priority (a real-time thread runs as soon
+as it is runnable, ahead of every normal task); when that is not permitted (no ``CAP_SYS_NICE``,
+``RLIMIT_RTPRIO`` 0, or a container without real-time budget) it falls back to the highest nice
+level it may take, and says so in the returned :class:`Priority`, whose ``message`` is the one line
+to log. Threads created afterwards inherit the setting, so call it before starting helper threads.
+
+:func:`quiet_gc` keeps the cyclic garbage collector out of a cycle: it collects once, freezes
+everything allocated so far (start-up objects are never scanned again) and turns automatic
+collection off; the owner then calls :func:`collect_young` when it has time to spare.
+"""
+
+from __future__ import annotations
+
+import gc
+import logging
+import os
+from dataclasses import dataclass
+from enum import Enum
+
+__all__ = ["Policy", "Priority", "collect_young", "drop_priority", "quiet_gc", "raise_priority", "restore_gc"]
+
+_LOG = logging.getLogger(__name__)
+
+#: The nice level tried when SCHED_FIFO is refused (-20 is the highest priority; a normal task is 0).
+FALLBACK_NICE = -10
+
+
+class Policy(Enum):
+    """What :func:`raise_priority` obtained."""
+
+    FIFO = "SCHED_FIFO"
+    NICE = "nice"
+    NORMAL = "normal"
+
+
+@dataclass(frozen=True)
+class Priority:
+    """The scheduling a thread ended up with: ``policy``, ``value`` (FIFO priority or nice level)
+    and ``message`` (one line saying what was asked for, what was obtained and why)."""
+
+    policy: Policy
+    value: int
+    message: str
+
+    @property
+    def realtime(self) -> bool:
+        """True for SCHED_FIFO."""
+        return self.policy is Policy.FIFO
+
+
+def raise_priority(fifo_priority: int, *, who: str, tid: int = 0) -> Priority:
+    """Give the calling thread (or thread/process ``tid``) SCHED_FIFO at ``fifo_priority`` (1..99).
+
+    Falls back to nice :data:`FALLBACK_NICE` (or the best level allowed), then to leaving the
+    scheduling alone. ``fifo_priority`` 0 asks for nothing (normal scheduling, by choice). ``who``
+    names the thread in the message.
+
+    Never raises; the outcome is in the returned :class:`Priority` (log its ``message`` once).
+    """
+    if fifo_priority <= 0:
+        return Priority(Policy.NORMAL, 0, f"{who}: normal scheduling (real-time priority not requested)")
+    if not hasattr(os, "sched_setscheduler"):
+        return Priority(Policy.NORMAL, 0, f"{who}: normal scheduling (no SCHED_FIFO on this platform)")
+    prio = max(1, min(int(fifo_priority), os.sched_get_priority_max(os.SCHED_FIFO)))
+    try:
+        os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(prio))
+        return Priority(Policy.FIFO, prio, f"{who}: real-time scheduling SCHED_FIFO priority {prio}")
+    except OSError as exc:
+        fifo_error = exc
+    # Fallback: the highest nice level this process may take (RLIMIT_NICE, or CAP_SYS_NICE).
+    for level in range(FALLBACK_NICE, 0):
+        try:
+            os.setpriority(os.PRIO_PROCESS, tid, level)
+        except OSError:
+            continue
+        return Priority(Policy.NICE, level, (
+            f"{who}: SCHED_FIFO refused ({fifo_error.strerror}); running at nice {level} instead: the cycle "
+            "can be delayed when the machine is busy (grant CAP_SYS_NICE or an rtprio limit for real-time)"))
+    return Priority(Policy.NORMAL, 0, (
+        f"{who}: SCHED_FIFO refused ({fifo_error.strerror}) and no higher nice level allowed; running at "
+        "normal priority: the cycle can be delayed when the machine is busy (grant CAP_SYS_NICE or an "
+        "rtprio limit, e.g. in /etc/security/limits.conf)"))
+
+
+def drop_priority(*, tid: int = 0) -> None:
+    """Return thread ``tid`` (0: the caller) to normal scheduling (SCHED_OTHER, nice 0 if allowed)."""
+    try:
+        if hasattr(os, "sched_setscheduler"):
+            os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
+    except OSError as exc:  # already normal, or not ours
+        _LOG.debug("drop_priority: %s", exc)
+
+
+def quiet_gc() -> None:
+    """Collect once, freeze what exists (never scanned again) and turn automatic collection off.
+
+    The caller runs :func:`collect_young` in its spare time and :func:`restore_gc` when done.
+    """
+    gc.collect()
+    gc.freeze()
+    gc.disable()
+
+
+def collect_young() -> int:
+    """Collect the two young generations (objects made since the last call); returns the count freed.
+
+    Cheap (tens of microseconds for a loop's own garbage); the full collection is left to
+    :func:`restore_gc` / the owner's idle time.
+    """
+    return gc.collect(1)
+
+
+def restore_gc() -> None:
+    """Undo :func:`quiet_gc`: unfreeze and turn automatic collection back on."""
+    gc.unfreeze()
+    gc.enable()

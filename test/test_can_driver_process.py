@@ -1,0 +1,103 @@
+"""The CAN cycle in a process of its own (redarm_ros.can.driver_process): the parent's handle against
+a real child process, over a loopback bus server with emulated modules served from this process."""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import time
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import numpy as np
+import pytest
+
+from redarm_ros.can.bus import open_bus
+from redarm_ros.can.bus_server import LoopbackBusServer
+from redarm_ros.can.driver_loop import LoopConfig, LoopState
+from redarm_ros.can.driver_process import DriverProcess, DriverSpec
+from redarm_ros.can.module_emulator import EmulatedArm, EmulatorRunner
+from redarm_ros.errors import InvalidInputError
+
+N = 3
+LOWER, UPPER = [-2.0, -1.5, -2.0], [2.0, 1.5, 2.0]
+VMAX, AMAX = [1.0, 1.0, 2.0], [5.0, 5.0, 10.0]
+
+
+def wait_for(pred: Callable[[], Any], timeout: float = 20.0) -> Any:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        v = pred()
+        if v:
+            return v
+        time.sleep(0.02)
+    return pred()
+
+
+@pytest.fixture
+def rig() -> Iterator[dict[str, Any]]:
+    server = LoopbackBusServer().start()
+    dev = open_bus(**server.client_config())
+    arm = EmulatedArm.kinematic(LOWER, UPPER, VMAX, AMAX, q0=[0.3, -0.2, 0.1], watchdog_timeout_s=0.5)
+    runner = EmulatorRunner(dev, arm, tick_s=0.002).start()
+    logs: list[tuple[int, str]] = []
+    samples: list[Any] = []
+    # Generous timeouts: the emulated modules share this test process (and its GIL) with pytest.
+    spec = DriverSpec(
+        module_ids=(1, 2, 3), lower=tuple(LOWER), upper=tuple(UPPER), max_vel=tuple(VMAX),
+        max_acc=tuple(AMAX),
+        can_kwargs=server.client_config(), loop=LoopConfig(rate_hz=100.0, poll_hz=20.0),
+        reply_timeout_s=0.1, max_missed=10, watchdog=True, realtime_priority=0,
+    )
+    proc = DriverProcess(spec, on_sample=samples.append, log=lambda lvl, msg: logs.append((lvl, msg)))
+    try:
+        yield {"proc": proc, "arm": arm, "logs": logs, "samples": samples}
+    finally:
+        proc.stop()
+        runner.stop()
+        dev.shutdown()
+        server.stop()
+
+
+def test_cycle_process_inits_follows_and_stops(rig: dict[str, Any]) -> None:
+    proc: DriverProcess = rig["proc"]
+    assert proc.pid is None  # nothing runs before start()
+    proc.start()
+    assert wait_for(lambda: proc.state is LoopState.IDLE), proc.accepting_commands()
+    assert proc.pid != os.getpid() and proc.alive
+    ok, msg = proc.request("init", timeout=30.0)
+    assert ok, msg
+    assert proc.state is LoopState.RUNNING and proc.accepting_commands() == (True, "")
+    goal = np.array([0.4, -0.3, 0.5])
+    proc.commands.set_trajectory([0, 1, 2], [0.5, 1.0], np.array([goal / 2, goal]), start=time.monotonic())
+    arm = rig["arm"]
+    assert wait_for(lambda: np.allclose(arm.positions(), goal, atol=2e-3))
+    # Samples of every cycle reach the parent; the status comes across whole.
+    assert wait_for(lambda: len(rig["samples"]) > 20)
+    assert rig["samples"][-1].target is not None and rig["samples"][-1].positions.shape == (N,)
+    snap = proc.snapshot()
+    assert snap.state is LoopState.RUNNING and snap.cycles > 10 and len(snap.module_stats) == N
+    assert "normal scheduling" in snap.priority  # realtime_priority 0 in this test
+    # A bad command is refused here, before it reaches the child.
+    with pytest.raises(InvalidInputError):
+        proc.commands.set_trajectory([0], [1.0], np.array([[np.nan]]), start=time.monotonic())
+    pid = proc.pid
+    proc.stop()
+    assert proc.state is LoopState.STOPPED and not proc.alive
+    with pytest.raises(ProcessLookupError):
+        os.kill(pid, 0)
+
+
+def test_a_killed_cycle_process_is_reported_and_the_watchdog_halts_the_arm(rig: dict[str, Any]) -> None:
+    proc: DriverProcess = rig["proc"].start()
+    assert wait_for(lambda: proc.state is LoopState.IDLE)
+    ok, msg = proc.request("init", timeout=30.0)
+    assert ok, msg
+    os.kill(proc.pid, signal.SIGKILL)
+    assert wait_for(lambda: proc.state is LoopState.STOPPED)
+    assert any(lvl == logging.ERROR and "ended unexpectedly" in m for lvl, m in rig["logs"])
+    ok, msg = proc.request("recover")
+    assert not ok
+    arm = rig["arm"]
+    assert wait_for(lambda: all(int(arm[i].state()) & 0x20 for i in (1, 2, 3)), timeout=5.0)  # COMM_ERROR
