@@ -78,7 +78,10 @@ class HilRecording:
             return
         self.closed = True
         self.stop_event.set()
-        self.thread.join(5.0)
+        self.thread.join(10.0)  # spin_once returns within 50 ms plus a callback
+        if self.thread.is_alive():  # destroying a node that a thread still spins segfaults rclpy
+            raise RuntimeError("hil recorder spin thread did not stop within 10 s")
+        self.executor.remove_node(self.node)  # nothing may still dispatch to the node we destroy
         self.executor.shutdown(timeout_sec=1.0)
         self.node.destroy_node()
         self.writer.close()
