@@ -135,8 +135,16 @@ def test_late_subscriber_gets_it_over_a_bringup(procs: Any, rclpy_context: Any) 
         node.create_subscription(String, "robot_description", lambda m: got.append(m.data), LATE_QOS)
         assert _spin_until(ex, lambda: bool(got), 20.0), "no /robot_description for a late subscriber"
         assert got[0] == build_urdf(load_arm("pa10"), prefix="")
-        publishers = node.get_publishers_info_by_topic("/robot_description")
-        assert [p.node_name for p in publishers] == ["description"]
+        # the publisher's node name arrives with the participant's discovery data, which may come
+        # after the topic's endpoint data: wait for it rather than read it once
+        names: list[str] = []
+
+        def publisher_names_known() -> bool:
+            names[:] = [p.node_name for p in node.get_publishers_info_by_topic("/robot_description")]
+            return "_NODE_NAME_UNKNOWN_" not in names
+
+        _spin_until(ex, publisher_names_known, 20.0)
+        assert names == ["description"]
     finally:
         ex.shutdown()
         node.destroy_node()
