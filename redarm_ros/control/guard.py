@@ -17,6 +17,7 @@ re-planner (:meth:`CollisionGuard.segment_clearance`). Units: m, rad, s.
 from __future__ import annotations
 
 import math
+from collections.abc import Generator
 from typing import Any
 
 import numpy as np
@@ -169,10 +170,13 @@ class CollisionGuard:
         r = self._rmax
         return np.array([upper + fore + hand + r] * 3 + [fore + hand + r] + [hand + r] * 3)
 
-    def segment_clearance(self, qa: np.ndarray, qb: np.ndarray, scene: Scene, need: float,
-                          budget: int = 10_000, lever: np.ndarray | None = None,
-                          fine: float = 5e-4) -> tuple[float, int] | None:
-        """Check the straight joint-space segment ``qa`` -> ``qb`` (rad) against ``scene``.
+    def segment_march(self, qa: np.ndarray, qb: np.ndarray, scene: Scene, need: float,
+                      budget: int = 10_000, lever: np.ndarray | None = None,
+                      fine: float = 5e-4) -> Generator[None, None, float | None]:
+        """Check the straight joint-space segment ``qa`` -> ``qb`` (rad) against ``scene``, one
+        clearance evaluation per iteration (a generator: the caller may spread the work over control
+        steps); its return value is the smallest clearance seen when the segment passes, None when it
+        does not or the ``budget`` of evaluations ran out.
 
         Marches by sphere tracing: a configuration of clearance ``c`` proves that the arm may move
         ``c - need`` (joint travel weighted by ``lever``, default :meth:`max_levers`) keeping ``need``;
@@ -180,8 +184,6 @@ class CollisionGuard:
         starts closer than that (an arm the guard stopped at an obstacle) must first get clear along a
         dense march: samples ``fine`` m of travel apart, each with at least ``fine / 2`` of clearance or
         no less than the sample before.
-        Returns ``(smallest clearance seen, evaluations used)`` when the segment passes, None when it
-        does not or the ``budget`` of evaluations ran out.
         """
         lev = self.max_levers() if lever is None else lever
         d = qb - qa
@@ -194,6 +196,7 @@ class CollisionGuard:
         while True:
             c = self.clearance(qa + t * d, scene).distance
             used += 1
+            yield None
             if used > budget:
                 return None
             if dense and c >= need + min(self.step, max(need, 1e-4)):
@@ -207,8 +210,19 @@ class CollisionGuard:
                 if c < need + min(self.step, max(need, 1e-4)):
                     return None
             if t >= 1.0:
-                return min(worst, c), used
+                return min(worst, c)
             if travel <= 0.0:
                 t = 1.0
             else:
                 t = min(1.0, t + (fine if dense else c - need) / travel)
+
+    def segment_clearance(self, qa: np.ndarray, qb: np.ndarray, scene: Scene, need: float,
+                          budget: int = 10_000, lever: np.ndarray | None = None,
+                          fine: float = 5e-4) -> float | None:
+        """:meth:`segment_march` run to the end: the smallest clearance (m), or None."""
+        march = self.segment_march(qa, qb, scene, need, budget, lever, fine)
+        while True:
+            try:
+                next(march)
+            except StopIteration as stop:
+                return stop.value

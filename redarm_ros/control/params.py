@@ -52,7 +52,7 @@ class StreamParams:
     gap: float = 0.5
     jump: float = 0.05
     jump_angle: float = 0.35
-    window: float = 0.12
+    window: float = 0.2
     end_periods: float = 3.0
     end_min: float = 0.05
     extrapolate_periods: float = 1.5
@@ -86,10 +86,11 @@ class ServoParams:
     twist_leash: float = 0.01
     twist_leash_angle: float = 0.05
     resync_lag: float = 0.005
+    yield_time: float = 0.3
 
     def __post_init__(self) -> None:
         _check_positive(self, ("gain", "acc", "ori_gain", "ori_acc", "twist_timeout", "twist_leash",
-                               "twist_leash_angle", "resync_lag"))
+                               "twist_leash_angle", "resync_lag", "yield_time"))
 
 
 @dataclass(frozen=True)
@@ -106,7 +107,9 @@ class ReplanParams:
     0.1 m/rad orientation) by ``progress`` within ``stall_time`` while the tool moved less than
     ``stall_travel`` (stuck or creeping) triggers a re-plan; so does no improvement within
     ``detour_time`` [s] whatever the tool does (a detour that leads nowhere), and ``guard_stops``
-    stops by the collision guard within ``2 * stall_time`` (sliding along an obstacle).
+    stops by the collision guard within ``2 * stall_time`` (sliding along an obstacle); and so does an
+    attractor run still 1 cm (0.1 m/rad) away after ``overdue_factor`` times the straight route's
+    least time plus ``overdue_slack`` [s] (crawling through a bad configuration).
     limit_margin [rad]: goal configurations closer than this to a joint limit are penalised.
     clearance [m]: clearance every configuration of a planned joint path keeps from the scene.
     vias: random via configurations tried when neither the direct joint path nor the fold posture
@@ -126,16 +129,19 @@ class ReplanParams:
     stall_travel: float = 0.03
     detour_time: float = 3.0
     guard_stops: int = 4
+    overdue_factor: float = 1.5
+    overdue_slack: float = 2.5
     limit_margin: float = 0.2
     clearance: float = 0.02
     vias: int = 300
-    work_per_step: int = 400
+    work_per_step: int = 100
     max_replans: int = 3
     seed: int = 7
 
     def __post_init__(self) -> None:
         _check_positive(self, ("slow_route", "hold_time", "stall_time", "progress", "stall_travel",
-                               "detour_time", "clearance"), ("limit_margin",))
+                               "detour_time", "clearance", "overdue_factor"),
+                        ("limit_margin", "overdue_slack"))
         for name in ("route_steps", "vias", "work_per_step", "max_replans", "guard_stops"):
             v = getattr(self, name)
             if not isinstance(v, int) or isinstance(v, bool) or v < 1:

@@ -40,7 +40,7 @@ from redarm_ros.control.ik_step import DeadEnd, IKStep, IKStepper, blend, pose_m
 from redarm_ros.control.joint_limits import braking_speed, velocity_bounds
 from redarm_ros.control.obstacles import Clearance, Scene
 from redarm_ros.control.params import ControllerParams, ReplanParams, ServoParams, StreamParams
-from redarm_ros.control.replan import JointPath, JointPlanner, check_route, goal_candidates, move_time
+from redarm_ros.control.replan import JointPath, JointPlanner, check_route, move_time
 from redarm_ros.control.rotations import (
     quat_angle,
     quat_between_vectors,
@@ -452,6 +452,9 @@ class ReachController:
                 return self._desired_swivel(c)
         route = check_route(self.stepper, T0, st.ref.s, st.ref.q, T, s_des, p.replan.route_steps,
                             p.speed.v_max, p.max_ori_rate, p.swivel.max_rate)
+        # The attractor is given a generous multiple of the route's least time before it counts as
+        # overdue (it accelerates gently, slows near obstacles and at the goal).
+        st.progress.due = st.time + p.replan.overdue_factor * route.time + p.replan.overdue_slack
         if route.dead_end:
             return route.dead_end
         if route.singular:
@@ -488,6 +491,7 @@ class ReachController:
             e = direction(st.att.phi, st.att.theta)
             st.ref.vel = (st.att.v * e[0], st.att.v * e[1], st.att.v * e[2])
         st.mode = Mode.SERVO
+        st.ref.sdot_dyn = st.ref.sdot
         st.message = ""
         st.stream_note = ""
 
@@ -684,6 +688,18 @@ class ReachController:
         # (a lagging elbow costs the joints much more motion than the hand needs).
         feed = st.mode is Mode.SERVO and p.swivel_mode != "fixed" and st.ref.circle is not None
         s_des_prev = self._desired_swivel(st.ref.circle) if feed and st.ref.circle is not None else 0.0
+        s_acc_feed = p.max_swivel_acc
+        if feed:
+            # How much each joint turns per radian of swivel here: the swivel may change its rate only
+            # as fast as keeps every joint within joint_brake_share of its acceleration limit (the rest
+            # is the hand's, which has priority while tracking).
+            T_ref = pose_matrix(st.ref.pos, st.ref.rot)
+            pick = self.stepper.solve(T_ref, st.ref.s + 0.01, st.ref.q, 1.0)
+            if pick is not None:
+                dq_ds = np.abs(pick[0] - st.ref.q) / 0.01
+                with np.errstate(divide="ignore"):
+                    lim = np.where(dq_ds > 1e-9, p.joint_brake_share * self._max_acc / dq_ds, np.inf)
+                s_acc_feed = min(s_acc_feed, float(np.min(lim)))
 
         def swivel(circle: ElbowCircle, T: np.ndarray, s0: float) -> tuple[float, float, bool]:
             if p.swivel_mode == "fixed":
@@ -695,10 +711,14 @@ class ReachController:
             # The swivel rate changes by at most max_swivel_acc per second.
             sd = wrap_angle(s_new - s0) / dt
             if feed:
+                # The dynamics' own rate (attraction, obstacles, limits) within its share of the
+                # joints' acceleration; the preferred swivel's motion is fed forward on top.
+                sd = max(st.ref.sdot_dyn - s_acc_feed * dt, min(st.ref.sdot_dyn + s_acc_feed * dt, sd))
+                st.ref.sdot_dyn = sd
                 sd += wrap_angle(s_des - s_des_prev) / dt
-            # (the servo checks the joints' accelerations itself: only the swivel's own bound there)
-            s_acc = p.max_swivel_acc if feed else self._joint_share_acc(abs(st.ref.sdot), p.max_swivel_acc)
-            sd = max(st.ref.sdot - s_acc * dt, min(st.ref.sdot + s_acc * dt, sd))
+            else:
+                s_acc = self._joint_share_acc(abs(st.ref.sdot), p.max_swivel_acc)
+                sd = max(st.ref.sdot - s_acc * dt, min(st.ref.sdot + s_acc * dt, sd))
             st.ref.s_des = s_des
             return wrap_angle(s0 + sd * dt), s_des, forces.clearance < p.elbow_priority_clearance
 
@@ -801,6 +821,16 @@ class ReachController:
         d = workspace_slide(d, ref.pos, ref.rot, self.geom, self._d_inner, self._d_outer, p.workspace_margin,
                             project=True)
         d = obstacle_slide(d, ref.circle, ref.s, self._local.scene, p.capsules, p.slide_band, project=True)
+        # Elbow before hand: while the arm closes in on an obstacle within elbow_priority_clearance,
+        # the hand slows so that the gap would last at least ``yield_time`` at the present rate; the
+        # swivel meanwhile turns the elbow away (the hand catches up once the gap opens again).
+        cmd = st.cmd
+        if cmd.obs_rate > 0.0 and cmd.obs_clear < p.elbow_priority_clearance:
+            room = max(cmd.obs_clear - p.collision_margin, 0.0)
+            k = min(1.0, room / (cmd.obs_rate * sp.yield_time))
+            d = (k * d[0], k * d[1], k * d[2])
+            if k < 1.0:
+                new_rot = ref.rot if k <= 0.0 else blend(ref.pos, ref.rot, ref.pos, new_rot, k)[1]
         new_pos = (ref.pos[0] + d[0], ref.pos[1] + d[1], ref.pos[2] + d[2])
         out = self.stepper.advance(ref.pos, ref.rot, ref.s, ref.q, new_pos, new_rot, dt, self._swivel_fn(dt))
         if isinstance(out, DeadEnd):
@@ -872,19 +902,17 @@ class ReachController:
             assert st.goal is not None
             T = pose_matrix(st.goal.pos, st.goal.rot)
             s_pref = None
-            circle = None
             try:
-                circle = elbow_circle(self.geom, T)
+                circle: ElbowCircle | None = elbow_circle(self.geom, T)
             except UnreachableError:
-                pass
+                circle = None
             if circle is not None and self.params.swivel_mode != "fixed":
                 s_pref = self._desired_swivel(circle)
-            scene = self._index.reach_scene.scene
-            cands = goal_candidates(self.stepper, self.guard, T, st.cmd.q, scene, self.params.replan, s_pref)
             clear_enough = self.params.replan.clearance + 2.0 * self.guard.step
             retreat = [q for q, c in reversed(st.history) if c >= clear_enough][::10]
-            st.planner = JointPlanner(self.guard, scene, st.cmd.q.copy(), cands, self.params.replan,
-                                      self.params.unfold_pitch, retreat)
+            st.planner = JointPlanner(self.stepper, self.guard, self._index.reach_scene.scene,
+                                      st.cmd.q.copy(),
+                                      T, self.params.replan, self.params.unfold_pitch, retreat, s_pref)
         if not st.planner.work():
             return
         planner = st.planner
@@ -955,6 +983,9 @@ class ReachController:
             pr.guard_stops = []
             self._start_plan(f"the collision guard stopped the arm {rp.guard_stops} times in "
                              f"{2.0 * rp.stall_time:.1f} s ({st.message or 'sliding along an obstacle'})")
+        elif st.time > pr.due and err > 0.01:
+            self._start_plan(f"overdue: {d * 1e3:.0f} mm, {a:.2f} rad from the goal after "
+                             f"{st.time - goal.since:.1f} s")
         else:
             since = st.time - pr.t_best
             creeping = since >= rp.stall_time and pr.travel < rp.stall_travel
@@ -1089,6 +1120,7 @@ class ReachController:
         except UnreachableError:
             ref.circle = None
         ref.sdot = 0.0
+        ref.sdot_dyn = 0.0
         ref.w_ori = 0.0
         if keep_velocity:
             J = np.asarray(self.arm.jacobian(cmd.q), float)

@@ -28,7 +28,8 @@ Units: m, rad, s.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from collections.abc import Generator
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -145,29 +146,56 @@ def goal_candidates(stepper: IKStepper, guard: CollisionGuard, T: np.ndarray, q_
                     scan: int = 72) -> list[Candidate]:
     """Up to ``count`` distinct collision-free goal configurations of pose ``T``, cheapest first
     (see the module docstring); ``s_pref``: the preferred swivel (rad) or None."""
+    search = goal_candidates_iter(stepper, guard, T, q_from, scene, params, s_pref, count, scan)
+    while True:
+        try:
+            next(search)
+        except StopIteration as stop:
+            return stop.value
+
+
+def goal_candidates_iter(stepper: IKStepper, guard: CollisionGuard, T: np.ndarray, q_from: np.ndarray,
+                         scene: Scene, params: ReplanParams, s_pref: float | None, count: int = 6,
+                         scan: int = 72, checks: int = 400) -> Generator[None, None, list[Candidate]]:
+    """:func:`goal_candidates` as a generator: one iteration per clearance evaluation (at most
+    ``checks`` of them)."""
     arm = stepper.arm
     max_vel = np.asarray(arm.max_vel, float)
     max_acc = np.asarray(arm.max_acc, float)
-    rows: list[tuple[float, float, np.ndarray]] = []
+    qs: list[np.ndarray] = []
+    ss: list[float] = []
     for k in range(scan):
         s = -math.pi + TWO_PI * k / scan
         for sol in arm.ik(T, s):
             for q in _copies(np.asarray(sol, float), stepper.lower, stepper.upper, stepper.wide):
-                m = np.minimum(q - stepper.lower, stepper.upper - q)
-                short = np.maximum(params.limit_margin - m, 0.0) / max(params.limit_margin, 1e-9)
-                cost = move_time(q - q_from, max_vel, max_acc) + 0.5 * float(np.sum(short))
-                if s_pref is not None:
-                    cost += 0.2 * abs(wrap_angle(s - s_pref))
-                rows.append((cost, s, q))
-    rows.sort(key=lambda r: r[0])
+                qs.append(q)
+                ss.append(s)
+    if not qs:
+        return []
+    yield None
+    Q = np.array(qs)
+    S = np.array(ss)
+    # Synchronised rest-to-rest move time (vectorised move_time) + margin and swivel penalties.
+    d = np.abs(Q - q_from)
+    t_tri = 2.0 * np.sqrt(d / max_acc)
+    t_trap = d / max_vel + max_vel / max_acc
+    cost = np.max(np.where(d < max_vel * max_vel / max_acc, t_tri, t_trap), axis=1)
+    m = np.minimum(Q - stepper.lower, stepper.upper - Q)
+    cost += 0.5 * np.sum(np.maximum(params.limit_margin - m, 0.0), axis=1) / max(params.limit_margin, 1e-9)
+    if s_pref is not None:
+        cost += 0.2 * np.abs(np.remainder(S - s_pref + math.pi, TWO_PI) - math.pi)
     out: list[Candidate] = []
-    for cost, s, q in rows:
+    for n, i in enumerate(np.argsort(cost, kind="stable")):
+        if n >= checks:
+            break
+        q = Q[i]
         if any(float(np.max(np.abs(q - c.q))) < 0.15 for c in out):
             continue
         c = guard.clearance(q, scene).distance
+        yield None
         if c < params.clearance + guard.step:
             continue
-        out.append(Candidate(q, s, cost, c))
+        out.append(Candidate(q, float(S[i]), float(cost[i]), c))
         if len(out) >= count:
             break
     return out
@@ -190,120 +218,127 @@ def fold_posture(q: np.ndarray, pitch: tuple[float, float, float], lower: np.nda
     return np.clip(f, lower, upper)
 
 
-@dataclass
 class JointPlanner:
-    """Incremental search of a collision-free joint path from ``q_start`` to one of ``goals``.
+    """Incremental search of a collision-free joint path from ``q_start`` to a goal configuration of
+    pose ``T`` (see the module docstring for the order of the search).
 
     When the arm starts closer to the scene than ``params.clearance`` (the guard stopped it at an
     obstacle), the path first retreats to one of ``retreat`` (configurations the arm passed through
-    recently, newest first, each clear): the rest of the search starts there.
+    recently, newest first) or climbs the clearance gradient; the rest of the search starts there.
 
     Call :meth:`work` once per control step until it returns True; then ``path`` holds the
     waypoints (start first) or is None with ``reason`` saying why none was found.
     """
 
-    guard: CollisionGuard
-    scene: Scene
-    q_start: np.ndarray
-    goals: list[Candidate]
-    params: ReplanParams
-    fold_pitch: tuple[float, float, float]
-    retreat: list[np.ndarray] = field(default_factory=list)
-    path: list[np.ndarray] | None = None
-    reason: str = ""
-    done: bool = False
-    evaluations: int = 0
-    _tasks: list[Any] = field(default_factory=list)
-    _rng: np.random.Generator | None = None
-    _c_start: float = math.inf
-
-    def __post_init__(self) -> None:
-        lo, up = self.guard.lower, self.guard.upper
-        self._rng = np.random.default_rng(self.params.seed)
-        self._c_start = self.guard.clearance(self.q_start, self.scene).distance
-        self._head: list[np.ndarray] = []
-        if self._c_start < self.params.clearance + self.guard.step:
-            for q_r in self.retreat[:8]:
-                if self._segment(self.q_start, q_r):
-                    self._head = [self.q_start]
-                    self.q_start = q_r
-                    break
-            else:
-                esc = self._escape()
-                if esc:
-                    self._head = [self.q_start, *esc[:-1]]
-                    self.q_start = esc[-1]
-        self._tasks = [("direct", g) for g in self.goals]
-        f0 = fold_posture(self.q_start, self.fold_pitch, lo, up)
-        for g in self.goals[:3]:
-            fg = fold_posture(g.q, self.fold_pitch, lo, up)
-            self._tasks.append(("fold", g, [f0, fg]))
-        self._tasks += [("random", i) for i in range(self.params.vias)]
-        if not self.goals:
-            self.done = True
-            self.reason = "no collision-free goal configuration within the joint limits"
-        elif self._c_start < 0.0:
-            self.done = True
-            self.reason = f"the arm is in contact with the scene (clearance {self._c_start:.3f} m)"
-
-    def _segment(self, qa: np.ndarray, qb: np.ndarray) -> bool:
-        r = self.guard.segment_clearance(qa, qb, self.scene, self.params.clearance,
-                                         budget=4 * self.params.work_per_step)
-        if r is None:
-            self.evaluations += 1  # at least one; the guard counts the rest
-            return False
-        self.evaluations += r[1]
-        return True
-
-    def _chain(self, points: list[np.ndarray]) -> bool:
-        return all(self._segment(a, b) for a, b in zip(points[:-1], points[1:], strict=True))
+    def __init__(self, stepper: IKStepper, guard: CollisionGuard, scene: Scene, q_start: np.ndarray,
+                 T: np.ndarray, params: ReplanParams, fold_pitch: tuple[float, float, float],
+                 retreat: list[np.ndarray] | None = None, s_pref: float | None = None) -> None:
+        self.stepper = stepper
+        self.guard = guard
+        self.scene = scene
+        self.q_start = np.asarray(q_start, float)
+        self.T = np.asarray(T, float)
+        self.params = params
+        self.fold_pitch = fold_pitch
+        self.retreat = list(retreat or [])
+        self.s_pref = s_pref
+        self.goals: list[Candidate] = []
+        self.path: list[np.ndarray] | None = None
+        self.reason = ""
+        self.done = False
+        self._rng = np.random.default_rng(params.seed)
+        self._search = self._run()
 
     def work(self) -> bool:
         """Spend about ``params.work_per_step`` clearance evaluations; True when finished."""
         if self.done:
             return True
         start = self.guard.evaluations
-        while self._tasks and self.guard.evaluations - start < self.params.work_per_step:
-            task = self._tasks.pop(0)
-            kind = task[0]
-            if kind == "direct":
-                pts = [self.q_start, task[1].q]
-            elif kind == "fold":
-                pts = [self.q_start, *task[2], task[1].q]
-            else:
-                v = self._random_via()
-                g = self.goals[task[1] % min(3, len(self.goals))]
-                pts = [self.q_start, v, g.q]
-            if self._chain(pts):
-                self.path = _dedupe(self._head + pts)
+        while self.guard.evaluations - start < self.params.work_per_step:
+            try:
+                next(self._search)
+            except StopIteration:
                 self.done = True
-                return True
-        if not self._tasks:
-            self.done = True
-            self.reason = (f"no collision-free joint path found ({len(self.goals)} goal configurations, "
-                           f"direct, folded and {self.params.vias} random vias)")
+                break
         return self.done
 
-    def _escape(self, tries: int = 12) -> list[np.ndarray]:
+    def _segment(self, qa: np.ndarray, qb: np.ndarray) -> Generator[None, None, bool]:
+        r = yield from self.guard.segment_march(qa, qb, self.scene, self.params.clearance,
+                                                budget=8 * self.params.work_per_step)
+        return r is not None
+
+    def _chain(self, points: list[np.ndarray]) -> Generator[None, None, bool]:
+        for a, b in zip(points[:-1], points[1:], strict=True):
+            ok = yield from self._segment(a, b)
+            if not ok:
+                return False
+        return True
+
+    def _run(self) -> Generator[None, None, None]:
+        p = self.params
+        g = self.guard
+        self.goals = yield from goal_candidates_iter(self.stepper, g, self.T, self.q_start, self.scene, p,
+                                                     self.s_pref)
+        if not self.goals:
+            self.reason = "no collision-free goal configuration within the joint limits"
+            return
+        c_start = g.clearance(self.q_start, self.scene).distance
+        if c_start < 0.0:
+            self.reason = f"the arm is in contact with the scene (clearance {c_start:.3f} m)"
+            return
+        head: list[np.ndarray] = []
+        start = self.q_start
+        if c_start < p.clearance + g.step:
+            for q_r in self.retreat[:8]:
+                ok = yield from self._segment(start, q_r)
+                if ok:
+                    head, start = [start], q_r
+                    break
+            else:
+                esc = yield from self._escape(start, c_start)
+                if esc:
+                    head, start = [start, *esc[:-1]], esc[-1]
+        lo, up = g.lower, g.upper
+        tries: list[list[np.ndarray]] = [[start, c.q] for c in self.goals]
+        f0 = fold_posture(start, self.fold_pitch, lo, up)
+        tries += [[start, f0, fold_posture(c.q, self.fold_pitch, lo, up), c.q] for c in self.goals[:3]]
+        for pts in tries:
+            ok = yield from self._chain(pts)
+            if ok:
+                self.path = _dedupe(head + pts)
+                return
+        # Random vias, wide joints within one turn around the start (farther copies only lengthen).
+        span_lo = np.maximum(lo, start - math.pi)
+        span_up = np.minimum(up, start + math.pi)
+        for i in range(p.vias):
+            v = self._rng.uniform(span_lo, span_up)
+            pts = [start, v, self.goals[i % min(3, len(self.goals))].q]
+            ok = yield from self._chain(pts)
+            if ok:
+                self.path = _dedupe(head + pts)
+                return
+        self.reason = (f"no collision-free joint path found ({len(self.goals)} goal configurations, "
+                       f"direct, folded and {p.vias} random vias)")
+
+    def _escape(self, q: np.ndarray, c: float, tries: int = 12) -> Generator[None, None, list[np.ndarray]]:
         """Waypoints that climb the clearance gradient (in joint space, steps of a few mm of travel)
-        from the start until it clears ``params.clearance``; [] if that fails."""
+        from ``q`` until it clears ``params.clearance``; [] if that fails."""
         g = self.guard
         lev = g.max_levers()
-        q = self.q_start
-        c = self._c_start
         out: list[np.ndarray] = []
         need = self.params.clearance + 2.0 * g.step
         for _ in range(tries):
             h = 1e-4
             grad = np.array([(g.clearance(np.clip(q + h * e, g.lower, g.upper), self.scene).distance - c) / h
                              for e in np.eye(len(q))])
-            self.evaluations += len(q)
+            yield None
             norm = float(np.dot(lev, np.abs(grad)))
             if norm < 1e-9:
                 return []
-            # grad / norm moves at most 1 m of lever travel per unit: take max(need - c, 5 mm) of it
+            # grad / norm moves at most 1 m of lever travel per unit: take twice the missing clearance
             q_n = np.clip(q + grad / norm * max(need - c, 0.005) * 2.0, g.lower, g.upper)
-            if not self._segment(q, q_n):
+            ok = yield from self._segment(q, q_n)
+            if not ok:
                 return []
             out.append(q_n)
             q = q_n
@@ -311,14 +346,6 @@ class JointPlanner:
             if c >= need:
                 return out
         return []
-
-    def _random_via(self) -> np.ndarray:
-        lo, up = self.guard.lower, self.guard.upper
-        assert self._rng is not None
-        # Wide joints sampled within one turn around the start: farther copies only lengthen paths.
-        span_lo = np.maximum(lo, self.q_start - math.pi)
-        span_up = np.minimum(up, self.q_start + math.pi)
-        return self._rng.uniform(span_lo, span_up)
 
 
 def _dedupe(points: list[np.ndarray]) -> list[np.ndarray]:

@@ -47,6 +47,7 @@ class Reference:
     s_des: float = 0.0
     s_fixed: float = 0.0
     sdot: float = 0.0  # swivel rate of the last step (rad/s)
+    sdot_dyn: float = 0.0  # the swivel dynamics' part of it while tracking (without the feed-forward)
     w_ori: float = 0.0  # orientation rate of the last step (rad/s)
     v_tool: float = 0.0  # tool speed of the last step (m/s)
     vel: Vec3 = ZERO3  # tool velocity of the last step (m/s), the servo's state
@@ -103,6 +104,7 @@ class Progress:
     t_last: float = 0.0
     hold_since: float | None = None
     guard_stops: list[float] = field(default_factory=list)  # controller times of recent guard stops
+    due: float = math.inf  # controller time by which the attractor should have arrived
     replans: int = 0
 
 
