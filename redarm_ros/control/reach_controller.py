@@ -143,7 +143,6 @@ class ReachController:
         self.speed_profile = SpeedProfile(p.speed)
         self.stepper = IKStepper(arm, self.geom, p.flip_ratio, p.swivel_search_step, p.swivel_search_count)
         self.guard = CollisionGuard(arm, p.capsules, p.collision_margin, p.guard_step)
-        self.stream = StreamEstimator(p.stream)
         self._lower = np.asarray(arm.lower, float)
         self._upper = np.asarray(arm.upper, float)
         self._max_vel = np.asarray(arm.max_vel, float)
@@ -203,6 +202,15 @@ class ReachController:
         return None if self._st is None or self._st.goal is None else self._st.goal.kind
 
     @property
+    def stream(self) -> StreamEstimator:
+        """The goal stream's estimator (a fresh one after every :meth:`reset` and new point goal).
+
+        Raises:
+            InvalidInputError: before :meth:`reset`.
+        """
+        return self._state().stream
+
+    @property
     def time(self) -> float:
         """The controller clock (s): the sum of the step durations, or the caller's ``now``."""
         return 0.0 if self._st is None else self._st.time
@@ -241,8 +249,7 @@ class ReachController:
         cmd = Command(qa.copy(), self._globalise(clear, local), pos, rot, kp)
         cmd.obs_clear = self._obstacle_clearance(qa, local, kp)
         ref = Reference(qa.copy(), pos, rot, s, circle, s_des=s, s_fixed=s)
-        self._st = CoreState(ref, cmd, time=float(t))
-        self.stream.reset()
+        self._st = CoreState(ref, cmd, stream=StreamEstimator(self.params.stream), time=float(t))
 
     def _install_scene(self, scene: Scene) -> None:
         self.scene = scene

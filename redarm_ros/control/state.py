@@ -18,6 +18,7 @@ import numpy as np
 from redarm_ros.control.elbow import ElbowCircle
 from redarm_ros.control.obstacles import Clearance
 from redarm_ros.control.replan import JointPath, JointPlanner
+from redarm_ros.control.stream import StreamEstimator
 from redarm_ros.control.types import GoalKind, Phase, Quat, Vec3
 
 ZERO3: Vec3 = (0.0, 0.0, 0.0)
@@ -124,6 +125,7 @@ class CoreState:
 
     ref: Reference
     cmd: Command
+    stream: StreamEstimator
     att: Attractor = field(default_factory=Attractor)
     mode: Mode = Mode.HOLD
     phase: Phase = Phase.IDLE
