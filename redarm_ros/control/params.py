@@ -74,8 +74,6 @@ class ServoParams:
     acc [m/s^2]: largest change of the hand's velocity (also bounded by the joints' acceleration).
     ori_gain [1/s], ori_acc [rad/s^2]: the same for the orientation (rate capped by ``max_ori_rate``).
     twist_timeout [s]: a twist command is held this long, then the hand decelerates to rest.
-    twist_leash [m], twist_leash_angle [rad]: how far the integrated twist target may run ahead of the
-    hand when a limit holds the hand back (no wind-up: reversing the stick acts at once).
     """
 
     gain: float = 30.0
@@ -83,14 +81,12 @@ class ServoParams:
     ori_gain: float = 20.0
     ori_acc: float = 12.0
     twist_timeout: float = 0.1
-    twist_leash: float = 0.01
-    twist_leash_angle: float = 0.05
     resync_lag: float = 0.005
     yield_time: float = 0.3
 
     def __post_init__(self) -> None:
-        _check_positive(self, ("gain", "acc", "ori_gain", "ori_acc", "twist_timeout", "twist_leash",
-                               "twist_leash_angle", "resync_lag", "yield_time"))
+        _check_positive(self, ("gain", "acc", "ori_gain", "ori_acc", "twist_timeout", "resync_lag",
+                               "yield_time"))
 
 
 @dataclass(frozen=True)
