@@ -370,9 +370,94 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def stack_sequence() -> list[str]:
-    """A short sequence through the stack (placeholder, filled in below)."""
-    raise NotImplementedError
+def _state_rate(c, seconds: float) -> float:
+    """~/state messages per second over ``seconds`` of spinning."""
+    n0 = len(c.states)
+    t0 = time.monotonic()
+    c.spin_until(lambda: False, seconds)
+    return (len(c.states) - n0) / (time.monotonic() - t0)
+
+
+def stack_sequence(goals_n: int = 5, seed: int = 77) -> list[str]:
+    """A short sequence through the whole stack (bus server, simulator, can_driver, controller as
+    processes), scored on the simulated tool; then the controller's rate with 1000 obstacle markers."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from track_bench import StackClient  # noqa: PLC0415 - ROS only when asked
+    from visualization_msgs.msg import Marker, MarkerArray  # noqa: PLC0415
+
+    arm = load_arm("pa10")
+    scene = load_scene("table_empty")
+    rng = np.random.default_rng(seed)
+    probe = ReachController(arm, scene)
+    goals = sample_goals(arm, scene, probe, rng, goals_n, SceneStats())
+    out = ["## Through the stack (bring-up: bus server, simulator, can_driver, controller)", ""]
+    rows = [
+        "| goal | reached | time s (wall) | simulated tool error mm / mrad (0.5 s after REACHED) | "
+        "phases seen |",
+        "|---|---|---|---|---|",
+    ]
+    c = StackClient({"scene": "table_empty", "ik_service": False})
+    try:
+        if not c.spin_until(lambda: len(c.joints) > 5 and len(c.states) > 0, 60.0):
+            raise RuntimeError("no joint_states / controller state from the stack")
+        reached_n = 0
+        for i, T in enumerate(goals):
+            n = len(c.states)
+            ok, dt = c.reach(T, GOAL_TIMEOUT + 5.0)
+            if not ok and c.halts():
+                c.recover()
+                ok, dt = c.reach(T, GOAL_TIMEOUT + 5.0)
+            c.spin_until(lambda: False, 0.5)
+            st = c.stack.sim_status()
+            Tq = arm.fk(np.asarray(st["q"], float)) if st else np.eye(4)
+            pe = (
+                float(np.linalg.norm(np.asarray(st["tool"]["position"]) - T[:3, 3])) * 1e3 if st else math.nan
+            )
+            re = math.acos(max(-1.0, min(1.0, (np.trace(Tq[:3, :3].T @ T[:3, :3]) - 1) / 2))) * 1e3
+            phases = sorted({s.phase for s in c.states[n:]})
+            reached_n += ok and dt <= GOAL_TIMEOUT
+            rows.append(
+                f"| {i} | {'yes' if ok else 'no'} | {dt:.1f} | {pe:.2f} / {re:.2f} | {', '.join(phases)} |"
+            )
+        rate0 = _state_rate(c, 3.0)
+        # 1000 markers: an occupancy map of the room, none within the arm's reach.
+        msg = MarkerArray()
+        for k, o in enumerate(clutter(np.random.default_rng(5), 1000)):
+            m = Marker()
+            m.header.frame_id = "base_link"
+            m.ns, m.id, m.action = "room", k, Marker.ADD
+            m.pose.position.x, m.pose.position.y, m.pose.position.z = (float(v) for v in o.center)
+            m.pose.orientation.w = 1.0
+            if isinstance(o, Sphere):
+                m.type = Marker.SPHERE
+                m.scale.x = m.scale.y = m.scale.z = 2.0 * o.radius
+            else:
+                m.type = Marker.CUBE
+                m.scale.x, m.scale.y, m.scale.z = (float(v) for v in o.size)
+            msg.markers.append(m)
+        pub = c.node.create_publisher(MarkerArray, "obstacles", 2)
+        c.spin_until(lambda: pub.get_subscription_count() > 0, 5.0)
+        pub.publish(msg)
+        c.spin_until(lambda: False, 1.0)
+        T = arm.fk(np.array([0.6, 0.9, -0.2, 1.2, 0.3, 0.8, 0.2]))
+        c.send(T)
+        rate1 = _state_rate(c, 3.0)
+        ok = c.spin_until(lambda: any(s.phase == c.CS.REACHED for s in c.states[-5:]), 15.0)
+        out += rows
+        out.append("")
+        out.append(
+            f"Reached within {GOAL_TIMEOUT:.0f} s: {reached_n} of {len(goals)}; driver halts: {c.halts()}."
+        )
+        out.append("")
+        out.append(
+            f"Controller rate (~/state messages per second, 100 Hz nominal): {rate0:.1f} Hz without "
+            f"extra obstacles, {rate1:.1f} Hz while reaching with 1000 obstacle markers on /obstacles "
+            f"(goal {'reached' if ok else 'not reached'})."
+        )
+        out.append("")
+    finally:
+        c.close()
+    return out
 
 
 NOT_COVERED = """What this does not cover: the in-process runs take the commanded joints as the arm's (the

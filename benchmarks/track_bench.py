@@ -635,20 +635,30 @@ class StackClient:
         self.goal_pub.publish(msg)
 
     def reach(self, T: np.ndarray, timeout: float) -> tuple[bool, float]:
-        """Send a point goal and wait for REACHED of it; returns (reached, seconds)."""
-        n = len(self.states)
+        """Send a point goal and wait for REACHED of it; returns (reached, seconds). If the driver
+        halted the arm meanwhile (a starved machine), recover and send the goal again (twice at most;
+        the halts are counted in :meth:`halts`)."""
         t0 = time.monotonic()
-        self.send(T)
+        ok = False
+        for _ in range(3):
+            n = len(self.states)
+            h0 = self.halts()
+            self.send(T)
 
-        def done() -> bool:
-            return any(
-                s.phase == self.CS.REACHED
-                and abs(s.goal.position.x - T[0, 3]) < 1e-6
-                and abs(s.goal.position.y - T[1, 3]) < 1e-6
-                for s in self.states[n:]
-            )
+            def done(n: int = n) -> bool:
+                return any(s.phase == self.CS.REACHED and abs(s.goal.position.x - T[0, 3]) < 1e-6
+                           and abs(s.goal.position.y - T[1, 3]) < 1e-6 for s in self.states[n:])
 
-        ok = self.spin_until(done, timeout)
+            ok = self.spin_until(done, timeout)
+            self.spin_until(lambda: False, 0.2)
+            if self.halts() == h0:
+                break
+            ok = False
+            for _ in range(3):
+                if self.recover():
+                    break
+                self.spin_until(lambda: False, 1.0)
+            self.spin_until(lambda: False, 1.0)  # the controller restarts from the still arm
         return ok, time.monotonic() - t0
 
     def sim_tool(self) -> tuple[float, np.ndarray, np.ndarray] | None:

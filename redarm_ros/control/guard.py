@@ -62,6 +62,7 @@ class CollisionGuard:
         self.upper = np.asarray(arm.upper, float)
         self.max_acc = np.asarray(arm.max_acc, float)
         self._rmax = max(capsules.radii)
+        self._max_levers: np.ndarray | None = None
         self.evaluations = 0  # clearance evaluations so far (the re-planner budgets them)
 
     def key_points(self, q: np.ndarray) -> np.ndarray:
@@ -163,12 +164,14 @@ class CollisionGuard:
 
     def max_levers(self) -> np.ndarray:
         """Levers that hold in every configuration (link lengths instead of the current geometry)."""
-        kp = np.asarray(self.arm.key_points(np.clip(np.full(7, 0.3), self.lower, self.upper)), float)
-        upper = float(np.linalg.norm(kp[2] - kp[1]))
-        fore = float(np.linalg.norm(kp[3] - kp[2]))
-        hand = float(np.linalg.norm(kp[4] - kp[3]))
-        r = self._rmax
-        return np.array([upper + fore + hand + r] * 3 + [fore + hand + r] + [hand + r] * 3)
+        if self._max_levers is None:
+            kp = np.asarray(self.arm.key_points(np.clip(np.full(7, 0.3), self.lower, self.upper)), float)
+            upper = float(np.linalg.norm(kp[2] - kp[1]))
+            fore = float(np.linalg.norm(kp[3] - kp[2]))
+            hand = float(np.linalg.norm(kp[4] - kp[3]))
+            r = self._rmax
+            self._max_levers = np.array([upper + fore + hand + r] * 3 + [fore + hand + r] + [hand + r] * 3)
+        return self._max_levers
 
     def segment_march(self, qa: np.ndarray, qb: np.ndarray, scene: Scene, need: float,
                       budget: int = 10_000, lever: np.ndarray | None = None,

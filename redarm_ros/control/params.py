@@ -110,8 +110,9 @@ class ReplanParams:
     clearance [m]: clearance every configuration of a planned joint path keeps from the scene.
     vias: random via configurations tried when neither the direct joint path nor the fold posture
     clears the scene.
-    work_per_step: clearance evaluations the planner may spend in one control step (the arm holds
-    meanwhile; the loop stays periodic; counted, not timed, so runs are repeatable).
+    work_per_step: units of work the planner may do in one control step (a unit: one clearance
+    evaluation or the IK of one swivel sample; the arm holds meanwhile; the loop stays periodic;
+    counted, not timed, so runs are repeatable).
     max_replans: re-plans per goal before the goal is reported BLOCKED.
     seed: seed of the via sampler (deterministic plans).
     """
@@ -130,7 +131,7 @@ class ReplanParams:
     limit_margin: float = 0.2
     clearance: float = 0.02
     vias: int = 300
-    work_per_step: int = 100
+    work_per_step: int = 50
     max_replans: int = 3
     seed: int = 7
 
@@ -233,7 +234,7 @@ class ControllerParams:
     stream: StreamParams = field(default_factory=StreamParams)
     servo: ServoParams = field(default_factory=ServoParams)
     replan: ReplanParams = field(default_factory=ReplanParams)
-    broad_phase_margin: float = 0.3
+    broad_phase_margin: float = 0.2
 
     def __post_init__(self) -> None:
         if self.swivel_reference not in ("high", "low", "absolute"):

@@ -157,8 +157,8 @@ def goal_candidates(stepper: IKStepper, guard: CollisionGuard, T: np.ndarray, q_
 def goal_candidates_iter(stepper: IKStepper, guard: CollisionGuard, T: np.ndarray, q_from: np.ndarray,
                          scene: Scene, params: ReplanParams, s_pref: float | None, count: int = 6,
                          scan: int = 72, checks: int = 400) -> Generator[None, None, list[Candidate]]:
-    """:func:`goal_candidates` as a generator: one iteration per clearance evaluation (at most
-    ``checks`` of them)."""
+    """:func:`goal_candidates` as a generator: one iteration per swivel sample and per clearance
+    evaluation (at most ``checks`` of them)."""
     arm = stepper.arm
     max_vel = np.asarray(arm.max_vel, float)
     max_acc = np.asarray(arm.max_acc, float)
@@ -170,9 +170,9 @@ def goal_candidates_iter(stepper: IKStepper, guard: CollisionGuard, T: np.ndarra
             for q in _copies(np.asarray(sol, float), stepper.lower, stepper.upper, stepper.wide):
                 qs.append(q)
                 ss.append(s)
+        yield None
     if not qs:
         return []
-    yield None
     Q = np.array(qs)
     S = np.array(ss)
     # Synchronised rest-to-rest move time (vectorised move_time) + margin and swivel penalties.
@@ -250,11 +250,11 @@ class JointPlanner:
         self._search = self._run()
 
     def work(self) -> bool:
-        """Spend about ``params.work_per_step`` clearance evaluations; True when finished."""
+        """Do ``params.work_per_step`` units of work (a unit: one clearance evaluation, or the IK of
+        one swivel sample); True when finished."""
         if self.done:
             return True
-        start = self.guard.evaluations
-        while self.guard.evaluations - start < self.params.work_per_step:
+        for _ in range(self.params.work_per_step):
             try:
                 next(self._search)
             except StopIteration:
@@ -329,9 +329,10 @@ class JointPlanner:
         need = self.params.clearance + 2.0 * g.step
         for _ in range(tries):
             h = 1e-4
-            grad = np.array([(g.clearance(np.clip(q + h * e, g.lower, g.upper), self.scene).distance - c) / h
-                             for e in np.eye(len(q))])
-            yield None
+            grad = np.zeros(len(q))
+            for j, e in enumerate(np.eye(len(q))):
+                grad[j] = (g.clearance(np.clip(q + h * e, g.lower, g.upper), self.scene).distance - c) / h
+                yield None
             norm = float(np.dot(lev, np.abs(grad)))
             if norm < 1e-9:
                 return []

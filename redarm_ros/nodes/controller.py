@@ -262,6 +262,7 @@ class ControllerNode(Node):
         self._last_message = ""
         self._obstacles_published = -math.inf
         self._scene_changed = True
+        self._obstacle_markers: list[Marker] = []
         self._last_result: Any = None
         self.steps = 0
         # Wiring.
@@ -601,10 +602,11 @@ class ControllerNode(Node):
         keep: set[tuple[str, int]] = set()
         if now - self._obstacles_published >= OBSTACLE_MARKERS_S or self._scene_changed:
             # RViz keeps markers: the (possibly many) obstacles are re-sent only when they change and
-            # every OBSTACLE_MARKERS_S, not at the marker rate.
-            for i, o in enumerate(scene.obstacles):
-                out.append(obstacle_to_marker(o, frame, "obstacles", i))
-                out[-1].header.stamp = stamp
+            # every OBSTACLE_MARKERS_S, not at the marker rate; built once per scene (stamp 0: latest).
+            if self._scene_changed or len(self._obstacle_markers) != len(scene.obstacles):
+                self._obstacle_markers = [obstacle_to_marker(o, frame, "obstacles", i)
+                                          for i, o in enumerate(scene.obstacles)]
+            out.extend(self._obstacle_markers)
             self._obstacles_published = now
             self._scene_changed = False
         else:
