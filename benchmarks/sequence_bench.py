@@ -28,7 +28,6 @@ from __future__ import annotations
 import argparse
 import math
 import os
-import platform
 import sys
 import time
 from collections import Counter
@@ -323,50 +322,52 @@ def main(argv: list[str] | None = None) -> int:
         "--no-write", action="store_true", help="do not write benchmarks/results/sequence_bench.md"
     )
     ap.add_argument("--stack", action="store_true", help="also a short sequence through the whole stack")
+    ap.add_argument("--stack-only", action="store_true", help="only the sequence through the stack")
     ap.add_argument("--verbose", action="store_true")
     args = ap.parse_args(argv)
     if args.quick:
         args.sequences, args.goals = 2, 5
     arm = load_arm("pa10")
-    load0 = os.getloadavg()
-    t0 = time.time()
-    stats: dict[str, SceneStats] = {}
-    for name in [s.strip() for s in args.scenes.split(",") if s.strip()]:
-        stats[name] = SceneStats()
-        run_scene(arm, name, args.sequences, args.goals, args.seed, stats[name], args.verbose)
-    out = [f"# Sequence benchmark (`benchmarks/sequence_bench.py{' --quick' if args.quick else ''}`)", ""]
-    out.append(__doc__.split("    .venv/bin/python")[0].strip())
-    out.append("")
-    out.append(
-        f"## In-process: {args.sequences} sequences x {args.goals} goals per scene, seeds from {args.seed}"
-    )
-    out.append("")
-    out += report(stats)
-    out.append("")
-    out.append("## Obstacle scaling (broad phase)")
-    out.append("")
-    out.append(
-        "Reaching one goal in table_cylinder with extra small boxes and balls scattered over a 6 x 6 x 2 m "
-        "room around the arm (none within reach, as an occupancy map of a room would give), in-process."
-    )
-    out.append("")
-    out += scaling(arm, (0, 100, 1000) if not args.quick else (0, 1000))
-    out.append("")
-    if args.stack:
-        out += stack_sequence()
-    load1 = os.getloadavg()
-    out.append(
-        f"Load average (1/5/15 min) before: {load0[0]:.2f} {load0[1]:.2f} {load0[2]:.2f}, after: "
-        f"{load1[0]:.2f} {load1[1]:.2f} {load1[2]:.2f}; {platform.machine()}, {os.cpu_count()} CPUs, "
-        f"Python {platform.python_version()}, {time.time() - t0:.0f} s wall."
-    )
-    out.append("")
-    out.append(NOT_COVERED)
-    text = "\n".join(out)
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from track_bench import _load_line, write_sections  # noqa: PLC0415 - shared report helpers
+
+    header = [
+        "# Sequence benchmark (`benchmarks/sequence_bench.py`)",
+        "",
+        __doc__.split("    .venv/bin/python")[0].strip(),
+        "",
+    ]
+    sections: dict[str, list[str]] = {}
+    if not args.stack_only:
+        load0, t0 = os.getloadavg(), time.time()
+        stats: dict[str, SceneStats] = {}
+        for name in [s.strip() for s in args.scenes.split(",") if s.strip()]:
+            stats[name] = SceneStats()
+            run_scene(arm, name, args.sequences, args.goals, args.seed, stats[name], args.verbose)
+        title = (
+            f"## In-process: {args.sequences} sequences x {args.goals} goals per scene, seeds from "
+            f"{args.seed}"
+        )
+        sections[title] = ["", *report(stats), "", _load_line(load0, t0), ""]
+        load0, t0 = os.getloadavg(), time.time()
+        body = [
+            "",
+            "Reaching one goal in table_cylinder with extra small boxes and balls scattered over a "
+            "6 x 6 x 2 m room around the arm (at least 1.35 m from the shoulder, as an occupancy map of "
+            "a room would give), in-process.",
+            "",
+        ]
+        body += scaling(arm, (0, 100, 1000) if not args.quick else (0, 1000))
+        sections["## In-process obstacle scaling (broad phase)"] = [*body, "", _load_line(load0, t0), ""]
+    if args.stack or args.stack_only:
+        load0, t0 = os.getloadavg(), time.time()
+        title, body = stack_sequence()
+        sections[title] = [*body, _load_line(load0, t0), ""]
+    if args.no_write:
+        text = "\n".join(header + [line for k, v in sections.items() for line in [k, *v]] + [NOT_COVERED])
+    else:
+        text = write_sections(RESULTS, header, sections, NOT_COVERED)
     print(text)
-    if not args.no_write:
-        RESULTS.parent.mkdir(parents=True, exist_ok=True)
-        RESULTS.write_text(text + "\n")
     return 0
 
 
@@ -378,7 +379,7 @@ def _state_rate(c, seconds: float) -> float:
     return (len(c.states) - n0) / (time.monotonic() - t0)
 
 
-def stack_sequence(goals_n: int = 5, seed: int = 77) -> list[str]:
+def stack_sequence(goals_n: int = 5, seed: int = 77) -> tuple[str, list[str]]:
     """A short sequence through the whole stack (bus server, simulator, can_driver, controller as
     processes), scored on the simulated tool; then the controller's rate with 1000 obstacle markers."""
     sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -390,7 +391,8 @@ def stack_sequence(goals_n: int = 5, seed: int = 77) -> list[str]:
     rng = np.random.default_rng(seed)
     probe = ReachController(arm, scene)
     goals = sample_goals(arm, scene, probe, rng, goals_n, SceneStats())
-    out = ["## Through the stack (bring-up: bus server, simulator, can_driver, controller)", ""]
+    title = "## Through the stack (bring-up: bus server, simulator, can_driver, controller)"
+    out = [""]
     rows = [
         "| goal | reached | time s (wall) | simulated tool error mm / mrad (0.5 s after REACHED) | "
         "phases seen |",
@@ -457,7 +459,7 @@ def stack_sequence(goals_n: int = 5, seed: int = 77) -> list[str]:
         out.append("")
     finally:
         c.close()
-    return out
+    return title, out
 
 
 NOT_COVERED = """What this does not cover: the in-process runs take the commanded joints as the arm's (the

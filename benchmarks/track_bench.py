@@ -512,18 +512,21 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--verbose", action="store_true")
     args = ap.parse_args(argv)
-    load0 = os.getloadavg()
-    t_start = time.time()
-    out = [f"# Track benchmark (`benchmarks/track_bench.py{' --quick' if args.quick else ''}`)", ""]
-    out.append(__doc__.split("    .venv/bin/python")[0].strip())
-    out.append("")
+    header = [
+        "# Track benchmark (`benchmarks/track_bench.py`)",
+        "",
+        __doc__.split("    .venv/bin/python")[0].strip(),
+        "",
+    ]
+    sections: dict[str, list[str]] = {}
     if not args.stack_only:
+        load0, t0 = os.getloadavg(), time.time()
         lines, steps = in_process(args)
-        out.append("## In-process (the controller core at 100 Hz, commanded joints scored)")
-        out.append("")
-        out += lines
-        out.append("")
-        out.append(
+        title = "## In-process (the controller core at 100 Hz, commanded joints scored)"
+        if args.quick:
+            title += " -- quick"
+        body = ["", *lines, ""]
+        body.append(
             "Controller step time (wall clock, all runs): "
             + ", ".join(
                 f"{m} median {np.median(v):.0f} us / p99 {np.percentile(v, 99):.0f} us"
@@ -531,22 +534,17 @@ def main(argv: list[str] | None = None) -> int:
                 if v
             )
         )
-        out.append("")
+        body += ["", _load_line(load0, t0), ""]
+        sections[title] = body
     if args.stack or args.stack_only:
-        out += stack_run(args)
-    load1 = os.getloadavg()
-    out.append(
-        f"Load average (1/5/15 min) before: {load0[0]:.2f} {load0[1]:.2f} {load0[2]:.2f}, after: "
-        f"{load1[0]:.2f} {load1[1]:.2f} {load1[2]:.2f}; {platform.machine()}, {os.cpu_count()} CPUs, "
-        f"Python {platform.python_version()}, {time.time() - t_start:.0f} s wall."
-    )
-    out.append("")
-    out.append(NOT_COVERED)
-    text = "\n".join(out)
+        load0, t0 = os.getloadavg(), time.time()
+        title, body = stack_run(args)
+        sections[title] = [*body, _load_line(load0, t0), ""]
+    if args.no_write:
+        text = "\n".join(header + [line for k, v in sections.items() for line in [k, *v]] + [NOT_COVERED])
+    else:
+        text = write_sections(RESULTS, header, sections, NOT_COVERED)
     print(text)
-    if not args.no_write:
-        RESULTS.parent.mkdir(parents=True, exist_ok=True)
-        RESULTS.write_text(text + "\n")
     return 0
 
 
@@ -646,8 +644,12 @@ class StackClient:
             self.send(T)
 
             def done(n: int = n) -> bool:
-                return any(s.phase == self.CS.REACHED and abs(s.goal.position.x - T[0, 3]) < 1e-6
-                           and abs(s.goal.position.y - T[1, 3]) < 1e-6 for s in self.states[n:])
+                return any(
+                    s.phase == self.CS.REACHED
+                    and abs(s.goal.position.x - T[0, 3]) < 1e-6
+                    and abs(s.goal.position.y - T[1, 3]) < 1e-6
+                    for s in self.states[n:]
+                )
 
             ok = self.spin_until(done, timeout)
             self.spin_until(lambda: False, 0.2)
@@ -676,10 +678,11 @@ class StackClient:
             self.stack.close()
 
 
-def stack_run(args: argparse.Namespace) -> list[str]:
+def stack_run(args: argparse.Namespace) -> tuple[str, list[str]]:
     """circle-0.16 at 50 Hz through the stack; the simulated tool (pybullet, from the simulator's
     status at 100 Hz) and FK of /joint_states (the modules' measured positions) are scored."""
-    out = ["## Through the stack (bring-up: bus server, simulator, can_driver, ik_service, controller)", ""]
+    title = "## Through the stack (bring-up: bus server, simulator, can_driver, ik_service, controller)"
+    out = [""]
     rows = [
         "| path | Hz | stream lead s | measured on | samples | pos err median mm | p95 mm | max mm | "
         "lag ms | "
@@ -744,7 +747,7 @@ def stack_run(args: argparse.Namespace) -> list[str]:
         "stream_lead_s)."
     )
     out.append("")
-    return out
+    return title, out
 
 
 def _stack_row(
@@ -772,6 +775,47 @@ def _stack_row(
         f"{np.percentile(e, 95):.2f} | {np.max(e):.2f} | {best[1] * 1e3:.0f} | {over:.2f} | {final:.2f} | "
         f"{halts} |"
     )
+
+
+def _load_line(load0: tuple[float, float, float], t0: float) -> str:
+    load1 = os.getloadavg()
+    return (
+        f"Load average (1/5/15 min) before: {load0[0]:.2f} {load0[1]:.2f} {load0[2]:.2f}, after: "
+        f"{load1[0]:.2f} {load1[1]:.2f} {load1[2]:.2f}; {platform.machine()}, {os.cpu_count()} CPUs, "
+        f"Python {platform.python_version()}, {time.time() - t0:.0f} s wall."
+    )
+
+
+def write_sections(path: Path, header: list[str], sections: dict[str, list[str]], footer: str) -> str:
+    """Write ``header``, the sections (``## title`` -> lines) and ``footer`` to ``path``, keeping the
+    sections of an earlier run that this run did not redo (e.g. the stack run is done apart)."""
+    old: dict[str, list[str]] = {}
+    if path.is_file():
+        cur = None
+        for line in path.read_text().splitlines():
+            if line.startswith("## "):
+                cur = line
+                old[cur] = []
+            elif cur is not None and line.startswith("What this does not cover"):
+                cur = None
+            elif cur is not None:
+                old[cur].append(line)
+    merged = dict(old)
+    merged.update(sections)
+    order = [k for k in merged if k.startswith("## In-process")]
+    order += [k for k in merged if not k.startswith("## In-process")]
+    out = list(header)
+    for k in order:
+        out.append(k)
+        out += merged[k]
+        while out and out[-1] == "":
+            out.pop()
+        out.append("")
+    out.append(footer)
+    text = "\n".join(out) + "\n"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text)
+    return text
 
 
 NOT_COVERED = """What this does not cover: one arm (PA10) and one region of its workspace per path; streams

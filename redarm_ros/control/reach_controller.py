@@ -70,7 +70,7 @@ from redarm_ros.control.types import GoalCheck, GoalKind, GoalStatus, Phase, Qua
 from redarm_ros.errors import ConfigError, InvalidInputError, UnreachableError
 
 LOG = logging.getLogger(__name__)
-SMALL_SCENE = 16  # obstacles within reach up to which every step uses them all (no per-step culling)
+SMALL_SCENE = 4  # obstacles within reach up to which every step uses them all (no per-step culling)
 
 __all__ = [
     "ControllerParams",
