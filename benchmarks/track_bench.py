@@ -9,11 +9,13 @@ a table, tool pointing down unless stated):
   line                    0.2 m back and forth along y (cosine, peak 0.16 m/s), two round trips
   min-jerk-vias           5 random via points (seeded), min-jerk segments, the tool turning 45 deg
   elbow-obstacle          circle-0.16 with a ball placed beside the elbow of the path
+  ... stopped at t s      the stream stops at full speed (the only paths that do not end at rest)
 
 Every path starts and ends at rest (cruise speed reached by a smooth 0.5 s ramp), so "overshoot at
-the stop" is the controller's, not the path's. Stream variants: ``clean`` (exact stamps, arrival =
-stamp) and ``jitter`` (5 % of the messages dropped, stamps off by up to +-5 ms, arrival 0-5 ms late,
-2 % of the messages one period late, i.e. out of order).
+the stop" is the controller's, not the path's; two paths stop their stream at full speed instead.
+Stream variants: ``clean`` (exact stamps, arrival = stamp) and ``jitter`` (5 % of the messages
+dropped, stamps off by up to +-5 ms, arrival 0-5 ms late, 2 % of the messages one period late, i.e.
+out of order).
 
 Methods (same arm limits, same start posture, same messages):
 
@@ -130,6 +132,11 @@ def circle(v: float, center: tuple[float, float, float] = (0.7, 0.0, 0.2), r: fl
         lambda x: c + r * np.array([math.cos(2 * math.pi * x), math.sin(2 * math.pi * x), 0.0]),
         v,
     )
+
+
+def abrupt(path: PathDef, at: float) -> PathDef:
+    """``path`` whose stream stops at ``at`` s, at full speed (no slowing down)."""
+    return PathDef(f"{path.name} stopped at {at:g} s", path.pose, at, path.scene)
 
 
 def figure_eight(v: float = 0.16) -> PathDef:
@@ -476,6 +483,8 @@ def in_process(args: argparse.Namespace) -> tuple[list[str], dict[str, list[floa
             (figure_eight(), [50.0], ["clean", "jitter"]),
             (line(), [50.0], ["clean", "jitter"]),
             (min_jerk_vias(), [10.0, 50.0, 100.0], ["clean", "jitter"]),
+            (abrupt(circle(0.16), 2.0), [50.0, 100.0], ["clean"]),
+            (abrupt(circle(0.30), 1.5), [50.0, 100.0], ["clean"]),
         ]
         methods = ["servo", "point", "dls"]
     cases.append((elbow_obstacle_path(arm), [50.0], ["clean"]))
