@@ -602,6 +602,7 @@ class StackClient:
         self.node.create_subscription(ControllerState, "/controller/state", self.states.append, 200)
         self.node.create_subscription(JointState, "joint_states", self._on_js, 500)
         self._names = list(self.arm.joint_names)
+        self._seen_halts = 0
 
     def _on_js(self, msg) -> None:
         pos = dict(zip(msg.name, msg.position, strict=False))
@@ -622,6 +623,16 @@ class StackClient:
 
     def halts(self) -> int:
         return sum("HALTED:" in line for line in self._lines)
+
+    def ensure_running(self) -> None:
+        """Recover the driver if it halted since the last look (a starved machine at bring-up)."""
+        if self.halts() > self._seen_halts:
+            for _ in range(3):
+                if self.recover():
+                    break
+                self.spin_until(lambda: False, 1.0)
+            self.spin_until(lambda: False, 1.0)  # the controller restarts from the still arm
+        self._seen_halts = self.halts()
 
     def recover(self) -> bool:
         if not self.spin_until(self.recover_cli.service_is_ready, 5.0):
@@ -648,6 +659,7 @@ class StackClient:
         t0 = time.monotonic()
         ok = False
         for _ in range(3):
+            self.ensure_running()
             n = len(self.states)
             h0 = self.halts()
             self.send(T)
@@ -665,11 +677,6 @@ class StackClient:
             if self.halts() == h0:
                 break
             ok = False
-            for _ in range(3):
-                if self.recover():
-                    break
-                self.spin_until(lambda: False, 1.0)
-            self.spin_until(lambda: False, 1.0)  # the controller restarts from the still arm
         return ok, time.monotonic() - t0
 
     def sim_tool(self) -> tuple[float, np.ndarray, np.ndarray] | None:

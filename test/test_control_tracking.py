@@ -293,3 +293,18 @@ def test_twist_validation() -> None:
         ctl.set_twist((0.0, math.nan, 0.0), (0.0, 0.0, 0.0))
     with pytest.raises(ValueError):
         ctl.set_twist((0.0, 0.0), (0.0, 0.0, 0.0))
+
+
+def test_a_stream_sent_to_a_stretched_arm_is_joined_after_a_joint_space_move() -> None:
+    """From the homed pose (straight up, no elbow circle) a stream starts: the controller moves in
+    joint space first (REPLANNING, saying why), then tracks it (TRACKING) and settles on its end."""
+    path, duration = circle_path(0.08)
+    ctl = ReachController(ARM, Scene((), 0.0))
+    ctl.reset(np.zeros(7), now=0.0)
+    times, qs, res = stream(ctl, lambda t: path(min(t, duration)), duration + 4.0, 50.0, 0.0)
+    phases = [r.phase for r in res]
+    assert Phase.REPLANNING in phases and Phase.TRACKING in phases
+    assert phases.index(Phase.REPLANNING) < len(phases) - 1 - phases[::-1].index(Phase.TRACKING)
+    assert any("stretched" in r.message for r in res if r.phase is Phase.REPLANNING)
+    check_limits(qs)
+    assert np.linalg.norm(ARM.fk(qs[-1])[:3, 3] - path(duration)[:3, 3]) < 2e-3

@@ -322,9 +322,11 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
                 and self.stream.continues(pos, rot, t, now):
             self.stream.add(pos, rot, t, now)
             if goal.kind is not GoalKind.STREAM:
-                self._enter_servo()
                 st.goal = Goal(pos, rot, GoalKind.STREAM, st.time)
                 st.progress = Progress(t_best=st.time)
+            if st.mode not in (Mode.SERVO, Mode.PLAN, Mode.JOINT):
+                # (a joint-space move under way, e.g. out of the stretched pose, is finished first)
+                self._enter_servo()
             newest = self.stream.newest
             assert newest is not None
             st.goal.pos, st.goal.rot = newest.pos, newest.rot
@@ -450,6 +452,9 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
             self._plan_step(dt)
         elif st.mode is Mode.JOINT:
             self._joint_step(dt)
+        elif st.mode is Mode.SERVO and st.ref.circle is None:
+            self._start_plan("the arm is stretched (no elbow circle): moving in joint space to the stream "
+                             "first")
         elif st.mode is Mode.SERVO:
             self._servo_step(dt)
         elif st.ref.circle is None:

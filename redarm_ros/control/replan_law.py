@@ -123,11 +123,14 @@ class ReplanMixin(ControllerBase):
             st.path = None
             self._resync_reference(keep_velocity=False)
             st.ref.s_fixed = st.ref.s
-            st.mode = Mode.ATTRACTOR
-            self._enter_attractor()
             st.message = ""
             st.progress.best = math.inf
             st.progress.t_best = st.time
+            if st.goal is not None and st.goal.kind is GoalKind.STREAM:
+                self._enter_servo()  # a stream that arrived meanwhile: track it from here
+            else:
+                st.mode = Mode.ATTRACTOR
+                self._enter_attractor()
 
     def _watch_progress(self) -> None:
         """Stall detection of point goals (see :class:`~redarm_ros.control.params.ReplanParams`)."""
