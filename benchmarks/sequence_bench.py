@@ -122,7 +122,7 @@ def sample_goals(
     return goals
 
 
-def run_sequence(arm, scene: Scene, goals: list[np.ndarray], stats: SceneStats) -> None:
+def run_sequence(arm, scene: Scene, goals: list[np.ndarray], stats: SceneStats, label: str = "") -> None:
     """Reach ``goals`` one after the other from the ready pose; append the outcomes to ``stats``."""
     ctl = ReachController(arm, scene)
     ctl.reset(READY, now=0.0)
@@ -131,7 +131,7 @@ def run_sequence(arm, scene: Scene, goals: list[np.ndarray], stats: SceneStats) 
     amax = np.asarray(arm.max_acc) * DT * DT
     q_prev2 = q_prev = ctl.q
     assert q_prev is not None
-    for T in goals:
+    for gi, T in enumerate(goals):
         check = ctl.set_goal(T)
         assert check.accepted, check.message
         start = arm.fk(q_prev)[:3, 3]
@@ -181,7 +181,7 @@ def run_sequence(arm, scene: Scene, goals: list[np.ndarray], stats: SceneStats) 
                 vel,
                 acc,
                 phases,
-                "" if reached else f"{r.phase.value}: {r.message[:90]}",
+                "" if reached else f"{r.phase.value}: {r.message[:90]} [{label} goal {gi}]",
                 explained,
             )
         )
@@ -196,7 +196,7 @@ def run_scene(
         probe = ReachController(arm, scene)
         goals = sample_goals(arm, scene, probe, rng, goals_per, stats)
         n0 = len(stats.outcomes)
-        run_sequence(arm, scene, goals, stats)
+        run_sequence(arm, scene, goals, stats, f"sequence {i}")
         if verbose:
             new = stats.outcomes[n0:]
             print(
@@ -241,9 +241,12 @@ def report(stats: dict[str, SceneStats]) -> list[str]:
         )
     lines.append("")
     for name, st in stats.items():
-        miss = Counter(x.last.split(" (")[0][:80] for x in st.outcomes if not x.reached)
+        miss = [x.last for x in st.outcomes if not x.reached]
         if miss:
-            lines.append(f"Not reached in {name}: " + "; ".join(f"{v} x {k}" for k, v in miss.most_common(6)))
+            lines.append(
+                f"Not reached in {name}: "
+                + "; ".join(f"{m.split(' (')[0][:80]} [{m.rsplit('[', 1)[-1]}" for m in miss[:8])
+            )
         if st.rejected:
             lines.append(
                 f"Sampled goals the goal check refused in {name}: "

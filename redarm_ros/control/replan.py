@@ -11,7 +11,8 @@ after homing); a reactive method then stops for good. This module supplies the w
 * :func:`goal_candidates` picks goal configurations among all in-limit IK solutions (every swivel
   sample, every branch, every 2 pi copy of the wide joints): cost = time of a synchronised
   joint-space move at the velocity/acceleration limits + a penalty for limit margins below
-  ``limit_margin`` + a little for a swivel far from the preferred one; colliding ones are dropped.
+  ``limit_margin`` + a little for a swivel far from the preferred one + a little for a clearance
+  below ``clearance``; colliding ones are dropped.
 * :class:`JointPlanner` searches a collision-free joint path to one of them, cheapest first: the
   straight joint segment, then through the "fold" posture (shoulder up, elbow bent, as after an
   unfold) above the start and above the goal, then through random via configurations (seeded).
@@ -193,12 +194,16 @@ def goal_candidates_iter(stepper: IKStepper, guard: CollisionGuard, T: np.ndarra
             continue
         c = guard.clearance(q, scene).distance
         yield None
-        if c < params.clearance + guard.step:
+        if c <= 0.0:
             continue
-        out.append(Candidate(q, float(S[i]), float(cost[i]), c))
-        if len(out) >= count:
+        # A goal close to an obstacle is fine (the path's last segment is checked from the goal
+        # backwards, first getting clear); clearer ones are preferred.
+        pen = 0.5 * max(params.clearance + guard.step - c, 0.0) / (params.clearance + guard.step)
+        out.append(Candidate(q, float(S[i]), float(cost[i]) + pen, c))
+        if len(out) >= 2 * count:
             break
-    return out
+    out.sort(key=lambda cand: cand.cost)
+    return out[:count]
 
 
 # ----------------------------------------------------------------------------------------------
@@ -268,8 +273,11 @@ class JointPlanner:
         return r is not None
 
     def _chain(self, points: list[np.ndarray]) -> Generator[None, None, bool]:
-        for a, b in zip(points[:-1], points[1:], strict=True):
-            ok = yield from self._segment(a, b)
+        last = len(points) - 2
+        for k, (a, b) in enumerate(zip(points[:-1], points[1:], strict=True)):
+            # The last segment is checked from the goal backwards: a goal configuration closer to the
+            # scene than the planning clearance then has to get clear first (the dense march).
+            ok = yield from (self._segment(b, a) if k == last else self._segment(a, b))
             if not ok:
                 return False
         return True
