@@ -188,7 +188,8 @@ def test_a_goal_republished_at_a_rate_stays_a_point_goal() -> None:
     for k in range(400):
         t = t0 + (k + 1) * DT
         if k % 10 == 0:  # 10 Hz, the same goal
-            assert ctl.goal_message(T, t, t).kind is GoalKind.POINT
+            check = ctl.goal_message(T, t, t)
+            assert check.kind is GoalKind.POINT and check.repeat == (k > 0)
         phases.add(ctl.step(DT, t).phase)
     assert Phase.TRACKING not in phases and ctl.phase is Phase.REACHED
 

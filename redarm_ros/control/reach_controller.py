@@ -317,7 +317,7 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
         if goal is not None and goal.kind is GoalKind.POINT and math.dist(goal.pos, pos) <= p.pos_tolerance \
                 and quat_angle(goal.rot, rot) <= p.ori_tolerance:
             self.stream.add(pos, rot, t, now)  # the same goal again: nothing changes
-            return GoalCheck(GoalStatus.ACCEPTED, "same goal", kind=GoalKind.POINT)
+            return GoalCheck(GoalStatus.ACCEPTED, "the active goal again", kind=GoalKind.POINT, repeat=True)
         if goal is not None and goal.kind in (GoalKind.POINT, GoalKind.STREAM) \
                 and self.stream.continues(pos, rot, t, now):
             self.stream.add(pos, rot, t, now)

@@ -51,13 +51,15 @@ class GoalKind(enum.Enum):
 class GoalCheck:
     """Verdict on a goal pose: ``status``, human-readable ``message``; for accepted goals the number of
     scanned swivels that are reachable and collision-free (``free_swivels``) and the clearest one.
-    ``kind`` says how a goal message was taken (a new goal or a stream sample)."""
+    ``kind`` says how a goal message was taken (a new goal or a stream sample); ``repeat``: it only
+    repeated the active point goal (nothing changed)."""
 
     status: GoalStatus
     message: str = ""
     free_swivels: int = 0
     best_swivel: float | None = None
     kind: GoalKind = GoalKind.POINT
+    repeat: bool = False
 
     @property
     def accepted(self) -> bool:

@@ -258,7 +258,6 @@ class ControllerNode(Node):
         self._last_marker_ids: set[tuple[str, int]] = set()
         self._warned: dict[str, float] = {}
         self._last_phase: Phase | None = None
-        self._last_kind: GoalKind | None = None
         self._last_message = ""
         self._obstacles_published = -math.inf
         self._scene_changed = True
@@ -351,7 +350,7 @@ class ControllerNode(Node):
             if check.kind is GoalKind.STREAM:
                 if was is not GoalKind.STREAM:
                     self.get_logger().info("goal stream: tracking it")
-            elif check.message != "same goal":
+            elif not check.repeat:
                 what = "retarget to" if retarget else "new goal"
                 self.get_logger().info(f"{what} ({p[0]:.3f}, {p[1]:.3f}, {p[2]:.3f}) m")
         else:
