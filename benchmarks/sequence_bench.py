@@ -181,7 +181,7 @@ def run_sequence(arm, scene: Scene, goals: list[np.ndarray], stats: SceneStats, 
                 vel,
                 acc,
                 phases,
-                "" if reached else f"{r.phase.value}: {r.message[:90]} [{label} goal {gi}]",
+                "" if reached else f"[{label} goal {gi}] {r.phase.value}: {r.message.split(' (')[0][:80]}",
                 explained,
             )
         )
@@ -243,10 +243,7 @@ def report(stats: dict[str, SceneStats]) -> list[str]:
     for name, st in stats.items():
         miss = [x.last for x in st.outcomes if not x.reached]
         if miss:
-            lines.append(
-                f"Not reached in {name}: "
-                + "; ".join(f"{m.split(' (')[0][:80]} [{m.rsplit('[', 1)[-1]}" for m in miss[:8])
-            )
+            lines.append(f"Not reached in {name}: " + "; ".join(m[:120] for m in miss[:8]))
         if st.rejected:
             lines.append(
                 f"Sampled goals the goal check refused in {name}: "

@@ -79,7 +79,7 @@ class CommandMixin(ControllerBase):
         ref.qd = (q - ref.q) / dt
         ref.q = q
         ref.pos, ref.rot, ref.s, ref.circle = pos, rot, s, step.circle
-        if st.message.startswith(("collision guard", "stream", "twist", "no joint solution")):
+        if st.message.startswith(("collision guard", "stream", "twist", "no joint solution", "at the goal")):
             st.message = ""
         st.brake_sync = False
         if not self._track(dt):

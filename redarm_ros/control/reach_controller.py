@@ -64,6 +64,7 @@ from redarm_ros.control.types import GoalCheck, GoalKind, GoalStatus, Phase, Qua
 from redarm_ros.errors import ConfigError, InvalidInputError, UnreachableError
 
 LOG = logging.getLogger(__name__)
+SETTLING = "at the goal; the elbow is settling on its preferred swivel"
 
 __all__ = [
     "ControllerParams",
@@ -502,10 +503,15 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
         p = self.params
         d = math.dist(st.cmd.pos, goal.pos)
         err = quat_angle(st.cmd.rot, goal.rot)
-        if d <= p.pos_tolerance and err <= p.ori_tolerance and self._settled():
+        at_goal = d <= p.pos_tolerance and err <= p.ori_tolerance
+        if at_goal and self._settled():
             st.phase = Phase.REACHED
+            if st.message.startswith(SETTLING):
+                st.message = ""
         else:
             st.phase = Phase.REACHING
+            if at_goal and not st.message:
+                st.message = SETTLING
 
     def _settled(self) -> bool:
         """The reference is at the goal too, the commanded tool has (nearly) stopped (below
