@@ -206,7 +206,7 @@ def random_goals(scene: Scene, rng: np.random.Generator, n: int) -> list[np.ndar
 def test_goal_sequences_from_random_postures_are_all_reached(scene_name: str) -> None:
     """Seeded sequences of goals from random in-limit postures (any orientation, both elbow
     branches, wide joints anywhere), one after the other without a reset: each is reached within
-    10 s, collision-free, within every joint limit. Before the re-planner, 36 of 80 such goals were
+    10 s, collision-free, within every joint limit. Before the re-planner, 14 of 50 such goals were
     reached (the rest held in dead ends)."""
     scene = load_scene(scene_name)
     rng = np.random.default_rng(31 if scene_name == "table_empty" else 32)
