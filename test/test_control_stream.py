@@ -181,3 +181,12 @@ def test_servo_speed_is_capped() -> None:
     for _ in range(300):
         pos, rot, vel, w = servo_step(pos, rot, vel, w, target, 0.01, 30.0, 3.0, 0.4, 20.0, 12.0, 1.5)
         assert math.hypot(*vel) <= 0.4 + 1e-12
+
+
+def test_the_lead_is_added_beyond_the_extrapolation_limit() -> None:
+    est = StreamEstimator(StreamParams(extrapolate_periods=1.5, lead=0.05))
+    feed(est, line, [k * 0.02 for k in range(10)])
+    pred = est.predict(0.18, now=0.18)
+    assert pred.pos == pytest.approx(line(0.23), abs=1e-9) and pred.vel == pytest.approx((0.2, 0.0, 0.0))
+    late = est.predict(0.18 + 0.05, now=0.18 + 0.04)  # 2.5 periods after the newest: held at 1.5 + lead
+    assert late.pos == pytest.approx(line(0.18 + 0.03 + 0.05), abs=1e-9) and late.vel == (0.0, 0.0, 0.0)

@@ -204,8 +204,10 @@ class StreamEstimator:
             return StreamTarget(ref.pos, ref.rot, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0), True)
         p0, v, a, r0, w, al = self._fitted()
         T = self.period()
-        horizon = self.params.extrapolate_periods * (T if math.isfinite(T) else 0.0)
-        tau = t + (self.params.lead if lead else 0.0) - ref.t
+        ahead = self.params.lead if lead else 0.0
+        # (the lead is a known delay made up for, not a guess: the clamp applies beyond it)
+        horizon = self.params.extrapolate_periods * (T if math.isfinite(T) else 0.0) + ahead
+        tau = t + ahead - ref.t
         if not clamp:
             horizon = max(horizon, tau)
         moving = tau <= horizon
