@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import platform
 import sys
 import time
@@ -267,6 +268,7 @@ def main(argv: list[str] | None = None) -> int:
     res: dict[str, list[ReachMetrics]] = {m: [] for m in methods}
     free: dict[str, list[ReachMetrics]] = {m: [] for m in methods}
     t_start = time.time()
+    load0 = os.getloadavg()
     n_obs = []
     for i in range(args.scenes):
         case = make_case(arm, args.seed + i, caps)
@@ -317,8 +319,19 @@ def main(argv: list[str] | None = None) -> int:
         f"{m} {max(x.max_acc_ratio for x in res[m]):.3f}" for m in methods))
     lines.append("")
     cmd = "--quick" if args.quick else f"--scenes {args.scenes}"
-    lines.append(f"Run: `python benchmarks/reach_bench.py {cmd}` on {platform.machine()}, "
-                 f"Python {platform.python_version()}, {elapsed:.0f} s wall.")
+    load1 = os.getloadavg()
+    lines.append(
+        f"Run: `python benchmarks/reach_bench.py {cmd}` on {platform.machine()}, {os.cpu_count()} CPUs, "
+        f"Python {platform.python_version()}, {elapsed:.0f} s wall; load average (1/5/15 min) before "
+        f"{load0[0]:.2f} {load0[1]:.2f} {load0[2]:.2f}, after {load1[0]:.2f} {load1[1]:.2f} {load1[2]:.2f}."
+    )
+    lines.append("")
+    lines.append(
+        "What this does not cover: one goal per scene from a random start (goal sequences: sequence_bench; "
+        "streams: track_bench); the start swivel is feasible and clear of limits and singularities "
+        "(adversarial starts are in the sequence benchmark); the commanded joints are scored (the arm is "
+        "taken to follow them exactly); step times are wall clock on a shared machine."
+    )
     text = "\n".join(lines)
     print(text)
     if not args.no_write:

@@ -72,10 +72,15 @@ def test_controller_state_fields_and_phases() -> None:
         "orientation_error": "double",
         "goal": "geometry_msgs/Pose",
         "message": "string",
+        "goal_kind": "string",
+        "goal_velocity": "geometry_msgs/Twist",
+        "stream_rate": "double",
     }
     phases = [ControllerState.IDLE, ControllerState.REACHING, ControllerState.HOLDING,
-              ControllerState.REJECTED, ControllerState.REACHED]
-    assert phases == ["idle", "reaching", "holding", "rejected", "reached"]
+              ControllerState.REJECTED, ControllerState.REACHED, ControllerState.TRACKING,
+              ControllerState.REPLANNING, ControllerState.BLOCKED]
+    assert phases == ["idle", "reaching", "holding", "rejected", "reached", "tracking", "replanning",
+                      "blocked"]
     assert ControllerState(clearance=math.inf).clearance == math.inf
 
 

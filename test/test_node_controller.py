@@ -15,7 +15,7 @@ import pytest
 rclpy = pytest.importorskip("rclpy")
 pytest.importorskip("redarm_interfaces", reason="redarm_interfaces not built (run scripts/setup_env.sh)")
 
-from geometry_msgs.msg import PoseStamped  # noqa: E402
+from geometry_msgs.msg import PoseStamped, TwistStamped  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from redarm_interfaces.msg import ControllerState  # noqa: E402
@@ -79,6 +79,7 @@ class Harness:
         self.arm = IdealArm(ctx, q0)
         self.probe = rclpy.create_node("probe", context=ctx)
         self.goal_pub = self.probe.create_publisher(PoseStamped, "goal_pose", 10)
+        self.twist_pub = self.probe.create_publisher(TwistStamped, "/controller/target_twist", 10)
         self.obs_pub = self.probe.create_publisher(MarkerArray, "obstacles", 10)
         self.states: list[ControllerState] = []
         self.markers: list[MarkerArray] = []
@@ -101,10 +102,17 @@ class Harness:
                                and self.ctl.cmd_pub.get_subscription_count() > 0
                                and len(self.states) > 0, 10.0)
 
-    def send_goal(self, T: np.ndarray, frame: str = "base_link") -> None:
+    def send_goal(self, T: np.ndarray, frame: str = "base_link", stamp: float | None = None) -> None:
+        """Publish a goal; ``stamp``: header stamp (s, ROS time), else left zero ("now")."""
         msg = pose_to_msg(T)
         msg.header.frame_id = frame
+        if stamp is not None:
+            msg.header.stamp.sec = int(stamp)
+            msg.header.stamp.nanosec = int((stamp - int(stamp)) * 1e9)
         self.goal_pub.publish(msg)
+
+    def ros_now(self) -> float:
+        return self.probe.get_clock().now().nanoseconds * 1e-9
 
     def phase(self) -> str:
         return self.states[-1].phase if self.states else ""
@@ -353,18 +361,66 @@ def test_second_controller_of_the_same_name_refuses_to_start(h: Harness, ctx: An
     other.destroy_node()
 
 
-def test_singular_start_is_reported(ctx: Any) -> None:
-    """From the homed, stretched pose (all zeros) the elbow circle degenerates: the controller either
-    gets away from it and reaches the goal, or says on ~/state why it does not move (never silent)."""
+def test_singular_start_is_reported_and_left(ctx: Any) -> None:
+    """From the homed, stretched pose (all zeros) the elbow circle degenerates: the controller says so
+    on ~/state (phase replanning, the reason in the message), moves in joint space and reaches the
+    goal."""
     h = Harness(ctx, q0=np.zeros(7))
     try:
         h.wait_connected()
         h.send_goal(goal_from(Q0, (0.0, 0.0, 0.0)))
-
-        def explained_or_reached() -> bool:
-            return any(s.phase == ControllerState.REACHED
-                       or (s.phase == ControllerState.REACHING and bool(s.message)) for s in h.states)
-
-        assert h.spin_until(explained_or_reached, 20.0), h.states[-1]
+        assert h.wait_phase(ControllerState.REACHED, 30.0), h.states[-1]
+        assert any(s.phase == ControllerState.REPLANNING and "stretched" in s.message for s in h.states)
     finally:
         h.close()
+
+
+def test_goal_stream_on_the_topic_is_tracked(h: Harness) -> None:
+    """Goals stamped and published at 50 Hz along a line (0.08 m/s): the controller reports a goal
+    stream (phase tracking, goal_kind stream, its rate and velocity), follows it within its limits and
+    settles on the last goal."""
+    T0 = ARM.fk(Q0)
+    h.send_goal(T0)
+    assert h.wait_reached(10.0)
+    n = len(h.states)
+    t0 = h.ros_now()
+    sent = 0
+    while sent <= 75:  # 1.5 s; each goal stamped with its sample time (a loaded machine sends late)
+        if h.ros_now() - t0 >= sent * 0.02:
+            T = T0.copy()
+            T[1, 3] += 0.08 * sent * 0.02
+            h.send_goal(T, stamp=t0 + sent * 0.02)
+            sent += 1
+        h.ex.spin_once(timeout_sec=0.002)
+    tracking = [s for s in h.states[n:] if s.phase == ControllerState.TRACKING]
+    assert tracking, [s.phase for s in h.states[n:]]
+    mid = tracking[len(tracking) // 2]
+    assert mid.goal_kind == "stream"
+    assert mid.stream_rate == pytest.approx(50.0, rel=0.3)
+    assert mid.goal_velocity.linear.y == pytest.approx(0.08, rel=0.3)
+    assert h.wait_reached(10.0, after=len(h.states))
+    assert ARM.pose_error(h.arm.q, T)[0] < 1e-3
+    assert max_joint_step(h.arm.commands) <= 1.5 * float(np.max(ARM.max_vel)) * 0.01 + 1e-9
+
+
+def test_target_twist_moves_the_hand(h: Harness) -> None:
+    """A twist of 0.05 m/s along +y in the base frame for 0.6 s: phase tracking (goal_kind twist);
+    the hand moves about 3 cm along y; when the twist stops the arm comes to rest (phase idle)."""
+    p0 = ARM.fk(h.arm.q)[:3, 3]
+    t0 = time.monotonic()
+    k = 0
+    while time.monotonic() - t0 < 0.6:
+        if time.monotonic() - t0 >= k * 0.02:
+            msg = TwistStamped()
+            msg.header.frame_id = "base_link"
+            msg.header.stamp = h.probe.get_clock().now().to_msg()
+            msg.twist.linear.y = 0.05
+            h.twist_pub.publish(msg)
+            k += 1
+        h.ex.spin_once(timeout_sec=0.002)
+    assert any(s.phase == ControllerState.TRACKING and s.goal_kind == "twist" for s in h.states)
+    assert h.wait_phase(ControllerState.IDLE, 5.0, after=len(h.states))
+    h.spin_until(lambda: False, 0.3)
+    p1 = ARM.fk(h.arm.q)[:3, 3]
+    assert 0.015 < p1[1] - p0[1] < 0.045 and abs(p1[0] - p0[0]) < 0.003 and abs(p1[2] - p0[2]) < 0.003
+    assert max_joint_step(h.arm.commands) <= 1.5 * float(np.max(ARM.max_vel)) * 0.01 + 1e-9

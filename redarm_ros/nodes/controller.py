@@ -7,7 +7,11 @@ publishes what it returns.
 
 Topics (relative names, so a namespace or remapping applies):
 
-* in  ``goal_pose`` (geometry_msgs/PoseStamped): a new goal, also mid-motion (retargets smoothly);
+* in  ``goal_pose`` (geometry_msgs/PoseStamped): a new goal, also mid-motion (retargets smoothly), or
+  one more sample of a goal stream (tracked like a servo, with the stream's velocity estimated from
+  the header stamps and fed forward); the core tells the two apart (docs/control.md);
+* in  ``~/target_twist`` (geometry_msgs/TwistStamped): a velocity command for the hand (joystick, space
+  mouse), in ``base_frame`` or ``tool_frame``; held for ``twist_timeout_s``;
 * in  ``obstacles`` (visualization_msgs/MarkerArray): SPHERE, CYLINDER (vertical) and CUBE markers,
   ADD/MODIFY/DELETE/DELETEALL by (ns, id); replaces the obstacles of the ``scene`` parameter, whose
   table stays;
@@ -32,7 +36,7 @@ from typing import Any
 
 import numpy as np
 from builtin_interfaces.msg import Duration
-from geometry_msgs.msg import Point, PoseStamped
+from geometry_msgs.msg import Point, PoseStamped, TwistStamped
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile
@@ -54,7 +58,9 @@ from redarm_ros.control.obstacles import (
     load_scene,
     obstacle_from_marker,
 )
+from redarm_ros.control.params import ReplanParams, ServoParams, StreamParams
 from redarm_ros.control.reach_controller import ControllerParams, GoalStatus, Phase, ReachController
+from redarm_ros.control.types import GoalKind
 from redarm_ros.errors import InvalidInputError, RedarmError
 from redarm_ros.kinematics import load_arm
 from redarm_ros.kinematics.quaternion import matrix_to_quat, quat_to_matrix
@@ -73,6 +79,7 @@ from redarm_ros.nodes._common import (
 NODE_NAME = "controller"
 STILL_WINDOW_S = 0.25  # s of joint_states looked at to decide that the arm stands still
 STILL_TOLERANCE = 1e-3  # rad: largest joint motion within that window of an arm standing still
+OBSTACLE_MARKERS_S = 2.0  # s between re-sends of unchanged obstacle markers
 
 
 def _finite(value: Any) -> str | None:
@@ -116,6 +123,19 @@ PARAMS = [
     ParamSpec("duplicate_check_s", 1.0, "At start-up, watch the graph this long (s) for another node of "
               "the same name and refuse to start if there is one (0 = no check).", non_negative,
               read_only=True),
+    ParamSpec("stream_gap_s", 0.5, "A goal arriving more than this (s) after the previous one is a new goal, "
+              "not a stream sample.", positive, read_only=True),
+    ParamSpec("stream_jump", 0.05, "A goal farther than this (m) from where the stream was predicted is a "
+              "new goal, not a stream sample.", positive, read_only=True),
+    ParamSpec("stream_lead_s", 0.0, "Track a goal stream this far (s) ahead of now, to make up for the delay "
+              "between a command and the arm (driver interpolation, bus).", in_range(0.0, 0.5),
+              read_only=True),
+    ParamSpec("twist_timeout_s", 0.1, "A target_twist is held this long (s), then the hand decelerates.",
+              positive, read_only=True),
+    ParamSpec("tool_frame", "tool", "Frame name of twists given in the tool frame (others: base_frame).",
+              None, read_only=True),
+    ParamSpec("replan", True, "Re-plan in joint space when the route to a goal is a dead end (false: hold "
+              "there).", None, read_only=True),
 ]
 
 # ControllerState.phase strings (lower case) from the core's Phase (upper case names).
@@ -213,6 +233,10 @@ class ControllerNode(Node):
                 swivel_reference=p["swivel_reference"], swivel_mode=p["swivel_mode"],
                 pos_tolerance=float(p["pos_tolerance"]), ori_tolerance=float(p["ori_tolerance"]),
                 speed=SpeedParams(v_max=float(p["max_speed"])),
+                stream=StreamParams(gap=float(p["stream_gap_s"]), jump=float(p["stream_jump"]),
+                                    lead=float(p["stream_lead_s"])),
+                servo=ServoParams(twist_timeout=float(p["twist_timeout_s"])),
+                replan=ReplanParams(enabled=bool(p["replan"])),
             )
             self.ctl = ReachController(self.arm, self.base_scene, params)
         except (RedarmError, OSError) as exc:
@@ -235,6 +259,9 @@ class ControllerNode(Node):
         self._warned: dict[str, float] = {}
         self._last_phase: Phase | None = None
         self._last_message = ""
+        self._obstacles_published = -math.inf
+        self._scene_changed = True
+        self._obstacle_markers: list[Marker] = []
         self._last_result: Any = None
         self.steps = 0
         # Wiring.
@@ -242,6 +269,7 @@ class ControllerNode(Node):
         self.state_pub = self.create_publisher(ControllerState, "~/state", QoSProfile(depth=10))
         self.marker_pub = self.create_publisher(MarkerArray, "~/markers", QoSProfile(depth=2))
         self.create_subscription(PoseStamped, "goal_pose", self._on_goal, 10)
+        self.create_subscription(TwistStamped, "~/target_twist", self._on_twist, 10)
         self.create_subscription(MarkerArray, "obstacles", self._on_obstacles, 10)
         self.create_subscription(JointState, "joint_states", self._on_joint_states, 10)
         self.create_timer(self.period, self._on_timer)
@@ -289,6 +317,10 @@ class ControllerNode(Node):
         while self._meas_hist and self._t_meas - self._meas_hist[0][0] > STILL_WINDOW_S:
             self._meas_hist.pop(0)
 
+    def _now(self) -> float:
+        """ROS time (s): the clock of header stamps, given to the core with every goal and step."""
+        return self.get_clock().now().nanoseconds * 1e-9
+
     def _on_goal(self, msg: PoseStamped) -> None:
         if not self._frame_ok(msg.header.frame_id):
             self._reject_message(f"goal in frame {msg.header.frame_id!r} refused: give goals in "
@@ -299,25 +331,57 @@ class ControllerNode(Node):
         except InvalidInputError as exc:
             self._reject_message(f"goal refused: {exc}")
             return
+        stamp = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
         if not self._started:
             self._pending_goal = T
             self.get_logger().info("goal received before the first joint_states; it starts when the arm "
                                    "state is known")
             return
-        self._apply_goal(T)
+        self._apply_goal(T, stamp)
 
-    def _apply_goal(self, T: np.ndarray) -> None:
-        retarget = self.ctl.phase in (Phase.REACHING, Phase.HOLDING)
-        check = self.ctl.set_goal(T)
+    def _apply_goal(self, T: np.ndarray, stamp: float = 0.0) -> None:
+        """A goal message: the core decides whether it continues the goal stream or is a new goal."""
+        retarget = self.ctl.phase in (Phase.REACHING, Phase.HOLDING, Phase.TRACKING, Phase.REPLANNING)
+        was = self.ctl.goal_kind
+        check = self.ctl.goal_message(T, stamp, self._now())
         p = T[:3, 3]
         if check.accepted:
             self._goal_T = T
-            self.get_logger().info(f"{'retarget to' if retarget else 'new goal'} ({p[0]:.3f}, {p[1]:.3f}, "
-                                   f"{p[2]:.3f}) m")
+            if check.kind is GoalKind.STREAM:
+                if was is not GoalKind.STREAM:
+                    self.get_logger().info("goal stream: tracking it")
+            elif not check.repeat:
+                what = "retarget to" if retarget else "new goal"
+                self.get_logger().info(f"{what} ({p[0]:.3f}, {p[1]:.3f}, {p[2]:.3f}) m")
         else:
             self._goal_T = None
             self.get_logger().warning(f"goal ({p[0]:.3f}, {p[1]:.3f}, {p[2]:.3f}) m rejected "
                                       f"[{check.status.name}]: {check.message}; holding")
+
+    def _on_twist(self, msg: TwistStamped) -> None:
+        frame = msg.header.frame_id.lstrip("/")
+        lin = np.array([msg.twist.linear.x, msg.twist.linear.y, msg.twist.linear.z], float)
+        ang = np.array([msg.twist.angular.x, msg.twist.angular.y, msg.twist.angular.z], float)
+        if not (np.all(np.isfinite(lin)) and np.all(np.isfinite(ang))):
+            self._warn_throttled("twist-nan", "target_twist with NaN/inf ignored")
+            return
+        if not self._started:
+            self._warn_throttled("twist-early", "target_twist before the first joint_states ignored")
+            return
+        if frame and frame == self.get_parameter("tool_frame").value:
+            q = self.ctl.q
+            assert q is not None
+            R = np.asarray(self.arm.fk(q), float)[:3, :3]  # tool -> base
+            lin, ang = R @ lin, R @ ang
+        elif not self._frame_ok(frame):
+            self._warn_throttled("twist-frame", f"target_twist in frame {frame!r} ignored: give it in "
+                                 f"{self.get_parameter('base_frame').value!r} or "
+                                 f"{self.get_parameter('tool_frame').value!r} (no tf here)")
+            return
+        if self.ctl.goal_kind is not GoalKind.TWIST:
+            self.get_logger().info("target_twist: following it")
+        self.ctl.set_twist(lin, ang, self._now())
+        self._goal_T = None
 
     def _reject_message(self, text: str) -> None:
         """A goal message that never reached the core (bad frame, NaN): log it and report it on ~/state."""
@@ -357,6 +421,7 @@ class ControllerNode(Node):
             return
         scene = self.base_scene.with_obstacles(self._markers.values())
         check = self.ctl.set_scene(scene)
+        self._scene_changed = True
         self.get_logger().info(f"obstacles updated: {len(scene)} from the obstacles topic")
         if check is not None:
             self._goal_T = None
@@ -370,7 +435,7 @@ class ControllerNode(Node):
             return
         stale = now - self._t_meas > self.get_parameter("joint_states_timeout_s").value
         if not self._started:
-            self.ctl.reset(self._q_meas)
+            self.ctl.reset(self._q_meas, self._now())
             self._started = True
             self._last_step = now
             self.get_logger().info("arm state known; controller running")
@@ -384,7 +449,7 @@ class ControllerNode(Node):
         self._resync_if_needed()
         dt = min(max(now - self._last_step, 0.0), 2.0 * self.period)
         self._last_step = now
-        res = self.ctl.step(dt)
+        res = self.ctl.step(dt, self._now())
         self._last_dt = dt
         self.steps += 1
         self._last_result = res
@@ -394,14 +459,20 @@ class ControllerNode(Node):
                                        f"error {res.orientation_error:.2e} rad)")
             elif res.phase is Phase.HOLDING:
                 self.get_logger().warning(f"holding: {res.message}")
+            elif res.phase is Phase.REPLANNING:
+                self.get_logger().warning(res.message)
+            elif res.phase is Phase.BLOCKED:
+                self.get_logger().error(f"goal blocked: {res.message}")
             self._last_phase = res.phase
-        elif res.phase is Phase.REACHING and res.message and res.message != self._last_message:
-            # The core cannot make progress for a reason it states (e.g. a singular start pose).
-            self.get_logger().warning(f"not moving: {res.message}")
+        elif res.message and res.message != self._last_message and \
+                res.phase in (Phase.REACHING, Phase.TRACKING, Phase.REPLANNING):
+            # The core says why it cannot follow exactly (a stream too fast, out of reach; a re-plan).
+            self._warn_throttled(f"msg-{res.phase}", f"{res.phase.value.lower()}: {res.message}", 1.0)
         self._last_message = res.message
-        # Before the first goal nothing is commanded (the driver holds); afterwards every step is.
+        # Before the first goal nothing is commanded (the driver holds); afterwards every step is, and
+        # after the goal is dropped until the arm has stopped.
         moving = self._last_cmd is not None and float(np.max(np.abs(res.q - self._last_cmd))) > 1e-12
-        if moving or res.phase in (Phase.REACHING, Phase.REACHED, Phase.HOLDING):
+        if moving or res.phase not in (Phase.IDLE, Phase.REJECTED):
             self._publish_command(res.q)
         self.state_pub.publish(self._state_msg(res))
 
@@ -420,8 +491,8 @@ class ControllerNode(Node):
             return
         if float(np.max(np.ptp(np.array([h[1] for h in hist]), axis=0))) > STILL_TOLERANCE:
             return
-        goal = self._goal_T
-        self.ctl.reset(self._q_meas)
+        goal = self._goal_T if self.ctl.goal_kind is GoalKind.POINT else None
+        self.ctl.reset(self._q_meas, self._now())
         self._last_cmd = None
         if goal is not None:
             self._warn_throttled("resync", f"arm is {dev:.3f} rad away from the command; re-planning from "
@@ -468,6 +539,12 @@ class ControllerNode(Node):
         st.distance_to_goal = float(res.distance_to_goal)
         st.orientation_error = float(res.orientation_error)
         st.message = res.message
+        kind = self.ctl.goal_kind
+        st.goal_kind = "" if kind is None else kind.value
+        v, w = res.goal_velocity, res.goal_rate
+        st.goal_velocity.linear.x, st.goal_velocity.linear.y, st.goal_velocity.linear.z = v
+        st.goal_velocity.angular.x, st.goal_velocity.angular.y, st.goal_velocity.angular.z = w
+        st.stream_rate = float(res.stream_rate)
         goal = self.ctl.goal
         if goal is not None:
             (gx, gy, gz), (w, x, y, z) = goal
@@ -520,14 +597,24 @@ class ControllerNode(Node):
             m.scale.x, m.scale.y, m.scale.z = 0.01, 0.02, 0.03
             m.points = [_pt((gx, gy, gz)), _pt(np.array([gx, gy, gz]) + 0.1 * R[:, 2])]
         scene = self.ctl.scene
-        for i, o in enumerate(scene.obstacles):
-            out.append(obstacle_to_marker(o, frame, "obstacles", i))
-            out[-1].header.stamp = stamp
+        now = time.monotonic()
+        keep: set[tuple[str, int]] = set()
+        if now - self._obstacles_published >= OBSTACLE_MARKERS_S or self._scene_changed:
+            # RViz keeps markers: the (possibly many) obstacles are re-sent only when they change and
+            # every OBSTACLE_MARKERS_S, not at the marker rate; built once per scene (stamp 0: latest).
+            if self._scene_changed or len(self._obstacle_markers) != len(scene.obstacles):
+                self._obstacle_markers = [obstacle_to_marker(o, frame, "obstacles", i)
+                                          for i, o in enumerate(scene.obstacles)]
+            out.extend(self._obstacle_markers)
+            self._obstacles_published = now
+            self._scene_changed = False
+        else:
+            keep = {k for k in self._last_marker_ids if k[0] == "obstacles"}
         if scene.table_height is not None:
             m = marker("table", 0, Marker.CUBE, "table")
             m.pose.position = _pt((0.5, 0.0, scene.table_height - 0.01))
             m.scale.x, m.scale.y, m.scale.z = 1.6, 1.6, 0.02
-        ids = {(mk.ns, mk.id) for mk in out}
+        ids = {(mk.ns, mk.id) for mk in out} | keep
         for ns, mid in self._last_marker_ids - ids:  # e.g. an obstacle deleted, the goal gone
             d = Marker()
             d.header.frame_id, d.header.stamp = frame, stamp

@@ -1,0 +1,846 @@
+"""Track benchmark: goal streams followed by the controller, in-process (and one run through the stack).
+
+A goal stream is what a teleoperation device, a planner or a perception loop publishes on
+``/goal_pose``: poses along a path, stamped at their sample time, at 10 / 50 / 100 Hz. Paths (PA10 on
+a table, tool pointing down unless stated):
+
+  circle-0.08/0.16/0.30   r = 0.1 m horizontal circle at (0.7, 0, 0.2), cruise speed in m/s, one turn
+  figure-eight            0.24 x 0.12 m lemniscate at (0.68, 0, 0.22), 0.16 m/s
+  line                    0.2 m back and forth along y (cosine, peak 0.16 m/s), two round trips
+  min-jerk-vias           5 random via points (seeded), min-jerk segments, the tool turning 45 deg
+  elbow-obstacle          circle-0.16 with a ball placed beside the elbow of the path
+  ... stopped at t s      the stream stops at full speed (the only paths that do not end at rest)
+
+Every path starts and ends at rest (cruise speed reached by a smooth 0.5 s ramp), so "overshoot at
+the stop" is the controller's, not the path's; two paths stop their stream at full speed instead.
+Stream variants: ``clean`` (exact stamps, arrival = stamp) and ``jitter`` (5 % of the messages
+dropped, stamps off by up to +-5 ms, arrival 0-5 ms late, 2 % of the messages one period late, i.e.
+out of order).
+
+Methods (same arm limits, same start posture, same messages):
+
+  servo   ReachController: a stream is told apart from new goals and tracked by the servo with
+          the stream's velocity (estimated from the stamps) fed forward (phase TRACKING)
+  point   the behaviour before goal streams: every message is a new point goal, reached by the
+          attractor dynamics (it retargets smoothly)
+  dls     a damped-least-squares differential-IK servo (MoveIt Servo's method): pose error times
+          a gain plus the same stream-velocity estimate fed forward, through J^T (J J^T + l^2 I)^-1,
+          the joint-velocity vector scaled down uniformly to the velocity and acceleration limits;
+          no collision model (MoveIt Servo's collision check would stop the arm, not avoid)
+
+Scores, from the commanded joints (FK, capsules): position error |tool(t) - path(t)| in mm while the
+stream runs (median / p95 / max), orientation error (deg, median / p95), lag (the time shift of the
+path that fits the tool best, ms), overshoot past the last goal along the final direction of motion
+(mm, within 2 s after the stream stops), the error 2 s after the stop (mm), smallest clearance (m),
+largest joint speed and acceleration over their limits.
+
+    .venv/bin/python benchmarks/track_bench.py     # full in-process run, writes results/track_bench.md
+    .venv/bin/python benchmarks/track_bench.py --quick --no-write
+    scripts/ros_sandbox.sh .venv/bin/python benchmarks/track_bench.py --stack   # + one run through the stack
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import platform
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from redarm_ros.control.obstacles import ArmCapsules, Scene, Sphere, min_distance
+from redarm_ros.control.params import ControllerParams, StreamParams
+from redarm_ros.control.reach_controller import ReachController
+from redarm_ros.control.rotations import quat_from_matrix, quat_from_rotvec, quat_mul, rotvec_between
+from redarm_ros.control.stream import StreamEstimator
+from redarm_ros.kinematics import load_arm
+from redarm_ros.kinematics.quaternion import quat_to_matrix
+
+DT = 0.01
+RESULTS = Path(__file__).resolve().parent / "results" / "track_bench.md"
+R_DOWN = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])
+Q_HINT = np.array([0.0, 0.5, 0.0, 1.3, 0.0, 1.0, 0.0])
+SETTLE_S = 3.0  # the arm rests at the path start this long before the stream (the elbow settles)
+AFTER_S = 2.0  # how long the run goes on after the last message
+
+
+# ------------------------------------------------------------------------------------------------
+# Paths
+# ------------------------------------------------------------------------------------------------
+@dataclass
+class PathDef:
+    """A timed path: ``pose(t)`` (4x4) for t in [0, duration] s, at rest at both ends."""
+
+    name: str
+    pose: Callable[[float], np.ndarray]
+    duration: float
+    scene: Scene = field(default_factory=lambda: Scene((), 0.0))
+    q0: np.ndarray | None = None  # start posture (default: where the controller settles at the start)
+
+
+def _ramp_arc(length: float, v: float, t_ramp: float = 0.5) -> tuple[Callable[[float], float], float]:
+    """Arc length s(t) for a cruise at ``v`` with smooth (smoothstep-speed) ramps at both ends."""
+    d_ramp = 0.5 * v * t_ramp
+    t_cruise = max(length - 2.0 * d_ramp, 0.0) / v
+    total = 2.0 * t_ramp + t_cruise
+
+    def s_of(t: float) -> float:
+        t = min(max(t, 0.0), total)
+        if t < t_ramp:
+            x = t / t_ramp
+            return v * t_ramp * (x**3 - 0.5 * x**4)
+        if t < t_ramp + t_cruise:
+            return d_ramp + v * (t - t_ramp)
+        x = (total - t) / t_ramp
+        return length - v * t_ramp * (x**3 - 0.5 * x**4)
+
+    return s_of, total
+
+
+def _curve_path(
+    name: str,
+    curve: Callable[[float], np.ndarray],
+    v: float,
+    rot: Callable[[float], np.ndarray] | None = None,
+) -> PathDef:
+    """A closed or open curve ``curve(u)``, u in [0, 1], traversed with :func:`_ramp_arc`."""
+    u = np.linspace(0.0, 1.0, 4001)
+    pts = np.array([curve(x) for x in u])
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
+    s_of, total = _ramp_arc(float(arc[-1]), v)
+
+    def pose(t: float) -> np.ndarray:
+        s = s_of(t)
+        x = float(np.interp(s, arc, u))
+        T = np.eye(4)
+        T[:3, :3] = R_DOWN if rot is None else rot(t / total)
+        T[:3, 3] = curve(x)
+        return T
+
+    return PathDef(name, pose, total)
+
+
+def circle(v: float, center: tuple[float, float, float] = (0.7, 0.0, 0.2), r: float = 0.1) -> PathDef:
+    c = np.asarray(center)
+    return _curve_path(
+        f"circle-{v:.2f}",
+        lambda x: c + r * np.array([math.cos(2 * math.pi * x), math.sin(2 * math.pi * x), 0.0]),
+        v,
+    )
+
+
+def abrupt(path: PathDef, at: float) -> PathDef:
+    """``path`` whose stream stops at ``at`` s, at full speed (no slowing down)."""
+    return PathDef(f"{path.name} stopped at {at:g} s", path.pose, at, path.scene)
+
+
+def figure_eight(v: float = 0.16) -> PathDef:
+    c = np.array([0.68, 0.0, 0.22])
+    return _curve_path(
+        "figure-eight",
+        lambda x: c + np.array([0.06 * math.sin(4 * math.pi * x), 0.12 * math.sin(2 * math.pi * x), 0.0]),
+        v,
+    )
+
+
+def line(v: float = 0.16, amp: float = 0.1, trips: int = 2) -> PathDef:
+    c = np.array([0.65, 0.0, 0.2])
+    w = v / amp
+    total = trips * 2.0 * math.pi / w
+
+    def pose(t: float) -> np.ndarray:
+        t = min(max(t, 0.0), total)
+        T = np.eye(4)
+        T[:3, :3] = R_DOWN
+        T[:3, 3] = c + np.array([0.0, -amp * math.cos(w * t), 0.0])
+        return T
+
+    return PathDef("line", pose, total)
+
+
+def _min_jerk(x: float) -> float:
+    x = min(max(x, 0.0), 1.0)
+    return 10 * x**3 - 15 * x**4 + 6 * x**5
+
+
+def min_jerk_vias(seed: int = 3, n: int = 5, speed: float = 0.12, turn_deg: float = 45.0) -> PathDef:
+    rng = np.random.default_rng(seed)
+    c = np.array([0.65, 0.0, 0.25])
+    vias = [c + np.array([0.0, -0.15, 0.0])]
+    while len(vias) < n:
+        p = c + rng.uniform([-0.12, -0.2, -0.1], [0.12, 0.2, 0.1])
+        if np.linalg.norm(p - vias[-1]) > 0.08:
+            vias.append(p)
+    durs = [max(0.8, 1.875 * np.linalg.norm(b - a) / speed) for a, b in zip(vias[:-1], vias[1:], strict=True)]
+    starts = np.concatenate([[0.0], np.cumsum(durs)])
+    total = float(starts[-1])
+    axis = np.array([math.cos(rng.uniform(0, 2 * math.pi)), math.sin(rng.uniform(0, 2 * math.pi)), 0.0])
+    axis /= np.linalg.norm(axis)
+    q0 = quat_from_matrix(R_DOWN)
+    rv = axis * math.radians(turn_deg)
+
+    def pose(t: float) -> np.ndarray:
+        t = min(max(t, 0.0), total)
+        k = min(int(np.searchsorted(starts, t, side="right")) - 1, len(durs) - 1)
+        a = _min_jerk((t - starts[k]) / durs[k])
+        p = vias[k] + a * (vias[k + 1] - vias[k])
+        f = _min_jerk(t / total)
+        qr = quat_mul(quat_from_rotvec(tuple(f * rv)), q0)
+        T = np.eye(4)
+        T[:3, :3] = quat_to_matrix(qr)
+        T[:3, 3] = p
+        return T
+
+    return PathDef("min-jerk-vias", pose, total)
+
+
+# ------------------------------------------------------------------------------------------------
+# Streams
+# ------------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Message:
+    """A goal message: ``arrive`` (s, receive clock), ``stamp`` (s, header), ``t`` (s, sample time)."""
+
+    arrive: float
+    stamp: float
+    t: float
+
+
+def make_stream(duration: float, rate: float, variant: str, seed: int) -> list[Message]:
+    """The messages of a stream of ``duration`` s at ``rate`` Hz (``clean`` or ``jitter``)."""
+    rng = np.random.default_rng(seed)
+    n = int(math.floor(duration * rate + 1e-9))
+    times = [min(i / rate, duration) for i in range(n + 1)]
+    if times[-1] < duration - 1e-9:
+        times.append(duration)  # the last goal is the path's end
+    out = []
+    for i, ts in enumerate(times):
+        if variant == "clean":
+            out.append(Message(ts, ts, ts))
+            continue
+        last = i in (0, len(times) - 1)
+        if not last and rng.random() < 0.05:
+            continue
+        stamp = ts + rng.uniform(-0.005, 0.005)
+        arrive = ts + rng.uniform(0.0, 0.005) + (1.0 / rate if (not last and rng.random() < 0.02) else 0.0)
+        out.append(Message(arrive, stamp, ts))
+    out.sort(key=lambda m: m.arrive)
+    return out
+
+
+# ------------------------------------------------------------------------------------------------
+# Methods
+# ------------------------------------------------------------------------------------------------
+class DLSServo:
+    """Damped-least-squares differential IK with the stream's velocity fed forward; joint velocity
+    vector scaled uniformly to the velocity and acceleration limits; position limits by braking."""
+
+    def __init__(self, arm, gain: float = 20.0, damping: float = 0.05) -> None:
+        self.arm = arm
+        self.gain = gain
+        self.damping = damping
+        self.est = StreamEstimator(StreamParams())
+        self.vmax = np.asarray(arm.max_vel, float)
+        self.amax = np.asarray(arm.max_acc, float)
+        self.lower = np.asarray(arm.lower, float)
+        self.upper = np.asarray(arm.upper, float)
+        self.q = np.zeros(7)
+        self.qd = np.zeros(7)
+
+    def reset(self, q: np.ndarray) -> None:
+        self.q = q.copy()
+        self.qd = np.zeros(7)
+
+    def message(self, T: np.ndarray, stamp: float, now: float) -> None:
+        p = (float(T[0, 3]), float(T[1, 3]), float(T[2, 3]))
+        self.est.add(p, quat_from_matrix(T[:3, :3]), self.est.stamp_time(stamp, now), now)
+
+    def step(self, now: float) -> np.ndarray:
+        # The command is for ``now``: correct towards where the goal was a step ago and feed its
+        # velocity forward, so the step lands on the goal of now (no lead, no lag).
+        pred = self.est.predict(now - DT, now)
+        if pred is None:
+            return self.q.copy()
+        Tq = self.arm.fk(self.q)
+        e_p = np.asarray(pred.pos) - Tq[:3, 3]
+        e_r = np.asarray(rotvec_between(quat_from_matrix(Tq[:3, :3]), pred.rot))
+        v = np.concatenate([np.asarray(pred.vel) + self.gain * e_p, np.asarray(pred.w) + self.gain * e_r])
+        J = self.arm.jacobian(self.q)
+        qd = J.T @ np.linalg.solve(J @ J.T + self.damping**2 * np.eye(6), v)
+        # Uniform scaling keeps the direction (MoveIt Servo scales the whole command).
+        s = 1.0
+        s = min(s, float(np.min(self.vmax / np.maximum(np.abs(qd), 1e-12))))
+        dv = qd - self.qd
+        over = np.abs(dv) / (self.amax * DT)
+        if np.max(over) > 1.0:  # the acceleration limit: move the velocity towards qd as far as allowed
+            qd = self.qd + dv / float(np.max(over))
+        qd = qd * min(s, 1.0)
+        # Position limits: brake in time.
+        room_hi = np.sqrt(2.0 * self.amax * np.maximum(self.upper - self.q, 0.0))
+        room_lo = -np.sqrt(2.0 * self.amax * np.maximum(self.q - self.lower, 0.0))
+        qd = np.clip(qd, room_lo, room_hi)
+        dq = np.clip(qd - self.qd, -self.amax * DT, self.amax * DT)
+        qd = np.clip(self.qd + dq, -self.vmax, self.vmax)
+        self.q = np.clip(self.q + qd * DT, self.lower, self.upper)
+        self.qd = qd
+        return self.q.copy()
+
+
+@dataclass
+class Run:
+    """The commanded joints of one run and when the stream ran."""
+
+    q: np.ndarray  # (k, 7), one row per step, the first at the stream's start
+    t: np.ndarray  # (k,) s since the stream's first sample
+    step_s: list[float]
+    phases: set[str]
+    messages: set[str]
+
+
+def settle_start(arm, path: PathDef) -> np.ndarray:
+    """The posture our controller settles in at the path start (used by every method)."""
+    ctl = ReachController(arm, path.scene)
+    q0, _ = arm.ik_nearest(path.pose(0.0), Q_HINT)
+    ctl.reset(q0, now=0.0)
+    ctl.set_goal(path.pose(0.0))
+    for k in range(int(SETTLE_S / DT)):
+        ctl.step(DT, (k + 1) * DT)
+    q = ctl.q
+    assert q is not None
+    return q
+
+
+def run_method(method: str, arm, path: PathDef, msgs: list[Message], q0: np.ndarray) -> Run:
+    end = path.duration + AFTER_S
+    n = int(round(end / DT))
+    rows = [q0.copy()]
+    times = [0.0]
+    steps: list[float] = []
+    phases: set[str] = set()
+    notes: set[str] = set()
+    mi = 0
+    if method == "dls":
+        dls = DLSServo(arm)
+        dls.reset(q0)
+        for k in range(1, n + 1):
+            t = k * DT
+            while mi < len(msgs) and msgs[mi].arrive <= t + 1e-9:
+                m = msgs[mi]
+                dls.message(path.pose(m.t), m.stamp, m.arrive)
+                mi += 1
+            t0 = time.perf_counter()
+            rows.append(dls.step(t))
+            steps.append(time.perf_counter() - t0)
+            times.append(t)
+        return Run(np.array(rows), np.array(times), steps, {"-"}, set())
+    params = ControllerParams()
+    if method == "point":  # every message a new point goal (no stream)
+        params = params.with_(stream=StreamParams(gap=1e-6))
+    ctl = ReachController(arm, path.scene, params)
+    ctl.reset(q0, now=0.0)
+    for k in range(1, n + 1):
+        t = k * DT
+        while mi < len(msgs) and msgs[mi].arrive <= t + 1e-9:
+            m = msgs[mi]
+            ctl.goal_message(path.pose(m.t), m.stamp, m.arrive)
+            mi += 1
+        t0 = time.perf_counter()
+        r = ctl.step(DT, t)
+        steps.append(time.perf_counter() - t0)
+        rows.append(r.q)
+        times.append(t)
+        phases.add(r.phase.value)
+        if r.message:
+            notes.add(r.message.split(":")[0])
+    return Run(np.array(rows), np.array(times), steps, phases, notes)
+
+
+# ------------------------------------------------------------------------------------------------
+# Scores
+# ------------------------------------------------------------------------------------------------
+@dataclass
+class Score:
+    pos: np.ndarray  # mm, per step while the stream runs
+    ori: np.ndarray  # deg
+    lag_ms: float
+    overshoot_mm: float
+    final_mm: float
+    min_clear: float
+    vel_ratio: float
+    acc_ratio: float
+    step_us: np.ndarray
+
+
+def _angle(Ra: np.ndarray, Rb: np.ndarray) -> float:
+    return math.degrees(math.acos(max(-1.0, min(1.0, (np.trace(Ra.T @ Rb) - 1.0) / 2.0))))
+
+
+def score(arm, path: PathDef, run: Run) -> Score:
+    Ts = arm.fk_batch(run.q)
+    tool = Ts[:, :3, 3]
+    live = run.t <= path.duration + 1e-9
+    ref = np.array([path.pose(t) for t in run.t])
+    pos = np.linalg.norm(tool - ref[:, :3, 3], axis=1)[live] * 1e3
+    ori = np.array([_angle(Ts[i, :3, :3], ref[i, :3, :3]) for i in range(len(run.t))])[live]
+    # Lag: the shift of the path (ms) that fits the tool best during the stream.
+    best = (math.inf, 0.0)
+    for tau in np.arange(-0.05, 0.301, 0.002):
+        shifted = np.array([path.pose(t - tau)[:3, 3] for t in run.t[live]])
+        m = float(np.mean(np.linalg.norm(tool[live] - shifted, axis=1)))
+        if m < best[0]:
+            best = (m, tau)
+    end = path.pose(path.duration)[:3, 3]
+    before = path.pose(max(path.duration - 0.3, 0.0))[:3, 3]
+    u = end - before
+    after = tool[~live]
+    if np.linalg.norm(u) > 1e-6 and len(after):
+        over = max(0.0, float(np.max((after - end) @ (u / np.linalg.norm(u))))) * 1e3
+    else:
+        over = 0.0
+    final = float(np.linalg.norm(tool[-1] - end)) * 1e3
+    caps = ArmCapsules()
+    clear = min(min_distance(arm, q, path.scene, caps).distance for q in run.q[::2])
+    dq = np.diff(run.q, axis=0)
+    vel = float(np.max(np.abs(dq) / (np.asarray(arm.max_vel) * DT)))
+    acc = float(np.max(np.abs(np.diff(run.q, n=2, axis=0)) / (np.asarray(arm.max_acc) * DT * DT)))
+    return Score(pos, ori, best[1] * 1e3, over, final, clear, vel, acc, np.asarray(run.step_s) * 1e6)
+
+
+def elbow_obstacle_path(arm) -> PathDef:
+    """circle-0.16 with a ball beside the elbow: 2 cm into the forearm capsule (next to the elbow) of
+    both the servo's
+    and the DLS servo's obstacle-free runs at the same moment (mid-path), on the outer side, and far
+    from the hand's path, so that an arm that does not use its redundancy hits it."""
+    base = circle(0.16)
+    q0 = settle_start(arm, base)
+    msgs = make_stream(base.duration, 50.0, "clean", 0)
+    runs = [run_method(m, arm, base, msgs, q0) for m in ("servo", "dls")]
+    r = 0.05
+    reach = ArmCapsules().radii[2] + r - 0.02
+    best = None
+    for i in range(int(0.5 * base.duration / DT), int((base.duration - 0.3) / DT), 5):
+        kps = [arm.key_points(run.q[i]) for run in runs]
+        for frac in (0.05, 0.15):
+            pts = [kp[2] + frac * (kp[3] - kp[2]) for kp in kps]
+            mid = 0.5 * (pts[0] + pts[1])
+            side = np.cross(kps[0][3] - kps[0][2], [0.0, 0.0, 1.0])
+            for sgn in (1.0, -1.0):
+                c = mid + sgn * side / np.linalg.norm(side) * reach
+                depth = [reach - float(np.linalg.norm(c - p)) for p in pts]
+                far = min(np.linalg.norm(c - base.pose(t)[:3, 3]) for t in np.linspace(0, base.duration, 100))
+                if far < 0.15 or min(depth) < -0.005:
+                    continue
+                ball = Scene((Sphere(tuple(c), r, "ball"),), 0.0)
+                start = min(
+                    min_distance(arm, q, ball).distance for q in runs[0].q[: int(0.4 * base.duration / DT)]
+                )
+                if start < 0.04:  # the stream starts clear of it
+                    continue
+                key = min(depth)
+                if best is None or key > best[0]:
+                    best = (key, c)
+    assert best is not None, "no place for the ball beside both elbows"
+    return PathDef(
+        "elbow-obstacle", base.pose, base.duration, Scene((Sphere(tuple(best[1]), r, "ball"),), 0.0), q0
+    )
+
+
+# ------------------------------------------------------------------------------------------------
+# Report
+# ------------------------------------------------------------------------------------------------
+def _row(name: str, rate: float, variant: str, method: str, s: Score) -> str:
+    return (
+        f"| {name} | {rate:g} | {variant} | {method} | {np.median(s.pos):.2f} | "
+        f"{np.percentile(s.pos, 95):.2f} | "
+        f"{np.max(s.pos):.2f} | {np.median(s.ori):.2f} / {np.percentile(s.ori, 95):.2f} | {s.lag_ms:.0f} | "
+        f"{s.overshoot_mm:.2f} | {s.final_mm:.2f} | {s.min_clear:.3f} | "
+        f"{s.vel_ratio:.2f} / {s.acc_ratio:.2f} |"
+    )
+
+
+HEADER = (
+    "| path | Hz | stream | method | pos err median mm | p95 mm | max mm | ori err median / p95 deg | "
+    "lag ms | overshoot at stop mm | error 2 s after stop mm | min clearance m | max joint vel / acc "
+    "ratio |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|"
+)
+
+
+def in_process(args: argparse.Namespace) -> tuple[list[str], dict[str, list[float]]]:
+    arm = load_arm("pa10")
+    if args.quick:
+        cases = [(circle(0.16), [50.0], ["clean", "jitter"]), (circle(0.30), [50.0], ["clean"])]
+        methods = ["servo", "point", "dls"]
+    else:
+        cases = [
+            (circle(0.08), [10.0, 50.0, 100.0], ["clean", "jitter"]),
+            (circle(0.16), [10.0, 50.0, 100.0], ["clean", "jitter"]),
+            (circle(0.30), [10.0, 50.0, 100.0], ["clean", "jitter"]),
+            (figure_eight(), [50.0], ["clean", "jitter"]),
+            (line(), [50.0], ["clean", "jitter"]),
+            (min_jerk_vias(), [10.0, 50.0, 100.0], ["clean", "jitter"]),
+            (abrupt(circle(0.16), 2.0), [50.0, 100.0], ["clean"]),
+            (abrupt(circle(0.30), 1.5), [50.0, 100.0], ["clean"]),
+        ]
+        methods = ["servo", "point", "dls"]
+    cases.append((elbow_obstacle_path(arm), [50.0], ["clean"]))
+    lines = [HEADER]
+    steps: dict[str, list[float]] = {m: [] for m in methods}
+    for path, rates, variants in cases:
+        q0 = settle_start(arm, path) if path.q0 is None else path.q0
+        for rate in rates:
+            for variant in variants:
+                msgs = make_stream(path.duration, rate, variant, seed=int(rate) * 7 + len(variant))
+                for method in methods:
+                    r = run_method(method, arm, path, msgs, q0)
+                    s = score(arm, path, r)
+                    steps[method] += list(s.step_us)
+                    lines.append(_row(path.name, rate, variant, method, s))
+                    if args.verbose:
+                        print(lines[-1], sorted(r.phases), sorted(r.messages), flush=True)
+    return lines, steps
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--quick", action="store_true", help="smoke run: circle 0.16 and 0.30 m/s at 50 Hz")
+    ap.add_argument("--no-write", action="store_true", help="do not write benchmarks/results/track_bench.md")
+    ap.add_argument(
+        "--stack", action="store_true", help="also one run through the whole stack (ROS, CAN, sim)"
+    )
+    ap.add_argument("--stack-only", action="store_true", help="only the run through the stack")
+    ap.add_argument(
+        "--stack-leads",
+        type=lambda v: [float(x) for x in v.split(",")],
+        default=[0.0],
+        help="stream_lead_s values for the stack run (comma-separated, default 0)",
+    )
+    ap.add_argument("--verbose", action="store_true")
+    args = ap.parse_args(argv)
+    header = [
+        "# Track benchmark (`benchmarks/track_bench.py`)",
+        "",
+        __doc__.split("    .venv/bin/python")[0].strip(),
+        "",
+    ]
+    sections: dict[str, list[str]] = {}
+    if not args.stack_only:
+        load0, t0 = os.getloadavg(), time.time()
+        lines, steps = in_process(args)
+        title = "## In-process (the controller core at 100 Hz, commanded joints scored)"
+        if args.quick:
+            title += " -- quick"
+        body = ["", *lines, ""]
+        body.append(
+            "Controller step time (wall clock, all runs): "
+            + ", ".join(
+                f"{m} median {np.median(v):.0f} us / p99 {np.percentile(v, 99):.0f} us"
+                for m, v in steps.items()
+                if v
+            )
+        )
+        body += ["", _load_line(load0, t0), ""]
+        sections[title] = body
+    if args.stack or args.stack_only:
+        load0, t0 = os.getloadavg(), time.time()
+        title, body = stack_run(args)
+        sections[title] = [*body, _load_line(load0, t0), ""]
+    if args.no_write:
+        text = "\n".join(header + [line for k, v in sections.items() for line in [k, *v]] + [NOT_COVERED])
+    else:
+        text = write_sections(RESULTS, header, sections, NOT_COVERED)
+    print(text)
+    return 0
+
+
+# ------------------------------------------------------------------------------------------------
+# Through the stack (ROS 2 nodes, CAN bus, simulator as separate processes)
+# ------------------------------------------------------------------------------------------------
+class StackClient:
+    """An ordinary ROS client of the stack started by :class:`redarm_ros.bringup.Stack`: goals out,
+    joint states and controller state in (rclpy imported only here). Also used by sequence_bench."""
+
+    def __init__(self, stack_cfg: dict | None = None) -> None:
+        import rclpy
+        from geometry_msgs.msg import PoseStamped
+        from rclpy.executors import SingleThreadedExecutor
+        from redarm_interfaces.msg import ControllerState
+        from sensor_msgs.msg import JointState
+        from std_srvs.srv import Trigger
+
+        from redarm_ros.bringup import Stack, StackConfig
+
+        self.arm = load_arm("pa10")
+        kw = {
+            "arm": "pa10",
+            "log_level": "warn",
+            "ready_timeout_s": 90.0,
+            "extra_args": {"sim": ["--status-rate", "100"]},
+        }
+        kw.update(stack_cfg or {})
+        cfg = StackConfig(**kw)
+        self._lines: list[str] = []
+        self.stack = Stack(cfg, sink=self._lines.append)
+        self.stack.start()
+        self.rclpy = rclpy
+        self.ctx = rclpy.Context()
+        rclpy.init(context=self.ctx, domain_id=self.stack.domain_id)
+        self.node = rclpy.create_node("bench_client", context=self.ctx)
+        self.ex = SingleThreadedExecutor(context=self.ctx)
+        self.ex.add_node(self.node)
+        self.PoseStamped = PoseStamped
+        self.CS = ControllerState
+        self.Trigger = Trigger
+        self.goal_pub = self.node.create_publisher(PoseStamped, "goal_pose", 50)
+        self.recover_cli = self.node.create_client(Trigger, "/can_driver/recover")
+        self.states: list = []
+        self.joints: list[tuple[float, np.ndarray]] = []  # (header stamp s, positions)
+        self.node.create_subscription(ControllerState, "/controller/state", self.states.append, 200)
+        self.node.create_subscription(JointState, "joint_states", self._on_js, 500)
+        self._names = list(self.arm.joint_names)
+        self._seen_halts = 0
+
+    def _on_js(self, msg) -> None:
+        pos = dict(zip(msg.name, msg.position, strict=False))
+        if all(n in pos for n in self._names):
+            t = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+            self.joints.append((t, np.array([pos[n] for n in self._names])))
+
+    def now(self) -> float:
+        return self.node.get_clock().now().nanoseconds * 1e-9
+
+    def spin_until(self, cond: Callable[[], bool], timeout: float) -> bool:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            self.ex.spin_once(timeout_sec=0.002)
+            if cond():
+                return True
+        return False
+
+    def halts(self) -> int:
+        return sum("HALTED:" in line for line in self._lines)
+
+    def ensure_running(self) -> None:
+        """Recover the driver if it halted since the last look (a starved machine at bring-up)."""
+        if self.halts() > self._seen_halts:
+            for _ in range(3):
+                if self.recover():
+                    break
+                self.spin_until(lambda: False, 1.0)
+            self.spin_until(lambda: False, 1.0)  # the controller restarts from the still arm
+        self._seen_halts = self.halts()
+
+    def recover(self) -> bool:
+        if not self.spin_until(self.recover_cli.service_is_ready, 5.0):
+            return False
+        fut = self.recover_cli.call_async(self.Trigger.Request())
+        return self.spin_until(fut.done, 20.0) and bool(fut.result().success)
+
+    def send(self, T: np.ndarray, stamp: float | None = None) -> None:
+        msg = self.PoseStamped()
+        msg.header.frame_id = "base_link"
+        st = self.now() if stamp is None else stamp
+        msg.header.stamp.sec = int(st)
+        msg.header.stamp.nanosec = int((st - int(st)) * 1e9)
+        msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = (float(v) for v in T[:3, 3])
+        w, x, y, z = quat_from_matrix(T[:3, :3])
+        o = msg.pose.orientation
+        o.x, o.y, o.z, o.w = x, y, z, w
+        self.goal_pub.publish(msg)
+
+    def reach(self, T: np.ndarray, timeout: float) -> tuple[bool, float]:
+        """Send a point goal and wait for REACHED of it; returns (reached, seconds). If the driver
+        halted the arm meanwhile (a starved machine), recover and send the goal again (twice at most;
+        the halts are counted in :meth:`halts`)."""
+        t0 = time.monotonic()
+        ok = False
+        for _ in range(3):
+            self.ensure_running()
+            n = len(self.states)
+            h0 = self.halts()
+            self.send(T)
+
+            def done(n: int = n) -> bool:
+                return any(
+                    s.phase == self.CS.REACHED
+                    and abs(s.goal.position.x - T[0, 3]) < 1e-6
+                    and abs(s.goal.position.y - T[1, 3]) < 1e-6
+                    for s in self.states[n:]
+                )
+
+            ok = self.spin_until(done, timeout)
+            self.spin_until(lambda: False, 0.2)
+            if self.halts() == h0:
+                break
+            ok = False
+        return ok, time.monotonic() - t0
+
+    def sim_tool(self) -> tuple[float, np.ndarray, np.ndarray] | None:
+        st = self.stack.sim_status()
+        if not st:
+            return None
+        return float(st["wall_time"]), np.asarray(st["tool"]["position"], float), np.asarray(st["q"], float)
+
+    def close(self) -> None:
+        try:
+            self.ex.shutdown()
+            self.node.destroy_node()
+            self.rclpy.shutdown(context=self.ctx)
+        finally:
+            self.stack.close()
+
+
+def stack_run(args: argparse.Namespace) -> tuple[str, list[str]]:
+    """circle-0.16 at 50 Hz through the stack; the simulated tool (pybullet, from the simulator's
+    status at 100 Hz) and FK of /joint_states (the modules' measured positions) are scored."""
+    title = "## Through the stack (bring-up: bus server, simulator, can_driver, ik_service, controller)"
+    out = [""]
+    rows = [
+        "| path | Hz | stream lead s | measured on | samples | pos err median mm | p95 mm | max mm | "
+        "lag ms | "
+        "overshoot at stop mm | error 2 s after stop mm | driver halts |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    path = circle(0.16)
+    for lead in args.stack_leads:
+        c = StackClient(
+            {
+                "extra_args": {
+                    "sim": ["--status-rate", "100"],
+                    "controller": ["-p", f"stream_lead_s:={lead:g}"],
+                }
+            }
+        )
+        try:
+            if not c.spin_until(lambda c=c: len(c.joints) > 5 and len(c.states) > 0, 60.0):
+                raise RuntimeError("no joint_states / controller state from the stack")
+            # From the homed (stretched) pose the controller moves in joint space by itself.
+            ok, _ = c.reach(path.pose(0.0), 40.0)
+            if not ok and c.halts():
+                c.recover()
+                ok, _ = c.reach(path.pose(0.0), 40.0)
+            if not ok:
+                raise RuntimeError(f"the start of the path was not reached: {c.states[-1].message}")
+            c.spin_until(lambda: False, 2.0)  # the elbow settles
+            c.joints.clear()
+            sim: list[tuple[float, np.ndarray]] = []
+            t0 = c.now() + 0.05
+            k = 0
+            period = 1.0 / 50.0
+            last_poll = 0.0
+            while True:
+                now = c.now()
+                t = now - t0
+                if t >= k * period and k * period <= path.duration + 1e-9:
+                    ts = min(k * period, path.duration)
+                    c.send(path.pose(ts), t0 + ts)
+                    k += 1
+                if now - last_poll >= 0.01:
+                    last_poll = now
+                    st = c.sim_tool()
+                    if st is not None and (not sim or st[0] != sim[-1][0]):
+                        sim.append((st[0], st[1]))
+                if t > path.duration + AFTER_S:
+                    break
+                c.ex.spin_once(timeout_sec=0.001)
+            for name, series in (
+                ("simulated tool (pybullet)", [(w - t0, p) for w, p in sim]),
+                ("FK of /joint_states", [(t - t0, c.arm.fk(q)[:3, 3]) for t, q in c.joints]),
+            ):
+                rows.append(_stack_row(path, lead, name, series, c.halts()))
+        finally:
+            c.close()
+    out += rows
+    out.append("")
+    out.append(
+        "Errors against the path at the sample's own time (simulator wall clock, joint-state header "
+        "stamps); the stream is stamped with the ROS clock of the same machine. Stream lead: the "
+        "controller aims this far ahead to make up for the command-to-arm delay (parameter "
+        "stream_lead_s)."
+    )
+    out.append("")
+    return title, out
+
+
+def _stack_row(
+    path: PathDef, lead: float, name: str, series: list[tuple[float, np.ndarray]], halts: int
+) -> str:
+    ts = np.array([t for t, _ in series])
+    ps = np.array([p for _, p in series])
+    live = (ts >= 0.0) & (ts <= path.duration)
+    ref = np.array([path.pose(min(max(t, 0.0), path.duration))[:3, 3] for t in ts])
+    err = np.linalg.norm(ps - ref, axis=1) * 1e3
+    e = err[live]
+    best = (math.inf, 0.0)
+    for tau in np.arange(-0.05, 0.301, 0.002):
+        sh = np.array([path.pose(min(max(t - tau, 0.0), path.duration))[:3, 3] for t in ts[live]])
+        m = float(np.mean(np.linalg.norm(ps[live] - sh, axis=1)))
+        if m < best[0]:
+            best = (m, tau)
+    end = path.pose(path.duration)[:3, 3]
+    u = end - path.pose(path.duration - 0.3)[:3, 3]
+    after = ps[ts > path.duration]
+    over = max(0.0, float(np.max((after - end) @ (u / np.linalg.norm(u))))) * 1e3 if len(after) else math.nan
+    final = float(np.linalg.norm(ps[-1] - end)) * 1e3
+    return (
+        f"| {path.name} | 50 | {lead:g} | {name} | {int(live.sum())} | {np.median(e):.2f} | "
+        f"{np.percentile(e, 95):.2f} | {np.max(e):.2f} | {best[1] * 1e3:.0f} | {over:.2f} | {final:.2f} | "
+        f"{halts} |"
+    )
+
+
+def _load_line(load0: tuple[float, float, float], t0: float) -> str:
+    load1 = os.getloadavg()
+    return (
+        f"Load average (1/5/15 min) before: {load0[0]:.2f} {load0[1]:.2f} {load0[2]:.2f}, after: "
+        f"{load1[0]:.2f} {load1[1]:.2f} {load1[2]:.2f}; {platform.machine()}, {os.cpu_count()} CPUs, "
+        f"Python {platform.python_version()}, {time.time() - t0:.0f} s wall."
+    )
+
+
+def write_sections(path: Path, header: list[str], sections: dict[str, list[str]], footer: str) -> str:
+    """Write ``header``, the sections (``## title`` -> lines) and ``footer`` to ``path``, keeping the
+    sections of an earlier run that this run did not redo (e.g. the stack run is done apart)."""
+    old: dict[str, list[str]] = {}
+    if path.is_file():
+        cur = None
+        for line in path.read_text().splitlines():
+            if line.startswith("## "):
+                cur = line
+                old[cur] = []
+            elif cur is not None and line.startswith("What this does not cover"):
+                cur = None
+            elif cur is not None:
+                old[cur].append(line)
+    merged = dict(old)
+    merged.update(sections)
+    order = [k for k in merged if k.startswith("## In-process")]
+    order += [k for k in merged if not k.startswith("## In-process")]
+    out = list(header)
+    for k in order:
+        out.append(k)
+        out += merged[k]
+        while out and out[-1] == "":
+            out.pop()
+        out.append("")
+    out.append(footer)
+    text = "\n".join(out) + "\n"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text)
+    return text
+
+
+NOT_COVERED = """What this does not cover: one arm (PA10) and one region of its workspace per path; streams
+whose message rate changes while they run; clocks of another machine (the stamp-offset estimate is
+tested, not benchmarked); obstacles that move; the DLS baseline is our own implementation of MoveIt
+Servo's method (its singularity and collision velocity scaling are not reproduced). In-process, the
+commanded joints are scored: the arm is taken to follow its commands exactly; the run through the
+stack measures the simulated arm."""
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,295 @@
+"""The attractor dynamics of point goals (heading, speed, orientation, swivel; the attractor
+paper's eq. 17-24 and the swivel paper's eq. 31) and the route check that decides whether a point goal
+goes to them or to the joint-space re-planner. Part of
+:class:`~redarm_ros.control.reach_controller.ReachController`. Units: m, rad, s.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from redarm_ros.control.attractor import direction, heading_angles
+from redarm_ros.control.base import SMALL_SCENE, ControllerBase
+from redarm_ros.control.elbow import ElbowCircle
+from redarm_ros.control.ik_step import DeadEnd, pose_matrix
+from redarm_ros.control.joint_limits import braking_speed
+from redarm_ros.control.replan import check_route, move_time
+from redarm_ros.control.rotations import (
+    quat_between_vectors,
+    quat_from_rotvec,
+    quat_mul,
+    quat_normalize,
+    quat_rotate,
+    rotvec_between,
+    slerp_vectors,
+)
+from redarm_ros.control.slide import obstacle_slide, workspace_slide
+from redarm_ros.control.state import (
+    Mode,
+)
+from redarm_ros.control.swivel_dynamics import wrap_angle
+from redarm_ros.control.types import Quat, Vec3
+
+
+def _swivel_low(circle: ElbowCircle) -> float | None:
+    """Swivel (rad) of the lowest elbow position on the circle; None if the circle is horizontal."""
+    az, bz = circle.a[2], circle.b[2]
+    if math.hypot(az, bz) < 0.05:
+        return None
+    return math.atan2(-bz, -az)
+
+
+class AttractorMixin(ControllerBase):
+    """The attractor law of point goals (see the module docstring)."""
+
+    def _enter_attractor(self) -> None:
+        """Attractor state continuous with the reference's motion (heading = motion direction)."""
+        st = self._state()
+        v = st.ref.vel
+        n = math.sqrt(v[0] ** 2 + v[1] ** 2 + v[2] ** 2)
+        if n > 1e-4:
+            st.att.phi, st.att.theta = heading_angles(v, st.att.phi)
+        else:
+            st.att.phi, st.att.theta = self._heading_to_goal()
+        st.att.v, st.att.a, st.att.turn, st.att.v_cap = n, 0.0, (0.0, 0.0), None
+
+    def _route_dead_end(self, T: np.ndarray) -> str:
+        """Why the attractor should not take the straight route to ``T`` ('' if it should): a dead end
+        on it, or joint motion along it much slower than a joint-space move to the nearest goal
+        configuration (e.g. through the shoulder singularity, or the long way round a wide joint)."""
+        st = self._state()
+        p = self.params
+        T0 = pose_matrix(st.ref.pos, st.ref.rot)
+        if p.swivel_mode == "fixed":
+            def s_des(_c: ElbowCircle) -> float:
+                return st.ref.s_fixed
+        else:
+            def s_des(c: ElbowCircle) -> float:
+                return self._desired_swivel(c)
+        route = check_route(self.stepper, T0, st.ref.s, st.ref.q, T, s_des, p.replan.route_steps,
+                            p.speed.v_max, p.max_ori_rate, p.swivel.max_rate)
+        # The attractor is given a generous multiple of the route's least time before it counts as
+        # overdue (it accelerates gently, slows near obstacles and at the goal).
+        st.progress.due = st.time + p.replan.overdue_factor * route.time + p.replan.overdue_slack
+        if route.dead_end:
+            return route.dead_end
+        if route.singular:
+            return route.singular
+        q_near, info = self.arm.ik_nearest(T, st.ref.q)
+        if q_near is None:
+            return ""
+        t_joint = move_time(np.asarray(q_near, float) - st.ref.q, self._max_vel, self._max_acc)
+        if route.time > max(p.replan.slow_route * t_joint, t_joint + 2.0):
+            return (f"the straight route needs {route.time:.1f} s of joint motion, a joint-space move "
+                    f"{t_joint:.1f} s")
+        return ""
+
+    def _attractor_step(self, dt: float) -> None:
+        st = self._state()
+        p = self.params
+        ref, att = st.ref, st.att
+        pos, rot = ref.pos, ref.rot
+        goal_p = st.goal.pos if st.goal is not None else None
+        dist = math.inf
+        # 1-2. heading and speed
+        if goal_p is not None:
+            dist = math.dist(pos, goal_p)
+            reach = self._index.reach_scene
+            ahead = reach.scene.obstacles if len(reach.index) <= SMALL_SCENE else \
+                self._index.ahead(pos, dist + 0.3 + p.heading.target_gate * 10.0).scene.obstacles
+            att.phi, att.theta, rates = self.heading_dyn.step(att.phi, att.theta, dt, pos, goal_p, ahead,
+                                                              att.turn)
+            att.turn = rates.applied
+            cap = att.v_cap
+            if rates.speed_factor < 1.0:
+                v_obs = rates.speed_factor * self.speed_profile.params.v_max
+                cap = v_obs if cap is None else min(cap, v_obs)
+            v_stop = self._joint_braking_speed(dist)
+            if v_stop is not None:
+                cap = v_stop if cap is None else min(cap, v_stop)
+            cmd = st.cmd
+            if cmd.obs_rate > 1e-4 and att.v > 1e-3:
+                # Stopping distance: the clearance the arm would lose while its joints brake at their
+                # acceleration limits (~ rate * t_stop / 2) must stay within stop_share of the
+                # clearance left; the swivel meanwhile turns the elbow away.
+                t_stop = float(np.max(np.abs(cmd.qd) / self._max_acc))
+                loss = cmd.obs_rate * (0.5 * t_stop + dt)
+                room = p.stop_share * max(cmd.obs_clear - p.collision_margin, 0.0)
+                if loss > room:
+                    v_stop = att.v * math.sqrt(room / loss)
+                    cap = v_stop if cap is None else min(cap, v_stop)
+            att.v, att.a = self.speed_profile.step(att.v, att.a, dist, dt, cap, self._hand_acc())
+        else:  # no goal: decelerate along the current heading (jerk-limited, like any speed change)
+            att.v, att.a = self.speed_profile.step(att.v, att.a, math.inf, dt, 0.0)
+            if att.v < 1e-4:
+                att.v, att.a = 0.0, 0.0
+        e = direction(att.phi, att.theta)
+        if goal_p is not None and dist < p.final_distance:
+            # Final approach: blend towards the straight line so that a heading which ended up
+            # opposite to the target (an unstable but balanced state) cannot carry the hand away.
+            w = 1.0 - dist / p.final_distance
+            g = ((goal_p[0] - pos[0]) / dist, (goal_p[1] - pos[1]) / dist, (goal_p[2] - pos[2]) / dist) \
+                if dist > 1e-12 else e
+            m = ((1.0 - w) * e[0] + w * g[0], (1.0 - w) * e[1] + w * g[1], (1.0 - w) * e[2] + w * g[2])
+            mn = math.sqrt(m[0] ** 2 + m[1] ** 2 + m[2] ** 2)
+            e = (m[0] / mn, m[1] / mn, m[2] / mn) if mn > 1e-9 else g
+        e = workspace_slide(e, pos, rot, self.geom, self._d_inner, self._d_outer, p.workspace_margin)
+        if goal_p is None or dist > p.final_distance:  # (the goal itself was checked clear)
+            e = obstacle_slide(e, ref.circle, ref.s, self._local.scene, p.capsules, p.slide_band)
+        step_len = att.v * dt
+        if goal_p is not None:
+            step_len = min(step_len, dist)
+        new_pos = (pos[0] + step_len * e[0], pos[1] + step_len * e[1], pos[2] + step_len * e[2])
+        # 3. orientation
+        new_rot = rot
+        if st.goal is not None:
+            target_rot = self._orientation_target(e, dist if goal_p is not None else 0.0)
+            w = rotvec_between(rot, target_rot)
+            wn = math.sqrt(w[0] ** 2 + w[1] ** 2 + w[2] ** 2)
+            # Rate of the attractor, clamped, and changed by at most max_ori_acc per second (braking
+            # in time): without this the rate jumps when a goal is set.
+            ori_acc = self._joint_share_acc(ref.w_ori, p.max_ori_acc)
+            rate = min(p.lam_ori * wn, p.max_ori_rate, float(braking_speed(wn, ori_acc, dt)))
+            rate = max(0.0, min(rate, ref.w_ori + ori_acc * dt))
+            gain = min(rate * dt / wn, 1.0) if wn > 1e-12 else 0.0
+            new_rot = quat_normalize(quat_mul(quat_from_rotvec((gain * w[0], gain * w[1], gain * w[2])), rot))
+        # 4-5. swivel and IK (with velocity scaling / swivel search / hold)
+        out = self.stepper.advance(pos, rot, ref.s, ref.q, new_pos, new_rot, dt, self._swivel_fn(dt))
+        if isinstance(out, DeadEnd):
+            att.v *= out.speed_scale
+            self._hold(out.reason)
+            self._track(dt)  # the command brakes onto the (standing) reference
+            return
+        att.v *= out.speed_scale
+        self._commit(out, dt, attractor=True)
+
+    def _swivel_fn(self, dt: float) -> Any:
+        """The swivel the dynamics asks for at a proposed pose (see :data:`ik_step.SwivelFn`)."""
+        st = self._state()
+        p = self.params
+        # Tracking a moving goal, the preferred swivel moves with it (e.g. the highest elbow turns as the
+        # wrist moves): its change is fed forward, so the elbow does not lag behind its preference
+        # (a lagging elbow costs the joints much more motion than the hand needs).
+        feed = st.mode is Mode.SERVO and p.swivel_mode != "fixed" and st.ref.circle is not None
+        s_des_prev = self._desired_swivel(st.ref.circle) if feed and st.ref.circle is not None else 0.0
+        s_acc_feed = p.max_swivel_acc
+        if feed:
+            # How much each joint turns per radian of swivel here: the swivel may change its rate only
+            # as fast as keeps every joint within joint_brake_share of its acceleration limit (the rest
+            # is the hand's, which has priority while tracking).
+            T_ref = pose_matrix(st.ref.pos, st.ref.rot)
+            pick = self.stepper.solve(T_ref, st.ref.s + 0.01, st.ref.q, 1.0)
+            if pick is not None:
+                dq_ds = np.abs(pick[0] - st.ref.q) / 0.01
+                with np.errstate(divide="ignore"):
+                    lim = np.where(dq_ds > 1e-9, p.joint_brake_share * self._max_acc / dq_ds, np.inf)
+                s_acc_feed = min(s_acc_feed, float(np.min(lim)))
+
+        def swivel(circle: ElbowCircle, T: np.ndarray, s0: float) -> tuple[float, float, bool]:
+            if p.swivel_mode == "fixed":
+                return st.ref.s_fixed, st.ref.s_fixed, False
+            s_des = self._desired_swivel(circle)
+            margins = self.stepper.limit_margins(T, s0, st.ref.q, p.swivel.eps, p.swivel.lim_threshold)
+            forces = self.swivel_dyn.forces(circle, s0, self._local.scene, p.capsules, margins)
+            s_new = self.swivel_dyn.step(s0, s_des, dt, forces)
+            # The swivel rate changes by at most max_swivel_acc per second.
+            sd = wrap_angle(s_new - s0) / dt
+            if feed:
+                # The dynamics' own rate (attraction, obstacles, limits) within its share of the
+                # joints' acceleration; the preferred swivel's motion is fed forward on top.
+                sd = max(st.ref.sdot_dyn - s_acc_feed * dt, min(st.ref.sdot_dyn + s_acc_feed * dt, sd))
+                st.ref.sdot_dyn = sd
+                sd += wrap_angle(s_des - s_des_prev) / dt
+            else:
+                s_acc = self._joint_share_acc(abs(st.ref.sdot), p.max_swivel_acc)
+                sd = max(st.ref.sdot - s_acc * dt, min(st.ref.sdot + s_acc * dt, sd))
+            st.ref.s_des = s_des
+            return wrap_angle(s0 + sd * dt), s_des, forces.clearance < p.elbow_priority_clearance
+
+        return swivel
+
+    def _hand_acc(self) -> float | None:
+        """Largest hand acceleration (m/s^2) along the path that keeps every joint within
+        ``joint_brake_share`` of its acceleration limit, with joint speeds proportional to the hand
+        speed; None when the hand is (nearly) at rest."""
+        a = self._joint_share_acc(self._state().ref.v_tool, math.inf)
+        return None if math.isinf(a) else a
+
+    def _joint_share_acc(self, rate: float, default: float) -> float:
+        """Largest rate of change of ``rate`` (a hand speed or an orientation rate) that keeps every
+        joint within ``joint_brake_share`` of its acceleration limit, the joint velocities of the last
+        reference step taken as proportional to ``rate``; ``default`` caps it and is used at rest."""
+        if rate < 1e-4:  # from rest: a gentle first step, the ratio is measured from the next one
+            return min(default, 0.1 * float(np.min(self._max_acc)))
+        qd = np.abs(self._state().ref.qd)
+        mask = qd > 1e-6
+        if not np.any(mask):
+            return default
+        a = float(np.min(self._max_acc[mask] / qd[mask])) * rate * self.params.joint_brake_share
+        return max(min(a, default), 1e-3)
+
+    def _joint_braking_speed(self, dist: float) -> float | None:
+        """Hand speed (m/s) from which the hand can still stop within the remaining ``dist`` (m) at the
+        acceleration of :meth:`_hand_acc`."""
+        a_hand = self._hand_acc()
+        if a_hand is None:
+            return None
+        return math.sqrt(2.0 * a_hand * max(dist, 0.0))
+
+    def _orientation_target(self, e: Vec3, dist: float) -> Quat:
+        """Goal orientation, turned so that the tool axis leans towards the heading far from the goal."""
+        st = self._state()
+        assert st.goal is not None
+        p = self.params
+        goal_q = st.goal.rot
+        if p.tangent_weight <= 0.0 or st.att.v < 1e-3:
+            return goal_q
+        w = p.tangent_weight * max(0.0, min(1.0, (dist - p.tangent_distance) / p.tangent_distance))
+        if w <= 0.0:
+            return goal_q
+        g = quat_rotate(goal_q, (0.0, 0.0, 1.0))  # tool approach axis at the goal
+        a = slerp_vectors(g, e, w)
+        return quat_normalize(quat_mul(quat_between_vectors(g, a), goal_q))
+
+    def _desired_swivel(self, circle: ElbowCircle) -> float:
+        p = self.params
+        if p.swivel_reference == "absolute":
+            return wrap_angle(p.preferred_swivel)
+        low = _swivel_low(circle)
+        if low is None:
+            return self._state().ref.s_des
+        ref = low if p.swivel_reference == "low" else low + math.pi
+        return wrap_angle(ref + p.preferred_swivel)
+
+    def _heading_to_goal(self) -> tuple[float, float]:
+        st = self._state()
+        if st.goal is None:
+            return st.att.phi, st.att.theta
+        gp, cp = st.goal.pos, st.ref.pos
+        return heading_angles((gp[0] - cp[0], gp[1] - cp[1], gp[2] - cp[2]), st.att.phi)
+
+    def _speed_budget(self, ratio: float, v_now: float, dt: float) -> None:
+        """When a joint nears its velocity limit, when the reference asks a joint for much of its
+        acceleration, or when the command lags behind the reference, cap the hand speed ahead of
+        time (the filter then slows down with bounded jerk)."""
+        st = self._state()
+        p = self.params
+        att = st.att
+        sp = self.speed_profile.params
+        predicted = ratio + 4.0 * max(ratio - att.ratio, 0.0)  # the ratio can grow fast in turns
+        att.ratio = ratio
+        cap = math.inf
+        if predicted > 0.85 and v_now > 1e-4:
+            cap = max(v_now * 0.85 / predicted, 0.02)
+        lag = float(np.max(np.abs(st.ref.q - st.cmd.q) * self._inv_vel))  # s at full joint speed
+        if lag > p.max_lag and v_now > 1e-3:
+            cap = min(cap, max(v_now * p.max_lag / lag, 0.02))
+        if math.isfinite(cap):
+            att.v_cap = cap if att.v_cap is None else min(cap, att.v_cap + sp.a_max * dt)
+        elif att.v_cap is not None:
+            att.v_cap += 0.5 * sp.a_max * dt
+            if att.v_cap > sp.v_max:
+                att.v_cap = None

@@ -1,0 +1,446 @@
+"""Re-planning: when the Cartesian route to a point goal is a dead end, move in joint space instead.
+
+The attractor dynamics steers the hand along a (nearly) straight Cartesian path and keeps the joints
+continuous through the closed-form IK. For some goals that route has no continuous in-limit solution
+(a wide joint wound onto its limit, the wrist or elbow folding through a limit, the stretched arm
+after homing); a reactive method then stops for good. This module supplies the way out:
+
+* :func:`route_dead_end` marches the straight route (position line, orientation slerp, swivel towards
+  the preferred one) through the IK step's continuity rule and says where it breaks ('' if it
+  does not): such a goal goes to the planner at once instead of running into the dead end.
+* :func:`goal_candidates` picks goal configurations among all in-limit IK solutions (every swivel
+  sample, every branch, every 2 pi copy of the wide joints): cost = time of a synchronised
+  joint-space move at the velocity/acceleration limits + a penalty for limit margins below
+  ``limit_margin`` + a little for a swivel far from the preferred one + a little for a clearance
+  below ``clearance``; colliding ones are dropped.
+* :class:`JointPlanner` searches a collision-free joint path to one of them, cheapest first: the
+  straight joint segment, then through the "fold" posture (shoulder up, elbow bent, as after an
+  unfold) above the start and above the goal, then through random via configurations (seeded).
+  Every segment is checked by sphere tracing (:meth:`CollisionGuard.segment_clearance`) with a
+  clearance of ``clearance`` m. The work is done in slices of ``work_per_step`` clearance
+  evaluations, one slice per control step, so the control loop stays periodic while the arm holds.
+* :class:`JointPath` times the path: each segment a synchronised trapezoid (rest to rest) within the
+  joint velocity and acceleration limits, so the command follows it exactly; the attractor dynamics
+  takes over at the goal configuration (the elbow then settles on its swivel, the hand stays).
+
+Units: m, rad, s.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Generator
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from redarm_ros.control.elbow import ElbowCircle, elbow_circle
+from redarm_ros.control.guard import CollisionGuard
+from redarm_ros.control.ik_step import IKStepper, blend, pose_matrix
+from redarm_ros.control.obstacles import Scene
+from redarm_ros.control.params import ReplanParams
+from redarm_ros.control.rotations import quat_angle, quat_from_matrix
+from redarm_ros.control.swivel_dynamics import wrap_angle
+from redarm_ros.errors import UnreachableError
+
+TWO_PI = 2.0 * math.pi
+
+
+# ----------------------------------------------------------------------------------------------
+# Route check
+# ----------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Route:
+    """Outcome of :func:`check_route`: ``dead_end`` ('' if the straight route is continuous) and the
+    least time (s) the route needs at the hand, orientation and joint velocity limits (inf at a
+    dead end); ``q_end`` the configuration it ends in; ``singular``: which singularity the route
+    passes through ('' if none: the shoulder when the elbow crosses the base axis, sin q2 changes
+    sign; the wrist when sin q6 does), where the attractor crawls."""
+
+    dead_end: str
+    time: float
+    q_end: np.ndarray | None
+    singular: str = ""
+
+
+def check_route(stepper: IKStepper, T0: np.ndarray, s0: float, q0: np.ndarray, T_goal: np.ndarray,
+                s_des: Any, steps: int, v_max: float, w_max: float, s_rate: float) -> Route:
+    """March the straight Cartesian route from (``T0``, swivel ``s0``, joints ``q0``) to ``T_goal``
+    through the IK step's continuity rule. ``s_des(circle)`` is the preferred swivel at a pose; the
+    swivel turns towards it at ``s_rate`` rad/s while the hand moves at ``v_max`` m/s and turns at
+    ``w_max`` rad/s."""
+    p0 = (float(T0[0, 3]), float(T0[1, 3]), float(T0[2, 3]))
+    pg = (float(T_goal[0, 3]), float(T_goal[1, 3]), float(T_goal[2, 3]))
+    r0, rg = quat_from_matrix(T0[:3, :3]), quat_from_matrix(T_goal[:3, :3])
+    duration = max(math.dist(p0, pg) / v_max, quat_angle(r0, rg) / w_max, 0.05)
+    dt = duration / steps
+    inv_vel = stepper.inv_vel
+    q, s = q0, s0
+    total = 0.0
+    singular = ""
+    for k in range(1, steps + 1):
+        pos, rot = blend(p0, r0, pg, rg, k / steps)
+        T = pose_matrix(pos, rot)
+        try:
+            circle = elbow_circle(stepper.geom, T)
+        except UnreachableError:
+            return Route(f"the straight route leaves the workspace at {100 * k // steps} %", math.inf, None)
+        target = s_des(circle)
+        ds = wrap_angle(target - s)
+        s = wrap_angle(s + max(-s_rate * dt, min(s_rate * dt, ds)))
+        pick = stepper.solve(T, s, q, dt)
+        if pick is None or pick[1] > stepper.flip_ratio:
+            pick, s = stepper._search_swivel(T, s, q, dt)
+        if pick is None:
+            worst = int(np.argmin(np.minimum(q - stepper.lower, stepper.upper - q)))
+            return Route(f"the straight route has no continuous in-limit solution at {100 * k // steps} % "
+                         f"(joint {worst + 1} at {q[worst]:+.2f} rad, limits "
+                         f"{stepper.lower[worst]:+.2f}/{stepper.upper[worst]:+.2f})", math.inf, None)
+        total += max(dt, float(np.max(np.abs(pick[0] - q) * inv_vel)))
+        for j, name in ((1, "shoulder"), (5, "wrist")):
+            if not singular and math.sin(pick[0][j]) * math.sin(q[j]) < 0.0:
+                singular = f"the straight route passes the {name} singularity at {100 * k // steps} %"
+        q = pick[0]
+    return Route("", total, q, singular)
+
+
+# ----------------------------------------------------------------------------------------------
+# Goal configurations
+# ----------------------------------------------------------------------------------------------
+def move_time(dq: np.ndarray, max_vel: np.ndarray, max_acc: np.ndarray) -> float:
+    """Duration (s) of a synchronised rest-to-rest joint move by ``dq`` (rad) at the limits."""
+    d = np.abs(dq)
+    t_tri = 2.0 * np.sqrt(d / max_acc)
+    t_trap = d / max_vel + max_vel / max_acc
+    return float(np.max(np.where(d < max_vel * max_vel / max_acc, t_tri, t_trap)))
+
+
+def _copies(q: np.ndarray, lower: np.ndarray, upper: np.ndarray, wide: list[int]) -> list[np.ndarray]:
+    """Every in-limit 2 pi copy of the wide joints of ``q``."""
+    out = [q]
+    for j in wide:
+        nxt = []
+        for c in out:
+            k0 = math.ceil((lower[j] - c[j]) / TWO_PI)
+            k1 = math.floor((upper[j] - c[j]) / TWO_PI)
+            for k in range(k0, k1 + 1):
+                v = c.copy()
+                v[j] = c[j] + k * TWO_PI
+                nxt.append(v)
+        out = nxt
+    return out
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """A goal configuration ``q`` (rad) at swivel ``s`` with its ``cost`` (s) and ``clearance`` (m)."""
+
+    q: np.ndarray
+    s: float
+    cost: float
+    clearance: float
+
+
+def goal_candidates(stepper: IKStepper, guard: CollisionGuard, T: np.ndarray, q_from: np.ndarray,
+                    scene: Scene, params: ReplanParams, s_pref: float | None, count: int = 6,
+                    scan: int = 72) -> list[Candidate]:
+    """Up to ``count`` distinct collision-free goal configurations of pose ``T``, cheapest first
+    (see the module docstring); ``s_pref``: the preferred swivel (rad) or None."""
+    search = goal_candidates_iter(stepper, guard, T, q_from, scene, params, s_pref, count, scan)
+    while True:
+        try:
+            next(search)
+        except StopIteration as stop:
+            return stop.value
+
+
+def goal_candidates_iter(stepper: IKStepper, guard: CollisionGuard, T: np.ndarray, q_from: np.ndarray,
+                         scene: Scene, params: ReplanParams, s_pref: float | None, count: int = 6,
+                         scan: int = 72, checks: int = 400) -> Generator[None, None, list[Candidate]]:
+    """:func:`goal_candidates` as a generator: one iteration per swivel sample and per clearance
+    evaluation (at most ``checks`` of them)."""
+    arm = stepper.arm
+    max_vel = np.asarray(arm.max_vel, float)
+    max_acc = np.asarray(arm.max_acc, float)
+    qs: list[np.ndarray] = []
+    ss: list[float] = []
+    for k in range(scan):
+        s = -math.pi + TWO_PI * k / scan
+        for sol in arm.ik(T, s):
+            for q in _copies(np.asarray(sol, float), stepper.lower, stepper.upper, stepper.wide):
+                qs.append(q)
+                ss.append(s)
+        yield None
+    if not qs:
+        return []
+    Q = np.array(qs)
+    S = np.array(ss)
+    # Synchronised rest-to-rest move time (vectorised move_time) + margin and swivel penalties.
+    d = np.abs(Q - q_from)
+    t_tri = 2.0 * np.sqrt(d / max_acc)
+    t_trap = d / max_vel + max_vel / max_acc
+    cost = np.max(np.where(d < max_vel * max_vel / max_acc, t_tri, t_trap), axis=1)
+    m = np.minimum(Q - stepper.lower, stepper.upper - Q)
+    cost += 0.5 * np.sum(np.maximum(params.limit_margin - m, 0.0), axis=1) / max(params.limit_margin, 1e-9)
+    if s_pref is not None:
+        cost += 0.2 * np.abs(np.remainder(S - s_pref + math.pi, TWO_PI) - math.pi)
+    out: list[Candidate] = []
+    for n, i in enumerate(np.argsort(cost, kind="stable")):
+        if n >= checks:
+            break
+        q = Q[i]
+        if any(float(np.max(np.abs(q - c.q))) < 0.15 for c in out):
+            continue
+        c = guard.clearance(q, scene).distance
+        yield None
+        if c <= 0.0:
+            continue
+        # A goal close to an obstacle is fine (the path's last segment is checked from the goal
+        # backwards, first getting clear); clearer ones are preferred.
+        pen = 0.5 * max(params.clearance + guard.step - c, 0.0) / (params.clearance + guard.step)
+        out.append(Candidate(q, float(S[i]), float(cost[i]) + pen, c))
+        if len(out) >= 2 * count:
+            break
+    out.sort(key=lambda cand: cand.cost)
+    return out[:count]
+
+
+# ----------------------------------------------------------------------------------------------
+# Joint path search
+# ----------------------------------------------------------------------------------------------
+def fold_posture(q: np.ndarray, pitch: tuple[float, float, float], lower: np.ndarray,
+                 upper: np.ndarray) -> np.ndarray:
+    """``q`` with shoulder, elbow and wrist pitched to ``pitch`` (keeping the side the arm bends to,
+    the base yaw and the rolls): a compact posture above the table."""
+    f = q.copy()
+    sign = 1.0 if q[1] >= 0.0 else -1.0
+    roll3 = 1.0 if math.cos(q[2]) >= 0.0 else -1.0
+    roll5 = 1.0 if math.cos(q[4]) >= 0.0 else -1.0
+    f[1] = sign * pitch[0]
+    f[3] = sign * roll3 * pitch[1]
+    f[5] = sign * roll3 * roll5 * pitch[2]
+    return np.clip(f, lower, upper)
+
+
+class JointPlanner:
+    """Incremental search of a collision-free joint path from ``q_start`` to a goal configuration of
+    pose ``T`` (see the module docstring for the order of the search).
+
+    When the arm starts closer to the scene than ``params.clearance`` (the guard stopped it at an
+    obstacle), the path first retreats to one of ``retreat`` (configurations the arm passed through
+    recently, newest first) or climbs the clearance gradient; the rest of the search starts there.
+
+    Call :meth:`work` once per control step until it returns True; then ``path`` holds the
+    waypoints (start first) or is None with ``reason`` saying why none was found.
+    """
+
+    def __init__(self, stepper: IKStepper, guard: CollisionGuard, scene: Scene, q_start: np.ndarray,
+                 T: np.ndarray, params: ReplanParams, fold_pitch: tuple[float, float, float],
+                 retreat: list[np.ndarray] | None = None, s_pref: float | None = None) -> None:
+        self.stepper = stepper
+        self.guard = guard
+        self.scene = scene
+        self.q_start = np.asarray(q_start, float)
+        self.T = np.asarray(T, float)
+        self.params = params
+        self.fold_pitch = fold_pitch
+        self.retreat = list(retreat or [])
+        self.s_pref = s_pref
+        self.goals: list[Candidate] = []
+        self.path: list[np.ndarray] | None = None
+        self.reason = ""
+        self.done = False
+        self._rng = np.random.default_rng(params.seed)
+        self._search = self._run()
+
+    def work(self) -> bool:
+        """Do ``params.work_per_step`` units of work (a unit: one clearance evaluation, or the IK of
+        one swivel sample); True when finished."""
+        if self.done:
+            return True
+        for _ in range(self.params.work_per_step):
+            try:
+                next(self._search)
+            except StopIteration:
+                self.done = True
+                break
+        return self.done
+
+    def _segment(self, qa: np.ndarray, qb: np.ndarray) -> Generator[None, None, bool]:
+        r = yield from self.guard.segment_march(qa, qb, self.scene, self.params.clearance,
+                                                budget=8 * self.params.work_per_step)
+        return r is not None
+
+    def _chain(self, points: list[np.ndarray]) -> Generator[None, None, bool]:
+        last = len(points) - 2
+        for k, (a, b) in enumerate(zip(points[:-1], points[1:], strict=True)):
+            # The last segment is checked from the goal backwards: a goal configuration closer to the
+            # scene than the planning clearance then has to get clear first (the dense march).
+            ok = yield from (self._segment(b, a) if k == last else self._segment(a, b))
+            if not ok:
+                return False
+        return True
+
+    def _run(self) -> Generator[None, None, None]:
+        p = self.params
+        g = self.guard
+        self.goals = yield from goal_candidates_iter(self.stepper, g, self.T, self.q_start, self.scene, p,
+                                                     self.s_pref)
+        if not self.goals:
+            self.reason = "no collision-free goal configuration within the joint limits"
+            return
+        c_start = g.clearance(self.q_start, self.scene).distance
+        if c_start < 0.0:
+            self.reason = f"the arm is in contact with the scene (clearance {c_start:.3f} m)"
+            return
+        head: list[np.ndarray] = []
+        start = self.q_start
+        if c_start < p.clearance + g.step:
+            for q_r in self.retreat[:8]:
+                ok = yield from self._segment(start, q_r)
+                if ok:
+                    head, start = [start], q_r
+                    break
+            else:
+                esc = yield from self._escape(start, c_start)
+                if esc:
+                    head, start = [start, *esc[:-1]], esc[-1]
+        lo, up = g.lower, g.upper
+        tries: list[list[np.ndarray]] = [[start, c.q] for c in self.goals]
+        f0 = fold_posture(start, self.fold_pitch, lo, up)
+        tries += [[start, f0, fold_posture(c.q, self.fold_pitch, lo, up), c.q] for c in self.goals[:3]]
+        for pts in tries:
+            ok = yield from self._chain(pts)
+            if ok:
+                self.path = _dedupe(head + pts)
+                return
+        # Random vias, wide joints within one turn around the start (farther copies only lengthen).
+        span_lo = np.maximum(lo, start - math.pi)
+        span_up = np.minimum(up, start + math.pi)
+        for i in range(p.vias):
+            v = self._rng.uniform(span_lo, span_up)
+            pts = [start, v, self.goals[i % min(3, len(self.goals))].q]
+            ok = yield from self._chain(pts)
+            if ok:
+                self.path = _dedupe(head + pts)
+                return
+        self.reason = (f"no collision-free joint path found ({len(self.goals)} goal configurations, "
+                       f"direct, folded and {p.vias} random vias)")
+
+    def _escape(self, q: np.ndarray, c: float, tries: int = 12) -> Generator[None, None, list[np.ndarray]]:
+        """Waypoints that climb the clearance gradient (in joint space, steps of a few mm of travel)
+        from ``q`` until it clears ``params.clearance``; [] if that fails."""
+        g = self.guard
+        lev = g.max_levers()
+        out: list[np.ndarray] = []
+        need = self.params.clearance + 2.0 * g.step
+        for _ in range(tries):
+            h = 1e-4
+            grad = np.zeros(len(q))
+            for j, e in enumerate(np.eye(len(q))):
+                grad[j] = (g.clearance(np.clip(q + h * e, g.lower, g.upper), self.scene).distance - c) / h
+                yield None
+            norm = float(np.dot(lev, np.abs(grad)))
+            if norm < 1e-9:
+                return []
+            # grad / norm moves at most 1 m of lever travel per unit: take twice the missing clearance
+            q_n = np.clip(q + grad / norm * max(need - c, 0.005) * 2.0, g.lower, g.upper)
+            ok = yield from self._segment(q, q_n)
+            if not ok:
+                return []
+            out.append(q_n)
+            q = q_n
+            c = g.clearance(q, self.scene).distance
+            if c >= need:
+                return out
+        return []
+
+
+def _dedupe(points: list[np.ndarray]) -> list[np.ndarray]:
+    out = [points[0]]
+    for p in points[1:]:
+        if float(np.max(np.abs(p - out[-1]))) > 1e-9:
+            out.append(p)
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+# Timing
+# ----------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class _Segment:
+    qa: np.ndarray
+    dq: np.ndarray
+    t0: float
+    t_acc: float
+    t_flat: float
+    sd: float  # peak of ds/dt (1/s)
+    sdd: float  # ds/dt^2 (1/s^2)
+
+    @property
+    def duration(self) -> float:
+        return 2.0 * self.t_acc + self.t_flat
+
+
+class JointPath:
+    """Waypoints (rad) joined by straight joint segments, each a synchronised rest-to-rest trapezoid
+    in the path parameter within ``share`` of every joint's velocity and acceleration limit."""
+
+    def __init__(self, waypoints: list[np.ndarray], max_vel: np.ndarray, max_acc: np.ndarray,
+                 share: float = 0.95) -> None:
+        self.waypoints = [np.asarray(w, float) for w in waypoints]
+        segs: list[_Segment] = []
+        t = 0.0
+        for qa, qb in zip(self.waypoints[:-1], self.waypoints[1:], strict=True):
+            dq = qb - qa
+            ad = np.abs(dq)
+            if float(np.max(ad)) <= 1e-12:
+                continue
+            with np.errstate(divide="ignore"):
+                sd = share * float(np.min(np.where(ad > 0, max_vel / ad, np.inf)))
+                sdd = share * float(np.min(np.where(ad > 0, max_acc / ad, np.inf)))
+            if sd * sd / sdd >= 1.0:  # never reaches full speed: triangle
+                t_acc = math.sqrt(1.0 / sdd)
+                sd = sdd * t_acc
+                t_flat = 0.0
+            else:
+                t_acc = sd / sdd
+                t_flat = (1.0 - sd * t_acc) / sd
+            seg = _Segment(qa, dq, t, t_acc, t_flat, sd, sdd)
+            segs.append(seg)
+            t += seg.duration
+        self._segs = segs
+        self.duration = t
+
+    def sample(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """Joints (rad) and joint velocities (rad/s) at time ``t`` (s) from the start."""
+        if not self._segs:
+            return self.waypoints[-1].copy(), np.zeros_like(self.waypoints[-1])
+        if t >= self.duration:
+            last = self._segs[-1]
+            return last.qa + last.dq, np.zeros_like(last.dq)
+        seg = self._segs[-1]
+        for sg in self._segs:
+            if t < sg.t0 + sg.duration:
+                seg = sg
+                break
+        u = max(t - seg.t0, 0.0)
+        ta, tf, a = seg.t_acc, seg.t_flat, seg.sdd
+        if u < ta:
+            s, sdot = 0.5 * a * u * u, a * u
+        elif u < ta + tf:
+            s, sdot = 0.5 * a * ta * ta + seg.sd * (u - ta), seg.sd
+        else:
+            r = max(2.0 * ta + tf - u, 0.0)
+            s, sdot = 1.0 - 0.5 * a * r * r, a * r
+        s = min(max(s, 0.0), 1.0)
+        return seg.qa + s * seg.dq, sdot * seg.dq
+
+
+def circle_or_none(geom: Any, T: np.ndarray) -> ElbowCircle | None:
+    """The elbow circle of ``T``, None where it is degenerate (stretched arm)."""
+    try:
+        return elbow_circle(geom, T)
+    except UnreachableError:
+        return None

@@ -1,0 +1,174 @@
+"""Never stuck: stall detection of point goals, and the joint-space re-plan (brake, search with
+:class:`~redarm_ros.control.replan.JointPlanner`, drive the :class:`~redarm_ros.control.replan.JointPath`,
+hand back to the attractor) or BLOCKED with the reason. Part of
+:class:`~redarm_ros.control.reach_controller.ReachController`. Units: m, rad, s.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+
+import numpy as np
+
+from redarm_ros.control.base import ControllerBase
+from redarm_ros.control.elbow import ElbowCircle, elbow_circle
+from redarm_ros.control.ik_step import pose_matrix
+from redarm_ros.control.params import ReplanParams
+from redarm_ros.control.replan import JointPath, JointPlanner
+from redarm_ros.control.rotations import (
+    quat_angle,
+)
+from redarm_ros.control.state import (
+    Mode,
+)
+from redarm_ros.control.types import GoalKind, Phase
+from redarm_ros.errors import UnreachableError
+
+LOG = logging.getLogger(__name__)
+
+
+class ReplanMixin(ControllerBase):
+    """Stall detection and the joint-space re-plan (see the module docstring)."""
+
+    def _start_plan(self, reason: str) -> None:
+        st = self._state()
+        if not self.params.replan.enabled:
+            self._hold(reason)
+            return
+        st.progress.replans += 1
+        if st.progress.replans > self.params.replan.max_replans:
+            self._block(f"gave up after {self.params.replan.max_replans} re-plans; last: {reason}")
+            return
+        LOG.info("re-planning in joint space: %s", reason)
+        st.mode = Mode.PLAN
+        st.planner = None
+        st.path = None
+        st.plan_reason = reason
+        st.phase = Phase.REPLANNING
+        st.message = f"re-planning in joint space: {reason}"
+
+    def _block(self, why: str) -> None:
+        st = self._state()
+        LOG.warning("goal blocked: %s", why)
+        st.mode = Mode.HOLD
+        st.planner = None
+        st.path = None
+        st.phase = Phase.BLOCKED
+        st.message = why
+        st.ref.q = st.cmd.q.copy()
+        st.ref.qd = np.zeros(7)
+
+    def _leave_plan(self) -> None:
+        """Out of PLAN/JOINT (a stop or rejection): the reference becomes Cartesian again."""
+        st = self._state()
+        if st.mode in (Mode.PLAN, Mode.JOINT):
+            st.planner = None
+            st.path = None
+            self._resync_reference(keep_velocity=True)
+            st.mode = Mode.ATTRACTOR
+            self._enter_attractor()
+
+    def _plan_step(self, dt: float) -> None:
+        st = self._state()
+        if np.any(st.cmd.qd != 0.0):  # brake to rest first, through the guard
+            self._brake(dt)
+            return
+        if st.planner is None:
+            assert st.goal is not None
+            T = pose_matrix(st.goal.pos, st.goal.rot)
+            s_pref = None
+            try:
+                circle: ElbowCircle | None = elbow_circle(self.geom, T)
+            except UnreachableError:
+                circle = None
+            if circle is not None and self.params.swivel_mode != "fixed":
+                s_pref = self._desired_swivel(circle)
+            clear_enough = self.params.replan.clearance + 2.0 * self.guard.step
+            retreat = [q for q, c in reversed(st.history) if c >= clear_enough][::10]
+            st.planner = JointPlanner(self.stepper, self.guard, self._index.reach_scene.scene,
+                                      st.cmd.q.copy(),
+                                      T, self.params.replan, self.params.unfold_pitch, retreat, s_pref)
+        if not st.planner.work():
+            return
+        planner = st.planner
+        st.planner = None
+        if planner.path is None:
+            self._block(f"{planner.reason} (after: {st.plan_reason})")
+            return
+        st.path = JointPath(planner.path, self._max_vel, self._max_acc)
+        st.path_t = 0.0
+        st.ref.q = st.cmd.q.copy()
+        st.ref.qd = np.zeros(7)
+        st.brake_sync = True
+        st.mode = Mode.JOINT
+        vias = len(planner.path) - 2
+        st.message = f"moving in joint space ({vias} via points, {st.path.duration:.1f} s): {st.plan_reason}"
+
+    def _joint_step(self, dt: float) -> None:
+        st = self._state()
+        path = st.path
+        assert path is not None
+        st.path_t += dt
+        q_ref, _ = path.sample(st.path_t)
+        st.ref.qd = (q_ref - st.ref.q) / dt
+        st.ref.q = q_ref
+        if not self._track(dt):
+            st.path = None
+            self._start_plan(f"the collision guard stopped the joint-space move ({st.message})")
+            return
+        done = st.path_t >= path.duration and float(np.max(np.abs(st.cmd.q - q_ref))) <= 1e-9 \
+            and float(np.max(np.abs(st.cmd.qd))) <= 1e-9
+        if done:
+            st.path = None
+            self._resync_reference(keep_velocity=False)
+            st.ref.s_fixed = st.ref.s
+            st.message = ""
+            st.progress.best = math.inf
+            st.progress.t_best = st.time
+            if st.goal is not None and st.goal.kind is GoalKind.STREAM:
+                self._enter_servo()  # a stream that arrived meanwhile: track it from here
+            else:
+                st.mode = Mode.ATTRACTOR
+                self._enter_attractor()
+
+    def _watch_progress(self) -> None:
+        """Stall detection of point goals (see :class:`~redarm_ros.control.params.ReplanParams`)."""
+        st = self._state()
+        rp: ReplanParams = self.params.replan
+        goal = st.goal
+        if goal is None or goal.kind is not GoalKind.POINT or st.mode is not Mode.ATTRACTOR:
+            return
+        pr = st.progress
+        d = math.dist(st.cmd.pos, goal.pos)
+        a = quat_angle(st.cmd.rot, goal.rot)
+        err = d + 0.1 * a
+        if (d <= self.params.pos_tolerance and a <= self.params.ori_tolerance) or err < pr.best - rp.progress:
+            pr.best = err
+            pr.t_best = st.time
+            pr.travel = 0.0
+        pr.travel += st.cmd.tool_speed * (st.time - pr.t_last) if pr.t_last else 0.0
+        pr.t_last = st.time
+        if st.phase is Phase.HOLDING:
+            pr.hold_since = st.time if pr.hold_since is None else pr.hold_since
+        else:
+            pr.hold_since = None
+        if not rp.enabled:
+            return
+        pr.guard_stops = [t for t in pr.guard_stops if st.time - t <= rp.stall_time * 2.0]
+        if pr.hold_since is not None and st.time - pr.hold_since >= rp.hold_time:
+            self._start_plan(f"held {rp.hold_time:.1f} s ({st.message})")
+        elif len(pr.guard_stops) >= rp.guard_stops:
+            pr.guard_stops = []
+            self._start_plan(f"the collision guard stopped the arm {rp.guard_stops} times in "
+                             f"{2.0 * rp.stall_time:.1f} s ({st.message or 'sliding along an obstacle'})")
+        elif st.time > pr.due and err > 0.01:
+            self._start_plan(f"overdue: {d * 1e3:.0f} mm, {a:.2f} rad from the goal after "
+                             f"{st.time - goal.since:.1f} s")
+        else:
+            since = st.time - pr.t_best
+            creeping = since >= rp.stall_time and pr.travel < rp.stall_travel
+            if creeping or since >= rp.detour_time:
+                why = f"; {st.message}" if st.message else ""
+                self._start_plan(f"no progress for {since:.1f} s ({d * 1e3:.0f} mm, {a:.2f} rad from the "
+                                 f"goal{why})")

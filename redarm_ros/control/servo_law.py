@@ -1,0 +1,152 @@
+"""The servo law of goal streams and twists: the tracking law of :mod:`~redarm_ros.control.servo`
+around the IK step, with the joint-acceleration fit, the command-lag resync, sliding and the
+elbow-before-hand slowdown. Part of :class:`~redarm_ros.control.reach_controller.ReachController`.
+Units: m, rad, s.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from redarm_ros.control.attractor import direction
+from redarm_ros.control.base import ControllerBase
+from redarm_ros.control.ik_step import DeadEnd, IKStep, blend
+from redarm_ros.control.params import ServoParams
+from redarm_ros.control.rotations import (
+    quat_from_rotvec,
+    quat_mul,
+    quat_normalize,
+)
+from redarm_ros.control.servo import ServoTarget, servo_step
+from redarm_ros.control.slide import obstacle_slide, workspace_slide
+from redarm_ros.control.state import (
+    ZERO3,
+    Mode,
+)
+from redarm_ros.control.types import GoalKind
+
+
+class ServoMixin(ControllerBase):
+    """The servo law of goal streams and twists (see the module docstring)."""
+
+    def _enter_servo(self) -> None:
+        """Servo state continuous with the reference's motion."""
+        st = self._state()
+        if st.mode in (Mode.PLAN, Mode.JOINT):
+            st.planner = None
+            st.path = None
+            self._resync_reference(keep_velocity=True)
+        if st.mode is Mode.ATTRACTOR:
+            e = direction(st.att.phi, st.att.theta)
+            st.ref.vel = (st.att.v * e[0], st.att.v * e[1], st.att.v * e[2])
+        st.mode = Mode.SERVO
+        st.ref.sdot_dyn = st.ref.sdot
+        st.message = ""
+        st.stream_note = ""
+
+    def _servo_target(self, dt: float) -> ServoTarget:
+        st = self._state()
+        ref = st.ref
+        goal = st.goal
+        if goal is None:  # stopped or rejected while tracking: decelerate
+            return ServoTarget(ref.pos, ref.rot, ZERO3, ZERO3, hold_position=False)
+        if goal.kind is GoalKind.TWIST:
+            tw = st.twist
+            if tw is None or st.time - tw.since > self.params.servo.twist_timeout:
+                return ServoTarget(ref.pos, ref.rot, ZERO3, ZERO3, hold_position=False)
+            return ServoTarget(ref.pos, ref.rot, tw.vel, tw.w, hold_position=False)
+        pred = self.stream.predict(st.time, st.time)
+        if pred is None:
+            return ServoTarget(goal.pos, goal.rot, ZERO3, ZERO3)
+        return ServoTarget(pred.pos, pred.rot, pred.vel, pred.w)
+
+    def _servo_step(self, dt: float) -> None:
+        st = self._state()
+        p = self.params
+        sp: ServoParams = p.servo
+        if float(np.max(np.abs(st.ref.q - st.cmd.q) * self._inv_vel)) > sp.resync_lag:
+            # The command lags (a joint at its acceleration limit, the guard): the servo goes on from
+            # where the arm is, so the reference never runs off to a configuration the arm cannot
+            # follow; the hand then follows as closely as the limits allow.
+            self._resync_reference(keep_velocity=True)
+        ref = st.ref
+        target = self._servo_target(dt)
+        # The servo's own bounds are Cartesian; the joints' velocity limits shorten the IK step below
+        # and their acceleration limits bound the command (which then lags the reference).
+        new_pos, new_rot, _, _ = servo_step(ref.pos, ref.rot, ref.vel, ref.w, target, dt, sp.gain, sp.acc,
+                                            p.speed.v_max, sp.ori_gain, sp.ori_acc, p.max_ori_rate)
+        # Slide along the workspace shells and obstacles: keep only the motion that can be made.
+        d = (new_pos[0] - ref.pos[0], new_pos[1] - ref.pos[1], new_pos[2] - ref.pos[2])
+        d = workspace_slide(d, ref.pos, ref.rot, self.geom, self._d_inner, self._d_outer, p.workspace_margin,
+                            project=True)
+        d = obstacle_slide(d, ref.circle, ref.s, self._local.scene, p.capsules, p.slide_band, project=True)
+        # Elbow before hand: while the arm closes in on an obstacle within elbow_priority_clearance,
+        # the hand slows so that the gap would last at least ``yield_time`` at the present rate; the
+        # swivel meanwhile turns the elbow away (the hand catches up once the gap opens again).
+        cmd = st.cmd
+        if cmd.obs_rate > 0.0 and cmd.obs_clear < p.elbow_priority_clearance:
+            room = max(cmd.obs_clear - p.collision_margin, 0.0)
+            k = min(1.0, room / (cmd.obs_rate * sp.yield_time))
+            d = (k * d[0], k * d[1], k * d[2])
+            if k < 1.0:
+                new_rot = ref.rot if k <= 0.0 else blend(ref.pos, ref.rot, ref.pos, new_rot, k)[1]
+        new_pos = (ref.pos[0] + d[0], ref.pos[1] + d[1], ref.pos[2] + d[2])
+        out = self.stepper.advance(ref.pos, ref.rot, ref.s, ref.q, new_pos, new_rot, dt, self._swivel_fn(dt))
+        if isinstance(out, DeadEnd):
+            self._hold(f"{self._stream_word()}: {out.reason}")
+            ref.vel, ref.w = ZERO3, ZERO3
+            self._track(dt)
+            return
+        limited = "joint velocity limits" if out.speed_scale < 1.0 else ""
+        shaped = self._joint_acceleration_fit(out, dt)
+        if shaped is not None:
+            out = shaped
+            limited = "joint acceleration limits"
+        self._commit(out, dt, attractor=False)
+        if limited and not st.message:
+            st.message = f"{self._stream_word()}: {limited}: following as closely as they allow"
+
+    def _joint_acceleration_fit(self, step: IKStep, dt: float) -> IKStep | None:
+        """If ``step`` asks a joint for more than its acceleration limit, the step that keeps as much
+        of the servo's change of the hand's motion as the joints allow: a blend between coasting (the
+        hand keeps its velocity) and ``step``, its share found per joint from the (nearly linear)
+        joint accelerations of the two. None if ``step`` fits."""
+        st = self._state()
+        ref = st.ref
+        amax = 0.98 * self._max_acc * dt * dt
+        base = ref.q + ref.qd * dt  # where every joint would coast to
+        dev = step.q - base
+        if np.all(np.abs(dev) <= amax):
+            return None
+        v, w = ref.vel, ref.w
+        c_pos = (ref.pos[0] + v[0] * dt, ref.pos[1] + v[1] * dt, ref.pos[2] + v[2] * dt)
+        c_rot = quat_normalize(quat_mul(quat_from_rotvec((w[0] * dt, w[1] * dt, w[2] * dt)), ref.rot))
+        coast = self.stepper.advance(ref.pos, ref.rot, ref.s, ref.q, c_pos, c_rot, dt, lambda c, T, s0: (
+            step.s, step.s_des, False))
+        if isinstance(coast, DeadEnd):
+            return None
+        d0 = coast.q - base  # joint acceleration (times dt^2) when coasting
+        d1 = dev - d0  # what the servo's change adds
+        lo, hi = 0.0, 1.0
+        for j in range(7):
+            if abs(d1[j]) < 1e-12:
+                continue
+            a, b = (-amax[j] - d0[j]) / d1[j], (amax[j] - d0[j]) / d1[j]
+            lo, hi = max(lo, min(a, b)), min(hi, max(a, b))
+        alpha = hi if lo <= hi else (0.0 if np.max(np.abs(d0) / amax) <= np.max(np.abs(dev) / amax) else 1.0)
+        alpha = min(max(alpha, 0.0), 1.0)
+        if alpha >= 1.0:
+            return None
+        pos, rot = blend(coast.pos, coast.rot, step.pos, step.rot, alpha)
+        out = self.stepper.advance(ref.pos, ref.rot, ref.s, ref.q, pos, rot, dt, lambda c, T, s0: (
+            step.s, step.s_des, False))
+        return None if isinstance(out, DeadEnd) else out
+
+    def _stream_word(self) -> str:
+        st = self._state()
+        return "twist" if st.goal is not None and st.goal.kind is GoalKind.TWIST else "stream"
+
+    def _at_rest_servo(self) -> bool:
+        st = self._state()
+        v, w = st.ref.vel, st.ref.w
+        return max(abs(c) for c in (*v, *w)) < 1e-6

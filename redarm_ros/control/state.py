@@ -1,0 +1,144 @@
+"""The controller's state, as plain dataclasses: :class:`CoreState` is everything that
+:meth:`~redarm_ros.control.reach_controller.ReachController.reset` sets (one assignment).
+
+Two joint states are kept: the *reference* (the dynamics' tool pose and swivel with their closed-form
+IK, velocity-limited) and the *command* that tracks it within the velocity and acceleration limits
+through the collision guard (what is sent). Units: m, rad, s; quaternions (w, x, y, z).
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from redarm_ros.control.elbow import ElbowCircle
+from redarm_ros.control.obstacles import Clearance
+from redarm_ros.control.replan import JointPath, JointPlanner
+from redarm_ros.control.stream import StreamEstimator
+from redarm_ros.control.types import GoalKind, Phase, Quat, Vec3
+
+ZERO3: Vec3 = (0.0, 0.0, 0.0)
+
+
+class Mode(enum.Enum):
+    """Which law moves the reference."""
+
+    HOLD = "hold"  # no goal: the command brakes onto the standing reference
+    ATTRACTOR = "attractor"  # point goal: heading, speed, orientation and swivel dynamics
+    SERVO = "servo"  # goal stream or twist: the reference follows the predicted goal
+    PLAN = "plan"  # brake to rest, then search a joint path (the arm holds)
+    JOINT = "joint"  # execute a joint-space path, then back to ATTRACTOR
+
+
+@dataclass
+class Reference:
+    """The dynamics' state: joints ``q`` (IK of ``pos``/``rot`` at swivel ``s``) and the joint
+    velocity ``qd`` of the last step; ``circle`` is None at a stretched (singular) pose."""
+
+    q: np.ndarray
+    pos: Vec3
+    rot: Quat
+    s: float
+    circle: ElbowCircle | None
+    qd: np.ndarray = field(default_factory=lambda: np.zeros(7))
+    s_des: float = 0.0
+    s_fixed: float = 0.0
+    sdot: float = 0.0  # swivel rate of the last step (rad/s)
+    sdot_dyn: float = 0.0  # the swivel dynamics' part of it while tracking (without the feed-forward)
+    w_ori: float = 0.0  # orientation rate of the last step (rad/s)
+    v_tool: float = 0.0  # tool speed of the last step (m/s)
+    vel: Vec3 = ZERO3  # tool velocity of the last step (m/s), the servo's state
+    w: Vec3 = ZERO3  # angular velocity of the last step (rad/s, base frame), the servo's state
+
+
+@dataclass
+class Attractor:
+    """Heading (azimuth ``phi``, elevation ``theta``) and speed state of the attractor dynamics."""
+
+    phi: float = 0.0
+    theta: float = 0.0
+    turn: tuple[float, float] = (0.0, 0.0)  # heading rates applied in the last step (rad/s)
+    v: float = 0.0  # hand speed (m/s)
+    a: float = 0.0  # its rate (m/s^2)
+    v_cap: float | None = None  # speed budget from the joints (m/s)
+    ratio: float = 0.0  # largest joint speed / limit in the last step
+
+
+@dataclass
+class Command:
+    """What was sent: joints ``q`` moving at ``qd``, their ``clear``-ance and tool pose."""
+
+    q: np.ndarray
+    clear: Clearance
+    pos: Vec3
+    rot: Quat
+    kp: np.ndarray  # key points (5, 3) m: base, shoulder, elbow, wrist, tool
+    qd: np.ndarray = field(default_factory=lambda: np.zeros(7))
+    tool_speed: float = 0.0  # m/s
+    obs_clear: float = math.inf  # clearance to the obstacles (not the table), m
+    obs_rate: float = 0.0  # how fast it shrank (m/s, > 0 approaching)
+
+
+@dataclass
+class Goal:
+    """The active goal: ``pos`` (m), ``rot`` (w, x, y, z), how it came (``kind``) and when (``since``,
+    controller time s)."""
+
+    pos: Vec3
+    rot: Quat
+    kind: GoalKind
+    since: float
+
+
+@dataclass
+class Progress:
+    """Stall detection of a point goal: the best goal error so far and when it was reached; when the
+    arm began holding; how often it re-planned."""
+
+    best: float = math.inf
+    t_best: float = 0.0
+    travel: float = 0.0  # tool path (m) since the best error
+    t_last: float = 0.0
+    hold_since: float | None = None
+    guard_stops: list[float] = field(default_factory=list)  # controller times of recent guard stops
+    due: float = math.inf  # controller time by which the attractor should have arrived
+    replans: int = 0
+
+
+@dataclass
+class Twist:
+    """The latest twist command: linear (m/s) and angular (rad/s) velocity in the base frame, and the
+    controller time it arrived."""
+
+    vel: Vec3 = ZERO3
+    w: Vec3 = ZERO3
+    since: float = -math.inf
+
+
+@dataclass
+class CoreState:
+    """Everything :meth:`ReachController.reset` starts afresh."""
+
+    ref: Reference
+    cmd: Command
+    stream: StreamEstimator
+    att: Attractor = field(default_factory=Attractor)
+    mode: Mode = Mode.HOLD
+    phase: Phase = Phase.IDLE
+    message: str = ""
+    goal: Goal | None = None
+    progress: Progress = field(default_factory=Progress)
+    twist: Twist | None = None
+    planner: JointPlanner | None = None
+    path: JointPath | None = None
+    path_t: float = 0.0
+    plan_reason: str = ""
+    brake_sync: bool = False  # the command follows a joint path: braking keeps to it
+    history: deque[tuple[np.ndarray, float]] = field(default_factory=lambda: deque(maxlen=1500))
+    """The last commands (joints, clearance m), oldest first: where the re-planner may retreat to."""
+    stream_note: str = ""
+    time: float = 0.0  # controller clock (s): advanced by step(), or the caller's ``now``

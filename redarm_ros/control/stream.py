@@ -1,0 +1,231 @@
+"""Goal streams: telling a stream from a new goal, and estimating where the streamed goal is now.
+
+**Stream or new goal.** A goal message continues the current stream when it arrives within
+``gap`` s of the previous message and lies within ``jump`` m / ``jump_angle`` rad of where the
+stream was predicted to be at its stamp; otherwise it is a new goal (a click elsewhere, a new task),
+reached by the attractor dynamics. The first message of a stream is therefore a new goal; from the
+second one on the controller tracks (phase TRACKING). A message that repeats the active point goal
+(within the reach tolerances) changes nothing (a goal republished at a fixed rate stays a point
+goal).
+
+**Clock.** Header stamps within ``clock_tolerance`` of the receive clock are taken as on that clock
+(ROS time on one machine or synchronised machines). Otherwise (sim time, another machine's clock) the
+offset is estimated as the smallest ``arrival - stamp`` seen, which leaves the transport delay out:
+the goal is then followed with that delay. A zero stamp means "now": the arrival time is used.
+
+**Estimate.** Over the samples whose stamps lie within ``window`` s of the newest (at least the
+newest three within ``gap``), a least-squares fit ``p(tau) = p0 + v tau + a tau^2 / 2`` (tau =
+stamp - newest stamp; the acceleration with a small ridge weight ``accel_weight``) gives position,
+velocity and acceleration at the newest stamp; the same fit on rotation vectors (relative to the
+newest orientation) gives the angular motion. A fit averages out stamp jitter; samples may arrive in
+any order (late ones are inserted by stamp, duplicates and stale ones dropped) and may be missing
+(the period is the median stamp spacing, which a dropped message does not move). The goal at time
+``t`` is the fit evaluated ``t - newest stamp + lead`` s ahead, at most ``extrapolate_periods``
+periods: a stream that stops does not drag the target on. ``end_periods`` periods after the last
+arrival the stream has ended and the target is the last goal itself, at rest.
+
+Units: s, m, rad; quaternions (w, x, y, z).
+"""
+
+from __future__ import annotations
+
+import math
+from bisect import insort
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from redarm_ros.control.params import StreamParams
+from redarm_ros.control.rotations import (
+    quat_angle,
+    quat_from_rotvec,
+    quat_mul,
+    quat_normalize,
+    rotvec_between,
+)
+from redarm_ros.control.types import Quat, Vec3
+
+
+def _vec(v: np.ndarray) -> Vec3:
+    return (float(v[0]), float(v[1]), float(v[2]))
+
+
+@dataclass(frozen=True)
+class StreamTarget:
+    """Where the streamed goal is: ``pos`` (m), ``rot`` (w, x, y, z), ``vel`` (m/s), ``w`` (rad/s,
+    base frame); ``ended``: the stream stopped (the target is its last goal, at rest)."""
+
+    pos: Vec3
+    rot: Quat
+    vel: Vec3
+    w: Vec3
+    ended: bool
+
+
+@dataclass(order=True)
+class _Sample:
+    t: float
+    pos: Vec3 = field(compare=False)
+    rot: Quat = field(compare=False)
+
+
+class StreamEstimator:
+    """State of one goal stream (see the module docstring)."""
+
+    def __init__(self, params: StreamParams | None = None) -> None:
+        self.params = params or StreamParams()
+        self._samples: list[_Sample] = []
+        self._offset: float | None = None  # receive clock - stamp clock (s), None: same clock
+        self._last_arrival = -math.inf
+        self._fit: tuple[np.ndarray, ...] | None = None
+        self.count = 0  # samples accepted since reset
+        self.dropped = 0  # out-of-window or duplicate samples ignored
+
+    def reset(self) -> None:
+        """Forget the stream."""
+        self.__init__(self.params)  # type: ignore[misc]
+
+    # -- clock ------------------------------------------------------------------------------------
+    def stamp_time(self, stamp: float | None, now: float) -> float:
+        """A message stamp (s) on the receive clock (``now``, s)."""
+        if stamp is None or stamp == 0.0 or not math.isfinite(stamp):
+            return now
+        if self._offset is None and abs(now - stamp) <= self.params.clock_tolerance:
+            return stamp
+        off = now - stamp
+        self._offset = off if self._offset is None else min(self._offset, off)
+        return stamp + self._offset
+
+    # -- samples ----------------------------------------------------------------------------------
+    @property
+    def newest(self) -> _Sample | None:
+        """The sample with the newest stamp."""
+        return self._samples[-1] if self._samples else None
+
+    def period(self) -> float:
+        """Median spacing (s) of the stamps in the window (inf with fewer than two samples)."""
+        if len(self._samples) < 2:
+            return math.inf
+        d = np.diff([s.t for s in self._samples])
+        d = d[d > 1e-6]
+        return float(np.median(d)) if d.size else math.inf
+
+    def rate(self) -> float:
+        """Message rate (Hz) of the stream, 0 if unknown."""
+        T = self.period()
+        return 0.0 if not math.isfinite(T) else 1.0 / T
+
+    def end_time(self) -> float:
+        """How long (s) after the last arrival the stream counts as stopped."""
+        p = self.params
+        T = self.period()
+        if not math.isfinite(T):
+            return p.gap
+        return min(max(p.end_periods * T, p.end_min), p.gap)
+
+    def ended(self, now: float) -> bool:
+        """The stream stopped (or never started)."""
+        return now - self._last_arrival > self.end_time()
+
+    def recent(self, now: float) -> bool:
+        """A message arrived within ``gap`` s."""
+        return now - self._last_arrival <= self.params.gap
+
+    def add(self, pos: Vec3, rot: Quat, t: float, now: float) -> bool:
+        """Add a sample stamped ``t`` (receive clock, s) that arrived at ``now``. Returns False if it
+        was ignored (a duplicate stamp, or older than the window)."""
+        self._last_arrival = max(self._last_arrival, now)
+        newest = self.newest
+        if newest is not None:
+            if t < newest.t - self.params.window:
+                self.dropped += 1
+                return False
+            if any(abs(s.t - t) < 1e-6 for s in self._samples):
+                self.dropped += 1
+                return False
+        insort(self._samples, _Sample(t, tuple(pos), tuple(rot)))  # type: ignore[arg-type]
+        t_new = self._samples[-1].t
+        # Keep the window, at least three samples (a slow stream), nothing older than the gap.
+        while self._samples[0].t < t_new - self.params.gap or \
+                (len(self._samples) > 3 and self._samples[0].t < t_new - self.params.window):
+            self._samples.pop(0)
+        self.count += 1
+        self._fit = None
+        return True
+
+    # -- fit and prediction -----------------------------------------------------------------------
+    def _fitted(self) -> tuple[np.ndarray, ...]:
+        """(p0, v, a, r0, w, alpha): position, velocity and acceleration at the newest stamp, and the
+        same for the rotation vector relative to the newest orientation."""
+        if self._fit is not None:
+            return self._fit
+        ref = self._samples[-1]
+        n = len(self._samples)
+        tau = np.array([s.t - ref.t for s in self._samples])
+        P = np.array([s.pos for s in self._samples])
+        R = np.array([rotvec_between(ref.rot, s.rot) for s in self._samples])
+        z = np.zeros(3)
+        if n == 1:
+            self._fit = (P[0], z, z, z, z, z)
+            return self._fit
+        cols = [np.ones(n), tau]
+        if n >= 3:
+            cols.append(0.5 * tau * tau)
+        A = np.stack(cols, axis=1)
+        M = A.T @ A
+        if n >= 3:
+            M[2, 2] += self.params.accel_weight
+        try:
+            X = np.linalg.solve(M, A.T @ np.hstack([P, R]))
+        except np.linalg.LinAlgError:
+            X = np.zeros((A.shape[1], 6))
+            X[0] = np.hstack([P[-1], R[-1]])
+        acc = X[2] if n >= 3 else np.zeros(6)
+        self._fit = (X[0, :3], X[1, :3], acc[:3], X[0, 3:], X[1, 3:], acc[3:])
+        return self._fit
+
+    def velocity(self) -> tuple[Vec3, Vec3]:
+        """Estimated linear (m/s) and angular (rad/s) velocity of the stream."""
+        if not self._samples:
+            return (0.0, 0.0, 0.0), (0.0, 0.0, 0.0)
+        _, v, _, _, w, _ = self._fitted()
+        return (float(v[0]), float(v[1]), float(v[2])), (float(w[0]), float(w[1]), float(w[2]))
+
+    def predict(self, t: float, now: float | None = None, *, lead: bool = True,
+                clamp: bool = True) -> StreamTarget | None:
+        """The goal at time ``t`` (receive clock, s); ``now`` (default ``t``) decides whether the
+        stream has ended. ``lead``: add ``params.lead``; ``clamp``: extrapolate at most
+        ``extrapolate_periods`` periods. None before the first sample."""
+        if not self._samples:
+            return None
+        now = t if now is None else now
+        ref = self._samples[-1]
+        if self.ended(now):
+            return StreamTarget(ref.pos, ref.rot, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0), True)
+        p0, v, a, r0, w, al = self._fitted()
+        T = self.period()
+        ahead = self.params.lead if lead else 0.0
+        # (the lead is a known delay made up for, not a guess: the clamp applies beyond it)
+        horizon = self.params.extrapolate_periods * (T if math.isfinite(T) else 0.0) + ahead
+        tau = t + ahead - ref.t
+        if not clamp:
+            horizon = max(horizon, tau)
+        moving = tau <= horizon
+        tau = min(max(tau, -self.params.window), horizon)
+        pos = p0 + v * tau + 0.5 * a * tau * tau
+        rv = r0 + w * tau + 0.5 * al * tau * tau
+        rot = quat_normalize(quat_mul(quat_from_rotvec((float(rv[0]), float(rv[1]), float(rv[2]))), ref.rot))
+        vel = v + a * tau if moving else np.zeros(3)
+        wv = w + al * tau if moving else np.zeros(3)
+        return StreamTarget(_vec(pos), rot, _vec(vel), _vec(wv), False)
+
+    def continues(self, pos: Vec3, rot: Quat, t: float, now: float) -> bool:
+        """Would a message (pose, stamp ``t`` on the receive clock, arriving ``now``) continue this
+        stream? (see the module docstring)"""
+        if not self._samples or not self.recent(now):
+            return False
+        # at its own stamp, as if the stream were still running, extrapolated as far as needed
+        pred = self.predict(t, now=self._last_arrival, lead=False, clamp=False)
+        assert pred is not None
+        return math.dist(pred.pos, pos) <= self.params.jump and \
+            quat_angle(pred.rot, rot) <= self.params.jump_angle
