@@ -158,6 +158,18 @@ def test_batch_many_poses() -> None:
     for i in range(0, 500, 25):
         assert np.allclose(Q[i][valid[i]], arm.ik(Ts[i], sw[i]), atol=1e-9)
         assert np.any(np.all(_wrapdiff(Q[i][valid[i]], Qs[i]) < 1e-7, axis=1))
+    # chunks of any size give the same answers (the PA10's joints 5 and 7 have several copies)
+    pa10 = ARMS["pa10"]
+    Qp = _rand_q(pa10, 300, 14)
+    Qp[::3, 4] = pa10.upper[4]
+    Qp[1::3, 6] = pa10.lower[6]
+    Tp = pa10.fk_batch(Qp)
+    sp = np.array([pa10.swivel(q) for q in Qp])
+    Q1, v1 = pa10.ik_batch(Tp, sp)
+    Q2, v2 = pa10.ik_batch(Tp, sp, chunk=7)
+    assert np.array_equal(v1, v2) and np.array_equal(Q1, Q2, equal_nan=True)
+    for i in range(0, 300, 30):
+        assert np.allclose(Q1[i][v1[i]], pa10.ik(Tp[i], sp[i]), atol=1e-9)
     far = Ts[:3].copy()
     far[:, :3, 3] = [5.0, 0.0, 0.0]
     _, v2 = arm.ik_batch(far, 0.0)

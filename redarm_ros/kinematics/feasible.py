@@ -53,8 +53,10 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from itertools import chain
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -107,6 +109,15 @@ for _b in range(8):
     for _j in range(7):
         _SEL[_b, 2 * _j + ALT_INDEX[_b, _j]] = 1.0
 _GRID_S = np.arange(GRID) * (TWO_PI / GRID) - PI
+# the scalar nearest search works on the six joints that vary along the circle, pivots first (theta4 is
+# constant on the circle and is handled per pose): row k of its (6, 2, M) arrays is joint _J6[k]
+_J6 = (0, 2, 4, 6, 1, 5)
+_J6A = np.array(_J6)
+_SEL6 = np.zeros((8, 12))
+for _b in range(8):
+    for _k, _j in enumerate(_J6):
+        _SEL6[_b, 2 * _k + ALT_INDEX[_b, _j]] = 1.0
+_PM = np.array([[1.0], [-1.0]])  # the two roots of a row: phi + d and phi - d
 
 # rows of the coefficient table K (const, cos s, sin s): pivot X rows, pivot Y rows, hinge Z rows
 # 0..3: X1, X3, X5, X7   4..7: Y1, Y3, Y5, Y7   8, 9: Z2, Z6
@@ -189,6 +200,94 @@ class LimitTables:
         self.shift_lot = ALT_SHIFT[:, :, None] - self.lot3  # A - (lower - tol) = th * sign + this
         self.width3 = self.upt3 - self.lot3  # range plus both tolerances
         self.sign3 = ALT_SIGN[:, :, None].copy()
+        # the same per alternative as (14, 1) columns, row 2 j + a = alternative a of joint j (ik_batch)
+        self.sign14 = ALT_SIGN.reshape(14, 1)
+        self.shift_lot14 = self.shift_lot.reshape(14, 1)
+        self.width14 = np.repeat(self.width3[:, 0, 0], 2)[:, None]
+        self.lot14 = np.repeat(self.lot3[:, 0, 0], 2)[:, None]
+        self.upt14 = np.repeat(self.upt3[:, 0, 0], 2)[:, None]
+        self.lo14 = np.repeat(self.lower, 2)[:, None]
+        self.up14 = np.repeat(self.upper, 2)[:, None]
+        # ---- the scalar nearest search (_sample_swivels, _alternative_costs): the joints of _J6 as rows
+        j6 = list(_J6)
+        self.width6 = self.width3[j6].copy()
+        self.lot6v = self.lower[j6] - LIMIT_TOL
+        self.lot6_l = self.lot6v.tolist()
+        # (alternative - (lower - tol)) mod 2 pi = atan2 of the alternative's (x, y) pair turned by
+        # -(lower - tol - shift + pi), plus pi. Pairs: pivot joint p (X_p, Y_p) (flip: shift pi); hinge
+        # joint (Z, +-rho). ROT (24, 12) maps [X1 X3 X5 X7 Y1 Y3 Y5 Y7 Z2 Z6 rho2 rho6] to the turned
+        # x (rows 0..11) and y (rows 12..23) of the 12 alternatives, in the row order of _SEL6
+        rot = np.zeros((24, 12))
+        for k, j in enumerate(j6):
+            for a in (0, 1):
+                r = 2 * k + a
+                if j % 2 == 0:  # pivot j // 2: (X, Y) at row (j // 2, 4 + j // 2) of the coefficients
+                    ix, iy, sy = j // 2, 4 + j // 2, 1.0
+                    dl = self.lower[j] - LIMIT_TOL - (PI if a else 0.0) + PI
+                else:  # hinge: (Z, rho) with rho -> -rho for the flipped alternative
+                    ix, iy, sy = 8 + j // 4, 10 + j // 4, (-1.0 if a else 1.0)
+                    dl = self.lower[j] - LIMIT_TOL + PI
+                cd, sd = math.cos(dl), math.sin(dl)
+                rot[r, ix], rot[r, iy] = cd, sd * sy
+                rot[12 + r, ix], rot[12 + r, iy] = -sd, cd * sy
+        self.rot = rot
+        # the same as gathers and scalings, for the batch (no matrix product: BLAS threads on a busy
+        # machine made that 20x slower): x' = rc * V[rx] + rs * V[ry], y' = rc2 * V[ry] - rs2 * V[rx]
+        self.rx = np.array([j // 2 if j % 2 == 0 else 8 + j // 4 for j in j6 for _ in (0, 1)])
+        self.ry = np.array([4 + j // 2 if j % 2 == 0 else 10 + j // 4 for j in j6 for _ in (0, 1)])
+        self.rc = rot[np.arange(12), self.rx][:, None, None]
+        self.rs = rot[np.arange(12), self.ry][:, None, None]
+        self.rc2 = rot[12 + np.arange(12), self.ry][:, None, None]
+        self.rs2 = -rot[12 + np.arange(12), self.rx][:, None, None]
+        # theta1 (theta5) fixed at 0 by convention: its alternatives' values, (shift - (lower - tol)) mod 2 pi
+        self.fixed6 = {
+            j: [(sh - lot) % TWO_PI for sh in (0.0, PI)]
+            for j, lot in ((0, self.lot6_l[0]), (4, self.lot6_l[2]))
+        }
+        wide6 = [k for k, j in enumerate(j6) if j in self.wide_l]
+        # a slice where the wide rows are contiguous (PA10: joints 5 and 7), so updates act in place
+        self.wide6: slice | np.ndarray | None = None
+        if wide6:
+            contiguous = wide6 == list(range(wide6[0], wide6[-1] + 1))
+            self.wide6 = slice(wide6[0], wide6[-1] + 1) if contiguous else np.array(wide6)
+            self.width6w = self.width6[self.wide6]
+        # its equations, as columns (e0, e1, e2) of a (3, R) table: 4 stationary rows and one anti-seed
+        # row per wide joint (computed per pose), the limit rows, then the equal-angle rows (those two from
+        # one product GT with the coefficients and a constant row). The first ones up to the equal-angle
+        # rows give critical swivels. Equal-angle rows that repeat a critical swivel on every pose go last
+        # (theta3 = 0 and theta5 = 0 mod pi where theta2 / theta6 is extreme; theta3 = pi / 2 where theta1
+        # is stationary and theta5 = pi / 2 where theta7 is), so that they can be left out per pose.
+        n_py = 4 + len(self.wide_l)
+        dir_owner = self.owner_d.tolist()
+        dir_k = [int(r - 12) % DIRECTIONS for r in keep_a[keep_a >= 12].tolist()]
+        repeat = {(1, 0): 0, (1, DIRECTIONS // 2): 0, (2, 0): 1, (2, DIRECTIONS // 2): 1}  # -> hinge
+        order = [i for i in range(len(dir_k)) if (dir_owner[i], dir_k[i]) not in repeat]
+        for h in (0, 1):
+            order += [i for i in range(len(dir_k)) if repeat.get((dir_owner[i], dir_k[i])) == h]
+        G = np.concatenate([self.Lc, self.Ld[order]])
+        const = np.concatenate([self.Cc[:, 0], np.zeros(len(order))])
+        self.GT = np.ascontiguousarray(np.concatenate([G, const[:, None]], axis=1).T)  # (11, R - n_py)
+        self.n_py = n_py
+        self.n_crit_rows = n_py + len(self.Lc)
+        R = n_py + len(G)
+        col = {i: self.n_crit_rows + j for j, i in enumerate(order)}  # Ld row -> column
+        self.dir_col = {(dir_owner[i], dir_k[i]): col[i] for i in range(len(dir_k))}
+        # per hinge (0: theta2, 1: theta6) the column range repeating its extremes and the stationary
+        # points next to it
+        self.repeat_cols = []
+        for h in (0, 1):
+            cols = [col[i] for i in range(len(dir_k)) if repeat.get((dir_owner[i], dir_k[i])) == h]
+            self.repeat_cols.append((min(cols), max(cols) + 1) if cols else (0, 0))
+        anti_owner = [j // 2 if j % 2 == 0 else -1 for j in self.wide_l]
+        owner_all = np.array(
+            [0, 1, 2, 3] + anti_owner + self.owner_c.tolist() + [dir_owner[i] for i in order]
+        )
+        assert len(owner_all) == R
+        # samples per pose of the batched search (padded): roots of every row, extremes, mid points, grid,
+        # the seed's swivel, and the two neighbours around the circle
+        self.batch_samples = 2 * (2 * self.n_crit_rows + 4) + 2 * (R - self.n_crit_rows) + GRID + 1 + 2
+        # columns to drop when theta1 (theta5) is 0 by convention on the whole circle
+        self.dead_cols = {p: np.nonzero(owner_all == p)[0] for p in (0, 2)}
 
     def fit(self, A: np.ndarray, ref: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
         """Alternatives A (7, 2, M) at their in-limit 2*pi copy nearest ``ref`` (7,) (None: nearest 0).
@@ -223,6 +322,7 @@ class SwivelFunctions:
     t4: float
     deg_shoulder: bool
     deg_wrist: bool
+    Ka: np.ndarray | None = None  # (11, 3): K and the constant row (1, 0, 0), for one-product equations
 
     def angles(self, s: np.ndarray) -> np.ndarray:
         """(7, M) base-pattern joint angles (rad) at the swivels s (M,); pivot joints in (-pi, pi]."""
@@ -305,30 +405,32 @@ def swivel_functions(arm: SwivelArm, Tl: list[list[float]], circ: tuple[float, .
     cx = (my * x3z - mz * x3y, mz * x3x - mx * x3z, mx * x3y - my * x3x)
     dy3 = mx * y3x + my * y3y + mz * y3z
     cy = (my * y3z - mz * y3y, mz * y3x - mx * y3z, mx * y3y - my * y3x)
-    x4 = (c4 * x3x - s4 * zx, c4 * x3y - s4 * zy, c4 * x3z - s4 * zz)
-    dx4, cx4 = c4 * dx3 - s4 * dz3, tuple(c4 * cx[i] - s4 * cz[i] for i in range(3))
-    z4 = (s4 * x3x + c4 * zx, s4 * x3y + c4 * zy, s4 * x3z + c4 * zz)
-    dz4, cz4 = s4 * dx3 + c4 * dz3, tuple(s4 * cx[i] + c4 * cz[i] for i in range(3))
-    y3 = (y3x, y3y, y3z)
+    # frame 4 = frame 3 turned by theta4 about y3: x4 = c4 x3 - s4 z3, z4 = s4 x3 + c4 z3 (and their m . v,
+    # m x v alike). Written out in scalars: this runs once per ik_nearest call (about 6 us)
+    x4x, x4y, x4z = c4 * x3x - s4 * zx, c4 * x3y - s4 * zy, c4 * x3z - s4 * zz
+    z4x, z4y, z4z = s4 * x3x + c4 * zx, s4 * x3y + c4 * zy, s4 * x3z + c4 * zz
+    dx4, dz4 = c4 * dx3 - s4 * dz3, s4 * dx3 + c4 * dz3
+    cx4x, cx4y, cx4z = c4 * cx[0] - s4 * cz[0], c4 * cx[1] - s4 * cz[1], c4 * cx[2] - s4 * cz[2]
+    cz4x, cz4y, cz4z = s4 * cx[0] + c4 * cz[0], s4 * cx[1] + c4 * cz[1], s4 * cx[2] + c4 * cz[2]
     r0, r1, r2 = Tl[0], Tl[1], Tl[2]
-    tb = (r0[0], r1[0], r2[0])  # tool x
-    ty = (r0[1], r1[1], r2[1])  # tool y
-    ta = (r0[2], r1[2], r2[2])  # tool z (approach)
-
-    def coef(
-        v: tuple[float, ...], dv: float, cv: tuple[float, ...], t: tuple[float, ...], sg: float = 1.0
-    ) -> list[float]:
-        k0 = dv * (mx * t[0] + my * t[1] + mz * t[2])
-        vt = v[0] * t[0] + v[1] * t[1] + v[2] * t[2]
-        return [sg * k0, sg * (vt - k0), sg * (cv[0] * t[0] + cv[1] * t[1] + cv[2] * t[2])]
-
+    bx, by, bz = r0[0], r1[0], r2[0]  # tool x
+    yx, yy, yz = r0[1], r1[1], r2[1]  # tool y
+    ax, ay, az = r0[2], r1[2], r2[2]  # tool z (approach)
+    ma, mb, my_ = mx * ax + my * ay + mz * az, mx * bx + my * by + mz * bz, mx * yx + my * yy + mz * yz
+    # component along a tool axis t of a turning v: [(m.v)(m.t), v.t - (m.v)(m.t), (m x v).t]
+    k0 = dx4 * ma
+    X5 = [k0, x4x * ax + x4y * ay + x4z * az - k0, cx4x * ax + cx4y * ay + cx4z * az]
+    k0 = dy3 * ma
+    Y5 = [k0, y3x * ax + y3y * ay + y3z * az - k0, cy[0] * ax + cy[1] * ay + cy[2] * az]
+    k0 = dz4 * ma
+    Z6 = [k0, z4x * ax + z4y * ay + z4z * az - k0, cz4x * ax + cz4y * ay + cz4z * az]
     X1 = [dz3 * mx, zx - dz3 * mx, cz[0]]
     Y1 = [dz3 * my, zy - dz3 * my, cz[1]]
     Z2 = [dz3 * mz, zz - dz3 * mz, cz[2]]
-    X5, Y5, Z6 = coef(x4, dx4, cx4, ta), coef(y3, dy3, cy, ta), coef(z4, dz4, cz4, ta)
     # theta2 (theta6) 0 or pi on the whole circle: bound |(X, Y)| over the circle
-    deg_sh = sum(math.hypot(X1[i], Y1[i]) for i in range(3)) <= DEGEN_SIN
-    deg_wr = sum(math.hypot(X5[i], Y5[i]) for i in range(3)) <= DEGEN_SIN
+    hyp = math.hypot
+    deg_sh = hyp(X1[0], Y1[0]) + hyp(X1[1], Y1[1]) + hyp(X1[2], Y1[2]) <= DEGEN_SIN
+    deg_wr = hyp(X5[0], Y5[0]) + hyp(X5[1], Y5[1]) + hyp(X5[2], Y5[2]) <= DEGEN_SIN
     if deg_sh:  # R3 = Rz(theta3) Ry(0 or pi): theta3 = atan2(x3y, +-x3x), as ik
         sg = 1.0 if Z2[0] >= 0.0 else -1.0
         X3 = [sg * dx3 * mx, sg * (x3x - dx3 * mx), sg * cx[0]]
@@ -336,13 +438,20 @@ def swivel_functions(arm: SwivelArm, Tl: list[list[float]], circ: tuple[float, .
     else:  # theta3 = atan2(R3[2,1], -R3[2,0])
         X3 = [-dx3 * mz, -(x3z - dx3 * mz), -cx[2]]
         Y3 = [dy3 * mz, y3z - dy3 * mz, cy[2]]
-    if deg_wr:
-        X7 = coef(x4, dx4, cx4, tb, 1.0 if Z6[0] >= 0.0 else -1.0)
-        Y7 = coef(y3, dy3, cy, tb)
+    if deg_wr:  # theta7 = atan2(W[1,0], +-W[0,0])
+        sg = 1.0 if Z6[0] >= 0.0 else -1.0
+        k0 = dx4 * mb
+        X7 = [sg * k0, sg * (x4x * bx + x4y * by + x4z * bz - k0), sg * (cx4x * bx + cx4y * by + cx4z * bz)]
+        k0 = dy3 * mb
+        Y7 = [k0, y3x * bx + y3y * by + y3z * bz - k0, cy[0] * bx + cy[1] * by + cy[2] * bz]
     else:  # theta7 = atan2(W[2,1], -W[2,0])
-        X7, Y7 = coef(z4, dz4, cz4, tb, -1.0), coef(z4, dz4, cz4, ty)
+        k0 = dz4 * mb
+        X7 = [-k0, -(z4x * bx + z4y * by + z4z * bz - k0), -(cz4x * bx + cz4y * by + cz4z * bz)]
+        k0 = dz4 * my_
+        Y7 = [k0, z4x * yx + z4y * yy + z4z * yz - k0, cz4x * yx + cz4y * yy + cz4z * yz]
     Kl = [X1, X3, X5, X7, Y1, Y3, Y5, Y7, Z2, Z6]
-    return SwivelFunctions(np.array(Kl), Kl, t4, deg_sh, deg_wr)
+    Ka = np.fromiter(chain(X1, X3, X5, X7, Y1, Y3, Y5, Y7, Z2, Z6, (1.0, 0.0, 0.0)), float, 33).reshape(11, 3)
+    return SwivelFunctions(Ka[:10], Kl, t4, deg_sh, deg_wr, Ka)
 
 
 def roots(E: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -423,12 +532,18 @@ def feasible_intervals(fn: SwivelFunctions, tab: LimitTables) -> list[np.ndarray
     return out
 
 
+# realise(swivel, pattern, predicted cost) -> (q, swivel, pattern, cost) of a solution as ``ik`` computes
+# it there (or beside it), or None: see :func:`nearest`
+Realise = Callable[[float, int, float], "tuple[Any, float, int, float] | None"]
+
+
 @dataclass
 class NearestResult:
-    """Outcome of :func:`nearest`: the best (swivel rad, flip pattern, cost rad^2) and the work done.
+    """Outcome of :func:`nearest`: the best (swivel rad, flip pattern, cost rad^2, q) and the work done.
 
-    ``ranked``: every refined candidate as (cost, swivel, pattern), best first (the runners-up serve as
-    fall-backs when round-off at a singular or end swivel makes the scalar solve disagree).
+    ``q``: the solution ``realise`` returned for the best candidate (None without ``realise``, or if no
+    candidate could be realised: ``swivel`` is then the best predicted one, or None if there was no
+    candidate at all, i.e. no in-limit solution).
     """
 
     swivel: float | None
@@ -438,7 +553,7 @@ class NearestResult:
     refined: int
     evaluations: int
     timed_out: bool
-    ranked: list[tuple[float, float, int]]
+    q: Any = None
 
 
 def _fgh(
@@ -570,41 +685,278 @@ def _refine(
 
 
 def _sample_swivels(
-    fn: SwivelFunctions, tab: LimitTables, s_seed: float | None, seed: list[float] | None = None
-) -> tuple[np.ndarray, np.ndarray]:
-    """Sorted sample swivels of the nearest search and which of them are critical.
+    fn: SwivelFunctions, tab: LimitTables, s_seed: float | None, seed: list[float]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Sample swivels of the nearest search: (Sp, flag, gaps).
 
-    Critical: the closed-form roots (limits, stationary points, and for a joint with several in-limit
-    copies where it is opposite the ``seed``, where the nearest copy switches) and the hinge extremes.
-    Plain: the uniform grid, the equal-angle roots of the pivot joints, the seed's own swivel and the
-    mid point between every two neighbouring critical swivels, so that every arc between two
+    Critical samples: the closed-form roots (limits, stationary points, and for a joint with several
+    in-limit copies where it is opposite the ``seed``, where the nearest copy switches) and the hinge
+    extremes. Plain: the uniform grid, the equal-angle roots of the pivot joints, the seed's own swivel
+    and the mid point between every two neighbouring critical swivels, so that every arc between two
     neighbouring samples has a plain end (which decides the open arc's feasibility: no critical swivel
-    inside).
+    inside). ``Sp`` (M + 2,): the M samples sorted in [-pi, pi), padded with S[M - 1] in front and S[0]
+    behind (the neighbours around the circle); ``flag`` (M,) critical; ``gaps`` (M + 1,): gaps[i] =
+    S[i] - S[i - 1] around the circle (gaps[0] = gaps[M] is the gap across pi).
+
+    Runs once per ``ik_nearest`` with about 50 equations and 100 samples, so numpy's per-call overhead
+    (about 1 us a call on the 2-core test machine) is its cost, not the arithmetic: all equations are
+    solved by the same dozen calls on contiguous rows, and samples that would repeat a critical swivel on
+    every pose are not made (merging near-equal samples used to cost 15 us a call).
     """
-    Ec, Ed = fn.equations(tab, seed)
-    nc = len(Ec)
-    rp, rm = roots(np.concatenate([Ec, Ed]))
-    crit = np.concatenate([rp[:nc], rm[:nc], fn.extremes()])
-    # (np.remainder: slow per element but one call; these arrays are small)
-    crit = np.sort(np.remainder(crit[crit == crit] + PI, TWO_PI) - PI)
-    mids = (crit + np.append(crit[1:], crit[:1] + TWO_PI)) * 0.5
-    plain = np.concatenate([rp[nc:], rm[nc:], _GRID_S, mids, [s_seed or 0.0]])
-    S = np.concatenate([crit, np.remainder(plain[plain == plain] + PI, TWO_PI) - PI])
-    flag = np.zeros(len(S), bool)
-    flag[: len(crit)] = True
-    order = np.argsort(S)
-    S, flag = S[order], flag[order]
-    close = np.diff(S) <= MERGE_TOL
-    if close.any():  # one sample per cluster, critical if any member is
-        keep = np.concatenate([[True], ~close])
-        grp = np.cumsum(keep) - 1
-        crit_any = np.zeros(int(grp[-1]) + 1, bool)
-        np.logical_or.at(crit_any, grp, flag)
-        rep = np.nonzero(keep)[0]
-        ci = np.nonzero(flag & ~keep)[0]
-        rep[grp[ci]] = ci  # the critical member (an exact root) represents the cluster
-        S, flag = S[rep], crit_any
-    return S, flag
+    Kl = fn.Kl
+    n_py = tab.n_py
+    ET = np.empty((3, n_py + tab.GT.shape[1]))  # columns (e0, e1, e2): e0 + e1 cos s + e2 sin s = 0
+    a0, a1, a2 = [], [], []
+    for p in range(4):  # where pivot joint p is stationary: X Y' - Y X' = 0, affine in cos / sin
+        x0, x1, x2 = Kl[p]
+        y0, y1, y2 = Kl[p + 4]
+        a0.append(x1 * y2 - x2 * y1)
+        a1.append(x0 * y2 - y0 * x2)
+        a2.append(y0 * x1 - x0 * y1)
+    # where theta2 and theta6 are extreme (nearest 0 or pi: the singular candidates), as pre-wrap values
+    # (see the roots below: se + pi and se give se and its antipode). Away from 0 and pi (cos within 1e-6
+    # of +-1) a hinge's extremes are where theta3 (theta5) = 0 mod pi, and the stationary points of
+    # theta1 (theta7) where theta3 (theta5) = pi / 2: rows for those would only repeat critical swivels
+    ext = [math.nan] * 4
+    n_ext = 0
+    regular = [False, False]
+    for h, (z0, z1, z2) in enumerate(Kl[8:10]):
+        zz = z1 * z1 + z2 * z2
+        if zz > 1e-30:
+            se = math.atan2(z2, z1)
+            ext[2 * h : 2 * h + 2] = (se + PI, se)
+            n_ext += 2
+            regular[h] = abs(z0) + math.sqrt(zz) < 1.0 - 1e-6
+    drop = []
+    for q, j in enumerate(tab.wide_l):  # a joint with several in-limit copies switches copy opposite the seed
+        L = seed[j] + PI
+        sl, cl = math.sin(L), math.cos(L)
+        if j % 2 == 0:
+            p = j // 2
+            (x0, x1, x2), (y0, y1, y2) = Kl[p], Kl[p + 4]
+            a0.append(cl * y0 - sl * x0)
+            a1.append(cl * y1 - sl * x1)
+            a2.append(cl * y2 - sl * x2)
+            k = L * (DIRECTIONS / PI)  # L = k pi / DIRECTIONS: an equal-angle row repeats this one
+            if abs(k - round(k)) < 1e-12:
+                k = round(k) % DIRECTIONS
+                if p in (1, 2) and k in (0, DIRECTIONS // 2) and regular[p - 1]:
+                    drop.append(4 + q)  # ... and it repeats a hinge extreme or a stationary point
+                else:
+                    drop.append(tab.dir_col.get((p, k), -1))
+        else:
+            z0, z1, z2 = Kl[8 + j // 4]
+            a0.append(z0 - cl)
+            a1.append(z1)
+            a2.append(z2)
+    ET[0, :n_py] = a0
+    ET[1, :n_py] = a1
+    ET[2, :n_py] = a2
+    ET[:, n_py:] = np.dot(fn.Ka.T, tab.GT)
+    for h in (0, 1):
+        if regular[h]:
+            r0, r1 = tab.repeat_cols[h]
+            ET[0, r0:r1] = np.inf  # (a root of e0 = inf: none)
+    if fn.deg_shoulder:  # theta1 (theta5) is 0 on the whole circle: no rows for it
+        drop.extend(tab.dead_cols[0].tolist())
+    if fn.deg_wrist:
+        drop.extend(tab.dead_cols[2].tolist())
+    if drop:
+        ET[0, [c for c in drop if c >= 0]] = np.inf
+    # roots: with (e1, e2) = h (cos phi, sin phi) and r = e0 / h, s = phi + pi -+ acos(r), i.e. phi -+
+    # acos(r) - pi (mod 2 pi); x - copysign(pi, x) wraps phi -+ acos(r) (in [-2 pi, 2 pi]) into [-pi, pi]
+    e1 = ET[1]
+    e2 = ET[2]
+    r = ET[0] / np.maximum(np.hypot(e1, e2), 1e-300)  # a constant row: |r| ~ 1e300, no root
+    bad = np.abs(r) > 1.0 + TANGENT_TOL  # no root (up to TANGENT_TOL beyond: a touching root)
+    d = np.arccos(np.minimum(np.maximum(r, -1.0), 1.0))
+    d[bad] = np.nan
+    phi = np.arctan2(e2, e1)
+    # Y: [critical roots +, critical roots -, extremes, equal-angle roots +, equal-angle roots -]
+    nc = tab.n_crit_rows
+    nr = len(r)
+    Y = np.empty(2 * nr + 4)
+    np.add(phi[:nc], d[:nc], out=Y[:nc])
+    np.subtract(phi[:nc], d[:nc], out=Y[nc : 2 * nc])
+    Y[2 * nc : 2 * nc + 4] = ext
+    np.add(phi[nc:], d[nc:], out=Y[2 * nc + 4 : nr + nc + 4])
+    np.subtract(phi[nc:], d[nc:], out=Y[nr + nc + 4 :])
+    Y -= np.copysign(PI, Y)
+    c = Y[: 2 * nc + 4].copy()
+    c.sort()  # NaN (no root) last
+    nbad_c = int(np.count_nonzero(bad[:nc]))
+    n = 2 * (nc - nbad_c) + n_ext
+    c = c[:n]
+    mids = np.empty(n)
+    if n:
+        np.add(c[:-1], c[1:], out=mids[:-1])
+        mids *= 0.5
+        m = 0.5 * (float(c[-1]) + float(c[0])) + PI  # the arc across pi, wrapped
+        mids[-1] = m - TWO_PI if m >= PI else m
+    seed_s: tuple[float, ...] = ()
+    if s_seed is not None:  # (on a grid point it would only repeat that sample)
+        t = (s_seed + PI) * (GRID / TWO_PI)
+        if abs(t - round(t)) * (TWO_PI / GRID) > MERGE_TOL:
+            seed_s = (s_seed - TWO_PI if s_seed >= PI else s_seed,)
+    S = np.concatenate((c, mids, Y[2 * nc + 4 :], _GRID_S, seed_s))
+    M = len(S) - 2 * (int(np.count_nonzero(bad)) - nbad_c)
+    order = S.argsort()[:M]  # NaN (no root) last
+    Sp = np.empty(M + 2)
+    np.take(S, order, out=Sp[1:-1], mode="clip")
+    flag = order < n
+    gaps = np.empty(M + 1)
+    np.subtract(Sp[2:-1], Sp[1:-2], out=gaps[1:-1])
+    if Sp[-2] >= PI or (M > 1 and gaps[1:-1].min() <= MERGE_TOL):  # rare: wrap gave pi; near-equal
+        S = Sp[1:-1]
+        S[S >= PI] -= TWO_PI
+        order = S.argsort()
+        S, flag = _merge_close(S[order], flag[order])
+        M = len(S)
+        Sp = np.empty(M + 2)
+        Sp[1:-1] = S
+        gaps = np.empty(M + 1)
+        np.subtract(Sp[2:-1], Sp[1:-2], out=gaps[1:-1])
+    Sp[0] = Sp[-2]
+    Sp[-1] = Sp[1]
+    gaps[0] = gaps[-1] = Sp[1] + TWO_PI - Sp[-2]
+    return Sp, flag, gaps
+
+
+def _merge_close(S: np.ndarray, flag: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Sorted samples with one sample per cluster of samples closer than MERGE_TOL, critical if any member
+    is (the critical member, an exact root, represents the cluster). Rare: touching roots, coincidences."""
+    keep = np.concatenate([[True], np.diff(S) > MERGE_TOL])
+    grp = np.cumsum(keep) - 1
+    crit_any = np.zeros(int(grp[-1]) + 1, bool)
+    np.logical_or.at(crit_any, grp, flag)
+    rep = np.nonzero(keep)[0]
+    ci = np.nonzero(flag & ~keep)[0]
+    rep[grp[ci]] = ci
+    return S[rep], crit_any
+
+
+def _theta4_copies(
+    fn: SwivelFunctions, tab: LimitTables, seed: list[float]
+) -> list[tuple[float, float] | None]:
+    """theta4 (constant on the circle) per alternative (t4, -t4): (in-limit copy nearest the seed, that
+    copy clipped into the limits), or None if no copy is within the limits (LIMIT_TOL)."""
+    lo, up, r = tab.lo_l[3], tab.up_l[3], seed[3]
+    out: list[tuple[float, float] | None] = []
+    for a in (fn.t4, -fn.t4):
+        v0 = lo - LIMIT_TOL + (a - lo + LIMIT_TOL) % TWO_PI  # lowest copy >= lower - tol
+        kmax = math.floor((up + LIMIT_TOL - v0) / TWO_PI)
+        if kmax < 0:
+            out.append(None)
+            continue
+        v = v0 + TWO_PI * min(max(round((r - v0) / TWO_PI), 0), kmax)
+        out.append((v, min(max(v, lo), up)))
+    return out
+
+
+def _alternative_costs(
+    fn: SwivelFunctions,
+    tab: LimitTables,
+    Sp: np.ndarray,
+    seed: np.ndarray,
+    w: np.ndarray | None,
+    c4: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Costs (8, K) of the flip patterns at the K swivels Sp, and the per-alternative arrays behind them.
+
+    Returns (cost, X, E): X (6, 2, K) per joint of _J6 and alternative the lowest copy >= lower - tol,
+    minus (lower - tol) (feasible where X <= width6); E (6, 2, K) the in-limit copy nearest the seed,
+    minus the seed. ``w``: weights (7,), None for all ones. ``c4`` (8, 1): theta4's share of each
+    pattern's cost (BIG where out of limits). The eight patterns share their joints' alternatives, so the
+    per-alternative work is done once (12 rows) and the patterns are one matrix product.
+    """
+    K = Sp.shape[0]
+    CS = np.empty((3, K))
+    CS[0] = 1.0
+    np.cos(Sp, out=CS[1])
+    np.sin(Sp, out=CS[2])
+    V = np.empty((12, K))
+    np.dot(fn.K, CS, out=V[:10])  # X1, X3, X5, X7, Y1, Y3, Y5, Y7, Z2, Z6
+    q = V[0:7:2] * V[0:7:2]  # X1^2, X5^2, Y1^2, Y5^2
+    np.sqrt(q[0:2] + q[2:4], out=V[10:12])  # rho2, rho6: theta2 = atan2(rho2, Z2)
+    T = np.dot(tab.rot, V)
+    X = np.arctan2(T[12:], T[:12])  # (the alternative - (lower - tol)) mod 2 pi, minus pi
+    X += PI
+    X = X.reshape(6, 2, K)
+    if fn.deg_shoulder:  # theta1 = 0 by convention
+        X[0] = np.array(tab.fixed6[0])[:, None]
+    if fn.deg_wrist:
+        X[2] = np.array(tab.fixed6[4])[:, None]
+    E = X + (tab.lot6v - seed[_J6A])[:, None, None]
+    if tab.wide6 is not None:  # more copies fit: the one nearest the seed
+        rw = tab.wide6
+        Ew = E[rw]
+        k = np.rint(Ew * -INV_2PI)
+        np.maximum(k, 0.0, out=k)
+        np.minimum(k, np.floor((tab.width6w - X[rw]) * INV_2PI), out=k)
+        k *= TWO_PI
+        Ew += k
+        if not isinstance(rw, slice):
+            E[rw] = Ew
+    C = E * E
+    if w is not None:
+        C *= w[_J6A][:, None, None]
+    np.copyto(C, BIG, where=X > tab.width6)
+    cost = np.dot(_SEL6, C.reshape(12, K))
+    cost += c4
+    return cost, X, E
+
+
+def _candidates(
+    gaps: np.ndarray, cost: np.ndarray, limit: float | None = None
+) -> tuple[list[tuple[float, int, int, float]], float]:
+    """Candidate basins: each pattern's sample-wise local minima, as (bound, pattern, sample, offset).
+
+    ``cost`` (8, M + 2) padded as the samples of :func:`_sample_swivels`. A parabola through a candidate
+    and its two neighbours gives the start of its refinement (the vertex, ``offset`` rad from the sample)
+    and a bound on how much lower the basin may be (DEPTH_MARGIN times the vertex depth); only candidates
+    whose bound is at most ``limit`` (default: the best sample) are returned, sorted by bound, with the
+    limit used. With d0, d1 the slopes left and
+    right of the sample and hl, hr the gaps, the vertex lies -(d0 hr + d1 hl) / (2 (d1 - d0)) from the
+    sample and (d0 hr + d1 hl)^2 / (4 (d1 - d0)(hl + hr)) deep.
+
+    The table is worked on flattened (the rows one after another) so that every numpy call runs on
+    contiguous 1-D data; positions next to a row boundary are padding and are skipped.
+    """
+    K = cost.shape[1]
+    cf = cost.ravel()
+    g = np.empty((8, K))
+    g[:, :-1] = gaps
+    g[:, -1] = 1.0  # between one row's end and the next row's start: unused
+    gf = g.ravel()[:-1]  # gf[k]: the gap from flat position k to k + 1
+    sl = (cf[1:] - cf[:-1]) / gf
+    d0 = sl[:-1]  # at flat positions 1 .. L - 2
+    d1 = sl[1:]
+    fin = cf < 0.5 * BIG
+    hl = gf[:-1]
+    hr = gf[1:]
+    num = d0 * hr
+    num += d1 * hl
+    curv = d1 - d0  # >= 0 at a local minimum; 0 only where flat (no vertex)
+    # (cost <= 8 BIG and gaps > MERGE_TOL keep num^2 below 1e88: the floor 1e-200 cannot overflow, and
+    # at a local minimum a denominator that small means d0 = d1 = 0, so num = 0 too)
+    depth = num * num
+    depth /= np.maximum(curv * (hl + hr), 1e-200)
+    depth *= fin[:-2] & fin[2:]  # a parabola only through feasible neighbours
+    lb = cf[1:-1] - (0.25 * DEPTH_MARGIN) * depth
+    if limit is None:
+        fbest = float(cf.min())
+        if fbest >= 0.5 * BIG:
+            return [], fbest
+        limit = fbest + 1e-12 * (1.0 + fbest)
+    keep = (d0 <= 0.0) & (d1 >= 0.0) & fin[1:-1] & (lb <= limit)
+    out = []
+    for k in np.flatnonzero(keep).tolist():
+        b, t = divmod(k + 1, K)
+        if 1 <= t < K - 1:
+            dk = depth[k]
+            out.append((float(lb[k]), b, t - 1, -0.5 * float(num[k]) / float(curv[k]) if dk > 0.0 else 0.0))
+    out.sort()
+    return out, limit
 
 
 def nearest(
@@ -614,95 +966,102 @@ def nearest(
     w: np.ndarray,
     s_seed: float | None = None,
     deadline: float | None = None,
+    realise: Realise | None = None,
 ) -> NearestResult:
     """The swivel and flip pattern of the in-limit solution nearest the seed (weighted squared distance).
 
     Global over every pattern, 2*pi copy and feasible interval (ends included), see the module docstring.
     ``s_seed``: the seed's own swivel, sampled too. ``deadline``: a ``time.perf_counter()`` value after
     which no further candidate is refined (``timed_out`` set; the best one so far is returned).
+
+    ``realise``: turns a refined candidate that beats the best so far into a solution as ``ik`` computes
+    it. The closed-form functions and ``ik`` agree to round-off except at a singular swivel (theta2 or
+    theta6 at 0: ``ik`` takes theta1 = 0 there, the functions a limit from one side) and within the 1e-10
+    rad limit tolerance; the realised cost, not the predicted one, then bounds the candidates still to
+    refine, so a prediction that cannot be realised never prunes a basin that can.
     """
     seed_l = seed.tolist()
-    S, flag = _sample_swivels(fn, tab, s_seed, seed_l)
-    M = len(S)
-    # per joint alternative: X = angle - (lower - tol), its copy in [0, 2 pi), feasible if below the range
-    X = fn.angles(S)[:, None, :] * tab.sign3 + tab.shift_lot
-    Xm = X - TWO_PI * np.floor(X * INV_2PI)
-    feas = Xm <= tab.width3
-    E = Xm + (tab.lot3 - seed[:, None, None])  # lowest in-limit copy minus the seed
-    if len(tab.wide):  # more copies fit: the one nearest the seed
-        wj = tab.wide
-        Ew = E[wj]
-        kmax = np.maximum(np.floor((tab.width3[wj] - Xm[wj]) * INV_2PI), 0.0)
-        E[wj] = Ew + TWO_PI * np.clip(np.rint(Ew * -INV_2PI), 0.0, kmax)
-    cost = _SEL @ np.where(feas, E * E * w[:, None, None], BIG).reshape(14, M)  # (8, M)
-    # neighbours on the circle: pad one sample at each end
-    cp = np.concatenate([cost[:, -1:], cost, cost[:, :1]], axis=1)
-    c0 = cp[:, 1:-1]
-    bs, idx = np.nonzero((c0 < 0.5 * BIG) & (c0 <= cp[:, :-2]) & (c0 <= cp[:, 2:]))
-    if len(bs) == 0:
-        return NearestResult(None, -1, math.inf, 8 * M, 0, 0, False, [])
-    Sx = np.concatenate([[S[-1] - TWO_PI], S, [S[0] + TWO_PI]])
-    # parabola through the three samples: its vertex starts the refinement, its depth below the sample
-    # (times DEPTH_MARGIN) bounds how much lower the basin may be; candidates are refined in bound order
-    # (one whose bound is above the best sample can never win: the best sample's basin comes first)
-    sm, s0, sp = Sx[idx], Sx[idx + 1], Sx[idx + 2]
-    fm, f0, fp = cp[bs, idx], cp[bs, idx + 1], cp[bs, idx + 2]
-    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
-        d1 = (fp - f0) / (sp - s0)
-        curv = 2.0 * (d1 - (f0 - fm) / (s0 - sm)) / (sp - sm)
-        inner = (fm < 0.5 * BIG) & (fp < 0.5 * BIG) & (curv > 0.0)
-        xv = np.where(inner, 0.5 * (s0 + sp) - d1 / curv, s0)
-        lb = np.where(inner, f0 - DEPTH_MARGIN * 0.5 * curv * (xv - s0) ** 2, f0)
-    fbest = float(f0.min())
-    keep = np.nonzero(lb <= fbest + 1e-12 * (1.0 + fbest))[0]
-    cands = sorted(
-        zip(lb[keep].tolist(), bs[keep].tolist(), idx[keep].tolist(), xv[keep].tolist(), strict=True)
-    )
-    Sx = Sx.tolist()
     w_l = w.tolist()
+    Sp, flag, gaps = _sample_swivels(fn, tab, s_seed, seed_l)
+    M = len(flag)
+    t4c = _theta4_copies(fn, tab, seed_l)
+    c4a = [BIG if v is None else w_l[3] * (v[0] - seed_l[3]) ** 2 for v in t4c]
+    c4 = np.array([[c4a[(b >> 1) & 1]] for b in range(8)])  # theta4 follows the f4 bit of the pattern
+    unit = w_l.count(1.0) == 7
+    cost, X, E = _alternative_costs(fn, tab, Sp, seed, None if unit else w, c4)
+    cands, limit = _candidates(gaps, cost)
     lo, up = tab.lo_l, tab.up_l
-    lot = (tab.lower - LIMIT_TOL).tolist()
-    best_f, best_s, best_b = math.inf, None, -1
-    ranked: list[tuple[float, float, int]] = []
+    lot6 = tab.lot6_l
+
+    def refine(b: int, i: int, dx: float) -> tuple[float, float, int]:
+        """Candidate (pattern b, sample i) refined in its feasible bracket: (swivel, cost, evaluations)."""
+        alt = _ALT_L[b]
+        s0, f0 = float(Sp[i + 1]), float(cost[b, i + 1])
+        ei = E[:, :, i + 1].tolist()
+        Vi = [0.0] * 7
+        for k, j in enumerate(_J6):
+            Vi[j] = min(max(ei[k][alt[j]] + seed_l[j], lo[j]), up[j])
+        Vi[3] = t4c[alt[3]][1]  # type: ignore[index]  (feasible: its cost is below BIG)
+        # bracket: the arc to a neighbour belongs to this candidate if its copies Vi are in the limits
+        # at the arc's plain end (an arc has no critical swivel inside); Sp is padded: sample i at i + 1
+        a = s0 - float(gaps[i])
+        c = s0 + float(gaps[i + 1])
+        for col, nb in ((i, (i - 1) % M), (i + 2, (i + 1) % M)):
+            if flag[nb] and not flag[i]:
+                continue
+            xn = X[:, :, col].tolist()
+            for k, j in enumerate(_J6):
+                av = xn[k][alt[j]] + lot6[k]
+                v = av + TWO_PI * round((Vi[j] - av) * INV_2PI)
+                if v < lo[j] - LIMIT_TOL or v > up[j] + LIMIT_TOL:
+                    if col == i:
+                        a = s0
+                    else:
+                        c = s0
+                    break
+        if a < c:
+            xv = s0 + dx
+            sr, fr, ne = _refine(fn, b, xv if a < xv < c else s0, Vi, a, c, seed_l, w_l, tab)
+            if fr < f0:
+                return sr, fr, ne
+            return s0, f0, ne
+        return s0, f0, 0
+
+    best_f, best_s, best_b, best_q = math.inf, None, -1, None
+    pred_s, pred_b, pred_f = None, -1, math.inf  # the best prediction, when nothing could be realised
     refined = nev = 0
     timed_out = False
-    for lb, b, i, xv in cands:
-        if lb > best_f + 1e-12 * (1.0 + best_f):
-            break
-        if deadline is not None and refined > 0 and time.perf_counter() > deadline:
-            timed_out = True
-            break
-        alt = _ALT_L[b]
-        s0, f0 = Sx[i + 1], float(cost[b, i])
-        Vi = [min(max(float(E[j, alt[j], i]) + seed_l[j], lo[j]), up[j]) for j in range(7)]
-        # bracket: the arc to a neighbour belongs to this candidate if its copies Vi are in the limits
-        # at the arc's plain end (an arc has no critical swivel inside)
-        brk = []
-        for nb, snb in (((i - 1) % M, Sx[i]), ((i + 1) % M, Sx[i + 2])):
-            ok = True
-            if not (flag[nb] and not flag[i]):
-                for j in range(7):
-                    av = float(X[j, alt[j], nb]) + lot[j]
-                    v = av + TWO_PI * round((Vi[j] - av) * INV_2PI)
-                    if v < lo[j] - LIMIT_TOL or v > up[j] + LIMIT_TOL:
-                        ok = False
-                        break
-            brk.append(snb if ok else s0)
-        a, c = brk
-        sx, fx = s0, f0
-        if a < c:
-            x0 = xv if a < xv < c else s0
-            sr, fr, ne = _refine(fn, b, x0, Vi, a, c, seed_l, w_l, tab)
+    done: set[tuple[int, int]] = set()
+    while cands:
+        for lb, b, i, dx in cands:
+            if lb > best_f + 1e-12 * (1.0 + best_f):
+                break
+            if deadline is not None and refined > 0 and time.perf_counter() > deadline:
+                timed_out = True
+                break
+            sx, fx, ne = refine(b, i, dx)
             nev += ne
-            if fr < fx:
-                sx, fx = sr, fr
-        refined += 1
-        ranked.append((fx, sx - TWO_PI * math.floor((sx + PI) * INV_2PI), b))
-        if fx < best_f:
-            best_f, best_s, best_b = fx, sx, b
-    ranked.sort()
-    sw = None if best_s is None else (best_s - TWO_PI * math.floor((best_s + PI) * INV_2PI))
-    return NearestResult(sw, best_b, best_f, 8 * M, refined, nev, timed_out, ranked)
+            refined += 1
+            done.add((b, i))
+            sx -= TWO_PI * math.floor((sx + PI) * INV_2PI)
+            if fx < pred_f:
+                pred_s, pred_b, pred_f = sx, b, fx
+            if fx < best_f:
+                if realise is None:
+                    best_f, best_s, best_b = fx, sx, b
+                else:
+                    r = realise(sx, b, fx)
+                    if r is not None and r[3] < best_f:
+                        best_q, best_s, best_b, best_f = r
+        if timed_out or best_f <= limit:
+            break
+        # the best realised cost is above the bound the candidates were cut at (a sample's prediction
+        # that ik could not realise, at a singular swivel): the candidates below the realised cost too
+        limit = best_f + 1e-12 * (1.0 + best_f) if best_f < math.inf else 0.5 * BIG
+        cands = [cd for cd in _candidates(gaps, cost, limit)[0] if (cd[1], cd[2]) not in done]
+    if best_s is None:
+        return NearestResult(pred_s, pred_b, pred_f, 8 * M, refined, nev, timed_out)
+    return NearestResult(best_s, best_b, best_f, 8 * M, refined, nev, timed_out, best_q)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -888,6 +1247,320 @@ def feasible_measure_batch(
     return width, ok.any(axis=1)
 
 
+def _theta4_batch(
+    t4: np.ndarray, tab: LimitTables, seeds: np.ndarray, w3: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_theta4_copies` for n poses: (V4 (n, 2) clipped copies of (t4, -t4) nearest the seeds (NaN if
+    out of limits), c4 (8, n, 1): theta4's share of each pattern's cost, BIG where out of limits)."""
+    lo, up = tab.lo_l[3], tab.up_l[3]
+    a = np.stack([t4, -t4], axis=1)
+    v0 = (lo - LIMIT_TOL) + np.remainder(a - (lo - LIMIT_TOL), TWO_PI)
+    kmax = np.floor((up + LIMIT_TOL - v0) * INV_2PI)
+    k = np.minimum(np.maximum(np.rint((seeds[:, 3:4] - v0) * INV_2PI), 0.0), kmax)
+    v = v0 + TWO_PI * k
+    c = np.where(kmax >= 0.0, w3 * (v - seeds[:, 3:4]) ** 2, BIG)
+    V4 = np.where(kmax >= 0.0, np.clip(v, lo, up), np.nan)
+    return V4, c[:, _F4].T[:, :, None]
+
+
+_F4 = np.array([(b >> 1) & 1 for b in range(8)])  # theta4's alternative in pattern b (the f4 bit)
+_B_F2 = np.array([(b >> 2) & 1 for b in range(8)])
+_B_F6 = np.array([b & 1 for b in range(8)])
+
+
+def _sample_swivels_batch(
+    Ka: np.ndarray,
+    deg_sh: np.ndarray,
+    deg_wr: np.ndarray,
+    tab: LimitTables,
+    seeds: np.ndarray,
+    s_seeds: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_sample_swivels` for n poses at once, the same samples: (Sp, flag, gaps, first, unused, odd).
+
+    A pose's M samples sit right-aligned in its row of Sp (n, W = N + 2), N the most any pose can have:
+    columns ``first - 1`` (S[M - 1], the neighbour across pi) to W - 1 (S[0] again), S[0] at ``first``;
+    ``unused`` (n, W) marks the columns before. ``flag`` (n, W) critical, ``gaps`` (n, W - 1) from each
+    column to the next (2 pi added across pi). ``odd``: poses to solve one by one (a root wrapped onto pi).
+    """
+    n = Ka.shape[0]
+    X, Y = Ka[:, 0:4], Ka[:, 4:8]
+    rows = [
+        np.stack(
+            [
+                X[..., 1] * Y[..., 2] - X[..., 2] * Y[..., 1],
+                X[..., 0] * Y[..., 2] - Y[..., 0] * X[..., 2],
+                Y[..., 0] * X[..., 1] - X[..., 0] * Y[..., 1],
+            ],
+            axis=-1,
+        )
+    ]  # where each pivot joint is stationary
+    for j in tab.wide_l:  # a joint with several in-limit copies switches copy opposite the seed
+        L = seeds[:, j] + PI
+        sl, cl = np.sin(L)[:, None], np.cos(L)[:, None]
+        if j % 2 == 0:
+            rows.append((cl * Ka[:, 4 + j // 2] - sl * Ka[:, j // 2])[:, None])
+        else:
+            r = Ka[:, 8 + j // 4].copy()
+            r[:, 0] -= cl[:, 0]
+            rows.append(r[:, None])
+    rows.append(np.matmul(tab.GT.T, Ka))  # limit and equal-angle rows
+    E = np.concatenate(rows, axis=1)  # (n, R, 3)
+    # hinge extremes (pre-wrap: se + pi and se give se and its antipode), and the equal-angle rows that
+    # would only repeat them (and the stationary points) where the hinge stays away from 0 and pi
+    z0, z1, z2 = Ka[:, 8:10, 0], Ka[:, 8:10, 1], Ka[:, 8:10, 2]
+    zz = z1 * z1 + z2 * z2
+    has = zz > 1e-30
+    se = np.where(has, np.arctan2(z2, z1), np.nan)
+    regular = has & (np.abs(z0) + np.sqrt(zz) < 1.0 - 1e-6)
+    for h in (0, 1):
+        r0, r1 = tab.repeat_cols[h]
+        E[regular[:, h], r0:r1, 0] = np.inf
+    for q, j in enumerate(tab.wide_l):  # an anti-seed row on an equal-angle row: drop one of the two
+        if j % 2:
+            continue
+        p = j // 2
+        kk = (seeds[:, j] + PI) * (DIRECTIONS / PI)
+        hit = np.abs(kk - np.rint(kk)) < 1e-12
+        if hit.any():
+            kr = np.rint(kk).astype(int) % DIRECTIONS
+            for i in np.nonzero(hit)[0].tolist():
+                k = int(kr[i])
+                if p in (1, 2) and k in (0, DIRECTIONS // 2) and regular[i, p - 1]:
+                    E[i, 4 + q, 0] = np.inf
+                elif (p, k) in tab.dir_col:
+                    E[i, tab.dir_col[(p, k)], 0] = np.inf
+    for dmask, p in ((deg_sh, 0), (deg_wr, 2)):  # theta1 (theta5) 0 on the whole circle: no rows for it
+        if dmask.any():
+            E[np.ix_(dmask, tab.dead_cols[p], [0])] = np.inf
+    e1, e2 = E[..., 1], E[..., 2]
+    r = E[..., 0] / np.maximum(np.hypot(e1, e2), 1e-300)
+    d = np.arccos(np.minimum(np.maximum(r, -1.0), 1.0))
+    d[~(np.abs(r) <= 1.0 + TANGENT_TOL)] = np.nan
+    phi = np.arctan2(e2, e1)
+    nc, R = tab.n_crit_rows, E.shape[1]
+    nd = R - nc
+    C = 2 * nc + 4  # critical slots: roots +, roots -, extremes
+    Sa = np.empty((n, 2 * C + 2 * nd + GRID + 1))
+    np.add(phi[:, :nc], d[:, :nc], out=Sa[:, :nc])
+    np.subtract(phi[:, :nc], d[:, :nc], out=Sa[:, nc : 2 * nc])
+    Sa[:, 2 * nc : C : 2] = se + PI
+    Sa[:, 2 * nc + 1 : C : 2] = se
+    np.add(phi[:, nc:], d[:, nc:], out=Sa[:, 2 * C : 2 * C + nd])
+    np.subtract(phi[:, nc:], d[:, nc:], out=Sa[:, 2 * C + nd : 2 * C + 2 * nd])
+    Sa[:, :C] -= np.copysign(PI, Sa[:, :C])
+    Sa[:, 2 * C : 2 * C + 2 * nd] -= np.copysign(PI, Sa[:, 2 * C : 2 * C + 2 * nd])
+    c = Sa[:, :C]
+    c.sort(axis=1)  # NaN last
+    nv = C - np.isnan(c).sum(axis=1)
+    mids = Sa[:, C : 2 * C]
+    np.add(c[:, :-1], c[:, 1:], out=mids[:, :-1])
+    mids *= 0.5
+    mids[:, -1] = np.nan
+    rows_i = np.nonzero(nv > 0)[0]
+    last = nv[rows_i] - 1
+    m = 0.5 * (c[rows_i, last] + c[rows_i, 0]) + PI  # the arc across pi, wrapped
+    mids[rows_i, last] = np.where(m >= PI, m - TWO_PI, m)
+    Sa[:, 2 * C + 2 * nd : -1] = _GRID_S
+    t = (s_seeds + PI) * (GRID / TWO_PI)
+    Sa[:, -1] = np.where(np.abs(t - np.rint(t)) * (TWO_PI / GRID) > MERGE_TOL, s_seeds, np.nan)
+    Sa[:, -1] -= np.where(Sa[:, -1] >= PI, TWO_PI, 0.0)
+    N = Sa.shape[1]
+    crit = np.zeros(N, bool)
+    crit[:C] = True
+    order = np.argsort(Sa, axis=1)  # no root (NaN) last
+    S = np.take_along_axis(Sa, order, axis=1)
+    flag = np.take_along_axis(crit, order.ravel()).reshape(n, N)
+    # twins (closer than MERGE_TOL) are one sample, as in the scalar search: the critical member (an
+    # exact root) stays; rare (touching roots, coincidences), so the pass is simply repeated
+    tw = np.diff(S, axis=1) <= MERGE_TOL
+    while tw.any():
+        pi_, ji = np.nonzero(tw)
+        drop = np.where(flag[pi_, ji + 1] & ~flag[pi_, ji], ji, ji + 1)
+        Sa[pi_, order[pi_, drop]] = np.nan
+        order = np.argsort(Sa, axis=1)
+        S = np.take_along_axis(Sa, order, axis=1)
+        flag = np.take_along_axis(crit, order.ravel()).reshape(n, N)
+        tw = np.diff(S, axis=1) <= MERGE_TOL
+    # every pose's M samples right-aligned in a row of N + 2, with its neighbours around the circle
+    # (S[M - 1] in front, S[0] behind) as in the scalar search; the columns before them are unused
+    M = N - np.isnan(S).sum(axis=1)
+    W = N + 2
+    first = (W - 1 - M)[:, None]  # column of S[0]
+    src = (np.arange(W)[None, :] - first) % M[:, None]
+    Sp = np.take_along_axis(S, src, axis=1)
+    flag = np.take_along_axis(flag, src, axis=1)
+    gaps = np.diff(Sp, axis=1)
+    gaps[np.arange(n), first[:, 0] - 1] += TWO_PI  # S[M - 1] - 2 pi .. S[0]
+    gaps[:, -1] += TWO_PI  # S[M - 1] .. S[0] + 2 pi
+    unused = np.arange(W)[None, :] < first - 1
+    gaps[unused[:, 1:]] = 1.0
+    # solved one by one: a root wrapped onto pi (rare), and poses where a hinge passes within 1e-6 (in
+    # cos) of 0 or pi, where the scalar search's solve tries the flip patterns that trade places at the
+    # singular swivel (rare on uniform poses, every pose with theta2 or theta6 exactly 0)
+    odd = (Sp[:, -2] >= PI) | (has & ~regular).any(axis=1)
+    return Sp, flag, gaps, first[:, 0], unused, odd
+
+
+class NearestWorkspace:
+    """Arrays of the batched evaluation, allocated once per ``ik_nearest_batch`` call and reused by every
+    chunk: a fresh temporary of a few hundred kB per operation cost a page fault per 4 kB page each time
+    (glibc returns such blocks to the kernel when freed), which made the batch 2x slower on the 2-core
+    test machine than the same arithmetic into reused arrays."""
+
+    def __init__(self, n: int, k: int) -> None:
+        self.n, self.k = n, k
+        self.V = np.empty((12, n, k))
+        self.Vx = np.empty((12, n, k))
+        self.Vy = np.empty((12, n, k))
+        self.T1 = np.empty((12, n, k))
+        self.T2 = np.empty((12, n, k))
+        self.X = np.empty((12, n, k))
+        self.E = np.empty((12, n, k))
+        self.B = np.empty((12, n, k), bool)
+        self.A = np.empty((2, n, k))
+        self.F = np.empty((2, n, k))
+        self.cost = np.empty((8, n, k))
+        self.t8 = np.empty((8, n, k))
+
+    def view(self, name: str, n: int) -> np.ndarray:
+        """The first n poses of an array (all of it for a full chunk)."""
+        a = getattr(self, name)
+        return a if n == self.n else a[:, :n]
+
+
+def _alternative_costs_batch(
+    K: np.ndarray,
+    deg_sh: np.ndarray,
+    deg_wr: np.ndarray,
+    tab: LimitTables,
+    Sp: np.ndarray,
+    seeds: np.ndarray,
+    w: np.ndarray | None,
+    c4: np.ndarray,
+    unused: np.ndarray,
+    ws: NearestWorkspace,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_alternative_costs` for n poses: cost (8, n, K), X and E (6, 2, n, K) at the swivels Sp (n, K),
+    computed in the arrays of ``ws`` (valid until its next use).
+
+    Alternative-major: the per-alternative constants are (12, 1, 1) columns and every operation runs over
+    the trailing (n, K) block of all poses and samples; the turning of the (x, y) pairs is written out as
+    gathers and scalings (a matrix product there went to BLAS threads, 20x slower on a busy machine).
+    """
+    n, Kn = Sp.shape
+    V, Vx, Vy, T1, T2, X, E, B = (ws.view(a, n) for a in ("V", "Vx", "Vy", "T1", "T2", "X", "E", "B"))
+    c = np.cos(Sp)
+    s = np.sin(Sp)
+    Kt = K.transpose(1, 2, 0)[:, :, :, None]  # (10, 3, n, 1)
+    np.multiply(Kt[:, 1], c, out=V[:10])
+    np.multiply(Kt[:, 2], s, out=T1[:10])
+    V[:10] += T1[:10]
+    V[:10] += Kt[:, 0]
+    np.multiply(V[0:7:2], V[0:7:2], out=T1[:4])  # X1^2, X5^2, Y1^2, Y5^2
+    np.add(T1[0:2], T1[2:4], out=V[10:12])
+    np.sqrt(V[10:12], out=V[10:12])
+    np.take(V, tab.rx, axis=0, out=Vx, mode="clip")
+    np.take(V, tab.ry, axis=0, out=Vy, mode="clip")
+    np.multiply(Vy, tab.rs, out=T1)
+    np.multiply(Vx, tab.rs2, out=T2)
+    Vx *= tab.rc
+    Vx += T1  # x of the turned pair
+    Vy *= tab.rc2
+    Vy -= T2  # y
+    np.arctan2(Vy, Vx, out=X)
+    X += PI
+    X4 = X.reshape(6, 2, n, Kn)  # (splits the first axis only: a view of a chunk's part too)
+    if deg_sh.any():
+        X4[0][:, deg_sh] = np.array(tab.fixed6[0])[:, None, None]
+    if deg_wr.any():
+        X4[2][:, deg_wr] = np.array(tab.fixed6[4])[:, None, None]
+    E4 = E.reshape(X4.shape)
+    np.add(X4, (tab.lot6v[:, None] - seeds[:, _J6A].T)[:, None, :, None], out=E4)
+    if tab.wide6 is not None:
+        rw = tab.wide6
+        Ew = E4[rw]
+        k = T1.reshape(X4.shape)[rw]
+        np.multiply(Ew, -INV_2PI, out=k)
+        np.rint(k, out=k)
+        np.maximum(k, 0.0, out=k)
+        kmax = T2.reshape(X4.shape)[rw]
+        np.subtract(tab.width6w[..., None], X4[rw], out=kmax)
+        kmax *= INV_2PI
+        np.floor(kmax, out=kmax)
+        np.minimum(k, kmax, out=k)
+        k *= TWO_PI
+        Ew += k
+        if not isinstance(rw, slice):
+            E4[rw] = Ew
+    C = T2
+    np.multiply(E, E, out=C)
+    if w is not None:
+        C *= np.repeat(w[_J6A], 2)[:, None, None]
+    np.greater(X4, tab.width6[..., None], out=B.reshape(X4.shape))
+    np.copyto(C, BIG, where=B)
+    # the patterns (f2, f4, f6) as sums of their alternatives: theta1 and theta2 follow f2, theta3 f2 ^ f4,
+    # theta5 f4 ^ f6, theta6 and theta7 f6 (rows 2 k + a of C: joint _J6[k], alternative a)
+    A, F, cost, t8 = ws.view("A", n), ws.view("F", n), ws.view("cost", n), ws.view("t8", n)
+    np.add(C[0:2], C[8:10], out=A)
+    np.add(C[6:8], C[10:12], out=F)
+    np.take(A, _B_F2, axis=0, out=cost, mode="clip")
+    np.take(C[2:4], _B_F2 ^ _F4, axis=0, out=t8, mode="clip")
+    cost += t8
+    np.take(C[4:6], _F4 ^ _B_F6, axis=0, out=t8, mode="clip")
+    cost += t8
+    np.take(F, _B_F6, axis=0, out=t8, mode="clip")
+    cost += t8
+    cost += c4
+    np.copyto(cost, BIG, where=unused)
+    return cost, X4, E4
+
+
+def _candidates_batch(
+    gaps: np.ndarray, cost: np.ndarray, first: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_candidates` for n poses, cost (8, n, K): (pose, pattern, column, bound, vertex offset) of
+    every candidate whose bound is at most its pose's best sample, sorted by pose and bound.
+
+    The local minima are found on the whole table (flattened); the parabolas only at them (a few in a
+    thousand entries), which keeps the full-size temporaries to two.
+    """
+    _, n, Kn = cost.shape
+    cf = cost.ravel()
+    d = cf[1:] - cf[:-1]  # (the sign of a slope is the sign of the difference: gaps are positive)
+    lmin = d[:-1] <= 0.0
+    lmin &= d[1:] >= 0.0
+    lmin &= cf[1:-1] < 0.5 * BIG
+    k = np.flatnonzero(lmin) + 1
+    b, rest = np.divmod(k, n * Kn)
+    pose, t = np.divmod(rest, Kn)
+    inside = (t >= first[pose]) & (t <= Kn - 2)  # a sample, not a neighbour copy or unused
+    k, pose, b, t = k[inside], pose[inside], b[inside], t[inside]
+    hl, hr = gaps[pose, t - 1], gaps[pose, t]
+    fm, f0, fp = cf[k - 1], cf[k], cf[k + 1]
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        d0, d1 = (f0 - fm) / hl, (fp - f0) / hr
+        num = d0 * hr + d1 * hl
+        curv = d1 - d0
+        depth = num * num / np.maximum(curv * (hl + hr), 1e-200)
+    depth = np.where((fm < 0.5 * BIG) & (fp < 0.5 * BIG) & np.isfinite(depth), depth, 0.0)
+    lb = f0 - (0.25 * DEPTH_MARGIN) * depth
+    fbest = cost.min(axis=(0, 2))
+    keep = lb <= (fbest + 1e-12 * (1.0 + fbest))[pose]
+    pose, b, t, lb, depth, num, curv = (
+        pose[keep],
+        b[keep],
+        t[keep],
+        lb[keep],
+        depth[keep],
+        num[keep],
+        curv[keep],
+    )
+    dx = np.where(depth > 0.0, -0.5 * num / np.where(depth > 0.0, curv, 1.0), 0.0)
+    order = np.lexsort((lb, pose))
+    return pose[order], b[order], t[order], lb[order], dx[order]
+
+
 def nearest_batch(
     K: np.ndarray,
     t4: np.ndarray,
@@ -897,93 +1570,69 @@ def nearest_batch(
     seeds: np.ndarray,
     w: np.ndarray,
     s_seeds: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    ws: NearestWorkspace | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """:func:`nearest` for m poses at once (all reachable): returns (swivel (m,) rad or NaN, pattern (m,)
-    or -1, cost (m,) rad^2 or inf). K (m, 10, 3), t4 / deg_sh / deg_wr (m,), seeds (m, 7), s_seeds (m,)."""
+    or -1, predicted cost (m,) rad^2 or inf, odd (m,): poses to solve one by one instead).
+
+    K (m, 10, 3), t4 / deg_sh / deg_wr (m,), seeds (m, 7), s_seeds (m,); ``ws``: a workspace to reuse
+    (see :class:`NearestWorkspace`). The same search as the scalar one, stage by stage on (pose, ...) arrays;
+    the candidates of all poses are refined together.
+    """
     m = K.shape[0]
-    crit, mids, dirs = _critical_np(K, deg_sh, deg_wr, tab, seeds, directions=True)
-    plain = np.concatenate([dirs, np.broadcast_to(_GRID_S, (m, GRID)), mids, s_seeds[:, None]], axis=1)
-    S = np.concatenate([crit, wrap(plain)], axis=1)
-    flag = np.zeros(S.shape, bool)
-    flag[:, : crit.shape[1]] = crit == crit
-    M = S.shape[1]
-    # an empty slot (no root) gets a filler swivel off every grid, so every row has M distinct samples
-    nan = S != S
-    if nan.any():
-        filler = np.broadcast_to((np.arange(M) + 0.5 + 0.1234567) * (TWO_PI / M) - PI, S.shape)
-        S = np.where(nan, filler, S)
-    order = np.argsort(S, axis=1)
-    S = np.take_along_axis(S, order, axis=1)
-    flag = np.take_along_axis(flag, order, axis=1)
-    # ---- costs of the 8 patterns at every sample
-    th = _angles_np(K, t4, deg_sh, deg_wr, S)  # (m, 7, M)
-    Xa = th[:, :, None, :] * tab.sign3 + tab.shift_lot  # (m, 7, 2, M)
-    Xm = Xa - TWO_PI * np.floor(Xa * INV_2PI)
-    feas = Xm <= tab.width3
-    E = Xm + (tab.lot3 - seeds[:, :, None, None])
-    if len(tab.wide):
-        wj = tab.wide
-        Ew = E[:, wj]
-        kmax = np.maximum(np.floor((tab.width3[wj] - Xm[:, wj]) * INV_2PI), 0.0)
-        E[:, wj] = Ew + TWO_PI * np.clip(np.rint(Ew * -INV_2PI), 0.0, kmax)
-    Cj = E * E * w[:, None, None]
-    np.copyto(Cj, BIG, where=~feas)
-    cost = np.matmul(_SEL, Cj.reshape(m, 14, M))  # (m, 8, M)
-    # ---- candidates: sample-wise local minima per pattern; neighbours skip twins (gap <= MERGE_TOL)
-    cp = np.concatenate([cost[:, :, -1:], cost, cost[:, :, :1]], axis=2)
-    cm, cb, ci = np.nonzero((cost < 0.5 * BIG) & (cost <= cp[:, :, :-2]) & (cost <= cp[:, :, 2:]))
+    Ka = np.concatenate([K, np.broadcast_to([[[1.0, 0.0, 0.0]]], (m, 1, 3))], axis=1)
+    Sp, flag, gaps, col0, unused, odd = _sample_swivels_batch(Ka, deg_sh, deg_wr, tab, seeds, s_seeds)
+    V4, c4 = _theta4_batch(t4, tab, seeds, float(w[3]))
+    unit = bool(np.all(w == 1.0))
+    if ws is None or ws.k != Sp.shape[1] or ws.n < m:
+        ws = NearestWorkspace(m, Sp.shape[1])
+    cost, X, E = _alternative_costs_batch(
+        K, deg_sh, deg_wr, tab, Sp, seeds, None if unit else w, c4, unused, ws
+    )
+    cm, cb, col, lb, dx = _candidates_batch(gaps, cost, col0)
     best_s = np.full(m, np.nan)
     best_b = np.full(m, -1)
     best_f = np.full(m, np.inf)
     if len(cm) == 0:
-        return best_s, best_b, best_f
-    gap = np.diff(np.concatenate([S, S[:, :1] + TWO_PI], axis=1), axis=1)  # gap[i] = S[i+1] - S[i]
-    il = (ci - 1) % M
-    il = np.where(gap[cm, il] > MERGE_TOL, il, (ci - 2) % M)
-    ir = (ci + 1) % M
-    ir = np.where(gap[cm, ci] > MERGE_TOL, ir, (ci + 2) % M)
-    s0 = S[cm, ci]
-    sl = S[cm, il] - np.where(il > ci, TWO_PI, 0.0)
-    sr = S[cm, ir] + np.where(ir < ci, TWO_PI, 0.0)
-    f0, fl, fr = cost[cm, cb, ci], cost[cm, cb, il], cost[cm, cb, ir]
-    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
-        d1 = (fr - f0) / (sr - s0)
-        curv = 2.0 * (d1 - (f0 - fl) / (s0 - sl)) / (sr - sl)
-        inner = (fl < 0.5 * BIG) & (fr < 0.5 * BIG) & (curv > 0.0)
-        xv = np.where(inner, 0.5 * (s0 + sr) - d1 / curv, s0)
-        lb = np.where(inner, f0 - DEPTH_MARGIN * 0.5 * curv * (xv - s0) ** 2, f0)
-    # refine the candidates whose bound is below the pose's best sample, at most BATCH_CANDIDATES each
-    starts = np.flatnonzero(np.concatenate([[True], cm[1:] != cm[:-1]]))  # cm is sorted (C order)
-    fmin = np.repeat(np.minimum.reduceat(f0, starts), np.diff(np.append(starts, len(cm))))
-    sel = lb <= fmin + 1e-12 * (1.0 + fmin)
-    order = np.lexsort((lb, cm))
-    sel_o = sel[order]
-    rank = np.zeros(len(order), int)
-    if len(order):
-        first = np.concatenate([[True], cm[order][1:] != cm[order][:-1]])
-        idx = np.arange(len(order))
-        rank = idx - np.maximum.accumulate(np.where(first, idx, 0))
-    take = order[sel_o & (rank < BATCH_CANDIDATES)]
-    cm, cb, ci, il, ir, s0, sl, sr, f0, xv = (v[take] for v in (cm, cb, ci, il, ir, s0, sl, sr, f0, xv))
+        return best_s, best_b, best_f, odd
+    # at most BATCH_CANDIDATES per pose, lowest bounds first (candidates are sorted by pose, then bound)
+    first = np.concatenate([[True], cm[1:] != cm[:-1]])
+    idx = np.arange(len(cm))
+    rank = idx - np.maximum.accumulate(np.where(first, idx, 0))
+    take = rank < BATCH_CANDIDATES
+    cm, cb, col, dx = cm[take], cb[take], col[take], dx[take]
     n = len(cm)
-    altb = ALT_INDEX[cb]  # (n, 7)
-    jj = np.arange(7)[None, :]
-    Vc = np.clip(E[cm[:, None], jj, altb, ci[:, None]] + seeds[cm], tab.lower, tab.upper)  # (n, 7)
-    lot = tab.lower - LIMIT_TOL
+    alt6 = ALT_INDEX[cb][:, _J6A]  # (n, 6) the alternative of each of the joints _J6
+    k6 = np.arange(6)[None, :]
+    Vc = np.empty((n, 7))
+    Vc[:, _J6A] = np.clip(
+        E[k6, alt6, cm[:, None], col[:, None]] + seeds[cm][:, _J6A], tab.lower[_J6A], tab.upper[_J6A]
+    )
+    Vc[:, 3] = V4[cm, ALT_INDEX[cb, 3]]
+    s0 = Sp[cm, col]
+    f0 = cost[cb, cm, col]
+    lo6, up6 = tab.lower[_J6A], tab.upper[_J6A]
+    lot6 = tab.lot6v
 
     def arc_ok(nb: np.ndarray) -> np.ndarray:
-        av = Xa[cm[:, None], jj, altb, nb[:, None]] + lot
-        v = av + TWO_PI * np.rint((Vc - av) * INV_2PI)
-        inside = ((v >= tab.lower - LIMIT_TOL) & (v <= tab.upper + LIMIT_TOL)).all(axis=1)
-        return inside | (flag[cm, nb] & ~flag[cm, ci])
+        # the arc to a neighbour (column nb) belongs to the candidate if its copies Vc are in the limits
+        # at the arc's plain end (an arc has no critical swivel inside)
+        av = X[k6, alt6, cm[:, None], nb[:, None]] + lot6
+        v = av + TWO_PI * np.rint((Vc[:, _J6A] - av) * INV_2PI)
+        inside = ((v >= lo6 - LIMIT_TOL) & (v <= up6 + LIMIT_TOL)).all(axis=1)
+        return inside | (flag[cm, nb] & ~flag[cm, col])
 
-    a = np.where(arc_ok(il), sl, s0)
-    c = np.where(arc_ok(ir), sr, s0)
+    a = np.where(arc_ok(col - 1), s0 - gaps[cm, col - 1], s0)
+    c = np.where(arc_ok(col + 1), s0 + gaps[cm, col], s0)
+    xv = s0 + dx
     x = np.where((a < xv) & (xv < c), xv, s0)
+    jj = np.arange(7)[None, :]
+    altb = ALT_INDEX[cb]
     sgn = ALT_SIGN[jj, altb]
     shf = ALT_SHIFT[jj, altb]
     Kc, t4c, dsc, dwc, sdc = K[cm], t4[cm], deg_sh[cm], deg_wr[cm], seeds[cm]
-    fx, g, hx, Vx = _fgh_np(x, Kc, t4c, dsc, dwc, sgn, shf, Vc, sdc, w, tab)
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        fx, g, hx, Vx = _fgh_np(x, Kc, t4c, dsc, dwc, sgn, shf, Vc, sdc, w, tab)
     bad = ~np.isfinite(fx)
     x[bad], fx[bad], g[bad], hx[bad], Vx[bad] = s0[bad], f0[bad], 0.0, 1.0, Vc[bad]
     bx, bf = x.copy(), fx.copy()
@@ -1010,9 +1659,10 @@ def nearest_batch(
         act, xn = act[~done], xn[~done]
         if len(act) == 0:
             break
-        fn_, gn, hn, Vn = _fgh_np(
-            xn, Kc[act], t4c[act], dsc[act], dwc[act], sgn[act], shf[act], Vx[act], sdc[act], w, tab
-        )
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            fn_, gn, hn, Vn = _fgh_np(
+                xn, Kc[act], t4c[act], dsc[act], dwc[act], sgn[act], shf[act], Vx[act], sdc[act], w, tab
+            )
         ok = np.isfinite(fn_)
         # beyond a limit of this copy: shrink the bracket to this side, keep the point
         side = xn > x[act]
@@ -1025,12 +1675,12 @@ def nearest_batch(
     keep0 = f0 <= bf
     bx = np.where(keep0, s0, bx)
     bf = np.where(keep0, f0, bf)
-    # per pose the best candidate (ties: the first in bound order); take keeps each pose's run together
+    # per pose the best candidate (ties: the first in bound order); cm is sorted, each pose's run together
     starts = np.flatnonzero(np.concatenate([[True], cm[1:] != cm[:-1]]))
     gmin = np.minimum.reduceat(bf, starts)
     best_f[cm[starts]] = gmin
-    win = bf <= np.repeat(gmin, np.diff(np.append(starts, len(cm))))
+    win = bf <= np.repeat(gmin, np.diff(np.append(starts, n)))
     wi = np.nonzero(win)[0][::-1]  # reverse so that the first winner of each pose is written last
     best_s[cm[wi]] = wrap(bx[wi])
     best_b[cm[wi]] = cb[wi]
-    return best_s, best_b, best_f
+    return best_s, best_b, best_f, odd

@@ -41,6 +41,7 @@ and the nearest solution to a seed is the global optimum.
 from __future__ import annotations
 
 import math
+import operator
 import time
 from collections.abc import Sequence
 from typing import Any
@@ -51,6 +52,7 @@ from redarm_ros.errors import InvalidInputError, UnreachableError
 from redarm_ros.kinematics.feasible import (
     INTERVAL_ROOT_TOL,
     LimitTables,
+    NearestWorkspace,
     SwivelFunctions,
     feasible_intervals,
     nearest,
@@ -87,13 +89,16 @@ AXIS_TOL2 = 1e-24  # (1e-12)^2: a wrist within 1e-12 * D of the base axis counts
 FLIP_PATTERNS = [((k >> 2) & 1, (k >> 1) & 1, k & 1) for k in range(8)]
 _ALT_INDEX = np.array([[f2, f2, f2 ^ f4, f4, f4 ^ f6, f6, f6] for f2, f4, f6 in FLIP_PATTERNS])
 _ALT_INDEX_L = _ALT_INDEX.tolist()
-_J7 = np.arange(7)[None, :]
+_J14 = np.repeat(np.arange(7), 2)  # joint of each of the 14 alternatives (row 2 j + a)
+_IDX56 = np.array([2 * j + k for row in _ALT_INDEX_L for j, k in enumerate(row)])  # pattern b, joint j
 # alternatives per joint as affine maps angle -> sign * angle + shift: (7, 2), column 1 = flipped
 _ALT_SIGN = np.array([[1.0, 1.0 if j % 2 == 0 else -1.0] for j in range(7)])
 _ALT_SHIFT = np.array([[0.0, PI if j % 2 == 0 else 0.0] for j in range(7)])
 # per flip pattern the affine map of each joint (lists for the scalar path)
 _ALT_SIGN_L = [[float(_ALT_SIGN[j, k]) for j, k in enumerate(row)] for row in _ALT_INDEX.tolist()]
 _ALT_SHIFT_L = [[float(_ALT_SHIFT[j, k]) for j, k in enumerate(row)] for row in _ALT_INDEX.tolist()]
+# per flip pattern: its row out of the 14 alternatives [t1, t1 + pi, t2, -t2, ...] (one C-level gather)
+_PATTERN_GET = [operator.itemgetter(*[2 * j + k for j, k in enumerate(row)]) for row in _ALT_INDEX_L]
 
 
 def _wrap(x: float) -> float:
@@ -134,6 +139,11 @@ class SwivelArm(Arm):
         ]
         self._tables = LimitTables(self.lower, self.upper)  # the nearest search's
         self._interval_tables = LimitTables(self.lower, self.upper, INTERVAL_ROOT_TOL)  # feasible_swivels'
+        # per joint (lower - tol, upper + tol, lower, upper)
+        self._lims = [
+            (lo - LIMIT_TOL, up + LIMIT_TOL, lo, up)
+            for lo, up in zip(self._lower_l, self._upper_l, strict=True)
+        ]
         self._shifts = []
         for lo, up in zip(self._lower_l, self._upper_l, strict=True):
             kmax = int(math.ceil(max(abs(lo), abs(up)) / TWO_PI)) + 1
@@ -321,7 +331,7 @@ class SwivelArm(Arm):
                 return min(max(c, lo), up)
         return None
 
-    def _expand(self, base: tuple[float, ...], all_copies: bool = False) -> list[list[float]]:
+    def _expand(self, base: tuple[float, ...], all_copies: bool = False) -> list[Sequence[float]]:
         """All flip combinations of a base solution that fit the limits (each joint's copy nearest 0)."""
         t1, t2, t3, t4, t5, t6, t7 = base
         alts = (
@@ -333,15 +343,23 @@ class SwivelArm(Arm):
             (t6, -t6),
             (t7, t7 + PI),
         )
-        out: list[list[float]] = []
+        out: list[Sequence[float]] = []
         if not all_copies:
-            f0 = self._fit0
-            fits = [(f0(j, a), f0(j, b)) for j, (a, b) in enumerate(alts)]
-            for pat in _ALT_INDEX_L:
-                row = [fits[0][pat[0]], fits[1][pat[1]], fits[2][pat[2]], fits[3][pat[3]]]
-                row += [fits[4][pat[4]], fits[5][pat[5]], fits[6][pat[6]]]
+            # the 14 alternatives at their in-limit copy nearest 0 (None if none), then one C-level gather
+            # per pattern: measured on the 2-core test machine this takes 5 us, calling _fit0 per
+            # alternative and indexing joint by joint took 12 (of ik's 18)
+            F: list[float | None] = []
+            for (a, b), (lot, upt, lo, up), wide in zip(alts, self._lims, self._wide, strict=True):
+                for x in (a, b):
+                    v = x - TWO_PI * round(x / TWO_PI)
+                    if lot <= v <= upt:
+                        F.append(lo if v < lo else (up if v > up else v))
+                    else:
+                        F.append(self._fit0(len(F) >> 1, x) if wide else None)
+            for get in _PATTERN_GET:
+                row = get(F)
                 if None not in row:
-                    out.append(row)  # type: ignore[arg-type]
+                    out.append(row)
             return out
         fitl = [[self._fit(j, _wrap(a)) for a in pair] for j, pair in enumerate(alts)]
         for pat in _ALT_INDEX_L:
@@ -643,7 +661,7 @@ class SwivelArm(Arm):
         return sw
 
     def ik_batch(
-        self, Ts: np.ndarray, swivels: Any = 0.0, *, chunk: int = 8192
+        self, Ts: np.ndarray, swivels: Any = 0.0, *, chunk: int = 2048
     ) -> tuple[np.ndarray, np.ndarray]:
         """Vectorised closed form for m poses at m swivel angles: ``ik`` for every pose at once.
 
@@ -653,7 +671,8 @@ class SwivelArm(Arm):
         (m, 8) bool, False where the pose is out of reach or the solution violates a limit. Entries that
         are not valid hold NaN. Every pose is validated as :meth:`ik` does (shape, NaN/inf, range, bottom
         row, orthonormal rotation): a malformed row raises :class:`InvalidInputError` naming it (no row is
-        ever flagged valid for a pose it does not reach). ``chunk`` poses are solved per pass (memory).
+        ever flagged valid for a pose it does not reach). ``chunk`` poses are solved per pass: 2048 keep
+        the temporaries in the 2 MB cache (measured on the 2-core test machine: 8192 was 30 % slower).
         """
         Ts = self.check_poses(Ts)
         m = len(Ts)
@@ -667,29 +686,39 @@ class SwivelArm(Arm):
             P = [[T[:, i, j] for j in range(4)] for i in range(3)]
             s = sw[sl]
             th, reach = self._base_np(P, np.cos(s), np.sin(s))
-            Qc, vc = self._flips_fit(th, reach)
-            Q[sl] = Qc
-            valid[sl] = vc
+            self._flips_fit(th, reach, Q[sl], valid[sl])
         return Q, valid
 
-    def _flips_fit(self, th: np.ndarray, reach: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(7, m) base angles -> (Q (m, 8, 7) at the in-limit copy nearest 0 or NaN, valid (m, 8))."""
+    def _flips_fit(self, th: np.ndarray, reach: np.ndarray, Q: np.ndarray, valid: np.ndarray) -> None:
+        """(7, n) base angles and reachable (n,) -> Q (n, 8, 7) at the in-limit copy nearest 0 or NaN, and
+        valid (n, 8), written into the given arrays.
+
+        Alternative-major (14, n) until the final gather: with the per-alternative constants as (14, 1)
+        columns every operation runs over the n poses; the pose-major (n, 7, 2) layout it replaces made
+        numpy's inner loops 2 long (measured 10x slower for those operations on the test machine).
+        """
         tab = self._tables
-        # pose-major layout (m, 7, 2) so that the (m, 8, 7) answer is gathered contiguously
-        X = th.T[:, :, None] * tab.sign3[:, :, 0] + tab.shift_lot[:, :, 0]  # alternative - (lower - tol)
-        Xm = X - TWO_PI * np.floor(X * (1.0 / TWO_PI))
-        feas = Xm <= tab.width3[:, :, 0]
-        V = Xm + tab.lot3[:, :, 0]  # lowest copy >= lower - tol
-        if len(tab.wide):  # more copies fit: the one in (-pi, pi] if it fits, as ik (else the nearest)
-            wj = tab.wide
-            Vw = V[:, wj]
-            kmax = np.maximum(np.floor((tab.width3[wj, :, 0] - Xm[:, wj]) * (1.0 / TWO_PI)), 0.0)
-            V[:, wj] = Vw + TWO_PI * np.clip(np.floor((PI - Vw) * (1.0 / TWO_PI)), 0.0, kmax)
-        np.clip(V, tab.lo3[:, :, 0], tab.up3[:, :, 0], out=V)
-        valid = feas[:, _J7, _ALT_INDEX].all(axis=2) & reach[:, None]
-        Q = V[:, _J7, _ALT_INDEX]
-        Q[~valid] = np.nan
-        return Q, valid
+        n = th.shape[1]
+        V = th[_J14]  # row 2 j + a: alternative a of joint j
+        V *= tab.sign14
+        V += tab.shift_lot14  # alternative - (lower - tol)
+        V -= TWO_PI * np.floor(V * (1.0 / TWO_PI))
+        feas = V <= tab.width14
+        V += tab.lot14  # the lowest copy >= lower - tol
+        for j in tab.wide_l:  # more copies fit: the one in (-pi, pi] if it fits, as ik (else the nearest)
+            Vw = V[2 * j : 2 * j + 2]
+            k = np.floor((PI - Vw) * (1.0 / TWO_PI))
+            np.maximum(k, 0.0, out=k)
+            np.minimum(k, np.floor((tab.upt14[2 * j : 2 * j + 2] - Vw) * (1.0 / TWO_PI)), out=k)
+            k *= TWO_PI
+            Vw += k
+        np.maximum(V, tab.lo14, out=V)
+        np.minimum(V, tab.up14, out=V)
+        ok = feas[_IDX56].reshape(8, 7, n).all(axis=1)
+        ok &= reach
+        valid[:] = ok.T
+        Q.reshape(n, 56)[:] = np.ascontiguousarray(V.T)[:, _IDX56]
+        Q.reshape(n * 8, 7)[np.flatnonzero(~valid.ravel())] = np.nan
 
     def swivel_functions(self, T: np.ndarray) -> SwivelFunctions:
         """The closed-form joint functions of pose T along the swivel circle (see :mod:`.feasible`).
@@ -760,7 +789,16 @@ class SwivelArm(Arm):
             )
         fn = swivel_functions(self, Tl, circ)
         seed_l = seed.tolist()
-        res = nearest(fn, self._tables, seed, w, self._swivel_lists(seed_l), deadline)
+        w_l = w.tolist()
+        res = nearest(
+            fn,
+            self._tables,
+            seed,
+            w,
+            self._swivel_lists(seed_l),
+            deadline,
+            lambda s, b, pred: self._realise(Tl, circ, s, b, pred, seed_l, w_l),
+        )
         if res.swivel is None:
             return None, IKInfo(
                 IKStatus.NO_SOLUTION_IN_LIMITS,
@@ -768,16 +806,15 @@ class SwivelArm(Arm):
                 "set empty for all 8 flip patterns)",
                 candidates=res.candidates,
             )
-        best = self._solve_ranked(Tl, circ, res.ranked, seed_l, w)
-        if best is None:
+        if res.q is None:
             return None, IKInfo(
                 IKStatus.NO_SOLUTION_IN_LIMITS,
                 "the closed-form feasible set is a sliver the scalar solve cannot hit within 1e-10 rad of "
                 "the limits (round-off)",
                 candidates=res.candidates,
             )
-        q, s_best, b_best = best
-        pe, re = self._pose_err_lists(q.tolist(), Tl)
+        q, s_best, b_best = np.array(res.q), res.swivel, res.branch
+        pe, re = self._pose_err_lists(res.q, Tl)
         status = IKStatus.TIMEOUT if res.timed_out else IKStatus.SUCCESS
         msg = (
             "ok"
@@ -795,32 +832,40 @@ class SwivelArm(Arm):
             branch=b_best,
         )
 
-    def _solve_ranked(
+    def _realise(
         self,
         Tl: list[list[float]],
         circ: tuple[float, ...],
-        ranked: list[tuple[float, float, int]],
+        s: float,
+        b: int,
+        pred: float,
         seed: list[float],
-        w: np.ndarray,
-    ) -> tuple[np.ndarray, float, int] | None:
-        """The scalar solve of the search's best (swivel, pattern), as ``ik`` computes it.
+        w: list[float],
+    ) -> tuple[list[float], float, int, float] | None:
+        """The scalar solve of a candidate (swivel s, pattern b) of the nearest search, as ``ik`` computes it:
+        (q, swivel, pattern, cost) or None.
 
         The closed-form functions and ``ik`` agree to round-off, except exactly at a singular swivel
         (theta2 or theta6 at 0 there: ``ik`` uses its theta1 = 0 convention, the functions the limit from
         one side) and at a limit (1e-10 rad tolerance). If the solve is infeasible there or costlier than
-        predicted, the swivels 1e-9 and 1e-7 rad to either side are tried, then the next candidates.
+        the prediction ``pred``, the swivels 1e-9 and 1e-7 rad to either side are tried, then those and s
+        with the flip patterns that trade places with b across a singular swivel (theta2 or theta6
+        passing 0 turns theta1 and theta3, or theta5 and theta7, by pi: the f2 and f6 flips); the best
+        of them is returned, maybe costlier than predicted.
         """
-        best: tuple[np.ndarray, float, int, float] | None = None
-        for pred, s, b in ranked[:4]:
-            for sv in (s, s - 1e-9, s + 1e-9, s - 1e-7, s + 1e-7):
-                r = self._branch_eval(Tl, circ, sv, b, seed, w)
-                if r is not None and (best is None or r[1] < best[3]):
-                    best = (r[0], math.remainder(sv, TWO_PI), b, r[1])
-                if best is not None and best[3] <= pred + 1e-12 * (1.0 + pred):
-                    return best[0], best[1], best[2]
-            if best is not None and best[3] <= pred + 1e-9 * (1.0 + pred):
-                break
-        return None if best is None else (best[0], best[1], best[2])
+        tol = 1e-12 * (1.0 + pred)
+        r = self._branch_eval(Tl, circ, s, b, seed, w)
+        if r is not None and r[1] <= pred + tol:
+            return r[0], s, b, r[1]
+        best = None if r is None else (r[0], s, b, r[1])
+        probes = (s - 1e-9, s + 1e-9, s - 1e-7, s + 1e-7)
+        for sv, bb in [(sv, b) for sv in probes] + [(sv, b ^ f) for f in (4, 1, 5) for sv in (s, *probes)]:
+            r = self._branch_eval(Tl, circ, sv, bb, seed, w)
+            if r is not None and (best is None or r[1] < best[3]):
+                best = (r[0], math.remainder(sv, TWO_PI), bb, r[1])
+                if bb == b and r[1] <= pred + tol:
+                    break
+        return best
 
     def ik_nearest_batch(
         self,
@@ -840,7 +885,9 @@ class SwivelArm(Arm):
         Ts = self.check_poses(Ts)
         m = len(Ts)
         seeds = check_finite_array(q_seeds, "q_seeds", None, ANGLE_RANGE)
+        one_seed = None
         if seeds.shape == (7,):
+            one_seed = self._swivel_lists(seeds.tolist())
             seeds = np.broadcast_to(seeds, (m, 7))
         elif seeds.shape != (m, 7):
             raise InvalidInputError(
@@ -855,6 +902,7 @@ class SwivelArm(Arm):
             np.full(m, BATCH_OUT_OF_REACH, dtype=np.int8),
         )
         step = max(1, int(chunk))
+        ws = NearestWorkspace(min(step, max(m, 1)), self._tables.batch_samples)
         for k0 in range(0, m, step):
             T = Ts[k0 : k0 + step]
             P = [[T[:, i, j] for j in range(4)] for i in range(3)]
@@ -863,10 +911,21 @@ class SwivelArm(Arm):
             if len(ri) == 0:
                 continue
             sd = np.ascontiguousarray(seeds[k0 + ri])
-            s_seed = np.array([self._swivel_lists(q) for q in sd.tolist()])
-            s, b, pred = nearest_batch(K[ri], t4[ri], dsh[ri], dwr[ri], self._tables, sd, w, s_seed)
+            if one_seed is not None:  # one seed for all poses: its swivel once
+                s_seed = np.full(len(ri), one_seed)
+            else:
+                s_seed = np.array([self._swivel_lists(q) for q in sd.tolist()])
+            s, b, pred, odd = nearest_batch(K[ri], t4[ri], dsh[ri], dwr[ri], self._tables, sd, w, s_seed, ws)
             gi = k0 + ri
             out.status[gi] = BATCH_NO_SOLUTION_IN_LIMITS
+            b[odd] = -1  # (near-equal samples, which the scalar search merges: solved one by one below)
+            for i in np.nonzero(odd)[0]:
+                qi, info = self.ik_nearest(T[ri[i]], sd[i], weights=w)
+                if qi is not None and info.swivel is not None and info.branch is not None:
+                    g = k0 + ri[i]
+                    out.q[g], out.swivel[g], out.branch[g] = qi, info.swivel, info.branch
+                    out.cost[g] = float(np.sum(w * (qi - sd[i]) ** 2))
+                    out.status[g] = BATCH_SUCCESS
             hit = b >= 0
             if not hit.any():
                 continue
@@ -876,8 +935,10 @@ class SwivelArm(Arm):
             th, _ = self._base_np(Ph, np.cos(sh), np.sin(sh))
             q, feas, cost = self._nearest_copies(th, bh, sdh, w)
             # round-off at an interval end or a singular swivel (where ik's conventions and the closed-form
-            # functions part by more than round-off): solve that pose alone, as ik_nearest does
-            redo = ~feas | (cost > ph + 1e-9 * (1.0 + ph))
+            # functions part by more than round-off, and where the scalar solve also tries the patterns
+            # that trade places there): solve that pose alone, as ik_nearest does
+            sing = np.minimum(np.abs(np.sin(th[1])), np.abs(np.sin(th[5]))) < 1e-6
+            redo = ~feas | (cost > ph + 1e-9 * (1.0 + ph)) | sing
             for i in np.nonzero(redo)[0]:
                 qi, info = self.ik_nearest(T[rows[i]], sdh[i], weights=w)
                 if qi is not None and info.swivel is not None and info.branch is not None:
@@ -979,8 +1040,8 @@ class SwivelArm(Arm):
         s: float,
         branch: int,
         seed: list[float],
-        w: np.ndarray,
-    ) -> tuple[np.ndarray, float] | None:
+        w: list[float],
+    ) -> tuple[list[float], float] | None:
         """Flip pattern ``branch`` at swivel s (scalar solve), each angle at its in-limit 2*pi copy nearest
         the seed (the seed may lie outside the limits). Returns (q, weighted squared distance to the seed)
         or None if a limit is violated (beyond the 1e-10 rad tolerance)."""
@@ -989,17 +1050,21 @@ class SwivelArm(Arm):
         sh = _ALT_SHIFT_L[branch]
         q = []
         cost = 0.0
-        wl = w.tolist()
-        for j, (t, r, lo, up, wj) in enumerate(
-            zip(base, seed, self._lower_l, self._upper_l, wl, strict=True)
-        ):
-            a = t * sg[j] + sh[j]
-            v0 = lo + (a - lo + LIMIT_TOL) % TWO_PI - LIMIT_TOL  # lowest in-limit copy candidate
-            kmax = math.floor((up + LIMIT_TOL - v0) / TWO_PI)
-            if kmax < 0:
-                return None
-            k = min(max(round((r - v0) / TWO_PI), 0), kmax)
-            v = min(max(v0 + TWO_PI * k, lo), up)
+        for j in range(7):
+            lot, upt, lo, up = self._lims[j]
+            a = base[j] * sg[j] + sh[j]
+            r = seed[j]
+            if self._wide[j]:  # several copies may fit: the one nearest the seed
+                v0 = lot + (a - lot) % TWO_PI  # lowest copy >= lower - tol
+                kmax = math.floor((upt - v0) / TWO_PI)
+                if kmax < 0:
+                    return None
+                v = v0 + TWO_PI * min(max(round((r - v0) / TWO_PI), 0), kmax)
+            else:  # one copy at most: the one nearest the middle of the range
+                v = a - TWO_PI * round((a - 0.5 * (lo + up)) / TWO_PI)
+                if v < lot or v > upt:
+                    return None
+            v = lo if v < lo else (up if v > up else v)
             q.append(v)
-            cost += wj * (v - r) ** 2
-        return np.array(q), cost
+            cost += w[j] * (v - r) ** 2
+        return q, cost
