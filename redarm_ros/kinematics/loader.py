@@ -175,12 +175,15 @@ def _joint_specs(cfg: dict[str, Any], overrides: dict[str, Any]) -> list[dict[st
 def _park(cfg: dict[str, Any], overrides: dict[str, Any], specs: list[dict[str, Any]]) -> list[float] | None:
     """The park posture (rad, one value per joint, inside the limits) from ``park:`` or the override.
 
-    None if the arm has none. Raises :class:`ConfigError` for a wrong length, a non-finite value or a
-    joint outside its limits (the park service moves there without asking).
+    None if the arm has none, and also when ``lower``/``upper`` overrides leave the YAML's park posture
+    outside the new limits (a model with other limits has no park posture unless ``park`` is overridden
+    too). Raises :class:`ConfigError` for a wrong length, a non-finite value or a joint outside its
+    limits (the park service moves there without asking).
     """
     raw = overrides.get("park", cfg.get("park"))
     if raw is None:
         return None
+    from_yaml_with_new_limits = "park" not in overrides and ("lower" in overrides or "upper" in overrides)
     name = cfg.get("name", "?")
     try:
         vals = [float(v) for v in raw]
@@ -195,6 +198,8 @@ def _park(cfg: dict[str, Any], overrides: dict[str, Any], specs: list[dict[str, 
         )
     for i, (v, s) in enumerate(zip(vals, specs, strict=True)):
         if not (s["lower"] - 1e-9 <= v <= s["upper"] + 1e-9):
+            if from_yaml_with_new_limits:
+                return None
             raise ConfigError(
                 f"arm {name!r}: park joint {i + 1} = {v:.4f} rad is outside its limits "
                 f"[{s['lower']:.4f}, {s['upper']:.4f}]",
