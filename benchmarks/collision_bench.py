@@ -36,7 +36,8 @@ import numpy as np
 from redarm_ros.control.self_collision import self_collision, self_collision_batch
 from redarm_ros.kinematics import IKStatus, load_arm
 from redarm_ros.kinematics.base_placement import suggest_base_move
-from redarm_ros.kinematics.solve import IKFrontEnd, nearest_collision_free
+from redarm_ros.kinematics.collision_ik import nearest_collision_free
+from redarm_ros.kinematics.solve import IKFrontEnd
 
 ARMS = ["pa10", "pa10_7c", "powercube6", "powercube7"]
 OUT = Path(__file__).resolve().parent / "results" / "collision_bench.md"

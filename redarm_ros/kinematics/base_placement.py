@@ -49,6 +49,7 @@ import numpy as np
 from redarm_ros.control.obstacles import ArmCapsules
 from redarm_ros.control.self_collision import CollisionModel, collision_model, self_collision_batch
 from redarm_ros.errors import InvalidInputError
+from redarm_ros.kinematics.collision_ik import nearest_collision_free
 from redarm_ros.kinematics.protocols import has_swivel
 
 __all__ = [
@@ -264,9 +265,6 @@ def _suggest_swivel(
     arm: Any, T: np.ndarray, seed: np.ndarray, md: CollisionModel | None, allow_yaw: bool, t_end: float,
     step: float,
 ) -> BasePlacement:
-    # deferred: solve imports this module
-    from redarm_ros.kinematics.solve import nearest_collision_free
-
     L1, L2, L3, L4 = arm.link_lengths
     W = T[:3, 3] - L4 * T[:3, 2]  # wrist point (eq. 10 of the swivel paper)
     dz = W[2] - L1  # wrist above the shoulder
@@ -294,6 +292,8 @@ def _suggest_swivel(
                     continue
                 q = res.q[j]
                 if md is not None and self_collision_batch(arm, q[None], model=md).colliding[0]:
+                    if time.perf_counter() > t_end:
+                        break
                     found = nearest_collision_free(arm, Ts[j], seed, md)
                     if found is None:
                         continue
