@@ -99,7 +99,7 @@ class IKFrontEnd:
         capsules: ArmCapsules | None = None,
         suggest_base_move: bool = True,
         base_move_yaw: bool = True,
-        base_move_timeout_s: float = 0.2,
+        base_move_timeout_s: float = 0.5,
     ) -> None:
         if default_arm not in arms:
             raise InvalidInputError(
