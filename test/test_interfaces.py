@@ -36,6 +36,7 @@ def test_solve_ik_request_fields() -> None:
         "seed": "sequence<double>",
         "all_solutions": "boolean",
         "timeout": "double",
+        "ignore_collisions": "boolean",
     }
     req = SolveIK.Request()
     assert req.target.pose.orientation.w == 1.0  # identity quaternion (x, y, z, w) by default
@@ -52,13 +53,18 @@ def test_solve_ik_response_fields_and_status_codes() -> None:
         "swivel": "double",
         "position_error": "double",
         "orientation_error": "double",
+        "clearance": "double",
+        "base_offset": "geometry_msgs/Vector3",
+        "base_offset_yaw": "double",
+        "base_offset_valid": "boolean",
     }
     codes = {
         name: getattr(SolveIK.Response, name)
-        for name in ("SUCCESS", "NO_SOLUTION_IN_LIMITS", "OUT_OF_REACH", "INVALID_INPUT", "TIMEOUT")
+        for name in ("SUCCESS", "NO_SOLUTION_IN_LIMITS", "OUT_OF_REACH", "INVALID_INPUT", "TIMEOUT",
+                     "INTERNAL_ERROR", "ALL_SOLUTIONS_COLLIDE")
     }
     assert codes == {"SUCCESS": 0, "NO_SOLUTION_IN_LIMITS": 1, "OUT_OF_REACH": 2, "INVALID_INPUT": 3,
-                     "TIMEOUT": 4}
+                     "TIMEOUT": 4, "INTERNAL_ERROR": 7, "ALL_SOLUTIONS_COLLIDE": 8}
 
 
 def test_controller_state_fields_and_phases() -> None:

@@ -8,9 +8,10 @@ from typing import Any
 import numpy as np
 import pytest
 
+from redarm_ros.control.self_collision import self_collision, self_collision_batch
 from redarm_ros.errors import InvalidInputError
 from redarm_ros.kinematics import IKStatus, load_arm
-from redarm_ros.kinematics.solve import IKFrontEnd
+from redarm_ros.kinematics.solve import IKFrontEnd, nearest_collision_free
 
 ARMS = {name: load_arm(name) for name in ("pa10", "powercube6", "powercube7")}
 FRONT = IKFrontEnd(ARMS, "pa10")
@@ -113,3 +114,152 @@ def test_timeout_is_passed_to_the_search_and_honoured() -> None:
         assert ans.q is not None and PA10.pose_error(ans.q, T)[0] < 1e-9
     assert IKStatus.TIMEOUT in statuses
     assert _solve(PA10.fk(np.zeros(7)), timeout_s=0.0).status is IKStatus.INVALID_INPUT
+
+
+# ---------------------------------------------------------------------------------------------
+# Collision filter and base-move suggestion
+# ---------------------------------------------------------------------------------------------
+def _wide_pa10() -> Any:
+    """A PA10 with +-180 deg joints and a table 0.1 m up: the elbow can dip into it at some swivels, so
+    one pose has colliding and collision-free solutions along its self-motion."""
+    arm = load_arm("pa10", lower=[-math.pi] * 7, upper=[math.pi] * 7)
+    arm.config["self_collision"] = {
+        "pairs": [["base", "forearm"], ["base", "hand"], ["upper_arm", "hand"]],
+        "ground_z": 0.1,
+    }
+    return arm
+
+
+def _mixed_poses(
+    arm: Any, model: Any, count: int, seed: int
+) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """(T, a colliding solution of T, all collision-free solutions on a 0.1 deg sweep) for mixed poses."""
+    rng = np.random.default_rng(seed)
+    S = np.linspace(-math.pi, math.pi, 3600, endpoint=False)
+    out = []
+    while len(out) < count:
+        q = rng.uniform(arm.lower, arm.upper)
+        T = arm.fk(q)
+        if T[2, 3] < 0.3:
+            continue
+        Q, valid = arm.ik_batch(np.broadcast_to(T, (len(S), 4, 4)), S)
+        ii, bb = np.nonzero(valid)
+        rows = Q[ii, bb]
+        res = self_collision_batch(arm, rows, model=model)
+        if res.free.any() and res.colliding.any():
+            out.append((T, rows[np.nonzero(res.colliding)[0][0]], rows[res.free]))
+    return out
+
+
+def test_nearest_collision_free_on_the_swivel_circle_matches_a_dense_sweep() -> None:
+    """The seed is a colliding solution of the pose: the answer is collision-free and no farther from the
+    seed than the best collision-free solution of a 0.1 deg sweep over all swivels and flip patterns."""
+    arm = _wide_pa10()
+    front = IKFrontEnd({"wide": arm}, "wide")
+    model = front.models["wide"]
+    for T, q_coll, free_rows in _mixed_poses(arm, model, 4, seed=3):
+        ans = front.solve(T, "wide", swivel=None, seed=list(q_coll), all_solutions=True, timeout_s=0.05)
+        assert ans.status is IKStatus.SUCCESS, ans.message
+        assert not self_collision(arm, ans.q, model=model).colliding and ans.clearance >= 0.0
+        assert ans.position_error < 1e-9 and ans.orientation_error < 1e-9
+        sweep = ((arm.nearest_copies(free_rows, q_coll) - q_coll) ** 2).sum(axis=1).min()
+        assert ((ans.q - q_coll) ** 2).sum() <= sweep + 1e-9
+        assert len(ans.solutions) >= 1
+        assert not self_collision_batch(arm, ans.solutions, model=model).colliding.any()
+        # with the filter off the colliding seed itself is the answer
+        off = front.solve(T, "wide", swivel=None, seed=list(q_coll), all_solutions=False, timeout_s=0.05,
+                          check_collisions=False)
+        assert off.status is IKStatus.SUCCESS and np.max(np.abs(off.q - q_coll)) < 1e-6
+        assert math.isnan(off.clearance)
+
+
+def test_swivel_given_where_every_solution_collides() -> None:
+    arm = _wide_pa10()
+    front = IKFrontEnd({"wide": arm}, "wide")
+    T, q_coll, _ = _mixed_poses(arm, front.models["wide"], 1, seed=4)[0]
+    s = arm.swivel(q_coll)
+    ans = front.solve(T, "wide", swivel=s, seed=[], all_solutions=False, timeout_s=0.05)
+    assert ans.status is IKStatus.ALL_SOLUTIONS_COLLIDE and ans.q is None
+    assert "at swivel" in ans.message and "nearest collision-free solution is at swivel" in ans.message
+    assert ans.base_offset is None  # other swivels are free: no base move is suggested
+    found = nearest_collision_free(arm, T, (arm.lower + arm.upper) / 2.0, front.models["wide"])
+    assert found is not None and f"at swivel {found.swivel:.4f} rad" in ans.message
+    assert not self_collision(arm, found.q, model=front.models["wide"]).colliding
+    off = front.solve(
+        T, "wide", swivel=s, seed=[], all_solutions=False, timeout_s=0.05, check_collisions=False
+    )
+    assert off.status is IKStatus.SUCCESS
+
+
+def test_powercube6_nearest_collision_free_among_its_analytic_solutions() -> None:
+    arm = ARMS["powercube6"]
+    model = FRONT.models["powercube6"]
+    rng = np.random.default_rng(9)
+    done = 0
+    while done < 5:
+        T = arm.fk(rng.uniform(arm.lower, arm.upper))
+        sols = arm.ik(T)
+        res = self_collision_batch(arm, sols, model=model)
+        if not (res.free.any() and res.colliding.any()):
+            continue
+        seed = sols[np.nonzero(res.colliding)[0][0]]
+        ans = _solve(T, "powercube6", seed=list(seed))
+        assert ans.status is IKStatus.SUCCESS, ans.message
+        free = sols[res.free]
+        best = free[np.argmin(((free - seed) ** 2).sum(axis=1))]
+        assert np.max(np.abs(ans.q - best)) < 1e-12
+        done += 1
+
+
+@pytest.mark.parametrize("name", ["pa10", "powercube6", "powercube7"])
+def test_all_solutions_collide_and_the_flag_that_allows_it(name: str) -> None:
+    """A posture with its wrist and tool under the ground plane: every solution collides."""
+    arm = ARMS[name]
+    q = np.radians([0, 90, 0, 90, 0, 0, 0] if arm.n == 7 else [0, -20, 0, -40, -30, 0])
+    T = arm.fk(q)
+    ans = _solve(T, name)
+    assert ans.status is IKStatus.ALL_SOLUTIONS_COLLIDE and ans.q is None
+    assert "ground" in ans.message
+    assert ans.base_offset is not None and not ans.base_offset.valid  # no planar move lifts the hand
+    assert "below the ground plane" in ans.message
+    assert _solve(T, name, check_collisions=False).status is IKStatus.SUCCESS
+    ans = _solve(T, name, swivel=arm.swivel(q)) if arm.n == 7 else None
+    if ans is not None:
+        assert ans.status is IKStatus.ALL_SOLUTIONS_COLLIDE and "every swivel" in ans.message
+
+
+def test_answers_carry_the_clearance() -> None:
+    q = np.array([0.3, 0.6, -0.4, 1.2, 0.5, -0.7, 0.9])
+    ans = _solve(PA10.fk(q), seed=list(q))
+    assert ans.status is IKStatus.SUCCESS
+    assert ans.clearance == pytest.approx(self_collision(PA10, ans.q).min_distance) and ans.clearance > 0
+
+
+@pytest.mark.parametrize("name", ["pa10", "powercube6", "powercube7"])
+def test_out_of_reach_answer_carries_a_base_move_that_solves_it(name: str) -> None:
+    arm = ARMS[name]
+    T = arm.fk(arm.park).copy()
+    T[0, 3] += 1.5  # 1.5 m further ahead
+    ans = _solve(T, name)
+    assert ans.status in (IKStatus.OUT_OF_REACH, IKStatus.NO_SOLUTION_IN_LIMITS)
+    bp = ans.base_offset
+    assert bp is not None and bp.valid, ans.message
+    assert "moving the base by" in ans.message
+    moved = _solve(bp.apply(T), name)
+    assert moved.status is IKStatus.SUCCESS, moved.message
+    quiet = IKFrontEnd(ARMS, "pa10", suggest_base_move=False)
+    ans = quiet.solve(T, name, swivel=None, seed=[], all_solutions=False, timeout_s=0.05)
+    assert ans.base_offset is None and "moving the base" not in ans.message
+
+
+def test_swivel_without_in_limit_solution_suggests_no_base_move() -> None:
+    """Another swivel solves the pose: the answer points there, not at the base."""
+    rng = np.random.default_rng(5)
+    for _ in range(200):
+        T = PA10.fk(rng.uniform(0.8 * PA10.lower, 0.8 * PA10.upper))
+        for s in np.linspace(-3.0, 3.0, 25):
+            if len(PA10.ik(T, float(s))) == 0 and any(len(iv) for iv in PA10.feasible_swivels(T)):
+                ans = _solve(T, swivel=float(s))
+                assert ans.status is IKStatus.NO_SOLUTION_IN_LIMITS and ans.base_offset is None
+                return
+    pytest.fail("no pose with an infeasible swivel found")

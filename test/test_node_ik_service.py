@@ -18,6 +18,7 @@ from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from redarm_interfaces.srv import SolveIK  # noqa: E402
 
+from redarm_ros.control.self_collision import self_collision, self_collision_batch  # noqa: E402
 from redarm_ros.kinematics import load_arm  # noqa: E402
 from redarm_ros.kinematics.quaternion import matrix_to_quat  # noqa: E402
 from redarm_ros.nodes._common import pose_msg_to_matrix  # noqa: E402
@@ -95,9 +96,11 @@ def service(ctx: Any) -> Iterator[tuple[IKServiceNode, Caller]]:
 
 
 def random_pose(arm: Any, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """A joint vector well inside the limits and its tool pose."""
-    q = rng.uniform(0.8 * arm.lower, 0.8 * arm.upper)
-    return q, arm.fk(q)
+    """A collision-free joint vector well inside the limits and its tool pose."""
+    while True:
+        q = rng.uniform(0.8 * arm.lower, 0.8 * arm.upper)
+        if not self_collision(arm, q).colliding:
+            return q, arm.fk(q)
 
 
 GOOD_T = load_arm("pa10").fk(np.array([0.3, 0.4, -0.2, 1.0, 0.3, 0.5, 0.1]))
@@ -182,16 +185,68 @@ def test_swivel_on_powercube6_is_answered(service: Any) -> None:
     assert resp.status in (R.SUCCESS, R.INVALID_INPUT, R.NO_SOLUTION_IN_LIMITS, R.OUT_OF_REACH)
 
 
-@pytest.mark.parametrize("arm_name", ["pa10", "powercube7"])
-def test_unreachable_is_out_of_reach(service: Any, arm_name: str) -> None:
+@pytest.mark.parametrize("arm_name", ["pa10", "powercube6", "powercube7"])
+def test_unreachable_is_out_of_reach_with_a_base_move_that_solves_it(service: Any, arm_name: str) -> None:
     _, call = service
     T = np.eye(4)
     T[:3, 3] = (3.0, 0.0, 0.5)  # metres beyond any of these arms
     resp = call(make_request(T, arm_name))
     assert resp.status == R.OUT_OF_REACH, resp.message
     assert len(resp.solution.position) == 0
-    resp = call(make_request(T, arm_name, swivel_given=True, swivel=0.5))
-    assert resp.status == R.OUT_OF_REACH, resp.message
+    assert resp.base_offset_valid and "moving the base by" in resp.message
+    assert resp.base_offset.z == 0.0 and resp.base_offset.x > 1.5
+    # the target seen from the moved base (x, y, yaw) is solved
+    c, s_ = math.cos(resp.base_offset_yaw), math.sin(resp.base_offset_yaw)
+    B = np.eye(4)
+    B[:2, :2] = [[c, -s_], [s_, c]]
+    B[:2, 3] = resp.base_offset.x, resp.base_offset.y
+    moved = call(make_request(np.linalg.inv(B) @ T, arm_name))
+    assert moved.status == R.SUCCESS, moved.message
+    assert not moved.base_offset_valid
+    if arm_name != "powercube6":
+        resp = call(make_request(T, arm_name, swivel_given=True, swivel=0.5))
+        assert resp.status == R.OUT_OF_REACH, resp.message
+        assert resp.base_offset_valid
+
+
+@pytest.mark.parametrize("arm_name", ["pa10", "powercube6"])
+def test_every_solution_colliding_is_reported_and_the_flag_allows_it(service: Any, arm_name: str) -> None:
+    """Wrist and tool under the ground plane: ALL_SOLUTIONS_COLLIDE naming the links, no base move (a
+    planar move keeps the height); ignore_collisions returns the solution."""
+    _, call = service
+    arm = load_arm(arm_name)
+    q = np.radians([0, 90, 0, 90, 0, 0, 0] if arm.n == 7 else [0, -20, 0, -40, -30, 0])
+    T = arm.fk(q)
+    resp = call(make_request(T, arm_name))
+    assert resp.status == R.ALL_SOLUTIONS_COLLIDE == 8, resp.message
+    assert "ground" in resp.message and len(resp.solution.position) == 0
+    assert not resp.base_offset_valid
+    resp = call(make_request(T, arm_name, ignore_collisions=True, all_solutions=True))
+    assert resp.status == R.SUCCESS, resp.message
+    assert arm.pose_error(np.array(resp.solution.position), T)[0] < 1e-9
+    assert math.isnan(resp.clearance)
+
+
+@pytest.mark.parametrize("arm_name", ARMS)
+def test_solutions_are_collision_free_and_carry_their_clearance(service: Any, arm_name: str) -> None:
+    """Uniform postures over the whole range (some collide): every SUCCESS answer and every listed
+    solution is collision-free; the others say ALL_SOLUTIONS_COLLIDE."""
+    _, call = service
+    arm = load_arm(arm_name)
+    rng = np.random.default_rng(17)
+    statuses = set()
+    for _ in range(20):
+        q = rng.uniform(arm.lower, arm.upper)
+        resp = call(make_request(arm.fk(q), arm_name, all_solutions=True))
+        statuses.add(resp.status)
+        assert resp.status in (R.SUCCESS, R.ALL_SOLUTIONS_COLLIDE), resp.message
+        if resp.status == R.SUCCESS:
+            sol = np.array(resp.solution.position)
+            sc = self_collision(arm, sol)
+            assert not sc.colliding and resp.clearance == pytest.approx(sc.min_distance, abs=1e-12)
+            rows = np.array([pt.positions for pt in resp.solutions])
+            assert not self_collision_batch(arm, rows).colliding.any()
+    assert R.SUCCESS in statuses
 
 
 def test_slightly_non_unit_quaternion_is_renormalised(service: Any) -> None:
@@ -428,7 +483,9 @@ def test_burst_of_2000_outstanding_requests_all_answered(procs: Any, ctx: Any) -
             executor.spin_once(timeout_sec=0.05)
         arm = load_arm("pa10")
         rng = np.random.default_rng(21)
-        Q = rng.uniform(0.8 * arm.lower, 0.8 * arm.upper, (2000, 7))
+        Q = rng.uniform(0.8 * arm.lower, 0.8 * arm.upper, (3000, 7))
+        Q = Q[self_collision_batch(arm, Q).free][:2000]  # poses the collision filter lets through
+        assert len(Q) == 2000
         futures = []
         for i in range(500):  # interleaved: each client has all its 500 requests in flight
             for k, c in enumerate(clients):

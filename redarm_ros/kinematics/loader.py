@@ -85,6 +85,7 @@ _OVERRIDE_KEYS = {
     "joint_names",
     "name",
     "roll_fractions",
+    "park",
 }
 
 
@@ -93,7 +94,8 @@ def load_arm(name: str | os.PathLike[str] = "pa10", **overrides: Any) -> Arm:
 
     Keyword overrides replace YAML values: ``link_lengths`` (m), ``lower``/``upper`` (rad, (n,)),
     ``max_vel`` (rad/s), ``max_acc`` (rad/s^2), ``joint_names``, ``name``, ``roll_fractions``
-    (powercube6). Raises :class:`ConfigError` for an unknown name, a broken file or a bad override.
+    (powercube6), ``park`` (rad, (n,): the park posture, ``arm.park``).
+    Raises :class:`ConfigError` for an unknown name, a broken file or a bad override.
     """
     path = _find_config(name)
     try:
@@ -170,6 +172,43 @@ def _joint_specs(cfg: dict[str, Any], overrides: dict[str, Any]) -> list[dict[st
     return specs
 
 
+def _park(cfg: dict[str, Any], overrides: dict[str, Any], specs: list[dict[str, Any]]) -> list[float] | None:
+    """The park posture (rad, one value per joint, inside the limits) from ``park:`` or the override.
+
+    None if the arm has none, and also when ``lower``/``upper`` overrides leave the YAML's park posture
+    outside the new limits (a model with other limits has no park posture unless ``park`` is overridden
+    too). Raises :class:`ConfigError` for a wrong length, a non-finite value or a joint outside its
+    limits (the park service moves there without asking).
+    """
+    raw = overrides.get("park", cfg.get("park"))
+    if raw is None:
+        return None
+    from_yaml_with_new_limits = "park" not in overrides and ("lower" in overrides or "upper" in overrides)
+    name = cfg.get("name", "?")
+    try:
+        vals = [float(v) for v in raw]
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"arm {name!r}: park must be {len(specs)} numbers (rad)", field="park",
+                          value=raw) from exc
+    if len(vals) != len(specs) or not all(math.isfinite(v) for v in vals):
+        raise ConfigError(
+            f"arm {name!r}: park must be {len(specs)} finite numbers (rad), got {raw!r}",
+            field="park",
+            value=raw,
+        )
+    for i, (v, s) in enumerate(zip(vals, specs, strict=True)):
+        if not (s["lower"] - 1e-9 <= v <= s["upper"] + 1e-9):
+            if from_yaml_with_new_limits:
+                return None
+            raise ConfigError(
+                f"arm {name!r}: park joint {i + 1} = {v:.4f} rad is outside its limits "
+                f"[{s['lower']:.4f}, {s['upper']:.4f}]",
+                field="park",
+                value=raw,
+            )
+    return [min(max(v, s["lower"]), s["upper"]) for v, s in zip(vals, specs, strict=True)]
+
+
 def _axis(spec: Any, where: str) -> np.ndarray:
     table = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}
     if isinstance(spec, str) and spec in table:
@@ -218,6 +257,7 @@ def build_arm(cfg: dict[str, Any], **overrides: Any) -> Arm:
     cfg = dict(cfg)
     cfg["name"] = name
     specs = _joint_specs(cfg, overrides)
+    cfg["park"] = _park(cfg, overrides, specs)
     T = np.eye(4)
 
     def mk(s: dict[str, Any], origin: np.ndarray, axis: np.ndarray) -> Joint:

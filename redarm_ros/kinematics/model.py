@@ -236,6 +236,12 @@ class Arm:
     def __repr__(self) -> str:
         return f"<{type(self).__name__} {self.name!r} n={self.n} kind={self.kind}>"
 
+    @property
+    def park(self) -> np.ndarray | None:
+        """The park posture (rad, (n,), inside the limits) from the YAML ``park:``, or None if none."""
+        v = self.config.get("park")
+        return None if v is None else np.array(v, dtype=float)
+
     # ------------------------------------------------------------------ validation
     def check_q(self, q: Any, field: str = "q") -> np.ndarray:
         """q as a float (n,) array (rad).

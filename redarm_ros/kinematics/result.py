@@ -17,6 +17,9 @@ class IKStatus(enum.Enum):
     INVALID_INPUT = "invalid_input"
     TIMEOUT = "timeout"
     INTERNAL_ERROR = "internal_error"
+    #: the pose has in-limit solutions, but every one makes two links collide or a link go below the
+    #: ground plane (the IK front end's collision filter; SolveIK code 8)
+    ALL_SOLUTIONS_COLLIDE = "all_solutions_collide"
 
 
 @dataclass

@@ -10,6 +10,17 @@
 * no swivel: ``ik_nearest`` (the global optimum over all swivels for swivel arms; the analytic solve for
   the 6-DOF PowerCube arm; damped least squares for a generic chain) within the request's time budget.
 
+Collision filter (on unless a request turns it off): a solution whose capsules collide with each other
+or go below the arm's ground plane (:mod:`redarm_ros.control.self_collision`) is never returned. If the
+nearest solution collides, :func:`nearest_collision_free` finds the nearest one that does not (swivel
+arms: every flip pattern over a grid of the closed-form feasible swivel set, refined where the cost is
+lowest; the 6-DOF arm: its up to 4 analytic solutions). If every in-limit solution collides the status
+is ``ALL_SOLUTIONS_COLLIDE`` and the message says which links.
+
+Base-move suggestion: when the pose cannot be solved at all (out of reach, no in-limit or no
+collision-free solution at any swivel), the answer carries the smallest planar base displacement that
+makes it solvable with the elbow in the optimal region (:mod:`.base_placement`).
+
 :meth:`IKFrontEnd.solve` never raises: malformed input is ``INVALID_INPUT``, an unreachable pose
 ``OUT_OF_REACH``, and an unexpected exception in a solver ``INTERNAL_ERROR`` (logged with its traceback,
 never disguised as the caller's fault). Units: m, rad, s.
@@ -26,12 +37,16 @@ from typing import Any
 
 import numpy as np
 
+from redarm_ros.control.obstacles import ArmCapsules
+from redarm_ros.control.self_collision import CollisionModel, collision_model, self_collision
 from redarm_ros.errors import InvalidInputError, RedarmError, UnreachableError
+from redarm_ros.kinematics.base_placement import BasePlacement, pose_ground_clearance, suggest_base_move
+from redarm_ros.kinematics.collision_ik import FreeSolution, collision_free_rows, nearest_collision_free
 from redarm_ros.kinematics.model import ANGLE_RANGE, Arm, check_finite_array
 from redarm_ros.kinematics.protocols import has_analytic_ik, has_swivel
 from redarm_ros.kinematics.result import IKStatus
 
-__all__ = ["IKAnswer", "IKFrontEnd"]
+__all__ = ["IKAnswer", "IKFrontEnd", "FreeSolution", "nearest_collision_free", "collision_free_rows"]
 
 _log = logging.getLogger(__name__)
 PI = math.pi
@@ -43,7 +58,8 @@ class IKAnswer:
     """What a solve returns, independent of any message type.
 
     ``status`` an :class:`IKStatus`; ``q`` the chosen joint vector (rad) or None; ``solutions`` all
-    in-limit solutions (k, n) when asked; ``swivel`` (rad) of ``q`` or NaN; errors in m and rad.
+    in-limit (and, with the filter, collision-free) solutions (k, n) when asked; ``swivel`` (rad) of ``q``
+    or NaN; errors in m and rad.
     """
 
     status: IKStatus
@@ -54,16 +70,37 @@ class IKAnswer:
     position_error: float = math.nan
     orientation_error: float = math.nan
     joint_names: list[str] = field(default_factory=list)
+    #: self-collision / ground clearance (m) of ``q`` when the collision filter ran, else NaN
+    clearance: float = math.nan
+    #: the base-move suggestion (on failures that a base move can fix), else None
+    base_offset: BasePlacement | None = None
+
+
+# statuses after which a base move may help (the pose has no usable solution at any swivel)
+_BASE_MOVE_STATUSES = (IKStatus.OUT_OF_REACH, IKStatus.NO_SOLUTION_IN_LIMITS, IKStatus.ALL_SOLUTIONS_COLLIDE)
 
 
 class IKFrontEnd:
     """Validates solve requests and calls the kinematics core.
 
-    ``arms`` maps names to loaded models; ``default_arm`` answers requests that name none.
-    Raises :class:`InvalidInputError` if ``default_arm`` is not among ``arms``.
+    ``arms`` maps names to loaded models; ``default_arm`` answers requests that name none. ``capsules``:
+    the collision model's radii (m; default the controller's). ``suggest_base_move``: attach a
+    base-move suggestion to answers that a base move can fix (``base_move_yaw``: it may turn the base
+    too; ``base_move_timeout_s``: its own time budget in s). Raises :class:`InvalidInputError` if
+    ``default_arm`` is not among ``arms`` (:class:`~redarm_ros.errors.ConfigError` for a malformed
+    ``self_collision`` entry of an arm).
     """
 
-    def __init__(self, arms: Mapping[str, Arm], default_arm: str) -> None:
+    def __init__(
+        self,
+        arms: Mapping[str, Arm],
+        default_arm: str,
+        *,
+        capsules: ArmCapsules | None = None,
+        suggest_base_move: bool = True,
+        base_move_yaw: bool = True,
+        base_move_timeout_s: float = 0.5,
+    ) -> None:
         if default_arm not in arms:
             raise InvalidInputError(
                 f"default_arm {default_arm!r} is not among the served arms {sorted(arms)}",
@@ -72,6 +109,10 @@ class IKFrontEnd:
             )
         self.arms = dict(arms)
         self.default_arm = default_arm
+        self.models = {name: collision_model(arm, capsules) for name, arm in self.arms.items()}
+        self.suggest_base_move = bool(suggest_base_move)
+        self.base_move_yaw = bool(base_move_yaw)
+        self.base_move_timeout_s = float(base_move_timeout_s)
 
     def arm_for(self, name: str) -> Arm:
         """The model named ``name`` ('' = the default arm); InvalidInputError if not served."""
@@ -84,6 +125,13 @@ class IKFrontEnd:
                 value=key,
             )
         return arm
+
+    def model_for(self, name: str) -> CollisionModel:
+        """The collision model of the arm named ``name`` ('' = the default arm)."""
+        key = name or self.default_arm
+        if key not in self.models:
+            self.models[key] = collision_model(self.arm_for(key))
+        return self.models[key]
 
     @staticmethod
     def seed_for(arm: Arm, seed: Sequence[float]) -> np.ndarray:
@@ -112,10 +160,12 @@ class IKFrontEnd:
         seed: Sequence[float],
         all_solutions: bool,
         timeout_s: float,
+        check_collisions: bool = True,
     ) -> IKAnswer:
         """Solve one request; never raises. ``swivel`` None: nearest solution to the seed over all swivels.
 
-        T: 4x4 target (base frame, m); ``timeout_s`` (s, > 0) bounds the solver's search.
+        T: 4x4 target (base frame, m); ``timeout_s`` (s, > 0) bounds the solver's search;
+        ``check_collisions``: drop solutions whose links collide or go below the ground plane.
         """
         t0 = time.perf_counter()
         try:
@@ -125,13 +175,19 @@ class IKFrontEnd:
                 raise InvalidInputError(
                     f"timeout must be > 0 s, got {timeout_s}", field="timeout", value=timeout_s
                 )
+            model = self.model_for(arm_name) if check_collisions else None
             if swivel is not None:
-                ans = self._solve_at_swivel(arm, T, swivel, q_seed, all_solutions, t0 + timeout_s)
+                ans, whole_pose = self._solve_at_swivel(
+                    arm, T, swivel, q_seed, all_solutions, t0 + timeout_s, model
+                )
             else:
-                ans = self._solve_nearest(arm, T, q_seed, all_solutions, timeout_s)
+                ans = self._solve_nearest(arm, T, q_seed, all_solutions, timeout_s, t0, model)
+                whole_pose = True
             ans.joint_names = list(arm.joint_names)
             if ans.q is not None and not math.isfinite(ans.position_error):
                 ans.position_error, ans.orientation_error = arm.pose_error(ans.q, T)
+            if self.suggest_base_move and whole_pose and ans.status in _BASE_MOVE_STATUSES:
+                self._attach_base_move(arm, T, q_seed, model, ans)
             return ans
         except InvalidInputError as exc:
             return IKAnswer(IKStatus.INVALID_INPUT, str(exc))
@@ -144,9 +200,36 @@ class IKFrontEnd:
             _log.exception("internal error for arm %r", arm_name)
             return IKAnswer(IKStatus.INTERNAL_ERROR, f"internal error: {type(exc).__name__}: {exc}")
 
+    def _attach_base_move(
+        self, arm: Arm, T: np.ndarray, q_seed: np.ndarray, model: CollisionModel | None, ans: IKAnswer
+    ) -> None:
+        """Add the base-move suggestion to a failed answer (and one sentence to its message)."""
+        try:
+            bp = suggest_base_move(
+                arm,
+                T,
+                q_seed=q_seed,
+                model=model,
+                check_collisions=model is not None,
+                allow_yaw=self.base_move_yaw,
+                timeout_s=self.base_move_timeout_s,
+            )
+        except InvalidInputError:
+            return
+        ans.base_offset = bp
+        ans.message = f"{ans.message}; {bp.describe()}" if ans.message else bp.describe()
+
     def _solve_at_swivel(
-        self, arm: Arm, T: np.ndarray, swivel: float, q_seed: np.ndarray, all_solutions: bool, deadline: float
-    ) -> IKAnswer:
+        self,
+        arm: Arm,
+        T: np.ndarray,
+        swivel: float,
+        q_seed: np.ndarray,
+        all_solutions: bool,
+        deadline: float,
+        model: CollisionModel | None,
+    ) -> tuple[IKAnswer, bool]:
+        """(answer, whole_pose): ``whole_pose`` is True when the failure holds for every swivel."""
         if not math.isfinite(swivel):
             raise InvalidInputError(f"swivel must be finite, got {swivel}", field="swivel", value=swivel)
         if not has_swivel(arm):
@@ -160,15 +243,40 @@ class IKFrontEnd:
         s = PI if s <= -PI else s
         sols = np.asarray(arm.ik(T, s), dtype=float).reshape(-1, arm.n)  # each solution once, near 0
         if len(sols) == 0:
-            return IKAnswer(
-                IKStatus.NO_SOLUTION_IN_LIMITS if self._reachable(arm, T) else IKStatus.OUT_OF_REACH,
-                self._no_solution_message(arm, T, s, deadline),
-                swivel=s,
-            )
+            reachable = self._reachable(arm, T)
+            msg, any_swivel = self._no_solution_message(arm, T, s, deadline)
+            status = IKStatus.NO_SOLUTION_IN_LIMITS if reachable else IKStatus.OUT_OF_REACH
+            return IKAnswer(status, msg, swivel=s), not reachable or not any_swivel
+        clear = np.full(len(sols), math.nan)
+        if model is not None:
+            free, clear = collision_free_rows(arm, sols, model)
+            if not free.any():
+                worst = self_collision(arm, sols[int(np.argmax(clear))], model=model)
+                msg = (
+                    f"all {len(sols)} in-limit solutions at swivel {s:.4f} rad collide (the best: "
+                    f"{worst.describe()})"
+                )
+                whole = False
+                if pose_ground_clearance(arm, T, model) < 0.0:
+                    msg += "; the hand is below the ground plane at every swivel"
+                    whole = True
+                elif time.perf_counter() < deadline:
+                    found = nearest_collision_free(arm, T, q_seed, model)
+                    if found is None:
+                        msg += "; no swivel has a collision-free solution"
+                        whole = True
+                    else:
+                        msg += f"; the nearest collision-free solution is at swivel {found.swivel:.4f} rad"
+                return IKAnswer(IKStatus.ALL_SOLUTIONS_COLLIDE, msg, swivel=s), whole
+            sols, clear = sols[free], clear[free]
         # every solution at its in-limit copies nearest the seed; the answer is the nearest of them
         near = arm.nearest_copies(sols, q_seed)
         i = int(np.argmin(((near - q_seed) ** 2).sum(axis=1)))
-        return IKAnswer(IKStatus.SUCCESS, "", q=near[i], solutions=sols if all_solutions else None, swivel=s)
+        ans = IKAnswer(
+            IKStatus.SUCCESS, "", q=near[i], solutions=sols if all_solutions else None, swivel=s,
+            clearance=float(clear[i]),
+        )
+        return ans, False
 
     @staticmethod
     def _reachable(arm: Any, T: np.ndarray) -> bool:
@@ -179,15 +287,18 @@ class IKFrontEnd:
         return True
 
     @staticmethod
-    def _no_solution_message(arm: Any, T: np.ndarray, s: float, deadline: float) -> str:
-        """Why swivel s has no in-limit solution, with the nearest swivel that has one (closed form)."""
+    def _no_solution_message(arm: Any, T: np.ndarray, s: float, deadline: float) -> tuple[str, bool]:
+        """Why swivel s has no in-limit solution, with the nearest swivel that has one (closed form).
+
+        Returns (message, whether some swivel has an in-limit solution; True when unknown).
+        """
         try:
             ivs = arm.feasible_swivels(T)
         except UnreachableError as exc:
-            return str(exc)
+            return str(exc), False
         head = f"no solution within the joint limits at swivel {s:.4f} rad"
         if time.perf_counter() > deadline:
-            return head + " (time budget used up before the feasible swivels were computed)"
+            return head + " (time budget used up before the feasible swivels were computed)", True
         best = None
         for iv in ivs:
             for a, b in iv.tolist():
@@ -196,13 +307,19 @@ class IKFrontEnd:
                 if best is None or d < best[0]:
                     best = (d, a, b)
         if best is None:
-            return head + "; no swivel has one: the pose is reachable, but not within the joint limits"
+            return head + "; no swivel has one: the pose is reachable, but not within the joint limits", False
         d, a, b = best
-        return head + f"; the nearest in-limit swivels are [{a:.4f}, {b:.4f}] rad ({d:.4f} rad away)"
+        return head + f"; the nearest in-limit swivels are [{a:.4f}, {b:.4f}] rad ({d:.4f} rad away)", True
 
     @staticmethod
     def _solve_nearest(
-        arm: Arm, T: np.ndarray, q_seed: np.ndarray, all_solutions: bool, timeout_s: float
+        arm: Arm,
+        T: np.ndarray,
+        q_seed: np.ndarray,
+        all_solutions: bool,
+        timeout_s: float,
+        t0: float,
+        model: CollisionModel | None,
     ) -> IKAnswer:
         q, info = arm.ik_nearest(T, q_seed, timeout_s=timeout_s)
         if info.status is IKStatus.INVALID_INPUT:
@@ -211,21 +328,51 @@ class IKFrontEnd:
             return IKAnswer(info.status, info.message)
         q = np.asarray(q, dtype=float)
         sw = math.nan if info.swivel is None else float(info.swivel)
+        status, msg = info.status, ("" if info.status is IKStatus.SUCCESS else info.message)
+        pos_err, rot_err = info.pos_err, info.rot_err
+        clearance = math.nan
+        if model is not None:
+            sc = self_collision(arm, q, model=model)
+            clearance = sc.min_distance
+            if sc.colliding:
+                if time.perf_counter() - t0 > timeout_s:
+                    return IKAnswer(
+                        IKStatus.TIMEOUT,
+                        f"the nearest solution collides ({sc.describe()}) and the time budget of "
+                        f"{timeout_s:g} s ran out before a collision-free one was searched",
+                    )
+                below = pose_ground_clearance(arm, T, model) < 0.0  # no solution can lift the hand
+                found = None if below else nearest_collision_free(arm, T, q_seed, model)
+                if found is None:
+                    what = (
+                        "the numeric solution found collides and this arm's solutions cannot be enumerated"
+                        if not has_analytic_ik(arm)
+                        else "every in-limit solution collides"
+                    )
+                    return IKAnswer(
+                        IKStatus.ALL_SOLUTIONS_COLLIDE, f"{what} (the nearest: {sc.describe()})"
+                    )
+                q, clearance = found.q, found.clearance
+                sw = found.swivel if has_swivel(arm) else sw
+                status, msg = IKStatus.SUCCESS, ""
+                pos_err = rot_err = math.nan  # recomputed by solve()
         sols = None
         if all_solutions:
             if has_swivel(arm) and math.isfinite(sw):
                 sols = np.asarray(arm.ik(T, sw), dtype=float).reshape(-1, arm.n)
             elif has_analytic_ik(arm):
                 sols = np.asarray(arm.ik(T), dtype=float).reshape(-1, arm.n)
+            if sols is not None and model is not None and len(sols):
+                sols = sols[collision_free_rows(arm, sols, model)[0]]
             if sols is None or len(sols) == 0:
                 sols = q.reshape(1, -1)
-        msg = "" if info.status is IKStatus.SUCCESS else info.message
         return IKAnswer(
-            info.status,
+            status,
             msg,
             q=q,
             solutions=sols,
             swivel=sw,
-            position_error=info.pos_err,
-            orientation_error=info.rot_err,
+            position_error=pos_err,
+            orientation_error=rot_err,
+            clearance=clearance,
         )

@@ -5,6 +5,10 @@ arm, swivel / seed and time budget in; one answer with a status out). This modul
 into a pose matrix, calls the front end and fills the response. Every request gets an answer with a
 status code; a bad request never reaches the solver and never takes the node down.
 
+Solutions whose links collide with each other or go below the arm's ground plane are filtered out
+unless a request sets ``ignore_collisions``; a pose that cannot be solved at all carries a base-move
+suggestion (``base_offset``, ``base_offset_yaw``, ``base_offset_valid``) when ``suggest_base_move`` is on.
+
 Requests wait in the service's middleware queue (reliable, KEEP_LAST with depth
 ``request_queue_depth``, default 4096, for requests and responses alike), so a burst of that many
 outstanding calls is answered in order. Callers that keep many calls outstanding need a deep queue
@@ -55,6 +59,7 @@ _STATUS_CODE = {
     IKStatus.INVALID_INPUT: SolveIK.Response.INVALID_INPUT,
     IKStatus.TIMEOUT: SolveIK.Response.TIMEOUT,
     IKStatus.INTERNAL_ERROR: SolveIK.Response.INTERNAL_ERROR,
+    IKStatus.ALL_SOLUTIONS_COLLIDE: SolveIK.Response.ALL_SOLUTIONS_COLLIDE,
 }
 STATUS_NAMES = {code: st.name for st, code in _STATUS_CODE.items()}
 
@@ -98,6 +103,28 @@ PARAMS = [
     ),
     ParamSpec(
         "default_timeout", 0.05, "Solver time budget (s) when a request leaves `timeout` at 0.", positive
+    ),
+    ParamSpec(
+        "suggest_base_move",
+        True,
+        "On a pose that cannot be solved at all (out of reach, no in-limit or no collision-free solution), "
+        "answer with the smallest planar base move that makes it solvable (base_offset).",
+        lambda v: None if isinstance(v, bool) else "must be true or false",
+        read_only=True,
+    ),
+    ParamSpec(
+        "base_move_yaw",
+        True,
+        "The base-move suggestion may turn the base too (only when no translation alone works).",
+        lambda v: None if isinstance(v, bool) else "must be true or false",
+        read_only=True,
+    ),
+    ParamSpec(
+        "base_move_timeout",
+        0.5,
+        "Time budget (s) of the base-move search, on top of the solve's own budget.",
+        positive,
+        read_only=True,
     ),
     ParamSpec(
         "request_queue_depth",
@@ -150,7 +177,13 @@ class IKServiceNode(Node):
             if arm.name != name:  # a path was given: also answer to the model's own name
                 arms.setdefault(arm.name, arm)
         try:
-            self.front = IKFrontEnd(arms, p["default_arm"])
+            self.front = IKFrontEnd(
+                arms,
+                p["default_arm"],
+                suggest_base_move=p["suggest_base_move"],
+                base_move_yaw=p["base_move_yaw"],
+                base_move_timeout_s=float(p["base_move_timeout"]),
+            )
         except InvalidInputError as exc:
             raise ValueError(str(exc)) from exc
         check_unique_node_name(self, p["duplicate_check_s"])
@@ -216,6 +249,7 @@ class IKServiceNode(Node):
             seed=list(req.seed),
             all_solutions=req.all_solutions,
             timeout_s=timeout,
+            check_collisions=not req.ignore_collisions,
         )
 
     def _fill(self, resp: SolveIK.Response, ans: IKAnswer, base_frame: str) -> None:
@@ -224,6 +258,12 @@ class IKServiceNode(Node):
         resp.swivel = float(ans.swivel)
         resp.position_error = float(ans.position_error)
         resp.orientation_error = float(ans.orientation_error)
+        resp.clearance = float(ans.clearance)
+        bp = ans.base_offset
+        if bp is not None and bp.valid:
+            resp.base_offset.x, resp.base_offset.y, resp.base_offset.z = float(bp.x), float(bp.y), 0.0
+            resp.base_offset_yaw = float(bp.yaw)
+            resp.base_offset_valid = True
         if ans.q is not None and ans.status in (IKStatus.SUCCESS, IKStatus.TIMEOUT):
             js = resp.solution
             js.header.stamp = self.get_clock().now().to_msg()
