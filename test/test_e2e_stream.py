@@ -176,4 +176,5 @@ def test_stream_followed_by_the_simulated_tool(stack: Stack, client: Client) -> 
     final = np.linalg.norm(samples[-1][1] - line_path(duration, duration)[:3, 3])
     last = client.states[-1]
     assert final < 0.002, (f"final {final * 1e3:.2f} mm; controller {last.phase}: {last.message!r}, "
-                           f"distance {last.distance_to_goal * 1e3:.2f} mm, goal y {last.goal.position.y:.4f}")
+                           f"distance {last.distance_to_goal * 1e3:.2f} mm, "
+                           f"goal y {last.goal.position.y:.4f}")
