@@ -807,10 +807,10 @@ class DriverLoop:
         """Run ``init``, ``halt``, ``recover`` or ``park`` on the loop thread; returns (success, message).
 
         ``park`` answers when the move is finished: every joint's reference on the park posture and
-        every measured position within ``park_tolerance_rad`` of it for :data:`PARK_SETTLE_S`. It fails at once when the loop is
-        not running (not initialised, halted, bus lost) or the arm has no park posture, and fails later
-        when the move is interrupted (halt, fault, bus loss, any new command) or not finished within
-        ``timeout`` s (the move itself keeps going then).
+        every measured position within ``park_tolerance_rad`` of it for :data:`PARK_SETTLE_S`. It fails
+        at once when the loop is not running (not initialised, halted, bus lost) or the arm has no park
+        posture, and fails later when the move is interrupted (halt, fault, bus loss, any new command)
+        or not finished within ``timeout`` s (the move itself keeps going then).
         """
         if action not in ACTIONS:
             return False, f"unknown action {action!r}"
