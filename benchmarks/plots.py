@@ -130,7 +130,10 @@ def time_distribution(
     for i, (name, a) in enumerate(finite.items()):
         n_all = arrays[name].size
         med = _fmt(float(np.median(a)), unit) if a.size else "-"
+        failed = n_all - a.size
         label = f"{name} (n={n_all}, median {med})"
+        if failed:
+            label = f"{name} (n={n_all}, {failed} not finite; median of the rest {med})"
         color = f"C{i}"
         if a.size:
             ax_h.hist(a, bins=edges, weights=np.full(a.size, 1.0 / a.size), histtype="step", lw=1.4,
