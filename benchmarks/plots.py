@@ -101,6 +101,7 @@ def time_distribution(
     unit: str = "us",
     log_x: bool = True,
     bins: int = 40,
+    missing: str = "not finite",
 ) -> Path:
     """Histogram (left) and cumulative share (right) of times, one series per key of ``samples``.
 
@@ -111,7 +112,8 @@ def time_distribution(
     ``log_x`` the bins are log-spaced and the axis logarithmic (IK times span decades). Samples that
     are not finite are failures: left out of the histogram, but counted in the share's denominator,
     so a curve on the right ends at the share of finite samples. The legend gives n and the median of
-    the finite samples. Returns ``path``.
+    the finite samples and how many were not finite (``missing`` names them, e.g. "not reached").
+    Returns ``path``.
     """
     _check_series(samples)
     arrays = {k: np.asarray(v, dtype=float).ravel() for k, v in samples.items()}
@@ -133,7 +135,7 @@ def time_distribution(
         failed = n_all - a.size
         label = f"{name} (n={n_all}, median {med})"
         if failed:
-            label = f"{name} (n={n_all}, {failed} not finite; median of the rest {med})"
+            label = f"{name} (n={n_all}, {failed} {missing}; median of the rest {med})"
         color = f"C{i}"
         if a.size:
             ax_h.hist(a, bins=edges, weights=np.full(a.size, 1.0 / a.size), histtype="step", lw=1.4,

@@ -380,7 +380,7 @@ def write_plots(res: dict[str, list[ReachMetrics]], free: dict[str, list[ReachMe
                            caption=caption),
         plots.time_distribution(out_dir / "reach_bench_time.png",
                                 {m: [x.time_to_goal for x in r] for m, r in res.items()}, unit="s",
-                                log_x=False, bins=30, caption=caption,
+                                log_x=False, bins=30, caption=caption, missing="not reached",
                                 title="Reach benchmark: time to goal (scenes with obstacles)"),
     ]
 
