@@ -216,8 +216,9 @@ def tracking_error(
 ) -> Path:
     """Error over time, one line per key of ``series`` (``(t [s], error)`` pairs of equal length).
 
-    A log y axis (default) keeps a sub-millimetre servo and a centimetre baseline on one plot; zeros
-    are drawn at the smallest positive value. The legend gives each line's median and max.
+    A log y axis (default) keeps a sub-millimetre servo and a centimetre baseline on one plot; it spans
+    at most four decades below the largest error, smaller values (and zeros) are drawn at its floor.
+    The legend gives each line's median and max.
     Returns ``path``.
     """
     _check_series(series)
@@ -226,7 +227,9 @@ def tracking_error(
     if log_y:
         pos = [np.asarray(e, float) for _, e in series.values()]
         pos = [e[np.isfinite(e) & (e > 0)] for e in pos]
-        floor = min((float(e.min()) for e in pos if e.size), default=1e-3)
+        top = max((float(e.max()) for e in pos if e.size), default=1.0)
+        # four decades below the largest error: the exact start (error ~1e-12) would squash the rest
+        floor = max(min((float(e.min()) for e in pos if e.size), default=1e-3), 1e-4 * top)
     for i, (name, (t, e)) in enumerate(series.items()):
         t = np.asarray(t, dtype=float)
         e = np.asarray(e, dtype=float)
