@@ -729,7 +729,8 @@ def main(argv: list[str] | None = None) -> int:
     plot_dir = args.plot_dir or (None if args.no_write else args.out.parent)
     if plot_dir is not None:
         size = f"{args.n} uniform poses per arm, {args.hard_n} per hard set, {args.peer_n} for the peers"
-        pngs = write_plots(rows, plot_dir, f"ik_bench.py {cmd}".strip() + f": {size}", load0)
+        run = f"ik_bench.py {cmd}".strip() + f": {size}"
+        pngs = write_plots(rows, plot_dir, run, f"(1/5/15 min) {load0}")
         text += "\n" + "\n".join(_plots().markdown_links(pngs, args.out.parent)) + "\n"
     print(text)
     if not args.no_write:

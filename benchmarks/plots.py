@@ -52,7 +52,9 @@ def load_text(before: Sequence[float] | str | None = None) -> str:
         now = "n/a"
     if before is None:
         return f"load average (1/5/15 min) {now}"
-    b = before if isinstance(before, str) else "/".join(f"{v:.2f}" for v in before[:3])
+    if isinstance(before, str):  # as the benchmark recorded it
+        return f"load average {before} before, (1/5/15 min) {now} after"
+    b = "/".join(f"{v:.2f}" for v in before[:3])
     return f"load average (1/5/15 min) {b} before, {now} after"
 
 
