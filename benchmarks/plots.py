@@ -78,7 +78,18 @@ def _save(fig: Any, path: Path) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=DPI)
     plt.close(fig)
+    compact_png(path)
     return path
+
+
+def compact_png(path: Path, colors: int = 128) -> None:
+    """Rewrite the PNG at ``path`` with a palette of ``colors`` colours (a plot has few; noisy
+    antialiased lines would otherwise take a full RGBA PNG past 100 kB)."""
+    from PIL import Image
+
+    with Image.open(path) as im:
+        pal = im.convert("RGB").quantize(colors=colors, method=Image.Quantize.MEDIANCUT)
+    pal.save(path, optimize=True)
 
 
 def _check_series(series: Mapping[str, Any]) -> None:
