@@ -11,7 +11,8 @@ size and command) and the load average of the machine, as the tables do.
 * :func:`success_bars`: success rates in percent, grouped horizontal bars (a group per pose set or
   scene);
 * :func:`tracking_error`: error over time, one line per method;
-* :func:`period_histogram`: histogram of loop periods on a log count axis, the nominal period marked.
+* :func:`period_histogram`: histogram of loop periods on a log count axis (and a log period axis when
+  the tail is long), the nominal period marked.
 
 :func:`run_caption` formats a caption with the load average, :func:`markdown_links` the lines a
 results file links its plots with. The benchmarks load this file by path (the tests load the
@@ -269,11 +270,14 @@ def period_histogram(
     title: str,
     caption: str,
     bins: int = 200,
+    log_x: bool | None = None,
 ) -> Path:
     """Histogram of loop periods in ms on a log count axis, one series per key, the nominal marked.
 
     The log count axis shows the rare long periods (a preempted cycle) beside the thousands at the
-    nominal period. The legend gives each series' n, median and p99 |period - nominal|.
+    nominal period. ``log_x`` (default: when the longest period exceeds 5 x nominal) puts the periods
+    on a log axis with log-spaced bins, so a tail of 100 ms gaps does not squeeze the peak at the
+    nominal period into one bin. The legend gives each series' n, median and p99 |period - nominal|.
     Returns ``path``.
     """
     _check_series(periods_ms)
@@ -282,21 +286,30 @@ def period_histogram(
     arrays = {k: np.asarray(v, dtype=float).ravel() for k, v in periods_ms.items()}
     arrays = {k: a[np.isfinite(a)] for k, a in arrays.items()}
     allv = np.concatenate([a for a in arrays.values()] + [np.array([nominal_ms])])
-    lo, hi = min(0.0, float(allv.min())), float(allv.max())
-    hi = max(hi, 2.0 * nominal_ms)
-    edges = np.linspace(lo, hi, bins + 1)
+    if log_x is None:
+        log_x = float(allv.max()) > 5.0 * nominal_ms
+    if log_x:
+        pos = allv[allv > 0]
+        lo = max(float(pos.min()), 1e-3 * nominal_ms)
+        edges = np.geomspace(lo, max(float(pos.max()), 2.0 * nominal_ms), bins + 1)
+    else:
+        lo, hi = min(0.0, float(allv.min())), max(float(allv.max()), 2.0 * nominal_ms)
+        edges = np.linspace(lo, hi, bins + 1)
     fig, ax = _figure(title, caption)
     for i, (name, a) in enumerate(arrays.items()):
         if a.size:
             err = np.abs(a - nominal_ms)
             label = (f"{name} (n={a.size}, median {np.median(a):.3f} ms, p99 |error| "
-                     f"{np.percentile(err, 99):.3f} ms)")
-            ax.hist(a, bins=edges, histtype="step", lw=1.4, color=f"C{i}", label=label)
+                     f"{np.percentile(err, 99):.3f} ms, max {a.max():.1f} ms)")
+            shown = np.clip(a, edges[0], edges[-1])  # periods below the first bin land in it
+            ax.hist(shown, bins=edges, histtype="step", lw=1.4, color=f"C{i}", label=label)
         else:
             ax.plot([], [], color=f"C{i}", label=f"{name} (no samples)")
     ax.axvline(nominal_ms, color="k", ls="--", lw=1.0, label=f"nominal {nominal_ms:g} ms")
     ax.set_yscale("log")
-    ax.set_xlabel("period [ms]")
+    if log_x:
+        ax.set_xscale("log")
+    ax.set_xlabel("period [ms]" + (" (log)" if log_x else ""))
     ax.set_ylabel("count (log)")
     ax.grid(True, which="major", alpha=0.3)
     ax.legend(fontsize=7, loc="upper right")

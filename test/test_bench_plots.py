@@ -112,6 +112,12 @@ def test_period_histogram_png(plots: ModuleType, tmp_path: Path) -> None:
         caption="synthetic",
     )
     assert _read_png(out) == SIZE
+    # a long tail (a 470 ms gap) switches to a log period axis; a zero period still lands in a bin
+    tail = plots.period_histogram(
+        tmp_path / "tail.png", {"gaps": np.r_[rng.normal(4.0, 0.1, 3000), [0.0, 35.0, 470.0]]}, 4.0,
+        title="synthetic gaps", caption="synthetic",
+    )
+    assert _read_png(tail) == SIZE
     with pytest.raises(ValueError, match="not positive"):
         plots.period_histogram(tmp_path / "q.png", {"core": [1.0]}, 0.0, title="", caption="")
 
