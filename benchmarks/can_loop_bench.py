@@ -120,6 +120,8 @@ class RunResult:
     busy_median_ms: float = float("nan")
     busy_p99_ms: float = float("nan")
     js_hz: float | None = None
+    periods_ms: np.ndarray | None = None  # raw periods for the plot (core: the loop's window; node:
+    # gaps between the header stamps of the /joint_states received here)
 
 
 def run_core(can_kwargs: dict[str, Any], rate: float, seconds: float) -> RunResult:
@@ -154,6 +156,8 @@ def run_core(can_kwargs: dict[str, Any], rate: float, seconds: float) -> RunResu
         t0 = time.monotonic()
         time.sleep(seconds)
         snap = loop.snapshot()
+        with loop.stats._lock:  # the window's raw start-to-start periods (what snap.period summarises)
+            periods_ms = np.fromiter(loop.stats._periods, dtype=float) * 1e3
         dt = time.monotonic() - t0
         lost = sum(s.lost for s in loop.driver.stats) - lost0
         if snap.state is not LoopState.RUNNING:
@@ -165,7 +169,8 @@ def run_core(can_kwargs: dict[str, Any], rate: float, seconds: float) -> RunResu
     return RunResult("core", rate, seconds, per["rate_hz"], per["period_err_median_ms"],
                      per["period_err_p99_ms"], per["period_err_max_ms"], snap.overruns - snap0.overruns,
                      lat["median_ms"], lat["p99_ms"], lat["max_ms"], frames, lost, int(per["samples"]),
-                     busy_median_ms=per["busy_median_ms"], busy_p99_ms=per["busy_p99_ms"])
+                     busy_median_ms=per["busy_median_ms"], busy_p99_ms=per["busy_p99_ms"],
+                     periods_ms=periods_ms)
 
 
 def run_node(group: ProcessGroup, can_kwargs: dict[str, Any], rate: float, seconds: float) -> RunResult:
@@ -191,11 +196,13 @@ def run_node(group: ProcessGroup, can_kwargs: dict[str, Any], rate: float, secon
     node = rclpy.create_node("can_loop_bench", context=ctx)
     lock = threading.Lock()
     js_stamps: list[float] = []
+    js_header: list[float] = []  # header stamps: when the node's cycle measured (for the plot)
     diags: list[DiagnosticArray] = []
 
-    def on_js(_msg: JointState) -> None:
+    def on_js(msg: JointState) -> None:
         with lock:
             js_stamps.append(time.monotonic())
+            js_header.append(msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9)
 
     def on_diag(msg: DiagnosticArray) -> None:
         with lock:
@@ -240,6 +247,7 @@ def run_node(group: ProcessGroup, can_kwargs: dict[str, Any], rate: float, secon
         with lock:
             n1 = len(js_stamps)
             last = diags[-1] if len(diags) > d0 else None
+            js_periods_ms = np.diff(np.asarray(js_header[n0:n1], dtype=float)) * 1e3
         if last is None:
             raise RuntimeError("no /diagnostics received")
         st = {s.name: {kv.key: kv.value for kv in s.values} for s in last.status}
@@ -255,7 +263,7 @@ def run_node(group: ProcessGroup, can_kwargs: dict[str, Any], rate: float, secon
             f("period_error_p99_ms"), f("period_error_max_ms"), int(loop["overruns"]),
             f("reply_latency_median_ms"), f("reply_latency_p99_ms"), f("reply_latency_max_ms"),
             f("frames_per_s"), lost, min(2500, int(loop["cycles"])), busy_median_ms=f("cycle_busy_median_ms"),
-            busy_p99_ms=f("cycle_busy_p99_ms"), js_hz=(n1 - n0) / (t1 - t0),
+            busy_p99_ms=f("cycle_busy_p99_ms"), js_hz=(n1 - n0) / (t1 - t0), periods_ms=js_periods_ms,
         )
     finally:
         stop.set()
@@ -298,6 +306,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rates", default="250,500", help="comma list of cycle rates (Hz)")
     ap.add_argument("--modes", default="core,node", help="comma list: core, node")
     ap.add_argument("--no-write", action="store_true", help="do not write the results file")
+    ap.add_argument("--plot-dir", type=Path, default=None,
+                    help="write the PNG plots here (default: beside the results file when it is written)")
     args = ap.parse_args(argv)
     seconds = 5.0 if args.quick else args.seconds
     rates = [float(r) for r in args.rates.split(",") if r]
@@ -337,6 +347,13 @@ def main(argv: list[str] | None = None) -> int:
     ])
     print()
     print(run)
+    links: list[str] = []
+    plot_dir = args.plot_dir or (None if args.no_write else RESULTS.parent)
+    if plot_dir is not None:
+        size = f"can_loop_bench.py: {seconds:g} s per mode and rate"
+        pngs = write_plots(results, plot_dir, size, f"{load_before:.2f} (1 min)")
+        links = [*_plots().markdown_links(pngs, RESULTS.parent, "of the newest run"), ""]
+        print("\n".join(links))
     if not args.no_write:
         # Newest run first; earlier runs are kept: on a shared machine the spread is the result.
         earlier: list[str] = []
@@ -344,9 +361,45 @@ def main(argv: list[str] | None = None) -> int:
             old = RESULTS.read_text()
             earlier = ["## Run " + part.strip() + "\n" for part in old.split("\n## Run ")[1:]]
         RESULTS.parent.mkdir(parents=True, exist_ok=True)
-        RESULTS.write_text("\n".join([results_preamble(), run, *earlier]))
+        RESULTS.write_text("\n".join([results_preamble(), *links, run, *earlier]))
         print(f"wrote {RESULTS}")
     return 0
+
+
+def _plots():
+    """benchmarks/plots.py, loaded by path (the tests may load this file by path, without benchmarks/
+    on sys.path)."""
+    import importlib.util
+
+    name = "redarm_bench_plots"
+    if name not in sys.modules:
+        spec = importlib.util.spec_from_file_location(name, Path(__file__).with_name("plots.py"))
+        assert spec is not None and spec.loader is not None
+        mod = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(mod)
+        sys.modules[name] = mod
+    return sys.modules[name]
+
+
+PERIOD_LABELS = {
+    "core": "core: DriverLoop start-to-start periods",
+    "node": "node: gaps of /joint_states header stamps (a message lost in DDS doubles one)",
+}
+
+
+def write_plots(results: list[RunResult], out_dir: Path, run: str, load_before: str) -> list[Path]:
+    """can_loop_bench_period_<rate>hz.png: histogram of the periods of every mode at that rate."""
+    plots = _plots()
+    out = []
+    for rate in dict.fromkeys(r.rate for r in results):
+        series = {PERIOD_LABELS.get(r.mode, r.mode): r.periods_ms for r in results
+                  if r.rate == rate and r.periods_ms is not None}
+        if series:
+            out.append(plots.period_histogram(
+                out_dir / f"can_loop_bench_period_{rate:g}hz.png", series, 1e3 / rate,
+                title=f"CAN driver loop at {rate:g} Hz: cycle periods (7 PowerCube modules, loopback bus)",
+                caption=plots.run_caption(run, load_before)))
+    return out
 
 
 def results_preamble(n: int = 7) -> str:

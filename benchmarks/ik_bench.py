@@ -73,6 +73,7 @@ class Row:
     note: str = ""
     best_median_us: float = math.nan  # per pose the best of BEST_OF calls (or CPU time for batch rows)
     best_p99_us: float = math.nan
+    samples_us: np.ndarray | None = None  # wall clock of each pose's first call (for the plots)
 
 
 # ------------------------------------------------------------------------------------------ helpers
@@ -282,7 +283,7 @@ def nearest_rows(
             mine = math.inf if q is None else float(np.sum((q - seeds[i]) ** 2))
             opt += mine <= ref + OPT_TOL
     med, p99 = _stats(times)
-    return Row(
+    row = Row(
         arm.name,
         set_name,
         label,
@@ -294,6 +295,8 @@ def nearest_rows(
         f"optimality on the first {min(dense_n, len(Ts))}",
         *_stats(bests),
     )
+    row.samples_us = np.asarray(times) * 1e6
+    return row
 
 
 def bench_arm(name: str, args: argparse.Namespace, log: Callable[[str], None]) -> list[Row]:
@@ -328,6 +331,7 @@ def bench_arm(name: str, args: argparse.Namespace, log: Callable[[str], None]) -
             *_stats(bests),
         )
     )
+    rows[-1].samples_us = np.asarray(times) * 1e6
     log(f"{name}: ik done")
     rows.append(nearest_rows(arm, "uniform", Ts, mids, args.dense_n, "ik_nearest", args.best_of))
     log(f"{name}: ik_nearest (mid seed) done")
@@ -441,6 +445,7 @@ def bench_arm(name: str, args: argparse.Namespace, log: Callable[[str], None]) -
                 *_stats(b_ours),
             )
         )
+        rows[-1].samples_us = np.asarray(t_ours) * 1e6
         rows.append(
             Row(
                 name,
@@ -454,6 +459,7 @@ def bench_arm(name: str, args: argparse.Namespace, log: Callable[[str], None]) -
                 f"median over its successes {mpo / 1e3:.2f} ms; ratio to ik_nearest {mp / mo:.0f}x",
             )
         )
+        rows[-1].samples_us = np.asarray(t_peer) * 1e6
         log(f"{name}: ikpy done")
     times, good = [], 0
     for i in range(m):
@@ -473,6 +479,7 @@ def bench_arm(name: str, args: argparse.Namespace, log: Callable[[str], None]) -
             "6-D, limits, restarts, 5 ms timeout",
         )
     )
+    rows[-1].samples_us = np.asarray(times) * 1e6
     for variant in ("sequential", "batch"):
         times, good = [], 0
         for i in range(m):
@@ -492,6 +499,7 @@ def bench_arm(name: str, args: argparse.Namespace, log: Callable[[str], None]) -
                 "position only, 5 ms timeout",
             )
         )
+        rows[-1].samples_us = np.asarray(times) * 1e6
     log(f"{name}: numeric peers done")
     return rows
 
@@ -612,6 +620,60 @@ def targets(rows: list[Row], best_of: int) -> str:
     return "\n".join(out) + "\n"
 
 
+def _plots():
+    """benchmarks/plots.py, loaded by path (the tests load this file by path, without benchmarks/ on
+    sys.path)."""
+    import importlib.util
+
+    name = "redarm_bench_plots"
+    if name not in sys.modules:
+        spec = importlib.util.spec_from_file_location(name, Path(__file__).with_name("plots.py"))
+        assert spec is not None and spec.loader is not None
+        mod = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(mod)
+        sys.modules[name] = mod
+    return sys.modules[name]
+
+
+PLOT_TIMES = (  # (pose set, solver) rows drawn in the time distribution, in this order
+    ("uniform", "ik(T, s)"),
+    ("uniform", "ik_nearest"),
+    ("uniform (peer subset)", "ik_nearest (interleaved)"),
+    ("uniform (peer subset)", "ikpy 4.2.1 (interleaved)"),
+    ("uniform (peer subset)", "DLS (ours, numeric)"),
+)
+
+
+def write_plots(rows: list[Row], out_dir: Path, run: str, load0: str) -> list[Path]:
+    """ik_bench_time_<arm>.png (per-call wall-clock times of ik, ik_nearest, ikpy and DLS) and
+    ik_bench_success.png (success per pose set and solver, one bar per arm) into ``out_dir``."""
+    plots = _plots()
+    caption = plots.run_caption(run, load0)
+    out: list[Path] = []
+    arms = list(dict.fromkeys(r.arm for r in rows))
+    for arm in arms:
+        by = {(r.pose_set, r.solver): r for r in rows if r.arm == arm and r.samples_us is not None}
+        series = {k[1]: by[k].samples_us for k in PLOT_TIMES if k in by}
+        if series:
+            out.append(plots.time_distribution(
+                out_dir / f"ik_bench_time_{arm}.png", series,
+                title=f"IK time per pose, {arm} (wall clock of each pose's first call)", caption=caption))
+    keys = list(dict.fromkeys((r.pose_set, r.solver) for r in rows if r.samples_us is not None))
+    if keys:
+        rates = {}
+        for arm in arms:
+            by = {(r.pose_set, r.solver): r.success for r in rows if r.arm == arm}
+            rates[arm] = [by.get(k, math.nan) for k in keys]
+        counts = [max(r.n for r in rows if (r.pose_set, r.solver) == k) for k in keys]
+        groups = [f"{s} / {v.replace(' (interleaved)', '')}"
+                  for s, v in keys]
+        out.append(plots.success_bars(
+            out_dir / "ik_bench_success.png", groups, rates, counts=counts,
+            title="IK success (in limits, fk within 1e-5 m / 1e-5 rad) per pose set and solver",
+            caption=caption))
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n", type=int, default=5000, help="uniform poses per arm (default 5000)")
@@ -625,6 +687,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-ikpy", action="store_true", help="skip the ikpy peer")
     ap.add_argument("--no-write", action="store_true", help="do not write benchmarks/results/ik_bench.md")
     ap.add_argument("--out", type=Path, default=RESULTS)
+    ap.add_argument(
+        "--plot-dir",
+        type=Path,
+        default=None,
+        help="write the PNG plots here (default: beside --out when it is written; none with --no-write)",
+    )
     args = ap.parse_args(argv)
     if args.quick:
         args.n, args.hard_n, args.dense_n, args.peer_n = 200, 60, 60, 20
@@ -658,6 +726,12 @@ def main(argv: list[str] | None = None) -> int:
         + targets(rows, args.best_of)
         + NOT_COVERED
     )
+    plot_dir = args.plot_dir or (None if args.no_write else args.out.parent)
+    if plot_dir is not None:
+        size = f"{args.n} uniform poses per arm, {args.hard_n} per hard set, {args.peer_n} for the peers"
+        run = f"ik_bench.py {cmd}".strip() + f": {size}"
+        pngs = write_plots(rows, plot_dir, run, f"(1/5/15 min) {load0}")
+        text += "\n" + "\n".join(_plots().markdown_links(pngs, args.out.parent)) + "\n"
     print(text)
     if not args.no_write:
         args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -266,6 +266,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--append", action="store_true",
                     help="append the table as a new section of the results file (keep what is there)")
     ap.add_argument("--verbose", action="store_true", help="one line per scene and method")
+    ap.add_argument("--plot-dir", type=Path, default=None,
+                    help="write the PNG plots here (default: beside the results file when it is written)")
     args = ap.parse_args(argv)
     if args.quick:
         args.scenes = QUICK_SCENES
@@ -345,6 +347,10 @@ def main(argv: list[str] | None = None) -> int:
         "(adversarial starts are in the sequence benchmark); the commanded joints are scored (the arm is "
         "taken to follow them exactly); step times are wall clock on a shared machine."
     )
+    plot_dir = args.plot_dir or (None if args.no_write else RESULTS.parent)
+    if plot_dir is not None:
+        pngs = write_plots(res, free, plot_dir, f"reach_bench.py {cmd}: {args.scenes} scenes", load0)
+        lines += ["", *_plots().markdown_links(pngs, RESULTS.parent)]
     text = "\n".join(lines)
     print(text)
     if not args.no_write:
@@ -354,6 +360,45 @@ def main(argv: list[str] | None = None) -> int:
         else:
             RESULTS.write_text(text + "\n")
     return 0
+
+
+def _plots():
+    """benchmarks/plots.py, loaded by path (the tests may load this file by path, without benchmarks/
+    on sys.path)."""
+    import importlib.util
+
+    name = "redarm_bench_plots"
+    if name not in sys.modules:
+        spec = importlib.util.spec_from_file_location(name, Path(__file__).with_name("plots.py"))
+        assert spec is not None and spec.loader is not None
+        mod = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(mod)
+        sys.modules[name] = mod
+    return sys.modules[name]
+
+
+def write_plots(res: dict[str, list[ReachMetrics]], free: dict[str, list[ReachMetrics]], out_dir: Path,
+                run: str, load0: tuple[float, ...]) -> list[Path]:
+    """reach_bench_success.png (success, collision-free, reached per method) and reach_bench_time.png
+    (time to goal over the scenes; unreached scenes count as failures) into ``out_dir``."""
+    plots = _plots()
+    caption = plots.run_caption(run, load0)
+    groups = ["success", "collision-free", "reached", "reached, obstacles removed"]
+    rates = {
+        m: [float(np.mean([x.success for x in r])), float(np.mean([x.collision_free for x in r])),
+            float(np.mean([x.reached for x in r])), float(np.mean([x.reached for x in free[m]]))]
+        for m, r in res.items()
+    }
+    n = len(next(iter(res.values())))
+    return [
+        plots.success_bars(out_dir / "reach_bench_success.png", groups, rates, counts=[n] * len(groups),
+                           title="Reach benchmark: success per method (random table scenes)",
+                           caption=caption),
+        plots.time_distribution(out_dir / "reach_bench_time.png",
+                                {m: [x.time_to_goal for x in r] for m, r in res.items()}, unit="s",
+                                log_x=False, bins=30, caption=caption, missing="not reached",
+                                title="Reach benchmark: time to goal (scenes with obstacles)"),
+    ]
 
 
 if __name__ == "__main__":

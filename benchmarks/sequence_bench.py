@@ -324,6 +324,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--stack", action="store_true", help="also a short sequence through the whole stack")
     ap.add_argument("--stack-only", action="store_true", help="only the sequence through the stack")
     ap.add_argument("--verbose", action="store_true")
+    ap.add_argument("--plot-dir", type=Path, default=None,
+                    help="write the PNG plots here (default: beside the results file when it is written)")
     args = ap.parse_args(argv)
     if args.quick:
         args.sequences, args.goals = 2, 5
@@ -349,6 +351,11 @@ def main(argv: list[str] | None = None) -> int:
             f"{args.seed}"
         )
         sections[title] = ["", *report(stats), "", _load_line(load0, t0), ""]
+        plot_dir = args.plot_dir or (None if args.no_write else RESULTS.parent)
+        if plot_dir is not None:
+            run = f"sequence_bench.py: {args.sequences} sequences x {args.goals} goals per scene"
+            pngs = write_plots(stats, plot_dir, run, load0)
+            sections[title] += [*_plots().markdown_links(pngs, RESULTS.parent), ""]
         load0, t0 = os.getloadavg(), time.time()
         body = [
             "",
@@ -369,6 +376,45 @@ def main(argv: list[str] | None = None) -> int:
         text = write_sections(RESULTS, header, sections, NOT_COVERED)
     print(text)
     return 0
+
+
+def _plots():
+    """benchmarks/plots.py, loaded by path (the tests may load this file by path, without benchmarks/
+    on sys.path)."""
+    import importlib.util
+
+    name = "redarm_bench_plots"
+    if name not in sys.modules:
+        spec = importlib.util.spec_from_file_location(name, Path(__file__).with_name("plots.py"))
+        assert spec is not None and spec.loader is not None
+        mod = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(mod)
+        sys.modules[name] = mod
+    return sys.modules[name]
+
+
+def write_plots(
+    stats: dict[str, SceneStats], out_dir: Path, run: str, load0: tuple[float, ...]
+) -> list[Path]:
+    """sequence_bench_success.png (reached and collision-free per scene) and sequence_bench_time.png
+    (time per goal per scene; goals not reached in 10 s count as failures) into ``out_dir``."""
+    plots = _plots()
+    caption = plots.run_caption(run, load0)
+    names = list(stats)
+    outcomes = [stats[n].outcomes for n in names]
+    def share(key: str) -> list[float]:
+        return [float(np.mean([getattr(x, key) for x in o])) if o else math.nan for o in outcomes]
+
+    rates = {"reached within 10 s": share("reached"), "collision-free": share("collision_free")}
+    return [
+        plots.success_bars(out_dir / "sequence_bench_success.png", names, rates,
+                           counts=[len(o) for o in outcomes], caption=caption,
+                           title="Sequence benchmark: goals reached and collision-free per scene"),
+        plots.time_distribution(out_dir / "sequence_bench_time.png",
+                                {n: [x.time_s for x in stats[n].outcomes] for n in names}, unit="s",
+                                log_x=False, bins=40, caption=caption, missing="not reached",
+                                title="Sequence benchmark: time per goal (from the previous goal)"),
+    ]
 
 
 def _state_rate(c, seconds: float) -> float:

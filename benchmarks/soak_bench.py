@@ -76,6 +76,7 @@ class Observed:
     loads: list[float] = field(default_factory=list)
     js_count: int = 0
     js_max_gap_ms: float = 0.0
+    js_gaps_ms: list[float] = field(default_factory=list)  # header-stamp gaps of /joint_states (plot)
     stream_sent: int = 0
     last_diag: dict[str, dict[str, str]] = field(default_factory=dict)
 
@@ -145,6 +146,7 @@ def soak(seconds: float, hog: int, prio: int) -> tuple[Observed, dict[str, Any],
             with lock:
                 if js_last[0] and obs.js_count:
                     obs.js_max_gap_ms = max(obs.js_max_gap_ms, (t - js_last[0]) * 1e3)
+                    obs.js_gaps_ms.append((t - js_last[0]) * 1e3)
                 js_last[0] = t
                 obs.js_count += 1
 
@@ -317,6 +319,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--realtime-priority", type=int, default=50,
                     help="SCHED_FIFO priority of bus server, simulator and driver cycle (0: normal)")
     ap.add_argument("--no-write", action="store_true", help="do not write the results file")
+    ap.add_argument("--plot-dir", type=Path, default=None,
+                    help="write the PNG plot here (default: beside the results file when it is written)")
     args = ap.parse_args(argv)
     seconds = 60.0 if args.quick else args.seconds
     hog = 0 if args.no_hog else (args.hog if args.hog is not None else 2 * (os.cpu_count() or 1))
@@ -345,14 +349,41 @@ def main(argv: list[str] | None = None) -> int:
     ])
     print()
     print(run)
+    links: list[str] = []
+    plot_dir = args.plot_dir or (None if args.no_write else RESULTS.parent)
+    if plot_dir is not None and obs.js_gaps_ms:
+        plots = _plots()
+        run_text = (f"soak_bench.py: {seconds:g} s at 250 Hz, hog {hog}, real-time priority "
+                    f"{args.realtime_priority}; sampled load mean {r.load_mean:.2f} / max {r.load_max:.2f}")
+        png = plots.period_histogram(
+            plot_dir / "soak_bench_period.png", {"/joint_states header-stamp gaps": obs.js_gaps_ms}, 4.0,
+            title="Soak: can_driver cycle periods at 250 Hz under load (/joint_states stamps)",
+            caption=plots.run_caption(run_text, load_before))
+        links = [*plots.markdown_links([png], RESULTS.parent, "of the newest run"), ""]
+        print("\n".join(links))
     if not args.no_write:
         earlier: list[str] = []
         if RESULTS.exists():
             earlier = ["## Run " + part.strip() + "\n" for part in RESULTS.read_text().split("\n## Run ")[1:]]
         RESULTS.parent.mkdir(parents=True, exist_ok=True)
-        RESULTS.write_text("\n".join([preamble(), run, *earlier]))
+        RESULTS.write_text("\n".join([preamble(), *links, run, *earlier]))
         print(f"wrote {RESULTS}")
     return 0 if r.halts == 0 and r.limit_faults == 0 else 1
+
+
+def _plots():
+    """benchmarks/plots.py, loaded by path (the tests may load this file by path, without benchmarks/
+    on sys.path)."""
+    import importlib.util
+
+    name = "redarm_bench_plots"
+    if name not in sys.modules:
+        spec = importlib.util.spec_from_file_location(name, Path(__file__).with_name("plots.py"))
+        assert spec is not None and spec.loader is not None
+        mod = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(mod)
+        sys.modules[name] = mod
+    return sys.modules[name]
 
 
 def preamble() -> str:

@@ -470,7 +470,14 @@ HEADER = (
 )
 
 
-def in_process(args: argparse.Namespace) -> tuple[list[str], dict[str, list[float]]]:
+PLOT_PATH, PLOT_RATE = "circle-0.16", 50.0  # the runs whose error over time is plotted
+
+
+def in_process(
+    args: argparse.Namespace, traces: dict[tuple[str, str], tuple[np.ndarray, np.ndarray]] | None = None
+) -> tuple[list[str], dict[str, list[float]]]:
+    """The in-process table rows and step times; ``traces`` gets (t s, position error mm) of the
+    PLOT_PATH runs at PLOT_RATE, keyed by (stream variant, method)."""
     arm = load_arm("pa10")
     if args.quick:
         cases = [(circle(0.16), [50.0], ["clean", "jitter"]), (circle(0.30), [50.0], ["clean"])]
@@ -499,6 +506,8 @@ def in_process(args: argparse.Namespace) -> tuple[list[str], dict[str, list[floa
                     r = run_method(method, arm, path, msgs, q0)
                     s = score(arm, path, r)
                     steps[method] += list(s.step_us)
+                    if traces is not None and path.name == PLOT_PATH and rate == PLOT_RATE:
+                        traces[(variant, method)] = (r.t[r.t <= path.duration + 1e-9], s.pos)
                     lines.append(_row(path.name, rate, variant, method, s))
                     if args.verbose:
                         print(lines[-1], sorted(r.phases), sorted(r.messages), flush=True)
@@ -520,6 +529,8 @@ def main(argv: list[str] | None = None) -> int:
         help="stream_lead_s values for the stack run (comma-separated, default 0)",
     )
     ap.add_argument("--verbose", action="store_true")
+    ap.add_argument("--plot-dir", type=Path, default=None,
+                    help="write the PNG plots here (default: beside the results file when it is written)")
     args = ap.parse_args(argv)
     header = [
         "# Track benchmark (`benchmarks/track_bench.py`)",
@@ -530,7 +541,8 @@ def main(argv: list[str] | None = None) -> int:
     sections: dict[str, list[str]] = {}
     if not args.stack_only:
         load0, t0 = os.getloadavg(), time.time()
-        lines, steps = in_process(args)
+        traces: dict[tuple[str, str], tuple[np.ndarray, np.ndarray]] = {}
+        lines, steps = in_process(args, traces)
         title = "## In-process (the controller core at 100 Hz, commanded joints scored)"
         if args.quick:
             title += " -- quick"
@@ -544,6 +556,10 @@ def main(argv: list[str] | None = None) -> int:
             )
         )
         body += ["", _load_line(load0, t0), ""]
+        plot_dir = args.plot_dir or (None if args.no_write else RESULTS.parent)
+        if plot_dir is not None and traces:
+            pngs = write_plots(traces, plot_dir, "track_bench.py" + (" --quick" if args.quick else ""), load0)
+            body += [*_plots().markdown_links(pngs, RESULTS.parent), ""]
         sections[title] = body
     if args.stack or args.stack_only:
         load0, t0 = os.getloadavg(), time.time()
@@ -555,6 +571,39 @@ def main(argv: list[str] | None = None) -> int:
         text = write_sections(RESULTS, header, sections, NOT_COVERED)
     print(text)
     return 0
+
+
+def _plots():
+    """benchmarks/plots.py, loaded by path (the tests may load this file by path, without benchmarks/
+    on sys.path)."""
+    import importlib.util
+
+    name = "redarm_bench_plots"
+    if name not in sys.modules:
+        spec = importlib.util.spec_from_file_location(name, Path(__file__).with_name("plots.py"))
+        assert spec is not None and spec.loader is not None
+        mod = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(mod)
+        sys.modules[name] = mod
+    return sys.modules[name]
+
+
+def write_plots(
+    traces: dict[tuple[str, str], tuple[np.ndarray, np.ndarray]], out_dir: Path, run: str,
+    load0: tuple[float, ...],
+) -> list[Path]:
+    """track_bench_error_<variant>.png: position error over time of PLOT_PATH at PLOT_RATE, one line
+    per method, one plot per stream variant (clean, jitter)."""
+    plots = _plots()
+    out = []
+    for variant in dict.fromkeys(v for v, _ in traces):
+        series = {m: tr for (v, m), tr in traces.items() if v == variant}
+        out.append(plots.tracking_error(
+            out_dir / f"track_bench_error_{variant}.png", series,
+            title=f"Track benchmark: tool position error, {PLOT_PATH} (m/s), {PLOT_RATE:g} Hz {variant} "
+            "stream",
+            caption=plots.run_caption(f"{run}: one turn per method, commanded joints scored", load0)))
+    return out
 
 
 # ------------------------------------------------------------------------------------------------
