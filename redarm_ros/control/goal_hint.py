@@ -42,11 +42,16 @@ class BaseMoveHints:
     """Base-move suggestions for rejected goals of one arm, the last one remembered.
 
     ``budget_s``: time limit of one search (s); ``check_collisions``: the suggested placement must have
-    a solution free of self-collision and the ground (the arm's collision model)."""
+    a solution free of self-collision and the ground (the arm's collision model); ``step_deg``: spacing
+    of the candidate base positions along a circle (the nearest one always comes first; a coarse
+    spacing keeps the search within its budget when the nearest one fails, e.g. a vertical approach of
+    the 6-DOF arm at a wrist limit: about 300 candidates at 30 deg instead of 9000 at 1 deg)."""
 
-    def __init__(self, arm: Any, budget_s: float = 0.05, check_collisions: bool = True) -> None:
+    def __init__(self, arm: Any, budget_s: float = 0.05, check_collisions: bool = True,
+                 step_deg: float = 30.0) -> None:
         self.arm = arm
         self.budget_s = float(budget_s)
+        self.step_deg = float(step_deg)
         self.check_collisions = bool(check_collisions)
         self._last: tuple[bytes, BasePlacement] | None = None
         self.searches = 0  # searches run so far (a repeated goal does not run one)
@@ -59,7 +64,7 @@ class BaseMoveHints:
         self.searches += 1
         try:
             bp = suggest_base_move(self.arm, T, q_seed=q_seed, check_collisions=self.check_collisions,
-                                   timeout_s=self.budget_s)
+                                   timeout_s=self.budget_s, step_deg=self.step_deg)
         except InvalidInputError as exc:
             bp = BasePlacement(False, getattr(self.arm, "name", ""), message=str(exc))
         self._last = (key, bp)
