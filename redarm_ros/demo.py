@@ -152,12 +152,12 @@ POWERCUBE6_SCENE: dict[str, Any] = {
 POWERCUBE6_GOALS = (
     Goal("front", (0.45, 0.00, 0.05), 0.0, True, "in front, gripper down", approach="x"),
     Goal("left", (0.25, 0.40, 0.10), 0.5, True, "to the left, wrist turned by 0.5 rad", approach="x"),
+    Goal("out_of_reach", (1.20, 0.00, -0.05), 0.0, False,
+         "1.2 m away: rejected with the base move that makes it reachable", approach="x", base_move=True),
+    Goal("right_low", (0.35, -0.35, -0.02), -0.3, True, "low to the right, near the deck", approach="x"),
     Goal("elbow_down", (0.34, -0.15, 0.50), 0.0, True,
          "high up, gripper pointing up: only the elbow-down solution is within the limits, so the arm "
          "changes its elbow in joint space", approach="x", pitch=math.radians(84.0)),
-    Goal("out_of_reach", (1.20, 0.00, 0.10), 0.0, False,
-         "1.2 m away: rejected with the base move that makes it reachable", approach="x", base_move=True),
-    Goal("right_low", (0.35, -0.35, -0.02), -0.3, True, "low to the right, near the deck", approach="x"),
 )
 DEMOS = {
     "pa10": ArmDemo("pa10", READY_Q, DEMO_SCENE, GOALS),

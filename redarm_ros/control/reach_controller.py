@@ -120,7 +120,7 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
 
     #: Time budget (s) of the base-move suggestion in the rejection of a goal out of reach (one search
     #: per rejected goal, in the control step's thread).
-    BASE_MOVE_BUDGET_S = 0.08
+    BASE_MOVE_BUDGET_S = 0.1
 
     def __new__(cls, arm: Any, *args: Any, **kwargs: Any) -> ReachController:
         if cls is ReachController and is_6dof(arm):
