@@ -667,6 +667,8 @@ class Demo:
                      f"{r.min_clearance_m:>11.3f}  {'ok' if r.ok else 'FAILED'}")
             if r.driver_halts:
                 self.say(f"   ({r.note})")
+            if r.rejected:  # the controller's reason (and, out of reach, where the base should go)
+                self.say(f"   controller: {r.controller_message}")
         c = rates["controller_state"]
         d = rates["driver_joint_states"]
         s = rates["simulator_physics"]

@@ -189,6 +189,11 @@ class ReachController6(ReachController):
         self.stepper = IKStepper6(arm, p.flip_ratio)  # type: ignore[assignment]
         self.guard = CollisionGuard6(arm, p.capsules, p.collision_margin, p.guard_step)
 
+    @property
+    def elbow_circle(self) -> None:
+        """No elbow circle (no self-motion): None, so a display draws none."""
+        return None
+
     # -- set-up -----------------------------------------------------------------------------------
     def _install_scene(self, scene: Scene) -> None:
         # The shoulder turns with the base (L1 off its axis): the reach is counted from the base.
