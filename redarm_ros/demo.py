@@ -267,9 +267,10 @@ class DemoClient:
         msg.header.frame_id = "base_link"
         return msg
 
-    def solve_ik(self, T: np.ndarray, seed: list[float]) -> Any:
+    def solve_ik(self, T: np.ndarray, seed: list[float], arm: str = "") -> Any:
         req = self.SolveIK.Request()
         req.target = self.pose_msg(T)
+        req.arm = arm
         req.seed = [float(v) for v in seed]
         fut = self.ik.call_async(req)
         if not self.spin_until(fut.done, 10.0):
@@ -450,7 +451,7 @@ class Demo:
                 res = self._one_goal(stack, client, CS, arm, goal, seed, i)
                 if not res.ok and _count(driver.output(), "HALTED:") > self.halts:
                     halts += recover_if_halted(f"during goal {i}")
-                    res = self._one_goal(stack, client, CS, arm, goal, seed, i)
+                    res = self._one_goal(stack, client, CS, arm, goal, seed, i, retry=True)
                     res.note = (res.note + "; " if res.note else "") + "retried after a driver halt"
                 res.driver_halts = halts
                 results.append(res)
@@ -487,12 +488,12 @@ class Demo:
         return path
 
     def _one_goal(self, stack: Stack, client: DemoClient, CS: Any, arm: Any, goal: Goal, seed: list[float],
-                  index: int) -> GoalResult:
+                  index: int, retry: bool = False) -> GoalResult:
         from redarm_ros.kinematics.quaternion import matrix_to_quat
 
         T = goal.matrix()
         w, x, y, z = (float(v) for v in matrix_to_quat(T[:3, :3]))
-        ik = client.solve_ik(T, seed)
+        ik = client.solve_ik(T, seed, self.demo.arm)
         ik_status = "NO_ANSWER" if ik is None else _status_name(client.SolveIK, ik.status)
         n = len(client.states)
         prev = client.states[-1][1] if client.states else None
@@ -505,8 +506,9 @@ class Demo:
             for t, m in client.states[n:]:
                 if m.phase == CS.REACHED and _same_position(m.goal.position, goal.position):
                     return t, m
-                if m.phase == CS.REJECTED and not (prev is not None and prev.phase == CS.REJECTED
-                                                   and prev.message == m.message):
+                # (A retried goal's rejection repeats the first attempt's word for word.)
+                if m.phase == CS.REJECTED and (retry or not (prev is not None and prev.phase == CS.REJECTED
+                                                             and prev.message == m.message)):
                     return t, m
             return None
 

@@ -14,8 +14,13 @@ proposed orientation is first projected onto the reachable ones at the proposed 
 goal itself is reachable (the goal check says so), so the projection vanishes at the goal and the
 orientation dynamics converge there as for the 7-DOF arms.
 
-The cascade when a step does not fit: a joint faster than its velocity limit shortens the whole step;
-no solution on the branch (out of the workspace, a joint limit) halves it, up to eight times; then a
+The cascade when a step does not fit: no solution on the branch at the projected orientation (a
+joint limit, typically the wrist pitch while the hand rises or dips with a fixed approach) tilts the
+approach in the arm's plane, then rolls the tool about it, by the smallest multiple of
+``search_step`` up to ``search_count`` of them that has one (the 6-DOF arm's counterpart of the 7-DOF
+swivel search: the orientation yields on the way, the orientation attractor brings it back, and the
+goal itself is reachable); a joint faster than its velocity limit shortens the whole step; no solution
+at all (out of the workspace) halves it, up to eight times; then a
 :class:`~redarm_ros.control.ik_step.DeadEnd`. The ``circle`` of an :class:`~redarm_ros.control.ik_step.IKStep`
 is a degenerate elbow circle of radius 0 through the configuration's own key points
 (:func:`fixed_circle`), so that everything that reads the arm's key points from the reference's
@@ -38,6 +43,7 @@ from redarm_ros.control.rotations import (
     quat_angle,
     quat_between_vectors,
     quat_from_matrix,
+    quat_from_rotvec,
     quat_mul,
     quat_normalize,
 )
@@ -119,14 +125,19 @@ def fixed_circle(kp: Any) -> ElbowCircle:
 
 class IKStepper6:
     """The IK step of the 6-DOF arm (see the module docstring). ``flip_ratio``: a joint step above
-    ``flip_ratio * max_vel * dt`` is a branch change, never taken."""
+    ``flip_ratio * max_vel * dt`` is a branch change, never taken; ``search_step`` (rad) and
+    ``search_count``: the orientation search where the projected orientation has no solution."""
 
-    def __init__(self, arm: Any, flip_ratio: float) -> None:
+    def __init__(self, arm: Any, flip_ratio: float, search_step: float = 0.03,
+                 search_count: int = 10) -> None:
         self.arm = arm
         self.flip_ratio = float(flip_ratio)
+        self.search_step = float(search_step)
+        self.search_count = int(search_count)
         self.lower = np.asarray(arm.lower, float)
         self.upper = np.asarray(arm.upper, float)
         self.inv_vel = 1.0 / np.asarray(arm.max_vel, float)
+        self.min_vel = float(np.min(np.asarray(arm.max_vel, float)))
         self.wide: list[int] = []  # no joint of the PowerCube arm turns more than a full turn
 
     # -- geometry ---------------------------------------------------------------------------------
@@ -178,6 +189,31 @@ class IKStepper6:
         """:meth:`select` over the IK solutions of ``T`` (``s`` is ignored: no swivel)."""
         return self.select(np.asarray(self.arm.ik(T), float).reshape(-1, self.arm.n), q_ref, dt)
 
+    def search(self, pos: Vec3, rot: Quat, q_prev: np.ndarray, dt: float
+               ) -> tuple[Quat, tuple[np.ndarray, float]] | None:
+        """The nearest orientation to ``rot`` (in the arm's plane at ``pos``) with a continuous solution:
+        the approach tilted in the plane, then the tool rolled about the approach, by +-k steps
+        (k = 1 .. ``search_count``, smallest first) of ``search_step``, or of half what the slowest
+        joint turns in ``dt`` if that is less (so that a found step can be within the velocity limits);
+        None if none has one."""
+        step = min(self.search_step, 0.5 * dt * self.min_vel)
+        phi = self.azimuth(pos, q_prev)
+        normal = (-math.sin(phi), math.cos(phi), 0.0)
+        R = matrix_from_quat(rot)
+        approach = (R[0][0], R[1][0], R[2][0])
+        T = pose_matrix(pos, rot)
+        for axis in (normal, approach):
+            for k in range(1, self.search_count + 1):
+                for sign in (1.0, -1.0):
+                    a = sign * k * step
+                    turn = quat_from_rotvec((a * axis[0], a * axis[1], a * axis[2]))
+                    r = quat_normalize(quat_mul(turn, rot))
+                    T[:3, :3] = matrix_from_quat(r)
+                    pick = self.solve(T, 0.0, q_prev, dt)
+                    if pick is not None and pick[1] <= self.flip_ratio:
+                        return r, pick
+        return None
+
     def circle(self, q: np.ndarray) -> ElbowCircle:
         """:func:`fixed_circle` of configuration ``q``."""
         return fixed_circle(self.arm.key_points(q))
@@ -193,6 +229,11 @@ class IKStepper6:
             pick = None
             if rot is not None:
                 pick = self.solve(pose_matrix(new_pos, rot), 0.0, q_prev, dt)
+                if pick is None or pick[1] > self.flip_ratio:
+                    # A joint limit at this orientation: let the orientation yield (tilt, roll).
+                    found = self.search(new_pos, rot, q_prev, dt)
+                    if found is not None:
+                        rot, pick = found
             if pick is None or pick[1] > self.flip_ratio:
                 # No solution on this branch here (workspace, joint limit, or only by a flip): shorter.
                 new_pos, new_rot = blend(pos0, rot0, new_pos, new_rot, 0.5)

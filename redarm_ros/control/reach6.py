@@ -186,7 +186,8 @@ class ReachController6(ReachController):
     def __init__(self, arm: Any, scene: Scene | None = None, params: ControllerParams | None = None) -> None:
         super().__init__(arm, scene, params)
         p = self.params
-        self.stepper = IKStepper6(arm, p.flip_ratio)  # type: ignore[assignment]
+        self.stepper = IKStepper6(arm, p.flip_ratio, p.swivel_search_step,  # type: ignore[assignment]
+                                  p.swivel_search_count)
         self.guard = CollisionGuard6(arm, p.capsules, p.collision_margin, p.guard_step)
 
     @property
