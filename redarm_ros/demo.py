@@ -506,8 +506,9 @@ class Demo:
             for t, m in client.states[n:]:
                 if m.phase == CS.REACHED and _same_position(m.goal.position, goal.position):
                     return t, m
-                # (A retried goal's rejection repeats the first attempt's word for word.)
-                if m.phase == CS.REJECTED and (retry or not (prev is not None and prev.phase == CS.REJECTED
+                # (A retried unreachable goal's rejection repeats the first attempt's word for word.)
+                again = retry and not goal.reachable
+                if m.phase == CS.REJECTED and (again or not (prev is not None and prev.phase == CS.REJECTED
                                                              and prev.message == m.message)):
                     return t, m
             return None
