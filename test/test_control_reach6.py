@@ -175,3 +175,30 @@ def test_rejection_message_carries_the_base_move(name: str, position: tuple[floa
     searches = ctl._hints.searches
     ctl.set_goal(T)
     assert ctl._hints.searches == searches
+
+
+def test_obstacle_avoided_through_the_heading_alone() -> None:
+    # A ball in the way of the gripper's straight route (its capsule would pass through it): the heading
+    # dynamics steer around it, no joint-space move, clearance positive all the way.
+    from redarm_ros.control.obstacles import Sphere, links_clearance
+    from redarm_ros.demo import Goal
+
+    ball = Sphere((0.42, 0.18, 0.0), 0.05, "ball")
+    scene = Scene((ball,), None)
+    T = Goal("left", (0.25, 0.40, 0.10), 0.5, approach="x").matrix()
+    T0 = ARM.fk(READY)
+    straight = min(
+        links_clearance([np.zeros(3), np.zeros(3), np.zeros(3),
+                         (1 - t) * (T0[:3, 3] - 0.26 * T0[:3, 0]) + t * (T[:3, 3] - 0.26 * T[:3, 0]),
+                         (1 - t) * T0[:3, 3] + t * T[:3, 3]], scene, ArmCapsules(), (3,)).distance
+        for t in np.linspace(0.0, 1.0, 101))
+    assert straight < 0.0  # the hand moved straight would hit the ball
+    ctl = ReachController(ARM, scene)
+    ctl.reset(READY)
+    assert ctl.set_goal(T).accepted
+    b0 = branch(ARM, READY)
+    res, qs = run(ctl)
+    assert res[-1].phase is Phase.REACHED, res[-1].message
+    assert min(r.clearance for r in res) > 0.0
+    assert not any("joint space" in r.message for r in res)
+    assert all(b0.admits(branch(ARM, q)) for q in qs)

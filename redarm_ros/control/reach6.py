@@ -121,14 +121,17 @@ class Planner6:
 
     Goal configurations: every IK solution of the goal (both elbows, both azimuths) whose clearance
     (scene, self, ground) is positive, cheapest first by the time of a synchronised joint move. For
-    each: the straight joint segment, then the segments through the arm's park posture; each checked by
-    the guard's sphere tracing keeping ``need`` m."""
+    each: the straight joint segment, then the segments through the arm's park posture, then through
+    up to ``vias`` random via configurations (uniform in the limits, seeded by ``seed``, collision-free);
+    each segment checked by the guard's sphere tracing keeping ``need`` m."""
 
     def __init__(self, arm: Any, guard: CollisionGuard, scene: Scene, q0: np.ndarray, T: np.ndarray,
-                 need: float, work_per_step: int) -> None:
+                 need: float, work_per_step: int, vias: int = 0, seed: int = 0) -> None:
         self.path: list[np.ndarray] | None = None
         self.reason = ""
         self._work = max(1, int(work_per_step))
+        self._vias = max(0, int(vias))
+        self._rng = np.random.default_rng(seed)
         self._gen = self._search(arm, guard, scene, q0, T, need)
 
     def work(self) -> bool:
@@ -155,10 +158,17 @@ class Planner6:
             self.reason = "no collision-free goal configuration"
             return
         park = getattr(arm, "park", None)
-        for qg in goals:
+        lower, upper = np.asarray(arm.lower, float), np.asarray(arm.upper, float)
+        for n, qg in enumerate(goals):
             routes = [[q0, qg]]
             if park is not None:
                 routes.append([q0, np.asarray(park, float), qg])
+            if n == 0:  # random vias for the cheapest goal configuration only
+                for _ in range(self._vias):
+                    qv = self._rng.uniform(lower, upper)
+                    yield None
+                    if guard.clearance(qv, scene).distance > need:
+                        routes.append([q0, qv, qg])
             for route in routes:
                 ok = True
                 for qa, qb in zip(route[:-1], route[1:], strict=True):
@@ -297,9 +307,10 @@ class ReachController6(ReachController):
         if st.planner is None:
             assert st.goal is not None
             T = pose_matrix(st.goal.pos, st.goal.rot)
+            rp = self.params.replan
             st.planner = Planner6(self.arm, self.guard, self._index.reach_scene.scene,  # type: ignore[assignment]
-                                  st.cmd.q.copy(), T, self.params.replan.clearance,
-                                  self.params.replan.work_per_step)
+                                  st.cmd.q.copy(), T, rp.clearance, rp.work_per_step, rp.vias,
+                                  rp.seed + st.progress.replans)
         if not st.planner.work():
             return
         planner = st.planner
