@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from redarm_ros.control.self_collision import CollisionModel, collision_model
 from redarm_ros.control.types import GoalCheck, GoalStatus
 from redarm_ros.errors import InvalidInputError
 from redarm_ros.kinematics.base_placement import BasePlacement, suggest_base_move
@@ -52,6 +53,8 @@ class BaseMoveHints:
         self.arm = arm
         self.budget_s = float(budget_s)
         self.step_deg = float(step_deg)
+        # Built once (reading the arm's YAML entry), not in every bounded search.
+        self._model: CollisionModel | None = collision_model(arm) if self.check_collisions else None
         self.check_collisions = bool(check_collisions)
         self._last: tuple[bytes, BasePlacement] | None = None
         self.searches = 0  # searches run so far (a repeated goal does not run one)
@@ -64,7 +67,7 @@ class BaseMoveHints:
         self.searches += 1
         try:
             bp = suggest_base_move(self.arm, T, q_seed=q_seed, check_collisions=self.check_collisions,
-                                   timeout_s=self.budget_s, step_deg=self.step_deg)
+                                   model=self._model, timeout_s=self.budget_s, step_deg=self.step_deg)
         except InvalidInputError as exc:
             bp = BasePlacement(False, getattr(self.arm, "name", ""), message=str(exc))
         self._last = (key, bp)
