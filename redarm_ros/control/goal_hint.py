@@ -53,9 +53,9 @@ class BaseMoveHints:
         self.arm = arm
         self.budget_s = float(budget_s)
         self.step_deg = float(step_deg)
+        self.check_collisions = bool(check_collisions)
         # Built once (reading the arm's YAML entry), not in every bounded search.
         self._model: CollisionModel | None = collision_model(arm) if self.check_collisions else None
-        self.check_collisions = bool(check_collisions)
         self._last: tuple[bytes, BasePlacement] | None = None
         self.searches = 0  # searches run so far (a repeated goal does not run one)
 
