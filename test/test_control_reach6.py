@@ -202,3 +202,25 @@ def test_obstacle_avoided_through_the_heading_alone() -> None:
     assert min(r.clearance for r in res) > 0.0
     assert not any("joint space" in r.message for r in res)
     assert all(b0.admits(branch(ARM, q)) for q in qs)
+
+
+def test_goal_stream_tracked_by_the_servo() -> None:
+    # A stream in the arm's plane (reachable orientations all along) is followed within a few mm.
+    ctl = ReachController(ARM)
+    ctl.reset(READY)
+    T0 = ARM.fk(READY)
+    t, errs, qs = 0.0, [], []
+    for k in range(300):
+        t += DT
+        T = T0.copy()
+        T[0, 3] += 0.08 * math.sin(0.8 * t)
+        T[2, 3] += 0.05 * (1.0 - math.cos(0.8 * t))
+        if k % 2 == 0:
+            ctl.goal_message(T, stamp=t, now=t)
+        r = ctl.step(DT, now=t)
+        errs.append(r.distance_to_goal)
+        qs.append(r.q)
+    assert r.phase is Phase.TRACKING
+    assert max(errs[100:]) < 3e-3
+    b0 = branch(ARM, READY)
+    assert all(b0.admits(branch(ARM, q)) for q in qs)
