@@ -149,13 +149,26 @@ def test_six_joints_and_a_goal_reached_by_the_simulated_arm(stack: Stack, client
     assert client.names[-1] == list(ARM.joint_names)
     goal = next(g for g in DEMO.goals if g.name == "front")
     T = goal.matrix()
-    n = client.send(T)
+    driver = stack.children["can_driver"]
+    recover = client.node.create_client(Trigger, "/can_driver/recover")
+    for attempt in range(3):
+        halts = sum("HALTED:" in line for line in driver.output())
+        n = client.send(T)
 
-    def reached() -> bool:
-        return any(s.phase == ControllerState.REACHED and abs(s.goal.position.x - T[0, 3]) < 1e-6
-                   for s in client.states[n:])
+        def reached(n: int = n) -> bool:
+            return any(s.phase == ControllerState.REACHED and abs(s.goal.position.x - T[0, 3]) < 1e-6
+                       for s in client.states[n:])
 
-    assert client.spin_until(reached, 90.0), f"goal not reached; last state: {client.states[-1]}"
+        if client.spin_until(reached, 90.0):
+            break
+        # A starved machine can make the driver halt the modules mid-motion: recover and send it again
+        # (as an operator would, and as the demo does); anything else is a failure.
+        assert attempt < 2 and sum("HALTED:" in line for line in driver.output()) > halts, \
+            f"goal not reached; last state: {client.states[-1]}"
+        assert client.spin_until(recover.service_is_ready, 5.0)
+        fut = recover.call_async(Trigger.Request())
+        assert client.spin_until(fut.done, 20.0) and fut.result().success, "~/recover failed"
+        client.spin_until(lambda: False, 1.0)  # the controller restarts from the still arm
     ok = client.spin_until(lambda: all(e < t for e, t in zip(pose_err(sim_tool(stack), T), (2e-3, 0.02),
                                                               strict=True)), 20.0)
     assert ok, f"simulated tool {pose_err(sim_tool(stack), T)} from the goal"
