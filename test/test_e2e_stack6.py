@@ -159,7 +159,7 @@ def test_six_joints_and_a_goal_reached_by_the_simulated_arm(stack: Stack, client
             return any(s.phase == ControllerState.REACHED and abs(s.goal.position.x - T[0, 3]) < 1e-6
                        for s in client.states[n:])
 
-        if client.spin_until(reached, 90.0):
+        if client.spin_until(reached, 150.0):
             break
         # A starved machine can make the driver halt the modules mid-motion: recover and send it again
         # (as an operator would, and as the demo does); anything else is a failure.
@@ -170,7 +170,7 @@ def test_six_joints_and_a_goal_reached_by_the_simulated_arm(stack: Stack, client
         assert client.spin_until(fut.done, 20.0) and fut.result().success, "~/recover failed"
         client.spin_until(lambda: False, 1.0)  # the controller restarts from the still arm
     ok = client.spin_until(lambda: all(e < t for e, t in zip(pose_err(sim_tool(stack), T), (2e-3, 0.02),
-                                                              strict=True)), 20.0)
+                                                              strict=True)), 40.0)
     assert ok, f"simulated tool {pose_err(sim_tool(stack), T)} from the goal"
     stack.check()
 
