@@ -4,7 +4,7 @@ Starts the loopback CAN bus server, the pybullet hardware stand-in, can_driver, 
 controller and the robot description (the same set as ``redarm-bringup``, which needs no ``launch``
 package). Arguments:
 
-* ``arm`` (pa10): arm model for the simulator, the driver and the controller;
+* ``arm`` (pa10): arm model for the simulator, the driver, the controller and the IK service's default;
 * ``scene`` (''): scene name (config/scenes) or YAML path, shown by the simulator and avoided by
   the controller;
 * ``bus`` (loopback): ``loopback`` starts ``redarm-canbus`` on 127.0.0.1:``can_port``; ``external``
@@ -112,7 +112,7 @@ def _stack(context, *args, **kwargs):
     if _truthy(arg("ik_service")):
         actions.append(Node(
             package=PACKAGE, executable="ik_service", name="ik_service", output="screen",
-            parameters=[os.path.join(config, "ik_service.yaml")],
+            parameters=[os.path.join(config, "ik_service.yaml"), {"default_arm": arm}],
         ))
     if _truthy(arg("controller")):
         actions.append(Node(

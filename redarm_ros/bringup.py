@@ -229,7 +229,8 @@ class Stack:
             if cfg.ik_service:
                 self._start(
                     "ik_service",
-                    python_module_cmd("redarm_ros.nodes.ik_service", *self._ros_args("ik_service", {})),
+                    python_module_cmd("redarm_ros.nodes.ik_service",
+                                      *self._ros_args("ik_service", {"default_arm": cfg.arm})),
                     READY["ik_service"],
                 )
             if cfg.controller:

@@ -67,19 +67,39 @@ DEMO_SCENE: dict[str, Any] = {
 
 @dataclass(frozen=True)
 class Goal:
-    """A demo goal: tool position (m, base frame), tool yaw (rad) about z of a downward-pointing tool."""
+    """A demo goal: tool position (m, base frame), tool yaw (rad) about z of a downward-pointing tool.
+
+    ``approach``: the tool axis that points down, ``"z"`` (the 7-DOF arms' tool z) or ``"x"`` (the
+    6-DOF PowerCube arm's approach axis; its tool z, the wrist pitch axis, then points along ``yaw``).
+    ``pitch`` (rad, with ``approach="x"``): the approach instead points along this elevation in the
+    vertical plane through the goal (the 6-DOF arm's reachable orientations), turned by ``yaw`` about
+    itself. ``base_move``: an unreachable goal whose rejection must carry a base-move suggestion."""
 
     name: str
     position: tuple[float, float, float]
     yaw: float = 0.0
     reachable: bool = True
     note: str = ""
+    approach: str = "z"
+    base_move: bool = False
+    pitch: float | None = None
 
     def matrix(self) -> np.ndarray:
-        """4x4 pose: tool z axis pointing down (rotation by pi about x), then ``yaw`` about base z."""
+        """4x4 pose: the ``approach`` axis pointing down, turned by ``yaw`` about base z."""
         c, s = math.cos(self.yaw), math.sin(self.yaw)
         T = np.eye(4)
-        T[:3, :3] = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ np.diag([1.0, -1.0, -1.0])
+        if self.approach == "x" and self.pitch is not None:
+            az = math.atan2(self.position[1], self.position[0])
+            a = np.array([math.cos(self.pitch) * math.cos(az), math.cos(self.pitch) * math.sin(az),
+                          math.sin(self.pitch)])
+            z0 = np.array([math.sin(az), -math.cos(az), 0.0])  # the wrist pitch axis at roll 0
+            z = c * z0 + s * np.cross(a, z0)
+            T[:3, :3] = np.column_stack([a, np.cross(z, a), z])
+        elif self.approach == "x":
+            x, z = np.array([0.0, 0.0, -1.0]), np.array([c, s, 0.0])
+            T[:3, :3] = np.column_stack([x, np.cross(z, x), z])
+        else:  # tool z down: a rotation by pi about x, then yaw about base z
+            T[:3, :3] = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ np.diag([1.0, -1.0, -1.0])
         T[:3, 3] = self.position
         return T
 
@@ -93,6 +113,57 @@ GOALS = (
     Goal("low_left", (0.45, 0.25, 0.15), 0.0, True, "low over the table"),
     Goal("front_right", (0.65, -0.10, 0.20), 0.5, True, "far front right"),
 )
+
+
+@dataclass(frozen=True)
+class ArmDemo:
+    """The demo of one arm: its ready pose (rad), scene and goals."""
+
+    arm: str
+    ready_q: tuple[float, ...]
+    scene: dict[str, Any]
+    goals: tuple[Goal, ...]
+
+
+# The 7-module PowerCube arm (shoulder 0.30 m up, 0.65 m from shoulder to wrist) on a table.
+POWERCUBE7_SCENE: dict[str, Any] = {
+    "name": "demo_table",
+    "description": "table top under the 7-module PowerCube arm (redarm-demo --arm powercube7)",
+    "table_height": 0.0,
+    "obstacles": [],
+}
+POWERCUBE7_GOALS = (
+    Goal("front", (0.45, 0.00, 0.20), 0.3, True, "in front, tool turned by 0.3 rad"),
+    Goal("right", (0.40, -0.25, 0.15), 0.0, True, "to the right"),
+    Goal("left", (0.20, 0.40, 0.25), -0.4, True, "to the left"),
+    Goal("out_of_reach", (1.20, 0.00, 0.30), 0.0, False, "1.2 m away: rejected with a base-move suggestion",
+         base_move=True),
+    Goal("low_left", (0.35, 0.20, 0.10), 0.0, True, "low over the table"),
+    Goal("front_right", (0.50, -0.10, 0.12), 0.5, True, "far front right"),
+)
+# The 6-DOF PowerCube arm on its mobile robot: the deck (its ground plane, 0.15 m below the first
+# joint) as the table. The approach (tool x) points down; the wrist pitch axis along the yaw.
+POWERCUBE6_SCENE: dict[str, Any] = {
+    "name": "demo_deck",
+    "description": "the mobile robot's deck under the 6-DOF PowerCube arm (redarm-demo --arm powercube6)",
+    "table_height": -0.15,
+    "obstacles": [],
+}
+POWERCUBE6_GOALS = (
+    Goal("front", (0.45, 0.00, 0.05), 0.0, True, "in front, gripper down", approach="x"),
+    Goal("left", (0.25, 0.40, 0.10), 0.5, True, "to the left, wrist turned by 0.5 rad", approach="x"),
+    Goal("out_of_reach", (1.20, 0.00, -0.05), 0.0, False,
+         "1.2 m away: rejected with the base move that makes it reachable", approach="x", base_move=True),
+    Goal("right_low", (0.35, -0.35, -0.02), -0.3, True, "low to the right, near the deck", approach="x"),
+    Goal("elbow_down", (0.34, -0.15, 0.50), 0.0, True,
+         "high up, gripper pointing up: only the elbow-down solution is within the limits, so the arm "
+         "changes its elbow in joint space", approach="x", pitch=math.radians(84.0)),
+)
+DEMOS = {
+    "pa10": ArmDemo("pa10", READY_Q, DEMO_SCENE, GOALS),
+    "powercube7": ArmDemo("powercube7", READY_Q, POWERCUBE7_SCENE, POWERCUBE7_GOALS),
+    "powercube6": ArmDemo("powercube6", (0.0, 1.0, 0.0, -1.7, -0.9, 0.0), POWERCUBE6_SCENE, POWERCUBE6_GOALS),
+}
 
 
 @dataclass
@@ -196,9 +267,10 @@ class DemoClient:
         msg.header.frame_id = "base_link"
         return msg
 
-    def solve_ik(self, T: np.ndarray, seed: list[float]) -> Any:
+    def solve_ik(self, T: np.ndarray, seed: list[float], arm: str = "") -> Any:
         req = self.SolveIK.Request()
         req.target = self.pose_msg(T)
+        req.arm = arm
         req.seed = [float(v) for v in seed]
         fut = self.ik.call_async(req)
         if not self.spin_until(fut.done, 10.0):
@@ -245,6 +317,7 @@ class Demo:
         self.size = _size(args.snapshot_size)
         self._renderer: Any = None
         self._outcome: tuple[list[GoalResult], dict[str, Any]] | None = None
+        self.demo = DEMOS[args.arm]
 
     def say(self, text: str) -> None:
         self.out.write(text + "\n")
@@ -272,13 +345,13 @@ class Demo:
         for old in [*self.snap_dir.glob("*.png"), self.mcap_path, self.gif_path]:
             old.unlink(missing_ok=True)
         scene_path = self.output / "scene.yaml"
-        scene_path.write_text(yaml.safe_dump(DEMO_SCENE, sort_keys=False), encoding="utf-8")
+        scene_path.write_text(yaml.safe_dump(self.demo.scene, sort_keys=False), encoding="utf-8")
         log_path = self.output / "stack.log"
         domain = int(os.environ["ROS_DOMAIN_ID"])
         # The simulator renders only start.png (before the driver connects) and final.png (after it is
         # gone): rendering holds its process for tens of ms, longer than the driver's reply limit. The
         # pictures in between are rendered here, from the simulated arm's measured joints.
-        cfg = StackConfig(arm="pa10", scene=str(scene_path), snapshot_dir=self.snap_dir,
+        cfg = StackConfig(arm=self.demo.arm, scene=str(scene_path), snapshot_dir=self.snap_dir,
                           status_file=self.output / "sim_status.json", log_level=self.args.log_level,
                           control_rate_hz=self.args.control_rate, driver_rate_hz=self.args.driver_rate,
                           ready_timeout_s=60.0,
@@ -293,7 +366,8 @@ class Demo:
                 # The recorder, a child like the others: stopped first, so its file is complete.
                 stack.children["record"] = stack.group.start("record", python_module_cmd(
                     "redarm_ros.nodes.record", "-o", str(self.mcap_path), *RECORDED_TOPICS,
-                    "--tf-from-joint-states", "--arm", "pa10"), ready=r"record ready", ready_timeout=30.0)
+                    "--tf-from-joint-states", "--arm", self.demo.arm), ready=r"record ready",
+                    ready_timeout=30.0)
             except Exception as exc:  # noqa: BLE001 - report, show the log tail, exit 2
                 self.say(f"the stack did not come up: {exc}")
                 stack.close()
@@ -321,7 +395,8 @@ class Demo:
     def _run_goals(self, stack: Stack, log_path: Path) -> int:
         from redarm_ros.kinematics import load_arm
 
-        arm = load_arm("pa10")
+        arm = load_arm(self.demo.arm)
+        ready_q = self.demo.ready_q
         client = DemoClient(stack.domain_id)
         CS = client.ControllerState
         results: list[GoalResult] = []
@@ -355,11 +430,11 @@ class Demo:
 
             def at_ready() -> bool:
                 st = stack.sim_status() or {}
-                return bool(st) and float(np.max(np.abs(np.asarray(st["q"]) - READY_Q))) < 1e-3
+                return bool(st) and float(np.max(np.abs(np.asarray(st["q"]) - ready_q))) < 1e-3
 
             for attempt in (1, 2):
                 recover_if_halted("before the ready pose")
-                client.move_joints(list(arm.joint_names), READY_Q, 3.0)
+                client.move_joints(list(arm.joint_names), ready_q, 3.0)
                 if client.spin_until(at_ready, 20.0):
                     break
                 if attempt == 1 and _count(driver.output(), "HALTED:") > self.halts:
@@ -369,14 +444,14 @@ class Demo:
                 return 1
             client.spin_until(lambda: False, 0.6)  # the controller restarts from the still arm
             self.snapshot(stack, arm, "ready")
-            seed = list(READY_Q)
-            for i, goal in enumerate(GOALS, start=1):
+            seed = list(ready_q)
+            for i, goal in enumerate(self.demo.goals, start=1):
                 stack.check()
                 halts = recover_if_halted(f"before goal {i}")
                 res = self._one_goal(stack, client, CS, arm, goal, seed, i)
                 if not res.ok and _count(driver.output(), "HALTED:") > self.halts:
                     halts += recover_if_halted(f"during goal {i}")
-                    res = self._one_goal(stack, client, CS, arm, goal, seed, i)
+                    res = self._one_goal(stack, client, CS, arm, goal, seed, i, retry=True)
                     res.note = (res.note + "; " if res.note else "") + "retried after a driver halt"
                 res.driver_halts = halts
                 results.append(res)
@@ -403,7 +478,7 @@ class Demo:
         if "q" not in st:
             return None
         if self._renderer is None:
-            self._renderer = SceneRenderer(arm, DEMO_SCENE, self.size)
+            self._renderer = SceneRenderer(arm, self.demo.scene, self.size)
         g = None
         if goal is not None:
             w, x, y, z = matrix_to_quat(goal.matrix()[:3, :3])
@@ -413,12 +488,12 @@ class Demo:
         return path
 
     def _one_goal(self, stack: Stack, client: DemoClient, CS: Any, arm: Any, goal: Goal, seed: list[float],
-                  index: int) -> GoalResult:
+                  index: int, retry: bool = False) -> GoalResult:
         from redarm_ros.kinematics.quaternion import matrix_to_quat
 
         T = goal.matrix()
         w, x, y, z = (float(v) for v in matrix_to_quat(T[:3, :3]))
-        ik = client.solve_ik(T, seed)
+        ik = client.solve_ik(T, seed, self.demo.arm)
         ik_status = "NO_ANSWER" if ik is None else _status_name(client.SolveIK, ik.status)
         n = len(client.states)
         prev = client.states[-1][1] if client.states else None
@@ -431,8 +506,10 @@ class Demo:
             for t, m in client.states[n:]:
                 if m.phase == CS.REACHED and _same_position(m.goal.position, goal.position):
                     return t, m
-                if m.phase == CS.REJECTED and not (prev is not None and prev.phase == CS.REJECTED
-                                                   and prev.message == m.message):
+                # (A retried unreachable goal's rejection repeats the first attempt's word for word.)
+                again = retry and not goal.reachable
+                if m.phase == CS.REJECTED and (again or not (prev is not None and prev.phase == CS.REJECTED
+                                                             and prev.message == m.message)):
                     return t, m
             return None
 
@@ -481,6 +558,8 @@ class Demo:
             ok = reached
         else:
             ok = rejected and "reach" in message and ik_status == "OUT_OF_REACH"
+            if goal.base_move:  # the rejection says where the base should go
+                ok = ok and "move the base by" in message
         snap = self.snapshot(stack, arm, f"goal_{index}_{goal.name}", goal, goal_ok=not rejected)
         return GoalResult(
             name=goal.name, position=[float(v) for v in goal.position], quaternion_xyzw=[x, y, z, w],
@@ -543,13 +622,14 @@ class Demo:
             write_gif,
         )
 
-        arm = load_arm("pa10")
+        arm = load_arm(self.demo.arm)
+        goals = self.demo.goals
         t0 = time.monotonic()
         try:
             tl = load_timeline(self.mcap_path, arm.joint_names)
-            r = SceneRenderer(arm, DEMO_SCENE, self.size, camera=DEMO_CAMERA)
+            r = SceneRenderer(arm, self.demo.scene, self.size, camera=DEMO_CAMERA)
             try:
-                cap = goal_caption([g.name for g in GOALS], [g.position for g in GOALS])
+                cap = goal_caption([g.name for g in goals], [g.position for g in goals])
                 n = write_gif(self.gif_path, frames(tl, r, fps=self.args.gif_fps, caption=cap),
                               fps=self.args.gif_fps, palette_extra=[r.swatch()])
             finally:
@@ -564,8 +644,8 @@ class Demo:
                 recording: dict[str, Any], animation: dict[str, Any]) -> None:
         snaps = sorted(str(p.relative_to(self.output)) for p in self.snap_dir.glob("*.png"))
         report = {
-            "arm": "pa10",
-            "scene": DEMO_SCENE,
+            "arm": self.demo.arm,
+            "scene": self.demo.scene,
             "tolerance": {"pos_m": POS_TOL_M, "rot_rad": ROT_TOL_RAD},
             "measured_on": "simulated tool: pybullet link state from the simulator's status file",
             "goals": [asdict(r) for r in results],
@@ -590,6 +670,8 @@ class Demo:
                      f"{r.min_clearance_m:>11.3f}  {'ok' if r.ok else 'FAILED'}")
             if r.driver_halts:
                 self.say(f"   ({r.note})")
+            if r.rejected:  # the controller's reason (and, out of reach, where the base should go)
+                self.say(f"   controller: {r.controller_message}")
         c = rates["controller_state"]
         d = rates["driver_joint_states"]
         s = rates["simulator_physics"]
@@ -664,6 +746,8 @@ def _line_writer(fh: IO[str]) -> Callable[[str], None]:
 def build_parser() -> argparse.ArgumentParser:
     """The ``redarm-demo`` argument parser."""
     ap = argparse.ArgumentParser(prog="redarm-demo", description=__doc__.splitlines()[0])
+    ap.add_argument("--arm", default="pa10", choices=sorted(DEMOS),
+                    help="arm and its goal set (default pa10; see docs/demo.md)")
     ap.add_argument("--output", default="demo_output", help="output directory (default ./demo_output)")
     ap.add_argument("--goal-timeout", type=float, default=40.0, help="seconds allowed per goal")
     ap.add_argument("--control-rate", type=float, default=100.0, help="controller rate (Hz)")

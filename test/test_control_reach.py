@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -228,8 +229,8 @@ def test_params_and_arm_validation(arm) -> None:
         ControllerParams(swivel_reference="sideways")
     with pytest.raises(ConfigError):
         ControllerParams(dt=0.0)
-    with pytest.raises(ConfigError):
-        ReachController(load_arm("powercube6"))
+    with pytest.raises(ConfigError):  # neither a 7-DOF swivel arm nor the 6-DOF PowerCube arm
+        ReachController(SimpleNamespace(n=5, name="five_joints", kind="chain"))
     ctl = ReachController(arm)
     with pytest.raises(InvalidInputError):
         ctl.reset([0.0] * 6)

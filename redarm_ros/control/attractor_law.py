@@ -137,7 +137,8 @@ class AttractorMixin(ControllerBase):
             m = ((1.0 - w) * e[0] + w * g[0], (1.0 - w) * e[1] + w * g[1], (1.0 - w) * e[2] + w * g[2])
             mn = math.sqrt(m[0] ** 2 + m[1] ** 2 + m[2] ** 2)
             e = (m[0] / mn, m[1] / mn, m[2] / mn) if mn > 1e-9 else g
-        e = workspace_slide(e, pos, rot, self.geom, self._d_inner, self._d_outer, p.workspace_margin)
+        e = workspace_slide(e, pos, rot, self._slide_geom(pos), self._d_inner, self._d_outer,
+                            p.workspace_margin)
         if goal_p is None or dist > p.final_distance:  # (the goal itself was checked clear)
             e = obstacle_slide(e, ref.circle, ref.s, self._local.scene, p.capsules, p.slide_band)
         step_len = att.v * dt

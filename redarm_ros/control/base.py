@@ -59,6 +59,10 @@ class ControllerBase:
     _d_outer: float
     _st: CoreState | None
 
+    def _slide_geom(self, pos: Vec3) -> ArmGeometry:
+        """The geometry the workspace slide uses at tool position ``pos`` (m): fixed for a swivel arm."""
+        return self.geom
+
     def _state(self) -> CoreState:
         if self._st is None:
             raise InvalidInputError("reset(q) must be called first", field="q")

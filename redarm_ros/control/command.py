@@ -60,7 +60,7 @@ class CommandMixin(ControllerBase):
     def _obstacle_clearance(self, q: np.ndarray, local: LocalScene, kp: np.ndarray) -> float:
         if not local.scene.obstacles:
             return math.inf
-        return self.guard.clearance(q, Scene(local.scene.obstacles, None), kp).distance
+        return self.guard.clearance(q, Scene(local.scene.obstacles, None), kp, self_check=False).distance
 
     def _commit(self, step: IKStep, dt: float, attractor: bool) -> bool:
         """Take the IK step as the new reference and move the command towards it within the velocity
@@ -155,7 +155,7 @@ class CommandMixin(ControllerBase):
         st = self._state()
         ref, cmd = st.ref, st.cmd
         ref.q = cmd.q.copy()
-        ref.qd = cmd.qd.copy() if keep_velocity else np.zeros(7)
+        ref.qd = cmd.qd.copy() if keep_velocity else np.zeros_like(cmd.q)
         T = np.asarray(self.arm.fk(cmd.q), float)
         ref.pos, ref.rot = pose_of(T)
         try:
@@ -204,7 +204,7 @@ class CommandMixin(ControllerBase):
             self._set_command(out[0], out[1], out[2], dt)
             return True
         LOG.warning("emergency stop: even braking would bring the arm into the scene")
-        cmd.qd = np.zeros(7)
+        cmd.qd = np.zeros_like(cmd.q)
         return False
 
     def _hold(self, why: str) -> None:
@@ -213,7 +213,7 @@ class CommandMixin(ControllerBase):
         st = self._state()
         st.att.v = 0.0
         st.att.a = 0.0
-        st.ref.qd = np.zeros(7)
+        st.ref.qd = np.zeros_like(st.ref.q)
         st.ref.vel, st.ref.w = ZERO3, ZERO3
         if st.goal is not None and st.goal.kind is GoalKind.POINT:
             st.phase = Phase.HOLDING

@@ -1,9 +1,12 @@
-"""Collision guard: no command may bring the arm into the scene, nor leave it unable to brake clear.
+"""Collision guard: no command may bring the arm into the scene or into itself, nor leave it unable to
+brake clear.
 
 A command ``q`` moving at ``qd`` passes when
 
-* its clearance (capsules vs obstacles and table) is at least ``margin``, or no lower than the
-  clearance of the previous command (an arm started in contact may still move out), and
+* its clearance is at least ``margin``, or no lower than the clearance of the previous command (an arm
+  started in contact may still move out). The clearance is the smallest of: the capsules against the
+  obstacles and the table; the arm's self-collision pairs and its ground plane
+  (:mod:`~redarm_ros.control.self_collision`, from the arm's ``self_collision`` entry); and
 * braking from it at the joints' acceleration limits would keep the same rule: the braking path is
   marched like sphere tracing (a sample with clearance ``c`` proves the next ``c`` of travel safe, each
   joint's travel weighted by its lever arm, :func:`levers`; where ``c`` is below ``step`` the samples
@@ -24,8 +27,20 @@ import numpy as np
 
 from redarm_ros.control.joint_limits import brake_step
 from redarm_ros.control.obstacles import TABLE, ArmCapsules, Clearance, Scene, links_clearance
+from redarm_ros.control.self_collision import collision_model, segment_distance
 
 LINKS = ("base", "upper arm", "forearm", "hand")
+#: ``Clearance.obstacle`` of the arm's ground plane (the table is ``TABLE``, -1; -2 is the broad
+#: phase's ``LEFT_OUT``).
+GROUND_PLANE = -3
+#: ``Clearance.obstacle`` of a self-collision: ``SELF - j`` for the other link ``j`` of the pair
+#: (``Clearance.link`` is the first one).
+SELF = -10
+
+
+def is_self(obstacle: int) -> bool:
+    """Does a ``Clearance.obstacle`` code stand for a link of the arm itself?"""
+    return SELF - 3 <= obstacle <= SELF
 
 
 def levers(key_points: np.ndarray, radius: float) -> np.ndarray:
@@ -42,7 +57,12 @@ def levers(key_points: np.ndarray, radius: float) -> np.ndarray:
 
 def describe(bad: Clearance, scene: Scene) -> str:
     """'the forearm ... obstacle 2 'can'' style text for a clearance."""
-    what = "the table" if bad.obstacle == TABLE else f"obstacle {bad.obstacle}"
+    if is_self(bad.obstacle):
+        what = f"the {LINKS[SELF - bad.obstacle]} (self-collision)"
+    elif bad.obstacle == GROUND_PLANE:
+        what = "the ground plane"
+    else:
+        what = "the table" if bad.obstacle == TABLE else f"obstacle {bad.obstacle}"
     if 0 <= bad.obstacle < len(scene.obstacles) and scene.obstacles[bad.obstacle].name:
         what += f" {scene.obstacles[bad.obstacle].name!r}"
     link = LINKS[bad.link] if 0 <= bad.link < 4 else "arm"
@@ -64,16 +84,34 @@ class CollisionGuard:
         self._rmax = max(capsules.radii)
         self._max_levers: np.ndarray | None = None
         self.evaluations = 0  # clearance evaluations so far (the re-planner budgets them)
+        # Self-collision pairs and ground plane of the arm (its YAML ``self_collision`` entry).
+        model = collision_model(arm, capsules)
+        radii = capsules.radii
+        self._self_pairs = [(i, j, radii[i] + radii[j]) for i, j in model.pairs]
+        self._ground = [(i, radii[i] + model.ground_z) for i in model.ground_links] \
+            if model.ground_z is not None else []
 
     def key_points(self, q: np.ndarray) -> np.ndarray:
         """(5, 3) key points (m) of the arm at ``q``: base, shoulder, elbow, wrist, tool."""
         return np.asarray(self.arm.key_points(q), float)
 
-    def clearance(self, q: np.ndarray, scene: Scene, kp: np.ndarray | None = None) -> Clearance:
-        """Clearance of the arm at ``q`` (rad; or its key points ``kp``) against ``scene``."""
+    def clearance(self, q: np.ndarray, scene: Scene, kp: np.ndarray | None = None,
+                  self_check: bool = True) -> Clearance:
+        """Clearance of the arm at ``q`` (rad; or its key points ``kp``) against ``scene`` and, with
+        ``self_check``, against itself and its ground plane (see :func:`is_self`, :data:`GROUND_PLANE`)."""
         self.evaluations += 1
-        pts = self.key_points(q) if kp is None else kp
-        return links_clearance(pts.tolist(), scene, self.capsules)
+        pts = (self.key_points(q) if kp is None else kp).tolist()
+        best = links_clearance(pts, scene, self.capsules)
+        if self_check:
+            for i, j, r in self._self_pairs:
+                d = segment_distance(pts[i], pts[i + 1], pts[j], pts[j + 1]) - r
+                if d < best.distance:
+                    best = Clearance(d, i, SELF - j)
+            for i, off in self._ground:
+                d = min(pts[i][2], pts[i + 1][2]) - off
+                if d < best.distance:
+                    best = Clearance(d, i, GROUND_PLANE)
+        return best
 
     def levers(self, q: np.ndarray, kp: np.ndarray | None = None) -> np.ndarray:
         """:func:`levers` at ``q`` (or its key points ``kp``)."""

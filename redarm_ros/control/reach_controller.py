@@ -38,8 +38,10 @@ from redarm_ros.control.broadphase import LEFT_OUT, SceneIndex
 from redarm_ros.control.command import CommandMixin
 from redarm_ros.control.elbow import ArmGeometry, ElbowCircle, elbow_circle
 from redarm_ros.control.goal_check import check_goal, stream_feasibility
+from redarm_ros.control.goal_hint import BaseMoveHints
 from redarm_ros.control.guard import CollisionGuard
 from redarm_ros.control.ik_step import IKStepper, pose_matrix
+from redarm_ros.control.ik_step6 import is_6dof
 from redarm_ros.control.obstacles import Clearance, Scene
 from redarm_ros.control.paper_redundancy import PaperSwivel, TangentHand
 from redarm_ros.control.params import ControllerParams, ReplanParams, ServoParams, StreamParams
@@ -109,14 +111,29 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
             r = ctl.step(0.01)                # StepResult; command r.q
             if r.phase is Phase.REACHED: ...
 
+    For the 6-DOF PowerCube arm the constructor returns a
+    :class:`~redarm_ros.control.reach6.ReachController6` (the same dynamics without the swivel).
+
     Raises:
-        ConfigError: the arm has no elbow circle (not a spherical-shoulder/wrist 7-DOF arm).
+        ConfigError: the arm is neither a 7-DOF swivel arm (spherical shoulder and wrist) nor the 6-DOF
+            PowerCube arm.
     """
 
+    #: Time budget (s) of the base-move suggestion in the rejection of a goal out of reach (one search
+    #: per rejected goal, in the control step's thread).
+    BASE_MOVE_BUDGET_S = 0.1
+
+    def __new__(cls, arm: Any, *args: Any, **kwargs: Any) -> ReachController:
+        if cls is ReachController and is_6dof(arm):
+            from redarm_ros.control.reach6 import ReachController6
+
+            return super().__new__(ReachController6)
+        return super().__new__(cls)
+
     def __init__(self, arm: Any, scene: Scene | None = None, params: ControllerParams | None = None) -> None:
-        if not has_swivel(arm):
-            raise ConfigError(f"ReachController needs a 7-DOF swivel arm, got {getattr(arm, 'name', arm)!r}",
-                              field="arm")
+        if not has_swivel(arm) and not is_6dof(arm):
+            raise ConfigError(f"ReachController needs a 7-DOF swivel arm or the 6-DOF PowerCube arm, got "
+                              f"{getattr(arm, 'name', arm)!r}", field="arm")
         self.arm = arm
         self.params = params or ControllerParams()
         p = self.params
@@ -136,6 +153,7 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
         self._d_inner, self._d_outer = wrist_shell(float(self._lower[3]), float(self._upper[3]),
                                                    self.geom.upper, self.geom.fore)
         self._st: CoreState | None = None
+        self._hints = BaseMoveHints(arm, self.BASE_MOVE_BUDGET_S)
         self.scene = Scene()
         self._index = SceneIndex(self.scene, self.geom.shoulder, 1.0, 0.0)
         self._local = self._index.reach_scene
@@ -264,7 +282,7 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
                 st.progress = Progress(t_best=st.time)
                 self._start_plan("the scene changed")
         elif st.goal.kind is GoalKind.STREAM:
-            st.stream_note = stream_feasibility(self.geom, T, local.scene, self.params.capsules)
+            st.stream_note = self._stream_feasibility(T, local.scene)
         return None
 
     def set_preferred_swivel(self, value: float) -> None:
@@ -279,7 +297,12 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
         """Check a goal pose (4x4, base frame) without changing state; see :class:`GoalStatus`."""
         local = self._index.reach_scene
         check = check_goal(self.arm, self.geom, T, local.scene, self.params.capsules, self.params.goal_scan)
-        return check
+        # A goal out of reach (or without an in-limit solution): say where the base should go.
+        return self._hints.annotate(check, T, None if self._st is None else self._st.cmd.q)
+
+    def _stream_feasibility(self, T: np.ndarray, scene: Scene) -> str:
+        """Why a stream sample cannot be followed exactly ('' if nothing is known against it)."""
+        return stream_feasibility(self.geom, T, scene, self.params.capsules)
 
     def set_goal(self, T: Any) -> GoalCheck:
         """Set a new point goal (4x4 homogeneous, base frame, m). A goal mid-motion retargets smoothly
@@ -334,7 +357,7 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
             newest = self.stream.newest
             assert newest is not None
             st.goal.pos, st.goal.rot = newest.pos, newest.rot
-            st.stream_note = stream_feasibility(self.geom, Tn, self._index.reach_scene.scene, p.capsules)
+            st.stream_note = self._stream_feasibility(Tn, self._index.reach_scene.scene)
             return GoalCheck(GoalStatus.ACCEPTED, st.stream_note, kind=GoalKind.STREAM)
         check = self.set_goal(Tn)
         if check.accepted:
@@ -449,7 +472,7 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
                     self._enter_attractor()
             if st.mode is Mode.HOLD:
                 if np.any(st.cmd.qd != 0.0) or not np.array_equal(st.ref.q, st.cmd.q):
-                    st.ref.qd = np.zeros(7)  # the reference stands: the command brakes onto it
+                    st.ref.qd = np.zeros_like(st.ref.q)  # the reference stands: the command brakes onto it
                     self._track(dt)
                 return self._result()
         if st.mode is Mode.PLAN:

@@ -57,7 +57,7 @@ class ReplanMixin(ControllerBase):
         st.phase = Phase.BLOCKED
         st.message = why
         st.ref.q = st.cmd.q.copy()
-        st.ref.qd = np.zeros(7)
+        st.ref.qd = np.zeros_like(st.ref.q)
 
     def _leave_plan(self) -> None:
         """Out of PLAN/JOINT (a stop or rejection): the reference becomes Cartesian again."""
@@ -99,7 +99,7 @@ class ReplanMixin(ControllerBase):
         st.path = JointPath(planner.path, self._max_vel, self._max_acc)
         st.path_t = 0.0
         st.ref.q = st.cmd.q.copy()
-        st.ref.qd = np.zeros(7)
+        st.ref.qd = np.zeros_like(st.ref.q)
         st.brake_sync = True
         st.mode = Mode.JOINT
         vias = len(planner.path) - 2

@@ -77,8 +77,8 @@ class ServoMixin(ControllerBase):
                                             p.speed.v_max, sp.ori_gain, sp.ori_acc, p.max_ori_rate)
         # Slide along the workspace shells and obstacles: keep only the motion that can be made.
         d = (new_pos[0] - ref.pos[0], new_pos[1] - ref.pos[1], new_pos[2] - ref.pos[2])
-        d = workspace_slide(d, ref.pos, ref.rot, self.geom, self._d_inner, self._d_outer, p.workspace_margin,
-                            project=True)
+        d = workspace_slide(d, ref.pos, ref.rot, self._slide_geom(ref.pos), self._d_inner, self._d_outer,
+                            p.workspace_margin, project=True)
         d = obstacle_slide(d, ref.circle, ref.s, self._local.scene, p.capsules, p.slide_band, project=True)
         # Elbow before hand: while the arm closes in on an obstacle within elbow_priority_clearance,
         # the hand slows so that the gap would last at least ``yield_time`` at the present rate; the
@@ -128,7 +128,7 @@ class ServoMixin(ControllerBase):
         d0 = coast.q - base  # joint acceleration (times dt^2) when coasting
         d1 = dev - d0  # what the servo's change adds
         lo, hi = 0.0, 1.0
-        for j in range(7):
+        for j in range(len(d1)):
             if abs(d1[j]) < 1e-12:
                 continue
             a, b = (-amax[j] - d0[j]) / d1[j], (amax[j] - d0[j]) / d1[j]

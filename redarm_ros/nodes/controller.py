@@ -94,8 +94,8 @@ def _one_of(*choices: str) -> Any:
 
 
 PARAMS = [
-    ParamSpec("arm", "pa10", "Arm model (config/arms/<name>.yaml or a path); a 7-DOF swivel arm.",
-              read_only=True),
+    ParamSpec("arm", "pa10", "Arm model (config/arms/<name>.yaml or a path); a 7-DOF swivel arm or "
+              "powercube6.", read_only=True),
     ParamSpec("rate_hz", 100.0, "Control rate (Hz): one step and one /joint_command point per period.",
               in_range(1.0, 1000.0), read_only=True),
     ParamSpec("scene", "", "Initial scene: name in config/scenes or a YAML path ('' = none). Its table "
