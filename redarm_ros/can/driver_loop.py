@@ -294,7 +294,7 @@ def _interpolate(tr: _Trajectory, now: float) -> np.ndarray:
     assert tr.q_start is not None
     q = tr.q_start.copy()
     t = now - tr.start
-    if t <= 0.0:
+    if t < 0.0:
         return q
     # Prepend the starting reference at time 0 so the first segment starts where the arm is.
     times = tr.times
