@@ -513,6 +513,8 @@ def main(argv: list[str] | None = None) -> int:
         "--stack", action="store_true", help="also one run through the whole stack (ROS, CAN, sim)"
     )
     ap.add_argument("--stack-only", action="store_true", help="only the run through the stack")
+    ap.add_argument("--chain", action="store_true",
+                    help="only the command-chain model (controller -> driver -> modules on one clock)")
     ap.add_argument(
         "--stack-leads",
         type=lambda v: [float(x) for x in v.split(",")],
@@ -528,7 +530,11 @@ def main(argv: list[str] | None = None) -> int:
         "",
     ]
     sections: dict[str, list[str]] = {}
-    if not args.stack_only:
+    if args.chain:
+        load0, t0 = os.getloadavg(), time.time()
+        title, body = chain_section()
+        sections[title] = [*body, _load_line(load0, t0), ""]
+    elif not args.stack_only:
         load0, t0 = os.getloadavg(), time.time()
         lines, steps = in_process(args)
         title = "## In-process (the controller core at 100 Hz, commanded joints scored)"
@@ -791,6 +797,60 @@ def _stack_row(
         f"{np.percentile(e, 95):.2f} | {np.max(e):.2f} | {best[1] * 1e3:.0f} | {over:.2f} | {final:.2f} | "
         f"{halts} |"
     )
+
+
+def chain_section() -> tuple[str, list[str]]:
+    """circle-0.16 at 50 Hz through the model of the command chain (benchmarks/track_chain.py): each
+    command timing under each message timing; the modules' set-points (FK) are scored."""
+    from track_chain import COMMANDS, TIMINGS, run_chain
+
+    arm = load_arm("pa10")
+    path = circle(0.16)
+    q0 = settle_start(arm, path)
+    title = "## Command chain model (controller core -> driver -> modules on one clock, no ROS)"
+    out = [
+        "",
+        "| message timing | commands | pos err median mm | p95 mm | max mm | lag ms | overshoot at stop mm | "
+        "error 2 s after stop mm |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for timing in TIMINGS:
+        for cmds in COMMANDS:
+            ts, ps = run_chain(arm, path, q0, timing, cmds)
+            e, lag, over, final = _series_scores(path, ts, ps)
+            out.append(
+                f"| {timing.name} | {cmds.name} | {np.median(e):.2f} | {np.percentile(e, 95):.2f} | "
+                f"{np.max(e):.2f} | {lag:.0f} | {over:.2f} | {final:.2f} |"
+            )
+    out += [
+        "",
+        "The real JointCommandSource, ReferenceShaper and JointRamp classes and the controller core, with "
+        "the processes, DDS and the bus replaced by the delays named (the controller's 100 Hz timer on a "
+        "kept grid, its ticks late by up to the jitter; /joint_command messages delivered in order after "
+        "the latency). Scored: FK of the modules' set-points against the path at the same time.",
+        "",
+    ]
+    return title, out
+
+
+def _series_scores(path: PathDef, ts: np.ndarray, ps: np.ndarray) -> tuple[np.ndarray, float, float, float]:
+    """Errors (mm) while the stream runs, lag (ms), overshoot at the stop (mm), final error (mm) of a
+    timed series of tool positions."""
+    live = (ts >= 0.0) & (ts <= path.duration)
+    ref = np.array([path.pose(min(max(t, 0.0), path.duration))[:3, 3] for t in ts])
+    e = np.linalg.norm(ps - ref, axis=1)[live] * 1e3
+    best = (math.inf, 0.0)
+    sub = np.flatnonzero(live)[:: max(1, int(live.sum() // 400))]
+    for tau in np.arange(-0.05, 0.301, 0.002):
+        sh = np.array([path.pose(min(max(ts[i] - tau, 0.0), path.duration))[:3, 3] for i in sub])
+        m = float(np.mean(np.linalg.norm(ps[sub] - sh, axis=1)))
+        if m < best[0]:
+            best = (m, tau)
+    end = path.pose(path.duration)[:3, 3]
+    u = end - path.pose(path.duration - 0.3)[:3, 3]
+    after = ps[ts > path.duration]
+    over = max(0.0, float(np.max((after - end) @ (u / np.linalg.norm(u))))) * 1e3 if len(after) else math.nan
+    return e, best[1] * 1e3, over, float(np.linalg.norm(ps[-1] - end)) * 1e3
 
 
 def _load_line(load0: tuple[float, float, float], t0: float) -> str:
