@@ -516,11 +516,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--chain", action="store_true",
                     help="only the command-chain model (controller -> driver -> modules on one clock)")
     ap.add_argument(
-        "--stack-leads",
-        type=lambda v: [float(x) for x in v.split(",")],
-        default=[0.0],
-        help="stream_lead_s values for the stack run (comma-separated, default 0)",
+        "--stack-compare",
+        action="store_true",
+        help="stack runs with the commands of before (unstamped, no lead) and the defaults, alternating",
     )
+    ap.add_argument("--stack-repeats", type=int, default=1, help="stack runs per command timing (default 1)")
     ap.add_argument("--verbose", action="store_true")
     args = ap.parse_args(argv)
     header = [
@@ -607,6 +607,10 @@ class StackClient:
         self.joints: list[tuple[float, np.ndarray]] = []  # (header stamp s, positions)
         self.node.create_subscription(ControllerState, "/controller/state", self.states.append, 200)
         self.node.create_subscription(JointState, "joint_states", self._on_js, 500)
+        from trajectory_msgs.msg import JointTrajectory
+
+        self.commands: list[tuple[float, np.ndarray]] = []  # (ROS time of receipt, commanded joints)
+        self.node.create_subscription(JointTrajectory, "joint_command", self._on_cmd, 500)
         self._names = list(self.arm.joint_names)
         self._seen_halts = 0
 
@@ -615,6 +619,13 @@ class StackClient:
         if all(n in pos for n in self._names):
             t = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
             self.joints.append((t, np.array([pos[n] for n in self._names])))
+
+    def _on_cmd(self, msg) -> None:
+        if not msg.points:
+            return
+        pos = dict(zip(msg.joint_names, msg.points[-1].positions, strict=False))
+        if all(n in pos for n in self._names):
+            self.commands.append((self.now(), np.array([pos[n] for n in self._names])))
 
     def now(self) -> float:
         return self.node.get_clock().now().nanoseconds * 1e-9
@@ -700,24 +711,33 @@ class StackClient:
             self.stack.close()
 
 
+#: Command timings of the stack runs: name -> controller parameters.
+STACK_COMMANDS = {
+    "unstamped, lead 0 (before)": ["-p", "command_delay_s:=0.0", "-p", "stream_lead_s:=0.0"],
+    "stamped +30 ms, lead 40 ms (default)": [],
+}
+
+
 def stack_run(args: argparse.Namespace) -> tuple[str, list[str]]:
     """circle-0.16 at 50 Hz through the stack; the simulated tool (pybullet, from the simulator's
-    status at 100 Hz) and FK of /joint_states (the modules' measured positions) are scored."""
+    status at 100 Hz), FK of /joint_states (the modules' measured positions) and FK of /joint_command
+    as it arrives (the controller's commands, at receipt) are scored."""
     title = "## Through the stack (bring-up: bus server, simulator, can_driver, ik_service, controller)"
     out = [""]
     rows = [
-        "| path | Hz | stream lead s | measured on | samples | pos err median mm | p95 mm | max mm | "
+        "| path | Hz | commands | measured on | samples | pos err median mm | p95 mm | max mm | "
         "lag ms | "
-        "overshoot at stop mm | error 2 s after stop mm | driver halts |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "overshoot at stop mm | error 2 s after stop mm | driver halts | load (1 min) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     path = circle(0.16)
-    for lead in args.stack_leads:
+    names = list(STACK_COMMANDS) if args.stack_compare else list(STACK_COMMANDS)[-1:]
+    for name in [n for _ in range(args.stack_repeats) for n in names]:
         c = StackClient(
             {
                 "extra_args": {
                     "sim": ["--status-rate", "100"],
-                    "controller": ["-p", f"stream_lead_s:={lead:g}"],
+                    "controller": STACK_COMMANDS[name],
                 }
             }
         )
@@ -733,6 +753,8 @@ def stack_run(args: argparse.Namespace) -> tuple[str, list[str]]:
                 raise RuntimeError(f"the start of the path was not reached: {c.states[-1].message}")
             c.spin_until(lambda: False, 2.0)  # the elbow settles
             c.joints.clear()
+            c.commands.clear()
+            load = os.getloadavg()[0]
             sim: list[tuple[float, np.ndarray]] = []
             t0 = c.now() + 0.05
             k = 0
@@ -753,27 +775,30 @@ def stack_run(args: argparse.Namespace) -> tuple[str, list[str]]:
                 if t > path.duration + AFTER_S:
                     break
                 c.ex.spin_once(timeout_sec=0.001)
-            for name, series in (
+            for where, series in (
                 ("simulated tool (pybullet)", [(w - t0, p) for w, p in sim]),
                 ("FK of /joint_states", [(t - t0, c.arm.fk(q)[:3, 3]) for t, q in c.joints]),
+                ("FK of /joint_command at receipt", [(t - t0, c.arm.fk(q)[:3, 3]) for t, q in c.commands]),
             ):
-                rows.append(_stack_row(path, lead, name, series, c.halts()))
+                rows.append(_stack_row(path, name, where, series, c.halts(), load))
         finally:
             c.close()
     out += rows
     out.append("")
     out.append(
         "Errors against the path at the sample's own time (simulator wall clock, joint-state header "
-        "stamps); the stream is stamped with the ROS clock of the same machine. Stream lead: the "
-        "controller aims this far ahead to make up for the command-to-arm delay (parameter "
-        "stream_lead_s)."
+        "stamps, receipt of /joint_command by this client); the stream is stamped with the ROS clock of "
+        "the same machine. Commands: before = /joint_command segments started on receipt and no lead "
+        "(command_delay_s 0, stream_lead_s 0); default = segments stamped to end 30 ms after their step "
+        "(command_delay_s) and the stream tracked 30 + 10 ms ahead (stream_lead_s: the driver cycle "
+        "and the modules' set-point generators). A negative lag of /joint_command is that lead."
     )
     out.append("")
     return title, out
 
 
 def _stack_row(
-    path: PathDef, lead: float, name: str, series: list[tuple[float, np.ndarray]], halts: int
+    path: PathDef, commands: str, name: str, series: list[tuple[float, np.ndarray]], halts: int, load: float
 ) -> str:
     ts = np.array([t for t, _ in series])
     ps = np.array([p for _, p in series])
@@ -793,9 +818,9 @@ def _stack_row(
     over = max(0.0, float(np.max((after - end) @ (u / np.linalg.norm(u))))) * 1e3 if len(after) else math.nan
     final = float(np.linalg.norm(ps[-1] - end)) * 1e3
     return (
-        f"| {path.name} | 50 | {lead:g} | {name} | {int(live.sum())} | {np.median(e):.2f} | "
+        f"| {path.name} | 50 | {commands} | {name} | {int(live.sum())} | {np.median(e):.2f} | "
         f"{np.percentile(e, 95):.2f} | {np.max(e):.2f} | {best[1] * 1e3:.0f} | {over:.2f} | {final:.2f} | "
-        f"{halts} |"
+        f"{halts} | {load:.1f} |"
     )
 
 
