@@ -714,7 +714,7 @@ class StackClient:
 #: Command timings of the stack runs: name -> controller parameters.
 STACK_COMMANDS = {
     "unstamped, lead 0 (before)": ["-p", "command_delay_s:=0.0", "-p", "stream_lead_s:=0.0"],
-    "stamped +30 ms, lead 40 ms (default)": [],
+    "stamped +50 ms, lead 60 ms (default)": [],
 }
 
 
@@ -789,8 +789,8 @@ def stack_run(args: argparse.Namespace) -> tuple[str, list[str]]:
         "Errors against the path at the sample's own time (simulator wall clock, joint-state header "
         "stamps, receipt of /joint_command by this client); the stream is stamped with the ROS clock of "
         "the same machine. Commands: before = /joint_command segments started on receipt and no lead "
-        "(command_delay_s 0, stream_lead_s 0); default = segments stamped to end 30 ms after their step "
-        "(command_delay_s) and the stream tracked 30 + 10 ms ahead (stream_lead_s: the driver cycle "
+        "(command_delay_s 0, stream_lead_s 0); default = segments stamped to end 50 ms after their step "
+        "(command_delay_s) and the stream tracked 50 + 10 ms ahead (stream_lead_s: the driver cycle "
         "and the modules' set-point generators). A negative lag of /joint_command is that lead."
     )
     out.append("")

@@ -116,5 +116,6 @@ TIMINGS = [
 COMMANDS = [
     Commands("unstamped, lead 0 (before)", 0.0, 0.0),
     Commands("unstamped, lead 23 ms", 0.0, 0.023),
-    Commands("stamped +30 ms, lead 40 ms (default)", 0.03, 0.04),
+    Commands("stamped +30 ms, lead 40 ms", 0.03, 0.04),
+    Commands("stamped +50 ms, lead 60 ms (default)", 0.05, 0.06),
 ]

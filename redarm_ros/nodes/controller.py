@@ -129,7 +129,7 @@ PARAMS = [
               "not a stream sample.", positive, read_only=True),
     ParamSpec("stream_jump", 0.05, "A goal farther than this (m) from where the stream was predicted is a "
               "new goal, not a stream sample.", positive, read_only=True),
-    ParamSpec("command_delay_s", 0.03, "Each /joint_command segment is stamped to end this long (s) after "
+    ParamSpec("command_delay_s", 0.05, "Each /joint_command segment is stamped to end this long (s) after "
               "its control step, so the driver plays it at a fixed delay whatever the message latency (0 = "
               "unstamped segments, started on receipt). Stamps only while the joint_states stamps show that "
               "the driver's clock is this node's.", in_range(0.0, 0.5), read_only=True),
