@@ -112,6 +112,7 @@ def run_chain(arm, path, q0: np.ndarray, timing: Timing, cmds: Commands, seed: i
 TIMINGS = [
     Timing("quiet: latency 2 ms, no jitter"),
     Timing("busy: latency 2 ms + exp(8 ms), ticks late 0-10 ms", latency_tail=0.008, jitter=0.01),
+    Timing("loaded: latency 2 ms + exp(20 ms), ticks late 0-20 ms", latency_tail=0.02, jitter=0.02),
 ]
 COMMANDS = [
     Commands("unstamped, lead 0 (before)", 0.0, 0.0),
