@@ -8,6 +8,10 @@ with its obstacles removed, to measure how straight the paths are (human-like re
 Methods, all at 100 Hz with the same speed limit:
   attractor   ReachController defaults (heading + orientation + swivel dynamics)
   fixed       the same controller with the swivel frozen at its start value (redundancy unused)
+  attractor_paper  the same controller with swivel_mode "attractor_paper": the attractor paper's own
+              redundancy dynamics (eq. 22-24, sector force-lets, wrist-limit sectors) and its
+              path-tangent hand orientation (eq. 20-21) in place of the swivel dynamics (not in the
+              default --methods; --append adds its table as a section of the results file)
   dls         straight-line Cartesian interpolation (minimum-jerk timing), damped-least-squares IK
               with a null-space gradient that pushes the arm away from obstacles
 
@@ -16,6 +20,7 @@ Success = tool within 1 mm / 0.01 rad of the goal within 8 s, and clearance > 0 
 
     .venv/bin/python benchmarks/reach_bench.py --scenes 200       # writes benchmarks/results/reach_bench.md
     .venv/bin/python benchmarks/reach_bench.py --quick --no-write     # smoke run: 6 scenes
+    .venv/bin/python benchmarks/reach_bench.py --scenes 50 --methods attractor,attractor_paper --append
 """
 
 from __future__ import annotations
@@ -228,8 +233,8 @@ def run_method(method: str, arm, case: Case, scene: Scene, caps: ArmCapsules) ->
         q, steps, reached_at = StraightLineDLS(arm, scene, caps).run(case.q_start, case.T_goal, DURATION, DT)
         return evaluate(arm, scene, q, case.T_goal, DT, steps, reached_at, caps)
     params = ControllerParams(capsules=caps)
-    if method == "fixed":
-        params = params.with_(swivel_mode="fixed")
+    if method in ("fixed", "attractor_paper"):
+        params = params.with_(swivel_mode=method)
     ctl = ReachController(arm, scene, params)
     ctl.reset(case.q_start)
     traj = run_controller(ctl, case.T_goal, DURATION, DT)
@@ -258,6 +263,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true",
                     help=f"smoke run: {QUICK_SCENES} scenes (overrides --scenes)")
     ap.add_argument("--no-write", action="store_true", help="do not write benchmarks/results/reach_bench.md")
+    ap.add_argument("--append", action="store_true",
+                    help="append the table as a new section of the results file (keep what is there)")
     ap.add_argument("--verbose", action="store_true", help="one line per scene and method")
     args = ap.parse_args(argv)
     if args.quick:
@@ -286,7 +293,9 @@ def main(argv: list[str] | None = None) -> int:
 
     lines = []
     last = args.seed + args.scenes - 1
-    lines.append(f"# Reach benchmark ({args.scenes} random table scenes, seeds {args.seed}..{last})")
+    head = "##" if args.append else "#"
+    lines.append(f"{head} Reach benchmark ({args.scenes} random table scenes, seeds {args.seed}..{last}; "
+                 f"{', '.join(methods)})")
     lines.append("")
     lines.append(f"PA10 on a table, 1-3 obstacles between start and target ({np.mean(n_obs):.2f} on "
                  f"average), random start posture (random feasible swivel), 100 Hz, speed cap {V_MAX} m/s, "
@@ -319,6 +328,10 @@ def main(argv: list[str] | None = None) -> int:
         f"{m} {max(x.max_acc_ratio for x in res[m]):.3f}" for m in methods))
     lines.append("")
     cmd = "--quick" if args.quick else f"--scenes {args.scenes}"
+    if args.methods != "attractor,fixed,dls":
+        cmd += f" --methods {args.methods}"
+    if args.append:
+        cmd += " --append"
     load1 = os.getloadavg()
     lines.append(
         f"Run: `python benchmarks/reach_bench.py {cmd}` on {platform.machine()}, {os.cpu_count()} CPUs, "
@@ -336,7 +349,10 @@ def main(argv: list[str] | None = None) -> int:
     print(text)
     if not args.no_write:
         RESULTS.parent.mkdir(parents=True, exist_ok=True)
-        RESULTS.write_text(text + "\n")
+        if args.append and RESULTS.exists():
+            RESULTS.write_text(RESULTS.read_text().rstrip("\n") + "\n\n" + text + "\n")
+        else:
+            RESULTS.write_text(text + "\n")
     return 0
 
 

@@ -100,6 +100,7 @@ class StackConfig:
     control_file: Path | None = None
     snapshot_dir: Path | None = None
     initial_q: list[float] | None = None
+    start: str | None = None  # sim: "zero" or "park" (power on in the park posture, park again after homing)
     driver_rate_hz: float = 250.0
     control_rate_hz: float = 100.0
     can_interface: str | None = None
@@ -202,6 +203,8 @@ class Stack:
                     sim_cmd += ["--snapshot-dir", str(cfg.snapshot_dir)]
                 if cfg.initial_q:
                     sim_cmd += ["--initial-q", *(f"{v:.9g}" for v in cfg.initial_q)]
+                if cfg.start:
+                    sim_cmd += ["--start", cfg.start]
                 self._start("sim", sim_cmd, READY["sim"])
             if cfg.hardware in ("sim", "real"):
                 if not self.can_interface:
@@ -216,6 +219,8 @@ class Stack:
                 }
                 if self.can_channel:
                     params["can.channel"] = self.can_channel
+                if cfg.start == "park":
+                    params["park_after_init"] = "true"  # homing runs to 0 rad; come back to park
                 self._start(
                     "can_driver",
                     python_module_cmd("redarm_ros.nodes.can_driver", *self._ros_args("can_driver", params)),
@@ -361,6 +366,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument(
         "--initial-q", type=float, nargs="+", help="initial joint angles of the simulated arm (rad)"
     )
+    ap.add_argument("--start", choices=("zero", "park"),
+                    help="posture the simulated arm powers on in (default zero); park: its park posture, "
+                    "and can_driver moves back there after homing (park_after_init)")
     ap.add_argument("--driver-rate", type=float, default=250.0, help="can_driver cycle rate (Hz)")
     ap.add_argument("--control-rate", type=float, default=100.0, help="controller rate (Hz)")
     ap.add_argument("--log-level", default="info", choices=("debug", "info", "warn", "error"))
@@ -387,6 +395,7 @@ def config_from_args(ns: argparse.Namespace) -> StackConfig:
         control_file=ns.control_file,
         snapshot_dir=ns.snapshot_dir,
         initial_q=ns.initial_q,
+        start=ns.start,
         driver_rate_hz=ns.driver_rate,
         control_rate_hz=ns.control_rate,
         can_interface=ns.can_interface,

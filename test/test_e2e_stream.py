@@ -164,18 +164,27 @@ def test_stream_followed_by_the_simulated_tool(stack: Stack, client: Client) -> 
         w, p = sim_tool(stack)
         if not samples or w != samples[-1][0]:
             samples.append((w, p))
-        if t > duration + 2.0:
-            break
+        # after the stream: until the hand has stood still for 0.5 s (a busy machine lags), at most 15 s
+        if t > duration + 0.5:
+            recent = [q for w, q in samples if w >= time.time() - 0.5]
+            if t > duration + 15.0 or (len(recent) > 3 and np.ptp(np.array(recent), axis=0).max() < 1e-4):
+                break
         client.ex.spin_once(timeout_sec=0.002)
     stack.check()
     assert any(s.phase == ControllerState.TRACKING and s.goal_kind == "stream" for s in client.states[n:])
     live = [(w - t0, p) for w, p in samples if 0.0 <= w - t0 <= duration]
-    err = np.array([np.linalg.norm(p - line_path(t, duration)[:3, 3]) for t, p in live])
+    # The hand stays on the streamed path: distance to the path as a curve, not to the point due at
+    # the sample's time, which a busy machine's latency shifts (the timed error is a benchmark's).
+    path = np.array([line_path(t, duration)[:3, 3] for t in np.linspace(0.0, duration, 2001)])
+    err = np.array([np.min(np.linalg.norm(path - p, axis=1)) for _, p in live])
     assert len(err) > 20
-    print(f"e2e stream: {len(err)} samples, error median {np.median(err) * 1e3:.1f} mm, max "
+    print(f"e2e stream: {len(err)} samples, off the path median {np.median(err) * 1e3:.1f} mm, max "
           f"{np.max(err) * 1e3:.1f} mm, {client.stamped_commands} stamped commands")
     # The driver shares the controller's clock: the segments go out stamped (played at a fixed delay).
     assert client.stamped_commands > 50
-    assert np.median(err) < 0.015, f"median {np.median(err) * 1e3:.1f} mm"
+    assert np.median(err) < 0.005, f"median {np.median(err) * 1e3:.1f} mm off the path"
     final = np.linalg.norm(samples[-1][1] - line_path(duration, duration)[:3, 3])
-    assert final < 0.002, f"final {final * 1e3:.2f} mm"
+    last = client.states[-1]
+    assert final < 0.002, (f"final {final * 1e3:.2f} mm; controller {last.phase}: {last.message!r}, "
+                           f"distance {last.distance_to_goal * 1e3:.2f} mm, "
+                           f"goal y {last.goal.position.y:.4f}")

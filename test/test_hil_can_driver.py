@@ -62,7 +62,7 @@ class Client:
         self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag, 10)
         self.traj_pub = self.node.create_publisher(JointTrajectory, "/joint_command", 10)
         self.clients = {a: self.node.create_client(Trigger, f"/can_driver/{a}")
-                        for a in ("init", "halt", "recover")}
+                        for a in ("init", "halt", "recover", "park")}
         self.executor = SingleThreadedExecutor(context=ctx)
         self.executor.add_node(self.node)
         self._thread = threading.Thread(target=self._spin, daemon=True)
@@ -573,3 +573,55 @@ def test_hil_recover_after_a_flood(stack: Stack, client: Client) -> None:
     q2[0] += 0.2
     client.send_trajectory([q2], [1.0])
     stack.wait_sim_at(q2, 2e-3, 8)
+
+
+def test_hil_park_reaches_the_posture_within_limits(stack: Stack, client: Client) -> None:
+    stack.start_sim()
+    stack.start_driver()
+    init_and_check(client, stack)
+    client.send_trajectory([goal_pose()], [1.0])  # start the park from somewhere else than home
+    stack.wait_sim_at(goal_pose(), 2e-3, 10)
+    answer: list[Trigger.Response] = []
+    caller = threading.Thread(target=lambda: answer.append(client.call("park", timeout=60)))
+    caller.start()
+    samples = []
+    while caller.is_alive():  # the simulated arm during the move (status at 50 Hz)
+        samples.append(stack.status())
+        time.sleep(0.02)
+    caller.join()
+    assert answer and answer[0].success, answer
+    assert "parked" in answer[0].message
+    # It answered once the arm was there (the driver's tolerance is 2 mrad) ...
+    np.testing.assert_allclose(stack.sim_q(), ARM.park, atol=2.5e-3)
+    # ... and the move kept the velocity and position limits (pybullet's measured joint velocity).
+    dq = np.array([s["dq"] for s in samples])
+    q = np.array([s["q"] for s in samples])
+    assert len(samples) > 20
+    assert np.all(np.abs(dq) <= ARM.max_vel * 1.05 + 1e-3), np.max(np.abs(dq) / ARM.max_vel, axis=0)
+    assert np.all(q >= ARM.lower - 1e-4) and np.all(q <= ARM.upper + 1e-4)
+    # A synchronised move: every joint that moves is still on its way halfway through.
+    mid = q[len(q) // 2]
+    moving = np.abs(ARM.park - goal_pose()) > 0.1
+    assert np.all(np.abs(mid - ARM.park)[moving] > 0.01)
+    mods = stack.status()["modules"]
+    assert all("ERROR" not in m["flags"] for m in mods)
+
+
+def test_hil_park_refused_while_halted_and_sim_starts_in_park(stack: Stack, client: Client) -> None:
+    stack.start_sim("--start", "park")
+    np.testing.assert_allclose(stack.sim_q(), ARM.park, atol=1e-3)  # powered on in the park posture
+    stack.start_driver()
+    r = client.call("park")
+    assert not r.success and "not initialised" in r.message, r.message
+    init_and_check(client, stack)  # homing runs to 0 rad
+    r = client.call("halt")
+    assert r.success, r.message
+    r = client.call("park")
+    assert not r.success and "halted" in r.message, r.message
+    time.sleep(0.3)
+    np.testing.assert_allclose(stack.sim_q(), np.zeros(N), atol=2e-3)  # nothing moved
+    r = client.call("recover")
+    assert r.success, r.message
+    r = client.call("park", timeout=60)
+    assert r.success, r.message
+    np.testing.assert_allclose(stack.sim_q(), ARM.park, atol=2.5e-3)

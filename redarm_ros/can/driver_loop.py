@@ -15,8 +15,10 @@ benchmarked without ROS:
 * :class:`Backoff` spaces reconnect attempts.
 * :class:`DriverLoop` is the dedicated thread: absolute deadlines at ``rate_hz``, one
   ``driver.cycle()`` per tick, and a request queue so that init/halt/recover run on the loop
-  thread (the bus has exactly one user). It drives any :class:`ArmDriver` (the protocol that
-  :class:`~redarm_ros.can.driver_core.PowerCubeArmDriver` implements). Its state is not a second
+  thread (the bus has exactly one user), and ``park`` moves the arm to its park posture
+  (:func:`redarm_ros.motion.sync_move.synchronized_move` through the same shaper). It drives any
+  :class:`ArmDriver` (the protocol that :class:`~redarm_ros.can.driver_core.PowerCubeArmDriver`
+  implements). Its state is not a second
   state machine: while the bus is up it is the driver's state seen through one table
   (:data:`LOOP_STATE_OF`); a fault is data (:class:`~redarm_ros.can.driver_core.Fault`).
 
@@ -57,11 +59,13 @@ from redarm_ros.can.driver_core import (
 from redarm_ros.can.protocol import ActState
 from redarm_ros.errors import BusError, BusTimeoutError, InvalidInputError, RedarmError
 from redarm_ros.motion import JointLimits, braking_speed
+from redarm_ros.motion.sync_move import synchronized_move
 
 _LOG = logging.getLogger(__name__)
 _HOME_OK = int(ActState.HOME_OK)
 
 __all__ = [
+    "ACTIONS",
     "DEFAULT_LIMIT_MARGIN",
     "LOOP_STATE_OF",
     "MAX_QUEUED_TRAJECTORIES",
@@ -143,6 +147,7 @@ class CommandMode(enum.Enum):
     HOLD = "hold"  # keep the held position (after start, init, recover, reconnect, stream stop)
     TRAJECTORY = "trajectory"  # interpolate a timed trajectory, then keep its last point
     STREAM = "stream"  # follow streamed targets; hold if they stop arriving
+    PARK = "park"  # the ~/park move (a trajectory of the driver's own), then hold the park posture
 
 
 @dataclass
@@ -241,6 +246,18 @@ class JointCommandSource:
         with self._lock:
             return len(self._queued)
 
+    def set_park(self, times_s: Sequence[float], points: np.ndarray, start: float) -> int:
+        """Follow the park move (all joints, ``points`` (k, n) rad at ``times_s`` (k,)) as a trajectory
+        in mode PARK; returns the new :attr:`generation` (any later command or clear changes it)."""
+        idx, t, p = check_trajectory(self.n, range(self.n), times_s, points)
+        with self._lock:
+            self._traj = _Trajectory(idx, t, p, float(start))
+            self._queued = []
+            self._mode = CommandMode.PARK
+            self._stream_q = None
+            self.generation += 1
+            return self.generation
+
     def set_stream_target(self, index: Sequence[int], q: Sequence[float], now: float) -> None:
         """Follow the streamed target ``q`` (m,) rad for model joints ``index``, received at ``now``.
 
@@ -267,8 +284,8 @@ class JointCommandSource:
         with self._lock:
             self._last_sample = max(self._last_sample, now)
             mode = self._mode
-            if mode is CommandMode.TRAJECTORY:
-                while self._queued and self._queued[0].start <= now:
+            if mode is CommandMode.TRAJECTORY or mode is CommandMode.PARK:
+                while mode is CommandMode.TRAJECTORY and self._queued and self._queued[0].start <= now:
                     self._traj = self._queued.pop(0)  # its q_start: the reference as it is now
                 tr = self._traj
                 assert tr is not None
@@ -601,6 +618,11 @@ class LoopConfig:
     (SCHED_FIFO priority for the loop thread, 0 = normal scheduling; see
     :func:`redarm_ros.can.realtime.raise_priority`), ``quiet_gc`` (freeze the garbage collector at
     start and collect young objects only in spare time between cycles; for a process of its own).
+    ``park`` is the park posture (rad, one per joint; None: ``park`` is refused), ``park_tolerance_rad``
+    how close every measured joint must come to it before ``park`` reports success,
+    ``park_speed_scale`` the fraction of the velocity and acceleration limits the park move plans with,
+    and ``park_after_init`` starts that move after every successful ``init`` (homing leaves the arm at
+    its home position, 0 rad; the arm then comes to rest in park).
     """
 
     rate_hz: float = 250.0
@@ -613,6 +635,10 @@ class LoopConfig:
     limit_margin_rad: float = DEFAULT_LIMIT_MARGIN
     realtime_priority: int = 0
     quiet_gc: bool = False
+    park: tuple[float, ...] | None = None
+    park_tolerance_rad: float = 2e-3
+    park_speed_scale: float = 0.9
+    park_after_init: bool = False
 
 
 @dataclass
@@ -653,6 +679,20 @@ class LoopSnapshot:
     totals: dict[str, float] | None = None  # since the start: PeriodStats.totals()
 
 
+#: How long (s) every measured joint must stay within the park tolerance before ``park`` succeeds.
+PARK_SETTLE_S = 0.1
+
+#: The requests :meth:`DriverLoop.request` serves.
+ACTIONS = ("init", "halt", "recover", "park")
+
+
+@dataclass(frozen=True)
+class _ParkMove:
+    generation: int  # the command source's generation the move was set with
+    target: np.ndarray  # (n,) rad: the park posture, inside the reference's inset limits
+    duration_s: float
+
+
 class _Request:
     def __init__(self, action: str, timeout: float) -> None:
         self.action = action
@@ -660,6 +700,7 @@ class _Request:
         self.done = threading.Event()
         self.ok = False
         self.message = ""
+        self.park: _ParkMove | None = None  # set when a park move was started
 
 
 LogFn = Callable[[int, str], None]
@@ -737,6 +778,10 @@ class DriverLoop:
         self._last_result: CycleResult | None = None
         self._q_meas: np.ndarray | None = None
         self._q_ref: np.ndarray | None = None
+        # The reference shaper survives a pause for a request that keeps the arm running (park), so
+        # a move in progress continues at its velocity; init, halt, recover, faults and reconnects
+        # drop it (the next run of cycles starts from rest at the reference).
+        self._shaper: ReferenceShaper | None = None
         self._last_clamp_log = -1e9
         self._priority = ""
         # Reply latencies (s) of the last 500 cycles, all joints (small: diagnostics run in
@@ -799,8 +844,15 @@ class DriverLoop:
         self._publish_state()
 
     def request(self, action: str, timeout: float = 60.0) -> tuple[bool, str]:
-        """Run ``init``, ``halt`` or ``recover`` on the loop thread; returns (success, message)."""
-        if action not in ("init", "halt", "recover"):
+        """Run ``init``, ``halt``, ``recover`` or ``park`` on the loop thread; returns (success, message).
+
+        ``park`` answers when the move is finished: every joint's reference on the park posture and
+        every measured position within ``park_tolerance_rad`` of it for :data:`PARK_SETTLE_S`. It fails
+        at once when the loop is not running (not initialised, halted, bus lost) or the arm has no park
+        posture, and fails later when the move is interrupted (halt, fault, bus loss, any new command)
+        or not finished within ``timeout`` s (the move itself keeps going then).
+        """
+        if action not in ACTIONS:
             return False, f"unknown action {action!r}"
         t0 = time.monotonic()
         if not self._stopped:
@@ -814,7 +866,38 @@ class DriverLoop:
         self._wake.set()
         if not req.done.wait(timeout):
             return False, f"{action} did not finish within {timeout:.0f} s"
+        if req.ok and req.park is not None:
+            return self._wait_parked(req.park, req.deadline, timeout)
         return req.ok, req.message
+
+    def _wait_parked(self, move: _ParkMove, deadline: float, timeout: float) -> tuple[bool, str]:
+        """Wait (caller's thread) until the park move has arrived, was interrupted, or the caller's
+        ``deadline`` (monotonic s; ``timeout`` s after the request) has passed."""
+        tol = self.config.park_tolerance_rad
+        settled_since: float | None = None  # the measured positions must stay within tol for a while
+        while True:
+            with self._lock:
+                state = self._state_locked()
+                reason = self._fault_locked()[1]
+                q_meas, q_ref = self._q_meas, self._q_ref
+            if state is not LoopState.RUNNING:
+                return False, f"park interrupted: driver is {state.value} ({reason})"
+            if self.commands.generation != move.generation:
+                return False, f"park interrupted by a new command (now {self.commands.mode.value})"
+            now = time.monotonic()
+            if (q_meas is not None and q_ref is not None
+                    and float(np.max(np.abs(q_ref - move.target))) <= 1e-6
+                    and float(np.max(np.abs(q_meas - move.target))) <= tol):
+                settled_since = now if settled_since is None else settled_since
+                if now - settled_since >= PARK_SETTLE_S:
+                    return True, (f"parked at {np.round(q_meas, 4).tolist()} (move planned for "
+                                  f"{move.duration_s:.2f} s)")
+            else:
+                settled_since = None
+            if now > deadline:
+                return False, (f"park did not finish within {timeout:.0f} s (still moving; measured "
+                               f"{np.round(q_meas, 4).tolist() if q_meas is not None else None})")
+            time.sleep(0.01)
 
     def reset_measurements(self) -> None:
         """Start fresh timing and latency windows and period totals (counters such as cycles stay)."""
@@ -995,6 +1078,7 @@ class DriverLoop:
             self._log(logging.INFO, f"CAN bus connected, all {self.n} modules found")
         self._q_meas = None
         self._q_ref = None
+        self._shaper = None
         if was_ready and not missing:
             self.commands.clear(None)
             self._set_reason("reconnected; holding measured position")
@@ -1054,8 +1138,10 @@ class DriverLoop:
         assert drv is not None
         q_meas = self._q_meas if self._q_meas is not None else self._read_positions()
         q_ref = self._q_ref if self._q_ref is not None else q_meas
-        shaper = ReferenceShaper(drv.limits, period, self.config.limit_margin_rad)
-        shaper.reset(q_ref)
+        shaper = self._shaper
+        if shaper is None:
+            shaper = self._shaper = ReferenceShaper(drv.limits, period, self.config.limit_margin_rad)
+            shaper.reset(q_ref)
         lo, hi = drv.limits.lower, drv.limits.upper
         frames_per_cycle = drv.frames_per_cycle
         gc_every = max(1, int(round(0.2 / period)))  # young-generation collection about 5 times a second
@@ -1122,6 +1208,7 @@ class DriverLoop:
 
     def _halted_by(self, fault: Fault, *, halt: bool = True) -> None:
         """Halt everything (unless the driver core already did) and stay halted until recover."""
+        self._shaper = None
         try:
             if halt and self.driver is not None:
                 self.driver.halt()
@@ -1133,6 +1220,7 @@ class DriverLoop:
         self._publish_state()
 
     def _bus_lost(self, exc: BaseException) -> None:
+        self._shaper = None
         with self._lock:
             self._bus_losses += 1
             self._connected = False
@@ -1179,13 +1267,40 @@ class DriverLoop:
             if refuse is not None:
                 req.ok, req.message = False, refuse
             else:
-                req.ok, req.message = self._do(req.action)
+                if req.action == "park":
+                    req.ok, req.message, req.park = self._start_park()
+                else:
+                    req.ok, req.message = self._do(req.action)
             self._publish_state()  # the caller learns the new state no later than the answer
             req.done.set()
+
+    def _start_park(self) -> tuple[bool, str, _ParkMove | None]:
+        """Start the synchronised move to the park posture from the current reference (loop thread)."""
+        drv = self.driver
+        assert drv is not None
+        park = self.config.park
+        if park is None:
+            return False, "park refused: this arm has no park posture (park: in its arm YAML)", None
+        if drv.state is DriverState.UNINITIALIZED:
+            return False, "park refused: not initialised (call ~/init first)", None
+        if drv.state is not DriverState.READY:
+            with self._lock:
+                reason = self._fault_locked()[1]
+            return False, f"park refused: driver is halted ({reason}); call ~/recover first", None
+        limits = drv.limits.inset(self.config.limit_margin_rad)
+        target = limits.clip(np.asarray(park, dtype=float).reshape(self.n))
+        q0 = self._q_ref if self._q_ref is not None else self._read_positions()
+        times, points = synchronized_move(limits.clip(q0), target, limits, self.period_s,
+                                          self.config.park_speed_scale)
+        gen = self.commands.set_park(times, points, time.monotonic())
+        self._set_reason("moving to the park posture")
+        self._log(logging.INFO, f"park: moving to {np.round(target, 4).tolist()} in {times[-1]:.2f} s")
+        return True, "park started", _ParkMove(gen, target, float(times[-1]))
 
     def _do(self, action: str) -> tuple[bool, str]:
         drv = self.driver
         assert drv is not None
+        self._shaper = None  # init, halt and recover: the next cycles start from rest
         try:
             if action == "halt":
                 acked = drv.halt()
@@ -1215,6 +1330,9 @@ class DriverLoop:
         self._q_ref = q
         self._set_reason(f"{action} done; holding position")
         note = ""
+        if action == "init" and self.config.park_after_init:
+            ok, msg, _move = self._start_park()
+            note = "; moving to the park posture" if ok else f"; {msg}"
         if action == "recover":
             not_homed = [i + 1 for i, b in enumerate(st.states) if not int(b) & _HOME_OK]
             if not_homed:

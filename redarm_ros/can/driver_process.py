@@ -47,6 +47,7 @@ import numpy as np
 from redarm_ros.can import realtime
 from redarm_ros.can.driver_core import DEFAULT_PLAUSIBILITY_MARGIN, Fault, PowerCubeArmDriver
 from redarm_ros.can.driver_loop import (
+    ACTIONS,
     CommandMode,
     CycleSample,
     DriverLoop,
@@ -286,8 +287,9 @@ class DriverProcess:
             return False, f"driver is {self._state.value} ({self._reason}); command ignored"
 
     def request(self, action: str, timeout: float = 60.0) -> tuple[bool, str]:
-        """Run ``init``, ``halt`` or ``recover`` in the child; returns (success, message)."""
-        if action not in ("init", "halt", "recover"):
+        """Run ``init``, ``halt``, ``recover`` or ``park`` in the child (see
+        :meth:`DriverLoop.request`); returns (success, message)."""
+        if action not in ACTIONS:
             return False, f"unknown action {action!r}"
         # A request made before the child runs (the node's start timer) waits for it, as the loop
         # makes a request made before the first connection wait for that.
@@ -477,7 +479,7 @@ class _Child:
             elif kind == "snap":
                 self.put(("answer", msg[1], loop.snapshot()))
             elif kind == "req":
-                # init may take seconds: answer from a thread so commands keep flowing meanwhile.
+                # init and park may take seconds: answer from a thread so commands keep flowing meanwhile.
                 rid, action, timeout = msg[1], msg[2], msg[3]
                 threading.Thread(target=lambda: self.put(("answer", rid, loop.request(action, timeout))),
                                  name=f"can-driver-{action}", daemon=True).start()

@@ -16,6 +16,7 @@ from redarm_ros.control.base import SMALL_SCENE, ControllerBase
 from redarm_ros.control.elbow import ElbowCircle
 from redarm_ros.control.ik_step import DeadEnd, pose_matrix
 from redarm_ros.control.joint_limits import braking_speed
+from redarm_ros.control.paper_redundancy import MODE as PAPER_MODE
 from redarm_ros.control.replan import check_route, move_time
 from redarm_ros.control.rotations import (
     quat_between_vectors,
@@ -192,9 +193,14 @@ class AttractorMixin(ControllerBase):
             if p.swivel_mode == "fixed":
                 return st.ref.s_fixed, st.ref.s_fixed, False
             s_des = self._desired_swivel(circle)
-            margins = self.stepper.limit_margins(T, s0, st.ref.q, p.swivel.eps, p.swivel.lim_threshold)
-            forces = self.swivel_dyn.forces(circle, s0, self._local.scene, p.capsules, margins)
-            s_new = self.swivel_dyn.step(s0, s_des, dt, forces)
+            if p.swivel_mode == PAPER_MODE:  # the attractor paper's eq. 22-24 (paper_redundancy.py)
+                paper = self.paper_swivel.step(circle, T, s0, s_des, st.ref.q, dt, self._local.scene,
+                                               self.stepper)
+                s_new, clearance = paper.s, paper.clearance
+            else:
+                margins = self.stepper.limit_margins(T, s0, st.ref.q, p.swivel.eps, p.swivel.lim_threshold)
+                forces = self.swivel_dyn.forces(circle, s0, self._local.scene, p.capsules, margins)
+                s_new, clearance = self.swivel_dyn.step(s0, s_des, dt, forces), forces.clearance
             # The swivel rate changes by at most max_swivel_acc per second.
             sd = wrap_angle(s_new - s0) / dt
             if feed:
@@ -207,7 +213,7 @@ class AttractorMixin(ControllerBase):
                 s_acc = self._joint_share_acc(abs(st.ref.sdot), p.max_swivel_acc)
                 sd = max(st.ref.sdot - s_acc * dt, min(st.ref.sdot + s_acc * dt, sd))
             st.ref.s_des = s_des
-            return wrap_angle(s0 + sd * dt), s_des, forces.clearance < p.elbow_priority_clearance
+            return wrap_angle(s0 + sd * dt), s_des, clearance < p.elbow_priority_clearance
 
         return swivel
 
@@ -245,6 +251,9 @@ class AttractorMixin(ControllerBase):
         assert st.goal is not None
         p = self.params
         goal_q = st.goal.rot
+        if p.swivel_mode == PAPER_MODE:  # eq. 20-21: the hand trails the path tangent e
+            tangent = e if st.att.v >= 1e-3 else None
+            return self.tangent_hand.target(st.goal, goal_q, st.ref.rot, tangent, dist, p.dt)
         if p.tangent_weight <= 0.0 or st.att.v < 1e-3:
             return goal_q
         w = p.tangent_weight * max(0.0, min(1.0, (dist - p.tangent_distance) / p.tangent_distance))

@@ -17,6 +17,7 @@ from redarm_ros.control.elbow import ArmGeometry
 from redarm_ros.control.guard import CollisionGuard
 from redarm_ros.control.ik_step import IKStepper
 from redarm_ros.control.obstacles import Scene
+from redarm_ros.control.paper_redundancy import PaperSwivel, TangentHand
 from redarm_ros.control.params import ControllerParams
 from redarm_ros.control.rotations import quat_from_matrix
 from redarm_ros.control.state import CoreState
@@ -40,6 +41,8 @@ class ControllerBase:
     params: ControllerParams
     geom: ArmGeometry
     swivel_dyn: SwivelDynamics
+    paper_swivel: PaperSwivel
+    tangent_hand: TangentHand
     heading_dyn: HeadingDynamics
     speed_profile: SpeedProfile
     stepper: IKStepper

@@ -14,6 +14,7 @@ from typing import Any
 
 from redarm_ros.control.attractor import HeadingParams, SpeedParams
 from redarm_ros.control.obstacles import ArmCapsules
+from redarm_ros.control.paper_redundancy import PaperSwivelParams
 from redarm_ros.control.swivel_dynamics import SwivelParams
 from redarm_ros.errors import ConfigError, InvalidInputError
 
@@ -149,6 +150,10 @@ class ReplanParams:
                                     value=self.enabled)
 
 
+#: The values of ``ControllerParams.swivel_mode``.
+SWIVEL_MODES = ("dynamics", "fixed", "attractor_paper")
+
+
 @dataclass(frozen=True)
 class ControllerParams:
     """Controller parameters (units in brackets).
@@ -162,7 +167,9 @@ class ControllerParams:
     shoulder); ``"low"``: offset from the lowest elbow position (the human-like low elbow of an arm
     mounted above the table); for both, positive offsets turn the elbow one way around the
     shoulder-wrist axis (right-handed about ``n``); ``"absolute"``: the swivel angle of eq. 13-16.
-    swivel_mode: ``"dynamics"`` (eq. 31) or ``"fixed"`` (keep the swivel of reset(): redundancy unused).
+    swivel_mode: ``"dynamics"`` (eq. 31) or ``"fixed"`` (keep the swivel of reset(): redundancy unused),
+    or ``"attractor_paper"`` (the attractor paper's eq. 22-24 with sector force-lets and its path-tangent
+    hand orientation, eq. 20-21; parameters in ``paper_swivel``, :mod:`~redarm_ros.control.paper_redundancy`).
     lam_ori [1/s], max_ori_rate [rad/s]: orientation attractor rate and its clamp.
     tangent_weight [0..1], tangent_distance [m]: how much the tool axis follows the path tangent
     (eq. 20-21) while farther than ``tangent_distance`` from the goal (blended to the goal orientation
@@ -203,6 +210,7 @@ class ControllerParams:
     dt: float = 0.01
     heading: HeadingParams = field(default_factory=HeadingParams)
     swivel: SwivelParams = field(default_factory=SwivelParams)
+    paper_swivel: PaperSwivelParams = field(default_factory=PaperSwivelParams)
     speed: SpeedParams = field(default_factory=SpeedParams)
     capsules: ArmCapsules = field(default_factory=ArmCapsules)
     preferred_swivel: float = 0.0
@@ -241,8 +249,8 @@ class ControllerParams:
             raise ConfigError(f"swivel_reference must be 'high', 'low' or 'absolute', got "
                               f"{self.swivel_reference!r}",
                               field="swivel_reference", value=self.swivel_reference)
-        if self.swivel_mode not in ("dynamics", "fixed"):
-            raise ConfigError(f"swivel_mode must be 'dynamics' or 'fixed', got {self.swivel_mode!r}",
+        if self.swivel_mode not in SWIVEL_MODES:
+            raise ConfigError(f"swivel_mode must be one of {SWIVEL_MODES}, got {self.swivel_mode!r}",
                               field="swivel_mode", value=self.swivel_mode)
         for name in ("dt", "lam_ori", "max_ori_rate", "tangent_distance", "final_distance",
                      "workspace_margin", "pos_tolerance", "ori_tolerance", "max_dt", "flip_ratio",
@@ -290,7 +298,8 @@ class ControllerParams:
             return cls()
         if not isinstance(d, dict):
             raise ConfigError("controller parameters must be a mapping", value=d)
-        nested = {"heading": HeadingParams, "swivel": SwivelParams, "speed": SpeedParams,
+        nested = {"heading": HeadingParams, "swivel": SwivelParams, "paper_swivel": PaperSwivelParams,
+                  "speed": SpeedParams,
                   "capsules": ArmCapsules, "stream": StreamParams, "servo": ServoParams,
                   "replan": ReplanParams}
         known = {f.name for f in fields(cls)}

@@ -41,6 +41,7 @@ from redarm_ros.control.goal_check import check_goal, stream_feasibility
 from redarm_ros.control.guard import CollisionGuard
 from redarm_ros.control.ik_step import IKStepper, pose_matrix
 from redarm_ros.control.obstacles import Clearance, Scene
+from redarm_ros.control.paper_redundancy import PaperSwivel, TangentHand
 from redarm_ros.control.params import ControllerParams, ReplanParams, ServoParams, StreamParams
 from redarm_ros.control.replan_law import ReplanMixin
 from redarm_ros.control.rotations import (
@@ -121,6 +122,8 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
         p = self.params
         self.geom = ArmGeometry.from_arm(arm)
         self.swivel_dyn = SwivelDynamics(p.swivel)
+        self.paper_swivel = PaperSwivel(p.paper_swivel, p.capsules, p.swivel.max_rate, arm.lower, arm.upper)
+        self.tangent_hand = TangentHand(p.paper_swivel)
         self.heading_dyn = HeadingDynamics(p.heading)
         self.speed_profile = SpeedProfile(p.speed)
         self.stepper = IKStepper(arm, self.geom, p.flip_ratio, p.swivel_search_step, p.swivel_search_count)

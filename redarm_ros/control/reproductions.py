@@ -6,11 +6,15 @@
 Scenarios (PA10, 100 Hz, forward Euler):
 
 * ``swivel1`` -- swivel paper, example 1: the tool circles three times in a horizontal plane at
-  constant orientation near a spherical obstacle; the swivel follows eq. (32) with a fixed ``s_des``
-  for several values. Plots: s(t) with and without the obstacle; the elbow path on the shoulder sphere
-  S1 for ``s_des = -pi/2`` with (red) and without (dashed blue) the obstacle.
-* ``swivel2`` -- example 2: the same motion with a linearly increasing ``s_des``; integrated in the
-  swivel-quaternion form (no trigonometry in the loop). Same plots.
+  constant orientation near a spherical obstacle (``config/scenes/swivel_example1.yaml``, placed so that
+  two of the ``s_des`` values would run into it); the swivel follows eq. (32) with a fixed ``s_des``
+  for several values. Plots: s(t) (solid) and s_des (dashed), as the paper's fig. 7; the elbow path on
+  the shoulder sphere S1 for ``s_des = -3pi/4`` with (red) and without (dashed blue) the obstacle.
+* ``swivel2`` -- example 2: the same kind of motion (a higher circle, where 0.8 of the elbow circle is
+  in the joint limits) with ``s_des`` rising linearly from 0.2 pi to 1.8 pi (0.8 of a turn) past a
+  sphere (``swivel_example2.yaml``); integrated in the swivel-quaternion form (no trigonometry in the
+  loop). Plots: s (red) and s_des (dashed blue) as the paper's fig. 9, plus s without the obstacle; the
+  elbow on S1.
 * ``narrow`` -- attractor paper, "cluttered environment": a target on the table surrounded by three
   obstacles (U shape, narrow passage); the hand passes over the front wall and dives behind it.
 * ``moved_target`` -- the target is displaced mid-reach (paper fig. 7).
@@ -43,6 +47,7 @@ from redarm_ros.control.swivel_dynamics import SwivelDynamics, SwivelParams, wra
 
 LOG = logging.getLogger(__name__)
 DT = 0.01
+DPI = 90  # small PNGs (tens of kB)
 
 
 @dataclass
@@ -163,9 +168,28 @@ def _swivel_report(arm: Any, name: str, variant: str, run: SwivelRun) -> Scenari
                           float("nan"), peak_jerk(run.elbow, DT), note + "; jerk of the elbow")
 
 
-def swivel_scene() -> Scene:
-    """The spherical obstacle of the swivel examples (config/scenes/swivel_sphere.yaml)."""
-    return load_scene("swivel_sphere")
+#: Tool circle of example 2 (centre, m): higher than example 1's, so that the ramp can cover 0.8 of
+#: a turn inside the joint limits (at example 1's circle only the upper half of the elbow circle is).
+EXAMPLE2_CENTER = (0.45, 0.0, 0.8)
+#: The ramp of example 2: s_des from EXAMPLE2_RAMP[0] to EXAMPLE2_RAMP[1] (rad) over the run.
+EXAMPLE2_RAMP = (0.2 * math.pi, 1.8 * math.pi)
+#: The fixed s_des of example 1's elbow plot (one of the two that meet the sphere).
+EXAMPLE1_ELBOW_S = -3 * math.pi / 4
+
+
+def swivel_scene(example: int = 1) -> Scene:
+    """The spherical obstacle of swivel example 1 or 2 (config/scenes/swivel_example<N>.yaml)."""
+    return load_scene(f"swivel_example{int(example)}")
+
+
+def example2_ramp(total: float) -> Any:
+    """s_des(t) of example 2 for a run of ``total`` s (rad, wrapped)."""
+    s0, s1 = EXAMPLE2_RAMP
+
+    def ramp(t: float) -> float:
+        return wrap_angle(s0 + (s1 - s0) * min(max(t / total, 0.0), 1.0))
+
+    return ramp
 
 
 def reproduce_swivel(arm: Any, out: Path, quick: bool, example: int) -> list[ScenarioReport]:
@@ -175,7 +199,7 @@ def reproduce_swivel(arm: Any, out: Path, quick: bool, example: int) -> list[Sce
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    scene = swivel_scene()
+    scene = swivel_scene(example)
     empty = Scene()
     laps = 1.0 if quick else 3.0
     reports = []
@@ -183,7 +207,7 @@ def reproduce_swivel(arm: Any, out: Path, quick: bool, example: int) -> list[Sce
         # The upper half of the elbow circle (s in [pi/2, 3pi/2]): with the PA10 shoulder limit of
         # +/-91 deg the lower half has no in-limit solution for these tool poses.
         # (s = pi, the elbow straight up, needs theta1 or theta3 at +/-180 deg: outside the limits.)
-        values = [-math.pi / 2, 3 * math.pi / 4] if quick else [
+        values = [-3 * math.pi / 4, -0.9 * math.pi, 3 * math.pi / 4] if quick else [
             -math.pi / 2, -3 * math.pi / 4, -0.9 * math.pi, 3 * math.pi / 4, math.pi / 2]
         runs = {}
         for v in values:
@@ -193,46 +217,54 @@ def reproduce_swivel(arm: Any, out: Path, quick: bool, example: int) -> list[Sce
         for i, v in enumerate(values):
             with_o, without = runs[v]
             c = f"C{i}"
-            ax.plot(with_o.t, with_o.s, color=c, label=f"s_des = {v:+.2f}")
-            ax.plot(without.t, without.s, color=c, ls="--", lw=0.8)
+            ax.plot(with_o.t, with_o.s, color=c, label=f"s, s_des = {v:+.2f}")
+            ax.plot(with_o.t, with_o.s_des, color=c, ls="--", lw=0.8)
+        ax.plot([], [], color="0.3", ls="--", lw=0.8, label="s_des (dashed)")
         ax.set_xlabel("t [s]")
         ax.set_ylabel("swivel s [rad]")
-        ax.set_title("Example 1: s(t) for fixed s_des with the obstacle (solid), without (dashed)")
+        ax.set_title("Example 1: s(t) with the obstacle (solid) for fixed s_des (dashed)")
         ax.legend(fontsize=8, loc="best")
         fig.tight_layout()
-        fig.savefig(out / "swivel_example1_s.png", dpi=110)
+        fig.savefig(out / "swivel_example1_s.png", dpi=DPI)
         plt.close(fig)
-        with_o, without = runs[-math.pi / 2]
+        with_o, without = runs[EXAMPLE1_ELBOW_S]
         _elbow_sphere_plot(arm, scene, with_o, without, out / "swivel_example1_elbow.png",
-                           "Example 1: elbow on S1, s_des = -pi/2")
+                           "Example 1: elbow on S1, s_des = -3pi/4")
         for v in values:
             reports.append(_swivel_report(arm, "swivel1", f"s_des={v:+.2f} obstacle", runs[v][0]))
             reports.append(_swivel_report(arm, "swivel1", f"s_des={v:+.2f} ignoring it", runs[v][1]))
     else:
+        # Always the full three laps: the ramp's rate, not the run's length, decides what happens.
+        laps = 3.0
         period = 4.0
-        total = laps * period
-
-        def ramp(t: float) -> float:  # from pi/2 (elbow left) over the top to 3pi/2 (right, the ball)
-            return wrap_angle(0.5 * math.pi + math.pi * t / total)
-
-        with_o = run_swivel_example(arm, scene, ramp, laps, quaternion_form=True)
-        without = run_swivel_example(arm, empty, ramp, laps, quaternion_form=True, score_scene=scene)
+        ramp = example2_ramp(laps * period)
+        with_o = run_swivel_example(arm, scene, ramp, laps, center=EXAMPLE2_CENTER, quaternion_form=True)
+        without = run_swivel_example(arm, empty, ramp, laps, center=EXAMPLE2_CENTER, quaternion_form=True,
+                                     score_scene=scene)
         fig, ax = plt.subplots(figsize=(8, 4.5))
-        ax.plot(with_o.t, np.unwrap(with_o.s), "r", label="s with obstacle")
-        ax.plot(without.t, np.unwrap(without.s), "b--", lw=0.8, label="s without obstacle")
-        ax.plot(with_o.t, np.unwrap(with_o.s_des), "k:", label="s_des (ramp)")
+        ax.plot(with_o.t, _unwrap_from(with_o.s, EXAMPLE2_RAMP[0]), "r", label="s with obstacle")
+        ax.plot(with_o.t, _unwrap_from(with_o.s_des, EXAMPLE2_RAMP[0]), "b--", lw=1.0,
+                label="s_des (linear ramp)")
+        ax.plot(without.t, _unwrap_from(without.s, EXAMPLE2_RAMP[0]), color="0.5", ls=":", lw=0.8,
+                label="s without obstacle")
         ax.set_xlabel("t [s]")
         ax.set_ylabel("swivel s [rad] (unwrapped)")
-        ax.set_title("Example 2: linearly increasing s_des, swivel-quaternion form")
+        ax.set_title("Example 2: linearly increasing s_des (0.8 turn), swivel-quaternion form")
         ax.legend(fontsize=8)
         fig.tight_layout()
-        fig.savefig(out / "swivel_example2_s.png", dpi=110)
+        fig.savefig(out / "swivel_example2_s.png", dpi=DPI)
         plt.close(fig)
         _elbow_sphere_plot(arm, scene, with_o, without, out / "swivel_example2_elbow.png",
                            "Example 2: elbow on S1, ramp s_des")
         reports.append(_swivel_report(arm, "swivel2", "ramp obstacle", with_o))
         reports.append(_swivel_report(arm, "swivel2", "ramp ignoring it", without))
     return reports
+
+
+def _unwrap_from(s: np.ndarray, start: float) -> np.ndarray:
+    """``s`` (rad) unwrapped, shifted by whole turns so that it starts near ``start``."""
+    u = np.unwrap(s)
+    return u + 2.0 * math.pi * round((start - u[0]) / (2.0 * math.pi))
 
 
 def _elbow_sphere_plot(arm: Any, scene: Scene, with_o: SwivelRun, without: SwivelRun, path: Path,
@@ -262,7 +294,7 @@ def _elbow_sphere_plot(arm: Any, scene: Scene, with_o: SwivelRun, without: Swive
     ax.set_title(title, fontsize=10)
     ax.legend(fontsize=8, loc="upper left")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=DPI)
     plt.close(fig)
 
 
@@ -345,7 +377,7 @@ def _reach_plot(arm: Any, scenes: list[tuple[float, Scene]], tr: Trajectory, goa
     sw.legend(fontsize=8)
     fig.suptitle(title)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=DPI)
     plt.close(fig)
 
 

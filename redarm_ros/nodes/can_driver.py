@@ -12,7 +12,8 @@ Interface (docs/can_driver.md has the details):
 * subscribes ``/joint_command`` (trajectory_msgs/JointTrajectory: one or more points,
   ``time_from_start`` honoured by interpolation per cycle) and ``/joint_command_state``
   (sensor_msgs/JointState: streamed position targets; one topic cannot carry two types);
-* services ``~/init`` (reset + home, then hold), ``~/halt``, ``~/recover`` (std_srvs/Trigger).
+* services ``~/init`` (reset + home, then hold), ``~/halt``, ``~/recover`` and ``~/park`` (move to the
+  arm's park posture; answers when it is there) (std_srvs/Trigger).
 
 The cycle runs in a process of its own by default (:mod:`redarm_ros.can.driver_process`: real-time
 priority when permitted, garbage collector kept out of the cycle), so the executor of this node
@@ -125,8 +126,14 @@ PARAMS = [
     ParamSpec("frame_id", "", "header.frame_id of /joint_states.", None),
     ParamSpec("watchdog", True, "Arm the modules' watchdog at init and recover and refresh it every cycle "
               "(a stalled or dead driver then halts the arm).", None, read_only=True),
-    ParamSpec("request_timeout_s", 60.0, "Longest a ~/init, ~/halt or ~/recover call may take (s).",
+    ParamSpec("request_timeout_s", 60.0, "Longest a ~/init, ~/halt, ~/recover or ~/park call may take (s).",
               range=(0.0, 3600.0)),
+    ParamSpec("park_tolerance_rad", 2e-3, "~/park succeeds once every measured joint is this close (rad) "
+              "to the park posture.", read_only=True, range=(1e-5, 0.1)),
+    ParamSpec("park_speed_scale", 0.9, "Fraction of the velocity and acceleration limits the ~/park move "
+              "is planned with.", read_only=True, range=(0.01, 1.0)),
+    ParamSpec("park_after_init", False, "After every successful ~/init (and auto_init), move to the park "
+              "posture (homing leaves the arm at 0 rad).", read_only=True),
     ParamSpec("separate_process", True, "Run the CAN cycle in a process of its own, away from this node's "
               "executor (false: a thread of this node; needed for the in-process 'virtual' interface).",
               read_only=True),
@@ -219,6 +226,10 @@ class CanDriverNode(Node):
             hold_on_stream_stop_s=float(p["hold_on_stream_stop_s"]),
             reconnect_max_s=float(p["reconnect_max_s"]), auto_init=bool(p["auto_init"]),
             limit_margin_rad=float(p["limit_margin_rad"]),
+            park=None if self.arm.park is None else tuple(float(v) for v in self.arm.park),
+            park_tolerance_rad=float(p["park_tolerance_rad"]),
+            park_speed_scale=float(p["park_speed_scale"]),
+            park_after_init=bool(p["park_after_init"]),
         )
         spec = DriverSpec(
             module_ids=tuple(ids), lower=tuple(self.arm.lower), upper=tuple(self.arm.upper),
@@ -235,6 +246,9 @@ class CanDriverNode(Node):
         services = MutuallyExclusiveCallbackGroup()  # init may take seconds; keep topics flowing
         for action in ("init", "halt", "recover"):
             self.create_service(Trigger, f"~/{action}", self._trigger(action), callback_group=services)
+        # park waits for the arm to arrive: a group of its own, so ~/halt is served meanwhile.
+        self.create_service(Trigger, "~/park", self._trigger("park"),
+                            callback_group=MutuallyExclusiveCallbackGroup())
         self.create_timer(DIAGNOSTICS_PERIOD_S, self._publish_diagnostics)
         self.add_post_set_parameters_callback(self._on_params_set)
         self._warn_times: dict[str, float] = {}

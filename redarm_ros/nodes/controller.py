@@ -107,8 +107,10 @@ PARAMS = [
     ParamSpec("swivel_reference", "high", "What preferred_swivel is measured from: 'high' (highest elbow), "
               "'low' (lowest elbow) or 'absolute' (the swivel angle itself).",
               _one_of("high", "low", "absolute"), read_only=True),
-    ParamSpec("swivel_mode", "dynamics", "'dynamics' (swivel attractor + obstacle/limit force-lets) or "
-              "'fixed' (keep the start swivel).", _one_of("dynamics", "fixed"), read_only=True),
+    ParamSpec("swivel_mode", "dynamics", "'dynamics' (swivel attractor + obstacle/limit force-lets), "
+              "'fixed' (keep the start swivel) or 'attractor_paper' (the attractor paper's redundancy "
+              "dynamics with sector force-lets and path-tangent hand orientation).",
+              _one_of("dynamics", "fixed", "attractor_paper"), read_only=True),
     ParamSpec("max_speed", 0.4, "Largest end-effector speed (m/s).", positive, read_only=True),
     ParamSpec("pos_tolerance", 1e-3, "Phase 'reached' below this position error (m).", positive,
               read_only=True),

@@ -586,6 +586,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--gui", action="store_true", help="pybullet GUI (needs a display)")
     ap.add_argument("--rate", type=float, default=1000.0, help="physics rate in Hz (default 1000)")
     ap.add_argument("--initial-q", nargs="+", default=None, help="initial joint positions (rad)")
+    ap.add_argument("--start", choices=("zero", "park"), default=None,
+                    help="initial posture: zero (all joints 0, the default) or park (the arm's park "
+                    "posture, park: in its YAML); not with --initial-q")
     ap.add_argument("--first-id", type=int, default=1, help="module id of joint 1 (default 1)")
     ap.add_argument("--scene", default=None, help="scene name (config/scenes) or YAML path to show")
     ap.add_argument("--status-file", default=env(ENV_PREFIX + "STATUS_FILE"), help="JSON status path")
@@ -685,6 +688,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         faults.validate()
         w, h = (int(v) for v in str(args.snapshot_size).lower().split("x"))
         initial_q = _floats(" ".join(args.initial_q)) if args.initial_q else None
+        if initial_q is not None and args.start is not None:
+            raise ValueError("--start and --initial-q exclude each other")
         if args.rate <= 0 or not math.isfinite(args.rate):
             raise ValueError("--rate must be > 0")
     except ValueError as exc:
@@ -696,6 +701,11 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     try:
         arm = load_arm(args.arm)
+        if args.start == "park":
+            if arm.park is None:
+                _LOG.error("--start park: arm %s has no park posture (park: in its YAML)", arm.name)
+                return EXIT_BAD_ARGS
+            initial_q = arm.park.tolist()
         plant = PybulletPlant.create(arm, gui=args.gui, time_step=1.0 / args.rate, initial_q=initial_q)
         if args.scene:
             from redarm_ros.control.obstacles import load_scene
