@@ -522,12 +522,14 @@ def main(argv: list[str] | None = None) -> int:
         "--stack", action="store_true", help="also one run through the whole stack (ROS, CAN, sim)"
     )
     ap.add_argument("--stack-only", action="store_true", help="only the run through the stack")
+    ap.add_argument("--chain", action="store_true",
+                    help="only the command-chain model (controller -> driver -> modules on one clock)")
     ap.add_argument(
-        "--stack-leads",
-        type=lambda v: [float(x) for x in v.split(",")],
-        default=[0.0],
-        help="stream_lead_s values for the stack run (comma-separated, default 0)",
+        "--stack-compare",
+        action="store_true",
+        help="stack runs with the commands of before (unstamped, no lead) and the defaults, alternating",
     )
+    ap.add_argument("--stack-repeats", type=int, default=1, help="stack runs per command timing (default 1)")
     ap.add_argument("--verbose", action="store_true")
     ap.add_argument("--plot-dir", type=Path, default=None,
                     help="write the PNG plots here (default: beside the results file when it is written)")
@@ -539,7 +541,11 @@ def main(argv: list[str] | None = None) -> int:
         "",
     ]
     sections: dict[str, list[str]] = {}
-    if not args.stack_only:
+    if args.chain:
+        load0, t0 = os.getloadavg(), time.time()
+        title, body = chain_section()
+        sections[title] = [*body, _load_line(load0, t0), ""]
+    elif not args.stack_only:
         load0, t0 = os.getloadavg(), time.time()
         traces: dict[tuple[str, str], tuple[np.ndarray, np.ndarray]] = {}
         lines, steps = in_process(args, traces)
@@ -650,6 +656,10 @@ class StackClient:
         self.joints: list[tuple[float, np.ndarray]] = []  # (header stamp s, positions)
         self.node.create_subscription(ControllerState, "/controller/state", self.states.append, 200)
         self.node.create_subscription(JointState, "joint_states", self._on_js, 500)
+        from trajectory_msgs.msg import JointTrajectory
+
+        self.commands: list[tuple[float, np.ndarray]] = []  # (ROS time of receipt, commanded joints)
+        self.node.create_subscription(JointTrajectory, "joint_command", self._on_cmd, 500)
         self._names = list(self.arm.joint_names)
         self._seen_halts = 0
 
@@ -658,6 +668,13 @@ class StackClient:
         if all(n in pos for n in self._names):
             t = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
             self.joints.append((t, np.array([pos[n] for n in self._names])))
+
+    def _on_cmd(self, msg) -> None:
+        if not msg.points:
+            return
+        pos = dict(zip(msg.joint_names, msg.points[-1].positions, strict=False))
+        if all(n in pos for n in self._names):
+            self.commands.append((self.now(), np.array([pos[n] for n in self._names])))
 
     def now(self) -> float:
         return self.node.get_clock().now().nanoseconds * 1e-9
@@ -743,24 +760,33 @@ class StackClient:
             self.stack.close()
 
 
+#: Command timings of the stack runs: name -> controller parameters.
+STACK_COMMANDS = {
+    "unstamped, lead 0 (before)": ["-p", "command_delay_s:=0.0", "-p", "stream_lead_s:=0.0"],
+    "stamped +50 ms, lead 60 ms (default)": [],
+}
+
+
 def stack_run(args: argparse.Namespace) -> tuple[str, list[str]]:
     """circle-0.16 at 50 Hz through the stack; the simulated tool (pybullet, from the simulator's
-    status at 100 Hz) and FK of /joint_states (the modules' measured positions) are scored."""
+    status at 100 Hz), FK of /joint_states (the modules' measured positions) and FK of /joint_command
+    as it arrives (the controller's commands, at receipt) are scored."""
     title = "## Through the stack (bring-up: bus server, simulator, can_driver, ik_service, controller)"
     out = [""]
     rows = [
-        "| path | Hz | stream lead s | measured on | samples | pos err median mm | p95 mm | max mm | "
+        "| path | Hz | commands | measured on | samples | pos err median mm | p95 mm | max mm | "
         "lag ms | "
-        "overshoot at stop mm | error 2 s after stop mm | driver halts |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "overshoot at stop mm | error 2 s after stop mm | driver halts | load (1 min) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     path = circle(0.16)
-    for lead in args.stack_leads:
+    names = list(STACK_COMMANDS) if args.stack_compare else list(STACK_COMMANDS)[-1:]
+    for name in [n for _ in range(args.stack_repeats) for n in names]:
         c = StackClient(
             {
                 "extra_args": {
                     "sim": ["--status-rate", "100"],
-                    "controller": ["-p", f"stream_lead_s:={lead:g}"],
+                    "controller": STACK_COMMANDS[name],
                 }
             }
         )
@@ -769,13 +795,18 @@ def stack_run(args: argparse.Namespace) -> tuple[str, list[str]]:
                 raise RuntimeError("no joint_states / controller state from the stack")
             # From the homed (stretched) pose the controller moves in joint space by itself.
             ok, _ = c.reach(path.pose(0.0), 40.0)
-            if not ok and c.halts():
-                c.recover()
-                ok, _ = c.reach(path.pose(0.0), 40.0)
             if not ok:
-                raise RuntimeError(f"the start of the path was not reached: {c.states[-1].message}")
+                if c.halts():
+                    c.recover()
+                ok, _ = c.reach(path.pose(0.0), 40.0)  # a starved machine: once more
+            if not ok:
+                rows.append(f"| {path.name} | 50 | {name} | - | 0 | the start of the path was not reached "
+                            f"(load {os.getloadavg()[0]:.1f}): {c.states[-1].message} |||||||")
+                continue
             c.spin_until(lambda: False, 2.0)  # the elbow settles
             c.joints.clear()
+            c.commands.clear()
+            load = os.getloadavg()[0]
             sim: list[tuple[float, np.ndarray]] = []
             t0 = c.now() + 0.05
             k = 0
@@ -796,27 +827,30 @@ def stack_run(args: argparse.Namespace) -> tuple[str, list[str]]:
                 if t > path.duration + AFTER_S:
                     break
                 c.ex.spin_once(timeout_sec=0.001)
-            for name, series in (
+            for where, series in (
                 ("simulated tool (pybullet)", [(w - t0, p) for w, p in sim]),
                 ("FK of /joint_states", [(t - t0, c.arm.fk(q)[:3, 3]) for t, q in c.joints]),
+                ("FK of /joint_command at receipt", [(t - t0, c.arm.fk(q)[:3, 3]) for t, q in c.commands]),
             ):
-                rows.append(_stack_row(path, lead, name, series, c.halts()))
+                rows.append(_stack_row(path, name, where, series, c.halts(), load))
         finally:
             c.close()
     out += rows
     out.append("")
     out.append(
         "Errors against the path at the sample's own time (simulator wall clock, joint-state header "
-        "stamps); the stream is stamped with the ROS clock of the same machine. Stream lead: the "
-        "controller aims this far ahead to make up for the command-to-arm delay (parameter "
-        "stream_lead_s)."
+        "stamps, receipt of /joint_command by this client); the stream is stamped with the ROS clock of "
+        "the same machine. Commands: before = /joint_command segments started on receipt and no lead "
+        "(command_delay_s 0, stream_lead_s 0); default = segments stamped to end 50 ms after their step "
+        "(command_delay_s) and the stream tracked 50 + 10 ms ahead (stream_lead_s: the driver cycle "
+        "and the modules' set-point generators). A negative lag of /joint_command is that lead."
     )
     out.append("")
     return title, out
 
 
 def _stack_row(
-    path: PathDef, lead: float, name: str, series: list[tuple[float, np.ndarray]], halts: int
+    path: PathDef, commands: str, name: str, series: list[tuple[float, np.ndarray]], halts: int, load: float
 ) -> str:
     ts = np.array([t for t, _ in series])
     ps = np.array([p for _, p in series])
@@ -836,10 +870,64 @@ def _stack_row(
     over = max(0.0, float(np.max((after - end) @ (u / np.linalg.norm(u))))) * 1e3 if len(after) else math.nan
     final = float(np.linalg.norm(ps[-1] - end)) * 1e3
     return (
-        f"| {path.name} | 50 | {lead:g} | {name} | {int(live.sum())} | {np.median(e):.2f} | "
+        f"| {path.name} | 50 | {commands} | {name} | {int(live.sum())} | {np.median(e):.2f} | "
         f"{np.percentile(e, 95):.2f} | {np.max(e):.2f} | {best[1] * 1e3:.0f} | {over:.2f} | {final:.2f} | "
-        f"{halts} |"
+        f"{halts} | {load:.1f} |"
     )
+
+
+def chain_section() -> tuple[str, list[str]]:
+    """circle-0.16 at 50 Hz through the model of the command chain (benchmarks/track_chain.py): each
+    command timing under each message timing; the modules' set-points (FK) are scored."""
+    from track_chain import COMMANDS, TIMINGS, run_chain
+
+    arm = load_arm("pa10")
+    path = circle(0.16)
+    q0 = settle_start(arm, path)
+    title = "## Command chain model (controller core -> driver -> modules on one clock, no ROS)"
+    out = [
+        "",
+        "| message timing | commands | pos err median mm | p95 mm | max mm | lag ms | overshoot at stop mm | "
+        "error 2 s after stop mm |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for timing in TIMINGS:
+        for cmds in COMMANDS:
+            ts, ps = run_chain(arm, path, q0, timing, cmds)
+            e, lag, over, final = _series_scores(path, ts, ps)
+            out.append(
+                f"| {timing.name} | {cmds.name} | {np.median(e):.2f} | {np.percentile(e, 95):.2f} | "
+                f"{np.max(e):.2f} | {lag:.0f} | {over:.2f} | {final:.2f} |"
+            )
+    out += [
+        "",
+        "The real JointCommandSource, ReferenceShaper and JointRamp classes and the controller core, with "
+        "the processes, DDS and the bus replaced by the delays named (the controller's 100 Hz timer on a "
+        "kept grid, its ticks late by up to the jitter; /joint_command messages delivered in order after "
+        "the latency). Scored: FK of the modules' set-points against the path at the same time.",
+        "",
+    ]
+    return title, out
+
+
+def _series_scores(path: PathDef, ts: np.ndarray, ps: np.ndarray) -> tuple[np.ndarray, float, float, float]:
+    """Errors (mm) while the stream runs, lag (ms), overshoot at the stop (mm), final error (mm) of a
+    timed series of tool positions."""
+    live = (ts >= 0.0) & (ts <= path.duration)
+    ref = np.array([path.pose(min(max(t, 0.0), path.duration))[:3, 3] for t in ts])
+    e = np.linalg.norm(ps - ref, axis=1)[live] * 1e3
+    best = (math.inf, 0.0)
+    sub = np.flatnonzero(live)[:: max(1, int(live.sum() // 400))]
+    for tau in np.arange(-0.05, 0.301, 0.002):
+        sh = np.array([path.pose(min(max(ts[i] - tau, 0.0), path.duration))[:3, 3] for i in sub])
+        m = float(np.mean(np.linalg.norm(ps[sub] - sh, axis=1)))
+        if m < best[0]:
+            best = (m, tau)
+    end = path.pose(path.duration)[:3, 3]
+    u = end - path.pose(path.duration - 0.3)[:3, 3]
+    after = ps[ts > path.duration]
+    over = max(0.0, float(np.max((after - end) @ (u / np.linalg.norm(u))))) * 1e3 if len(after) else math.nan
+    return e, best[1] * 1e3, over, float(np.linalg.norm(ps[-1] - end)) * 1e3
 
 
 def _load_line(load0: tuple[float, float, float], t0: float) -> str:

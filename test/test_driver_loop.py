@@ -107,6 +107,68 @@ def test_clear_drops_the_command() -> None:
     np.testing.assert_allclose(src.sample(5.0, np.zeros(N), np.ones(N)), 1.0)
 
 
+def test_trajectory_starting_later_is_spliced_in_at_its_start() -> None:
+    """A trajectory that starts after the last sample, while another plays, waits for its start (the
+    current one plays on until then); one that starts now or earlier replaces the current at once."""
+    src = JointCommandSource(N)
+    z = np.zeros(N)
+    src.set_trajectory([0], [0.0, 1.0], np.array([[0.0], [1.0]]), start=0.0)
+    np.testing.assert_allclose(src.sample(0.5, z, z)[0], 0.5)
+    # Starts at 2.0 from 5.0: until then the first one plays (and holds its last point).
+    src.set_trajectory([0], [0.0, 1.0], np.array([[5.0], [6.0]]), start=2.0)
+    assert src.queued == 1
+    np.testing.assert_allclose(src.sample(0.9, z, z)[0], 0.9)
+    np.testing.assert_allclose(src.sample(1.5, z, z)[0], 1.0)
+    np.testing.assert_allclose(src.sample(2.5, z, z)[0], 5.5)
+    assert src.queued == 0
+    # Starting before the last sample (a late message): replaces the current one at once.
+    src.set_trajectory([0], [0.0, 1.0], np.array([[7.0], [8.0]]), start=2.0)
+    np.testing.assert_allclose(src.sample(2.6, z, z)[0], 7.6)
+
+
+def test_a_new_trajectory_replaces_those_queued_after_its_start() -> None:
+    src = JointCommandSource(N)
+    z = np.zeros(N)
+    src.set_trajectory([0], [0.0], np.array([[1.0]]), start=0.0)
+    src.sample(0.0, z, z)
+    src.set_trajectory([0], [0.0], np.array([[2.0]]), start=1.0)
+    src.set_trajectory([0], [0.0], np.array([[3.0]]), start=3.0)
+    src.set_trajectory([0], [0.0], np.array([[4.0]]), start=2.0)  # drops the one at 3.0
+    assert src.queued == 2
+    assert [src.sample(t, z, z)[0] for t in (0.5, 1.5, 2.5, 3.5)] == [1.0, 2.0, 4.0, 4.0]
+    src.set_trajectory([0], [0.0], np.array([[5.0]]), start=9.0)
+    src.clear(None)  # a clear (halt, init) drops the queued ones too
+    assert src.queued == 0
+
+
+def test_stamped_segments_play_at_a_fixed_delay_whatever_their_latency() -> None:
+    """Segments of a 100 Hz ramp, each stamped to end ``delay`` after its step, arriving with a latency
+    of 0-15 ms (in order, as one publisher's messages are delivered): sampled at 250 Hz the target is
+    the ramp delayed by ``delay`` exactly."""
+    rng = np.random.default_rng(5)
+    src = JointCommandSource(1)
+    delay, period, speed = 0.03, 0.01, 0.5
+    arrivals = [(0.0, 0.0)]
+    for k in range(1, 60):
+        t_step = k * period
+        arrivals.append((max(arrivals[-1][0], t_step + rng.uniform(0.0, 0.015)), t_step))
+    arrivals.pop(0)
+    out = []
+    i = 0
+    q = np.zeros(1)
+    for c in range(int(0.6 / 0.004)):
+        now = c * 0.004
+        while i < len(arrivals) and arrivals[i][0] <= now:
+            t_step = arrivals[i][1]
+            src.set_trajectory([0], [0.0, period], np.array([[speed * (t_step - period)], [speed * t_step]]),
+                               start=t_step + delay - period)
+            i += 1
+        q = src.sample(now, q, q)
+        if 0.1 <= now <= 0.55:
+            out.append(q[0] - speed * (now - delay))
+    assert np.max(np.abs(out)) < 1e-9
+
+
 def test_period_stats() -> None:
     st = PeriodStats(0.004, window=100)
     assert st.summary()["samples"] == 0

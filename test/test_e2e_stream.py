@@ -25,6 +25,7 @@ from geometry_msgs.msg import PoseStamped  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from redarm_interfaces.msg import ControllerState  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
+from trajectory_msgs.msg import JointTrajectory  # noqa: E402
 
 from redarm_ros.bringup import Stack, StackConfig  # noqa: E402
 from redarm_ros.kinematics import load_arm  # noqa: E402
@@ -83,6 +84,11 @@ class Client:
         self.recover = self.node.create_client(Trigger, "/can_driver/recover")
         self.states: list[ControllerState] = []
         self.node.create_subscription(ControllerState, "/controller/state", self.states.append, 200)
+        self.stamped_commands = 0  # /joint_command segments with a header stamp (command_delay_s)
+        self.node.create_subscription(JointTrajectory, "joint_command", self._on_cmd, 200)
+
+    def _on_cmd(self, msg: JointTrajectory) -> None:
+        self.stamped_commands += bool(msg.header.stamp.sec or msg.header.stamp.nanosec)
 
     def spin_until(self, cond: Callable[[], bool], timeout: float) -> bool:
         deadline = time.monotonic() + timeout
@@ -172,6 +178,10 @@ def test_stream_followed_by_the_simulated_tool(stack: Stack, client: Client) -> 
     path = np.array([line_path(t, duration)[:3, 3] for t in np.linspace(0.0, duration, 2001)])
     err = np.array([np.min(np.linalg.norm(path - p, axis=1)) for _, p in live])
     assert len(err) > 20
+    print(f"e2e stream: {len(err)} samples, off the path median {np.median(err) * 1e3:.1f} mm, max "
+          f"{np.max(err) * 1e3:.1f} mm, {client.stamped_commands} stamped commands")
+    # The driver shares the controller's clock: the segments go out stamped (played at a fixed delay).
+    assert client.stamped_commands > 50
     assert np.median(err) < 0.005, f"median {np.median(err) * 1e3:.1f} mm off the path"
     final = np.linalg.norm(samples[-1][1] - line_path(duration, duration)[:3, 3])
     last = client.states[-1]

@@ -40,8 +40,10 @@ Q0 = np.array([0.0, 0.6, 0.0, 1.4, 0.0, 1.1, 0.0])
 class IdealArm:
     """Test double of can_driver + hardware: the last commanded point becomes the measured state."""
 
-    def __init__(self, ctx: Any, q0: np.ndarray) -> None:
+    def __init__(self, ctx: Any, q0: np.ndarray, stamp_offset: float | None = None) -> None:
         self.node = rclpy.create_node("fake_arm", context=ctx)
+        self.stamp_offset = stamp_offset  # joint_states stamped with the clock plus this (None: unstamped)
+        self.segment_ends: list[float] = []  # stamped commands: segment end minus receipt (s)
         self.q = q0.astype(float).copy()
         self.commands: list[np.ndarray] = []
         self.segment_starts_ok = True  # every two-point message starts at the previous command
@@ -60,23 +62,32 @@ class IdealArm:
             assert msg.points[0].time_from_start.sec == msg.points[0].time_from_start.nanosec == 0
             self.segment_starts_ok &= bool(self.commands) and np.allclose(msg.points[0].positions,
                                                                           self.commands[-1])
+        if msg.header.stamp.sec or msg.header.stamp.nanosec:
+            t_end = (msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9 + end.time_from_start.sec
+                     + end.time_from_start.nanosec * 1e-9)
+            self.segment_ends.append(t_end - self.node.get_clock().now().nanoseconds * 1e-9)
         q = np.array(end.positions)
         self.commands.append(q)
         self.q = q
 
     def publish(self) -> None:
         if self.publishing:
-            self.pub.publish(JointState(name=ARM.joint_names, position=[float(v) for v in self.q]))
+            msg = JointState(name=ARM.joint_names, position=[float(v) for v in self.q])
+            if self.stamp_offset is not None:
+                t = self.node.get_clock().now().nanoseconds * 1e-9 + self.stamp_offset
+                msg.header.stamp.sec, msg.header.stamp.nanosec = int(t), int((t - int(t)) * 1e9)
+            self.pub.publish(msg)
 
 
 class Harness:
     """Controller node + ideal arm + a probe (goals/obstacles out, state/markers in), one executor."""
 
-    def __init__(self, ctx: Any, q0: np.ndarray = Q0, **params: Any) -> None:
+    def __init__(self, ctx: Any, q0: np.ndarray = Q0, stamp_offset: float | None = None,
+                 **params: Any) -> None:
         overrides = [Parameter("duplicate_check_s", value=0.0)]
         overrides += [Parameter(k, value=v) for k, v in params.items()]
         self.ctl = ControllerNode(context=ctx, parameter_overrides=overrides)
-        self.arm = IdealArm(ctx, q0)
+        self.arm = IdealArm(ctx, q0, stamp_offset)
         self.probe = rclpy.create_node("probe", context=ctx)
         self.goal_pub = self.probe.create_publisher(PoseStamped, "goal_pose", 10)
         self.twist_pub = self.probe.create_publisher(TwistStamped, "/controller/target_twist", 10)
@@ -298,6 +309,26 @@ def test_goal_before_joint_states_waits(ctx: Any) -> None:
         h.arm.publishing = True
         assert h.wait_reached(20.0)
         assert ARM.pose_error(h.arm.q, T)[0] < 1e-3
+    finally:
+        h.close()
+
+
+@pytest.mark.parametrize("offset", [0.0, 5.0])
+def test_commands_stamped_to_end_the_delay_after_their_step(ctx: Any, offset: float) -> None:
+    """joint_states stamped with the controller's clock: every segment is stamped to end
+    command_delay_s after its step, i.e. at most that long after it arrives (how much earlier depends
+    on the machine's load, not asserted); a driver clock 5 s ahead: unstamped segments."""
+    h = Harness(ctx, stamp_offset=offset, command_delay_s=0.05)
+    try:
+        h.wait_connected()
+        h.send_goal(goal_from(Q0, (0.0, 0.1, 0.0)))
+        assert h.wait_reached(20.0)
+        ends = np.array(h.arm.segment_ends)
+        if offset:
+            assert ends.size == 0
+            return
+        assert ends.size > 20
+        assert np.all(ends <= 0.05 + 1e-3)
     finally:
         h.close()
 

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import enum
 import logging
+import math
 import queue
 import threading
 import time
@@ -67,6 +68,7 @@ __all__ = [
     "ACTIONS",
     "DEFAULT_LIMIT_MARGIN",
     "LOOP_STATE_OF",
+    "MAX_QUEUED_TRAJECTORIES",
     "ArmDriver",
     "Backoff",
     "CommandMode",
@@ -134,6 +136,11 @@ def check_stream_target(n: int, index: Sequence[int], q: Sequence[float]) -> tup
     return idx, qq
 
 
+#: Trajectories that may wait for their start behind the one being followed (a controller stamping
+#: its segments ahead queues a few; beyond this the earliest waiting one is dropped).
+MAX_QUEUED_TRAJECTORIES = 64
+
+
 class CommandMode(enum.Enum):
     """What the command source is following."""
 
@@ -164,6 +171,13 @@ class JointCommandSource:
     last point its position is kept. Joints the trajectory does not name
     keep the reference value they had when it started.
 
+    A trajectory that starts later than the last sample while another one is
+    being followed is spliced in at its start, as ros2_control's joint
+    trajectory controller does: the current one is followed until then (a
+    controller that stamps its segments a little ahead of time is thus played
+    on its own clock, whatever the message latency). A new trajectory replaces
+    those queued to start at or after its own start.
+
     Stream semantics (``sensor_msgs/JointState`` targets): the latest target is
     followed; if no new one arrives within ``stream_timeout_s`` the source
     switches to HOLD at the measured position at that moment.
@@ -176,6 +190,8 @@ class JointCommandSource:
         self._mode = CommandMode.HOLD
         self._hold: np.ndarray | None = None
         self._traj: _Trajectory | None = None
+        self._queued: list[_Trajectory] = []  # spliced in at their starts (sorted by start)
+        self._last_sample = -math.inf  # time of the last sample (s)
         self._stream_q: np.ndarray | None = None
         self._stream_index: np.ndarray | None = None
         self._stream_time = 0.0
@@ -193,6 +209,7 @@ class JointCommandSource:
             self._mode = CommandMode.HOLD
             self._hold = None if hold_q is None else np.array(hold_q, dtype=float).reshape(self.n)
             self._traj = None
+            self._queued = []
             self._stream_q = None
             self.generation += 1
 
@@ -205,11 +222,29 @@ class JointCommandSource:
             InvalidInputError: see :func:`check_trajectory` (the current command is kept).
         """
         idx, t, p = check_trajectory(self.n, index, times_s, points)
+        tr = _Trajectory(idx, t, p, float(start))
         with self._lock:
-            self._traj = _Trajectory(idx, t, p, float(start))
+            cur = self._traj
+            if (self._mode is CommandMode.TRAJECTORY and cur is not None and tr.start > self._last_sample
+                    and tr.start > cur.start):
+                # Splice: the current trajectory plays until this one starts.
+                queued = [q for q in self._queued if q.start < tr.start]
+                if len(queued) >= MAX_QUEUED_TRAJECTORIES:
+                    queued.pop(0)
+                queued.append(tr)
+                self._queued = queued
+            else:
+                self._traj = tr
+                self._queued = []
             self._mode = CommandMode.TRAJECTORY
             self._stream_q = None
             self.generation += 1
+
+    @property
+    def queued(self) -> int:
+        """Trajectories waiting for their start behind the one being followed."""
+        with self._lock:
+            return len(self._queued)
 
     def set_park(self, times_s: Sequence[float], points: np.ndarray, start: float) -> int:
         """Follow the park move (all joints, ``points`` (k, n) rad at ``times_s`` (k,)) as a trajectory
@@ -217,6 +252,7 @@ class JointCommandSource:
         idx, t, p = check_trajectory(self.n, range(self.n), times_s, points)
         with self._lock:
             self._traj = _Trajectory(idx, t, p, float(start))
+            self._queued = []
             self._mode = CommandMode.PARK
             self._stream_q = None
             self.generation += 1
@@ -235,6 +271,7 @@ class JointCommandSource:
             self._stream_time = float(now)
             self._mode = CommandMode.STREAM
             self._traj = None
+            self._queued = []
             self.generation += 1
 
     def sample(self, now: float, q_ref: np.ndarray, q_measured: np.ndarray) -> np.ndarray:
@@ -245,8 +282,11 @@ class JointCommandSource:
         stream stops, or when HOLD has no position yet).
         """
         with self._lock:
+            self._last_sample = max(self._last_sample, now)
             mode = self._mode
             if mode is CommandMode.TRAJECTORY or mode is CommandMode.PARK:
+                while mode is CommandMode.TRAJECTORY and self._queued and self._queued[0].start <= now:
+                    self._traj = self._queued.pop(0)  # its q_start: the reference as it is now
                 tr = self._traj
                 assert tr is not None
                 if tr.q_start is None:
@@ -271,7 +311,7 @@ def _interpolate(tr: _Trajectory, now: float) -> np.ndarray:
     assert tr.q_start is not None
     q = tr.q_start.copy()
     t = now - tr.start
-    if t <= 0.0:
+    if t < 0.0:
         return q
     # Prepend the starting reference at time 0 so the first segment starts where the arm is.
     times = tr.times

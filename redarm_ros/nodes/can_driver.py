@@ -67,6 +67,7 @@ from redarm_ros.nodes._common import ParamSpec, declare_params, run_node, watch_
 
 NODE_NAME = "can_driver"
 DIAGNOSTICS_PERIOD_S = 0.5
+FUTURE_STAMP_WARN_S = 1.0  # a trajectory stamped further ahead than this (s) is logged (clocks apart?)
 
 
 def _non_empty_string(value: Any) -> str | None:
@@ -393,6 +394,9 @@ class CanDriverNode(Node):
                 # A stamped trajectory starts at its stamp (ROS clock), mapped onto the monotonic clock.
                 ahead = (stamp.sec + stamp.nanosec * 1e-9) - self.get_clock().now().nanoseconds * 1e-9
                 start += ahead
+                if ahead > FUTURE_STAMP_WARN_S:
+                    self._warn_throttled("future-stamp", f"trajectory stamped {ahead:.1f} s ahead of this "
+                                         "node's clock: it starts then (clocks not synchronised?)")
             self.loop.commands.set_trajectory(index, times, points, start)
         except InvalidInputError as exc:
             self._warn_throttled("bad-trajectory", f"trajectory refused: {exc}", 0.5)

@@ -16,8 +16,9 @@ Topics (relative names, so a namespace or remapping applies):
   ADD/MODIFY/DELETE/DELETEALL by (ns, id); replaces the obstacles of the ``scene`` parameter, whose
   table stays;
 * in  ``joint_states`` (sensor_msgs/JointState): the measured arm (from ``can_driver``);
-* out ``joint_command`` (trajectory_msgs/JointTrajectory): one point per control step,
-  ``time_from_start`` = one period;
+* out ``joint_command`` (trajectory_msgs/JointTrajectory): one segment per control step, from the
+  previous command to the new one, stamped to end ``command_delay_s`` after the step
+  (:mod:`redarm_ros.nodes.command_timing`);
 * out ``~/state`` (redarm_interfaces/ControllerState): phase, swivel, clearance, distance to goal...
   every step;
 * out ``~/markers`` (visualization_msgs/MarkerArray): elbow circle, arm, heading, goal, obstacles.
@@ -35,7 +36,7 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
-from builtin_interfaces.msg import Duration
+from builtin_interfaces.msg import Duration, Time
 from geometry_msgs.msg import Point, PoseStamped, TwistStamped
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -75,6 +76,7 @@ from redarm_ros.nodes._common import (
     run_node,
     watch_duplicates,
 )
+from redarm_ros.nodes.command_timing import CommandClock
 
 NODE_NAME = "controller"
 STILL_WINDOW_S = 0.25  # s of joint_states looked at to decide that the arm stands still
@@ -129,9 +131,13 @@ PARAMS = [
               "not a stream sample.", positive, read_only=True),
     ParamSpec("stream_jump", 0.05, "A goal farther than this (m) from where the stream was predicted is a "
               "new goal, not a stream sample.", positive, read_only=True),
-    ParamSpec("stream_lead_s", 0.0, "Track a goal stream this far (s) ahead of now, to make up for the delay "
-              "between a command and the arm (driver interpolation, bus).", in_range(0.0, 0.5),
-              read_only=True),
+    ParamSpec("command_delay_s", 0.05, "Each /joint_command segment is stamped to end this long (s) after "
+              "its control step, so the driver plays it at a fixed delay whatever the message latency (0 = "
+              "unstamped segments, started on receipt). Stamps only while the joint_states stamps show that "
+              "the driver's clock is this node's.", in_range(0.0, 0.5), read_only=True),
+    ParamSpec("stream_lead_s", 0.01, "The arm's own lag (s) behind the driver's command (driver cycle, "
+              "module set-point generator): a goal stream is tracked command_delay_s + this far ahead of "
+              "now.", in_range(0.0, 0.5), read_only=True),
     ParamSpec("twist_timeout_s", 0.1, "A target_twist is held this long (s), then the hand decelerates.",
               positive, read_only=True),
     ParamSpec("tool_frame", "tool", "Frame name of twists given in the tool frame (others: base_frame).",
@@ -236,7 +242,7 @@ class ControllerNode(Node):
                 pos_tolerance=float(p["pos_tolerance"]), ori_tolerance=float(p["ori_tolerance"]),
                 speed=SpeedParams(v_max=float(p["max_speed"])),
                 stream=StreamParams(gap=float(p["stream_gap_s"]), jump=float(p["stream_jump"]),
-                                    lead=float(p["stream_lead_s"])),
+                                    lead=float(p["command_delay_s"]) + float(p["stream_lead_s"])),
                 servo=ServoParams(twist_timeout=float(p["twist_timeout_s"])),
                 replan=ReplanParams(enabled=bool(p["replan"])),
             )
@@ -256,6 +262,7 @@ class ControllerNode(Node):
         self._last_dt = 1.0 / p["rate_hz"]
         self._meas_hist: list[tuple[float, np.ndarray]] = []
         self._last_cmd: np.ndarray | None = None
+        self._cmd_clock = CommandClock(float(p["command_delay_s"]))
         self._markers: dict[tuple[str, int], Any] = {}
         self._last_marker_ids: set[tuple[str, int]] = set()
         self._warned: dict[str, float] = {}
@@ -314,6 +321,7 @@ class ControllerNode(Node):
             return
         self._q_meas = q
         self._t_meas = time.monotonic()
+        self._cmd_clock.joint_state(msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9, self._now())
         # A short history tells a halted arm (not moving) from one that merely lags the command.
         self._meas_hist.append((self._t_meas, q))
         while self._meas_hist and self._t_meas - self._meas_hist[0][0] > STILL_WINDOW_S:
@@ -451,7 +459,8 @@ class ControllerNode(Node):
         self._resync_if_needed()
         dt = min(max(now - self._last_step, 0.0), 2.0 * self.period)
         self._last_step = now
-        res = self.ctl.step(dt, self._now())
+        t_step = self._now()
+        res = self.ctl.step(dt, t_step)
         self._last_dt = dt
         self.steps += 1
         self._last_result = res
@@ -475,7 +484,7 @@ class ControllerNode(Node):
         # after the goal is dropped until the arm has stopped.
         moving = self._last_cmd is not None and float(np.max(np.abs(res.q - self._last_cmd))) > 1e-12
         if moving or res.phase not in (Phase.IDLE, Phase.REJECTED):
-            self._publish_command(res.q)
+            self._publish_command(res.q, t_step)
         self.state_pub.publish(self._state_msg(res))
 
     def _resync_if_needed(self) -> None:
@@ -505,17 +514,28 @@ class ControllerNode(Node):
         else:
             self.get_logger().info(f"measured joints moved by {dev:.3f} rad; restarting from them")
 
-    def _publish_command(self, q: np.ndarray) -> None:
+    def _publish_command(self, q: np.ndarray, t_step: float) -> None:
         """One control step as a self-contained segment: the previous command at t = 0, the new one at
         t = the step's duration (a late timer tick covers more motion, so the driver sees the speed the
         controller planned). The driver interpolates between the two commands, whatever its own
-        (shaped, possibly lagging) reference is; the first command after a (re)start is one point."""
-        dt = max(self._last_dt, 1e-3)
+        (shaped, possibly lagging) reference is; the first command after a (re)start is one point.
+        Stamped (``command_delay_s``), the segment ends that long after the step ``t_step`` (ROS time);
+        the driver follows the previous one until it starts."""
+        seg = self._cmd_clock.segment(t_step, self._last_dt)
+        dt = seg.duration
         sec = int(dt)
         end = JointTrajectoryPoint(positions=q.tolist(),
                                    time_from_start=Duration(sec=sec, nanosec=int((dt - sec) * 1e9)))
         msg = JointTrajectory()
         msg.joint_names = self._names
+        if seg.stamp is not None:
+            sec = int(seg.stamp)
+            msg.header.stamp = Time(sec=sec, nanosec=int((seg.stamp - sec) * 1e9))
+        elif self._cmd_clock.delay > 0.0:
+            off = self._cmd_clock.offset()
+            why = "unstamped" if math.isinf(off) else f"{off:+.3f} s off this node's clock"
+            self._warn_throttled("cmd-clock", f"joint_states stamps are {why}: /joint_command segments go "
+                                 "out unstamped (started on receipt; command_delay_s not applied)", 10.0)
         if self._last_cmd is None:
             msg.points = [end]
         else:
