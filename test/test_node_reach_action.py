@@ -24,10 +24,13 @@ from redarm_interfaces.action import Reach  # noqa: E402
 from redarm_interfaces.msg import ControllerState  # noqa: E402
 from test_node_controller import ARM, Q0, Harness, goal_from, rot_z  # noqa: E402
 from trajectory_msgs.msg import JointTrajectory  # noqa: E402
+from visualization_msgs.msg import Marker, MarkerArray  # noqa: E402
 
 from redarm_ros.nodes.controller import pose_to_msg  # noqa: E402
 
 FAR = (0.05, 0.3, 0.05)  # a goal some way off: the arm is still moving for a while after the start
+# The elbow's preferred swivel is where it starts: REACHED does not wait for the elbow to swing over.
+ELBOW = {"swivel_reference": "absolute", "preferred_swivel": float(ARM.swivel(Q0))}
 
 
 class ReachClient:
@@ -79,7 +82,7 @@ def ctx(ros_env: Any) -> Iterator[Any]:
 
 @pytest.fixture
 def h(ctx: Any) -> Iterator[Harness]:
-    harness = Harness(ctx)
+    harness = Harness(ctx, **ELBOW)
     harness.wait_connected()
     yield harness
     harness.close()
@@ -120,7 +123,17 @@ def test_goal_reached_with_feedback(h: Harness, rc: ReachClient) -> None:
     assert h.spin_until(lambda: h.phase() == ControllerState.REACHED, 5.0)
 
 
-def test_rejected_goals_say_why_and_leave_a_running_goal_alone(h: Harness, rc: ReachClient) -> None:
+def test_rejected_goals_say_why_and_leave_a_running_goal_alone(ctx: Any) -> None:
+    # Slow (straight route, 0.1 m/s): the goal is still running after the rejections.
+    h = Harness(ctx, max_speed=0.1, replan=False, **ELBOW)
+    try:
+        h.wait_connected()
+        _rejections_leave_the_running_goal_alone(h, ReachClient(h))
+    finally:
+        h.close()
+
+
+def _rejections_leave_the_running_goal_alone(h: Harness, rc: ReachClient) -> None:
     T = goal_from(Q0, FAR)
     running = rc.send(rc.goal(T))
     assert running.accepted
@@ -137,8 +150,56 @@ def test_rejected_goals_say_why_and_leave_a_running_goal_alone(h: Harness, rc: R
         assert not rc.send(goal).accepted, why
         assert h.spin_until(lambda n=n, why=why: any(s.phase == ControllerState.REJECTED and why in s.message
                                                      for s in h.states[n:]), 5.0), why
+    k = len(rc.feedback)
+    assert h.spin_until(lambda: len(rc.feedback) > k, 2.0)  # still running after the rejections
     res = rc.result(running)
     assert res.result.status == Reach.Result.SUCCESS, res.result.message
+
+
+def test_goal_before_the_first_joint_states_starts_with_them(ctx: Any) -> None:
+    h = Harness(ctx, **ELBOW)
+    h.arm.publishing = False  # no joint_states yet: the controller does not know the arm
+    try:
+        rc = ReachClient(h)
+        T = goal_from(Q0, (0.0, 0.1, 0.0))
+        handle = rc.send(rc.goal(T))
+        assert handle.accepted  # the check needs no arm state
+        assert h.spin_until(lambda: len(rc.feedback) >= 3, 5.0)
+        assert all(f.phase == ControllerState.IDLE and f.message == "waiting for joint_states"
+                   for _, f in rc.feedback)
+        assert h.arm.commands == []
+        h.arm.publishing = True
+        assert rc.result(handle).result.status == Reach.Result.SUCCESS
+    finally:
+        h.close()
+
+
+def test_swivel_preference_holds_for_the_goal_only(h: Harness, rc: ReachClient) -> None:
+    goal = rc.goal(goal_from(Q0, FAR))
+    goal.use_swivel_preference, goal.swivel_preference = True, 0.4
+    handle = rc.send(goal)
+    assert handle.accepted
+    assert h.ctl.ctl.params.preferred_swivel == 0.4
+    wait_moving(h, 10)
+    handle.cancel_goal_async()
+    assert rc.result(handle).result.status == Reach.Result.CANCELED
+    assert h.ctl.ctl.params.preferred_swivel == ELBOW["preferred_swivel"]  # the parameter's value again
+
+
+def test_obstacle_arriving_on_the_goal_ends_it_rejected(h: Harness, rc: ReachClient) -> None:
+    T = goal_from(Q0, FAR)
+    handle = rc.send(rc.goal(T))
+    assert handle.accepted
+    wait_moving(h, 10)
+    m = Marker(ns="test", id=0, type=Marker.SPHERE, action=Marker.ADD)
+    m.header.frame_id = "base_link"
+    m.pose.position.x, m.pose.position.y, m.pose.position.z = (float(v) for v in T[:3, 3])
+    m.pose.orientation.w = 1.0
+    m.scale.x = m.scale.y = m.scale.z = 0.1
+    h.obs_pub.publish(MarkerArray(markers=[m]))
+    res = rc.result(handle)
+    assert res.status == GoalStatus.STATUS_ABORTED
+    assert res.result.status == Reach.Result.REJECTED and "obstacle" in res.result.message, res.result.message
 
 
 def joint_rates(rc: ReachClient, start: int) -> tuple[np.ndarray, np.ndarray]:
@@ -149,7 +210,18 @@ def joint_rates(rc: ReachClient, start: int) -> tuple[np.ndarray, np.ndarray]:
     return v, acc
 
 
-def test_cancel_decelerates_within_limits_then_canceled(h: Harness, rc: ReachClient) -> None:
+@pytest.mark.parametrize("replan", [True, False], ids=["joint_space_move", "attractor"])
+def test_cancel_decelerates_within_limits_then_canceled(ctx: Any, replan: bool) -> None:
+    # (FAR is reached by a joint-space move when re-planning is on, by the attractor dynamics when off)
+    h = Harness(ctx, replan=replan, **ELBOW)
+    try:
+        h.wait_connected()
+        _cancel_decelerates(h, ReachClient(h))
+    finally:
+        h.close()
+
+
+def _cancel_decelerates(h: Harness, rc: ReachClient) -> None:
     T = goal_from(Q0, FAR)
     handle = rc.send(rc.goal(T))
     assert handle.accepted

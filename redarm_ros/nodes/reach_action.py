@@ -214,6 +214,10 @@ class ReachActionServer:
                 self._end(g, "canceled", Reach.Result.CANCELED, "canceled before the arm state was known; "
                           "nothing moved")
                 return
+            if g.timeout > 0.0 and node._now() - g.accepted_at > g.timeout:
+                self._end(g, "abort", Reach.Result.TIMEOUT, f"no joint_states within the timeout of "
+                          f"{g.timeout:g} s: the arm state is unknown; nothing moved")
+                return
             self._start(g)
             if not g.applied:
                 self._feedback(g, "waiting for joint_states")
