@@ -31,6 +31,9 @@ from redarm_ros.nodes.controller import pose_to_msg  # noqa: E402
 FAR = (0.05, 0.3, 0.05)  # a goal some way off: the arm is still moving for a while after the start
 # The elbow's preferred swivel is where it starts: REACHED does not wait for the elbow to swing over.
 ELBOW = {"swivel_reference": "absolute", "preferred_swivel": float(ARM.swivel(Q0))}
+# Slow (the straight route at 0.1 m/s): a goal is still running when a cancel or a newer goal comes,
+# also on a starved machine (FAR takes about 3 s).
+SLOW = {"max_speed": 0.1, "replan": False, **ELBOW}
 
 
 class ReachClient:
@@ -43,7 +46,7 @@ class ReachClient:
         self.feedback: list[tuple[float, Any]] = []
         self.segments: list[tuple[np.ndarray, np.ndarray, float]] = []  # (start, end, dt)
         h.probe.create_subscription(JointTrajectory, "joint_command", self._on_cmd, 100)
-        assert h.spin_until(self.client.server_is_ready, 10.0), "no ~/reach server"
+        assert h.spin_until(self.client.server_is_ready, 30.0), "no ~/reach server"
 
     def _on_cmd(self, msg: JointTrajectory) -> None:
         if len(msg.points) == 2:
@@ -60,13 +63,13 @@ class ReachClient:
     def send(self, goal: Reach.Goal) -> Any:
         """Send a goal and wait for the accept/reject answer; returns the client goal handle."""
         fut = self.client.send_goal_async(goal, feedback_callback=self._on_feedback)
-        assert self.h.spin_until(fut.done, 10.0), "no answer to the goal request"
+        assert self.h.spin_until(fut.done, 30.0), "no answer to the goal request"
         return fut.result()
 
     def _on_feedback(self, msg: Any) -> None:
         self.feedback.append((time.monotonic(), msg.feedback))
 
-    def result(self, handle: Any, timeout: float = 30.0) -> Any:
+    def result(self, handle: Any, timeout: float = 60.0) -> Any:
         fut = handle.get_result_async()
         assert self.h.spin_until(fut.done, timeout), "no result"
         return fut.result()
@@ -82,7 +85,7 @@ def ctx(ros_env: Any) -> Iterator[Any]:
 
 @pytest.fixture
 def h(ctx: Any) -> Iterator[Harness]:
-    harness = Harness(ctx, **ELBOW)
+    harness = Harness(ctx, **SLOW)
     harness.wait_connected()
     yield harness
     harness.close()
@@ -96,44 +99,36 @@ def rc(h: Harness) -> ReachClient:
 def wait_moving(h: Harness, n: int = 30) -> None:
     """Until the arm has taken ``n`` commanded steps of the current goal."""
     k = len(h.arm.commands)
-    assert h.spin_until(lambda: len(h.arm.commands) > k + n, 10.0)
+    assert h.spin_until(lambda: len(h.arm.commands) > k + n, 30.0)
 
 
 def test_goal_reached_with_feedback(h: Harness, rc: ReachClient) -> None:
     T = goal_from(Q0, (0.05, 0.15, 0.05), rot_z(0.3))
-    t0 = time.monotonic()
+    steps0 = h.ctl.steps
     handle = rc.send(rc.goal(T))
     assert handle.accepted
     res = rc.result(handle)
-    duration = time.monotonic() - t0
+    duration = (h.ctl.steps - steps0) / 100.0  # s of control at 100 Hz, from the request to the result
     assert res.status == GoalStatus.STATUS_SUCCEEDED
     r = res.result
     assert r.status == Reach.Result.SUCCESS, r.message
     assert r.position_error < 1e-3 and r.orientation_error < 0.01
     pe, re = ARM.pose_error(h.arm.q, T)  # the (ideal) arm is at the goal too
     assert pe < 1e-3 and re < 0.01
-    # Feedback at >= 10 Hz (20 Hz nominal; half of 10 Hz allowed for a loaded machine) for the whole goal.
+    # Feedback at >= 10 Hz (20 Hz nominal) for the whole goal, counted against the controller's own
+    # steps rather than the wall clock: on a starved machine both timers fire late together.
     fb = [f for _, f in rc.feedback]
-    assert len(fb) >= 0.5 * 10.0 * duration, (len(fb), duration)
+    assert duration > 0.5
+    assert len(fb) >= 0.8 * 10.0 * duration, (len(fb), duration)
     assert fb[0].phase == ControllerState.REACHING
     assert fb[0].distance_to_goal > 0.1 > fb[-1].distance_to_goal
     assert all(math.isfinite(f.swivel) and math.isinf(f.clearance) for f in fb)  # no obstacles
     assert any(f.orientation_error > 0.1 for f in fb[:3])
     # The controller keeps the goal after SUCCESS (holds there), as for a goal on goal_pose.
-    assert h.spin_until(lambda: h.phase() == ControllerState.REACHED, 5.0)
+    assert h.spin_until(lambda: h.phase() == ControllerState.REACHED, 15.0)
 
 
-def test_rejected_goals_say_why_and_leave_a_running_goal_alone(ctx: Any) -> None:
-    # Slow (straight route, 0.1 m/s): the goal is still running after the rejections.
-    h = Harness(ctx, max_speed=0.1, replan=False, **ELBOW)
-    try:
-        h.wait_connected()
-        _rejections_leave_the_running_goal_alone(h, ReachClient(h))
-    finally:
-        h.close()
-
-
-def _rejections_leave_the_running_goal_alone(h: Harness, rc: ReachClient) -> None:
+def test_rejected_goals_say_why_and_leave_a_running_goal_alone(h: Harness, rc: ReachClient) -> None:
     T = goal_from(Q0, FAR)
     running = rc.send(rc.goal(T))
     assert running.accepted
@@ -149,9 +144,7 @@ def _rejections_leave_the_running_goal_alone(h: Harness, rc: ReachClient) -> Non
         n = len(h.states)
         assert not rc.send(goal).accepted, why
         assert h.spin_until(lambda n=n, why=why: any(s.phase == ControllerState.REJECTED and why in s.message
-                                                     for s in h.states[n:]), 5.0), why
-    k = len(rc.feedback)
-    assert h.spin_until(lambda: len(rc.feedback) > k, 2.0)  # still running after the rejections
+                                                     for s in h.states[n:]), 15.0), why
     res = rc.result(running)
     assert res.result.status == Reach.Result.SUCCESS, res.result.message
 
@@ -164,7 +157,7 @@ def test_goal_before_the_first_joint_states_starts_with_them(ctx: Any) -> None:
         T = goal_from(Q0, (0.0, 0.1, 0.0))
         handle = rc.send(rc.goal(T))
         assert handle.accepted  # the check needs no arm state
-        assert h.spin_until(lambda: len(rc.feedback) >= 3, 5.0)
+        assert h.spin_until(lambda: len(rc.feedback) >= 3, 15.0)
         assert all(f.phase == ControllerState.IDLE and f.message == "waiting for joint_states"
                    for _, f in rc.feedback)
         assert h.arm.commands == []
@@ -212,35 +205,38 @@ def joint_rates(rc: ReachClient, start: int) -> tuple[np.ndarray, np.ndarray]:
 
 @pytest.mark.parametrize("replan", [True, False], ids=["joint_space_move", "attractor"])
 def test_cancel_decelerates_within_limits_then_canceled(ctx: Any, replan: bool) -> None:
-    # (FAR is reached by a joint-space move when re-planning is on, by the attractor dynamics when off)
-    h = Harness(ctx, replan=replan, **ELBOW)
+    # FAR is reached by a joint-space move (about 0.9 s) when re-planning is on, by the attractor
+    # dynamics when off (slow, as everywhere here).
+    h = Harness(ctx, **(SLOW if not replan else ELBOW))
     try:
         h.wait_connected()
-        _cancel_decelerates(h, ReachClient(h))
+        _cancel_decelerates(h, ReachClient(h), 40 if not replan else 15)
     finally:
         h.close()
 
 
-def _cancel_decelerates(h: Harness, rc: ReachClient) -> None:
+def _cancel_decelerates(h: Harness, rc: ReachClient, steps: int) -> None:
     T = goal_from(Q0, FAR)
     handle = rc.send(rc.goal(T))
     assert handle.accepted
-    wait_moving(h, 40)
+    wait_moving(h, steps)
     k = len(rc.segments)
     speed_at_cancel = float(np.max(np.abs(rc.segments[-1][1] - rc.segments[-1][0]) / rc.segments[-1][2]))
     assert speed_at_cancel > 0.05, "the arm should be moving when the cancel comes"
     cancel = handle.cancel_goal_async()
-    assert h.spin_until(cancel.done, 5.0)
+    assert h.spin_until(cancel.done, 15.0)
     assert len(cancel.result().goals_canceling) == 1
     res = rc.result(handle)
     assert res.status == GoalStatus.STATUS_CANCELED
     assert res.result.status == Reach.Result.CANCELED and "canceled" in res.result.message
     assert res.result.position_error > 1e-3  # stopped short of the goal
-    # When the result comes the command stands still, and it stays there.
+    # When the result comes the command stands still (the controller, idle, stops commanding: the
+    # driver holds), and it stays there.
     q_end = h.arm.commands[-1].copy()
-    n = len(h.arm.commands)
-    h.spin_until(lambda: len(h.arm.commands) > n + 30, 2.0)
+    n, m = len(h.arm.commands), len(h.states)
+    assert h.spin_until(lambda: len(h.states) > m + 10, 30.0)
     assert all(np.max(np.abs(q - q_end)) < 1e-9 for q in h.arm.commands[n:])
+    assert float(np.max(np.abs(h.arm.q - q_end))) < 1e-9
     assert h.phase() == ControllerState.IDLE
     # From the cancel on: within the velocity and acceleration limits (1 % and float slack) and slowing down.
     v, acc = joint_rates(rc, k - 1)
@@ -248,7 +244,8 @@ def _cancel_decelerates(h: Harness, rc: ReachClient) -> None:
     assert np.all(np.abs(acc) <= 1.01 * ARM.max_acc + 1e-6), float(np.max(np.abs(acc) / ARM.max_acc))
     speeds = np.max(np.abs(v), axis=1)
     assert float(np.max(speeds)) <= speed_at_cancel + float(np.max(ARM.max_acc)) * 0.1
-    assert speeds[-1] < 1e-6  # at rest (float rounding of the core aside)
+    # The last step that moved was slow enough to stop from within one step (of at most 2 periods).
+    assert np.all(np.abs(v[-1]) <= 1.01 * ARM.max_acc * 0.02 + 1e-9)
 
 
 def test_timeout_stops_the_arm(h: Harness, rc: ReachClient) -> None:
@@ -258,9 +255,10 @@ def test_timeout_stops_the_arm(h: Harness, rc: ReachClient) -> None:
     assert res.status == GoalStatus.STATUS_ABORTED
     assert res.result.status == Reach.Result.TIMEOUT and "0.3 s" in res.result.message
     q_end = h.arm.commands[-1].copy()
-    n = len(h.arm.commands)
-    h.spin_until(lambda: len(h.arm.commands) > n + 20, 2.0)
+    n, m = len(h.arm.commands), len(h.states)
+    assert h.spin_until(lambda: len(h.states) > m + 10, 30.0)
     assert all(np.max(np.abs(q - q_end)) < 1e-9 for q in h.arm.commands[n:])
+    assert float(np.max(np.abs(h.arm.q - q_end))) < 1e-9
 
 
 def _new_reach_goal(h: Harness, rc: ReachClient) -> Any:

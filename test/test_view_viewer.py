@@ -259,7 +259,7 @@ def test_view_reach_button_sends_a_reach_goal_and_shows_the_outcome(rclpy_contex
     try:
         assert not node.viewer.reach_button.disabled
         node.viewer._reach()  # what the button's click does
-        assert node.status.reach == "no action server /controller/reach"
+        assert spin_until(lambda: node.status.reach == "no action server /controller/reach")
         server = ActionServer(peer, Reach, "~/reach", execute)
         assert spin_until(node.reach_client.server_is_ready)
         node.viewer._reach()

@@ -235,11 +235,11 @@ class ReachActionServer:
                 status, message = g.stop
                 self._end(g, "canceled" if status == Reach.Result.CANCELED else "abort", status, message)
                 return
-        elif node.steps > g.steps0:
+        elif node.steps > g.steps0 and node._last_result is not None \
+                and node._last_result.phase is node.ctl.phase:  # (else a goal/scene change since the step)
             ctl = node.ctl
             phase = ctl.phase
-            res = node._last_result
-            msg = res.message if res is not None else ""
+            msg = node._last_result.message
             if ctl.goal_kind is not GoalKind.POINT and phase is not Phase.REJECTED:
                 self._end(g, "abort", Reach.Result.ABORTED, f"the controller dropped the goal "
                           f"(phase {phase.value.lower()}){': ' + msg if msg else ''}")

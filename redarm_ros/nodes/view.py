@@ -114,6 +114,7 @@ class ViewNode(Node):
         self._markers: dict[str, list[MarkerSpec]] = {}
         self._driver_rate = math.nan
         self._description = ""
+        self._reach_request: tuple[np.ndarray, np.ndarray] | None = None  # the Reach button's pose
         # Wiring.
         self.create_subscription(JointState, "/joint_states", self._on_joint_states, 20)
         self.create_subscription(ControllerState, "/controller/state", self._on_state, 20)
@@ -183,7 +184,10 @@ class ViewNode(Node):
         self.goal_pub.publish(msg)
 
     def _send_reach(self, position: np.ndarray, quat_xyzw: np.ndarray) -> None:
-        # Called from viser's threads, like _publish_goal; the answers arrive in the executor.
+        # Called from viser's threads: the executor sends it (the action client is not thread-safe).
+        self._reach_request = (np.array(position, dtype=float), np.array(quat_xyzw, dtype=float))
+
+    def _send_reach_goal(self, position: np.ndarray, quat_xyzw: np.ndarray) -> None:
         if not self.reach_client.server_is_ready():
             self.status.reach = f"no action server {REACH_ACTION}"
             return
@@ -217,6 +221,9 @@ class ViewNode(Node):
 
     # -- timers ---------------------------------------------------------------------------------------
     def _redraw(self) -> None:
+        request, self._reach_request = self._reach_request, None
+        if request is not None:
+            self._send_reach_goal(*request)
         if self._joints is not None and not self._joints_drawn:
             self._joints_drawn = True
             self.viewer.set_joints(*self._joints)
