@@ -104,14 +104,23 @@ def test_reach_action_parts() -> None:
         "orientation_error": "double",
     }
     assert Reach.Feedback.get_fields_and_field_types() == {
+        "phase": "string",
         "distance_to_goal": "double",
+        "orientation_error": "double",
         "swivel": "double",
         "clearance": "double",
+        "message": "string",
     }
-    # Result codes extend SolveIK's without renumbering them.
+    # Result codes extend SolveIK's without renumbering them, and the controller outcomes do not reuse
+    # SolveIK's other codes (INTERNAL_ERROR, ALL_SOLUTIONS_COLLIDE).
     for name in ("SUCCESS", "NO_SOLUTION_IN_LIMITS", "OUT_OF_REACH", "INVALID_INPUT", "TIMEOUT"):
         assert getattr(Reach.Result, name) == getattr(SolveIK.Response, name)
     assert (Reach.Result.REJECTED, Reach.Result.ABORTED) == (5, 6)
+    outcomes = [Reach.Result.IN_COLLISION, Reach.Result.BLOCKED, Reach.Result.CANCELED,
+                Reach.Result.PREEMPTED]
+    assert len(set(outcomes)) == 4
+    assert not set(outcomes) & {SolveIK.Response.INTERNAL_ERROR, SolveIK.Response.ALL_SOLUTIONS_COLLIDE,
+                                *range(7)}
 
 
 # A child process serving all three interfaces. It answers SolveIK by echoing the request into the

@@ -110,6 +110,7 @@ class Harness:
 
     def wait_connected(self) -> None:
         assert self.spin_until(lambda: self.goal_pub.get_subscription_count() > 0
+                               and self.twist_pub.get_subscription_count() > 0
                                and self.ctl.cmd_pub.get_subscription_count() > 0
                                and len(self.states) > 0, 10.0)
 

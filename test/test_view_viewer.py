@@ -96,7 +96,7 @@ def test_gizmo_streams_at_most_the_rate_and_always_sends_the_release(server: Any
     v.stream_box.value = False
     v._on_gizmo(Event("end"))
     assert len(sent) == 2  # streaming off: only "Send goal" publishes
-    assert v.reach_button.disabled  # HOOK(reach-action): no Reach server yet
+    assert v.reach_button.disabled  # no on_reach given: the Reach button does nothing
 
 
 def test_markers_add_modify_delete_and_groups(server: Any) -> None:
@@ -219,6 +219,60 @@ def test_view_node_wires_topics_to_the_viewer(rclpy_context: Any) -> None:
         assert g.header.frame_id == "base_link"
         p = g.pose.position
         np.testing.assert_allclose([p.x, p.y, p.z], ARM.fk(Q)[:3, 3], atol=1e-9)
+    finally:
+        ex.shutdown(timeout_sec=1.0)
+        node.close()
+        node.destroy_node()
+        peer.destroy_node()
+
+
+def test_view_reach_button_sends_a_reach_goal_and_shows_the_outcome(rclpy_context: Any) -> None:
+    rclpy = pytest.importorskip("rclpy")
+    from rclpy.action import ActionServer
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.parameter import Parameter
+    from redarm_interfaces.action import Reach
+
+    from redarm_ros.nodes.view import ViewNode
+
+    node = ViewNode(context=rclpy_context, parameter_overrides=[Parameter("port", value=0)])
+    peer = rclpy.create_node("controller", context=rclpy_context)  # a stand-in ~/reach server
+    ex = SingleThreadedExecutor(context=rclpy_context)
+    ex.add_node(node)
+    ex.add_node(peer)
+    goals: list[Any] = []
+
+    def execute(handle: Any) -> Any:
+        goals.append(handle.request)
+        handle.publish_feedback(Reach.Feedback(phase="reaching", distance_to_goal=0.2))
+        handle.succeed()
+        return Reach.Result(status=Reach.Result.SUCCESS, message="reached", position_error=2e-4)
+
+    def spin_until(pred: Any, timeout: float = 15.0) -> bool:
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            ex.spin_once(timeout_sec=0.02)
+            if pred():
+                return True
+        return False
+
+    try:
+        assert not node.viewer.reach_button.disabled
+        node.viewer._reach()  # what the button's click does
+        assert spin_until(lambda: node.status.reach == "no action server /controller/reach")
+        server = ActionServer(peer, Reach, "~/reach", execute)
+        assert spin_until(node.reach_client.server_is_ready)
+        node.viewer._reach()
+        assert spin_until(lambda: node.status.reach.startswith("SUCCESS")), node.status.reach
+        assert node.status.reach == "SUCCESS: reached (0.20 mm)"
+        assert len(goals) == 1 and goals[0].target.header.frame_id == "base_link"
+        p, q = node.viewer.gizmo_pose()
+        pos, o = goals[0].target.pose.position, goals[0].target.pose.orientation
+        np.testing.assert_allclose([pos.x, pos.y, pos.z], p, atol=1e-9)
+        np.testing.assert_allclose([o.x, o.y, o.z, o.w], q, atol=1e-9)
+        node._refresh_status()
+        assert "| Reach action | SUCCESS: reached (0.20 mm) |" in node.viewer._status_md.content
+        server.destroy()
     finally:
         ex.shutdown(timeout_sec=1.0)
         node.close()

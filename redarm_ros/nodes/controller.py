@@ -21,7 +21,9 @@ Topics (relative names, so a namespace or remapping applies):
   (:mod:`redarm_ros.nodes.command_timing`);
 * out ``~/state`` (redarm_interfaces/ControllerState): phase, swivel, clearance, distance to goal...
   every step;
-* out ``~/markers`` (visualization_msgs/MarkerArray): elbow circle, arm, heading, goal, obstacles.
+* out ``~/markers`` (visualization_msgs/MarkerArray): elbow circle, arm, heading, goal, obstacles;
+* action ``~/reach`` (redarm_interfaces/action/Reach): a goal with feedback, result, cancel and
+  pre-emption (:mod:`redarm_ros.nodes.reach_action`).
 
 A goal out of reach, without an in-limit solution, or inside an obstacle is rejected with a log
 line and phase ``rejected`` on ``~/state``; the arm stops smoothly and holds. Parameters and
@@ -77,6 +79,7 @@ from redarm_ros.nodes._common import (
     watch_duplicates,
 )
 from redarm_ros.nodes.command_timing import CommandClock
+from redarm_ros.nodes.reach_action import ReachActionServer
 
 NODE_NAME = "controller"
 STILL_WINDOW_S = 0.25  # s of joint_states looked at to decide that the arm stands still
@@ -285,11 +288,16 @@ class ControllerNode(Node):
         if p["markers_rate_hz"] > 0:
             self.create_timer(1.0 / p["markers_rate_hz"], self._publish_markers)
         self.add_post_set_parameters_callback(self._on_params_set)
+        self.reach = ReachActionServer(self)  # ~/reach (redarm_interfaces/action/Reach)
         self.get_logger().info(
             f"controller ready: arm {self.arm.name}, {p['rate_hz']:g} Hz, scene "
             f"{self.base_scene.name or '(none)'} with {len(self.base_scene)} obstacles, preferred swivel "
             f"{p['preferred_swivel']:g} rad ({p['swivel_reference']}); waiting for joint_states"
         )
+
+    def destroy_node(self) -> None:
+        self.reach.destroy()  # action servers are not destroyed with the node
+        super().destroy_node()
 
     # -- helpers ----------------------------------------------------------------------------------
     def _warn_throttled(self, key: str, text: str, period_s: float = 2.0) -> None:
@@ -342,6 +350,7 @@ class ControllerNode(Node):
             self._reject_message(f"goal refused: {exc}")
             return
         stamp = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+        self.reach.preempt("a goal on goal_pose")
         if not self._started:
             self._pending_goal = T
             self.get_logger().info("goal received before the first joint_states; it starts when the arm "
@@ -388,6 +397,7 @@ class ControllerNode(Node):
                                  f"{self.get_parameter('base_frame').value!r} or "
                                  f"{self.get_parameter('tool_frame').value!r} (no tf here)")
             return
+        self.reach.preempt("a twist on target_twist")
         if self.ctl.goal_kind is not GoalKind.TWIST:
             self.get_logger().info("target_twist: following it")
         self.ctl.set_twist(lin, ang, self._now())

@@ -12,7 +12,9 @@ A thin rclpy shell around :class:`redarm_ros.view.viewer.ArmViewer`, which serve
 * in  ``/robot_description`` (std_msgs/String, transient local), when someone publishes it: the URDF
   to draw; until then (or without it) the URDF generated from the ``arm`` model;
 * out ``/goal_pose`` (geometry_msgs/PoseStamped in ``base_frame``): the transform gizmo's pose, streamed
-  while it is dragged (at most ``goal_stream_hz``) or sent with the "Send goal" button.
+  while it is dragged (at most ``goal_stream_hz``) or sent with the "Send goal" button;
+* action client of ``/controller/reach`` (redarm_interfaces/action/Reach): the "Reach (action)" button
+  sends the gizmo pose as a Reach goal; its feedback and result show in the status panel.
 
 Command line: ``redarm-view [--host H] [--port P] [--arm NAME] [--scene NAME|PATH]`` (shorthands for
 the parameters) or ``--ros-args -p port:=8081 ...``. See docs/view.md.
@@ -30,8 +32,10 @@ from typing import Any
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
+from rclpy.action import ActionClient
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile
+from redarm_interfaces.action import Reach
 from redarm_interfaces.msg import ControllerState
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
@@ -43,6 +47,8 @@ from redarm_ros.view.urdf_model import UrdfModel, model_for_arm
 from redarm_ros.view.viewer import ArmViewer, MarkerSpec, RateMeter, Status, scene_markers
 
 NODE_NAME = "view"
+REACH_ACTION = "/controller/reach"
+REACH_REJECTED = "Reach goal rejected"  # how the controller's state message starts for a rejected goal
 DRIVER_LOOP_STATUS = "can_driver: loop"  # DiagnosticStatus name of the driver's loop (can_driver node)
 
 PARAMS = [
@@ -96,7 +102,8 @@ class ViewNode(Node):
         self.server = viser.ViserServer(host=p["host"], port=int(p["port"]), verbose=False)
         self.url = f"http://{p['host']}:{self.server.get_port()}/"
         self.goal_pub = self.create_publisher(PoseStamped, "/goal_pose", QoSProfile(depth=10))
-        self.viewer = ArmViewer(self.server, model, on_goal=self._publish_goal,
+        self.reach_client = ActionClient(self, Reach, REACH_ACTION)
+        self.viewer = ArmViewer(self.server, model, on_goal=self._publish_goal, on_reach=self._send_reach,
                                 goal_stream_hz=float(p["goal_stream_hz"]), base_frame=self.base_frame)
         if scene is not None:
             self.viewer.set_markers("scene", scene_markers(scene))
@@ -107,6 +114,7 @@ class ViewNode(Node):
         self._markers: dict[str, list[MarkerSpec]] = {}
         self._driver_rate = math.nan
         self._description = ""
+        self._reach_request: tuple[np.ndarray, np.ndarray] | None = None  # the Reach button's pose
         # Wiring.
         self.create_subscription(JointState, "/joint_states", self._on_joint_states, 20)
         self.create_subscription(ControllerState, "/controller/state", self._on_state, 20)
@@ -133,6 +141,8 @@ class ViewNode(Node):
         s.phase, s.message = msg.phase, msg.message
         s.swivel, s.swivel_desired = msg.swivel, msg.swivel_desired
         s.clearance, s.distance_to_goal = msg.clearance, msg.distance_to_goal
+        if msg.message.startswith(REACH_REJECTED):  # the controller says why it rejected a Reach goal
+            s.reach = msg.message
 
     def _on_markers(self, group: str, msg: MarkerArray) -> None:
         self._markers.setdefault(group, []).extend(marker_spec(m) for m in msg.markers)
@@ -173,8 +183,47 @@ class ViewNode(Node):
         o.x, o.y, o.z, o.w = (float(v) for v in quat_xyzw)
         self.goal_pub.publish(msg)
 
+    def _send_reach(self, position: np.ndarray, quat_xyzw: np.ndarray) -> None:
+        # Called from viser's threads: the executor sends it (the action client is not thread-safe).
+        self._reach_request = (np.array(position, dtype=float), np.array(quat_xyzw, dtype=float))
+
+    def _send_reach_goal(self, position: np.ndarray, quat_xyzw: np.ndarray) -> None:
+        if not self.reach_client.server_is_ready():
+            self.status.reach = f"no action server {REACH_ACTION}"
+            return
+        goal = Reach.Goal()
+        goal.target.header.frame_id = self.base_frame
+        goal.target.pose.position.x, goal.target.pose.position.y, goal.target.pose.position.z = (
+            float(v) for v in position)
+        o = goal.target.pose.orientation
+        o.x, o.y, o.z, o.w = (float(v) for v in quat_xyzw)
+        self.status.reach = "goal sent"
+        self.reach_client.send_goal_async(goal, feedback_callback=self._on_reach_feedback) \
+            .add_done_callback(self._on_reach_answer)
+
+    def _on_reach_feedback(self, msg: Any) -> None:
+        f = msg.feedback
+        self.status.reach = f"{f.phase}, {f.distance_to_goal:.4f} m to go"
+
+    def _on_reach_answer(self, future: Any) -> None:
+        handle = future.result()
+        if not handle.accepted:
+            if not self.status.reach.startswith(REACH_REJECTED):  # the reason comes on /controller/state
+                self.status.reach = "rejected"
+            return
+        handle.get_result_async().add_done_callback(self._on_reach_result)
+
+    def _on_reach_result(self, future: Any) -> None:
+        r = future.result().result
+        name = next((n for n in dir(Reach.Result) if n.isupper() and getattr(Reach.Result, n) == r.status),
+                    str(r.status))
+        self.status.reach = f"{name}: {r.message} ({r.position_error * 1e3:.2f} mm)"
+
     # -- timers ---------------------------------------------------------------------------------------
     def _redraw(self) -> None:
+        request, self._reach_request = self._reach_request, None
+        if request is not None:
+            self._send_reach_goal(*request)
         if self._joints is not None and not self._joints_drawn:
             self._joints_drawn = True
             self.viewer.set_joints(*self._joints)
@@ -192,8 +241,9 @@ class ViewNode(Node):
         self.viewer.set_status(self.status)
 
     def close(self) -> None:
-        """Stop the web server (called by the standard main before destroy_node)."""
+        """Stop the web server and the action client (called by the standard main before destroy_node)."""
         self.server.stop()
+        self.reach_client.destroy()
 
 
 def _load_scene(name: str) -> dict[str, Any]:

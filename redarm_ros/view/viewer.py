@@ -10,7 +10,8 @@ it works offline):
   line strips/lists, with ADD / DELETE / DELETEALL), in groups so the controller's markers and the
   ``/obstacles`` ones do not overwrite each other;
 * a draggable transform gizmo: every drag (or the "Send goal" button) calls ``on_goal`` with the
-  gizmo's position (m) and orientation (quaternion x, y, z, w) in the arm's base frame;
+  gizmo's position (m) and orientation (quaternion x, y, z, w) in the arm's base frame; the
+  "Reach (action)" button hands the same pose to ``on_reach``;
 * a status panel (:meth:`ArmViewer.set_status`): phase, swivel, clearance, driver state, loop rates.
 
 The node :mod:`redarm_ros.nodes.view` feeds it from ROS topics. Units: m, rad.
@@ -100,6 +101,7 @@ class Status:
     distance_to_goal: float = math.nan
     driver_state: str = ""
     driver_message: str = ""
+    reach: str = ""  # the last Reach action goal: its feedback, then its result
     rates_hz: dict[str, float] = field(default_factory=dict)
 
     def markdown(self) -> str:
@@ -118,6 +120,8 @@ class Status:
             ("distance to goal", num(self.distance_to_goal, ".4f", " m")),
             ("driver", _driver_text(self.driver_state, self.driver_message)),
         ]
+        if self.reach:
+            rows.append(("Reach action", self.reach))
         rows += [(f"rate {k}", f"{v:.1f} Hz") for k, v in self.rates_hz.items()]
         if self.message:
             rows.append(("message", self.message))
@@ -149,8 +153,8 @@ class ArmViewer:
     """The arm, markers, goal gizmo and status panel on ``server`` (a ``viser.ViserServer``).
 
     ``on_goal`` receives the gizmo pose when it is dragged (if streaming is on) or when "Send goal" is
-    pressed. ``on_reach`` is the hook for the Reach action (see the HOOK comment below); None keeps
-    the button disabled. Every method is safe to call from any thread (viser queues its messages).
+    pressed. ``on_reach`` receives it when "Reach (action)" is pressed (the node sends a Reach goal); None
+    keeps that button disabled. Every method is safe to call from any thread (viser queues its messages).
     """
 
     def __init__(
@@ -204,16 +208,14 @@ class ArmViewer:
             send.on_click(lambda _evt: self.send_goal())
             to_tool = gui.add_button("Gizmo to tool", hint="move the gizmo back onto the arm's tool")
             to_tool.on_click(lambda _evt: self.place_gizmo_at_tool())
-            # --- HOOK(reach-action) -----------------------------------------------------------------
-            # The Reach action (redarm_interfaces/action/Reach) has no server yet. When it exists, the
-            # node passes `on_reach` (send the gizmo pose as a Reach goal, show feedback in the status
-            # panel); until then the button stays disabled and nothing is sent.
+            # The Reach action (the controller's ~/reach): the node passes `on_reach`, which sends the
+            # gizmo pose as a Reach goal and shows its feedback and result in the status panel
+            # (Status.reach). Without it the button stays disabled.
             self.reach_button = gui.add_button(
                 "Reach (action)", disabled=on_reach is None,
-                hint="send the gizmo pose as a Reach action goal" if on_reach is not None
-                else "the Reach action server is not available yet")
+                hint="send the gizmo pose as a Reach action goal (/controller/reach)" if on_reach is not None
+                else "no Reach action client")
             self.reach_button.on_click(lambda _evt: self._reach())
-            # --- end HOOK(reach-action) ---------------------------------------------------------------
 
     # -- robot -----------------------------------------------------------------------------------------
     def _build_robot(self, model: UrdfModel) -> None:
@@ -314,7 +316,7 @@ class ArmViewer:
         self.on_goal(p, q)
 
     def _reach(self) -> None:
-        if self.on_reach is not None:  # HOOK(reach-action): see the button above
+        if self.on_reach is not None:
             p, q = self.gizmo_pose()
             self.on_reach(p, q)
 
