@@ -95,7 +95,7 @@ def _imports(folder: Path) -> dict[str, set[str]]:
 
 
 def _third_party(imports: dict[str, set[str]]) -> dict[str, set[str]]:
-    local = {PACKAGE, "conftest", "__future__"} | {p.stem for p in (REPO / "test").glob("*.py")}
+    local = {PACKAGE, "conftest", "__future__", "support"} | {p.stem for p in (REPO / "test").glob("*.py")}
     return {m: f for m, f in imports.items() if m not in sys.stdlib_module_names and m not in local}
 
 
@@ -246,3 +246,15 @@ def test_launch_file_names_installed_executables() -> None:
         assert executable in scripts, f"executable {executable!r} is not installed by setup.py"
     # The three ROS nodes that make up the simulated stack, at least.
     assert {"can_driver", "ik_service", "controller"} <= {e for _, e in named}
+
+
+def test_runtime_package_ships_no_test_machinery() -> None:
+    """The UML runner, its scenario and the CAN bus fakes live under test/support/, not in the package."""
+    # setup.py installs every package under redarm_ros/ (find_packages): none may be test machinery
+    packages = [str(d.parent.relative_to(REPO)) for d in (REPO / "redarm_ros").rglob("__init__.py")]
+    assert "redarm_ros/can" in packages and not [p for p in packages if p.endswith("uml")], packages
+    assert "uml" not in (REPO / "setup.py").read_text(encoding="utf-8")
+    assert not (REPO / "redarm_ros" / "can" / "testing.py").exists()
+    shipped = "\n".join(p.read_text(encoding="utf-8") for p in (REPO / "redarm_ros").rglob("*.py"))
+    assert "support." not in shipped and "uml_scenario" not in shipped
+    assert (REPO / "test" / "support" / "uml" / "runner.py").is_file()
