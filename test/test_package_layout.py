@@ -27,7 +27,7 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 PACKAGE = "redarm_ros"
 
-# ros2 run names and their modules (DESIGN.md; test_install_colcon starts them from an install).
+# ros2 run names and their modules (README; test_install_colcon starts them from an install).
 ROS_NODES = {
     "ik_service": "redarm_ros.nodes.ik_service:main",
     "controller": "redarm_ros.nodes.controller:main",
