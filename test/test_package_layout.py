@@ -258,3 +258,23 @@ def test_runtime_package_ships_no_test_machinery() -> None:
     shipped = "\n".join(p.read_text(encoding="utf-8") for p in (REPO / "redarm_ros").rglob("*.py"))
     assert "support." not in shipped and "uml_scenario" not in shipped
     assert (REPO / "test" / "support" / "uml" / "runner.py").is_file()
+
+
+def test_every_node_takes_the_same_constructor_keywords() -> None:
+    """One construction signature: context, parameter_overrides, node_name, namespace (keyword-only)."""
+    import importlib
+    import inspect
+
+    from rclpy.node import Node
+
+    common = ["context", "parameter_overrides", "node_name", "namespace"]
+    found = []
+    for path in sorted((REPO / "redarm_ros" / "nodes").glob("[!_]*.py")):
+        module = importlib.import_module(f"redarm_ros.nodes.{path.stem}")
+        for cls in vars(module).values():
+            if inspect.isclass(cls) and issubclass(cls, Node) and cls.__module__ == module.__name__:
+                params = inspect.signature(cls.__init__).parameters
+                kw_only = [n for n, p in params.items() if p.kind is inspect.Parameter.KEYWORD_ONLY]
+                assert set(common) <= set(kw_only), f"{cls.__name__}: {list(params)}"
+                found.append(cls.__name__)
+    assert len(found) >= 6, found
