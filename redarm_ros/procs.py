@@ -500,14 +500,7 @@ class ProcessGroup:
         """Raise :class:`ChildDiedError` for the first child that died unexpectedly."""
         dead = self.unexpected_deaths()
         if dead:
-            c = dead[0]
-            raise ChildDiedError(
-                f"child {c.name} (pid {c.pid}) died unexpectedly with code {c.returncode}; "
-                "last output:\n" + "\n".join(c.tail(20)),
-                name=c.name,
-                returncode=c.returncode,
-                tail=c.tail(_TAIL_LINES),
-            )
+            raise _died(dead[0])
 
     def stop(self, child: ManagedProcess) -> int:
         """Stop one child now (staged); returns its exit code."""
@@ -536,14 +529,18 @@ class ProcessGroup:
         if self._own_log_dir is not None:
             self._own_log_dir.cleanup()
         if exc_type is None and dead:
-            c = dead[0]
-            raise ChildDiedError(
-                f"child {c.name} (pid {c.pid}) died unexpectedly with code {c.returncode}; "
-                "last output:\n" + "\n".join(c.tail(20)),
-                name=c.name,
-                returncode=c.returncode,
-                tail=c.tail(_TAIL_LINES),
-            )
+            raise _died(dead[0])
+
+
+def _died(c: ManagedProcess) -> ChildDiedError:
+    """The error for child ``c`` that died unexpectedly (with its last output)."""
+    return ChildDiedError(
+        f"child {c.name} (pid {c.pid}) died unexpectedly with code {c.returncode}; "
+        "last output:\n" + "\n".join(c.tail(20)),
+        name=c.name,
+        returncode=c.returncode,
+        tail=c.tail(_TAIL_LINES),
+    )
 
 
 def group_members(pgid: int) -> list[int]:
