@@ -11,8 +11,6 @@ SHELL := /bin/bash
 VENV := .venv
 PY := $(VENV)/bin/python
 SANDBOX := scripts/ros_sandbox.sh
-# The demo module: the full-stack demo once it exists, else the IK table demo.
-DEMO_MODULE ?= $(if $(wildcard redarm_ros/demo.py redarm_ros/demo/__init__.py),redarm_ros.demo,redarm_ros.ik_demo)
 DEMO_ARGS ?=
 PYTEST_ARGS ?=
 # Extra arguments for every benchmark; `make bench BENCH_FULL=1` runs them in full (see scripts/run_benchmarks.sh).
@@ -41,7 +39,7 @@ test: setup
 	[ $$rc -eq 0 ] && [ $$prc -eq 0 ]
 
 demo: setup
-	$(SANDBOX) $(PY) -m $(DEMO_MODULE) $(DEMO_ARGS)
+	$(SANDBOX) $(PY) -m redarm_ros.demo $(DEMO_ARGS)
 
 # Smoke runs (--quick --no-write where supported) unless BENCH_FULL=1.
 bench: setup

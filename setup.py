@@ -81,7 +81,6 @@ setup(
     version="0.1.0",
     packages=find_packages(include=[PACKAGE, f"{PACKAGE}.*"]),
     package_data={
-        f"{PACKAGE}.uml": ["guest_init.sh"],  # PID 1 of the UML SocketCAN guest
         f"{PACKAGE}.can": ["setup_vcan.sh"],  # creates vcan0 on a real host
     },
     data_files=[

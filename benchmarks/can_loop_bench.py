@@ -15,7 +15,8 @@ Two ways of driving it:
 Measured per run: achieved cycle rate, absolute period error |period - 1/rate| (median, p99, max),
 overruns (ticks skipped because a cycle ended after the next deadline), reply latency (command
 sent -> its reply received; median, p99, max), CAN frames per second, replies lost. The physical
-ceiling is what a real 1 Mbit/s (or 500 kbit/s) bus allows for one cycle's frames (DESIGN section 4).
+ceiling is what a real 1 Mbit/s (or 500 kbit/s) bus allows for one cycle's frames (an 8-byte frame takes
+0.11-0.135 ms at 1 Mbit/s: 7 FSTEP commands, 7 replies and one STARTMOVE take about 1.7-2.0 ms).
 
 Run: ``.venv/bin/python benchmarks/can_loop_bench.py [--seconds 30] [--rates 250,500] [--quick]``;
 writes ``benchmarks/results/can_loop_bench.md`` unless ``--no-write``. Targets: 250 Hz sustained

@@ -46,14 +46,14 @@ from redarm_ros.control.obstacles import (
     min_distance,
 )
 from redarm_ros.control.reach_controller import ControllerParams, ReachController
-from redarm_ros.control.rotations import (
+from redarm_ros.control.simulate import ReachMetrics, evaluate, run_controller
+from redarm_ros.kinematics import load_arm
+from redarm_ros.kinematics.quaternion import (
     quat_from_matrix,
     quat_from_rotvec,
     quat_mul,
     rotvec_between,
 )
-from redarm_ros.control.simulate import ReachMetrics, evaluate, run_controller
-from redarm_ros.kinematics import load_arm
 
 DT = 0.01
 DURATION = 8.0

@@ -56,10 +56,15 @@ import numpy as np
 from redarm_ros.control.obstacles import ArmCapsules, Scene, Sphere, min_distance
 from redarm_ros.control.params import ControllerParams, StreamParams
 from redarm_ros.control.reach_controller import ReachController
-from redarm_ros.control.rotations import quat_from_matrix, quat_from_rotvec, quat_mul, rotvec_between
 from redarm_ros.control.stream import StreamEstimator
 from redarm_ros.kinematics import load_arm
-from redarm_ros.kinematics.quaternion import quat_to_matrix
+from redarm_ros.kinematics.quaternion import (
+    quat_from_matrix,
+    quat_from_rotvec,
+    quat_mul,
+    quat_to_matrix,
+    rotvec_between,
+)
 
 DT = 0.01
 RESULTS = Path(__file__).resolve().parent / "results" / "track_bench.md"

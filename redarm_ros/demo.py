@@ -471,8 +471,7 @@ class Demo:
         """Render ``<snapshots>/<name>.png``: the simulated arm at its measured joints (simulator status),
         in the demo scene, with ``goal`` drawn. None if the simulator reported no joints yet."""
         from redarm_ros.kinematics.quaternion import matrix_to_quat
-        from redarm_ros.record.animate import SceneRenderer
-        from redarm_ros.sim.png import write_png
+        from redarm_ros.record.animate import SceneRenderer, write_png
 
         st = stack.sim_status() or {}
         if "q" not in st:

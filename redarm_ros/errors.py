@@ -37,23 +37,6 @@ class UnreachableError(RedarmError):
         self.distance = distance
 
 
-class JointLimitError(RedarmError):
-    """A joint value is outside its limits: ``joint`` index/name, ``value`` and ``bounds`` (rad)."""
-
-    def __init__(
-        self,
-        message: str,
-        *,
-        joint: int | str | None = None,
-        value: float | None = None,
-        bounds: tuple[float, float] | None = None,
-    ) -> None:
-        super().__init__(message)
-        self.joint = joint
-        self.value = value
-        self.bounds = bounds
-
-
 class BusError(RedarmError):
     """The CAN bus could not be opened or used; the original error is kept as ``__cause__``."""
 

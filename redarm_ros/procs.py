@@ -19,12 +19,15 @@ Pieces:
 
 Children run in their own session (process group), so a terminal Ctrl-C
 reaches only the supervisor, which then stops them in order, and the final
-SIGKILL can take the child's own descendants with it.
+SIGKILL can take the child's own descendants with it. Each child also asks the
+kernel (``PR_SET_PDEATHSIG``) for SIGKILL when its parent dies, so a crashed
+pytest or bring-up (kill -9) leaves no orphans behind, not even real-time ones.
 """
 
 from __future__ import annotations
 
 import collections
+import ctypes
 import logging
 import os
 import random
@@ -42,6 +45,7 @@ from redarm_ros.errors import RedarmError
 
 __all__ = [
     "ChildDiedError",
+    "die_with_parent_preexec",
     "ManagedProcess",
     "ProcessGroup",
     "ReadinessTimeoutError",
@@ -58,6 +62,33 @@ _TAIL_LINES = 200
 _KEEP_LINES = 20000
 
 LineSink = Callable[[str], None]
+
+_PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
+
+
+def die_with_parent_preexec(sig: int = signal.SIGKILL) -> Callable[[], None] | None:
+    """A ``preexec_fn`` that has the kernel send ``sig`` to the child when its parent dies.
+
+    None where prctl is unavailable (not Linux). libc is loaded here, before the fork, so the
+    child only makes one system call. The kernel ties the signal to the parent *thread*: a child
+    started from a short-lived thread dies with that thread, so start children from a thread that
+    lives as long as they should (the main thread, a supervisor).
+    """
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        prctl = libc.prctl
+    except (OSError, AttributeError):
+        return None
+    parent = os.getpid()
+
+    def preexec() -> None:
+        prctl(_PR_SET_PDEATHSIG, int(sig), 0, 0, 0)
+        if os.getppid() != parent:  # the parent died before prctl took effect
+            os._exit(1)
+
+    return preexec
 
 
 class ChildDiedError(RedarmError):
@@ -191,6 +222,7 @@ class ManagedProcess:
             stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT,
             start_new_session=True,
+            preexec_fn=die_with_parent_preexec(),
             text=True,
             encoding="utf-8",
             errors="replace",
@@ -468,14 +500,7 @@ class ProcessGroup:
         """Raise :class:`ChildDiedError` for the first child that died unexpectedly."""
         dead = self.unexpected_deaths()
         if dead:
-            c = dead[0]
-            raise ChildDiedError(
-                f"child {c.name} (pid {c.pid}) died unexpectedly with code {c.returncode}; "
-                "last output:\n" + "\n".join(c.tail(20)),
-                name=c.name,
-                returncode=c.returncode,
-                tail=c.tail(_TAIL_LINES),
-            )
+            raise _died(dead[0])
 
     def stop(self, child: ManagedProcess) -> int:
         """Stop one child now (staged); returns its exit code."""
@@ -504,14 +529,18 @@ class ProcessGroup:
         if self._own_log_dir is not None:
             self._own_log_dir.cleanup()
         if exc_type is None and dead:
-            c = dead[0]
-            raise ChildDiedError(
-                f"child {c.name} (pid {c.pid}) died unexpectedly with code {c.returncode}; "
-                "last output:\n" + "\n".join(c.tail(20)),
-                name=c.name,
-                returncode=c.returncode,
-                tail=c.tail(_TAIL_LINES),
-            )
+            raise _died(dead[0])
+
+
+def _died(c: ManagedProcess) -> ChildDiedError:
+    """The error for child ``c`` that died unexpectedly (with its last output)."""
+    return ChildDiedError(
+        f"child {c.name} (pid {c.pid}) died unexpectedly with code {c.returncode}; "
+        "last output:\n" + "\n".join(c.tail(20)),
+        name=c.name,
+        returncode=c.returncode,
+        tail=c.tail(_TAIL_LINES),
+    )
 
 
 def group_members(pgid: int) -> list[int]:

@@ -10,6 +10,8 @@
   the test fails if a child died unannounced or left descendants behind.
 * ``canbus_server``: a ``redarm-canbus`` server subprocess on 127.0.0.1 and the
   python-can keyword arguments to reach it.
+* ``no_open_buses``: fails a test that leaves a python-can bus open (and closes it); the CAN test
+  modules use it for every test (``pytestmark = pytest.mark.usefixtures("no_open_buses")``).
 * an autouse check that no child process of pytest outlives the test.
 """
 
@@ -25,6 +27,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from support.can_buses import OpenBusTracker
 
 from redarm_ros.procs import ManagedProcess, ProcessGroup, python_module_cmd, random_domain_id
 
@@ -203,3 +206,13 @@ def _no_leftover_children() -> Iterator[None]:
 # (A copy of this file elsewhere, as test_conftest_fixtures makes, goes without.)
 if (Path(__file__).parent / "hil_recording.py").is_file():
     from hil_recording import _hil_recording, pytest_runtest_makereport  # noqa: F401
+
+
+@pytest.fixture
+def no_open_buses() -> Iterator[None]:
+    """Fail the test if it leaves a CAN bus open (and close it)."""
+    with OpenBusTracker() as tracker:
+        yield
+    leaked = tracker.close_leaked()
+    if leaked:
+        pytest.fail(f"test left CAN buses open: {leaked}", pytrace=False)

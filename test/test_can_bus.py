@@ -11,24 +11,17 @@ from unittest import mock
 
 import can
 import pytest
+from support.can_buses import OpenBusTracker
 
 from redarm_ros.can import bus as busmod
 from redarm_ros.can.bus import ReconnectingBus, open_bus, resolve_config, safe_shutdown
 from redarm_ros.can.bus_server import LoopbackBusServer
-from redarm_ros.can.testing import OpenBusTracker
 from redarm_ros.errors import BusError, InvalidInputError
 
 CAN_ENV = ("CAN_INTERFACE", "CAN_CHANNEL", "CAN_BITRATE", "CAN_CONFIG")
 
 
-@pytest.fixture(autouse=True)
-def _no_open_buses() -> Iterator[None]:
-    """Fail any test that leaves a CAN bus open (and close it)."""
-    with OpenBusTracker() as tracker:
-        yield
-    leaked = tracker.close_leaked()
-    if leaked:
-        pytest.fail(f"test left CAN buses open: {leaked}", pytrace=False)
+pytestmark = pytest.mark.usefixtures("no_open_buses")
 
 
 @pytest.fixture(autouse=True)

@@ -21,17 +21,9 @@ from redarm_ros.can.bus_server import (
     main,
     start_bus_server,
 )
-from redarm_ros.can.testing import OpenBusTracker
 from redarm_ros.errors import BusError, InvalidInputError
 
-
-@pytest.fixture(autouse=True)
-def _no_open_buses() -> Iterator[None]:
-    with OpenBusTracker() as tracker:
-        yield
-    leaked = tracker.close_leaked()
-    if leaked:
-        pytest.fail(f"test left CAN buses open: {leaked}", pytrace=False)
+pytestmark = pytest.mark.usefixtures("no_open_buses")
 
 
 @pytest.fixture

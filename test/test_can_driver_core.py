@@ -21,7 +21,6 @@ from redarm_ros.can.bus_server import LoopbackBusServer
 from redarm_ros.can.driver_core import DriverState, FaultKind, PowerCubeArmDriver
 from redarm_ros.can.module_emulator import EmulatedArm, EmulatorRunner
 from redarm_ros.can.protocol import ActConfig, ActState
-from redarm_ros.can.testing import OpenBusTracker
 from redarm_ros.errors import (
     BusError,
     BusTimeoutError,
@@ -38,14 +37,7 @@ LOWER, UPPER = [-1.5] * N, [1.5] * N
 VMAX, AMAX = [1.0] * N, [10.0] * N
 
 
-@pytest.fixture(autouse=True)
-def _no_open_buses() -> Iterator[None]:
-    """Fail any test that leaves a CAN bus open (and close it)."""
-    with OpenBusTracker() as tracker:
-        yield
-    leaked = tracker.close_leaked()
-    if leaked:
-        pytest.fail(f"test left CAN buses open: {leaked}", pytrace=False)
+pytestmark = pytest.mark.usefixtures("no_open_buses")
 
 
 class FakeClock:

@@ -23,7 +23,6 @@ from redarm_ros.can.module_emulator import (
     wire_time,
 )
 from redarm_ros.can.protocol import ActConfig, ActState, Param
-from redarm_ros.can.testing import OpenBusTracker
 from redarm_ros.errors import InvalidInputError
 
 S = ActState
@@ -43,13 +42,7 @@ class FakeClock:
         self.t += dt
 
 
-@pytest.fixture(autouse=True)
-def _no_open_buses() -> Iterator[None]:
-    with OpenBusTracker() as tracker:
-        yield
-    leaked = tracker.close_leaked()
-    if leaked:
-        pytest.fail(f"test left CAN buses open: {leaked}", pytrace=False)
+pytestmark = pytest.mark.usefixtures("no_open_buses")
 
 
 @pytest.fixture

@@ -37,7 +37,9 @@ def test_env(ros_env):
 def test_fixtures_catch_leaks_and_deaths(pytester: pytest.Pytester, monkeypatch: pytest.MonkeyPatch) -> None:
     pytester.makeconftest((REPO / "test" / "conftest.py").read_text())
     pytester.makepyfile(test_inner=INNER)
-    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]))
+    monkeypatch.setenv(
+        "PYTHONPATH", os.pathsep.join([str(REPO), str(REPO / "test"), os.environ.get("PYTHONPATH", "")])
+    )
     monkeypatch.delenv("REDARM_TEST_DOMAIN_ID", raising=False)
     result = pytester.runpytest_subprocess("-p", "no:cacheprovider", "-q", timeout=120)
     outcomes = result.parseoutcomes()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from redarm_ros.control.joint_limits import (
     LimitMode,
@@ -77,3 +78,21 @@ def test_brake_step() -> None:
     q, v = brake_step(np.zeros(3), np.array([1.0, -0.01, 0.0]), DT, AMAX, LO, HI)
     assert np.allclose(v, [1.0 - 2.0 * DT, 0.0, 0.0])
     assert np.allclose(q, v * DT)
+
+
+def test_the_controller_brakes_by_the_shared_motion_law() -> None:
+    """One braking law for controller, driver shaper and simulator: redarm_ros.motion.limits."""
+    from redarm_ros.control.joint_limits import braking_distance
+    from redarm_ros.motion import limits as motion
+
+    d = np.array([0.0, 1e-5, 0.01, 0.3, 2.0])
+    np.testing.assert_array_equal(braking_speed(d, 2.0, DT), motion.braking_speed(d, 2.0, DT))
+    for x in d:  # the scalar path gives the same numbers
+        assert float(braking_speed(float(x), 2.0, DT)) == pytest.approx(
+            float(motion.braking_speed(x, 2.0, DT)), rel=1e-12, abs=1e-15)
+    np.testing.assert_allclose(braking_distance(braking_speed(d, 2.0, DT), 2.0, DT), d, atol=1e-12)
+    q, v = np.full(3, 0.3), np.array([0.5, -0.2, 0.0])
+    ours = velocity_bounds(q, v, DT, VMAX, AMAX, LO, HI)
+    theirs = motion.velocity_bounds(q, v, DT, LO, HI, VMAX, AMAX)
+    np.testing.assert_array_equal(ours[0], theirs[0])
+    np.testing.assert_array_equal(ours[1], theirs[1])

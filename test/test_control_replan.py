@@ -58,7 +58,7 @@ def test_advance_shortens_a_step_that_is_too_fast_and_reports_dead_ends() -> Non
     st = stepper()
     T0 = ARM.fk(READY)
     pos0 = tuple(T0[:3, 3])
-    from redarm_ros.control.rotations import quat_from_matrix
+    from redarm_ros.kinematics.quaternion import quat_from_matrix
 
     rot0 = quat_from_matrix(T0[:3, :3])
     s0 = ARM.swivel(READY)

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from redarm_ros.control.params import StreamParams
-from redarm_ros.control.rotations import quat_angle, quat_from_rotvec
 from redarm_ros.control.servo import ServoTarget, servo_step
 from redarm_ros.control.stream import StreamEstimator
+from redarm_ros.kinematics.quaternion import quat_angle, quat_from_rotvec
 
 Q0 = (1.0, 0.0, 0.0, 0.0)
 

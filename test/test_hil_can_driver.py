@@ -70,7 +70,7 @@ class Client:
         self._thread.start()
 
     def _spin(self) -> None:
-        # spin_once in a loop: spin_until_future_complete adds tens of ms per call (DESIGN 5).
+        # spin_once in a loop: spin_until_future_complete adds tens of ms per call.
         while not self._stop.is_set():
             self.executor.spin_once(timeout_sec=0.05)
 

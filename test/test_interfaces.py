@@ -188,7 +188,7 @@ main()
 
 
 def _spin_until(executor: Any, predicate: Any, timeout: float, what: str) -> None:
-    # spin_once in a loop: spin_until_future_complete adds 20-80 ms per call (DESIGN.md section 5).
+    # spin_once in a loop: spin_until_future_complete adds 20-80 ms per call.
     deadline = time.monotonic() + timeout
     while not predicate():
         if time.monotonic() > deadline:

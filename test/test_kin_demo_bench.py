@@ -1,4 +1,4 @@
-"""Smoke runs of the IK table demo and of the IK benchmark (tiny sizes, no speed assertions)."""
+"""Smoke run of the IK benchmark (tiny sizes, no speed assertions)."""
 
 from __future__ import annotations
 
@@ -9,18 +9,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from redarm_ros import ik_demo
 from redarm_ros.kinematics import load_arm
 from redarm_ros.kinematics.quaternion import qmul, qy, qz
 
 BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "ik_bench.py"
-
-
-def test_demo_prints_tables(capsys: pytest.CaptureFixture[str]) -> None:
-    assert ik_demo.main(["--reps", "1", "--arms", "pa10", "powercube6"]) == 0
-    out = capsys.readouterr().out
-    assert "=== pa10" in out and "=== powercube6" in out
-    assert out.count("nearest") >= 4 and "in limits" in out
 
 
 def test_benchmark_smoke(

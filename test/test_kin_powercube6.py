@@ -51,6 +51,7 @@ def test_orientation_outside_the_arm_plane_is_unreachable() -> None:
     assert qn is None and info.status is IKStatus.OUT_OF_REACH and "joint 3" in info.message
     qp, infop = ARM.ik_nearest(T2, q, position_only=True)
     assert infop.ok and infop.pos_err < 1e-9
+    assert qp is not None and np.linalg.norm(ARM.fk(qp)[:3, 3] - T2[:3, 3]) < 1e-9
     far = T.copy()
     far[:3, 3] = [2.0, 0.0, 0.0]
     qn, info = ARM.ik_nearest(far, q)

@@ -202,6 +202,7 @@ def test_zero_pose_stretched_and_aligned(s: float) -> None:
         assert abs(math.remainder(arm.swivel(sol) - s, 2 * math.pi)) < 1e-9
     C, n, rho = arm.elbow_circle(T)
     assert rho == pytest.approx(0.0, abs=1e-12) and np.allclose(n, [0, 0, 1])
+    assert np.allclose(C, arm.fk_frames(np.zeros(7))[3, :3, 3])  # the circle shrinks to the elbow
     assert np.isfinite(arm.swivel(np.zeros(7)))
 
 
@@ -233,6 +234,7 @@ def test_wrist_straight_below_and_above_the_shoulder() -> None:
     for T in (_pose([0, 0, L1 - 0.6 - L4], down), _pose([0, 0, L1 + 0.6 + L4])):
         C, n, rho = arm.elbow_circle(T)
         assert np.all(np.isfinite(C)) and rho > 0
+        assert np.allclose(np.abs(n), [0, 0, 1])  # the shoulder-wrist line is the base axis
         for s in (0.0, 0.7, -2.0):
             sols = arm.ik(T, s)
             assert len(sols) >= 1

@@ -25,6 +25,7 @@ from visualization_msgs.msg import Marker, MarkerArray  # noqa: E402
 
 from redarm_ros.control.obstacles import Box, Cylinder, Sphere  # noqa: E402
 from redarm_ros.kinematics import load_arm  # noqa: E402
+from redarm_ros.nodes._common import DuplicateNodeError  # noqa: E402
 from redarm_ros.nodes.controller import (  # noqa: E402
     ControllerNode,
     marker_to_obstacle,
@@ -385,8 +386,21 @@ def test_marker_conversions_are_conservative() -> None:
 
 def test_second_controller_of_the_same_name_refuses_to_start(h: Harness, ctx: Any) -> None:
     """The harness runs /controller; another one in the same domain must refuse (graph check)."""
-    with pytest.raises(RuntimeError, match="already running"):
-        ControllerNode(context=ctx, parameter_overrides=[Parameter("duplicate_check_s", value=1.0)])
+    twin = ControllerNode(context=ctx, parameter_overrides=[Parameter("duplicate_check_s", value=1.0)])
+    # The constructor does not wait for discovery: the check runs as a timer, in the executor.
+    assert not twin.name_check.done and twin.name_check.refused is None
+    ex = SingleThreadedExecutor(context=ctx)
+    ex.add_node(twin)
+    try:
+        with pytest.raises(DuplicateNodeError, match="already running"):
+            deadline = time.monotonic() + 15.0
+            while time.monotonic() < deadline:
+                ex.spin_once(timeout_sec=0.05)
+        assert not twin.name_check.done and "already running" in (twin.name_check.refused or "")
+    finally:
+        ex.remove_node(twin)
+        ex.shutdown()
+        twin.destroy_node()
     # A remapped name is fine.
     other = ControllerNode(context=ctx, node_name="controller_2",
                            parameter_overrides=[Parameter("duplicate_check_s", value=0.3)])

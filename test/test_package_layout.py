@@ -27,7 +27,7 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 PACKAGE = "redarm_ros"
 
-# ros2 run names and their modules (DESIGN.md; test_install_colcon starts them from an install).
+# ros2 run names and their modules (README; test_install_colcon starts them from an install).
 ROS_NODES = {
     "ik_service": "redarm_ros.nodes.ik_service:main",
     "controller": "redarm_ros.nodes.controller:main",
@@ -95,7 +95,7 @@ def _imports(folder: Path) -> dict[str, set[str]]:
 
 
 def _third_party(imports: dict[str, set[str]]) -> dict[str, set[str]]:
-    local = {PACKAGE, "conftest", "__future__"} | {p.stem for p in (REPO / "test").glob("*.py")}
+    local = {PACKAGE, "conftest", "__future__", "support"} | {p.stem for p in (REPO / "test").glob("*.py")}
     return {m: f for m, f in imports.items() if m not in sys.stdlib_module_names and m not in local}
 
 
@@ -246,3 +246,35 @@ def test_launch_file_names_installed_executables() -> None:
         assert executable in scripts, f"executable {executable!r} is not installed by setup.py"
     # The three ROS nodes that make up the simulated stack, at least.
     assert {"can_driver", "ik_service", "controller"} <= {e for _, e in named}
+
+
+def test_runtime_package_ships_no_test_machinery() -> None:
+    """The UML runner, its scenario and the CAN bus fakes live under test/support/, not in the package."""
+    # setup.py installs every package under redarm_ros/ (find_packages): none may be test machinery
+    packages = [str(d.parent.relative_to(REPO)) for d in (REPO / "redarm_ros").rglob("__init__.py")]
+    assert "redarm_ros/can" in packages and not [p for p in packages if p.endswith("uml")], packages
+    assert "uml" not in (REPO / "setup.py").read_text(encoding="utf-8")
+    assert not (REPO / "redarm_ros" / "can" / "testing.py").exists()
+    shipped = "\n".join(p.read_text(encoding="utf-8") for p in (REPO / "redarm_ros").rglob("*.py"))
+    assert "support." not in shipped and "uml_scenario" not in shipped
+    assert (REPO / "test" / "support" / "uml" / "runner.py").is_file()
+
+
+def test_every_node_takes_the_same_constructor_keywords() -> None:
+    """One construction signature: context, parameter_overrides, node_name, namespace (keyword-only)."""
+    import importlib
+    import inspect
+
+    from rclpy.node import Node
+
+    common = ["context", "parameter_overrides", "node_name", "namespace"]
+    found = []
+    for path in sorted((REPO / "redarm_ros" / "nodes").glob("[!_]*.py")):
+        module = importlib.import_module(f"redarm_ros.nodes.{path.stem}")
+        for cls in vars(module).values():
+            if inspect.isclass(cls) and issubclass(cls, Node) and cls.__module__ == module.__name__:
+                params = inspect.signature(cls.__init__).parameters
+                kw_only = [n for n, p in params.items() if p.kind is inspect.Parameter.KEYWORD_ONLY]
+                assert set(common) <= set(kw_only), f"{cls.__name__}: {list(params)}"
+                found.append(cls.__name__)
+    assert len(found) >= 6, found

@@ -6,6 +6,7 @@ import os
 import signal
 import sys
 import textwrap
+import time
 from pathlib import Path
 
 import pytest
@@ -176,3 +177,48 @@ def test_ready_timeout_stops_the_child() -> None:
         with pytest.raises(ReadinessTimeoutError):
             group.start("mute", py("import time; time.sleep(30)"), ready="never", ready_timeout=0.5)
         assert not group.children[0].is_running()
+
+
+def _alive(pid: int) -> bool:
+    """True while ``pid`` exists and is not a zombie."""
+    try:
+        with open(f"/proc/{pid}/stat", encoding="ascii") as f:
+            return f.read().rsplit(")", 1)[-1].split()[0] not in ("Z", "X")
+    except OSError:
+        return False
+
+
+@pytest.mark.parametrize("sched_fifo", [False, True])
+def test_a_child_dies_with_its_killed_parent(sched_fifo: bool) -> None:
+    """kill -9 of a supervisor (a crashed pytest or bring-up) takes its children along: no orphans,
+    also for a child that made itself real-time (where the kernel permits it)."""
+    child_code = "import os, time\n"
+    if sched_fifo:
+        child_code += (
+            "try:\n    os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))\n"
+            "except OSError:\n    pass\n"
+        )
+    child_code += "print('up', flush=True)\ntime.sleep(60)\n"
+    parent = ManagedProcess(
+        "parent",
+        py(f"""
+            import sys, time
+            from redarm_ros.procs import ManagedProcess
+            c = ManagedProcess("child", [sys.executable, "-c", {child_code!r}], sink=lambda line: None)
+            c.wait_for_line("up", 20.0)
+            print("child", c.pid, flush=True)
+            time.sleep(60)
+        """),
+        sink=lambda line: None,
+    )
+    try:
+        child_pid = int(parent.wait_for_line(r"child (\d+)", 30.0).group(1))
+        assert _alive(child_pid)
+        os.kill(parent.pid, signal.SIGKILL)  # only the parent: the child is in its own session
+        parent.popen.wait(10.0)
+        deadline = time.monotonic() + 10.0
+        while _alive(child_pid) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert not _alive(child_pid)
+    finally:
+        parent.kill()

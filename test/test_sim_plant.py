@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from PIL import Image
 
 from redarm_ros.control.obstacles import load_scene
 from redarm_ros.errors import InvalidInputError
 from redarm_ros.kinematics import load_arm
 from redarm_ros.sim.plant import PybulletPlant
-from redarm_ros.sim.png import decode_png
 
 
 @pytest.fixture
@@ -104,7 +104,7 @@ def test_scene_objects_and_snapshot(pa10, tmp_path):
     ]
     assert len(set(ids)) == 4 and pa10.objects == ids
     path = pa10.snapshot_png(tmp_path / "snap.png", 160, 120)
-    img = decode_png(open(path, "rb").read())
+    img = np.asarray(Image.open(path))
     assert img.shape == (120, 160, 3)
     assert len(np.unique(img.reshape(-1, 3), axis=0)) > 10  # not a blank image
     assert np.abs(img.astype(int) - empty.astype(int)).sum() > 0  # the objects are in view

@@ -2,8 +2,8 @@
 
 The build/test hosts have no SocketCAN (``socket(AF_CAN)`` -> errno 97), so by
 default the scenario runs inside a User-Mode Linux guest (see
-``redarm_ros/uml`` and docs/socketcan.md): one boot runs every scenario of
-``test/uml_scenario.py`` and writes JSON results to a host directory; the
+``test/support/uml`` and docs/socketcan.md): one boot runs every scenario of
+``test/support/uml_scenario.py`` and writes JSON results to a host directory; the
 tests below each check one part of them.
 
 On a host that has SocketCAN, set ``REDARM_TEST_SOCKETCAN=vcan0`` (or another
@@ -28,12 +28,12 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from support.uml import runner
 
 from redarm_ros.errors import InvalidInputError
-from redarm_ros.uml import runner
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
-SCENARIO = REPO_ROOT / "test" / "uml_scenario.py"
+SCENARIO = REPO_ROOT / "test" / "support" / "uml_scenario.py"
 NATIVE_CHANNEL = os.environ.get("REDARM_TEST_SOCKETCAN", "").strip()
 # The whole guest run (boot, every scenario, power-off) must finish within this [s].
 GUEST_TIMEOUT_S = 180.0
@@ -48,7 +48,7 @@ X86_LINUX = sys.platform == "linux" and os.uname().machine == "x86_64"
 _FILTER_PROBE = textwrap.dedent(
     """
     import ctypes, json, sys
-    from redarm_ros.uml.fpu import install_fxsave_only_filter
+    from support.uml.fpu import install_fxsave_only_filter
     libc = ctypes.CDLL(None, use_errno=True)
     buf = ctypes.create_string_buffer(4096)
     iov = (ctypes.c_void_p * 2)(ctypes.cast(buf, ctypes.c_void_p), 4096)
@@ -78,7 +78,7 @@ def test_fpu_filter_fails_only_the_xstate_regset_requests() -> None:
         capture_output=True,
         text=True,
         timeout=60,
-        env={**os.environ, "PYTHONPATH": str(REPO_ROOT)},
+        env={**os.environ, "PYTHONPATH": str(REPO_ROOT / "test")},
         check=False,
     )
     assert proc.returncode == 0, proc.stderr
@@ -93,7 +93,7 @@ def test_fpu_filter_fails_only_the_xstate_regset_requests() -> None:
 
 def test_guest_no_avx_env_names_the_avx_features() -> None:
     """The guest environment switches off AVX in glibc (incl. the memcpy preference), NumPy, OpenBLAS."""
-    from redarm_ros.uml.fpu import GUEST_NO_AVX_ENV
+    from support.uml.fpu import GUEST_NO_AVX_ENV
 
     hwcaps = GUEST_NO_AVX_ENV["GLIBC_TUNABLES"].split("=", 1)[1].split(",")
     for feature in ("-AVX", "-AVX2", "-AVX512F", "-AVX512VL", "-AVX512BW", "-AVX_Fast_Unaligned_Load"):
@@ -109,7 +109,7 @@ def test_glibc_honours_the_no_avx_tunables() -> None:
     ld_so = Path("/lib64/ld-linux-x86-64.so.2")
     if not ld_so.exists():
         pytest.skip("no /lib64/ld-linux-x86-64.so.2")
-    from redarm_ros.uml.fpu import GUEST_NO_AVX_ENV
+    from support.uml.fpu import GUEST_NO_AVX_ENV
 
     def diagnostics(env: dict[str, str]) -> str:
         proc = subprocess.run([str(ld_so), "--list-diagnostics"], capture_output=True, text=True,

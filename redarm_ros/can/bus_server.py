@@ -46,11 +46,9 @@ import logging
 import os
 import queue
 import re
-import select
 import signal
 import socket
 import struct
-import subprocess
 import sys
 import tempfile
 import termios
@@ -68,6 +66,7 @@ from can_remote.websocket import WebSocket, get_accept_key
 from redarm_ros.can import realtime
 from redarm_ros.can.bus import check_message
 from redarm_ros.errors import BusError, InvalidInputError
+from redarm_ros.procs import ChildDiedError, ManagedProcess, ReadinessTimeoutError, python_module_cmd
 
 logger = logging.getLogger(__name__)
 
@@ -449,22 +448,16 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 class BusServerProcess:
-    """A ``redarm-canbus`` child process: :attr:`port`, :meth:`client_config`, :meth:`stop`."""
+    """A ``redarm-canbus`` child process: :attr:`port`, :meth:`client_config`, :meth:`stop`.
 
-    def __init__(self, process: subprocess.Popen[str], port: int) -> None:
-        self.process = process
+    The child is a :class:`redarm_ros.procs.ManagedProcess` (own session, dies with its parent,
+    staged stop); :attr:`process` is its ``Popen``.
+    """
+
+    def __init__(self, child: ManagedProcess, port: int) -> None:
+        self.child = child
+        self.process = child.popen
         self.port = port
-        self._drain = threading.Thread(target=self._drain_stdout, daemon=True)
-        self._drain.start()
-
-    def _drain_stdout(self) -> None:
-        # Keep the pipe empty so the child never blocks on a full stdout.
-        stream = self.process.stdout
-        if stream is None:
-            return
-        with contextlib.suppress(OSError, ValueError):
-            for _ in stream:
-                pass
 
     @property
     def channel(self) -> str:
@@ -481,22 +474,7 @@ class BusServerProcess:
 
     def stop(self, timeouts: tuple[float, float, float] = (3.0, 2.0, 2.0)) -> int:
         """End the server: SIGINT, wait, SIGINT again, wait, then SIGKILL. Returns the exit code."""
-        proc = self.process
-        for sig, wait in (
-            (signal.SIGINT, timeouts[0]),
-            (signal.SIGINT, timeouts[1]),
-            (signal.SIGKILL, timeouts[2]),
-        ):
-            if proc.poll() is not None:
-                break
-            with contextlib.suppress(ProcessLookupError):
-                proc.send_signal(sig)
-            with contextlib.suppress(subprocess.TimeoutExpired):
-                proc.wait(wait)
-        self._drain.join(1.0)
-        if proc.stdout is not None:
-            proc.stdout.close()
-        return proc.wait()
+        return self.child.stop(timeouts)
 
     def __enter__(self) -> BusServerProcess:
         return self
@@ -521,46 +499,32 @@ def start_bus_server(
         BusError: the server exited or did not announce its port within ``ready_timeout_s``
             (the process is killed then).
     """
-    cmd = [
-        python or sys.executable,
-        "-m",
-        "redarm_ros.can.bus_server",
-        "--host",
-        "127.0.0.1",
-        "--port",
-        str(port),
-    ]
+    cmd = python_module_cmd(
+        "redarm_ros.can.bus_server", "--host", "127.0.0.1", "--port", str(port), python=python
+    )
     if port_file is not None:
         cmd += ["--port-file", str(port_file)]
     child_env = dict(os.environ if env is None else env)
     # Make the package importable in the child even when it is not installed (run from a checkout).
     pkg_root = str(Path(__file__).resolve().parents[2])
     child_env["PYTHONPATH"] = os.pathsep.join(p for p in (pkg_root, child_env.get("PYTHONPATH", "")) if p)
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True, env=child_env, bufsize=1)
-    assert proc.stdout is not None
-    deadline = time.monotonic() + ready_timeout_s
-    seen: list[str] = []
+    child = ManagedProcess("canbus", cmd, env=child_env, sink=logger.debug)
     try:
-        while True:
-            left = deadline - time.monotonic()
-            if left <= 0:
-                raise BusError(f"CAN bus server did not announce its port within {ready_timeout_s} s: {seen}")
-            ready, _, _ = select.select([proc.stdout], [], [], left)
-            if not ready:
-                continue
-            line = proc.stdout.readline()
-            if not line:
-                raise BusError(f"CAN bus server exited with code {proc.wait()} before announcing its port")
-            seen.append(line.rstrip())
-            m = _PORT_RE.match(line)
-            if m:
-                return BusServerProcess(proc, int(m.group(1)))
+        m = child.wait_for_line(_PORT_RE, ready_timeout_s)
+    except ReadinessTimeoutError as exc:
+        child.kill()
+        raise BusError(
+            f"CAN bus server did not announce its port within {ready_timeout_s} s: {exc.tail}"
+        ) from exc
+    except ChildDiedError as exc:
+        child.kill()
+        raise BusError(
+            f"CAN bus server exited with code {exc.returncode} before announcing its port"
+        ) from exc
     except BaseException:
-        proc.kill()
-        proc.wait()
-        proc.stdout.close()
+        child.kill()
         raise
-
+    return BusServerProcess(child, int(m.group(1)))
 
 if __name__ == "__main__":
     sys.exit(main())

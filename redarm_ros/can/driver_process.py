@@ -58,6 +58,7 @@ from redarm_ros.can.driver_loop import (
     check_trajectory,
 )
 from redarm_ros.errors import RedarmError
+from redarm_ros.procs import die_with_parent_preexec
 
 _LOG = logging.getLogger(__name__)
 
@@ -224,6 +225,7 @@ class DriverProcess:
             self._proc = subprocess.Popen(
                 [self._python, "-m", "redarm_ros.can.driver_process", "--fd", str(theirs.fileno())],
                 pass_fds=(theirs.fileno(),), env=env, stdin=subprocess.DEVNULL,
+                preexec_fn=die_with_parent_preexec(),  # no real-time orphan if the node is killed
             )
         finally:
             theirs.close()

@@ -18,7 +18,13 @@ from redarm_ros.control.ik_step import DeadEnd, pose_matrix
 from redarm_ros.control.joint_limits import braking_speed
 from redarm_ros.control.paper_redundancy import MODE as PAPER_MODE
 from redarm_ros.control.replan import check_route, move_time
-from redarm_ros.control.rotations import (
+from redarm_ros.control.slide import obstacle_slide, workspace_slide
+from redarm_ros.control.state import (
+    Mode,
+)
+from redarm_ros.control.swivel_dynamics import wrap_angle
+from redarm_ros.control.types import Quat, Vec3
+from redarm_ros.kinematics.quaternion import (
     quat_between_vectors,
     quat_from_rotvec,
     quat_mul,
@@ -27,12 +33,6 @@ from redarm_ros.control.rotations import (
     rotvec_between,
     slerp_vectors,
 )
-from redarm_ros.control.slide import obstacle_slide, workspace_slide
-from redarm_ros.control.state import (
-    Mode,
-)
-from redarm_ros.control.swivel_dynamics import wrap_angle
-from redarm_ros.control.types import Quat, Vec3
 
 
 def _swivel_low(circle: ElbowCircle) -> float | None:

@@ -19,11 +19,11 @@ from redarm_ros.control.ik_step import IKStepper
 from redarm_ros.control.obstacles import Scene
 from redarm_ros.control.paper_redundancy import PaperSwivel, TangentHand
 from redarm_ros.control.params import ControllerParams
-from redarm_ros.control.rotations import quat_from_matrix
 from redarm_ros.control.state import CoreState
 from redarm_ros.control.swivel_dynamics import SwivelDynamics
 from redarm_ros.control.types import Quat, Vec3
 from redarm_ros.errors import InvalidInputError
+from redarm_ros.kinematics.quaternion import quat_from_matrix
 
 SMALL_SCENE = 4  # obstacles within reach up to which every step uses them all (no per-step culling)
 

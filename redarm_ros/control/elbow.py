@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from redarm_ros.errors import InvalidInputError, UnreachableError
+from redarm_ros.kinematics.quaternion import shortest_rotation_basis
 
 Vec3 = tuple[float, float, float]
 
@@ -133,21 +134,6 @@ class ElbowCircle:
     def elbow_height_slope(self, s: float) -> float:
         """d(elbow z)/ds (m/rad) at swivel ``s``: positive means increasing s raises the elbow."""
         return self.rho * (-math.sin(s) * self.a[2] + math.cos(s) * self.b[2])
-
-
-def shortest_rotation_basis(n: Vec3) -> tuple[Vec3, Vec3]:
-    """Columns ``a = qA i qA*`` and ``b = qA j qA*`` of the shortest rotation taking k onto unit ``n``.
-
-    At ``n = -k`` the shortest rotation is not unique; we take the half turn about x (a = i, b = -j).
-    """
-    nx, ny, nz = n
-    c1 = 1.0 + nz
-    if c1 < 1e-12:
-        return (1.0, 0.0, 0.0), (0.0, -1.0, 0.0)
-    f = 1.0 / c1
-    a = (1.0 - nx * nx * f, -nx * ny * f, -nx)
-    b = (-nx * ny * f, 1.0 - ny * ny * f, -ny)
-    return a, b
 
 
 def elbow_circle(geom: ArmGeometry, T: Any) -> ElbowCircle:

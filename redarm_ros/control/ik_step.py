@@ -28,16 +28,16 @@ from typing import Any
 import numpy as np
 
 from redarm_ros.control.elbow import ArmGeometry, ElbowCircle, elbow_circle
-from redarm_ros.control.rotations import (
+from redarm_ros.control.swivel_dynamics import wrap_angle
+from redarm_ros.control.types import Quat, Vec3
+from redarm_ros.errors import UnreachableError
+from redarm_ros.kinematics.quaternion import (
     matrix_from_quat,
     quat_from_rotvec,
     quat_mul,
     quat_normalize,
     rotvec_between,
 )
-from redarm_ros.control.swivel_dynamics import wrap_angle
-from redarm_ros.control.types import Quat, Vec3
-from redarm_ros.errors import UnreachableError
 
 DEAD_END = "no joint solution continuous with the current configuration (joint limits or singularity)"
 

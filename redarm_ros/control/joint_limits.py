@@ -5,6 +5,11 @@ respects, per joint, ``|v| <= max_vel``, ``|v - v_prev| <= max_acc * dt`` and th
 braking onto those limits in time (the command never needs more than ``max_acc`` to stop before a
 limit). Velocities are finite differences of commanded positions over ``dt``. Units: rad, rad/s,
 rad/s^2, s.
+
+The braking law and the admissible velocity interval are those of :mod:`redarm_ros.motion.limits`,
+the one law the driver's reference shaper and the simulator's setpoint generator follow too (exact
+in discrete time: a joint keeping to :func:`braking_speed` stops on the point, not before or past
+it). This module keeps the controller's API on top of it: the step limiter and its argument order.
 """
 
 from __future__ import annotations
@@ -14,6 +19,8 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+
+from redarm_ros.motion import limits as motion
 
 
 class LimitMode(enum.Enum):
@@ -36,14 +43,18 @@ class LimitedStep:
 
 
 def braking_speed(distance: np.ndarray | float, acc: np.ndarray | float, dt: float) -> np.ndarray:
-    """Largest speed (rad/s) from which a joint ``distance`` rad away from a stop can still stop there
-    with deceleration ``acc`` (rad/s^2) applied in steps of ``dt`` s: one step at that speed plus the
-    braking distance ``v^2 / (2 a)`` (which bounds the discrete one, ``<= v^2 / (2 a) + v dt / 2 +
-    a dt^2 / 8``, from above); never more than ``distance / dt`` (no overshoot in one step)."""
-    d = np.maximum(np.asarray(distance, float), 0.0)
-    a = np.asarray(acc, float)
-    v = a * (-dt + np.sqrt(dt * dt + 2.0 * d / a))
-    return np.minimum(v, d / dt)
+    """Largest speed (rad/s) for the next step of ``dt`` s from which a joint ``distance`` rad away
+    from a stop can still stop there braking at ``acc`` (rad/s^2): :func:`redarm_ros.motion.limits.
+    braking_speed` (the scalar form for plain numbers: the laws call it once per step)."""
+    if isinstance(distance, float | int) and isinstance(acc, float | int):
+        return np.asarray(motion.braking_speed_scalar(float(distance), float(acc), dt))
+    return motion.braking_speed(distance, acc, dt)
+
+
+def braking_distance(speed: np.ndarray | float, acc: np.ndarray | float, dt: float) -> np.ndarray:
+    """Distance (rad) a joint covers stopping from ``speed`` braking at ``acc``: the inverse of
+    :func:`braking_speed` (:func:`redarm_ros.motion.limits.braking_distance`)."""
+    return motion.braking_distance(speed, acc, dt)
 
 
 def velocity_bounds(q_prev: np.ndarray, v_prev: np.ndarray, dt: float, max_vel: np.ndarray,
@@ -51,19 +62,9 @@ def velocity_bounds(q_prev: np.ndarray, v_prev: np.ndarray, dt: float, max_vel: 
                     ) -> tuple[np.ndarray, np.ndarray]:
     """Per-joint interval (rad/s) of velocities allowed this step: velocity limit, acceleration limit
     around ``v_prev`` and braking onto the position limits. Where the braking bound contradicts the
-    acceleration bound (the joint already moves too fast towards a limit) the position limit wins."""
-    lo = np.maximum(v_prev - max_acc * dt, -max_vel)
-    hi = np.minimum(v_prev + max_acc * dt, max_vel)
-    hi_pos = braking_speed(upper - q_prev, max_acc, dt)
-    lo_pos = -braking_speed(q_prev - lower, max_acc, dt)
-    hi = np.minimum(hi, hi_pos)
-    lo = np.maximum(lo, lo_pos)
-    bad = lo > hi
-    if np.any(bad):  # only after an external reset / emergency stop: brake as hard as allowed
-        mid = np.where(v_prev > 0.0, hi, lo)
-        lo = np.where(bad, mid, lo)
-        hi = np.where(bad, mid, hi)
-    return lo, hi
+    acceleration bound (the joint already moves too fast towards a limit) the position limit wins.
+    :func:`redarm_ros.motion.limits.velocity_bounds` in the controller's argument order."""
+    return motion.velocity_bounds(q_prev, v_prev, dt, lower, upper, max_vel, max_acc)
 
 
 def limit_step(q_prev: np.ndarray, v_prev: np.ndarray, q_target: np.ndarray, dt: float,

@@ -46,9 +46,6 @@ from redarm_ros.control.obstacles import Clearance, Scene
 from redarm_ros.control.paper_redundancy import PaperSwivel, TangentHand
 from redarm_ros.control.params import ControllerParams, ReplanParams, ServoParams, StreamParams
 from redarm_ros.control.replan_law import ReplanMixin
-from redarm_ros.control.rotations import (
-    quat_angle,
-)
 from redarm_ros.control.servo_law import ServoMixin
 from redarm_ros.control.slide import wrist_shell
 from redarm_ros.control.state import (
@@ -65,6 +62,9 @@ from redarm_ros.control.stream import StreamEstimator
 from redarm_ros.control.swivel_dynamics import SwivelDynamics, SwivelForces
 from redarm_ros.control.types import GoalCheck, GoalKind, GoalStatus, Phase, Quat, StepResult, Vec3
 from redarm_ros.errors import ConfigError, InvalidInputError, UnreachableError
+from redarm_ros.kinematics.quaternion import (
+    quat_angle,
+)
 
 LOG = logging.getLogger(__name__)
 SETTLING = "at the goal; the elbow is settling on its preferred swivel"

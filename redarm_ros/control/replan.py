@@ -40,9 +40,9 @@ from redarm_ros.control.guard import CollisionGuard
 from redarm_ros.control.ik_step import IKStepper, blend, pose_matrix
 from redarm_ros.control.obstacles import Scene
 from redarm_ros.control.params import ReplanParams
-from redarm_ros.control.rotations import quat_angle, quat_from_matrix
 from redarm_ros.control.swivel_dynamics import wrap_angle
 from redarm_ros.errors import UnreachableError
+from redarm_ros.kinematics.quaternion import quat_angle, quat_from_matrix
 
 TWO_PI = 2.0 * math.pi
 

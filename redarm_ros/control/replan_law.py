@@ -16,14 +16,14 @@ from redarm_ros.control.elbow import ElbowCircle, elbow_circle
 from redarm_ros.control.ik_step import pose_matrix
 from redarm_ros.control.params import ReplanParams
 from redarm_ros.control.replan import JointPath, JointPlanner
-from redarm_ros.control.rotations import (
-    quat_angle,
-)
 from redarm_ros.control.state import (
     Mode,
 )
 from redarm_ros.control.types import GoalKind, Phase
 from redarm_ros.errors import UnreachableError
+from redarm_ros.kinematics.quaternion import (
+    quat_angle,
+)
 
 LOG = logging.getLogger(__name__)
 

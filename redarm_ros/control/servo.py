@@ -20,8 +20,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from redarm_ros.control.joint_limits import braking_speed
-from redarm_ros.control.rotations import quat_from_rotvec, quat_mul, quat_normalize, rotvec_between
 from redarm_ros.control.types import Quat, Vec3
+from redarm_ros.kinematics.quaternion import quat_from_rotvec, quat_mul, quat_normalize, rotvec_between
 
 
 @dataclass(frozen=True)

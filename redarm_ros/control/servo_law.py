@@ -12,11 +12,6 @@ from redarm_ros.control.attractor import direction
 from redarm_ros.control.base import ControllerBase
 from redarm_ros.control.ik_step import DeadEnd, IKStep, blend
 from redarm_ros.control.params import ServoParams
-from redarm_ros.control.rotations import (
-    quat_from_rotvec,
-    quat_mul,
-    quat_normalize,
-)
 from redarm_ros.control.servo import ServoTarget, servo_step
 from redarm_ros.control.slide import obstacle_slide, workspace_slide
 from redarm_ros.control.state import (
@@ -24,6 +19,11 @@ from redarm_ros.control.state import (
     Mode,
 )
 from redarm_ros.control.types import GoalKind
+from redarm_ros.kinematics.quaternion import (
+    quat_from_rotvec,
+    quat_mul,
+    quat_normalize,
+)
 
 
 class ServoMixin(ControllerBase):

@@ -20,8 +20,8 @@ from collections.abc import Sequence
 
 from redarm_ros.control.elbow import ArmGeometry, ElbowCircle
 from redarm_ros.control.obstacles import ArmCapsules, Scene, links_clearance
-from redarm_ros.control.rotations import quat_rotate
 from redarm_ros.control.types import Quat, Vec3
+from redarm_ros.kinematics.quaternion import quat_rotate
 
 
 def smoothstep(x: float) -> float:

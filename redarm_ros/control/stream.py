@@ -36,14 +36,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from redarm_ros.control.params import StreamParams
-from redarm_ros.control.rotations import (
+from redarm_ros.control.types import Quat, Vec3
+from redarm_ros.kinematics.quaternion import (
     quat_angle,
     quat_from_rotvec,
     quat_mul,
     quat_normalize,
     rotvec_between,
 )
-from redarm_ros.control.types import Quat, Vec3
 
 
 def _vec(v: np.ndarray) -> Vec3:

@@ -67,6 +67,7 @@ from redarm_ros.kinematics.model import (
     check_finite_array,
     check_scalar,
 )
+from redarm_ros.kinematics.quaternion import shortest_rotation_xy
 from redarm_ros.kinematics.result import (
     BATCH_NO_SOLUTION_IN_LIMITS,
     BATCH_OUT_OF_REACH,
@@ -182,12 +183,8 @@ class SwivelArm(Arm):
 
     @staticmethod
     def _rot_qa(circ: tuple[float, ...], ux: float, uy: float) -> tuple[float, float, float]:
-        """qA u qA* for u = (ux, uy, 0): the shortest rotation k -> n applied to u (eq. 14-15).
-
-        Scalar on purpose: it is on the path of every ``ik`` call (about 18 us in all); measured on the
-        2-core test machine, this takes 0.9 us, ``qrotate(shortest_rotation(n), u)`` of :mod:`.quaternion`
-        30 us.
-        """
+        """qA u qA* for u = (ux, uy, 0): the shortest rotation k -> n applied to u (eq. 14-15), by
+        :func:`.quaternion.shortest_rotation_xy` with 1 + nz from the circle's unnormalised d."""
         dx, dy, dz, D, rxy2, nx, ny, nz, _ = circ
         if D == 0.0 or (dz >= 0.0 and rxy2 <= AXIS_TOL2 * D * D):
             return ux, uy, 0.0
@@ -197,8 +194,7 @@ class SwivelArm(Arm):
             return ux, -uy, 0.0
         else:  # 1 + nz without cancellation
             h = rxy2 / (D * (D - dz))
-        w = -(nx * ux + ny * uy)
-        return ux + nx * w / h, uy + ny * w / h, w
+        return shortest_rotation_xy(nx, ny, h, ux, uy)
 
     @staticmethod
     def _rot_qa_inv(circ: tuple[float, ...], ex: float, ey: float, ez: float) -> tuple[float, float]:

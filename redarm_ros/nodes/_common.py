@@ -160,6 +160,10 @@ def run_node(
             executor.shutdown(timeout_sec=1.0)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except DuplicateNodeError as exc:  # raised by UniqueNameCheck's timer
+        logging.basicConfig()
+        _LOG.error("could not start: %s", exc)
+        code = 1
     finally:
         if node is not None:
             close = getattr(node, "close", None)
@@ -200,28 +204,54 @@ def pose_msg_to_matrix(pose: Pose, quaternion_tolerance: float) -> np.ndarray:
     return pose_to_matrix(p, [v / norm for v in q_wxyz], tol=1e-9)
 
 
-def check_unique_node_name(node: Node, wait_s: float) -> None:
-    """Watch the graph for ``wait_s`` seconds; raise RuntimeError if another node has our name.
+class DuplicateNodeError(RuntimeError):
+    """Another node of this node's name runs in the domain: this one refuses to start."""
 
-    Discovery takes a moment, so a duplicate started just before us may appear only after a few tens
-    of ms; the check polls instead of looking once.
+
+class UniqueNameCheck:
+    """The start-up duplicate-name check as a timer, so the constructor never blocks.
+
+    Every 50 ms for ``wait_s`` seconds it looks at the graph (discovery takes a moment, so a twin
+    started just before us may appear only after a few tens of ms). A twin sets :attr:`refused`,
+    logs it and calls ``on_refused(reason)``; without a callback it raises
+    :class:`DuplicateNodeError` out of the executor's spin, which :func:`run_node` turns into exit
+    code 1. :attr:`done` turns True once the window passed without a twin; a node that must not act
+    before that (e.g. send commands) checks it.
     """
-    if wait_s <= 0:
-        return
-    me = (node.get_name(), node.get_namespace())
-    deadline = time.monotonic() + wait_s
-    while True:
-        count = sum(1 for nm_ns in node.get_node_names_and_namespaces() if tuple(nm_ns) == me)
-        if count > 1:
-            fq = node.get_fully_qualified_name()
-            raise RuntimeError(
-                f"another node named {fq} is already running in ROS_DOMAIN_ID "
-                f"{node.context.get_domain_id()}; refusing to start a second one "
+
+    def __init__(self, node: Node, wait_s: float, poll_s: float = 0.05) -> None:
+        self._node = node
+        self._wait_s = float(wait_s)
+        self._created = time.monotonic()
+        self.refused: str | None = None
+        self.on_refused: Callable[[str], None] | None = None
+        self.done = self._wait_s <= 0
+        self._timer = None if self.done else node.create_timer(poll_s, self._tick)
+
+    def _tick(self) -> None:
+        if self.done or self.refused is not None:
+            return
+        node = self._node
+        me = (node.get_name(), node.get_namespace())
+        if sum(1 for nm_ns in node.get_node_names_and_namespaces() if tuple(nm_ns) == me) > 1:
+            self.refused = (
+                f"another node named {node.get_fully_qualified_name()} is already running in "
+                f"ROS_DOMAIN_ID {node.context.get_domain_id()}; refusing to start a second one "
                 f"(remap the name with --ros-args -r __node:=<name> to run both)"
             )
-        if time.monotonic() >= deadline:
-            return
-        time.sleep(0.05)
+            self._cancel()  # from its own callback: a cancel from another thread can race the executor
+            node.get_logger().error(self.refused)
+            if self.on_refused is not None:
+                self.on_refused(self.refused)
+                return
+            raise DuplicateNodeError(self.refused)
+        if time.monotonic() - self._created >= self._wait_s:
+            self.done = True
+            self._cancel()
+
+    def _cancel(self) -> None:
+        if self._timer is not None:
+            self._timer.cancel()
 
 
 def watch_duplicates(node: Node, period_s: float = 2.0) -> None:

@@ -203,8 +203,10 @@ class CanDriverNode(Node):
     is called with it (``main()`` uses that to end the process with exit code 1).
     """
 
-    def __init__(self, **kwargs: Any) -> None:
-        super().__init__(kwargs.pop("node_name", NODE_NAME), **kwargs)
+    def __init__(self, *, context: Any = None, parameter_overrides: list[Any] | None = None,
+                 node_name: str = NODE_NAME, namespace: str | None = None) -> None:
+        super().__init__(node_name, namespace=namespace, context=context,
+                         parameter_overrides=parameter_overrides or [])
         p = declare_params(self, PARAMS)
         try:
             self.arm = load_arm(p["arm"])

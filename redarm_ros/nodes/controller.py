@@ -69,7 +69,7 @@ from redarm_ros.kinematics import load_arm
 from redarm_ros.kinematics.quaternion import matrix_to_quat, quat_to_matrix
 from redarm_ros.nodes._common import (
     ParamSpec,
-    check_unique_node_name,
+    UniqueNameCheck,
     declare_params,
     in_range,
     non_negative,
@@ -252,7 +252,7 @@ class ControllerNode(Node):
             self.ctl = ReachController(self.arm, self.base_scene, params)
         except (RedarmError, OSError) as exc:
             raise ValueError(f"controller configuration: {exc}") from exc
-        check_unique_node_name(self, p["duplicate_check_s"])
+        self.name_check = UniqueNameCheck(self, p["duplicate_check_s"])  # a timer: no blocking here
         watch_duplicates(self)
         self.period = 1.0 / p["rate_hz"]
         self._names = list(self.arm.joint_names)
@@ -449,6 +449,8 @@ class ControllerNode(Node):
 
     # -- the control step -------------------------------------------------------------------------
     def _on_timer(self) -> None:
+        if not self.name_check.done:  # no commands while a twin of this name may still show up
+            return
         now = time.monotonic()
         if self._q_meas is None:
             self._warn_throttled("no-js", "no joint_states yet; not commanding", 5.0)

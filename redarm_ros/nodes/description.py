@@ -27,7 +27,7 @@ from redarm_ros.errors import RedarmError
 from redarm_ros.kinematics import load_arm
 from redarm_ros.nodes._common import (
     ParamSpec,
-    check_unique_node_name,
+    UniqueNameCheck,
     declare_params,
     non_negative,
     run_node,
@@ -142,7 +142,7 @@ class DescriptionNode(Node):
         p = declare_params(self, PARAMS)
         self.urdf = robot_description(p["arm"], p["prefix"], p["urdf_file"])
         self.summary = summarize(self.urdf)
-        check_unique_node_name(self, p["duplicate_check_s"])
+        self.name_check = UniqueNameCheck(self, p["duplicate_check_s"])  # a timer: no blocking here
         watch_duplicates(self)
         self.pub = self.create_publisher(String, TOPIC, DESCRIPTION_QOS)
         self.pub.publish(String(data=self.urdf))

@@ -38,7 +38,7 @@ from redarm_ros.kinematics.result import IKStatus
 from redarm_ros.kinematics.solve import IKAnswer, IKFrontEnd
 from redarm_ros.nodes._common import (
     ParamSpec,
-    check_unique_node_name,
+    UniqueNameCheck,
     declare_params,
     non_negative,
     pose_msg_to_matrix,
@@ -186,7 +186,7 @@ class IKServiceNode(Node):
             )
         except InvalidInputError as exc:
             raise ValueError(str(exc)) from exc
-        check_unique_node_name(self, p["duplicate_check_s"])
+        self.name_check = UniqueNameCheck(self, p["duplicate_check_s"])  # a timer: no blocking here
         watch_duplicates(self)
         self.requests = 0
         self.failures = 0

@@ -90,9 +90,13 @@ class RecorderNode(Node):
         base_frame: str = "base_link",
         discovery_period_s: float = 0.25,
         context: Any = None,
+        parameter_overrides: list[Any] | None = None,
         node_name: str = NODE_NAME,
+        namespace: str | None = None,
     ) -> None:
-        super().__init__(node_name, context=context)
+        # The keywords every redarm node takes; the recorder's own settings come before them.
+        super().__init__(node_name, namespace=namespace, context=context,
+                         parameter_overrides=parameter_overrides or [])
         self.writer = writer
         self.wanted = None if topics is None else {t if t.startswith("/") else f"/{t}" for t in topics}
         self.exclude = re.compile(exclude) if exclude else None

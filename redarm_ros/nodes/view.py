@@ -88,8 +88,9 @@ class ViewNode(Node):
     """``view``: ROS topics in, a viser page out (see the module docstring)."""
 
     def __init__(self, *, context: Any = None, parameter_overrides: list[Any] | None = None,
-                 node_name: str = NODE_NAME) -> None:
-        super().__init__(node_name, context=context, parameter_overrides=parameter_overrides or [])
+                 node_name: str = NODE_NAME, namespace: str | None = None) -> None:
+        super().__init__(node_name, namespace=namespace, context=context,
+                         parameter_overrides=parameter_overrides or [])
         p = declare_params(self, PARAMS)
         import viser  # here, not at import time: `--help` and the package tests need no web server
 

@@ -8,12 +8,14 @@
   MCAP recording; :func:`frames` samples it at a fixed rate, shortening stretches where nothing moves;
   :func:`write_gif` writes the frames with imageio, all quantized to one shared palette, so the GIF
   stores only what changes between frames.
+* :func:`write_png` writes one picture (Pillow) atomically, for the simulator's and the demo's snapshots.
 
 Units: m, rad, ns for recording times, s for durations.
 """
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -195,6 +197,23 @@ def frames(timeline: Timeline, renderer: SceneRenderer, *, fps: float = 10.0,
         last_q, last_key = q, key
         goal = None if g is None else (g[1], g[2])
         yield renderer.render(q, goal, goal_ok=phase != "rejected", caption=text)
+
+
+def write_png(path: str | os.PathLike[str], image: np.ndarray) -> str:
+    """Write an (h, w, 3) RGB or (h, w, 4) RGBA uint8 ``image`` as PNG to ``path``; returns the path.
+
+    Atomic (temp file + rename): a reader polling for the file never sees half of it.
+    """
+    from PIL import Image
+
+    img = np.asarray(image)
+    if img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] not in (3, 4) or 0 in img.shape[:2]:
+        raise ValueError(f"expected an (h, w, 3|4) uint8 image, got {img.dtype} {img.shape}")
+    path = os.fspath(path)
+    tmp = f"{path}.tmp{os.getpid()}"
+    Image.fromarray(img).save(tmp, format="PNG")
+    os.replace(tmp, path)
+    return path
 
 
 def shared_palette(sample: Sequence[np.ndarray], colors: int = 256) -> Any:

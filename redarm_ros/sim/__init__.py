@@ -4,8 +4,7 @@
 * :mod:`~redarm_ros.sim.ramp` - per-joint setpoint generator (velocity/acceleration limited),
 * :mod:`~redarm_ros.sim.plant` - the pybullet plant (explicit client id, scene, headless snapshots),
 * :mod:`~redarm_ros.sim.emulation` - one PowerCube module emulator per joint over the plant,
-* :mod:`~redarm_ros.sim.hardware` - the ``redarm-sim`` process (``main``),
-* :mod:`~redarm_ros.sim.png` - a stdlib PNG writer.
+* :mod:`~redarm_ros.sim.hardware` - the ``redarm-sim`` process (``main``).
 
 Nothing is imported here, so ``import redarm_ros.sim`` stays cheap and pybullet-free; see docs/sim.md.
 """

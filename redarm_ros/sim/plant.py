@@ -10,7 +10,7 @@
   so a bus thread may use them while the physics thread steps.
 * Scene objects (spheres, cylinders, boxes; static by default) can be added for demos and obstacle tests.
 * :meth:`PybulletPlant.snapshot_png` renders headless with pybullet's TinyRenderer and writes a PNG with
-  the stdlib-only writer in :mod:`redarm_ros.sim.png`.
+  Pillow (:func:`redarm_ros.record.animate.write_png`).
 
 Every pybullet call goes to the client id given explicitly; there are no module-level client globals.
 All pybullet calls (``step``, ``tool_pose``, ``add_*``, ``snapshot_png``) must come from one thread.
@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from redarm_ros.errors import InvalidInputError
-from redarm_ros.sim.png import write_png
+from redarm_ros.record.animate import write_png
 from redarm_ros.sim.ramp import JointRamp
 from redarm_ros.sim.urdf import build_urdf, joint_efforts, link_bodies, link_names
 

@@ -24,7 +24,7 @@ survives ``-AVX2``), NumPy's dispatch, OpenBLAS kernels and OpenSSL. Without
 this, CPython dies during start-up in the guest ("error evaluating path").
 The guest kernel itself uses no AVX.
 
-Run as ``python -m redarm_ros.uml.fpu linux.uml <args>``: installs the filter
+Run as ``python test/support/uml/fpu.py linux.uml <args>``: installs the filter
 and execs the rest of the command line. Linux x86-64 only.
 """
 
@@ -124,15 +124,15 @@ def install_fxsave_only_filter() -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m redarm_ros.uml.fpu CMD ARGS...``: install the filter, then exec CMD."""
+    """``python test/support/uml/fpu.py CMD ARGS...``: install the filter, then exec CMD."""
     args = sys.argv[1:] if argv is None else argv
     if not args:
-        sys.stderr.write("usage: python -m redarm_ros.uml.fpu CMD [ARGS...]\n")
+        sys.stderr.write("usage: python test/support/uml/fpu.py CMD [ARGS...]\n")
         return 2
     try:
         install_fxsave_only_filter()
     except OSError as exc:
-        sys.stderr.write(f"redarm_ros.uml.fpu: cannot install the seccomp filter: {exc}\n")
+        sys.stderr.write(f"uml/fpu.py: cannot install the seccomp filter: {exc}\n")
         return 3
     os.execvp(args[0], args)
     return 127  # not reached

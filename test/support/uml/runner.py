@@ -19,7 +19,7 @@ real python-can ``socketcan`` traffic between processes:
 Timing measured on a 2-core host: boot to job start ~1.5 s, Python start-up
 importing ``can`` ~2 s per process.
 
-Use :func:`run_guest` from code or ``python -m redarm_ros.uml.runner --out DIR -- CMD ...``
+Use :func:`run_guest` from code or ``python -m support.uml.runner --out DIR -- CMD ...``
 by hand. :func:`uml_unavailable_reason` says why a host cannot do this.
 """
 
@@ -42,7 +42,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from redarm_ros.errors import InvalidInputError, RedarmError
-from redarm_ros.uml.fpu import GUEST_NO_AVX_ENV
+from support.uml.fpu import GUEST_NO_AVX_ENV
 
 __all__ = [
     "GuestResult",
@@ -56,6 +56,7 @@ __all__ = [
 _LOG = logging.getLogger(__name__)
 
 GUEST_INIT = Path(__file__).with_name("guest_init.sh")
+FPU_SCRIPT = Path(__file__).with_name("fpu.py")
 # Load order matters: each module needs the one before it.
 CAN_MODULES = (
     "net/can/can.ko",
@@ -173,11 +174,11 @@ def find_uml() -> UmlKernel:
     except OSError:
         pass  # no Yama: ptrace is governed by permissions only
     probe = subprocess.run(
-        [sys.executable, "-m", "redarm_ros.uml.fpu", "true"],
+        [sys.executable, str(FPU_SCRIPT), "true"],
         capture_output=True,
         text=True,
         timeout=30,
-        env={"PATH": "/usr/bin:/bin", "PYTHONPATH": str(Path(__file__).resolve().parents[2])},
+        env={"PATH": "/usr/bin:/bin"},
         check=False,
     )
     if probe.returncode != 0:
@@ -252,7 +253,7 @@ def _read(path: Path) -> str:
 
 
 def _job_script(command: str | Sequence[str], env: Mapping[str, str], cwd: str | None) -> str:
-    lines = ["#!/bin/sh", "# Written by redarm_ros.uml.runner; runs inside the UML guest."]
+    lines = ["#!/bin/sh", "# Written by test/support/uml/runner.py; runs inside the UML guest."]
     lines += [f"export {k}={shlex.quote(v)}" for k, v in env.items()]
     if cwd:
         lines.append(f"cd {shlex.quote(cwd)} || exit 125")
@@ -285,7 +286,7 @@ def run_guest(
             the guest is killed and ``timed_out`` is set.
         mem: guest memory (kernel ``mem=`` syntax).
         can_name: vcan interface to create.
-        fxsave_only: run UML under the seccomp filter of :mod:`redarm_ros.uml.fpu` (needed on
+        fxsave_only: run UML under the seccomp filter of :mod:`support.uml.fpu` (needed on
             hosts with AVX-512/PKU/AMX, harmless elsewhere) and switch AVX off in the guest.
 
     Returns:
@@ -334,9 +335,7 @@ def run_guest(
     ]
     proc_env = {"PATH": os.environ.get("PATH", "/usr/bin:/bin"), "TMPDIR": scratch, "HOME": scratch}
     if fxsave_only:
-        package_parent = str(Path(__file__).resolve().parents[2])
-        proc_env["PYTHONPATH"] = package_parent
-        args = [sys.executable, "-m", "redarm_ros.uml.fpu", *args]
+        args = [sys.executable, str(FPU_SCRIPT), *args]  # stdlib only: runs as a plain script
     _LOG.info("booting UML guest %s (timeout %.0f s)", umid, timeout_s)
     console_path = out / "console.log"
     timed_out = False
@@ -385,12 +384,12 @@ def run_guest(
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """CLI: ``python -m redarm_ros.uml.runner --out DIR [--timeout S] -- CMD [ARGS...]``.
+    """CLI: ``python -m support.uml.runner --out DIR [--timeout S] -- CMD [ARGS...]``.
 
     Runs CMD in a fresh guest with ``vcan0`` up, prints its output, exits with its exit code
     (or 124 on timeout, 125 when the guest never reached the job).
     """
-    parser = argparse.ArgumentParser(prog="python -m redarm_ros.uml.runner", description=main.__doc__)
+    parser = argparse.ArgumentParser(prog="python -m support.uml.runner", description=main.__doc__)
     parser.add_argument("--out", required=True, help="host directory for job script and results")
     parser.add_argument("--timeout", type=float, default=DEFAULT_TIMEOUT_S, help="outer limit [s]")
     parser.add_argument("--mem", default=DEFAULT_MEM)

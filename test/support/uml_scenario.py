@@ -23,20 +23,22 @@ or, when absent, ``CAN_INTERFACE``/``CAN_CHANNEL`` as everywhere in redarm_ros.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import os
-import signal
+import re
 import statistics
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 from typing import Any
 
 import can
 import numpy as np
+
+from redarm_ros.procs import ChildDiedError, ManagedProcess, ReadinessTimeoutError
 
 _LOG = logging.getLogger("uml_scenario")
 HERE = Path(__file__).resolve()
@@ -82,49 +84,30 @@ def cmd_echo(ns: argparse.Namespace) -> int:
     return 0 if answered == ns.count else 1
 
 
-def _start_child(args: list[str], ready: str, timeout_s: float) -> subprocess.Popen[str]:
+def _start_child(args: list[str], ready: str, timeout_s: float) -> ManagedProcess:
     """Start ``python uml_scenario.py ARGS`` and wait for its readiness line."""
     return _start_child_cmd([sys.executable, str(HERE), *args], ready, timeout_s)
 
 
-def _start_child_cmd(cmd: list[str], ready: str, timeout_s: float) -> subprocess.Popen[str]:
-    """Start ``cmd`` and wait until a line of its stdout starts with ``ready``."""
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True)
-    deadline = time.monotonic() + timeout_s
-    assert proc.stdout is not None
-    while time.monotonic() < deadline:
-        line = proc.stdout.readline()
-        if not line:
-            break
-        if line.startswith(ready):
-            # Keep draining stdout so a chatty child never blocks on a full pipe.
-            threading.Thread(target=_drain, args=(proc.stdout,), daemon=True).start()
-            return proc
-    _stop_child(proc)
-    raise RuntimeError(f"child {cmd[1:3]} did not print {ready} within {timeout_s} s")
+def _start_child_cmd(
+    cmd: list[str], ready: str, timeout_s: float, sink: Any = sys.stderr
+) -> ManagedProcess:
+    """Start ``cmd`` (output to ``sink``) and wait until a line of its output starts with ``ready``."""
+    child = ManagedProcess(" ".join(cmd[1:3]), cmd, sink=sink)
+    try:
+        child.wait_for_line("^" + re.escape(ready), timeout_s)
+    except (ReadinessTimeoutError, ChildDiedError) as exc:
+        child.stop()
+        raise RuntimeError(f"child {cmd[1:3]} did not print {ready} within {timeout_s} s") from exc
+    return child
 
 
-def _drain(stream: Any) -> None:
-    for _line in stream:
-        pass
-
-
-def _stop_child(proc: subprocess.Popen[str], timeout_s: float = 10.0, grace_s: float = 0.0) -> int | None:
-    """Wait ``grace_s`` for a natural exit, then SIGINT, wait, SIGINT again, SIGKILL (project schedule)."""
+def _stop_child(child: ManagedProcess, timeout_s: float = 10.0, grace_s: float = 0.0) -> int | None:
+    """Wait ``grace_s`` for a natural exit, then the staged stop (SIGINT, SIGINT, SIGKILL)."""
     if grace_s > 0:
-        try:
-            proc.wait(timeout=grace_s)
-        except subprocess.TimeoutExpired:
-            pass
-    for sig, wait_s in ((signal.SIGINT, timeout_s), (signal.SIGINT, 3.0), (signal.SIGKILL, 3.0)):
-        if proc.poll() is not None:
-            break
-        proc.send_signal(sig)
-        try:
-            proc.wait(timeout=wait_s)
-        except subprocess.TimeoutExpired:
-            continue
-    return proc.poll()
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            child.popen.wait(timeout=grace_s)
+    return child.stop((timeout_s, 3.0, 3.0))
 
 
 def cmd_pingpong(ns: argparse.Namespace) -> int:
@@ -426,7 +409,7 @@ def cmd_ros(ns: argparse.Namespace) -> int:
     if "channel" in kw:
         node_cmd += ["-p", f"can.channel:={kw['channel']}"]
     t0 = time.monotonic()
-    node_proc = subprocess.Popen(node_cmd, stdout=node_log, stderr=subprocess.STDOUT, text=True)
+    node_proc = ManagedProcess("can_driver", node_cmd, sink=node_log)
     ctx = rclpy.Context()
     rclpy.init(context=ctx)
     client = None
@@ -452,7 +435,7 @@ def cmd_ros(ns: argparse.Namespace) -> int:
             while time.monotonic() < end:
                 if pred():
                     return True
-                if node_proc.poll() is not None:
+                if not node_proc.is_running():
                     raise RuntimeError(f"can_driver exited with {node_proc.returncode}")
                 ex.spin_once(timeout_sec=0.02)
             return bool(pred())

@@ -1,5 +1,5 @@
 #!/bin/sh
-# PID 1 of the redarm UML guest (see redarm_ros/uml/runner.py and docs/socketcan.md).
+# PID 1 of the redarm UML guest (see test/support/uml/runner.py and docs/socketcan.md).
 #
 # The root file system is the host's, read-only, over hostfs. Inputs arrive as
 # kernel-command-line variables (unknown key=value options reach init as its
