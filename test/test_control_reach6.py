@@ -93,7 +93,7 @@ def test_goal_only_on_the_other_elbow_is_reached_by_a_joint_space_elbow_change()
 def test_ik_step6_projects_the_orientation_into_the_arm_plane() -> None:
     st = IKStepper6(ARM, 10.0)
     T = ARM.fk(READY)
-    from redarm_ros.control.rotations import quat_angle, quat_from_matrix, quat_from_rotvec, quat_mul
+    from redarm_ros.kinematics.quaternion import quat_angle, quat_from_matrix, quat_from_rotvec, quat_mul
 
     rot = quat_mul(quat_from_rotvec((0.0, 0.0, 0.05)), quat_from_matrix(T[:3, :3]))  # approach off-plane
     pos = (float(T[0, 3]), float(T[1, 3]) + 0.002, float(T[2, 3]))

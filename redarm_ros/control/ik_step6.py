@@ -38,7 +38,8 @@ import numpy as np
 
 from redarm_ros.control.elbow import ElbowCircle
 from redarm_ros.control.ik_step import DEAD_END, DeadEnd, IKStep, blend, pose_matrix
-from redarm_ros.control.rotations import (
+from redarm_ros.control.types import Quat, Vec3
+from redarm_ros.kinematics.quaternion import (
     matrix_from_quat,
     quat_angle,
     quat_between_vectors,
@@ -47,7 +48,6 @@ from redarm_ros.control.rotations import (
     quat_mul,
     quat_normalize,
 )
-from redarm_ros.control.types import Quat, Vec3
 
 __all__ = ["Branch", "IKStepper6", "Route6", "branch", "check_route6", "fixed_circle", "is_6dof"]
 
