@@ -1,7 +1,7 @@
 """Keep an MCAP recording of every failing hardware-in-the-loop run (pytest plugin, via conftest.py).
 
 Every test marked ``hil`` that talks ROS (it uses the ``rclpy_context`` fixture) gets a recorder
-node in its own rclpy context, recording every topic of the test's ROS domain (``/joint_states``,
+process (``redarm-record --all``) on the test's domain, recording every topic of the test's ROS domain (``/joint_states``,
 ``/joint_command``, ``/diagnostics``, ``/rosout``, ...) plus ``/tf`` computed from the joint states,
 into ``<tmp_path>/run.mcap``. When the test fails, the recording is closed at once and copied to the
 failure output directory, ``$REDARM_TEST_FAILURE_DIR`` or ``.build/test_failures/``, as
@@ -15,13 +15,13 @@ from __future__ import annotations
 import os
 import re
 import shutil
-import threading
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import pytest
+
+from redarm_ros.procs import ManagedProcess, ProcessGroup, python_module_cmd
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 FAILURE_DIR_ENV = "REDARM_TEST_FAILURE_DIR"
@@ -41,50 +41,38 @@ def run_dir_name(nodeid: str) -> str:
 
 @dataclass
 class HilRecording:
-    """A recorder node spinning in its own thread, writing ``path``."""
+    """``redarm-record`` in a child process of its own, writing ``path``.
+
+    A separate process, not a node in the test's process: destroying an in-process recorder node
+    at teardown crashed rclpy (a segfault in ``destroy_node``) in about one full suite run in four.
+    It is not waited for: the test starts at once, the recorder joins the domain within a second or
+    two (a failing run's first moments may be missing from its recording)."""
 
     path: Path
-    writer: Any
-    node: Any
-    executor: Any
-    thread: threading.Thread
-    stop_event: threading.Event
+    group: ProcessGroup
+    child: ManagedProcess
     closed: bool = False
+    exit_code: int | None = None
 
     @classmethod
-    def start(cls, ctx: Any, path: Path) -> HilRecording:
-        from rclpy.executors import SingleThreadedExecutor
-
-        from redarm_ros.nodes.record import RecorderNode
-        from redarm_ros.record.mcap_io import Ros2McapWriter
-
-        writer = Ros2McapWriter(path)
-        node = RecorderNode(writer, None, tf_from_joint_states=True, context=ctx, node_name="hil_recorder")
-        executor = SingleThreadedExecutor(context=ctx)
-        executor.add_node(node)
-        stop = threading.Event()
-
-        def spin() -> None:
-            while not stop.is_set():
-                executor.spin_once(timeout_sec=0.05)
-
-        thread = threading.Thread(target=spin, name="hil_recorder", daemon=True)
-        thread.start()
-        return cls(path, writer, node, executor, thread, stop)
+    def start(cls, domain_id: int, log_dir: Path, path: Path) -> HilRecording:
+        group = ProcessGroup(domain_id=domain_id, log_dir=log_dir, pythonpath=[REPO_ROOT],
+                             sink=lambda line: None)
+        cmd = python_module_cmd("redarm_ros.nodes.record", "--all", "--tf-from-joint-states",
+                                "-o", str(path), "--ros-args", "--log-level", "warn")
+        child = group.start("hil_recorder", cmd)
+        return cls(path, group, child)
 
     def close(self) -> None:
-        """Stop spinning, destroy the node, finish the file (idempotent)."""
+        """Stop the recorder (SIGINT: it closes the file), idempotent."""
         if self.closed:
             return
         self.closed = True
-        self.stop_event.set()
-        self.thread.join(10.0)  # spin_once returns within 50 ms plus a callback
-        if self.thread.is_alive():  # destroying a node that a thread still spins segfaults rclpy
-            raise RuntimeError("hil recorder spin thread did not stop within 10 s")
-        self.executor.remove_node(self.node)  # nothing may still dispatch to the node we destroy
-        self.executor.shutdown(timeout_sec=1.0)
-        self.node.destroy_node()
-        self.writer.close()
+        self.exit_code = self.group.stop(self.child)
+
+    def summary(self) -> str:
+        """The recorder's last lines (its message counts)."""
+        return " | ".join(self.child.tail(3))
 
     def keep(self, nodeid: str) -> Path:
         """Close and copy the recording into the failure output directory; returns the copy."""
@@ -105,8 +93,7 @@ def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]) ->
         return
     try:
         dest = rec.keep(item.nodeid)
-        counts = ", ".join(f"{t} {n}" for t, n in sorted(rec.writer.counts.items()))
-        rep.sections.append(("HIL recording", f"kept {dest} ({counts})"))
+        rep.sections.append(("HIL recording", f"kept {dest} (recorder: {rec.summary()})"))
     except Exception as exc:  # noqa: BLE001 - the test's own failure matters more than its recording
         rep.sections.append(("HIL recording", f"could not keep the recording: {exc!r}"))
 
@@ -117,9 +104,9 @@ def _hil_recording(request: pytest.FixtureRequest) -> Iterator[None]:
     if request.node.get_closest_marker("hil") is None or "rclpy_context" not in request.fixturenames:
         yield
         return
-    ctx = request.getfixturevalue("rclpy_context")
+    env = request.getfixturevalue("ros_env")
     tmp = request.getfixturevalue("tmp_path")
-    rec = HilRecording.start(ctx, tmp / "run.mcap")
+    rec = HilRecording.start(env.domain_id, env.log_dir, tmp / "run.mcap")
     request.node.stash[RECORDING_KEY] = rec
     try:
         yield
