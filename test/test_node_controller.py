@@ -190,7 +190,7 @@ def test_reaches_goal_and_holds(h: Harness) -> None:
     st = h.states[-1]
     assert st.distance_to_goal < 1e-3 and st.orientation_error < 0.01
     assert st.goal.position.x == pytest.approx(T[0, 3])
-    assert math.isinf(st.clearance)  # no obstacles
+    assert st.clearance > 0.0  # no obstacles: the arm's clearance to itself and the ground
     # Continuous motion: joint steps bounded by the velocity limits over a period (with margin).
     assert max_joint_step(h.arm.commands) <= 1.5 * float(np.max(ARM.max_vel)) * 0.01 + 1e-9
     assert ARM.within_limits(np.array(h.arm.commands).min(axis=0), 1e-9)
@@ -348,7 +348,7 @@ def test_parameters(ctx: Any) -> None:
         h.close()
     with pytest.raises(ValueError):
         ControllerNode(context=ctx, node_name="ctl_bad", parameter_overrides=[
-            Parameter("duplicate_check_s", value=0.0), Parameter("arm", value="powercube6")])
+            Parameter("duplicate_check_s", value=0.0), Parameter("arm", value="no_such_arm")])
     with pytest.raises(ValueError):
         ControllerNode(context=ctx, node_name="ctl_bad2", parameter_overrides=[
             Parameter("duplicate_check_s", value=0.0), Parameter("swivel_mode", value="sideways")])
