@@ -1,7 +1,7 @@
 """Keep an MCAP recording of every failing hardware-in-the-loop run (pytest plugin, via conftest.py).
 
 Every test marked ``hil`` that talks ROS (it uses the ``rclpy_context`` fixture) gets a recorder
-process (``redarm-record --all``) on the test's domain, recording every topic of the test's ROS domain (``/joint_states``,
+process (``redarm-record --all``) recording every topic of the test's ROS domain (``/joint_states``,
 ``/joint_command``, ``/diagnostics``, ``/rosout``, ...) plus ``/tf`` computed from the joint states,
 into ``<tmp_path>/run.mcap``. When the test fails, the recording is closed at once and copied to the
 failure output directory, ``$REDARM_TEST_FAILURE_DIR`` or ``.build/test_failures/``, as

@@ -528,7 +528,11 @@ def test_hil_forged_reply_is_never_published(stack: Stack, client: Client) -> No
     t0 = client.now_ns()
     assert wait_for(lambda: client.diag_since(t0), 5)
     d = client.diag_since(t0)[-1]
-    assert int(d[f"can_driver: module 3 ({ARM.joint_names[2]})"][2]["implausible"]) > 0
+    m3 = d[f"can_driver: module 3 ({ARM.joint_names[2]})"][2]
+    # Each forged frame was refused: by the plausibility check when it came while the driver waited
+    # for module 3, as a late (unasked) reply otherwise; which one depends on timing (a busy machine
+    # delivers the flood in bursts between the cycles), that none was taken does not.
+    assert int(m3["implausible"]) + int(m3["late"]) > 0, m3
     assert d["can_driver: loop"][2]["state"] == "running"
 
 

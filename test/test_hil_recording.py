@@ -32,7 +32,8 @@ from hil_recording import _hil_recording, pytest_runtest_makereport  # noqa: F40
 def ros_env(tmp_path_factory):
     import os
     from types import SimpleNamespace
-    return SimpleNamespace(domain_id=int(os.environ["ROS_DOMAIN_ID"]), log_dir=tmp_path_factory.mktemp("logs"))
+    domain = int(os.environ["ROS_DOMAIN_ID"])
+    return SimpleNamespace(domain_id=domain, log_dir=tmp_path_factory.mktemp("logs"))
 
 
 @pytest.fixture
