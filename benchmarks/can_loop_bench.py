@@ -42,6 +42,9 @@ import numpy as np
 
 from redarm_ros.procs import ProcessGroup, python_module_cmd, random_domain_id
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench_common, also when loaded by path
+import bench_common  # noqa: E402
+
 RESULTS = Path(__file__).resolve().parent / "results" / "can_loop_bench.md"
 REPO = Path(__file__).resolve().parents[1]
 ARM_NAME = "pa10"
@@ -353,7 +356,7 @@ def main(argv: list[str] | None = None) -> int:
     if plot_dir is not None:
         size = f"can_loop_bench.py: {seconds:g} s per mode and rate"
         pngs = write_plots(results, plot_dir, size, f"{load_before:.2f} (1 min)")
-        links = [*_plots().markdown_links(pngs, RESULTS.parent, "of the newest run"), ""]
+        links = [*bench_common.plots().markdown_links(pngs, RESULTS.parent, "of the newest run"), ""]
         print("\n".join(links))
     if not args.no_write:
         # Newest run first; earlier runs are kept: on a shared machine the spread is the result.
@@ -367,21 +370,6 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def _plots():
-    """benchmarks/plots.py, loaded by path (the tests may load this file by path, without benchmarks/
-    on sys.path)."""
-    import importlib.util
-
-    name = "redarm_bench_plots"
-    if name not in sys.modules:
-        spec = importlib.util.spec_from_file_location(name, Path(__file__).with_name("plots.py"))
-        assert spec is not None and spec.loader is not None
-        mod = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(mod)
-        sys.modules[name] = mod
-    return sys.modules[name]
-
-
 PERIOD_LABELS = {
     "core": "core: DriverLoop start-to-start periods",
     "node": "node: gaps of /joint_states header stamps (a message lost in DDS doubles one)",
@@ -390,7 +378,7 @@ PERIOD_LABELS = {
 
 def write_plots(results: list[RunResult], out_dir: Path, run: str, load_before: str) -> list[Path]:
     """can_loop_bench_period_<rate>hz.png: histogram of the periods of every mode at that rate."""
-    plots = _plots()
+    plots = bench_common.plots()
     out = []
     for rate in dict.fromkeys(r.rate for r in results):
         series = {PERIOD_LABELS.get(r.mode, r.mode): r.periods_ms for r in results
