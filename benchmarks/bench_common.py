@@ -10,9 +10,11 @@ import importlib.util
 import os
 import platform
 import sys
+import threading
 import time
 from pathlib import Path
 from types import ModuleType
+from typing import Any
 
 _PLOTS = "redarm_bench_plots"
 
@@ -81,3 +83,16 @@ def finish_sections(
         text = write_sections(path, header, sections, footer)
     print(text)
     return text
+
+
+def spin_in_background(ex: Any) -> tuple[threading.Event, threading.Thread]:
+    """Spin the rclpy executor ``ex`` on a daemon thread until the returned event is set."""
+    stop = threading.Event()
+
+    def spin() -> None:
+        while not stop.is_set():
+            ex.spin_once(timeout_sec=0.05)
+
+    th = threading.Thread(target=spin, daemon=True)
+    th.start()
+    return stop, th

@@ -218,14 +218,7 @@ def run_node(group: ProcessGroup, can_kwargs: dict[str, Any], rate: float, secon
     cli = node.create_client(Trigger, "/can_driver/init")
     ex = SingleThreadedExecutor(context=ctx)
     ex.add_node(node)
-    stop = threading.Event()
-
-    def spin() -> None:
-        while not stop.is_set():
-            ex.spin_once(timeout_sec=0.05)
-
-    th = threading.Thread(target=spin, daemon=True)
-    th.start()
+    stop, th = bench_common.spin_in_background(ex)
     try:
         if not cli.wait_for_service(timeout_sec=20):
             raise RuntimeError("/can_driver/init not available")

@@ -163,13 +163,7 @@ def soak(seconds: float, hog: int, prio: int) -> tuple[Observed, dict[str, Any],
         clients = {a: node.create_client(Trigger, f"/can_driver/{a}") for a in ("init", "recover")}
         ex = SingleThreadedExecutor(context=ctx)
         ex.add_node(node)
-        stop = threading.Event()
-
-        def spin() -> None:
-            while not stop.is_set():
-                ex.spin_once(timeout_sec=0.05)
-
-        threading.Thread(target=spin, daemon=True).start()
+        stop, _ = bench_common.spin_in_background(ex)
 
         def call(action: str, timeout: float = 60.0) -> bool:
             cli = clients[action]
