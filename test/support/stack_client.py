@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import math
 import sys
-import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any, TypeVar
@@ -25,6 +24,7 @@ from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 from redarm_ros.bringup import Stack, StackConfig
 from redarm_ros.kinematics.quaternion import from_xyzw, quat_to_matrix
 from redarm_ros.procs import group_members
+from support.waits import spin_until as spin_executor_until
 
 # Tool pointing down (z of the tool along -z of the base).
 R_DOWN = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])
@@ -88,12 +88,7 @@ class StackClient:
         self.ex.add_node(self.node)
 
     def spin_until(self, cond: Callable[[], bool], timeout: float) -> bool:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            self.ex.spin_once(timeout_sec=self.SPIN_S)
-            if cond():
-                return True
-        return False
+        return spin_executor_until(self.ex, cond, timeout, self.SPIN_S)
 
     def close(self) -> None:
         self.ex.shutdown()
