@@ -42,6 +42,9 @@ import numpy as np
 
 from redarm_ros.procs import ProcessGroup, python_module_cmd, random_domain_id
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench_common, also when loaded by path
+import bench_common  # noqa: E402
+
 RESULTS = Path(__file__).resolve().parent / "results" / "can_loop_bench.md"
 REPO = Path(__file__).resolve().parents[1]
 ARM_NAME = "pa10"
@@ -215,14 +218,7 @@ def run_node(group: ProcessGroup, can_kwargs: dict[str, Any], rate: float, secon
     cli = node.create_client(Trigger, "/can_driver/init")
     ex = SingleThreadedExecutor(context=ctx)
     ex.add_node(node)
-    stop = threading.Event()
-
-    def spin() -> None:
-        while not stop.is_set():
-            ex.spin_once(timeout_sec=0.05)
-
-    th = threading.Thread(target=spin, daemon=True)
-    th.start()
+    stop, th = bench_common.spin_in_background(ex)
     try:
         if not cli.wait_for_service(timeout_sec=20):
             raise RuntimeError("/can_driver/init not available")
@@ -353,7 +349,7 @@ def main(argv: list[str] | None = None) -> int:
     if plot_dir is not None:
         size = f"can_loop_bench.py: {seconds:g} s per mode and rate"
         pngs = write_plots(results, plot_dir, size, f"{load_before:.2f} (1 min)")
-        links = [*_plots().markdown_links(pngs, RESULTS.parent, "of the newest run"), ""]
+        links = [*bench_common.plots().markdown_links(pngs, RESULTS.parent, "of the newest run"), ""]
         print("\n".join(links))
     if not args.no_write:
         # Newest run first; earlier runs are kept: on a shared machine the spread is the result.
@@ -367,21 +363,6 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def _plots():
-    """benchmarks/plots.py, loaded by path (the tests may load this file by path, without benchmarks/
-    on sys.path)."""
-    import importlib.util
-
-    name = "redarm_bench_plots"
-    if name not in sys.modules:
-        spec = importlib.util.spec_from_file_location(name, Path(__file__).with_name("plots.py"))
-        assert spec is not None and spec.loader is not None
-        mod = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(mod)
-        sys.modules[name] = mod
-    return sys.modules[name]
-
-
 PERIOD_LABELS = {
     "core": "core: DriverLoop start-to-start periods",
     "node": "node: gaps of /joint_states header stamps (a message lost in DDS doubles one)",
@@ -390,7 +371,7 @@ PERIOD_LABELS = {
 
 def write_plots(results: list[RunResult], out_dir: Path, run: str, load_before: str) -> list[Path]:
     """can_loop_bench_period_<rate>hz.png: histogram of the periods of every mode at that rate."""
-    plots = _plots()
+    plots = bench_common.plots()
     out = []
     for rate in dict.fromkeys(r.rate for r in results):
         series = {PERIOD_LABELS.get(r.mode, r.mode): r.periods_ms for r in results

@@ -51,6 +51,9 @@ from redarm_ros.kinematics import Arm, SwivelArm, load_arm, pose_error
 from redarm_ros.kinematics.feasible import feasible_measure_batch
 from redarm_ros.kinematics.numeric import solve_dls, solve_flow
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench_common, also when loaded by path
+import bench_common  # noqa: E402
+
 TOL = 1e-5
 TIMEOUT_S = 5e-3
 BEST_OF = 5  # calls per pose for the best-of column (the first is the wall-clock sample)
@@ -620,21 +623,6 @@ def targets(rows: list[Row], best_of: int) -> str:
     return "\n".join(out) + "\n"
 
 
-def _plots():
-    """benchmarks/plots.py, loaded by path (the tests load this file by path, without benchmarks/ on
-    sys.path)."""
-    import importlib.util
-
-    name = "redarm_bench_plots"
-    if name not in sys.modules:
-        spec = importlib.util.spec_from_file_location(name, Path(__file__).with_name("plots.py"))
-        assert spec is not None and spec.loader is not None
-        mod = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(mod)
-        sys.modules[name] = mod
-    return sys.modules[name]
-
-
 PLOT_TIMES = (  # (pose set, solver) rows drawn in the time distribution, in this order
     ("uniform", "ik(T, s)"),
     ("uniform", "ik_nearest"),
@@ -647,7 +635,7 @@ PLOT_TIMES = (  # (pose set, solver) rows drawn in the time distribution, in thi
 def write_plots(rows: list[Row], out_dir: Path, run: str, load0: str) -> list[Path]:
     """ik_bench_time_<arm>.png (per-call wall-clock times of ik, ik_nearest, ikpy and DLS) and
     ik_bench_success.png (success per pose set and solver, one bar per arm) into ``out_dir``."""
-    plots = _plots()
+    plots = bench_common.plots()
     caption = plots.run_caption(run, load0)
     out: list[Path] = []
     arms = list(dict.fromkeys(r.arm for r in rows))
@@ -731,7 +719,7 @@ def main(argv: list[str] | None = None) -> int:
         size = f"{args.n} uniform poses per arm, {args.hard_n} per hard set, {args.peer_n} for the peers"
         run = f"ik_bench.py {cmd}".strip() + f": {size}"
         pngs = write_plots(rows, plot_dir, run, f"(1/5/15 min) {load0}")
-        text += "\n" + "\n".join(_plots().markdown_links(pngs, args.out.parent)) + "\n"
+        text += "\n" + "\n".join(bench_common.plots().markdown_links(pngs, args.out.parent)) + "\n"
     print(text)
     if not args.no_write:
         args.out.parent.mkdir(parents=True, exist_ok=True)

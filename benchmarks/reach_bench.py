@@ -55,6 +55,9 @@ from redarm_ros.kinematics.quaternion import (
     rotvec_between,
 )
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench_common, also when loaded by path
+import bench_common  # noqa: E402
+
 DT = 0.01
 DURATION = 8.0
 V_MAX = 0.4  # m/s, same cap for every method
@@ -350,7 +353,7 @@ def main(argv: list[str] | None = None) -> int:
     plot_dir = args.plot_dir or (None if args.no_write else RESULTS.parent)
     if plot_dir is not None:
         pngs = write_plots(res, free, plot_dir, f"reach_bench.py {cmd}: {args.scenes} scenes", load0)
-        lines += ["", *_plots().markdown_links(pngs, RESULTS.parent)]
+        lines += ["", *bench_common.plots().markdown_links(pngs, RESULTS.parent)]
     text = "\n".join(lines)
     print(text)
     if not args.no_write:
@@ -362,26 +365,11 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def _plots():
-    """benchmarks/plots.py, loaded by path (the tests may load this file by path, without benchmarks/
-    on sys.path)."""
-    import importlib.util
-
-    name = "redarm_bench_plots"
-    if name not in sys.modules:
-        spec = importlib.util.spec_from_file_location(name, Path(__file__).with_name("plots.py"))
-        assert spec is not None and spec.loader is not None
-        mod = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(mod)
-        sys.modules[name] = mod
-    return sys.modules[name]
-
-
 def write_plots(res: dict[str, list[ReachMetrics]], free: dict[str, list[ReachMetrics]], out_dir: Path,
                 run: str, load0: tuple[float, ...]) -> list[Path]:
     """reach_bench_success.png (success, collision-free, reached per method) and reach_bench_time.png
     (time to goal over the scenes; unreached scenes count as failures) into ``out_dir``."""
-    plots = _plots()
+    plots = bench_common.plots()
     caption = plots.run_caption(run, load0)
     groups = ["success", "collision-free", "reached", "reached, obstacles removed"]
     rates = {

@@ -48,6 +48,9 @@ from redarm_ros.control.obstacles import (
 from redarm_ros.control.reach_controller import Phase, ReachController
 from redarm_ros.kinematics import load_arm
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench_common, also when loaded by path
+import bench_common  # noqa: E402
+
 DT = 0.01
 GOAL_TIMEOUT = 10.0
 READY = np.array([0.0, 0.5, 0.0, 1.3, 0.0, 1.0, 0.0])
@@ -330,8 +333,6 @@ def main(argv: list[str] | None = None) -> int:
     if args.quick:
         args.sequences, args.goals = 2, 5
     arm = load_arm("pa10")
-    sys.path.insert(0, str(Path(__file__).resolve().parent))
-    from track_bench import _load_line, write_sections  # noqa: PLC0415 - shared report helpers
 
     header = [
         "# Sequence benchmark (`benchmarks/sequence_bench.py`)",
@@ -350,12 +351,12 @@ def main(argv: list[str] | None = None) -> int:
             f"## In-process: {args.sequences} sequences x {args.goals} goals per scene, seeds from "
             f"{args.seed}"
         )
-        sections[title] = ["", *report(stats), "", _load_line(load0, t0), ""]
+        sections[title] = ["", *report(stats), "", bench_common.load_line(load0, t0), ""]
         plot_dir = args.plot_dir or (None if args.no_write else RESULTS.parent)
         if plot_dir is not None:
             run = f"sequence_bench.py: {args.sequences} sequences x {args.goals} goals per scene"
             pngs = write_plots(stats, plot_dir, run, load0)
-            sections[title] += [*_plots().markdown_links(pngs, RESULTS.parent), ""]
+            sections[title] += [*bench_common.plots().markdown_links(pngs, RESULTS.parent), ""]
         load0, t0 = os.getloadavg(), time.time()
         body = [
             "",
@@ -365,32 +366,15 @@ def main(argv: list[str] | None = None) -> int:
             "",
         ]
         body += scaling(arm, (0, 100, 1000) if not args.quick else (0, 1000))
-        sections["## In-process obstacle scaling (broad phase)"] = [*body, "", _load_line(load0, t0), ""]
+        sections["## In-process obstacle scaling (broad phase)"] = [
+            *body, "", bench_common.load_line(load0, t0), ""
+        ]
     if args.stack or args.stack_only:
         load0, t0 = os.getloadavg(), time.time()
         title, body = stack_sequence()
-        sections[title] = [*body, _load_line(load0, t0), ""]
-    if args.no_write:
-        text = "\n".join(header + [line for k, v in sections.items() for line in [k, *v]] + [NOT_COVERED])
-    else:
-        text = write_sections(RESULTS, header, sections, NOT_COVERED)
-    print(text)
+        sections[title] = [*body, bench_common.load_line(load0, t0), ""]
+    bench_common.finish_sections(RESULTS, header, sections, NOT_COVERED, args.no_write)
     return 0
-
-
-def _plots():
-    """benchmarks/plots.py, loaded by path (the tests may load this file by path, without benchmarks/
-    on sys.path)."""
-    import importlib.util
-
-    name = "redarm_bench_plots"
-    if name not in sys.modules:
-        spec = importlib.util.spec_from_file_location(name, Path(__file__).with_name("plots.py"))
-        assert spec is not None and spec.loader is not None
-        mod = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(mod)
-        sys.modules[name] = mod
-    return sys.modules[name]
 
 
 def write_plots(
@@ -398,7 +382,7 @@ def write_plots(
 ) -> list[Path]:
     """sequence_bench_success.png (reached and collision-free per scene) and sequence_bench_time.png
     (time per goal per scene; goals not reached in 10 s count as failures) into ``out_dir``."""
-    plots = _plots()
+    plots = bench_common.plots()
     caption = plots.run_caption(run, load0)
     names = list(stats)
     outcomes = [stats[n].outcomes for n in names]
@@ -428,7 +412,6 @@ def _state_rate(c, seconds: float) -> float:
 def stack_sequence(goals_n: int = 5, seed: int = 77) -> tuple[str, list[str]]:
     """A short sequence through the whole stack (bus server, simulator, can_driver, controller as
     processes), scored on the simulated tool; then the controller's rate with 1000 obstacle markers."""
-    sys.path.insert(0, str(Path(__file__).resolve().parent))
     from track_bench import StackClient  # noqa: PLC0415 - ROS only when asked
     from visualization_msgs.msg import Marker, MarkerArray  # noqa: PLC0415
 

@@ -45,6 +45,9 @@ import numpy as np
 
 from redarm_ros.procs import ManagedProcess, ProcessGroup, python_module_cmd, random_domain_id
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench_common, also when loaded by path
+import bench_common  # noqa: E402
+
 RESULTS = Path(__file__).resolve().parent / "results" / "soak_bench.md"
 REPO = Path(__file__).resolve().parents[1]
 ARM_NAME = "pa10"
@@ -160,13 +163,7 @@ def soak(seconds: float, hog: int, prio: int) -> tuple[Observed, dict[str, Any],
         clients = {a: node.create_client(Trigger, f"/can_driver/{a}") for a in ("init", "recover")}
         ex = SingleThreadedExecutor(context=ctx)
         ex.add_node(node)
-        stop = threading.Event()
-
-        def spin() -> None:
-            while not stop.is_set():
-                ex.spin_once(timeout_sec=0.05)
-
-        threading.Thread(target=spin, daemon=True).start()
+        stop, _ = bench_common.spin_in_background(ex)
 
         def call(action: str, timeout: float = 60.0) -> bool:
             cli = clients[action]
@@ -352,7 +349,7 @@ def main(argv: list[str] | None = None) -> int:
     links: list[str] = []
     plot_dir = args.plot_dir or (None if args.no_write else RESULTS.parent)
     if plot_dir is not None and obs.js_gaps_ms:
-        plots = _plots()
+        plots = bench_common.plots()
         run_text = (f"soak_bench.py: {seconds:g} s at 250 Hz, hog {hog}, real-time priority "
                     f"{args.realtime_priority}; sampled load mean {r.load_mean:.2f} / max {r.load_max:.2f}")
         png = plots.period_histogram(
@@ -369,21 +366,6 @@ def main(argv: list[str] | None = None) -> int:
         RESULTS.write_text("\n".join([preamble(), *links, run, *earlier]))
         print(f"wrote {RESULTS}")
     return 0 if r.halts == 0 and r.limit_faults == 0 else 1
-
-
-def _plots():
-    """benchmarks/plots.py, loaded by path (the tests may load this file by path, without benchmarks/
-    on sys.path)."""
-    import importlib.util
-
-    name = "redarm_bench_plots"
-    if name not in sys.modules:
-        spec = importlib.util.spec_from_file_location(name, Path(__file__).with_name("plots.py"))
-        assert spec is not None and spec.loader is not None
-        mod = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(mod)
-        sys.modules[name] = mod
-    return sys.modules[name]
 
 
 def preamble() -> str:

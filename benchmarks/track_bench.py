@@ -44,7 +44,6 @@ from __future__ import annotations
 import argparse
 import math
 import os
-import platform
 import sys
 import time
 from collections.abc import Callable
@@ -65,6 +64,9 @@ from redarm_ros.kinematics.quaternion import (
     quat_to_matrix,
     rotvec_between,
 )
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench_common, also when loaded by path
+import bench_common  # noqa: E402
 
 DT = 0.01
 RESULTS = Path(__file__).resolve().parent / "results" / "track_bench.md"
@@ -549,7 +551,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.chain:
         load0, t0 = os.getloadavg(), time.time()
         title, body = chain_section()
-        sections[title] = [*body, _load_line(load0, t0), ""]
+        sections[title] = [*body, bench_common.load_line(load0, t0), ""]
     elif not args.stack_only:
         load0, t0 = os.getloadavg(), time.time()
         traces: dict[tuple[str, str], tuple[np.ndarray, np.ndarray]] = {}
@@ -566,37 +568,18 @@ def main(argv: list[str] | None = None) -> int:
                 if v
             )
         )
-        body += ["", _load_line(load0, t0), ""]
+        body += ["", bench_common.load_line(load0, t0), ""]
         plot_dir = args.plot_dir or (None if args.no_write else RESULTS.parent)
         if plot_dir is not None and traces:
             pngs = write_plots(traces, plot_dir, "track_bench.py" + (" --quick" if args.quick else ""), load0)
-            body += [*_plots().markdown_links(pngs, RESULTS.parent), ""]
+            body += [*bench_common.plots().markdown_links(pngs, RESULTS.parent), ""]
         sections[title] = body
     if args.stack or args.stack_only:
         load0, t0 = os.getloadavg(), time.time()
         title, body = stack_run(args)
-        sections[title] = [*body, _load_line(load0, t0), ""]
-    if args.no_write:
-        text = "\n".join(header + [line for k, v in sections.items() for line in [k, *v]] + [NOT_COVERED])
-    else:
-        text = write_sections(RESULTS, header, sections, NOT_COVERED)
-    print(text)
+        sections[title] = [*body, bench_common.load_line(load0, t0), ""]
+    bench_common.finish_sections(RESULTS, header, sections, NOT_COVERED, args.no_write)
     return 0
-
-
-def _plots():
-    """benchmarks/plots.py, loaded by path (the tests may load this file by path, without benchmarks/
-    on sys.path)."""
-    import importlib.util
-
-    name = "redarm_bench_plots"
-    if name not in sys.modules:
-        spec = importlib.util.spec_from_file_location(name, Path(__file__).with_name("plots.py"))
-        assert spec is not None and spec.loader is not None
-        mod = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(mod)
-        sys.modules[name] = mod
-    return sys.modules[name]
 
 
 def write_plots(
@@ -605,7 +588,7 @@ def write_plots(
 ) -> list[Path]:
     """track_bench_error_<variant>.png: position error over time of PLOT_PATH at PLOT_RATE, one line
     per method, one plot per stream variant (clean, jitter)."""
-    plots = _plots()
+    plots = bench_common.plots()
     out = []
     for variant in dict.fromkeys(v for v, _ in traces):
         series = {m: tr for (v, m), tr in traces.items() if v == variant}
@@ -933,47 +916,6 @@ def _series_scores(path: PathDef, ts: np.ndarray, ps: np.ndarray) -> tuple[np.nd
     after = ps[ts > path.duration]
     over = max(0.0, float(np.max((after - end) @ (u / np.linalg.norm(u))))) * 1e3 if len(after) else math.nan
     return e, best[1] * 1e3, over, float(np.linalg.norm(ps[-1] - end)) * 1e3
-
-
-def _load_line(load0: tuple[float, float, float], t0: float) -> str:
-    load1 = os.getloadavg()
-    return (
-        f"Load average (1/5/15 min) before: {load0[0]:.2f} {load0[1]:.2f} {load0[2]:.2f}, after: "
-        f"{load1[0]:.2f} {load1[1]:.2f} {load1[2]:.2f}; {platform.machine()}, {os.cpu_count()} CPUs, "
-        f"Python {platform.python_version()}, {time.time() - t0:.0f} s wall."
-    )
-
-
-def write_sections(path: Path, header: list[str], sections: dict[str, list[str]], footer: str) -> str:
-    """Write ``header``, the sections (``## title`` -> lines) and ``footer`` to ``path``, keeping the
-    sections of an earlier run that this run did not redo (e.g. the stack run is done apart)."""
-    old: dict[str, list[str]] = {}
-    if path.is_file():
-        cur = None
-        for line in path.read_text().splitlines():
-            if line.startswith("## "):
-                cur = line
-                old[cur] = []
-            elif cur is not None and line.startswith("What this does not cover"):
-                cur = None
-            elif cur is not None:
-                old[cur].append(line)
-    merged = dict(old)
-    merged.update(sections)
-    order = [k for k in merged if k.startswith("## In-process")]
-    order += [k for k in merged if not k.startswith("## In-process")]
-    out = list(header)
-    for k in order:
-        out.append(k)
-        out += merged[k]
-        while out and out[-1] == "":
-            out.pop()
-        out.append("")
-    out.append(footer)
-    text = "\n".join(out) + "\n"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(text)
-    return text
 
 
 NOT_COVERED = """What this does not cover: one arm (PA10) and one region of its workspace per path; streams

@@ -65,15 +65,19 @@ def test_parser_defaults_and_flags() -> None:
     )
 
 
-def test_ctrl_c_stops_all_children(procs: Any) -> None:
+def _start_light_bringup(procs: Any) -> tuple[Any, dict[str, int]]:
+    """bringup without hardware and controller (ik_service and description only), up; its child pids."""
     bringup = procs.start(
         "bringup",
         python_module_cmd(
             "redarm_ros.bringup", "--hardware", "none", "--no-controller", "--log-level", "warn"
         ),
     )
-    m = bringup.wait_for_line(UP, timeout=60.0)
-    pids = _child_pids(m)
+    return bringup, _child_pids(bringup.wait_for_line(UP, timeout=60.0))
+
+
+def test_ctrl_c_stops_all_children(procs: Any) -> None:
+    bringup, pids = _start_light_bringup(procs)
     assert set(pids) == {"ik_service", "description"}
     assert all(_alive(p) for p in pids.values())
     bringup.expect_exit()
@@ -86,13 +90,7 @@ def test_ctrl_c_stops_all_children(procs: Any) -> None:
 
 
 def test_sigterm_stops_all_children(procs: Any) -> None:
-    bringup = procs.start(
-        "bringup",
-        python_module_cmd(
-            "redarm_ros.bringup", "--hardware", "none", "--no-controller", "--log-level", "warn"
-        ),
-    )
-    pids = _child_pids(bringup.wait_for_line(UP, timeout=60.0))
+    bringup, pids = _start_light_bringup(procs)
     bringup.expect_exit()
     bringup.send_signal(signal.SIGTERM)
     assert _wait_exit(bringup.popen, 30.0) == 0, bringup.tail(20)
@@ -100,13 +98,7 @@ def test_sigterm_stops_all_children(procs: Any) -> None:
 
 
 def test_dead_child_is_reported(procs: Any) -> None:
-    bringup = procs.start(
-        "bringup",
-        python_module_cmd(
-            "redarm_ros.bringup", "--hardware", "none", "--no-controller", "--log-level", "warn"
-        ),
-    )
-    pids = _child_pids(bringup.wait_for_line(UP, timeout=60.0))
+    bringup, pids = _start_light_bringup(procs)
     bringup.expect_exit()
     os.kill(pids["ik_service"], signal.SIGKILL)  # a crash
     bringup.wait_for_line(r"child ik_service died unexpectedly \(exit code -9\)", timeout=15.0)

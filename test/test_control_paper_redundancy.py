@@ -7,9 +7,10 @@ import math
 
 import numpy as np
 import pytest
+from support.control_scenes import elbow_obstacle_hold, pose
 
 from redarm_ros.control.elbow import ArmGeometry, elbow_circle
-from redarm_ros.control.obstacles import ArmCapsules, Cylinder, Scene, load_scene, min_distance
+from redarm_ros.control.obstacles import ArmCapsules, load_scene
 from redarm_ros.control.paper_redundancy import PaperSwivel, PaperSwivelParams, Sector, sectors
 from redarm_ros.control.reach_controller import ControllerParams, Phase, ReachController
 from redarm_ros.control.simulate import evaluate, run_controller
@@ -18,14 +19,6 @@ from redarm_ros.kinematics import load_arm
 
 DT = 0.01
 PAPER = ControllerParams(swivel_mode="attractor_paper")
-
-
-def pose(p, yaw: float = 0.0) -> np.ndarray:
-    c, s = math.cos(yaw), math.sin(yaw)
-    T = np.eye(4)
-    T[:3, :3] = np.array([[c, s, 0.0], [s, -c, 0.0], [0.0, 0.0, -1.0]])
-    T[:3, 3] = p
-    return T
 
 
 @pytest.fixture(scope="module")
@@ -134,28 +127,12 @@ def test_attractor_paper_hand_trails_the_path_far_from_the_goal(arm) -> None:
 
 def test_attractor_paper_mode_avoids_obstacles_with_the_elbow(arm) -> None:
     """The hand holds still; an obstacle put at the elbow is avoided by the swivel (eq. 23)."""
-    q0, info = arm.ik_nearest(pose([0.55, 0.0, 0.2]), np.array([0.0, 0.6, 0.0, 1.6, 0.0, 1.0, 0.0]))
-    assert info.ok
-    ctl = ReachController(arm, Scene((), 0.0), PAPER)
-    ctl.reset(q0)
-    ctl.set_goal(arm.fk(q0))
-    for _ in range(200):  # settle at the preferred swivel
-        r = ctl.step(DT)
-    elbow = arm.key_points(r.q)[2]
-    ball = Cylinder((elbow[0] + 0.02, elbow[1] + 0.13, elbow[2]), 0.05, 0.1)
-    before = min_distance(arm, r.q, Scene((ball,), 0.0)).distance
-    ctl.set_scene(Scene((ball,), 0.0))
-    s_before = r.swivel
-    qs = [r.q]
-    for _ in range(300):
-        r = ctl.step(DT)
-        qs.append(r.q)
-    after = min_distance(arm, r.q, Scene((ball,), 0.0)).distance
-    assert abs(r.swivel - s_before) > 0.1
-    assert after > before + 0.03
-    assert np.linalg.norm(arm.fk(r.q)[:3, 3] - arm.fk(q0)[:3, 3]) < 1e-3  # the hand stayed
-    assert ctl.phase is not Phase.REJECTED
-    check_limits(arm, np.array(qs), from_rest=False)
+    run = elbow_obstacle_hold(arm, PAPER)
+    assert abs(run.last.swivel - run.swivel_before) > 0.1
+    assert run.after > run.before + 0.03
+    assert np.linalg.norm(arm.fk(run.last.q)[:3, 3] - arm.fk(run.q0)[:3, 3]) < 1e-3  # the hand stayed
+    assert run.ctl.phase is not Phase.REJECTED
+    check_limits(arm, run.qs, from_rest=False)
 
 
 @pytest.mark.slow

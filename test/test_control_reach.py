@@ -7,6 +7,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from support.control_scenes import elbow_obstacle_hold, pose
 
 from redarm_ros.control.obstacles import ArmCapsules, Cylinder, Scene, Sphere, load_scene, min_distance
 from redarm_ros.control.reach_controller import (
@@ -20,15 +21,6 @@ from redarm_ros.errors import ConfigError, InvalidInputError
 from redarm_ros.kinematics import load_arm
 
 DT = 0.01
-
-
-def pose(p, yaw: float = 0.0) -> np.ndarray:
-    """Tool at p pointing down, rotated by yaw about the vertical."""
-    c, s = math.cos(yaw), math.sin(yaw)
-    T = np.eye(4)
-    T[:3, :3] = np.array([[c, s, 0.0], [s, -c, 0.0], [0.0, 0.0, -1.0]])
-    T[:3, 3] = p
-    return T
 
 
 @pytest.fixture(scope="module")
@@ -104,27 +96,11 @@ def test_fixed_swivel_mode_keeps_the_elbow(arm, q_start) -> None:
 
 def test_swivel_dynamics_moves_elbow_away_from_an_obstacle(arm) -> None:
     """Hold the hand still; an obstacle placed at the elbow makes the swivel move and clear it."""
-    q0, info = arm.ik_nearest(pose([0.55, 0.0, 0.2]), np.array([0.0, 0.6, 0.0, 1.6, 0.0, 1.0, 0.0]))
-    assert info.ok
-    ctl = ReachController(arm, Scene((), 0.0))
-    ctl.reset(q0)
-    ctl.set_goal(arm.fk(q0))
-    for _ in range(200):  # settle at the preferred swivel
-        r = ctl.step(DT)
-    elbow = arm.key_points(r.q)[2]
-    ball = Cylinder((elbow[0] + 0.02, elbow[1] + 0.13, elbow[2]), 0.05, 0.1)
-    before = min_distance(arm, r.q, Scene((ball,), 0.0)).distance
-    ctl.set_scene(Scene((ball,), 0.0))
-    s_before = r.swivel
-    qs = [r.q]
-    for _ in range(300):
-        r = ctl.step(DT)
-        qs.append(r.q)
-    after = min_distance(arm, r.q, Scene((ball,), 0.0)).distance
-    assert abs(r.swivel - s_before) > 0.1
-    assert after > before + 0.03
-    assert np.linalg.norm(arm.fk(r.q)[:3, 3] - arm.fk(q0)[:3, 3]) < 1e-3  # the hand stayed
-    check_trajectory(arm, np.array(qs), from_rest=False)
+    run = elbow_obstacle_hold(arm)
+    assert abs(run.last.swivel - run.swivel_before) > 0.1
+    assert run.after > run.before + 0.03
+    assert np.linalg.norm(arm.fk(run.last.q)[:3, 3] - arm.fk(run.q0)[:3, 3]) < 1e-3  # the hand stayed
+    check_trajectory(arm, run.qs, from_rest=False)
 
 
 def test_goal_rejections(arm, q_start) -> None:

@@ -10,6 +10,7 @@ import uuid
 import can
 import numpy as np
 import pytest
+from support.waits import wait_until
 
 from redarm_ros.can.driver_core import PowerCubeArmDriver
 from redarm_ros.can.driver_loop import (
@@ -344,15 +345,6 @@ class FlakyBus(can.BusABC):
             self._bus.shutdown()
             self._bus = None
         super().shutdown()
-
-
-def wait_until(pred, timeout: float = 5.0, step: float = 0.01) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if pred():
-            return True
-        time.sleep(step)
-    return pred()
 
 
 @pytest.fixture

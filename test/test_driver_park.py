@@ -9,6 +9,7 @@ import uuid
 import can
 import numpy as np
 import pytest
+from support.waits import wait_until
 
 from redarm_ros.can.driver_core import PowerCubeArmDriver
 from redarm_ros.can.driver_loop import CommandMode, CycleSample, DriverLoop, LoopConfig, LoopState
@@ -50,15 +51,6 @@ def test_synchronized_move_of_zero_length_and_bad_input() -> None:
         synchronized_move([0.0, 0.0, 0.0], [0.0, 1.6, 0.0], LIMITS, 0.01)  # beyond the limit
     with pytest.raises(InvalidInputError):
         synchronized_move([0.0, 0.0], [0.0, 0.0], LIMITS, 0.01)
-
-
-def wait_until(pred, timeout: float = 5.0, step: float = 0.01) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if pred():
-            return True
-        time.sleep(step)
-    return pred()
 
 
 @pytest.fixture

@@ -8,10 +8,7 @@ rate, limits while stopping, pre-emption) are test/test_node_reach_action.py."""
 
 from __future__ import annotations
 
-import math
-import sys
-import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -24,48 +21,23 @@ pytest.importorskip("redarm_ros.sim.hardware", reason="simulator not written yet
 
 from action_msgs.msg import GoalStatus  # noqa: E402
 from rclpy.action import ActionClient  # noqa: E402
-from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from redarm_interfaces.action import Reach  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
+from support.stack_client import (  # noqa: E402
+    StackClient,
+    client_in_context,
+    pose_err,
+    running_stack,
+    sim_tool,
+)
+from support.stack_client import pose_down as pose  # noqa: E402
 
 from redarm_ros.bringup import Stack, StackConfig  # noqa: E402
-from redarm_ros.kinematics.quaternion import from_xyzw, quat_to_matrix  # noqa: E402
 from redarm_ros.nodes.controller import pose_to_msg  # noqa: E402
 
 pytestmark = [pytest.mark.hil, pytest.mark.slow]
 
-R_DOWN = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])
 POS_TOL, ROT_TOL = 1e-3, 0.01
-
-
-def _stderr(line: str) -> None:
-    try:
-        sys.stderr.write(line + "\n")
-    except (ValueError, OSError):
-        pass
-
-
-def pose(p: tuple[float, float, float]) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, :3] = R_DOWN
-    T[:3, 3] = p
-    return T
-
-
-def sim_tool(stack: Stack) -> np.ndarray:
-    """4x4 tool pose of the simulated arm (pybullet link state, from the sim's status file)."""
-    st = stack.sim_status()
-    assert st is not None, "no simulator status"
-    T = np.eye(4)
-    T[:3, :3] = quat_to_matrix(from_xyzw(st["tool"]["quaternion_xyzw"]))
-    T[:3, 3] = st["tool"]["position"]
-    return T
-
-
-def pose_err(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
-    pe = float(np.linalg.norm(T_a[:3, 3] - T_b[:3, 3]))
-    c = (np.trace(T_a[:3, :3].T @ T_b[:3, :3]) - 1.0) / 2.0
-    return pe, float(math.acos(max(-1.0, min(1.0, c))))
 
 
 @pytest.fixture(scope="module")
@@ -74,35 +46,20 @@ def stack(ros_env: Any) -> Iterator[Stack]:
     # starved machine.
     cfg = StackConfig(arm="pa10", log_level="warn", ready_timeout_s=60.0, ik_service=False,
                       extra_args={"controller": ["-p", "max_speed:=0.15"]})
-    st = Stack(cfg, sink=_stderr, domain_id=ros_env.domain_id)
-    try:
-        st.start()
-        st.children["can_driver"].wait_for_line(r"init done", timeout=30.0, from_start=True)
+    with running_stack(cfg, ros_env.domain_id, init_timeout=30.0) as st:
         yield st
-    finally:
-        pids = [c.pid for c in st.children.values()]
-        st.close()
-        from redarm_ros.procs import group_members
-
-        assert not [p for p in pids if group_members(p)], "a stack process outlived Stack.close()"
 
 
-class Client:
+class Client(StackClient):
     def __init__(self, ctx: Any) -> None:
-        self.node = rclpy.create_node("e2e_reach_client", context=ctx)
-        self.ex = SingleThreadedExecutor(context=ctx)
-        self.ex.add_node(self.node)
+        super().__init__(ctx, "e2e_reach_client")
         self.reach = ActionClient(self.node, Reach, "/controller/reach")
         self.recover = self.node.create_client(Trigger, "/can_driver/recover")
         self.feedback: list[Any] = []
 
-    def spin_until(self, cond: Callable[[], bool], timeout: float) -> bool:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            self.ex.spin_once(timeout_sec=0.02)
-            if cond():
-                return True
-        return False
+    def close(self) -> None:
+        self.reach.destroy()
+        super().close()
 
     def send(self, T: np.ndarray, timeout: float = 0.0) -> Any:
         goal = Reach.Goal(timeout=timeout)
@@ -123,17 +80,9 @@ class Client:
 
 @pytest.fixture(scope="module")
 def client(stack: Stack, ros_env: Any) -> Iterator[Client]:
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=ros_env.domain_id)
-    c = Client(ctx)
-    try:
+    with client_in_context(ros_env.domain_id, Client) as c:
         assert c.spin_until(c.reach.server_is_ready, 30.0), "no /controller/reach server"
         yield c
-    finally:
-        c.reach.destroy()
-        c.ex.shutdown()
-        c.node.destroy_node()
-        rclpy.shutdown(context=ctx)
 
 
 def test_reach_goal_succeeds_then_a_cancel_stops_the_simulated_arm(stack: Stack, client: Client) -> None:

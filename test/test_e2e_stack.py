@@ -6,10 +6,7 @@ file) ends within 1 mm / 0.01 rad of it. Everything is stopped and checked gone 
 
 from __future__ import annotations
 
-import math
-import sys
-import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -20,18 +17,20 @@ pytest.importorskip("redarm_interfaces", reason="redarm_interfaces not built (ru
 pytest.importorskip("redarm_ros.nodes.can_driver", reason="can_driver node not written yet")
 pytest.importorskip("redarm_ros.sim.hardware", reason="simulator not written yet")
 
-from builtin_interfaces.msg import Duration  # noqa: E402
-from geometry_msgs.msg import PoseStamped  # noqa: E402
-from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from redarm_interfaces.msg import ControllerState  # noqa: E402
 from redarm_interfaces.srv import SolveIK  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
-from std_srvs.srv import Trigger  # noqa: E402
-from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint  # noqa: E402
+from support.stack_client import (  # noqa: E402
+    GoalClient,
+    client_in_context,
+    move_to_ready,
+    pose_err,
+    running_stack,
+    sim_tool,
+)
 
 from redarm_ros.bringup import Stack, StackConfig  # noqa: E402
 from redarm_ros.kinematics import load_arm  # noqa: E402
-from redarm_ros.kinematics.quaternion import from_xyzw, quat_to_matrix  # noqa: E402
 from redarm_ros.nodes.controller import pose_to_msg  # noqa: E402
 
 pytestmark = [pytest.mark.hil, pytest.mark.slow]
@@ -43,52 +42,15 @@ READY_Q = np.array([0.0, 0.5, 0.0, 1.3, 0.0, 1.0, 0.0])
 POS_TOL, ROT_TOL = 1e-3, 0.01
 
 
-def _stderr(line: str) -> None:
-    try:
-        sys.stderr.write(line + "\n")
-    except (ValueError, OSError):
-        pass
-
-
-def sim_tool(stack: Stack) -> np.ndarray:
-    """4x4 tool pose of the simulated arm (pybullet link state, from the sim's status file)."""
-    st = stack.sim_status()
-    assert st is not None, "no simulator status"
-    T = np.eye(4)
-    T[:3, :3] = quat_to_matrix(from_xyzw(st["tool"]["quaternion_xyzw"]))
-    T[:3, 3] = st["tool"]["position"]
-    return T
-
-
-def pose_err(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
-    pe = float(np.linalg.norm(T_a[:3, 3] - T_b[:3, 3]))
-    c = (np.trace(T_a[:3, :3].T @ T_b[:3, :3]) - 1.0) / 2.0
-    return pe, float(math.acos(max(-1.0, min(1.0, c))))
-
-
-class Client:
+class Client(GoalClient):
     """rclpy side of the test: goals, joint commands, IK calls, controller state, joint states."""
 
     def __init__(self, ctx: Any) -> None:
-        self.node = rclpy.create_node("e2e_client", context=ctx)
-        self.ex = SingleThreadedExecutor(context=ctx)
-        self.ex.add_node(self.node)
-        self.goal_pub = self.node.create_publisher(PoseStamped, "goal_pose", 10)
-        self.cmd_pub = self.node.create_publisher(JointTrajectory, "joint_command", 10)
-        self.ik = self.node.create_client(SolveIK, "/ik_service/solve_ik")
-        self.states: list[ControllerState] = []
         self.joints: list[np.ndarray] = []
-        self.node.create_subscription(ControllerState, "/controller/state", self.states.append, 50)
-        self.node.create_subscription(JointState, "joint_states",
-                                      lambda m: self.joints.append(np.array(m.position)), 50)
+        super().__init__(ctx, "e2e_client")
 
-    def spin_until(self, cond: Callable[[], bool], timeout: float) -> bool:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            self.ex.spin_once(timeout_sec=0.02)
-            if cond():
-                return True
-        return False
+    def on_joint_state(self, msg: JointState) -> None:
+        self.joints.append(np.array(msg.position))
 
     def seen(self, phase: str, after: int) -> bool:
         """True if the controller reported ``phase`` in a state message after index ``after``."""
@@ -103,61 +65,22 @@ class Client:
         assert self.spin_until(fut.done, 10.0), "ik_service did not answer"
         return fut.result()
 
-    def close(self) -> None:
-        self.ex.shutdown()
-        self.node.destroy_node()
-
 
 @pytest.fixture(scope="module")
 def stack(ros_env: Any) -> Iterator[Stack]:
     cfg = StackConfig(arm="pa10", log_level="warn", ready_timeout_s=60.0)
-    st = Stack(cfg, sink=_stderr, domain_id=ros_env.domain_id)
-    try:
-        st.start()
-        st.children["can_driver"].wait_for_line(r"init done", timeout=30.0, from_start=True)
+    with running_stack(cfg, ros_env.domain_id, init_timeout=30.0) as st:
         yield st
-    finally:
-        pids = [c.pid for c in st.children.values()]
-        st.close()
-        from redarm_ros.procs import group_members
-
-        assert not [p for p in pids if group_members(p)], "a stack process outlived Stack.close()"
 
 
 @pytest.fixture(scope="module")
 def client(stack: Stack, ros_env: Any) -> Iterator[Client]:
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=ros_env.domain_id)
-    c = Client(ctx)
-    try:
+    with client_in_context(ros_env.domain_id, Client) as c:
         assert c.spin_until(lambda: len(c.joints) > 5 and len(c.states) > 0, 30.0), \
             "no joint_states / controller state"
         assert c.spin_until(c.ik.service_is_ready, 10.0)
-        # Move to the ready pose through the driver (a 3 s trajectory), then let the controller resync.
-        traj = JointTrajectory(joint_names=ARM.joint_names)
-        traj.points = [JointTrajectoryPoint(positions=[float(v) for v in READY_Q],
-                                            time_from_start=Duration(sec=3))]
-
-        def at_ready() -> bool:
-            return float(np.max(np.abs(np.array(stack.sim_status()["q"]) - READY_Q))) < 1e-3
-
-        # On a starved 2-core CI machine the modules' 100 ms watchdog can halt the arm while the stack
-        # starts; the documented way out is ~/recover, so the set-up recovers (twice at most) and says so.
-        recover = c.node.create_client(Trigger, "/can_driver/recover")
-        for attempt in range(3):
-            c.cmd_pub.publish(traj)
-            if c.spin_until(at_ready, 15.0):
-                break
-            assert attempt < 2, f"arm not at the ready pose: {stack.sim_status()['q']}"
-            assert c.spin_until(recover.service_is_ready, 5.0)
-            fut = recover.call_async(Trigger.Request())
-            assert c.spin_until(fut.done, 15.0) and fut.result().success, "~/recover failed"
-            print(f"e2e set-up: driver halted before the ready pose; recovered ({fut.result().message})")
-        c.spin_until(lambda: False, 0.6)  # the controller sees a still arm away from its plan: resync
+        move_to_ready(c, c.cmd_pub, stack, ARM.joint_names, READY_Q, reach_s=15.0, recover_s=15.0)
         yield c
-    finally:
-        c.close()
-        rclpy.shutdown(context=ctx)
 
 
 def test_ik_then_goal_reached_by_the_simulated_arm(stack: Stack, client: Client) -> None:

@@ -8,9 +8,8 @@ benchmarks/track_bench.py --stack."""
 
 from __future__ import annotations
 
-import sys
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -22,9 +21,10 @@ pytest.importorskip("redarm_ros.nodes.can_driver", reason="can_driver node not w
 pytest.importorskip("redarm_ros.sim.hardware", reason="simulator not written yet")
 
 from geometry_msgs.msg import PoseStamped  # noqa: E402
-from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from redarm_interfaces.msg import ControllerState  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
+from support.stack_client import StackClient, client_in_context, running_stack  # noqa: E402
+from support.stack_client import pose_down as pose  # noqa: E402
 from trajectory_msgs.msg import JointTrajectory  # noqa: E402
 
 from redarm_ros.bringup import Stack, StackConfig  # noqa: E402
@@ -34,21 +34,6 @@ from redarm_ros.nodes.controller import pose_to_msg  # noqa: E402
 pytestmark = [pytest.mark.hil, pytest.mark.slow]
 
 ARM = load_arm("pa10")
-R_DOWN = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])
-
-
-def _stderr(line: str) -> None:
-    try:
-        sys.stderr.write(line + "\n")
-    except (ValueError, OSError):
-        pass
-
-
-def pose(p) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, :3] = R_DOWN
-    T[:3, 3] = p
-    return T
 
 
 def line_path(t: float, duration: float = 2.0, length: float = 0.12) -> np.ndarray:
@@ -62,24 +47,15 @@ def line_path(t: float, duration: float = 2.0, length: float = 0.12) -> np.ndarr
 def stack(ros_env: Any) -> Iterator[Stack]:
     cfg = StackConfig(arm="pa10", log_level="warn", ready_timeout_s=60.0, ik_service=False,
                       extra_args={"sim": ["--status-rate", "50"]})
-    st = Stack(cfg, sink=_stderr, domain_id=ros_env.domain_id)
-    try:
-        st.start()
-        st.children["can_driver"].wait_for_line(r"init done", timeout=30.0, from_start=True)
+    with running_stack(cfg, ros_env.domain_id, init_timeout=30.0) as st:
         yield st
-    finally:
-        pids = [c.pid for c in st.children.values()]
-        st.close()
-        from redarm_ros.procs import group_members
-
-        assert not [p for p in pids if group_members(p)], "a stack process outlived Stack.close()"
 
 
-class Client:
+class Client(StackClient):
+    SPIN_S = 0.005  # the stream is sent from the spin loop
+
     def __init__(self, ctx: Any) -> None:
-        self.node = rclpy.create_node("e2e_stream_client", context=ctx)
-        self.ex = SingleThreadedExecutor(context=ctx)
-        self.ex.add_node(self.node)
+        super().__init__(ctx, "e2e_stream_client")
         self.goal_pub = self.node.create_publisher(PoseStamped, "goal_pose", 50)
         self.recover = self.node.create_client(Trigger, "/can_driver/recover")
         self.states: list[ControllerState] = []
@@ -90,14 +66,6 @@ class Client:
     def _on_cmd(self, msg: JointTrajectory) -> None:
         self.stamped_commands += bool(msg.header.stamp.sec or msg.header.stamp.nanosec)
 
-    def spin_until(self, cond: Callable[[], bool], timeout: float) -> bool:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            self.ex.spin_once(timeout_sec=0.005)
-            if cond():
-                return True
-        return False
-
     def send(self, T: np.ndarray) -> None:
         msg = pose_to_msg(T)
         msg.header.frame_id = "base_link"
@@ -107,16 +75,9 @@ class Client:
 
 @pytest.fixture(scope="module")
 def client(stack: Stack, ros_env: Any) -> Iterator[Client]:
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=ros_env.domain_id)
-    c = Client(ctx)
-    try:
+    with client_in_context(ros_env.domain_id, Client) as c:
         assert c.spin_until(lambda: len(c.states) > 0, 30.0), "no controller state"
         yield c
-    finally:
-        c.ex.shutdown()
-        c.node.destroy_node()
-        rclpy.shutdown(context=ctx)
 
 
 def sim_tool(stack: Stack) -> tuple[float, np.ndarray]:

@@ -76,11 +76,8 @@ class ReachClient:
 
 
 @pytest.fixture
-def ctx(ros_env: Any) -> Iterator[Any]:
-    context = rclpy.Context()
-    rclpy.init(context=context, domain_id=ros_env.domain_id)
-    yield context
-    rclpy.shutdown(context=context)
+def ctx(rclpy_context: Any) -> Any:
+    return rclpy_context  # conftest's fresh context on the session's domain
 
 
 @pytest.fixture

@@ -5,12 +5,12 @@ hands out goals, the status panel says what it is given, and the ROS node wires 
 from __future__ import annotations
 
 import math
-import time
 from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
 import pytest
+from support.waits import spin_until as spin_executor_until
 
 from redarm_ros.kinematics import load_arm
 from redarm_ros.view.urdf_model import model_for_arm
@@ -184,12 +184,7 @@ def test_view_node_wires_topics_to_the_viewer(rclpy_context: Any) -> None:
     ex.add_node(peer)
 
     def spin_until(pred: Any, timeout: float = 15.0) -> bool:
-        end = time.monotonic() + timeout
-        while time.monotonic() < end:
-            ex.spin_once(timeout_sec=0.02)
-            if pred():
-                return True
-        return False
+        return spin_executor_until(ex, pred, timeout)
 
     try:
         assert node.url.startswith("http://127.0.0.1:") and not node.url.endswith(":0/")
@@ -249,12 +244,7 @@ def test_view_reach_button_sends_a_reach_goal_and_shows_the_outcome(rclpy_contex
         return Reach.Result(status=Reach.Result.SUCCESS, message="reached", position_error=2e-4)
 
     def spin_until(pred: Any, timeout: float = 15.0) -> bool:
-        end = time.monotonic() + timeout
-        while time.monotonic() < end:
-            ex.spin_once(timeout_sec=0.02)
-            if pred():
-                return True
-        return False
+        return spin_executor_until(ex, pred, timeout)
 
     try:
         assert not node.viewer.reach_button.disabled

@@ -1,0 +1,98 @@
+"""Pieces every benchmark shares: the plot module, the load-average line and the results writer.
+
+The benches import this module as ``bench_common`` after putting their own folder on ``sys.path``
+(the tests load benches by file path, without benchmarks/ on ``sys.path``).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import platform
+import sys
+import threading
+import time
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+_PLOTS = "redarm_bench_plots"
+
+
+def plots() -> ModuleType:
+    """benchmarks/plots.py, loaded once by path under one module name (matplotlib only when drawn)."""
+    if _PLOTS not in sys.modules:
+        spec = importlib.util.spec_from_file_location(_PLOTS, Path(__file__).with_name("plots.py"))
+        assert spec is not None and spec.loader is not None
+        mod = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(mod)
+        sys.modules[_PLOTS] = mod
+    return sys.modules[_PLOTS]
+
+
+def load_line(load0: tuple[float, float, float], t0: float) -> str:
+    """The load average before (``load0``) and now, the machine and the wall time since ``t0``."""
+    load1 = os.getloadavg()
+    return (
+        f"Load average (1/5/15 min) before: {load0[0]:.2f} {load0[1]:.2f} {load0[2]:.2f}, after: "
+        f"{load1[0]:.2f} {load1[1]:.2f} {load1[2]:.2f}; {platform.machine()}, {os.cpu_count()} CPUs, "
+        f"Python {platform.python_version()}, {time.time() - t0:.0f} s wall."
+    )
+
+
+def write_sections(path: Path, header: list[str], sections: dict[str, list[str]], footer: str) -> str:
+    """Write ``header``, the sections (``## title`` -> lines) and ``footer`` to ``path``, keeping the
+    sections of an earlier run that this run did not redo (e.g. the stack run is done apart)."""
+    old: dict[str, list[str]] = {}
+    if path.is_file():
+        cur = None
+        for line in path.read_text().splitlines():
+            if line.startswith("## "):
+                cur = line
+                old[cur] = []
+            elif cur is not None and line.startswith("What this does not cover"):
+                cur = None
+            elif cur is not None:
+                old[cur].append(line)
+    merged = dict(old)
+    merged.update(sections)
+    order = [k for k in merged if k.startswith("## In-process")]
+    order += [k for k in merged if not k.startswith("## In-process")]
+    out = list(header)
+    for k in order:
+        out.append(k)
+        out += merged[k]
+        while out and out[-1] == "":
+            out.pop()
+        out.append("")
+    out.append(footer)
+    text = "\n".join(out) + "\n"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text)
+    return text
+
+
+def finish_sections(
+    path: Path, header: list[str], sections: dict[str, list[str]], footer: str, no_write: bool
+) -> str:
+    """The report text of a sectioned bench: written to ``path`` (merged with earlier sections) unless
+    ``no_write``, then printed and returned."""
+    if no_write:
+        text = "\n".join(header + [line for k, v in sections.items() for line in [k, *v]] + [footer])
+    else:
+        text = write_sections(path, header, sections, footer)
+    print(text)
+    return text
+
+
+def spin_in_background(ex: Any) -> tuple[threading.Event, threading.Thread]:
+    """Spin the rclpy executor ``ex`` on a daemon thread until the returned event is set."""
+    stop = threading.Event()
+
+    def spin() -> None:
+        while not stop.is_set():
+            ex.spin_once(timeout_sec=0.05)
+
+    th = threading.Thread(target=spin, daemon=True)
+    th.start()
+    return stop, th

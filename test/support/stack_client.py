@@ -1,0 +1,154 @@
+"""Pieces the end-to-end stack tests share: the stack as a module fixture body, an rclpy client
+base (own context, executor, ``spin_until``), the move to a ready pose with ``~/recover`` on a
+starved machine, and the simulated tool's pose. Import after ``pytest.importorskip("rclpy")``."""
+
+from __future__ import annotations
+
+import math
+import sys
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from typing import Any, TypeVar
+
+import numpy as np
+import rclpy
+from builtin_interfaces.msg import Duration
+from geometry_msgs.msg import PoseStamped
+from rclpy.executors import SingleThreadedExecutor
+from redarm_interfaces.msg import ControllerState
+from redarm_interfaces.srv import SolveIK
+from sensor_msgs.msg import JointState
+from std_srvs.srv import Trigger
+from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+
+from redarm_ros.bringup import Stack, StackConfig
+from redarm_ros.kinematics.quaternion import from_xyzw, quat_to_matrix
+from redarm_ros.procs import group_members
+from support.waits import spin_until as spin_executor_until
+
+# Tool pointing down (z of the tool along -z of the base).
+R_DOWN = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])
+
+
+def stderr_sink(line: str) -> None:
+    """Stack output to stderr (pytest may have closed it at teardown)."""
+    try:
+        sys.stderr.write(line + "\n")
+    except (ValueError, OSError):
+        pass
+
+
+def pose_down(p: tuple[float, float, float] | np.ndarray) -> np.ndarray:
+    """4x4 pose at ``p`` with the tool pointing down."""
+    T = np.eye(4)
+    T[:3, :3] = R_DOWN
+    T[:3, 3] = p
+    return T
+
+
+def sim_tool(stack: Stack) -> np.ndarray:
+    """4x4 tool pose of the simulated arm (pybullet link state, from the sim's status file)."""
+    st = stack.sim_status()
+    assert st is not None, "no simulator status"
+    T = np.eye(4)
+    T[:3, :3] = quat_to_matrix(from_xyzw(st["tool"]["quaternion_xyzw"]))
+    T[:3, 3] = st["tool"]["position"]
+    return T
+
+
+def pose_err(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
+    """Position (m) and rotation angle (rad) between two 4x4 poses."""
+    pe = float(np.linalg.norm(T_a[:3, 3] - T_b[:3, 3]))
+    c = (np.trace(T_a[:3, :3].T @ T_b[:3, :3]) - 1.0) / 2.0
+    return pe, float(math.acos(max(-1.0, min(1.0, c))))
+
+
+@contextmanager
+def running_stack(cfg: StackConfig, domain_id: int, init_timeout: float) -> Iterator[Stack]:
+    """The stack started, the driver's modules initialised; on exit closed and checked gone."""
+    st = Stack(cfg, sink=stderr_sink, domain_id=domain_id)
+    try:
+        st.start()
+        st.children["can_driver"].wait_for_line(r"init done", timeout=init_timeout, from_start=True)
+        yield st
+    finally:
+        pids = [c.pid for c in st.children.values()]
+        st.close()
+        assert not [p for p in pids if group_members(p)], "a stack process outlived Stack.close()"
+
+
+class StackClient:
+    """One rclpy node on its own executor; subclasses add the publishers and subscriptions."""
+
+    SPIN_S = 0.02  # executor wait per spin in spin_until
+
+    def __init__(self, ctx: Any, name: str) -> None:
+        self.node = rclpy.create_node(name, context=ctx)
+        self.ex = SingleThreadedExecutor(context=ctx)
+        self.ex.add_node(self.node)
+
+    def spin_until(self, cond: Callable[[], bool], timeout: float) -> bool:
+        return spin_executor_until(self.ex, cond, timeout, self.SPIN_S)
+
+    def close(self) -> None:
+        self.ex.shutdown()
+        self.node.destroy_node()
+
+
+class GoalClient(StackClient):
+    """A client of the whole stack: goals on /goal_pose, joint commands, ik_service, the controller's
+    state messages; subclasses keep what they need of joint_states in ``on_joint_state``."""
+
+    def __init__(self, ctx: Any, name: str) -> None:
+        super().__init__(ctx, name)
+        self.goal_pub = self.node.create_publisher(PoseStamped, "goal_pose", 10)
+        self.cmd_pub = self.node.create_publisher(JointTrajectory, "joint_command", 10)
+        self.ik = self.node.create_client(SolveIK, "/ik_service/solve_ik")
+        self.states: list[ControllerState] = []
+        self.node.create_subscription(ControllerState, "/controller/state", self.states.append, 50)
+        self.node.create_subscription(JointState, "joint_states", self.on_joint_state, 50)
+
+    def on_joint_state(self, msg: JointState) -> None:
+        pass
+
+
+C = TypeVar("C", bound=StackClient)
+
+
+@contextmanager
+def client_in_context(domain_id: int, make: Callable[[Any], C]) -> Iterator[C]:
+    """A client made by ``make(ctx)`` in a fresh rclpy context; closed and shut down on exit."""
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=domain_id)
+    c = make(ctx)
+    try:
+        yield c
+    finally:
+        c.close()
+        rclpy.shutdown(context=ctx)
+
+
+def move_to_ready(c: StackClient, cmd_pub: Any, stack: Stack, joint_names: list[str], ready_q: np.ndarray,
+                  reach_s: float, recover_s: float) -> None:
+    """Move the arm to ``ready_q`` through ``cmd_pub`` (/joint_command, made early so it is matched;
+    a 3 s trajectory) and let the controller
+    resync. On a starved 2-core machine the modules' 100 ms watchdog can halt the arm while the stack
+    starts; the documented way out is ~/recover, so this recovers (twice at most) and says so."""
+    traj = JointTrajectory(joint_names=joint_names)
+    traj.points = [JointTrajectoryPoint(positions=[float(v) for v in ready_q],
+                                        time_from_start=Duration(sec=3))]
+
+    def at_ready() -> bool:
+        return float(np.max(np.abs(np.array(stack.sim_status()["q"]) - ready_q))) < 1e-3
+
+    recover = c.node.create_client(Trigger, "/can_driver/recover")
+    for attempt in range(3):
+        cmd_pub.publish(traj)
+        if c.spin_until(at_ready, reach_s):
+            break
+        assert attempt < 2, f"arm not at the ready pose: {stack.sim_status()['q']}"
+        assert c.spin_until(recover.service_is_ready, 5.0)
+        fut = recover.call_async(Trigger.Request())
+        assert c.spin_until(fut.done, recover_s) and fut.result().success, "~/recover failed"
+        print(f"e2e set-up: driver halted before the ready pose; recovered ({fut.result().message})")
+    c.spin_until(lambda: False, 0.6)  # the controller sees a still arm away from its plan: resync

@@ -1,0 +1,28 @@
+"""Polling waits for tests that run threads (driver loops, emulators) beside the test."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import Any
+
+
+def wait_until(pred: Callable[[], object], timeout: float = 5.0, step: float = 0.01) -> bool:
+    """Poll ``pred`` every ``step`` s until it is true or ``timeout`` s have passed; its last value."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if pred():
+            return True
+        time.sleep(step)
+    return bool(pred())
+
+
+def spin_until(ex: Any, pred: Callable[[], object], timeout: float, spin_s: float = 0.02) -> bool:
+    """Spin the rclpy executor ``ex`` (``spin_s`` s per turn) until ``pred`` is true or ``timeout``
+    s have passed."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        ex.spin_once(timeout_sec=spin_s)
+        if pred():
+            return True
+    return False
