@@ -216,17 +216,23 @@ class UniqueNameCheck:
     logs it and calls ``on_refused(reason)``; without a callback it raises
     :class:`DuplicateNodeError` out of the executor's spin, which :func:`run_node` turns into exit
     code 1. :attr:`done` turns True once the window passed without a twin; a node that must not act
-    before that (e.g. send commands) checks it.
+    before that (e.g. send commands) checks it, and ``on_passed`` (if given) is called then: a node
+    that offers its endpoints only from there never has its own window open while it serves, so a
+    twin started later refuses itself rather than the node already in service.
     """
 
-    def __init__(self, node: Node, wait_s: float, poll_s: float = 0.05) -> None:
+    def __init__(self, node: Node, wait_s: float, poll_s: float = 0.05,
+                 on_passed: Callable[[], None] | None = None) -> None:
         self._node = node
         self._wait_s = float(wait_s)
         self._created = time.monotonic()
         self.refused: str | None = None
         self.on_refused: Callable[[str], None] | None = None
+        self.on_passed = on_passed
         self.done = self._wait_s <= 0
         self._timer = None if self.done else node.create_timer(poll_s, self._tick)
+        if self.done and on_passed is not None:
+            on_passed()
 
     def _tick(self) -> None:
         if self.done or self.refused is not None:
@@ -248,6 +254,8 @@ class UniqueNameCheck:
         if time.monotonic() - self._created >= self._wait_s:
             self.done = True
             self._cancel()
+            if self.on_passed is not None:
+                self.on_passed()
 
     def _cancel(self) -> None:
         if self._timer is not None:

@@ -186,20 +186,26 @@ class IKServiceNode(Node):
             )
         except InvalidInputError as exc:
             raise ValueError(str(exc)) from exc
-        self.name_check = UniqueNameCheck(self, p["duplicate_check_s"])  # a timer: no blocking here
-        watch_duplicates(self)
         self.requests = 0
         self.failures = 0
-        qos = QoSProfile(
-            history=HistoryPolicy.KEEP_LAST,
-            depth=int(p["request_queue_depth"]),
-            reliability=ReliabilityPolicy.RELIABLE,
-        )
-        self.srv = self.create_service(SolveIK, "~/solve_ik", self._on_solve, qos_profile=qos)
-        self.get_logger().info(
+        self.srv = None
+        self._serving_note = (
             f"serving {self.get_fully_qualified_name()}/solve_ik for arms {', '.join(sorted(arms))} "
             f"(default {p['default_arm']}, targets in frame '{p['base_frame']}')"
         )
+        self._queue_depth = int(p["request_queue_depth"])
+        # The service is offered once the duplicate-name check has passed (a timer: no blocking here).
+        self.name_check = UniqueNameCheck(self, p["duplicate_check_s"], on_passed=self._serve)
+        watch_duplicates(self)
+
+    def _serve(self) -> None:
+        qos = QoSProfile(
+            history=HistoryPolicy.KEEP_LAST,
+            depth=self._queue_depth,
+            reliability=ReliabilityPolicy.RELIABLE,
+        )
+        self.srv = self.create_service(SolveIK, "~/solve_ik", self._on_solve, qos_profile=qos)
+        self.get_logger().info(self._serving_note)
 
     # Short callback: read parameters, delegate, convert.
     def _on_solve(self, req: SolveIK.Request, resp: SolveIK.Response) -> SolveIK.Response:
