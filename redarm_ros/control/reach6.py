@@ -44,8 +44,8 @@ from redarm_ros.control.ik_step6 import IKStepper6, branch, check_route6, fixed_
 from redarm_ros.control.obstacles import Scene
 from redarm_ros.control.params import ControllerParams
 from redarm_ros.control.reach_controller import ReachController
-from redarm_ros.control.replan import JointPath, move_time
-from redarm_ros.control.state import ZERO3, Command, CoreState, Mode, Reference
+from redarm_ros.control.replan import move_time
+from redarm_ros.control.state import ZERO3, Command, CoreState, Reference
 from redarm_ros.control.stream import StreamEstimator
 from redarm_ros.control.types import GoalCheck, GoalStatus
 from redarm_ros.errors import InvalidInputError
@@ -299,31 +299,15 @@ class ReachController6(ReachController):
         st.att.a = 0.0
 
     # -- joint-space moves --------------------------------------------------------------------------
-    def _plan_step(self, dt: float) -> None:
+    def _new_planner(self, T: np.ndarray) -> Planner6:  # type: ignore[override]
         st = self._state()
-        if np.any(st.cmd.qd != 0.0):  # brake to rest first, through the guard
-            self._brake(dt)
-            return
-        if st.planner is None:
-            assert st.goal is not None
-            T = pose_matrix(st.goal.pos, st.goal.rot)
-            rp = self.params.replan
-            st.planner = Planner6(self.arm, self.guard, self._index.reach_scene.scene,  # type: ignore[assignment]
-                                  st.cmd.q.copy(), T, rp.clearance, rp.work_per_step, rp.vias,
-                                  rp.seed + st.progress.replans)
-        if not st.planner.work():
-            return
-        planner = st.planner
-        st.planner = None
-        if planner.path is None:
-            self._block(f"{planner.reason} (after: {st.plan_reason})")
-            return
-        st.path = JointPath(planner.path, self._max_vel, self._max_acc)
-        st.path_t = 0.0
-        st.ref.q = st.cmd.q.copy()
-        st.ref.qd = np.zeros(self.arm.n)
-        st.brake_sync = True
-        st.mode = Mode.JOINT
+        rp = self.params.replan
+        return Planner6(self.arm, self.guard, self._index.reach_scene.scene, st.cmd.q.copy(), T,
+                        rp.clearance, rp.work_per_step, rp.vias, rp.seed + st.progress.replans)
+
+    def _plan_message(self, planner: Planner6) -> str:  # type: ignore[override]
+        st = self._state()
+        assert st.path is not None
         vias = len(planner.path) - 2
-        st.message = (f"moving in joint space {planner.reason} ({vias} via points, "
-                      f"{st.path.duration:.1f} s): {st.plan_reason}")
+        return (f"moving in joint space {planner.reason} ({vias} via points, "
+                f"{st.path.duration:.1f} s): {st.plan_reason}")

@@ -76,19 +76,7 @@ class ReplanMixin(ControllerBase):
             return
         if st.planner is None:
             assert st.goal is not None
-            T = pose_matrix(st.goal.pos, st.goal.rot)
-            s_pref = None
-            try:
-                circle: ElbowCircle | None = elbow_circle(self.geom, T)
-            except UnreachableError:
-                circle = None
-            if circle is not None and self.params.swivel_mode != "fixed":
-                s_pref = self._desired_swivel(circle)
-            clear_enough = self.params.replan.clearance + 2.0 * self.guard.step
-            retreat = [q for q, c in reversed(st.history) if c >= clear_enough][::10]
-            st.planner = JointPlanner(self.stepper, self.guard, self._index.reach_scene.scene,
-                                      st.cmd.q.copy(),
-                                      T, self.params.replan, self.params.unfold_pitch, retreat, s_pref)
+            st.planner = self._new_planner(pose_matrix(st.goal.pos, st.goal.rot))
         if not st.planner.work():
             return
         planner = st.planner
@@ -102,8 +90,29 @@ class ReplanMixin(ControllerBase):
         st.ref.qd = np.zeros_like(st.ref.q)
         st.brake_sync = True
         st.mode = Mode.JOINT
+        st.message = self._plan_message(planner)
+
+    def _new_planner(self, T: np.ndarray) -> JointPlanner:
+        """The resumable joint-space search towards tool pose ``T`` (the 6-DOF arm has its own)."""
+        st = self._state()
+        s_pref = None
+        try:
+            circle: ElbowCircle | None = elbow_circle(self.geom, T)
+        except UnreachableError:
+            circle = None
+        if circle is not None and self.params.swivel_mode != "fixed":
+            s_pref = self._desired_swivel(circle)
+        clear_enough = self.params.replan.clearance + 2.0 * self.guard.step
+        retreat = [q for q, c in reversed(st.history) if c >= clear_enough][::10]
+        return JointPlanner(self.stepper, self.guard, self._index.reach_scene.scene, st.cmd.q.copy(),
+                            T, self.params.replan, self.params.unfold_pitch, retreat, s_pref)
+
+    def _plan_message(self, planner: JointPlanner) -> str:
+        """What ``~/state`` says once the joint path starts."""
+        st = self._state()
+        assert st.path is not None
         vias = len(planner.path) - 2
-        st.message = f"moving in joint space ({vias} via points, {st.path.duration:.1f} s): {st.plan_reason}"
+        return f"moving in joint space ({vias} via points, {st.path.duration:.1f} s): {st.plan_reason}"
 
     def _joint_step(self, dt: float) -> None:
         st = self._state()
