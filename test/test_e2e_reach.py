@@ -9,7 +9,6 @@ rate, limits while stopping, pre-emption) are test/test_node_reach_action.py."""
 from __future__ import annotations
 
 import math
-
 from collections.abc import Iterator
 from typing import Any
 
