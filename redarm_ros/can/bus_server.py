@@ -491,7 +491,7 @@ def start_bus_server(
     port_file: Path | None = None,
     python: str | None = None,
     env: dict[str, str] | None = None,
-    ready_timeout_s: float = 15.0,
+    ready_timeout_s: float = 30.0,
 ) -> BusServerProcess:
     """Start ``python -m redarm_ros.can.bus_server`` on 127.0.0.1 and wait for its port line.
 
