@@ -70,7 +70,7 @@ from redarm_ros.errors import (
     ModuleFaultError,
     RedarmError,
 )
-from redarm_ros.motion import JointLimits
+from redarm_ros.motion import JointLimits, LimitsView
 
 logger = logging.getLogger(__name__)
 
@@ -313,7 +313,7 @@ def _is_ack(cmd: Command) -> _Matcher:
     return lambda f: isinstance(f, p.CommandAck) and f.command is cmd
 
 
-class PowerCubeArmDriver:
+class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those of self.limits
     """Drive PowerCube modules ``module_ids`` (joint order) on ``bus``.
 
     Args:
@@ -406,27 +406,6 @@ class PowerCubeArmDriver:
         self._prev_q: np.ndarray | None = None
         self._needs_resync = False
         self._pending_faults: dict[int, ActState] = {}
-
-    # -- limits, as arrays (rad, rad/s, rad/s^2) ----------------------------------------------------
-    @property
-    def lower(self) -> np.ndarray:
-        """Lower joint limits (rad)."""
-        return self.limits.lower
-
-    @property
-    def upper(self) -> np.ndarray:
-        """Upper joint limits (rad)."""
-        return self.limits.upper
-
-    @property
-    def max_vel(self) -> np.ndarray:
-        """Velocity limits (rad/s)."""
-        return self.limits.max_vel
-
-    @property
-    def max_acc(self) -> np.ndarray:
-        """Acceleration limits (rad/s^2)."""
-        return self.limits.max_acc
 
     @property
     def frames_per_cycle(self) -> int:

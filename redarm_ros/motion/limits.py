@@ -197,3 +197,31 @@ class JointLimits:
         """Largest distance (rad) each joint can travel in ``elapsed_s`` seconds at its velocity limit,
         plus ``margin``: a measured position that moved further is implausible."""
         return self.max_vel * np.maximum(np.asarray(elapsed_s, dtype=float), 0.0) + margin
+
+
+class LimitsView:
+    """Mixin: ``lower``, ``upper``, ``max_vel`` and ``max_acc`` read through from ``self.limits``
+    (a :class:`JointLimits`), for classes that hold one and expose its arrays (the CAN driver, the
+    driver's reference shaper, whose ``limits`` are already inset by its margin)."""
+
+    limits: JointLimits
+
+    @property
+    def lower(self) -> np.ndarray:
+        """Lower position limits (rad)."""
+        return self.limits.lower
+
+    @property
+    def upper(self) -> np.ndarray:
+        """Upper position limits (rad)."""
+        return self.limits.upper
+
+    @property
+    def max_vel(self) -> np.ndarray:
+        """Velocity limits (rad/s)."""
+        return self.limits.max_vel
+
+    @property
+    def max_acc(self) -> np.ndarray:
+        """Acceleration limits (rad/s^2)."""
+        return self.limits.max_acc
