@@ -61,7 +61,7 @@ import can
 import numpy as np
 
 from redarm_ros.can import protocol as p
-from redarm_ros.can.protocol import ActConfig, ActState, Command, Param
+from redarm_ros.can.protocol import POWER_STAGE_FAULTS, ActConfig, ActState, Command, Param
 from redarm_ros.errors import (
     BusError,
     BusTimeoutError,
@@ -81,12 +81,7 @@ FAULT_BITS = (
     | ActState.TOW_ERROR
     | ActState.BEYOND_SOFT
     | ActState.BEYOND_HARD
-    | ActState.POW_VOLT_ERR
-    | ActState.POW_FET_TEMP
-    | ActState.POW_WDG_TEMP
-    | ActState.POW_SHORTCUR
-    | ActState.POW_HALLERR
-    | ActState.POW_INTEGRAL_ERR
+    | POWER_STAGE_FAULTS
 )
 _LATENCY_WINDOW = 1024
 #: A plausibility check allows this much (rad) beyond what the velocity limit explains.
@@ -501,6 +496,7 @@ class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those o
 
         At most :data:`_DRAIN_MAX_FRAMES` frames: on a flooded bus the rest is read (and skipped)
         by the receive loop that follows, which has a deadline."""
+        # The receive-route-decode steps of _transact's loop, inline: once per cycle, no extra call.
         late = 0
         for _ in range(_DRAIN_MAX_FRAMES):
             msg = self._recv(0.0)
@@ -673,13 +669,18 @@ class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those o
             self._command_all(Command.RESET)
             if home:
                 self._home_locked()
-            st = self._read_state_locked()
-            self._raise_on_errors(st, "init")
-            self._hold_measured()
-            self._pending_faults.clear()
-            self._fire(DriverEvent.READY)
-            logger.info("PowerCube arm initialised at %s", np.round(st.positions, 4).tolist())
-            return st
+            return self._ready_locked("init", "PowerCube arm initialised at %s")
+
+    def _ready_locked(self, what: str, log_format: str) -> ArmState:
+        """End of init/recover: read the state, refuse on module errors (``what`` names the step in
+        the exception), hold the measured position, clear pending faults, READY."""
+        st = self._read_state_locked()
+        self._raise_on_errors(st, what)
+        self._hold_measured()
+        self._pending_faults.clear()
+        self._fire(DriverEvent.READY)
+        logger.info(log_format, np.round(st.positions, 4).tolist())
+        return st
 
     def _configure_locked(self) -> None:
         want_set = ActConfig(0)
@@ -797,13 +798,7 @@ class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those o
         with self._lock:
             self._command_all(Command.RESET)
             self._configure_locked()
-            st = self._read_state_locked()
-            self._raise_on_errors(st, "recover")
-            self._hold_measured()
-            self._pending_faults.clear()
-            self._fire(DriverEvent.READY)
-            logger.info("PowerCube arm recovered, holding %s", np.round(st.positions, 4).tolist())
-            return st
+            return self._ready_locked("recover", "PowerCube arm recovered, holding %s")
 
     def reconnect(self) -> ArmState:
         """Reopen the bus (one attempt; call again with backoff) and re-read the positions.

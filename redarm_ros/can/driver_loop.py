@@ -915,6 +915,7 @@ class DriverLoop:
         if lat.size:
             latency = {"median_ms": float(np.median(lat) * 1e3),
                        "p99_ms": float(np.percentile(lat, 99) * 1e3), "max_ms": float(lat.max() * 1e3)}
+        # A keyword-built record: alike in shape only to other records' construction (IKAnswer).
         return LoopSnapshot(
             state=state,
             reason=reason,

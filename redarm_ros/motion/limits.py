@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from operator import attrgetter
 from typing import Any
 
 import numpy as np
@@ -206,22 +207,7 @@ class LimitsView:
 
     limits: JointLimits
 
-    @property
-    def lower(self) -> np.ndarray:
-        """Lower position limits (rad)."""
-        return self.limits.lower
-
-    @property
-    def upper(self) -> np.ndarray:
-        """Upper position limits (rad)."""
-        return self.limits.upper
-
-    @property
-    def max_vel(self) -> np.ndarray:
-        """Velocity limits (rad/s)."""
-        return self.limits.max_vel
-
-    @property
-    def max_acc(self) -> np.ndarray:
-        """Acceleration limits (rad/s^2)."""
-        return self.limits.max_acc
+    lower = property(attrgetter("limits.lower"), doc="Lower position limits (rad).")
+    upper = property(attrgetter("limits.upper"), doc="Upper position limits (rad).")
+    max_vel = property(attrgetter("limits.max_vel"), doc="Velocity limits (rad/s).")
+    max_acc = property(attrgetter("limits.max_acc"), doc="Acceleration limits (rad/s^2).")
