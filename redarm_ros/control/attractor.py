@@ -134,7 +134,7 @@ class HeadingParams:
 
 
 @dataclass(frozen=True)
-class HeadingRates:
+class HeadingRates:  # a record of floats: alike in shape only to other records (mcap TopicSummary)
     """d(phi)/dt and d(theta)/dt (rad/s) plus the target direction and per-term parts for plots."""
 
     dphi: float

@@ -1,5 +1,9 @@
 """Validation shared by the controller's parameter dataclasses (a leaf module: imports no other
-part of ``control/``, so every parameter module may use it)."""
+part of ``control/``, so every parameter module may use it).
+
+The dataclasses' field lists (one ``name: float = default`` a line) look alike by shape; they are
+declarations of different parameters, not repeated logic.
+"""
 
 from __future__ import annotations
 
