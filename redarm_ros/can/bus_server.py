@@ -57,7 +57,6 @@ import time
 import uuid
 from collections.abc import Sequence
 from pathlib import Path
-from types import TracebackType
 from typing import Any
 
 from can_remote.server import ClientRequestHandler, RemoteServer, RemoteServerProtocol
@@ -363,9 +362,7 @@ class LoopbackBusServer:
     def __enter__(self) -> LoopbackBusServer:
         return self.start()
 
-    def __exit__(
-        self, et: type[BaseException] | None, ev: BaseException | None, tb: TracebackType | None
-    ) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.stop()
 
 
@@ -478,9 +475,7 @@ class BusServerProcess:
     def __enter__(self) -> BusServerProcess:
         return self
 
-    def __exit__(
-        self, et: type[BaseException] | None, ev: BaseException | None, tb: TracebackType | None
-    ) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.stop()
 
 
