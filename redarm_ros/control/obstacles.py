@@ -96,10 +96,15 @@ def _circle_footprint(cx: float, cy: float, r: float, x: float, y: float) -> Foo
 
 
 class _Round:
-    """Top view of a shape that is a circle seen from above (a sphere, a vertical cylinder)."""
+    """A shape that is a circle seen from above (a sphere, a vertical cylinder): its checked
+    ``center`` and ``radius`` and its top view."""
 
     center: Vec3
     radius: float
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "center", _vec3(self.center, "center"))
+        object.__setattr__(self, "radius", _positive(self.radius, "radius"))
 
     @property
     def footprint_radius(self) -> float:
@@ -118,10 +123,6 @@ class Sphere(_Round):
     center: Vec3
     radius: float
     name: str = ""
-
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "center", _vec3(self.center, "center"))
-        object.__setattr__(self, "radius", _positive(self.radius, "radius"))
 
     @property
     def top(self) -> float:
@@ -142,7 +143,6 @@ class Sphere(_Round):
         return {"type": "sphere", "center": list(self.center), "radius": self.radius, "name": self.name}
 
 
-# Sphere and Cylinder: each validates and tops its own fields (alike in shape, per shape).
 @dataclass(frozen=True)
 class Cylinder(_Round):
     """Vertical cylinder (axis parallel to z): ``center`` at mid-height, ``radius``, ``height`` (m)."""
@@ -153,8 +153,7 @@ class Cylinder(_Round):
     name: str = ""
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "center", _vec3(self.center, "center"))
-        object.__setattr__(self, "radius", _positive(self.radius, "radius"))
+        super().__post_init__()
         object.__setattr__(self, "height", _positive(self.height, "height"))
 
     @property
