@@ -73,12 +73,9 @@ class Client:
         self.joint_states += 1
 
     def spin_until(self, cond: Callable[[], bool], timeout: float) -> bool:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            self.ex.spin_once(timeout_sec=0.02)
-            if cond():
-                return True
-        return False
+        from redarm_ros.nodes._common import spin_until
+
+        return spin_until(self.ex, cond, timeout)
 
     def call(self, client: object, request: object, timeout: float) -> object | None:
         fut = client.call_async(request)  # type: ignore[attr-defined]

@@ -20,9 +20,6 @@ def wait_until(pred: Callable[[], object], timeout: float = 5.0, step: float = 0
 def spin_until(ex: Any, pred: Callable[[], object], timeout: float, spin_s: float = 0.02) -> bool:
     """Spin the rclpy executor ``ex`` (``spin_s`` s per turn) until ``pred`` is true or ``timeout``
     s have passed."""
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        ex.spin_once(timeout_sec=spin_s)
-        if pred():
-            return True
-    return False
+    from redarm_ros.nodes._common import spin_until as spin  # the runtime's own (needs rclpy)
+
+    return spin(ex, pred, timeout, spin_s)
