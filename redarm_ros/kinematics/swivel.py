@@ -203,32 +203,35 @@ class SwivelArm(Arm):
         return (dx, dy, dz, D, rxy2, dx * inv, dy * inv, dz * inv, ca)
 
     @staticmethod
-    def _rot_qa(circ: tuple[float, ...], ux: float, uy: float) -> tuple[float, float, float]:
-        """qA u qA* for u = (ux, uy, 0): the shortest rotation k -> n applied to u (eq. 14-15), by
-        :func:`.quaternion.shortest_rotation_xy` with 1 + nz from the circle's unnormalised d."""
+    def _qa_h(circ: tuple[float, ...]) -> float:
+        """1 + nz of the circle's normal n, computed without cancellation from the unnormalised d, for the
+        shortest rotation qA: k -> n; 0.0 where n = k (qA = 1), -1.0 where n = -k (qA = the rotation by pi
+        about x), both within the axis tolerance."""
         dx, dy, dz, D, rxy2, nx, ny, nz, _ = circ
         if D == 0.0 or (dz >= 0.0 and rxy2 <= AXIS_TOL2 * D * D):
-            return ux, uy, 0.0
+            return 0.0
         if dz >= 0.0:
-            h = 1.0 + nz
-        elif rxy2 <= AXIS_TOL2 * D * D:  # n = -k: rotation by pi about x
-            return ux, -uy, 0.0
-        else:  # 1 + nz without cancellation
-            h = rxy2 / (D * (D - dz))
-        return shortest_rotation_xy(nx, ny, h, ux, uy)
+            return 1.0 + nz
+        if rxy2 <= AXIS_TOL2 * D * D:
+            return -1.0
+        return rxy2 / (D * (D - dz))
 
-    @staticmethod
-    def _rot_qa_inv(circ: tuple[float, ...], ex: float, ey: float, ez: float) -> tuple[float, float]:
+    @classmethod
+    def _rot_qa(cls, circ: tuple[float, ...], ux: float, uy: float) -> tuple[float, float, float]:
+        """qA u qA* for u = (ux, uy, 0): the shortest rotation k -> n applied to u (eq. 14-15), by
+        :func:`.quaternion.shortest_rotation_xy`."""
+        h = cls._qa_h(circ)
+        if h <= 0.0:
+            return (ux, uy, 0.0) if h == 0.0 else (ux, -uy, 0.0)
+        return shortest_rotation_xy(circ[5], circ[6], h, ux, uy)
+
+    @classmethod
+    def _rot_qa_inv(cls, circ: tuple[float, ...], ex: float, ey: float, ez: float) -> tuple[float, float]:
         """(x, y) of qA* e qA: inverse of :meth:`_rot_qa` (eq. 16)."""
-        dx, dy, dz, D, rxy2, nx, ny, nz, _ = circ
-        if D == 0.0 or (dz >= 0.0 and rxy2 <= AXIS_TOL2 * D * D):
-            return ex, ey
-        if dz >= 0.0:
-            h = 1.0 + nz
-        elif rxy2 <= AXIS_TOL2 * D * D:
-            return ex, -ey
-        else:
-            h = rxy2 / (D * (D - dz))
+        h = cls._qa_h(circ)
+        if h <= 0.0:
+            return (ex, ey) if h == 0.0 else (ex, -ey)
+        nx, ny = circ[5], circ[6]
         wz = -(nx * ex + ny * ey)
         return ex - nx * ez + nx * wz / h, ey - ny * ez + ny * wz / h
 
