@@ -1385,6 +1385,10 @@ def _sample_swivels_batch(
     # every pose's M samples right-aligned in a row of N + 2, with its neighbours around the circle
     # (S[M - 1] in front, S[0] behind) as in the scalar search; the columns before them are unused
     M = N - np.isnan(S).sum(axis=1)
+    # rows as wide as the most samples any pose of the chunk has, not as the most it could have (about
+    # 130 instead of 155 columns on the test machine's poses: every later array operation is that much
+    # shorter)
+    N = max(int(M.max()), 1)
     W = N + 2
     first = (W - 1 - M)[:, None]  # column of S[0]
     src = (np.arange(W)[None, :] - first) % M[:, None]
@@ -1408,25 +1412,20 @@ class NearestWorkspace:
     (glibc returns such blocks to the kernel when freed), which made the batch 2x slower on the 2-core
     test machine than the same arithmetic into reused arrays."""
 
+    _ROWS = {"V": 12, "Vx": 12, "Vy": 12, "T1": 12, "T2": 12, "X": 12, "E": 12, "B": 12}
+    _ROWS |= {"A": 2, "F": 2, "cost": 8, "t8": 8}
+
     def __init__(self, n: int, k: int) -> None:
         self.n, self.k = n, k
-        self.V = np.empty((12, n, k))
-        self.Vx = np.empty((12, n, k))
-        self.Vy = np.empty((12, n, k))
-        self.T1 = np.empty((12, n, k))
-        self.T2 = np.empty((12, n, k))
-        self.X = np.empty((12, n, k))
-        self.E = np.empty((12, n, k))
-        self.B = np.empty((12, n, k), bool)
-        self.A = np.empty((2, n, k))
-        self.F = np.empty((2, n, k))
-        self.cost = np.empty((8, n, k))
-        self.t8 = np.empty((8, n, k))
+        self._buf = {
+            name: np.empty(rows * n * k, bool if name == "B" else float) for name, rows in self._ROWS.items()
+        }
 
-    def view(self, name: str, n: int) -> np.ndarray:
-        """The first n poses of an array (all of it for a full chunk)."""
-        a = getattr(self, name)
-        return a if n == self.n else a[:, :n]
+    def view(self, name: str, n: int, k: int) -> np.ndarray:
+        """Array ``name`` as (rows, n, k) for n poses of k samples (n, k at most the capacity): the head of
+        its buffer, contiguous, so that every operation on it runs over one block."""
+        rows = self._ROWS[name]
+        return self._buf[name][: rows * n * k].reshape(rows, n, k)
 
 
 def _alternative_costs_batch(
@@ -1449,7 +1448,7 @@ def _alternative_costs_batch(
     gathers and scalings (a matrix product there went to BLAS threads, 20x slower on a busy machine).
     """
     n, Kn = Sp.shape
-    V, Vx, Vy, T1, T2, X, E, B = (ws.view(a, n) for a in ("V", "Vx", "Vy", "T1", "T2", "X", "E", "B"))
+    V, Vx, Vy, T1, T2, X, E, B = (ws.view(a, n, Kn) for a in ("V", "Vx", "Vy", "T1", "T2", "X", "E", "B"))
     c = np.cos(Sp)
     s = np.sin(Sp)
     Kt = K.transpose(1, 2, 0)[:, :, :, None]  # (10, 3, n, 1)
@@ -1501,7 +1500,7 @@ def _alternative_costs_batch(
     np.copyto(C, BIG, where=B)
     # the patterns (f2, f4, f6) as sums of their alternatives: theta1 and theta2 follow f2, theta3 f2 ^ f4,
     # theta5 f4 ^ f6, theta6 and theta7 f6 (rows 2 k + a of C: joint _J6[k], alternative a)
-    A, F, cost, t8 = ws.view("A", n), ws.view("F", n), ws.view("cost", n), ws.view("t8", n)
+    A, F, cost, t8 = (ws.view(a, n, Kn) for a in ("A", "F", "cost", "t8"))
     np.add(C[0:2], C[8:10], out=A)
     np.add(C[6:8], C[10:12], out=F)
     np.take(A, _B_F2, axis=0, out=cost, mode="clip")
@@ -1584,7 +1583,7 @@ def nearest_batch(
     Sp, flag, gaps, col0, unused, odd = _sample_swivels_batch(Ka, deg_sh, deg_wr, tab, seeds, s_seeds)
     V4, c4 = _theta4_batch(t4, tab, seeds, float(w[3]))
     unit = bool(np.all(w == 1.0))
-    if ws is None or ws.k != Sp.shape[1] or ws.n < m:
+    if ws is None or ws.k < Sp.shape[1] or ws.n < m:
         ws = NearestWorkspace(m, Sp.shape[1])
     cost, X, E = _alternative_costs_batch(
         K, deg_sh, deg_wr, tab, Sp, seeds, None if unit else w, c4, unused, ws
