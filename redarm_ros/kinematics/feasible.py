@@ -749,9 +749,7 @@ def _sample_swivels(
             a0.append(z0 - cl)
             a1.append(z1)
             a2.append(z2)
-    ET[0, :n_py] = a0
-    ET[1, :n_py] = a1
-    ET[2, :n_py] = a2
+    ET[:, :n_py] = (a0, a1, a2)
     ET[:, n_py:] = np.dot(fn.Ka.T, tab.GT)
     for h in (0, 1):
         if regular[h]:
@@ -806,7 +804,8 @@ def _sample_swivels(
     flag = order < n
     gaps = np.empty(M + 1)
     np.subtract(Sp[2:-1], Sp[1:-2], out=gaps[1:-1])
-    if Sp[-2] >= PI or (M > 1 and gaps[1:-1].min() <= MERGE_TOL):  # rare: wrap gave pi; near-equal
+    # rare: the wrap gave pi, or near-equal samples
+    if Sp[-2] >= PI or (M > 1 and np.minimum.reduce(gaps[1:-1]) <= MERGE_TOL):
         S = Sp[1:-1]
         S[S >= PI] -= TWO_PI
         order = S.argsort()
@@ -876,8 +875,7 @@ def _alternative_costs(
     np.sin(Sp, out=CS[2])
     V = np.empty((12, K))
     np.dot(fn.K, CS, out=V[:10])  # X1, X3, X5, X7, Y1, Y3, Y5, Y7, Z2, Z6
-    q = V[0:7:2] * V[0:7:2]  # X1^2, X5^2, Y1^2, Y5^2
-    np.sqrt(q[0:2] + q[2:4], out=V[10:12])  # rho2, rho6: theta2 = atan2(rho2, Z2)
+    np.hypot(V[0:3:2], V[4:7:2], out=V[10:12])  # rho2 = |(X1, Y1)|, rho6 = |(X5, Y5)|
     T = np.dot(tab.rot, V)
     X = np.arctan2(T[12:], T[:12])  # (the alternative - (lower - tol)) mod 2 pi, minus pi
     X += PI
@@ -948,7 +946,8 @@ def _candidates(
         if fbest >= 0.5 * BIG:
             return [], fbest
         limit = fbest + 1e-12 * (1.0 + fbest)
-    keep = (d0 <= 0.0) & (d1 >= 0.0) & fin[1:-1] & (lb <= limit)
+    # (lb <= limit < BIG / 2 also excludes an infeasible sample: its depth is 0 or it is no minimum)
+    keep = (d0 <= 0.0) & (d1 >= 0.0) & (lb <= limit)
     out = []
     for k in np.flatnonzero(keep).tolist():
         b, t = divmod(k + 1, K)
