@@ -239,6 +239,15 @@ class LimitTables:
         self.rs = rot[np.arange(12), self.ry][:, None, None]
         self.rc2 = rot[12 + np.arange(12), self.ry][:, None, None]
         self.rs2 = -rot[12 + np.arange(12), self.rx][:, None, None]
+        # the batch turns and atan2s only the 6 base alternatives (even rows) and derives the flipped ones:
+        # a pivot's flipped X is X + pi (mod 2 pi); a hinge's -theta gives (c - X) mod 2 pi with
+        # c = -2 (lower - tol), kept in [2 pi, 4 pi) so that the difference is positive
+        self.rx0, self.ry0 = self.rx[0::2].copy(), self.ry[0::2].copy()
+        self.rc0, self.rs0 = self.rc[0::2].copy(), self.rs[0::2].copy()
+        self.rc20, self.rs20 = self.rc2[0::2].copy(), self.rs2[0::2].copy()
+        self.hinge_flip = np.array(
+            [(-2.0 * (self.lower[j] - LIMIT_TOL)) % TWO_PI + TWO_PI for j in j6[4:]]
+        )[:, None, None]
         # theta1 (theta5) fixed at 0 by convention: its alternatives' values, (shift - (lower - tol)) mod 2 pi
         self.fixed6 = {
             j: [(sh - lot) % TWO_PI for sh in (0.0, PI)]
@@ -1461,17 +1470,25 @@ def _alternative_costs_batch(
     np.multiply(V[0:7:2], V[0:7:2], out=T1[:4])  # X1^2, X5^2, Y1^2, Y5^2
     np.add(T1[0:2], T1[2:4], out=V[10:12])
     np.sqrt(V[10:12], out=V[10:12])
-    np.take(V, tab.rx, axis=0, out=Vx, mode="clip")
-    np.take(V, tab.ry, axis=0, out=Vy, mode="clip")
-    np.multiply(Vy, tab.rs, out=T1)
-    np.multiply(Vx, tab.rs2, out=T2)
-    Vx *= tab.rc
-    Vx += T1  # x of the turned pair
-    Vy *= tab.rc2
-    Vy -= T2  # y
-    np.arctan2(Vy, Vx, out=X)
-    X += PI
-    X4 = X.reshape(6, 2, n, Kn)  # (splits the first axis only: a view of a chunk's part too)
+    # the base alternative of each joint (even rows of X): its (x, y) pair turned, atan2 (the costliest
+    # operation of the batch, so done for 6 rows, not 12)
+    x6, y6, t6a, t6b = Vx[:6], Vy[:6], T1[:6], T2[:6]
+    np.take(V, tab.rx0, axis=0, out=x6, mode="clip")
+    np.take(V, tab.ry0, axis=0, out=y6, mode="clip")
+    np.multiply(y6, tab.rs0, out=t6a)
+    np.multiply(x6, tab.rs20, out=t6b)
+    x6 *= tab.rc0
+    x6 += t6a  # x of the turned pair
+    y6 *= tab.rc20
+    y6 -= t6b  # y
+    Xb, Xf = X[0::2], X[1::2]
+    np.arctan2(y6, x6, out=Xb)
+    Xb += PI
+    # the flipped alternatives from the base ones: pivot theta + pi, hinge -theta (see LimitTables)
+    np.add(Xb[:4], PI, out=Xf[:4])
+    np.subtract(tab.hinge_flip, Xb[4:], out=Xf[4:])
+    np.fmod(Xf, TWO_PI, out=Xf)
+    X4 = X.reshape(6, 2, n, Kn)
     if deg_sh.any():
         X4[0][:, deg_sh] = np.array(tab.fixed6[0])[:, None, None]
     if deg_wr.any():
