@@ -1487,7 +1487,9 @@ def _alternative_costs_batch(
     # the flipped alternatives from the base ones: pivot theta + pi, hinge -theta (see LimitTables)
     np.add(Xb[:4], PI, out=Xf[:4])
     np.subtract(tab.hinge_flip, Xb[4:], out=Xf[4:])
-    np.fmod(Xf, TWO_PI, out=Xf)
+    # mod 2 pi of values in [0, 4 pi): one subtraction, exact there (Sterbenz), as fmod (3x slower)
+    np.greater_equal(Xf, TWO_PI, out=B[:6])
+    np.subtract(Xf, TWO_PI, out=Xf, where=B[:6])
     X4 = X.reshape(6, 2, n, Kn)
     if deg_sh.any():
         X4[0][:, deg_sh] = np.array(tab.fixed6[0])[:, None, None]
