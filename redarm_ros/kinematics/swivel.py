@@ -886,10 +886,20 @@ class SwivelArm(Arm):
         )
         step = max(1, int(chunk))
         ws = NearestWorkspace(min(step, max(m, 1)), self._tables.batch_samples)
+        # the closed-form functions of all poses first, in blocks of 2048 as ik_batch: their (3, poses)
+        # arrays are small, so per 128-pose chunk numpy's per-call overhead was their cost (10 % of the batch)
+        K_all = np.empty((m, 10, 3))
+        t4_all = np.empty(m)
+        dsh_all, dwr_all, reach_all = (np.empty(m, bool) for _ in range(3))
+        for a0 in range(0, m, 2048):
+            Tb = Ts[a0 : a0 + 2048]
+            fns = self._functions_np([[Tb[:, i, j] for j in range(4)] for i in range(3)])
+            for dst, src in zip((K_all, t4_all, dsh_all, dwr_all, reach_all), fns, strict=True):
+                dst[a0 : a0 + 2048] = src
         for k0 in range(0, m, step):
             T = Ts[k0 : k0 + step]
-            P = [[T[:, i, j] for j in range(4)] for i in range(3)]
-            K, t4, dsh, dwr, reach = self._functions_np(P)
+            sl = slice(k0, k0 + step)
+            K, t4, dsh, dwr, reach = K_all[sl], t4_all[sl], dsh_all[sl], dwr_all[sl], reach_all[sl]
             ri = np.nonzero(reach)[0]
             if len(ri) == 0:
                 continue
