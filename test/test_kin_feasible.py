@@ -392,6 +392,34 @@ def test_batched_nearest_equals_scalar(name: str) -> None:
     assert (r2.status[[i for i in range(10) if i != 5]] == BATCH_NO_SOLUTION_IN_LIMITS).all()
 
 
+@pytest.mark.parametrize("name", ["pa10", "powercube7"])
+def test_batched_alternatives_equal_the_scalar_ones(name: str) -> None:
+    """The batch computes atan2 only for the base alternative of each joint and derives the flipped one
+    (pivot + pi, hinge -theta, mod 2 pi): it equals the scalar search's direct atan2 of every alternative,
+    and so do the pattern costs, on uniform and special (limit, zero) configurations. (The two differ in
+    the order of their arithmetic: about 1e-15 rad, up to 3e-13 where theta2 or theta6 is exactly 0.)"""
+    arm = ARMS[name]
+    tab = arm._tables  # noqa: SLF001
+    rng = np.random.default_rng(5)
+    Q = np.concatenate([rng.uniform(arm.lower, arm.upper, (20, 7)), _special_q(arm, rng, 20)])
+    Ts = arm.fk_batch(Q)
+    K, t4, dsh, dwr, reach = arm._functions_np([[Ts[:, i, j] for j in range(4)] for i in range(3)])  # noqa: SLF001
+    seeds = rng.uniform(arm.lower, arm.upper, (len(Ts), 7))
+    S = np.sort(rng.uniform(-math.pi, math.pi, (len(Ts), 50)), axis=1)
+    c4 = np.zeros((8, len(Ts), 1))
+    ws = fz.NearestWorkspace(len(Ts), 50)
+    cost_b, X_b, _ = fz._alternative_costs_batch(  # noqa: SLF001
+        K, dsh, dwr, tab, S, seeds, None, c4, np.zeros(S.shape, bool), ws
+    )
+    for i in np.nonzero(reach)[0]:
+        fn = fz.SwivelFunctions(K[i], K[i].tolist(), float(t4[i]), bool(dsh[i]), bool(dwr[i]))
+        cost_s, X_s, _ = fz._alternative_costs(fn, tab, S[i], seeds[i], None, np.zeros((8, 1)))  # noqa: SLF001
+        assert np.abs(X_b[:, :, i] - X_s).max() <= 1e-12
+        ok = cost_s < 0.5 * fz.BIG
+        assert np.array_equal(ok, cost_b[:, i] < 0.5 * fz.BIG)
+        assert np.abs(cost_b[:, i][ok] - cost_s[ok]).max(initial=0.0) <= 1e-10
+
+
 # ---------------------------------------------------------------------- the search's building blocks
 @pytest.mark.parametrize("name", ["pa10", "powercube7"])
 def test_left_out_equal_angle_roots_repeat_critical_swivels(name: str) -> None:
