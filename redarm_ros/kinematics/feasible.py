@@ -1376,7 +1376,9 @@ def _sample_swivels_batch(
     N = Sa.shape[1]
     crit = np.zeros(N, bool)
     crit[:C] = True
-    order = np.argsort(Sa, axis=1)  # no root (NaN) last
+    # no root (NaN) last. The rows are runs of sorted samples (critical, mid points, grid): the stable sort
+    # (a merge sort) takes half the time of the default quicksort there; ties are the same sample
+    order = np.argsort(Sa, axis=1, kind="stable")
     S = np.take_along_axis(Sa, order, axis=1)
     flag = np.take_along_axis(crit, order.ravel()).reshape(n, N)
     # twins (closer than MERGE_TOL) are one sample, as in the scalar search: the critical member (an
@@ -1388,7 +1390,7 @@ def _sample_swivels_batch(
         drop = np.where(flag[pi_, ji + 1] & ~flag[pi_, ji], ji, ji + 1)
         Sa[pi_, order[pi_, drop]] = np.nan
         rr = np.unique(pi_)
-        o2 = np.argsort(Sa[rr], axis=1)
+        o2 = np.argsort(Sa[rr], axis=1, kind="stable")
         order[rr] = o2
         S[rr] = np.take_along_axis(Sa[rr], o2, axis=1)
         flag[rr] = crit[o2]
