@@ -477,6 +477,10 @@ class SwivelArm(Arm):
         return PI if s <= -PI else s
 
     # ------------------------------------------------------------------ vectorised closed form
+    # These mirror the scalar _circle / _frame3 / _base_from_circle line by line on purpose: the scalar
+    # ones are plain math on floats (ik's 15 us; numpy on one pose costs 1 us a call), these run over
+    # thousands of poses with np.where for the singular branches. One shared version would slow one of
+    # the two hot paths; the tests hold them to the same answers (batch equals scalar).
     def _circle_np(self, P: list[Any]) -> tuple[Any, ...]:
         """Vectorised :meth:`_circle`: (dx, dy, dz, rxy2, D, Ds, nx, ny, nz, ca, sa, up, down, reach) with
         Ds = D (1 at the shoulder), up / down: n = +k / -k by convention. P: 3x4 nested (m,) entries."""
