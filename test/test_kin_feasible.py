@@ -323,14 +323,10 @@ def test_nearest_is_the_dense_sweep_optimum(name: str, seed_kind: str) -> None:
         assert float(np.sum((qn - seed) ** 2)) <= ref + 1e-9
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="known miss: the parabola bound of the candidate step prunes the optimal basin beside a swivel "
-    "where theta2 passes near 0 (uneven sample gaps 0.07 / 0.008 rad); found by ik_bench, seed 2024",
-)
 def test_nearest_beside_a_near_singular_pass_is_the_dense_sweep_optimum() -> None:
-    """PA10, theta4 at its limit, theta2 near 0: the optimum (15.5345 rad^2 from the mid seed, pattern 6,
-    swivel 2.834) lies in a basin whose samples understate its depth; ik_nearest returns 15.5533."""
+    """PA10, theta4 at its limit, theta2 near 0 (found by ik_bench, seed 2024): the optimum (15.5345 rad^2
+    from the mid seed, pattern 6, swivel 2.834) lies in a basin between samples 0.07 and 0.008 rad apart
+    whose parabola understates its depth; without the uneven-gap bound ik_nearest returned 15.5533."""
     arm = ARMS["pa10"]
     q = [
         -0.469324725884968, 0.002879227489413161, 0.14333231759697362, 2.3911010752322315,
@@ -471,7 +467,8 @@ def test_left_out_equal_angle_roots_repeat_critical_swivels(name: str) -> None:
 
 def test_candidate_bound_is_the_three_point_parabola() -> None:
     """_candidates: each candidate is a sample-wise local minimum of its pattern, its offset the vertex of
-    the parabola through it and its neighbours, its bound the sample minus DEPTH_MARGIN times the depth."""
+    the parabola through it and its neighbours, its bound the sample minus DEPTH_MARGIN times the depth,
+    or minus the rise across the wider gap where one gap is more than UNEVEN times the other."""
     rng = np.random.default_rng(32)
     M = 30
     S = np.sort(rng.uniform(-math.pi, math.pi, M))
@@ -495,7 +492,9 @@ def test_candidate_bound_is_the_three_point_parabola() -> None:
             xv = -bb / (2 * a)
             depth = f0 - (a * xv * xv + bb * xv + c)
             assert dx == pytest.approx(xv - s0, abs=1e-9)
-            assert lb == pytest.approx(f0 - fz.DEPTH_MARGIN * depth, abs=1e-9)
+            hl, hr = s0 - sm, sp - s0
+            rise = fm - f0 if hl > fz.UNEVEN * hr else (fp - f0 if hr > fz.UNEVEN * hl else 0.0)
+            assert lb == pytest.approx(min(f0 - fz.DEPTH_MARGIN * depth, f0 - rise), abs=1e-9)
         else:
             assert (lb, dx) == (f0, 0.0)
         seen.add((b, i))

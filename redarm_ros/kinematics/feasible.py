@@ -89,6 +89,7 @@ GRID = 16  # uniform swivel samples of the nearest search
 DIRECTIONS = 8  # equal-angle samples per pivot joint: atan2(Y, X) = k pi / DIRECTIONS
 BIG = 1e30  # cost of an out-of-limit alternative (finite, so pattern sums stay one matrix product)
 DEPTH_MARGIN = 3.0  # a candidate basin may lie this many times its parabolic depth below its sample
+UNEVEN = 4.0  # neighbouring gaps this uneven: a basin may also lie the wide gap's rise below its sample
 
 # flip pattern b -> (f2, f4, f6) = bits of b (f2 most significant); per joint which alternative
 ALT_INDEX = np.array(
@@ -948,8 +949,17 @@ def _candidates(
     # at a local minimum a denominator that small means d0 = d1 = 0, so num = 0 too)
     depth = num * num
     depth /= np.maximum(curv * (hl + hr), 1e-200)
-    depth *= fin[:-2] & fin[2:]  # a parabola only through feasible neighbours
-    lb = cf[1:-1] - (0.25 * DEPTH_MARGIN) * depth
+    nb = fin[:-2] & fin[2:]
+    depth *= nb  # a parabola only through feasible neighbours
+    f0 = cf[1:-1]
+    lb = f0 - (0.25 * DEPTH_MARGIN) * depth
+    # uneven gaps (one more than UNEVEN times the other): the parabola says little about the wide side,
+    # where the basin may lie below the sample by as much as the cost rises across that gap (found: a
+    # steep descent beside a swivel where theta2 passes near 0, then flat); the bound allows that too
+    rise = np.where(hl > UNEVEN * hr, cf[:-2], np.where(hr > UNEVEN * hl, cf[2:], f0))
+    rise -= f0
+    rise *= nb
+    np.minimum(lb, f0 - rise, out=lb)
     if limit is None:
         fbest = float(cf.min())
         if fbest >= 0.5 * BIG:
@@ -1565,8 +1575,12 @@ def _candidates_batch(
         num = d0 * hr + d1 * hl
         curv = d1 - d0
         depth = num * num / np.maximum(curv * (hl + hr), 1e-200)
-    depth = np.where((fm < 0.5 * BIG) & (fp < 0.5 * BIG) & np.isfinite(depth), depth, 0.0)
+    nb = (fm < 0.5 * BIG) & (fp < 0.5 * BIG)
+    depth = np.where(nb & np.isfinite(depth), depth, 0.0)
     lb = f0 - (0.25 * DEPTH_MARGIN) * depth
+    # uneven gaps: the rise across the wide one too (see _candidates)
+    rise = np.where(hl > UNEVEN * hr, fm, np.where(hr > UNEVEN * hl, fp, f0)) - f0
+    lb = np.minimum(lb, f0 - np.where(nb, rise, 0.0))
     fbest = cost.min(axis=(0, 2))
     keep = lb <= (fbest + 1e-12 * (1.0 + fbest))[pose]
     pose, b, t, lb, depth, num, curv = (
