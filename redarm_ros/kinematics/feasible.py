@@ -921,7 +921,8 @@ def _candidates(
 
     ``cost`` (8, M + 2) padded as the samples of :func:`_sample_swivels`. A parabola through a candidate
     and its two neighbours gives the start of its refinement (the vertex, ``offset`` rad from the sample)
-    and a bound on how much lower the basin may be (DEPTH_MARGIN times the vertex depth); only candidates
+    and a bound on how much lower the basin may be (DEPTH_MARGIN times the vertex depth, or where the gaps
+    are uneven the rise across the wide one, if more); only candidates
     whose bound is at most ``limit`` (default: the best sample) are returned, sorted by bound, with the
     limit used. With d0, d1 the slopes left and
     right of the sample and hl, hr the gaps, the vertex lies -(d0 hr + d1 hl) / (2 (d1 - d0)) from the
