@@ -323,6 +323,22 @@ def test_nearest_is_the_dense_sweep_optimum(name: str, seed_kind: str) -> None:
         assert float(np.sum((qn - seed) ** 2)) <= ref + 1e-9
 
 
+def test_nearest_beside_a_near_singular_pass_is_the_dense_sweep_optimum() -> None:
+    """PA10, theta4 at its limit, theta2 near 0 (found by ik_bench, seed 2024): the optimum (15.5345 rad^2
+    from the mid seed, pattern 6, swivel 2.834) lies in a basin between samples 0.07 and 0.008 rad apart
+    whose parabola understates its depth; without the uneven-gap bound ik_nearest returned 15.5533."""
+    arm = ARMS["pa10"]
+    q = [
+        -0.469324725884968, 0.002879227489413161, 0.14333231759697362, 2.3911010752322315,
+        -0.6948790266539655, -2.316577893927892, 3.054250390306077,
+    ]
+    T = arm.fk(q)
+    mid = (arm.lower + arm.upper) / 2
+    qn, info = arm.ik_nearest(T, mid)
+    assert info.ok and _solved(arm, qn, T)
+    assert float(np.sum((qn - mid) ** 2)) <= _bench().dense_nearest(arm, T, mid) + 1e-9
+
+
 def test_nearest_weights_change_the_optimum_consistently() -> None:
     arm = ARMS["pa10"]
     rng = np.random.default_rng(9)
@@ -392,6 +408,34 @@ def test_batched_nearest_equals_scalar(name: str) -> None:
     assert (r2.status[[i for i in range(10) if i != 5]] == BATCH_NO_SOLUTION_IN_LIMITS).all()
 
 
+@pytest.mark.parametrize("name", ["pa10", "powercube7"])
+def test_batched_alternatives_equal_the_scalar_ones(name: str) -> None:
+    """The batch computes atan2 only for the base alternative of each joint and derives the flipped one
+    (pivot + pi, hinge -theta, mod 2 pi): it equals the scalar search's direct atan2 of every alternative,
+    and so do the pattern costs, on uniform and special (limit, zero) configurations. (The two differ in
+    the order of their arithmetic: about 1e-15 rad, up to 3e-13 where theta2 or theta6 is exactly 0.)"""
+    arm = ARMS[name]
+    tab = arm._tables  # noqa: SLF001
+    rng = np.random.default_rng(5)
+    Q = np.concatenate([rng.uniform(arm.lower, arm.upper, (20, 7)), _special_q(arm, rng, 20)])
+    Ts = arm.fk_batch(Q)
+    K, t4, dsh, dwr, reach = arm._functions_np([[Ts[:, i, j] for j in range(4)] for i in range(3)])  # noqa: SLF001
+    seeds = rng.uniform(arm.lower, arm.upper, (len(Ts), 7))
+    S = np.sort(rng.uniform(-math.pi, math.pi, (len(Ts), 50)), axis=1)
+    c4 = np.zeros((8, len(Ts), 1))
+    ws = fz.NearestWorkspace(len(Ts), 50)
+    cost_b, X_b, _ = fz._alternative_costs_batch(  # noqa: SLF001
+        K, dsh, dwr, tab, S, seeds, None, c4, np.zeros(S.shape, bool), ws
+    )
+    for i in np.nonzero(reach)[0]:
+        fn = fz.SwivelFunctions(K[i], K[i].tolist(), float(t4[i]), bool(dsh[i]), bool(dwr[i]))
+        cost_s, X_s, _ = fz._alternative_costs(fn, tab, S[i], seeds[i], None, np.zeros((8, 1)))  # noqa: SLF001
+        assert np.abs(X_b[:, :, i] - X_s).max() <= 1e-12
+        ok = cost_s < 0.5 * fz.BIG
+        assert np.array_equal(ok, cost_b[:, i] < 0.5 * fz.BIG)
+        assert np.abs(cost_b[:, i][ok] - cost_s[ok]).max(initial=0.0) <= 1e-10
+
+
 # ---------------------------------------------------------------------- the search's building blocks
 @pytest.mark.parametrize("name", ["pa10", "powercube7"])
 def test_left_out_equal_angle_roots_repeat_critical_swivels(name: str) -> None:
@@ -423,7 +467,8 @@ def test_left_out_equal_angle_roots_repeat_critical_swivels(name: str) -> None:
 
 def test_candidate_bound_is_the_three_point_parabola() -> None:
     """_candidates: each candidate is a sample-wise local minimum of its pattern, its offset the vertex of
-    the parabola through it and its neighbours, its bound the sample minus DEPTH_MARGIN times the depth."""
+    the parabola through it and its neighbours, its bound the sample minus DEPTH_MARGIN times the depth,
+    or minus the rise across the wider gap where one gap is more than UNEVEN times the other."""
     rng = np.random.default_rng(32)
     M = 30
     S = np.sort(rng.uniform(-math.pi, math.pi, M))
@@ -447,7 +492,9 @@ def test_candidate_bound_is_the_three_point_parabola() -> None:
             xv = -bb / (2 * a)
             depth = f0 - (a * xv * xv + bb * xv + c)
             assert dx == pytest.approx(xv - s0, abs=1e-9)
-            assert lb == pytest.approx(f0 - fz.DEPTH_MARGIN * depth, abs=1e-9)
+            hl, hr = s0 - sm, sp - s0
+            rise = fm - f0 if hl > fz.UNEVEN * hr else (fp - f0 if hr > fz.UNEVEN * hl else 0.0)
+            assert lb == pytest.approx(min(f0 - fz.DEPTH_MARGIN * depth, f0 - rise), abs=1e-9)
         else:
             assert (lb, dx) == (f0, 0.0)
         seen.add((b, i))

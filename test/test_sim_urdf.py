@@ -2,15 +2,16 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import xml.etree.ElementTree as ET
-from dataclasses import dataclass
 
 import numpy as np
 import pytest
 
 from redarm_ros.errors import InvalidInputError
 from redarm_ros.kinematics import load_arm
+from redarm_ros.kinematics.model import Joint
 from redarm_ros.sim.plant import connect, quiet_stdio
 from redarm_ros.sim.urdf import (
     build_urdf,
@@ -43,17 +44,6 @@ def _tf(R: np.ndarray, p: tuple[float, float, float]) -> np.ndarray:
     return T
 
 
-@dataclass
-class _Joint:
-    name: str
-    origin: np.ndarray
-    axis: np.ndarray
-    lower: float
-    upper: float
-    max_vel: float
-    max_acc: float
-
-
 class _TwistedArm:
     """A model double with arbitrary rotations in every joint origin (stresses the rpy conversion)."""
 
@@ -67,7 +57,7 @@ class _TwistedArm:
                 R = rpy_to_matrix(0.3, math.pi / 2, -0.2)
             axis = rng.normal(size=3)
             self.chain.append(
-                _Joint(
+                Joint(
                     f"tw_{i}",
                     _tf(R, tuple(rng.uniform(-0.2, 0.3, 3))),
                     axis / np.linalg.norm(axis),
@@ -165,7 +155,7 @@ def test_urdf_is_well_formed_with_positive_inertias(name):
 
 def test_bad_model_is_refused():
     arm = _TwistedArm(np.random.default_rng(0), n=3)
-    arm.chain[1].axis = np.array([0.0, 0.0, 2.0])
+    arm.chain[1] = dataclasses.replace(arm.chain[1], axis=np.array([0.0, 0.0, 2.0]))
     with pytest.raises(InvalidInputError, match="unit"):
         build_urdf(arm)
     arm = _TwistedArm(np.random.default_rng(0), n=3)

@@ -89,6 +89,7 @@ GRID = 16  # uniform swivel samples of the nearest search
 DIRECTIONS = 8  # equal-angle samples per pivot joint: atan2(Y, X) = k pi / DIRECTIONS
 BIG = 1e30  # cost of an out-of-limit alternative (finite, so pattern sums stay one matrix product)
 DEPTH_MARGIN = 3.0  # a candidate basin may lie this many times its parabolic depth below its sample
+UNEVEN = 4.0  # neighbouring gaps this uneven: a basin may also lie the wide gap's rise below its sample
 
 # flip pattern b -> (f2, f4, f6) = bits of b (f2 most significant); per joint which alternative
 ALT_INDEX = np.array(
@@ -239,6 +240,15 @@ class LimitTables:
         self.rs = rot[np.arange(12), self.ry][:, None, None]
         self.rc2 = rot[12 + np.arange(12), self.ry][:, None, None]
         self.rs2 = -rot[12 + np.arange(12), self.rx][:, None, None]
+        # the batch turns and atan2s only the 6 base alternatives (even rows) and derives the flipped ones:
+        # a pivot's flipped X is X + pi (mod 2 pi); a hinge's -theta gives (c - X) mod 2 pi with
+        # c = -2 (lower - tol), kept in [2 pi, 4 pi) so that the difference is positive
+        self.rx0, self.ry0 = self.rx[0::2].copy(), self.ry[0::2].copy()
+        self.rc0, self.rs0 = self.rc[0::2].copy(), self.rs[0::2].copy()
+        self.rc20, self.rs20 = self.rc2[0::2].copy(), self.rs2[0::2].copy()
+        self.hinge_flip = np.array(
+            [(-2.0 * (self.lower[j] - LIMIT_TOL)) % TWO_PI + TWO_PI for j in j6[4:]]
+        )[:, None, None]
         # theta1 (theta5) fixed at 0 by convention: its alternatives' values, (shift - (lower - tol)) mod 2 pi
         self.fixed6 = {
             j: [(sh - lot) % TWO_PI for sh in (0.0, PI)]
@@ -749,9 +759,7 @@ def _sample_swivels(
             a0.append(z0 - cl)
             a1.append(z1)
             a2.append(z2)
-    ET[0, :n_py] = a0
-    ET[1, :n_py] = a1
-    ET[2, :n_py] = a2
+    ET[:, :n_py] = (a0, a1, a2)
     ET[:, n_py:] = np.dot(fn.Ka.T, tab.GT)
     for h in (0, 1):
         if regular[h]:
@@ -806,7 +814,8 @@ def _sample_swivels(
     flag = order < n
     gaps = np.empty(M + 1)
     np.subtract(Sp[2:-1], Sp[1:-2], out=gaps[1:-1])
-    if Sp[-2] >= PI or (M > 1 and gaps[1:-1].min() <= MERGE_TOL):  # rare: wrap gave pi; near-equal
+    # rare: the wrap gave pi, or near-equal samples
+    if Sp[-2] >= PI or (M > 1 and np.minimum.reduce(gaps[1:-1]) <= MERGE_TOL):
         S = Sp[1:-1]
         S[S >= PI] -= TWO_PI
         order = S.argsort()
@@ -876,8 +885,7 @@ def _alternative_costs(
     np.sin(Sp, out=CS[2])
     V = np.empty((12, K))
     np.dot(fn.K, CS, out=V[:10])  # X1, X3, X5, X7, Y1, Y3, Y5, Y7, Z2, Z6
-    q = V[0:7:2] * V[0:7:2]  # X1^2, X5^2, Y1^2, Y5^2
-    np.sqrt(q[0:2] + q[2:4], out=V[10:12])  # rho2, rho6: theta2 = atan2(rho2, Z2)
+    np.hypot(V[0:3:2], V[4:7:2], out=V[10:12])  # rho2 = |(X1, Y1)|, rho6 = |(X5, Y5)|
     T = np.dot(tab.rot, V)
     X = np.arctan2(T[12:], T[:12])  # (the alternative - (lower - tol)) mod 2 pi, minus pi
     X += PI
@@ -913,7 +921,8 @@ def _candidates(
 
     ``cost`` (8, M + 2) padded as the samples of :func:`_sample_swivels`. A parabola through a candidate
     and its two neighbours gives the start of its refinement (the vertex, ``offset`` rad from the sample)
-    and a bound on how much lower the basin may be (DEPTH_MARGIN times the vertex depth); only candidates
+    and a bound on how much lower the basin may be (DEPTH_MARGIN times the vertex depth, or where the gaps
+    are uneven the rise across the wide one, if more); only candidates
     whose bound is at most ``limit`` (default: the best sample) are returned, sorted by bound, with the
     limit used. With d0, d1 the slopes left and
     right of the sample and hl, hr the gaps, the vertex lies -(d0 hr + d1 hl) / (2 (d1 - d0)) from the
@@ -941,14 +950,24 @@ def _candidates(
     # at a local minimum a denominator that small means d0 = d1 = 0, so num = 0 too)
     depth = num * num
     depth /= np.maximum(curv * (hl + hr), 1e-200)
-    depth *= fin[:-2] & fin[2:]  # a parabola only through feasible neighbours
-    lb = cf[1:-1] - (0.25 * DEPTH_MARGIN) * depth
+    nb = fin[:-2] & fin[2:]
+    depth *= nb  # a parabola only through feasible neighbours
+    f0 = cf[1:-1]
+    lb = f0 - (0.25 * DEPTH_MARGIN) * depth
+    # uneven gaps (one more than UNEVEN times the other): the parabola says little about the wide side,
+    # where the basin may lie below the sample by as much as the cost rises across that gap (found: a
+    # steep descent beside a swivel where theta2 passes near 0, then flat); the bound allows that too
+    rise = np.where(hl > UNEVEN * hr, cf[:-2], np.where(hr > UNEVEN * hl, cf[2:], f0))
+    rise -= f0
+    rise *= nb
+    np.minimum(lb, f0 - rise, out=lb)
     if limit is None:
         fbest = float(cf.min())
         if fbest >= 0.5 * BIG:
             return [], fbest
         limit = fbest + 1e-12 * (1.0 + fbest)
-    keep = (d0 <= 0.0) & (d1 >= 0.0) & fin[1:-1] & (lb <= limit)
+    # (lb <= limit < BIG / 2 also excludes an infeasible sample: its depth is 0 or it is no minimum)
+    keep = (d0 <= 0.0) & (d1 >= 0.0) & (lb <= limit)
     out = []
     for k in np.flatnonzero(keep).tolist():
         b, t = divmod(k + 1, K)
@@ -1368,23 +1387,32 @@ def _sample_swivels_batch(
     N = Sa.shape[1]
     crit = np.zeros(N, bool)
     crit[:C] = True
-    order = np.argsort(Sa, axis=1)  # no root (NaN) last
+    # no root (NaN) last. The rows are runs of sorted samples (critical, mid points, grid): the stable sort
+    # (a merge sort) takes half the time of the default quicksort there; ties are the same sample
+    order = np.argsort(Sa, axis=1, kind="stable")
     S = np.take_along_axis(Sa, order, axis=1)
     flag = np.take_along_axis(crit, order.ravel()).reshape(n, N)
     # twins (closer than MERGE_TOL) are one sample, as in the scalar search: the critical member (an
-    # exact root) stays; rare (touching roots, coincidences), so the pass is simply repeated
+    # exact root) stays; rare (touching roots, coincidences: a few poses in a thousand), so the pass is
+    # simply repeated, on those poses' rows only (most chunks have one: sorting all rows again cost 5 %)
     tw = np.diff(S, axis=1) <= MERGE_TOL
     while tw.any():
         pi_, ji = np.nonzero(tw)
         drop = np.where(flag[pi_, ji + 1] & ~flag[pi_, ji], ji, ji + 1)
         Sa[pi_, order[pi_, drop]] = np.nan
-        order = np.argsort(Sa, axis=1)
-        S = np.take_along_axis(Sa, order, axis=1)
-        flag = np.take_along_axis(crit, order.ravel()).reshape(n, N)
+        rr = np.unique(pi_)
+        o2 = np.argsort(Sa[rr], axis=1, kind="stable")
+        order[rr] = o2
+        S[rr] = np.take_along_axis(Sa[rr], o2, axis=1)
+        flag[rr] = crit[o2]
         tw = np.diff(S, axis=1) <= MERGE_TOL
     # every pose's M samples right-aligned in a row of N + 2, with its neighbours around the circle
     # (S[M - 1] in front, S[0] behind) as in the scalar search; the columns before them are unused
     M = N - np.isnan(S).sum(axis=1)
+    # rows as wide as the most samples any pose of the chunk has, not as the most it could have (about
+    # 130 instead of 155 columns on the test machine's poses: every later array operation is that much
+    # shorter)
+    N = max(int(M.max()), 1)
     W = N + 2
     first = (W - 1 - M)[:, None]  # column of S[0]
     src = (np.arange(W)[None, :] - first) % M[:, None]
@@ -1408,25 +1436,20 @@ class NearestWorkspace:
     (glibc returns such blocks to the kernel when freed), which made the batch 2x slower on the 2-core
     test machine than the same arithmetic into reused arrays."""
 
+    _ROWS = {"V": 12, "Vx": 12, "Vy": 12, "T1": 12, "T2": 12, "X": 12, "E": 12, "B": 12}
+    _ROWS |= {"A": 2, "F": 2, "cost": 8, "t8": 8}
+
     def __init__(self, n: int, k: int) -> None:
         self.n, self.k = n, k
-        self.V = np.empty((12, n, k))
-        self.Vx = np.empty((12, n, k))
-        self.Vy = np.empty((12, n, k))
-        self.T1 = np.empty((12, n, k))
-        self.T2 = np.empty((12, n, k))
-        self.X = np.empty((12, n, k))
-        self.E = np.empty((12, n, k))
-        self.B = np.empty((12, n, k), bool)
-        self.A = np.empty((2, n, k))
-        self.F = np.empty((2, n, k))
-        self.cost = np.empty((8, n, k))
-        self.t8 = np.empty((8, n, k))
+        self._buf = {
+            name: np.empty(rows * n * k, bool if name == "B" else float) for name, rows in self._ROWS.items()
+        }
 
-    def view(self, name: str, n: int) -> np.ndarray:
-        """The first n poses of an array (all of it for a full chunk)."""
-        a = getattr(self, name)
-        return a if n == self.n else a[:, :n]
+    def view(self, name: str, n: int, k: int) -> np.ndarray:
+        """Array ``name`` as (rows, n, k) for n poses of k samples (n, k at most the capacity): the head of
+        its buffer, contiguous, so that every operation on it runs over one block."""
+        rows = self._ROWS[name]
+        return self._buf[name][: rows * n * k].reshape(rows, n, k)
 
 
 def _alternative_costs_batch(
@@ -1449,7 +1472,7 @@ def _alternative_costs_batch(
     gathers and scalings (a matrix product there went to BLAS threads, 20x slower on a busy machine).
     """
     n, Kn = Sp.shape
-    V, Vx, Vy, T1, T2, X, E, B = (ws.view(a, n) for a in ("V", "Vx", "Vy", "T1", "T2", "X", "E", "B"))
+    V, Vx, Vy, T1, T2, X, E, B = (ws.view(a, n, Kn) for a in ("V", "Vx", "Vy", "T1", "T2", "X", "E", "B"))
     c = np.cos(Sp)
     s = np.sin(Sp)
     Kt = K.transpose(1, 2, 0)[:, :, :, None]  # (10, 3, n, 1)
@@ -1460,17 +1483,27 @@ def _alternative_costs_batch(
     np.multiply(V[0:7:2], V[0:7:2], out=T1[:4])  # X1^2, X5^2, Y1^2, Y5^2
     np.add(T1[0:2], T1[2:4], out=V[10:12])
     np.sqrt(V[10:12], out=V[10:12])
-    np.take(V, tab.rx, axis=0, out=Vx, mode="clip")
-    np.take(V, tab.ry, axis=0, out=Vy, mode="clip")
-    np.multiply(Vy, tab.rs, out=T1)
-    np.multiply(Vx, tab.rs2, out=T2)
-    Vx *= tab.rc
-    Vx += T1  # x of the turned pair
-    Vy *= tab.rc2
-    Vy -= T2  # y
-    np.arctan2(Vy, Vx, out=X)
-    X += PI
-    X4 = X.reshape(6, 2, n, Kn)  # (splits the first axis only: a view of a chunk's part too)
+    # the base alternative of each joint (even rows of X): its (x, y) pair turned, atan2 (the costliest
+    # operation of the batch, so done for 6 rows, not 12)
+    x6, y6, t6a, t6b = Vx[:6], Vy[:6], T1[:6], T2[:6]
+    np.take(V, tab.rx0, axis=0, out=x6, mode="clip")
+    np.take(V, tab.ry0, axis=0, out=y6, mode="clip")
+    np.multiply(y6, tab.rs0, out=t6a)
+    np.multiply(x6, tab.rs20, out=t6b)
+    x6 *= tab.rc0
+    x6 += t6a  # x of the turned pair
+    y6 *= tab.rc20
+    y6 -= t6b  # y
+    Xb, Xf = X[0::2], X[1::2]
+    np.arctan2(y6, x6, out=Xb)
+    Xb += PI
+    # the flipped alternatives from the base ones: pivot theta + pi, hinge -theta (see LimitTables)
+    np.add(Xb[:4], PI, out=Xf[:4])
+    np.subtract(tab.hinge_flip, Xb[4:], out=Xf[4:])
+    # mod 2 pi of values in [0, 4 pi): one subtraction, exact there (Sterbenz), as fmod (3x slower)
+    np.greater_equal(Xf, TWO_PI, out=B[:6])
+    np.subtract(Xf, TWO_PI, out=Xf, where=B[:6])
+    X4 = X.reshape(6, 2, n, Kn)
     if deg_sh.any():
         X4[0][:, deg_sh] = np.array(tab.fixed6[0])[:, None, None]
     if deg_wr.any():
@@ -1501,7 +1534,7 @@ def _alternative_costs_batch(
     np.copyto(C, BIG, where=B)
     # the patterns (f2, f4, f6) as sums of their alternatives: theta1 and theta2 follow f2, theta3 f2 ^ f4,
     # theta5 f4 ^ f6, theta6 and theta7 f6 (rows 2 k + a of C: joint _J6[k], alternative a)
-    A, F, cost, t8 = ws.view("A", n), ws.view("F", n), ws.view("cost", n), ws.view("t8", n)
+    A, F, cost, t8 = (ws.view(a, n, Kn) for a in ("A", "F", "cost", "t8"))
     np.add(C[0:2], C[8:10], out=A)
     np.add(C[6:8], C[10:12], out=F)
     np.take(A, _B_F2, axis=0, out=cost, mode="clip")
@@ -1543,8 +1576,12 @@ def _candidates_batch(
         num = d0 * hr + d1 * hl
         curv = d1 - d0
         depth = num * num / np.maximum(curv * (hl + hr), 1e-200)
-    depth = np.where((fm < 0.5 * BIG) & (fp < 0.5 * BIG) & np.isfinite(depth), depth, 0.0)
+    nb = (fm < 0.5 * BIG) & (fp < 0.5 * BIG)
+    depth = np.where(nb & np.isfinite(depth), depth, 0.0)
     lb = f0 - (0.25 * DEPTH_MARGIN) * depth
+    # uneven gaps: the rise across the wide one too (see _candidates)
+    rise = np.where(hl > UNEVEN * hr, fm, np.where(hr > UNEVEN * hl, fp, f0)) - f0
+    lb = np.minimum(lb, f0 - np.where(nb, rise, 0.0))
     fbest = cost.min(axis=(0, 2))
     keep = lb <= (fbest + 1e-12 * (1.0 + fbest))[pose]
     pose, b, t, lb, depth, num, curv = (
@@ -1584,7 +1621,7 @@ def nearest_batch(
     Sp, flag, gaps, col0, unused, odd = _sample_swivels_batch(Ka, deg_sh, deg_wr, tab, seeds, s_seeds)
     V4, c4 = _theta4_batch(t4, tab, seeds, float(w[3]))
     unit = bool(np.all(w == 1.0))
-    if ws is None or ws.k != Sp.shape[1] or ws.n < m:
+    if ws is None or ws.k < Sp.shape[1] or ws.n < m:
         ws = NearestWorkspace(m, Sp.shape[1])
     cost, X, E = _alternative_costs_batch(
         K, deg_sh, deg_wr, tab, Sp, seeds, None if unit else w, c4, unused, ws

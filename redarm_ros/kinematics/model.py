@@ -232,6 +232,11 @@ class Arm:
             self._fast.append((Rl, pl, code, tuple(float(v) for v in a)))
         self._tool_R = None if np.array_equal(self.tool[:3, :3], np.eye(3)) else self.tool[:3, :3].tolist()
         self._tool_p = self.tool[:3, 3].tolist()
+        self._setup_model()
+
+    def _setup_model(self) -> None:
+        """Per-model constants, after the chain is set up: the analytic models override this (one
+        constructor signature for every model, the loader's)."""
 
     def __repr__(self) -> str:
         return f"<{type(self).__name__} {self.name!r} n={self.n} kind={self.kind}>"

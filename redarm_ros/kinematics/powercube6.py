@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from redarm_ros.errors import InvalidInputError
-from redarm_ros.kinematics.model import LIMIT_TOL, Arm, Joint, check_scalar, pose_error
+from redarm_ros.kinematics.model import LIMIT_TOL, Arm, check_scalar, pose_error
 from redarm_ros.kinematics.result import IKInfo, IKStatus
 
 __all__ = ["PowerCube6Arm"]
@@ -71,15 +71,7 @@ class PowerCube6Arm(Arm):
 
     kind = "powercube6"
 
-    def __init__(
-        self,
-        name: str,
-        chain: Sequence[Joint],
-        tool: np.ndarray,
-        key_joints: Sequence[int],
-        config: dict[str, Any] | None = None,
-    ) -> None:
-        super().__init__(name, chain, tool, key_joints, config)
+    def _setup_model(self) -> None:
         self.link_lengths = tuple(float(v) for v in self.config["link_lengths"])
 
     # ------------------------------------------------------------------ helpers

@@ -63,7 +63,6 @@ from redarm_ros.kinematics.model import (
     ANGLE_RANGE,
     LIMIT_TOL,
     Arm,
-    Joint,
     check_finite_array,
     check_scalar,
 )
@@ -111,6 +110,36 @@ def _wrap(x: float) -> float:
     return x
 
 
+def _zyz(ax: float, ay: float, az: float, bx: float, by: float, bz: float) -> tuple[float, float, float]:
+    """ZYZ angles (t1, t2, t3) of a rotation given its third column a and first column b (eq. 11), the
+    shoulder's R3 and the wrist's W alike. t1, t2 from a (t2 in [0, pi]); t3 from the residual rotation
+    (Rz(t1) Ry(t2))^T b, so that it stays exact where sin t2 = 0 (there t1 = 0 by convention)."""
+    r = math.sqrt(ax * ax + ay * ay)
+    t2 = math.atan2(r, az)
+    if r > DEGEN_SIN:
+        c1, s1 = ax / r, ay / r
+        t1 = math.atan2(ay, ax)
+    else:
+        c1, s1, t1 = 1.0, 0.0, 0.0
+    b11 = c1 * bx + s1 * by
+    b21 = -s1 * bx + c1 * by
+    return t1, t2, math.atan2(b21, az * b11 - r * bz)
+
+
+def _zyz_np(ax: Any, ay: Any, az: Any, bx: Any, by: Any, bz: Any, out: np.ndarray) -> None:
+    """Vectorised :func:`_zyz` into ``out`` (3, m)."""
+    r = np.sqrt(ax * ax + ay * ay)
+    out[1] = np.arctan2(r, az)
+    ok = r > DEGEN_SIN
+    rs = np.where(ok, r, 1.0)
+    c1 = np.where(ok, ax / rs, 1.0)
+    s1 = np.where(ok, ay / rs, 0.0)
+    out[0] = np.where(ok, np.arctan2(ay, ax), 0.0)
+    b11 = c1 * bx + s1 * by
+    b21 = c1 * by - s1 * bx
+    out[2] = np.arctan2(b21, az * b11 - r * bz)
+
+
 class SwivelArm(Arm):
     """7-DOF z,y,z,y,z,y,z arm with link lengths L1..L4 (m): closed-form swivel IK.
 
@@ -121,15 +150,7 @@ class SwivelArm(Arm):
     kind = "swivel7"
     has_swivel = True
 
-    def __init__(
-        self,
-        name: str,
-        chain: Sequence[Joint],
-        tool: np.ndarray,
-        key_joints: Sequence[int],
-        config: dict[str, Any] | None = None,
-    ) -> None:
-        super().__init__(name, chain, tool, key_joints, config)
+    def _setup_model(self) -> None:
         L = [float(v) for v in self.config["link_lengths"]]
         self.link_lengths = tuple(L)
         self._L = tuple(L)
@@ -182,32 +203,35 @@ class SwivelArm(Arm):
         return (dx, dy, dz, D, rxy2, dx * inv, dy * inv, dz * inv, ca)
 
     @staticmethod
-    def _rot_qa(circ: tuple[float, ...], ux: float, uy: float) -> tuple[float, float, float]:
-        """qA u qA* for u = (ux, uy, 0): the shortest rotation k -> n applied to u (eq. 14-15), by
-        :func:`.quaternion.shortest_rotation_xy` with 1 + nz from the circle's unnormalised d."""
+    def _qa_h(circ: tuple[float, ...]) -> float:
+        """1 + nz of the circle's normal n, computed without cancellation from the unnormalised d, for the
+        shortest rotation qA: k -> n; 0.0 where n = k (qA = 1), -1.0 where n = -k (qA = the rotation by pi
+        about x), both within the axis tolerance."""
         dx, dy, dz, D, rxy2, nx, ny, nz, _ = circ
         if D == 0.0 or (dz >= 0.0 and rxy2 <= AXIS_TOL2 * D * D):
-            return ux, uy, 0.0
+            return 0.0
         if dz >= 0.0:
-            h = 1.0 + nz
-        elif rxy2 <= AXIS_TOL2 * D * D:  # n = -k: rotation by pi about x
-            return ux, -uy, 0.0
-        else:  # 1 + nz without cancellation
-            h = rxy2 / (D * (D - dz))
-        return shortest_rotation_xy(nx, ny, h, ux, uy)
+            return 1.0 + nz
+        if rxy2 <= AXIS_TOL2 * D * D:
+            return -1.0
+        return rxy2 / (D * (D - dz))
 
-    @staticmethod
-    def _rot_qa_inv(circ: tuple[float, ...], ex: float, ey: float, ez: float) -> tuple[float, float]:
+    @classmethod
+    def _rot_qa(cls, circ: tuple[float, ...], ux: float, uy: float) -> tuple[float, float, float]:
+        """qA u qA* for u = (ux, uy, 0): the shortest rotation k -> n applied to u (eq. 14-15), by
+        :func:`.quaternion.shortest_rotation_xy`."""
+        h = cls._qa_h(circ)
+        if h <= 0.0:
+            return (ux, uy, 0.0) if h == 0.0 else (ux, -uy, 0.0)
+        return shortest_rotation_xy(circ[5], circ[6], h, ux, uy)
+
+    @classmethod
+    def _rot_qa_inv(cls, circ: tuple[float, ...], ex: float, ey: float, ez: float) -> tuple[float, float]:
         """(x, y) of qA* e qA: inverse of :meth:`_rot_qa` (eq. 16)."""
-        dx, dy, dz, D, rxy2, nx, ny, nz, _ = circ
-        if D == 0.0 or (dz >= 0.0 and rxy2 <= AXIS_TOL2 * D * D):
-            return ex, ey
-        if dz >= 0.0:
-            h = 1.0 + nz
-        elif rxy2 <= AXIS_TOL2 * D * D:
-            return ex, -ey
-        else:
-            h = rxy2 / (D * (D - dz))
+        h = cls._qa_h(circ)
+        if h <= 0.0:
+            return (ex, ey) if h == 0.0 else (ex, -ey)
+        nx, ny = circ[5], circ[6]
         wz = -(nx * ex + ny * ey)
         return ex - nx * ez + nx * wz / h, ey - ny * ez + ny * wz / h
 
@@ -261,17 +285,7 @@ class SwivelArm(Arm):
         self, Tl: list[list[float]], circ: tuple[float, ...], ux: float, uy: float
     ) -> tuple[float, ...]:
         zx, zy, zz, x3x, x3y, x3z, y3x, y3y, y3z, t4, c4, s4 = self._frame3(circ, ux, uy)
-        # ZYZ of R3 = [x3 y3 z3] (eq. 11); theta3 from the residual so that degenerate cases stay exact
-        rz = math.sqrt(zx * zx + zy * zy)
-        t2 = math.atan2(rz, zz)
-        if rz > DEGEN_SIN:
-            c1, s1 = zx / rz, zy / rz
-            t1 = math.atan2(zy, zx)
-        else:
-            c1, s1, t1 = 1.0, 0.0, 0.0
-        a11 = c1 * x3x + s1 * x3y
-        a21 = -s1 * x3x + c1 * x3y
-        t3 = math.atan2(a21, zz * a11 - rz * x3z)
+        t1, t2, t3 = _zyz(zx, zy, zz, x3x, x3y, x3z)  # shoulder: R3 = [x3 y3 z3]
         # R4 = R3 Ry(theta4): x4 = c4 x3 - s4 z3, y4 = y3, z4 = s4 x3 + c4 z3
         x4x, x4y, x4z = c4 * x3x - s4 * zx, c4 * x3y - s4 * zy, c4 * x3z - s4 * zz
         z4x, z4y, z4z = s4 * x3x + c4 * zx, s4 * x3y + c4 * zy, s4 * x3z + c4 * zz
@@ -284,16 +298,7 @@ class SwivelArm(Arm):
         w11 = x4x * bx + x4y * by + x4z * bz
         w21 = y3x * bx + y3y * by + y3z * bz
         w31 = z4x * bx + z4y * by + z4z * bz
-        rw = math.sqrt(w13 * w13 + w23 * w23)
-        t6 = math.atan2(rw, w33)
-        if rw > DEGEN_SIN:
-            c5, s5 = w13 / rw, w23 / rw
-            t5 = math.atan2(w23, w13)
-        else:
-            c5, s5, t5 = 1.0, 0.0, 0.0
-        b11 = c5 * w11 + s5 * w21
-        b21 = -s5 * w11 + c5 * w21
-        t7 = math.atan2(b21, w33 * b11 - rw * w31)
+        t5, t6, t7 = _zyz(w13, w23, w33, w11, w21, w31)  # wrist: W = R4^T R_tool
         return (t1, t2, t3, t4, t5, t6, t7)
 
     def _fit(self, j: int, x: float) -> list[float]:
@@ -472,6 +477,10 @@ class SwivelArm(Arm):
         return PI if s <= -PI else s
 
     # ------------------------------------------------------------------ vectorised closed form
+    # These mirror the scalar _circle / _frame3 / _base_from_circle line by line on purpose: the scalar
+    # ones are plain math on floats (ik's 15 us; numpy on one pose costs 1 us a call), these run over
+    # thousands of poses with np.where for the singular branches. One shared version would slow one of
+    # the two hot paths; the tests hold them to the same answers (batch equals scalar).
     def _circle_np(self, P: list[Any]) -> tuple[Any, ...]:
         """Vectorised :meth:`_circle`: (dx, dy, dz, rxy2, D, Ds, nx, ny, nz, ca, sa, up, down, reach) with
         Ds = D (1 at the shoulder), up / down: n = +k / -k by convention. P: 3x4 nested (m,) entries."""
@@ -558,16 +567,7 @@ class SwivelArm(Arm):
         zx, zy, zz, x3x, x3y, x3z, y3x, y3y, y3z, t4, c4, s4 = self._frame_np(c, ux, uy)
         r0, r1, r2 = P
         th = np.empty((7,) + np.shape(zx))
-        rz = np.sqrt(zx * zx + zy * zy)
-        th[1] = np.arctan2(rz, zz)
-        r_ok = rz > DEGEN_SIN
-        rzs = np.where(r_ok, rz, 1.0)
-        c1 = np.where(r_ok, zx / rzs, 1.0)
-        s1 = np.where(r_ok, zy / rzs, 0.0)
-        th[0] = np.where(r_ok, np.arctan2(zy, zx), 0.0)
-        a11 = c1 * x3x + s1 * x3y
-        a21 = c1 * x3y - s1 * x3x
-        th[2] = np.arctan2(a21, zz * a11 - rz * x3z)
+        _zyz_np(zx, zy, zz, x3x, x3y, x3z, th[0:3])
         th[3] = t4
         x4x, x4y, x4z = c4 * x3x - s4 * zx, c4 * x3y - s4 * zy, c4 * x3z - s4 * zz
         z4x, z4y, z4z = s4 * x3x + c4 * zx, s4 * x3y + c4 * zy, s4 * x3z + c4 * zz
@@ -579,16 +579,7 @@ class SwivelArm(Arm):
         w11 = x4x * bx + x4y * by + x4z * bz
         w21 = y3x * bx + y3y * by + y3z * bz
         w31 = z4x * bx + z4y * by + z4z * bz
-        rw = np.sqrt(w13 * w13 + w23 * w23)
-        th[5] = np.arctan2(rw, w33)
-        w_ok = rw > DEGEN_SIN
-        rws = np.where(w_ok, rw, 1.0)
-        c5 = np.where(w_ok, w13 / rws, 1.0)
-        s5 = np.where(w_ok, w23 / rws, 0.0)
-        th[4] = np.where(w_ok, np.arctan2(w23, w13), 0.0)
-        b11 = c5 * w11 + s5 * w21
-        b21 = c5 * w21 - s5 * w11
-        th[6] = np.arctan2(b21, w33 * b11 - rw * w31)
+        _zyz_np(w13, w23, w33, w11, w21, w31, th[4:7])
         return th, c[-1]
 
     def _functions_np(
@@ -899,10 +890,20 @@ class SwivelArm(Arm):
         )
         step = max(1, int(chunk))
         ws = NearestWorkspace(min(step, max(m, 1)), self._tables.batch_samples)
+        # the closed-form functions of all poses first, in blocks of 2048 as ik_batch: their (3, poses)
+        # arrays are small, so per 128-pose chunk numpy's per-call overhead was their cost (10 % of the batch)
+        K_all = np.empty((m, 10, 3))
+        t4_all = np.empty(m)
+        dsh_all, dwr_all, reach_all = (np.empty(m, bool) for _ in range(3))
+        for a0 in range(0, m, 2048):
+            Tb = Ts[a0 : a0 + 2048]
+            fns = self._functions_np([[Tb[:, i, j] for j in range(4)] for i in range(3)])
+            for dst, src in zip((K_all, t4_all, dsh_all, dwr_all, reach_all), fns, strict=True):
+                dst[a0 : a0 + 2048] = src
         for k0 in range(0, m, step):
             T = Ts[k0 : k0 + step]
-            P = [[T[:, i, j] for j in range(4)] for i in range(3)]
-            K, t4, dsh, dwr, reach = self._functions_np(P)
+            sl = slice(k0, k0 + step)
+            K, t4, dsh, dwr, reach = K_all[sl], t4_all[sl], dsh_all[sl], dwr_all[sl], reach_all[sl]
             ri = np.nonzero(reach)[0]
             if len(ri) == 0:
                 continue
