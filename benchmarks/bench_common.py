@@ -1,4 +1,6 @@
-"""Pieces every benchmark shares: the plot module, the load-average line and the results writer.
+"""Pieces every benchmark shares: the plot module, the load-average line, the results writer, the
+tool-down goal pose and the executor wait (the last two used by the tests too, through
+test/support).
 
 The benches import this module as ``bench_common`` after putting their own folder on ``sys.path``
 (the tests load benches by file path, without benchmarks/ on ``sys.path``).
@@ -7,14 +9,18 @@ The benches import this module as ``bench_common`` after putting their own folde
 from __future__ import annotations
 
 import importlib.util
+import math
 import os
 import platform
 import sys
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from types import ModuleType
 from typing import Any
+
+import numpy as np
 
 _PLOTS = "redarm_bench_plots"
 
@@ -28,6 +34,15 @@ def plots() -> ModuleType:
         spec.loader.exec_module(mod)
         sys.modules[_PLOTS] = mod
     return sys.modules[_PLOTS]
+
+
+def pose_down(p: Any, yaw: float = 0.0) -> np.ndarray:
+    """4x4 tool pose at ``p`` with the tool z axis pointing down, turned by ``yaw`` about the vertical."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    T = np.eye(4)
+    T[:3, :3] = np.array([[c, s, 0.0], [s, -c, 0.0], [0.0, 0.0, -1.0]])
+    T[:3, 3] = p
+    return T
 
 
 def load_line(load0: tuple[float, float, float], t0: float) -> str:
@@ -83,6 +98,17 @@ def finish_sections(
         text = write_sections(path, header, sections, footer)
     print(text)
     return text
+
+
+def spin_until(ex: Any, pred: Callable[[], object], timeout: float, spin_s: float = 0.02) -> bool:
+    """Spin the rclpy executor ``ex`` (``spin_s`` s per turn) until ``pred`` is true or ``timeout``
+    s have passed (test/support/waits.py hands this one to the tests)."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        ex.spin_once(timeout_sec=spin_s)
+        if pred():
+            return True
+    return False
 
 
 def spin_in_background(ex: Any) -> tuple[threading.Event, threading.Thread]:

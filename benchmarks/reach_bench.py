@@ -66,15 +66,6 @@ QUICK_SCENES = 6
 Q_HOME = np.array([0.0, 0.5, 0.0, 1.5, 0.0, 1.0, 0.0])
 
 
-def pose(p: np.ndarray, yaw: float) -> np.ndarray:
-    """Tool pose at ``p`` with the tool z axis pointing down and yaw ``yaw`` about the vertical."""
-    c, s = math.cos(yaw), math.sin(yaw)
-    T = np.eye(4)
-    T[:3, :3] = np.array([[c, s, 0.0], [s, -c, 0.0], [0.0, 0.0, -1.0]])
-    T[:3, 3] = p
-    return T
-
-
 @dataclass
 class Case:
     """One benchmark scene."""
@@ -115,8 +106,8 @@ def make_case(arm, seed: int, caps: ArmCapsules) -> Case:
         dxy = np.linalg.norm((pg - ps)[:2])
         if dxy < 0.3 or np.linalg.norm(pg[:2]) < 0.3 or np.linalg.norm(ps[:2]) < 0.25:
             continue
-        Ts = pose(ps, rng.uniform(-0.6, 0.6))
-        Tg = pose(pg, rng.uniform(-0.6, 0.6))
+        Ts = bench_common.pose_down(ps, rng.uniform(-0.6, 0.6))
+        Tg = bench_common.pose_down(pg, rng.uniform(-0.6, 0.6))
         q0 = _start_q(arm, Ts, rng, Scene((), 0.0), caps)
         if q0 is None:
             continue

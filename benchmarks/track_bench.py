@@ -48,7 +48,9 @@ import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -90,8 +92,9 @@ class PathDef:
     q0: np.ndarray | None = None  # start posture (default: where the controller settles at the start)
 
 
-def _ramp_arc(length: float, v: float, t_ramp: float = 0.5) -> tuple[Callable[[float], float], float]:
-    """Arc length s(t) for a cruise at ``v`` with smooth (smoothstep-speed) ramps at both ends."""
+def ramp_arc(length: float, v: float, t_ramp: float = 0.5) -> tuple[Callable[[float], float], float]:
+    """Arc length s(t) for a cruise at ``v`` with smooth (smoothstep-speed) ramps at both ends, and the
+    duration (test/test_control_tracking.py drives its circle with it too)."""
     d_ramp = 0.5 * v * t_ramp
     t_cruise = max(length - 2.0 * d_ramp, 0.0) / v
     total = 2.0 * t_ramp + t_cruise
@@ -115,11 +118,11 @@ def _curve_path(
     v: float,
     rot: Callable[[float], np.ndarray] | None = None,
 ) -> PathDef:
-    """A closed or open curve ``curve(u)``, u in [0, 1], traversed with :func:`_ramp_arc`."""
+    """A closed or open curve ``curve(u)``, u in [0, 1], traversed with :func:`ramp_arc`."""
     u = np.linspace(0.0, 1.0, 4001)
     pts = np.array([curve(x) for x in u])
     arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
-    s_of, total = _ramp_arc(float(arc[-1]), v)
+    s_of, total = ramp_arc(float(arc[-1]), v)
 
     def pose(t: float) -> np.ndarray:
         s = s_of(t)
@@ -330,40 +333,40 @@ def run_method(method: str, arm, path: PathDef, msgs: list[Message], q0: np.ndar
     steps: list[float] = []
     phases: set[str] = set()
     notes: set[str] = set()
-    mi = 0
+    deliver: Callable[[np.ndarray, float, float], None]
+    step: Callable[[float], Any]
+    record: Callable[[Any], None]
     if method == "dls":
         dls = DLSServo(arm)
         dls.reset(q0)
-        for k in range(1, n + 1):
-            t = k * DT
-            while mi < len(msgs) and msgs[mi].arrive <= t + 1e-9:
-                m = msgs[mi]
-                dls.message(path.pose(m.t), m.stamp, m.arrive)
-                mi += 1
-            t0 = time.perf_counter()
-            rows.append(dls.step(t))
-            steps.append(time.perf_counter() - t0)
-            times.append(t)
-        return Run(np.array(rows), np.array(times), steps, {"-"}, set())
-    params = ControllerParams()
-    if method == "point":  # every message a new point goal (no stream)
-        params = params.with_(stream=StreamParams(gap=1e-6))
-    ctl = ReachController(arm, path.scene, params)
-    ctl.reset(q0, now=0.0)
+        deliver, step, record = dls.message, dls.step, rows.append
+        phases.add("-")
+    else:
+        params = ControllerParams()
+        if method == "point":  # every message a new point goal (no stream)
+            params = params.with_(stream=StreamParams(gap=1e-6))
+        ctl = ReachController(arm, path.scene, params)
+        ctl.reset(q0, now=0.0)
+
+        def record(r: Any) -> None:
+            rows.append(r.q)
+            phases.add(r.phase.value)
+            if r.message:
+                notes.add(r.message.split(":")[0])
+
+        deliver, step = ctl.goal_message, partial(ctl.step, DT)
+    mi = 0
     for k in range(1, n + 1):
         t = k * DT
         while mi < len(msgs) and msgs[mi].arrive <= t + 1e-9:
             m = msgs[mi]
-            ctl.goal_message(path.pose(m.t), m.stamp, m.arrive)
+            deliver(path.pose(m.t), m.stamp, m.arrive)
             mi += 1
         t0 = time.perf_counter()
-        r = ctl.step(DT, t)
+        r = step(t)
         steps.append(time.perf_counter() - t0)
-        rows.append(r.q)
+        record(r)
         times.append(t)
-        phases.add(r.phase.value)
-        if r.message:
-            notes.add(r.message.split(":")[0])
     return Run(np.array(rows), np.array(times), steps, phases, notes)
 
 
@@ -668,12 +671,7 @@ class StackClient:
         return self.node.get_clock().now().nanoseconds * 1e-9
 
     def spin_until(self, cond: Callable[[], bool], timeout: float) -> bool:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            self.ex.spin_once(timeout_sec=0.002)
-            if cond():
-                return True
-        return False
+        return bench_common.spin_until(self.ex, cond, timeout, 0.002)
 
     def halts(self) -> int:
         return sum("HALTED:" in line for line in self._lines)

@@ -16,6 +16,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
+from contextlib import closing
 from pathlib import Path
 from typing import Any
 
@@ -200,11 +201,8 @@ class Stack:
 
 @pytest.fixture
 def client(rclpy_context: Any) -> Iterator[Client]:
-    c = Client(rclpy_context)
-    try:
+    with closing(Client(rclpy_context)) as c:
         yield c
-    finally:
-        c.close()
 
 
 @pytest.fixture

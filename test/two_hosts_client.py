@@ -30,6 +30,7 @@ from rclpy.executors import SingleThreadedExecutor
 from redarm_interfaces.srv import SolveIK
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
+from support.waits import spin_until
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from redarm_ros.kinematics import load_arm
@@ -73,12 +74,7 @@ class Client:
         self.joint_states += 1
 
     def spin_until(self, cond: Callable[[], bool], timeout: float) -> bool:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            self.ex.spin_once(timeout_sec=0.02)
-            if cond():
-                return True
-        return False
+        return spin_until(self.ex, cond, timeout)
 
     def call(self, client: object, request: object, timeout: float) -> object | None:
         fut = client.call_async(request)  # type: ignore[attr-defined]

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from typing import Any
+
+from support.benches import load_bench
 
 
 def wait_until(pred: Callable[[], object], timeout: float = 5.0, step: float = 0.01) -> bool:
@@ -17,12 +18,5 @@ def wait_until(pred: Callable[[], object], timeout: float = 5.0, step: float = 0
     return bool(pred())
 
 
-def spin_until(ex: Any, pred: Callable[[], object], timeout: float, spin_s: float = 0.02) -> bool:
-    """Spin the rclpy executor ``ex`` (``spin_s`` s per turn) until ``pred`` is true or ``timeout``
-    s have passed."""
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        ex.spin_once(timeout_sec=spin_s)
-        if pred():
-            return True
-    return False
+# Spin an rclpy executor until a predicate holds: the benches' loop, one copy for both.
+spin_until = load_bench("bench_common").spin_until
