@@ -537,31 +537,36 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--channel", help="python-can channel (default: $CAN_CHANNEL)")
         p.add_argument("--result", help="write the JSON result here as well")
 
+    def frames(p: argparse.ArgumentParser) -> None:  # the echo / pingpong frame ids and count
+        p.add_argument("--request-id", type=lambda s: int(s, 0), default=0x123)
+        p.add_argument("--reply-id", type=lambda s: int(s, 0), default=0x124)
+        p.add_argument("--count", type=int, default=1000)
+
+    def against_sim(p: argparse.ArgumentParser, rate_help: str, reply_help: str) -> None:
+        """The arm, the host's cycle rate and reply timeout, the simulator's rate (hil / ros)."""
+        p.add_argument("--arm", default="pa10")
+        p.add_argument("--rate", type=float, default=50.0, help=rate_help)
+        p.add_argument("--sim-rate", type=float, default=200.0,
+                       help="simulator physics rate [Hz] (sim default 1000; the guest has one slow CPU)")
+        p.add_argument("--reply-timeout", type=float, default=0.5, help=reply_help)
+
     p = sub.add_parser("echo", help="answer frames (child of pingpong)")
     common(p)
-    p.add_argument("--request-id", type=lambda s: int(s, 0), default=0x123)
-    p.add_argument("--reply-id", type=lambda s: int(s, 0), default=0x124)
-    p.add_argument("--count", type=int, default=1000)
+    frames(p)
     p.add_argument("--idle", type=float, default=10.0, help="give up after this long without a frame [s]")
     p.set_defaults(func=cmd_echo)
 
     p = sub.add_parser("pingpong", help="round trips between two processes")
     common(p)
-    p.add_argument("--request-id", type=lambda s: int(s, 0), default=0x123)
-    p.add_argument("--reply-id", type=lambda s: int(s, 0), default=0x124)
-    p.add_argument("--count", type=int, default=1000)
+    frames(p)
     p.add_argument("--timeout", type=float, default=1.0, help="per round trip [s]")
     p.add_argument("--ready-timeout", type=float, default=60.0, help="echo start-up [s]")
     p.set_defaults(func=cmd_pingpong)
 
     p = sub.add_parser("hil", help="driver core against redarm-sim")
     common(p)
-    p.add_argument("--arm", default="pa10")
-    p.add_argument("--rate", type=float, default=50.0, help="driver cycle rate [Hz]")
-    p.add_argument("--sim-rate", type=float, default=200.0,
-                   help="simulator physics rate [Hz] (sim default 1000; the guest has one slow CPU)")
-    p.add_argument("--reply-timeout", type=float, default=0.5,
-                   help="driver reply timeout [s] (driver default 0.02; the guest is slow)")
+    against_sim(p, "driver cycle rate [Hz]",
+                "driver reply timeout [s] (driver default 0.02; the guest is slow)")
     p.add_argument("--duration", type=float, default=3.0, help="trajectory duration [s]")
     p.add_argument("--hold", type=float, default=1.0, help="hold at the goal afterwards [s]")
     p.add_argument("--ready-timeout", type=float, default=60.0, help="simulator start-up [s]")
@@ -569,12 +574,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("ros", help="can_driver node against redarm-sim, driven over ROS")
     common(p)
-    p.add_argument("--arm", default="pa10")
-    p.add_argument("--rate", type=float, default=50.0, help="node cycle rate [Hz] (node default 250)")
-    p.add_argument("--sim-rate", type=float, default=200.0,
-                   help="simulator physics rate [Hz] (sim default 1000; the guest has one slow CPU)")
-    p.add_argument("--reply-timeout", type=float, default=0.5,
-                   help="node reply_timeout_s [s] (node default 0.02; the guest is slow)")
+    against_sim(p, "node cycle rate [Hz] (node default 250)",
+                "node reply_timeout_s [s] (node default 0.02; the guest is slow)")
     p.add_argument("--watchdog", choices=("true", "false"), default="false",
                    help="node 'watchdog' parameter (node default true; the modules' 100 ms watchdog "
                         "cannot be held by a loaded one-CPU guest)")
