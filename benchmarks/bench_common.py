@@ -45,6 +45,17 @@ def pose_down(p: Any, yaw: float = 0.0) -> np.ndarray:
     return T
 
 
+def add_plot_dir(ap: Any) -> None:
+    """The ``--plot-dir`` option of a bench that draws its results (argparse parser ``ap``)."""
+    ap.add_argument("--plot-dir", type=Path, default=None,
+                    help="write the PNG plots here (default: beside the results file when it is written)")
+
+
+def doc_header(title: str, doc: str) -> list[str]:
+    """The opening lines of a results file: ``title`` and the bench's docstring up to its usage."""
+    return [title, "", doc.split("    .venv/bin/python")[0].strip(), ""]
+
+
 def load_line(load0: tuple[float, float, float], t0: float) -> str:
     """The load average before (``load0``) and now, the machine and the wall time since ``t0``."""
     load1 = os.getloadavg()

@@ -541,15 +541,9 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--stack-repeats", type=int, default=1, help="stack runs per command timing (default 1)")
     ap.add_argument("--verbose", action="store_true")
-    ap.add_argument("--plot-dir", type=Path, default=None,
-                    help="write the PNG plots here (default: beside the results file when it is written)")
+    bench_common.add_plot_dir(ap)
     args = ap.parse_args(argv)
-    header = [
-        "# Track benchmark (`benchmarks/track_bench.py`)",
-        "",
-        __doc__.split("    .venv/bin/python")[0].strip(),
-        "",
-    ]
+    header = bench_common.doc_header("# Track benchmark (`benchmarks/track_bench.py`)", __doc__)
     sections: dict[str, list[str]] = {}
     if args.chain:
         load0, t0 = os.getloadavg(), time.time()
@@ -840,24 +834,10 @@ def _stack_row(
 ) -> str:
     ts = np.array([t for t, _ in series])
     ps = np.array([p for _, p in series])
-    live = (ts >= 0.0) & (ts <= path.duration)
-    ref = np.array([path.pose(min(max(t, 0.0), path.duration))[:3, 3] for t in ts])
-    err = np.linalg.norm(ps - ref, axis=1) * 1e3
-    e = err[live]
-    best = (math.inf, 0.0)
-    for tau in np.arange(-0.05, 0.301, 0.002):
-        sh = np.array([path.pose(min(max(t - tau, 0.0), path.duration))[:3, 3] for t in ts[live]])
-        m = float(np.mean(np.linalg.norm(ps[live] - sh, axis=1)))
-        if m < best[0]:
-            best = (m, tau)
-    end = path.pose(path.duration)[:3, 3]
-    u = end - path.pose(path.duration - 0.3)[:3, 3]
-    after = ps[ts > path.duration]
-    over = max(0.0, float(np.max((after - end) @ (u / np.linalg.norm(u))))) * 1e3 if len(after) else math.nan
-    final = float(np.linalg.norm(ps[-1] - end)) * 1e3
+    e, lag, over, final = _series_scores(path, ts, ps, lag_samples=None)
     return (
-        f"| {path.name} | 50 | {commands} | {name} | {int(live.sum())} | {np.median(e):.2f} | "
-        f"{np.percentile(e, 95):.2f} | {np.max(e):.2f} | {best[1] * 1e3:.0f} | {over:.2f} | {final:.2f} | "
+        f"| {path.name} | 50 | {commands} | {name} | {len(e)} | {np.median(e):.2f} | "
+        f"{np.percentile(e, 95):.2f} | {np.max(e):.2f} | {lag:.0f} | {over:.2f} | {final:.2f} | "
         f"{halts} | {load:.1f} |"
     )
 
@@ -896,14 +876,19 @@ def chain_section() -> tuple[str, list[str]]:
     return title, out
 
 
-def _series_scores(path: PathDef, ts: np.ndarray, ps: np.ndarray) -> tuple[np.ndarray, float, float, float]:
+def _series_scores(
+    path: PathDef, ts: np.ndarray, ps: np.ndarray, lag_samples: int | None = 400
+) -> tuple[np.ndarray, float, float, float]:
     """Errors (mm) while the stream runs, lag (ms), overshoot at the stop (mm), final error (mm) of a
-    timed series of tool positions."""
+    timed series of tool positions; the lag is fitted on about ``lag_samples`` of the running samples
+    (None: all of them)."""
     live = (ts >= 0.0) & (ts <= path.duration)
     ref = np.array([path.pose(min(max(t, 0.0), path.duration))[:3, 3] for t in ts])
     e = np.linalg.norm(ps - ref, axis=1)[live] * 1e3
     best = (math.inf, 0.0)
-    sub = np.flatnonzero(live)[:: max(1, int(live.sum() // 400))]
+    sub = np.flatnonzero(live)
+    if lag_samples is not None:
+        sub = sub[:: max(1, int(live.sum() // lag_samples))]
     for tau in np.arange(-0.05, 0.301, 0.002):
         sh = np.array([path.pose(min(max(ts[i] - tau, 0.0), path.duration))[:3, 3] for i in sub])
         m = float(np.mean(np.linalg.norm(ps[sub] - sh, axis=1)))

@@ -6,7 +6,6 @@ file) ends within 1 mm / 0.01 rad of it. Everything is stopped and checked gone 
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -18,14 +17,7 @@ require_ros(stack=True)
 from redarm_interfaces.msg import ControllerState  # noqa: E402
 from redarm_interfaces.srv import SolveIK  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
-from support.stack_client import (  # noqa: E402
-    GoalClient,
-    pose_err,
-    ready_client,
-    sim_tool,
-    sim_tool_reaches,
-    stack_fixture,  # noqa: E402
-)
+from support import stack_client as sc  # noqa: E402
 
 from redarm_ros.bringup import Stack  # noqa: E402
 from redarm_ros.kinematics import load_arm  # noqa: E402
@@ -40,7 +32,7 @@ READY_Q = np.array([0.0, 0.5, 0.0, 1.3, 0.0, 1.0, 0.0])
 POS_TOL, ROT_TOL = 1e-3, 0.01
 
 
-class Client(GoalClient):
+class Client(sc.GoalClient):
     """rclpy side of the test: goals, joint commands, IK calls, controller state, joint states."""
 
     def __init__(self, ctx: Any) -> None:
@@ -64,14 +56,9 @@ class Client(GoalClient):
         return fut.result()
 
 
-stack = stack_fixture(arm="pa10", ready_timeout_s=60.0)
-
-
-@pytest.fixture(scope="module")
-def client(stack: Stack, ros_env: Any) -> Iterator[Client]:
-    with ready_client(ros_env.domain_id, Client, stack, ARM.joint_names, READY_Q, start_s=30.0, ik_s=10.0,
-                      reach_s=15.0, recover_s=15.0) as c:
-        yield c
+stack = sc.stack_fixture(arm="pa10", ready_timeout_s=60.0)
+client = sc.ready_client_fixture(Client, ARM.joint_names, READY_Q, start_s=30.0, ik_s=10.0,
+                                 reach_s=15.0, recover_s=15.0)
 
 
 def test_ik_then_goal_reached_by_the_simulated_arm(stack: Stack, client: Client) -> None:
@@ -80,7 +67,7 @@ def test_ik_then_goal_reached_by_the_simulated_arm(stack: Stack, client: Client)
     resp = client.solve(T, READY_Q)
     assert resp.status == SolveIK.Response.SUCCESS, resp.message
     q_ik = np.array(resp.solution.position)
-    assert pose_err(ARM.fk(q_ik), T)[0] < 1e-9
+    assert sc.pose_err(ARM.fk(q_ik), T)[0] < 1e-9
     stack.check()
 
     n = client.send(T)
@@ -95,8 +82,8 @@ def test_ik_then_goal_reached_by_the_simulated_arm(stack: Stack, client: Client)
     assert reached, (f"controller never reached the goal; last state: {client.states[-1]}; "
                      f"driver halts: {halts}")
     # The simulated arm follows the last commands within a few control periods.
-    ok = sim_tool_reaches(client, stack, T, POS_TOL, ROT_TOL, 10.0)
-    pe, re = pose_err(sim_tool(stack), T)
+    ok = sc.sim_tool_reaches(client, stack, T, POS_TOL, ROT_TOL, 10.0)
+    pe, re = sc.pose_err(sc.sim_tool(stack), T)
     assert ok, f"simulated tool {pe * 1e3:.3f} mm / {re:.4f} rad from the goal"
     assert pe < POS_TOL and re < ROT_TOL
     stack.check()

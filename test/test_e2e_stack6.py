@@ -6,7 +6,6 @@ tool) and one out of reach (rejected with the base-move suggestion). Generous ti
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -18,14 +17,7 @@ require_ros()
 from redarm_interfaces.msg import ControllerState  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
-from support.stack_client import (  # noqa: E402
-    GoalClient,
-    pose_err,
-    ready_client,
-    sim_tool,
-    sim_tool_reaches,
-    stack_fixture,  # noqa: E402
-)
+from support import stack_client as sc  # noqa: E402
 
 from redarm_ros.bringup import Stack  # noqa: E402
 from redarm_ros.demo import DEMOS  # noqa: E402
@@ -38,7 +30,7 @@ DEMO = DEMOS["powercube6"]
 READY_Q = np.array(DEMO.ready_q)
 
 
-class Client(GoalClient):
+class Client(sc.GoalClient):
     def __init__(self, ctx: Any) -> None:
         self.names: list[list[str]] = []  # joint names of each joint_states message
         super().__init__(ctx, "e2e6_client")
@@ -47,14 +39,9 @@ class Client(GoalClient):
         self.names.append(list(msg.name))
 
 
-stack = stack_fixture(init_timeout=60.0, arm="powercube6", ready_timeout_s=90.0)
-
-
-@pytest.fixture(scope="module")
-def client(stack: Stack, ros_env: Any) -> Iterator[Client]:
-    with ready_client(ros_env.domain_id, Client, stack, ARM.joint_names, READY_Q, start_s=60.0, ik_s=20.0,
-                      reach_s=25.0, recover_s=20.0) as c:
-        yield c
+stack = sc.stack_fixture(init_timeout=60.0, arm="powercube6", ready_timeout_s=90.0)
+client = sc.ready_client_fixture(Client, ARM.joint_names, READY_Q, start_s=60.0, ik_s=20.0,
+                                 reach_s=25.0, recover_s=20.0)
 
 
 def test_six_joints_and_a_goal_reached_by_the_simulated_arm(stack: Stack, client: Client) -> None:
@@ -81,8 +68,8 @@ def test_six_joints_and_a_goal_reached_by_the_simulated_arm(stack: Stack, client
         fut = recover.call_async(Trigger.Request())
         assert client.spin_until(fut.done, 20.0) and fut.result().success, "~/recover failed"
         client.spin_until(lambda: False, 1.0)  # the controller restarts from the still arm
-    ok = sim_tool_reaches(client, stack, T, 2e-3, 0.02, 40.0)
-    assert ok, f"simulated tool {pose_err(sim_tool(stack), T)} from the goal"
+    ok = sc.sim_tool_reaches(client, stack, T, 2e-3, 0.02, 40.0)
+    assert ok, f"simulated tool {sc.pose_err(sc.sim_tool(stack), T)} from the goal"
     stack.check()
 
 

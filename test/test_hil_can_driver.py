@@ -223,7 +223,9 @@ def init_and_check(client: Client, stack: Stack) -> None:
 
 def start_and_init(client: Client, stack: Stack) -> ManagedProcess:
     """The simulator and the driver with their defaults, initialised and homed; the simulator."""
-    sim = start_and_init(client, stack)
+    sim = stack.start_sim()
+    stack.start_driver()
+    init_and_check(client, stack)
     return sim
 
 

@@ -366,26 +366,17 @@ def test_pose_msg_to_matrix_tolerance() -> None:
         pose_msg_to_matrix(pose, 1e-4)
 
 
-def test_bad_parameters_refuse_to_start(ctx: Any) -> None:
-    with pytest.raises(ValueError, match="default_arm"):
-        IKServiceNode(
-            context=ctx,
-            node_name="ik_bad1",
-            parameter_overrides=[
-                Parameter("arms", value=["pa10"]),
-                Parameter("default_arm", value="powercube7"),
-                Parameter("duplicate_check_s", value=0.0),
-            ],
-        )
-    with pytest.raises(ValueError, match="no_such_arm"):
-        IKServiceNode(
-            context=ctx,
-            node_name="ik_bad2",
-            parameter_overrides=[
-                Parameter("arms", value=["no_such_arm"]),
-                Parameter("duplicate_check_s", value=0.0),
-            ],
-        )
+@pytest.mark.parametrize(("arms", "default_arm", "match"), [
+    (["pa10"], "powercube7", "default_arm"),  # the default is not among the served arms
+    (["no_such_arm"], None, "no_such_arm"),
+])
+def test_bad_parameters_refuse_to_start(ctx: Any, arms: list[str], default_arm: str | None,
+                                        match: str) -> None:
+    overrides = [Parameter("arms", value=arms), Parameter("duplicate_check_s", value=0.0)]
+    if default_arm is not None:
+        overrides.append(Parameter("default_arm", value=default_arm))
+    with pytest.raises(ValueError, match=match):
+        IKServiceNode(context=ctx, node_name=f"ik_bad_{match}", parameter_overrides=overrides)
 
 
 # ---------------------------------------------------------------------------------------------

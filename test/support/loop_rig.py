@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import uuid
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from typing import Any
 
 import can
@@ -32,9 +32,6 @@ def loop_rig(arm: EmulatedArm, cfg: LoopConfig, open_host: Callable[[str], can.B
     on a host bus from ``open_host(channel)``; yields {"arm", "loop", "host", "samples"}, every
     thread and bus stopped on exit."""
     channel = f"loop-{uuid.uuid4().hex[:8]}"
-    dev_bus = virtual_bus(channel)
-    runner = EmulatorRunner(dev_bus, arm, tick_s=0.002).start()
-    host = open_host(channel)
     samples: list[CycleSample] = []
 
     def factory(bus: can.BusABC) -> PowerCubeArmDriver:
@@ -43,11 +40,10 @@ def loop_rig(arm: EmulatedArm, cfg: LoopConfig, open_host: Callable[[str], can.B
         return PowerCubeArmDriver(bus, [1, 2, 3], LOWER, UPPER, VMAX, AMAX, reply_timeout_s=0.05,
                                   max_missed=10, home_timeout_s=10.0)
 
-    loop = DriverLoop(factory, lambda: host, 3, cfg, on_sample=samples.append, **loop_kw)
-    try:
+    with ExitStack() as down:  # stops and shuts down in reverse order of the starts
+        dev_bus = down.enter_context(virtual_bus(channel))
+        down.callback(EmulatorRunner(dev_bus, arm, tick_s=0.002).start().stop)
+        host = down.enter_context(open_host(channel))
+        loop = DriverLoop(factory, lambda: host, 3, cfg, on_sample=samples.append, **loop_kw)
+        down.callback(loop.stop)
         yield {"arm": arm, "loop": loop, "host": host, "samples": samples}
-    finally:
-        loop.stop()
-        runner.stop()
-        dev_bus.shutdown()
-        host.shutdown()

@@ -140,7 +140,6 @@ class GoalClient(StackClient):
 
 
 C = TypeVar("C", bound=StackClient)
-G = TypeVar("G", bound=GoalClient)
 
 
 @contextmanager
@@ -156,18 +155,23 @@ def client_in_context(domain_id: int, make: Callable[[Any], C]) -> Iterator[C]:
         rclpy.shutdown(context=ctx)
 
 
-@contextmanager
-def ready_client(domain_id: int, make: Callable[[Any], G], stack: Stack, joint_names: list[str],
-                 ready_q: np.ndarray, start_s: float, ik_s: float, reach_s: float,
-                 recover_s: float) -> Iterator[G]:
-    """A ``GoalClient`` (``client_in_context``) that has seen joint_states and controller state
-    (``start_s``) and ik_service (``ik_s``), with the arm moved to ``ready_q`` (``move_to_ready``)."""
-    with client_in_context(domain_id, make) as c:
-        assert c.spin_until(lambda: c.joint_states > 5 and len(c.states) > 0, start_s), \
-            "no joint_states / controller state"
-        assert c.spin_until(c.ik.service_is_ready, ik_s)
-        move_to_ready(c, c.cmd_pub, stack, joint_names, ready_q, reach_s=reach_s, recover_s=recover_s)
-        yield c
+def ready_client_fixture(make: Callable[[Any], GoalClient], joint_names: list[str], ready_q: np.ndarray,
+                         start_s: float, ik_s: float, reach_s: float, recover_s: float) -> Any:
+    """A module-scoped ``client`` fixture (assign it to a module global named ``client``): a
+    ``GoalClient`` made by ``make`` (``client_in_context``) that has seen joint_states and controller
+    state (``start_s``) and ik_service (``ik_s``), with the arm moved to ``ready_q``
+    (``move_to_ready``)."""
+
+    @pytest.fixture(scope="module")
+    def client(stack: Stack, ros_env: Any) -> Iterator[GoalClient]:
+        with client_in_context(ros_env.domain_id, make) as c:
+            assert c.spin_until(lambda: c.joint_states > 5 and len(c.states) > 0, start_s), \
+                "no joint_states / controller state"
+            assert c.spin_until(c.ik.service_is_ready, ik_s)
+            move_to_ready(c, c.cmd_pub, stack, joint_names, ready_q, reach_s=reach_s, recover_s=recover_s)
+            yield c
+
+    return client
 
 
 def sim_tool_reaches(c: StackClient, stack: Stack, T: np.ndarray, pos_tol: float, rot_tol: float,
