@@ -1,9 +1,10 @@
 """Pieces every benchmark shares: the plot module, the load-average line, the results writer, the
-tool-down goal pose and the executor wait (the last two used by the tests too, through
-test/support).
+tool-down goal pose, the ramped arc-length timing of a path and the executor wait (the last three
+used by the tests too, through test/support).
 
 The benches import this module as ``bench_common`` after putting their own folder on ``sys.path``
-(the tests load benches by file path, without benchmarks/ on ``sys.path``).
+(the tests load benches, and this module, by file path, without benchmarks/ on ``sys.path``; it
+imports nothing of the other benches).
 """
 
 from __future__ import annotations
@@ -54,6 +55,26 @@ def add_plot_dir(ap: Any) -> None:
 def doc_header(title: str, doc: str) -> list[str]:
     """The opening lines of a results file: ``title`` and the bench's docstring up to its usage."""
     return [title, "", doc.split("    .venv/bin/python")[0].strip(), ""]
+
+
+def ramp_arc(length: float, v: float, t_ramp: float = 0.5) -> tuple[Callable[[float], float], float]:
+    """Arc length s(t) for a cruise at ``v`` with smooth (smoothstep-speed) ramps at both ends, and the
+    duration: the timing of track_bench's paths and of test/test_control_tracking.py's circle."""
+    d_ramp = 0.5 * v * t_ramp
+    t_cruise = max(length - 2.0 * d_ramp, 0.0) / v
+    total = 2.0 * t_ramp + t_cruise
+
+    def s_of(t: float) -> float:
+        t = min(max(t, 0.0), total)
+        if t < t_ramp:
+            x = t / t_ramp
+            return v * t_ramp * (x**3 - 0.5 * x**4)
+        if t < t_ramp + t_cruise:
+            return d_ramp + v * (t - t_ramp)
+        x = (total - t) / t_ramp
+        return length - v * t_ramp * (x**3 - 0.5 * x**4)
+
+    return s_of, total
 
 
 def load_line(load0: tuple[float, float, float], t0: float) -> str:

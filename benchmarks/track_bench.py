@@ -92,37 +92,17 @@ class PathDef:
     q0: np.ndarray | None = None  # start posture (default: where the controller settles at the start)
 
 
-def ramp_arc(length: float, v: float, t_ramp: float = 0.5) -> tuple[Callable[[float], float], float]:
-    """Arc length s(t) for a cruise at ``v`` with smooth (smoothstep-speed) ramps at both ends, and the
-    duration (test/test_control_tracking.py drives its circle with it too)."""
-    d_ramp = 0.5 * v * t_ramp
-    t_cruise = max(length - 2.0 * d_ramp, 0.0) / v
-    total = 2.0 * t_ramp + t_cruise
-
-    def s_of(t: float) -> float:
-        t = min(max(t, 0.0), total)
-        if t < t_ramp:
-            x = t / t_ramp
-            return v * t_ramp * (x**3 - 0.5 * x**4)
-        if t < t_ramp + t_cruise:
-            return d_ramp + v * (t - t_ramp)
-        x = (total - t) / t_ramp
-        return length - v * t_ramp * (x**3 - 0.5 * x**4)
-
-    return s_of, total
-
-
 def _curve_path(
     name: str,
     curve: Callable[[float], np.ndarray],
     v: float,
     rot: Callable[[float], np.ndarray] | None = None,
 ) -> PathDef:
-    """A closed or open curve ``curve(u)``, u in [0, 1], traversed with :func:`ramp_arc`."""
+    """A closed or open curve ``curve(u)``, u in [0, 1], traversed with ``bench_common.ramp_arc``."""
     u = np.linspace(0.0, 1.0, 4001)
     pts = np.array([curve(x) for x in u])
     arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
-    s_of, total = ramp_arc(float(arc[-1]), v)
+    s_of, total = bench_common.ramp_arc(float(arc[-1]), v)
 
     def pose(t: float) -> np.ndarray:
         s = s_of(t)

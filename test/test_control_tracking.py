@@ -16,7 +16,7 @@ from redarm_ros.control.obstacles import ArmCapsules, Scene, Sphere, min_distanc
 from redarm_ros.control.reach_controller import GoalKind, Phase, ReachController
 from redarm_ros.kinematics import load_arm
 
-ramp_arc = load_bench("track_bench").ramp_arc
+ramp_arc = load_bench("bench_common").ramp_arc
 ARM = load_arm("pa10")
 DT = 0.01
 HINT = np.array([0.0, 0.5, 0.0, 1.3, 0.0, 1.0, 0.0])
