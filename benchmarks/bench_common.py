@@ -1,6 +1,6 @@
 """Pieces every benchmark shares: the plot module, the load-average line, the results writer, the
-tool-down goal pose, the ramped arc-length timing of a path and the executor wait (the last three
-used by the tests too, through test/support).
+tool-down goal pose and the ramped arc-length timing of a path (the last two used by the tests too,
+through test/support).
 
 The benches import this module as ``bench_common`` after putting their own folder on ``sys.path``
 (the tests load benches, and this module, by file path, without benchmarks/ on ``sys.path``; it
@@ -130,17 +130,6 @@ def finish_sections(
         text = write_sections(path, header, sections, footer)
     print(text)
     return text
-
-
-def spin_until(ex: Any, pred: Callable[[], object], timeout: float, spin_s: float = 0.02) -> bool:
-    """Spin the rclpy executor ``ex`` (``spin_s`` s per turn) until ``pred`` is true or ``timeout``
-    s have passed (test/support/waits.py hands this one to the tests)."""
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        ex.spin_once(timeout_sec=spin_s)
-        if pred():
-            return True
-    return False
 
 
 def spin_in_background(ex: Any) -> tuple[threading.Event, threading.Thread]:

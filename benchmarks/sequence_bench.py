@@ -388,11 +388,14 @@ def write_plots(
 
 
 def _state_rate(c, seconds: float) -> float:
-    """~/state messages per second over ``seconds`` of spinning."""
+    """The controller's step rate over ``seconds``: ~/state messages received per second of the
+    controller's own stamps (a lower bound if the client lost any; its queue holds 200)."""
     n0 = len(c.states)
-    t0 = time.monotonic()
     c.spin_until(lambda: False, seconds)
-    return (len(c.states) - n0) / (time.monotonic() - t0)
+    stamps = [s.header.stamp.sec + 1e-9 * s.header.stamp.nanosec for s in c.states[n0:]]
+    if len(stamps) < 2 or stamps[-1] <= stamps[0]:
+        return 0.0
+    return (len(stamps) - 1) / (stamps[-1] - stamps[0])
 
 
 def stack_sequence(goals_n: int = 5, seed: int = 77) -> tuple[str, list[str]]:

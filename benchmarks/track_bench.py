@@ -645,7 +645,9 @@ class StackClient:
         return self.node.get_clock().now().nanoseconds * 1e-9
 
     def spin_until(self, cond: Callable[[], bool], timeout: float) -> bool:
-        return bench_common.spin_until(self.ex, cond, timeout, 0.002)
+        from redarm_ros.nodes._common import spin_until  # needs rclpy, as this client does
+
+        return spin_until(self.ex, cond, timeout, 0.002)
 
     def halts(self) -> int:
         return sum("HALTED:" in line for line in self._lines)

@@ -34,7 +34,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from types import FrameType, TracebackType
+from types import FrameType
 from typing import IO, Any
 
 from redarm_ros.procs import ChildDiedError, ManagedProcess, ProcessGroup, python_module_cmd, random_domain_id
@@ -162,6 +162,11 @@ class Stack:
         _LOG.info("%s is up (pid %d)", name, child.pid)
         return child
 
+    def _start_node(self, node: str, params: dict[str, str]) -> ManagedProcess:
+        """Start ``redarm_ros.nodes.<node>`` with ``params`` and wait for its readiness line."""
+        return self._start(node, python_module_cmd(f"redarm_ros.nodes.{node}", *self._ros_args(node, params)),
+                           READY[node])
+
     def _ros_args(self, node: str, params: dict[str, str]) -> list[str]:
         args = ["--ros-args", "--log-level", self.cfg.log_level, *_params_file(node)]
         if self.cfg.log_level in ("warn", "error", "fatal"):
@@ -221,40 +226,21 @@ class Stack:
                     params["can.channel"] = self.can_channel
                 if cfg.start == "park":
                     params["park_after_init"] = "true"  # homing runs to 0 rad; come back to park
-                self._start(
-                    "can_driver",
-                    python_module_cmd("redarm_ros.nodes.can_driver", *self._ros_args("can_driver", params)),
-                    READY["can_driver"],
-                )
+                self._start_node("can_driver", params)
             if cfg.ik_service:
-                self._start(
-                    "ik_service",
-                    python_module_cmd("redarm_ros.nodes.ik_service",
-                                      *self._ros_args("ik_service", {"default_arm": cfg.arm})),
-                    READY["ik_service"],
-                )
+                self._start_node("ik_service", {"default_arm": cfg.arm})
             if cfg.controller:
                 params = {"arm": cfg.arm, "rate_hz": f"{cfg.control_rate_hz:g}"}
                 if cfg.scene:
                     params["scene"] = cfg.scene
-                self._start(
-                    "controller",
-                    python_module_cmd("redarm_ros.nodes.controller", *self._ros_args("controller", params)),
-                    READY["controller"],
-                )
+                self._start_node("controller", params)
             if cfg.description:
-                self._start(
-                    "description",
-                    python_module_cmd("redarm_ros.nodes.description",
-                                      *self._ros_args("description", {"arm": cfg.arm})),
-                    READY["description"],
-                )
+                self._start_node("description", {"arm": cfg.arm})
             if cfg.view:
                 params = {"arm": cfg.arm, "port": str(int(cfg.view_port))}
                 if cfg.scene and not cfg.controller:  # the controller's markers already show its scene
                     params["scene"] = cfg.scene
-                view_cmd = python_module_cmd("redarm_ros.nodes.view", *self._ros_args("view", params))
-                self._start("view", view_cmd, READY["view"])
+                self._start_node("view", params)
         except BaseException:
             self.stop()
             raise
@@ -325,9 +311,7 @@ class Stack:
     def __enter__(self) -> Stack:
         return self.start()
 
-    def __exit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
 

@@ -43,7 +43,7 @@ import numpy as np
 import yaml
 
 from redarm_ros.bringup import Stack, StackConfig
-from redarm_ros.procs import python_module_cmd, random_domain_id
+from redarm_ros.procs import python_module_cmd, random_domain_id, stream_sink
 
 POS_TOL_M = 1e-3
 ROT_TOL_RAD = 0.01
@@ -253,12 +253,9 @@ class DemoClient:
                                       lambda m: self.joint_times.append(time.monotonic()), 100)
 
     def spin_until(self, cond: Callable[[], bool], timeout: float) -> bool:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            self.ex.spin_once(timeout_sec=0.02)
-            if cond():
-                return True
-        return False
+        from redarm_ros.nodes._common import spin_until
+
+        return spin_until(self.ex, cond, timeout)
 
     def pose_msg(self, T: np.ndarray) -> Any:
         from redarm_ros.nodes.controller import pose_to_msg
@@ -357,7 +354,7 @@ class Demo:
                           ready_timeout_s=60.0,
                           extra_args={"sim": ["--snapshot-size", self.args.snapshot_size]})
         with open(log_path, "w", encoding="utf-8") as log:
-            lock_write = _line_writer(log)
+            lock_write = stream_sink(log)
             stack = Stack(cfg, sink=lock_write, domain_id=domain)
             self.say(f"redarm demo: starting the stack (ROS_DOMAIN_ID={domain}, logs in {log_path})")
             try:
@@ -724,22 +721,6 @@ def _json_default(o: Any) -> Any:
     if isinstance(o, Path):
         return str(o)
     raise TypeError(type(o).__name__)
-
-
-def _line_writer(fh: IO[str]) -> Callable[[str], None]:
-    import threading
-
-    lock = threading.Lock()
-
-    def write(line: str) -> None:
-        with lock:
-            try:
-                fh.write(line + "\n")
-                fh.flush()
-            except ValueError:
-                pass  # closed at the very end
-
-    return write
 
 
 def build_parser() -> argparse.ArgumentParser:

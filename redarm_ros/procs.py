@@ -161,7 +161,8 @@ def python_module_cmd(module: str, *args: str, python: str | None = None) -> lis
     return [python or sys.executable, "-m", module, *map(str, args)]
 
 
-def _stream_sink(stream: IO[str]) -> LineSink:
+def stream_sink(stream: IO[str]) -> LineSink:
+    """A thread-safe line writer to ``stream`` (flushed per line; a closed stream is ignored)."""
     lock = threading.Lock()
 
     def sink(line: str) -> None:
@@ -204,7 +205,7 @@ class ManagedProcess:
         elif callable(sink):
             self._sink = sink
         else:
-            self._sink = _stream_sink(sink)
+            self._sink = stream_sink(sink)
         self._on_exit = on_exit
         self._cond = threading.Condition()
         self._lines: collections.deque[str] = collections.deque(maxlen=_KEEP_LINES)

@@ -4,6 +4,8 @@
 # package only. Never fails the caller: when it cannot install (not root, no apt), it says so and
 # test/test_view_browser.py skips itself with that reason.
 set -u
+# shellcheck source=scripts/apt_lib.sh
+. "$(dirname "${BASH_SOURCE[0]}")/apt_lib.sh"
 
 have_all() {
     command -v chromium >/dev/null 2>&1 && chromium --version >/dev/null 2>&1
@@ -17,21 +19,9 @@ if [ "${REDARM_SKIP_APT:-0}" = 1 ]; then
     echo "setup_chromium: REDARM_SKIP_APT=1; not installing chromium (the browser test will skip)" >&2
     exit 0
 fi
-if [ "$(id -u)" != 0 ]; then
-    echo "setup_chromium: not root; cannot install chromium (the browser test will skip)" >&2
-    exit 0
-fi
-if ! command -v apt-get >/dev/null 2>&1; then
-    echo "setup_chromium: no apt-get; install Debian's chromium by hand (the browser test will skip)" >&2
-    exit 0
-fi
-export DEBIAN_FRONTEND=noninteractive
-# Update the package lists only when the package is not known yet (keeps re-runs offline).
-if ! apt-cache show chromium >/dev/null 2>&1; then
-    apt-get update -qq || echo "setup_chromium: apt-get update failed" >&2
-fi
+apt_can_install setup_chromium chromium "Debian's chromium" "the browser test will skip" || exit 0
 # fonts-liberation: the page's status panel text renders in a real font in the screenshots.
-if apt-get install -y -qq --no-install-recommends chromium fonts-liberation >/dev/null; then
+if apt_install setup_chromium chromium fonts-liberation; then
     echo "setup_chromium: installed $(chromium --version 2>/dev/null)"
 else
     echo "setup_chromium: apt-get install chromium failed (the browser test will skip)" >&2

@@ -31,11 +31,13 @@ SEVEN = ["pa10", "pa10_7c", "powercube7"]
 CAPS = ArmCapsules()
 
 
-def _brute(a0: np.ndarray, a1: np.ndarray, b0: np.ndarray, b1: np.ndarray, n: int = 801) -> float:
-    s = np.linspace(0.0, 1.0, n)
-    P = a0 + s[:, None] * (a1 - a0)
-    Q = b0 + s[:, None] * (b1 - b0)
-    return float(np.min(np.linalg.norm(P[:, None] - Q[None], axis=2)))
+def _brute(a0: np.ndarray, a1: np.ndarray, b0: np.ndarray, b1: np.ndarray, n: int = 2001) -> float:
+    """Sample segment a densely; each sample's exact distance to segment b (clamped projection)."""
+    P = a0 + np.linspace(0.0, 1.0, n)[:, None] * (a1 - a0)
+    d = b1 - b0
+    dd = float(d @ d)
+    t = np.clip((P - b0) @ d / dd, 0.0, 1.0) if dd > 0.0 else np.zeros(n)
+    return float(np.min(np.linalg.norm(P - (b0 + t[:, None] * d), axis=1)))
 
 
 def test_segment_distance_matches_brute_force_and_batch() -> None:

@@ -30,7 +30,6 @@ from rclpy.executors import SingleThreadedExecutor
 from redarm_interfaces.srv import SolveIK
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
-from support.waits import spin_until
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from redarm_ros.kinematics import load_arm
@@ -74,6 +73,8 @@ class Client:
         self.joint_states += 1
 
     def spin_until(self, cond: Callable[[], bool], timeout: float) -> bool:
+        from redarm_ros.nodes._common import spin_until
+
         return spin_until(self.ex, cond, timeout)
 
     def call(self, client: object, request: object, timeout: float) -> object | None:

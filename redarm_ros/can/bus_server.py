@@ -57,7 +57,6 @@ import time
 import uuid
 from collections.abc import Sequence
 from pathlib import Path
-from types import TracebackType
 from typing import Any
 
 from can_remote.server import ClientRequestHandler, RemoteServer, RemoteServerProtocol
@@ -247,26 +246,25 @@ class _CheckedRemoteServer(RemoteServer):
         self.overflowed = 0
         self._drop_lock = threading.Lock()
 
-    def note_dropped(self, exc: BaseException) -> None:
+    def _count(self, counter: str, log_every: int) -> int | None:
+        """Add one to the counter attribute ``counter``; its new value when it is the first or a
+        multiple of ``log_every`` (time to log it), else None."""
         with self._drop_lock:
-            self.dropped += 1
-            n = self.dropped
-        if n == 1 or n % 100 == 0:
+            n = getattr(self, counter) + 1
+            setattr(self, counter, n)
+        return n if n == 1 or n % log_every == 0 else None
+
+    def note_dropped(self, exc: BaseException) -> None:
+        if (n := self._count("dropped", 100)) is not None:
             logger.warning("dropped malformed CAN frame from a client (%d so far): %s", n, exc)
 
     def note_skipped(self) -> None:
-        with self._drop_lock:
-            self.skipped += 1
-            n = self.skipped
-        if n == 1 or n % 10000 == 0:
+        if (n := self._count("skipped", 10000)) is not None:
             logger.warning("a client sends faster than the bus forwards: skipping its backlog "
                            "(%d frames so far)", n)
 
     def note_overflow(self) -> None:
-        with self._drop_lock:
-            self.overflowed += 1
-            n = self.overflowed
-        if n == 1 or n % 10000 == 0:
+        if (n := self._count("overflowed", 10000)) is not None:
             logger.warning("a client reads slower than the bus delivers: dropping its oldest frames "
                            "(%d so far)", n)
 
@@ -364,9 +362,7 @@ class LoopbackBusServer:
     def __enter__(self) -> LoopbackBusServer:
         return self.start()
 
-    def __exit__(
-        self, et: type[BaseException] | None, ev: BaseException | None, tb: TracebackType | None
-    ) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.stop()
 
 
@@ -479,9 +475,7 @@ class BusServerProcess:
     def __enter__(self) -> BusServerProcess:
         return self
 
-    def __exit__(
-        self, et: type[BaseException] | None, ev: BaseException | None, tb: TracebackType | None
-    ) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.stop()
 
 
@@ -491,7 +485,7 @@ def start_bus_server(
     port_file: Path | None = None,
     python: str | None = None,
     env: dict[str, str] | None = None,
-    ready_timeout_s: float = 15.0,
+    ready_timeout_s: float = 30.0,
 ) -> BusServerProcess:
     """Start ``python -m redarm_ros.can.bus_server`` on 127.0.0.1 and wait for its port line.
 

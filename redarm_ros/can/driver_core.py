@@ -61,7 +61,7 @@ import can
 import numpy as np
 
 from redarm_ros.can import protocol as p
-from redarm_ros.can.protocol import ActConfig, ActState, Command, Param
+from redarm_ros.can.protocol import POWER_STAGE_FAULTS, ActConfig, ActState, Command, Param
 from redarm_ros.errors import (
     BusError,
     BusTimeoutError,
@@ -70,7 +70,7 @@ from redarm_ros.errors import (
     ModuleFaultError,
     RedarmError,
 )
-from redarm_ros.motion import JointLimits
+from redarm_ros.motion import JointLimits, LimitsView
 
 logger = logging.getLogger(__name__)
 
@@ -81,12 +81,7 @@ FAULT_BITS = (
     | ActState.TOW_ERROR
     | ActState.BEYOND_SOFT
     | ActState.BEYOND_HARD
-    | ActState.POW_VOLT_ERR
-    | ActState.POW_FET_TEMP
-    | ActState.POW_WDG_TEMP
-    | ActState.POW_SHORTCUR
-    | ActState.POW_HALLERR
-    | ActState.POW_INTEGRAL_ERR
+    | POWER_STAGE_FAULTS
 )
 _LATENCY_WINDOW = 1024
 #: A plausibility check allows this much (rad) beyond what the velocity limit explains.
@@ -313,7 +308,7 @@ def _is_ack(cmd: Command) -> _Matcher:
     return lambda f: isinstance(f, p.CommandAck) and f.command is cmd
 
 
-class PowerCubeArmDriver:
+class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those of self.limits
     """Drive PowerCube modules ``module_ids`` (joint order) on ``bus``.
 
     Args:
@@ -406,27 +401,6 @@ class PowerCubeArmDriver:
         self._prev_q: np.ndarray | None = None
         self._needs_resync = False
         self._pending_faults: dict[int, ActState] = {}
-
-    # -- limits, as arrays (rad, rad/s, rad/s^2) ----------------------------------------------------
-    @property
-    def lower(self) -> np.ndarray:
-        """Lower joint limits (rad)."""
-        return self.limits.lower
-
-    @property
-    def upper(self) -> np.ndarray:
-        """Upper joint limits (rad)."""
-        return self.limits.upper
-
-    @property
-    def max_vel(self) -> np.ndarray:
-        """Velocity limits (rad/s)."""
-        return self.limits.max_vel
-
-    @property
-    def max_acc(self) -> np.ndarray:
-        """Acceleration limits (rad/s^2)."""
-        return self.limits.max_acc
 
     @property
     def frames_per_cycle(self) -> int:
@@ -522,6 +496,7 @@ class PowerCubeArmDriver:
 
         At most :data:`_DRAIN_MAX_FRAMES` frames: on a flooded bus the rest is read (and skipped)
         by the receive loop that follows, which has a deadline."""
+        # The receive-route-decode steps of _transact's loop, inline: once per cycle, no extra call.
         late = 0
         for _ in range(_DRAIN_MAX_FRAMES):
             msg = self._recv(0.0)
@@ -694,13 +669,18 @@ class PowerCubeArmDriver:
             self._command_all(Command.RESET)
             if home:
                 self._home_locked()
-            st = self._read_state_locked()
-            self._raise_on_errors(st, "init")
-            self._hold_measured()
-            self._pending_faults.clear()
-            self._fire(DriverEvent.READY)
-            logger.info("PowerCube arm initialised at %s", np.round(st.positions, 4).tolist())
-            return st
+            return self._ready_locked("init", "PowerCube arm initialised at %s")
+
+    def _ready_locked(self, what: str, log_format: str) -> ArmState:
+        """End of init/recover: read the state, refuse on module errors (``what`` names the step in
+        the exception), hold the measured position, clear pending faults, READY."""
+        st = self._read_state_locked()
+        self._raise_on_errors(st, what)
+        self._hold_measured()
+        self._pending_faults.clear()
+        self._fire(DriverEvent.READY)
+        logger.info(log_format, np.round(st.positions, 4).tolist())
+        return st
 
     def _configure_locked(self) -> None:
         want_set = ActConfig(0)
@@ -818,13 +798,7 @@ class PowerCubeArmDriver:
         with self._lock:
             self._command_all(Command.RESET)
             self._configure_locked()
-            st = self._read_state_locked()
-            self._raise_on_errors(st, "recover")
-            self._hold_measured()
-            self._pending_faults.clear()
-            self._fire(DriverEvent.READY)
-            logger.info("PowerCube arm recovered, holding %s", np.round(st.positions, 4).tolist())
-            return st
+            return self._ready_locked("recover", "PowerCube arm recovered, holding %s")
 
     def reconnect(self) -> ArmState:
         """Reopen the bus (one attempt; call again with backoff) and re-read the positions.

@@ -58,7 +58,7 @@ from redarm_ros.can.driver_core import (
 )
 from redarm_ros.can.protocol import ActState
 from redarm_ros.errors import BusError, BusTimeoutError, InvalidInputError, RedarmError
-from redarm_ros.motion import JointLimits, braking_speed
+from redarm_ros.motion import JointLimits, LimitsView, braking_speed
 from redarm_ros.motion.sync_move import synchronized_move
 
 _LOG = logging.getLogger(__name__)
@@ -335,7 +335,7 @@ def _interpolate(tr: _Trajectory, now: float) -> np.ndarray:
 DEFAULT_LIMIT_MARGIN = 1e-3
 
 
-class ReferenceShaper:
+class ReferenceShaper(LimitsView):  # lower/upper: the joint limits inset by the margin
     """Velocity- and acceleration-limited joint reference that follows a (moving) target.
 
     Every cycle the reference moves toward the target with the target's own velocity fed
@@ -359,26 +359,6 @@ class ReferenceShaper:
         self.r: np.ndarray | None = None
         self.v = np.zeros(limits.n)
         self._g_prev: np.ndarray | None = None
-
-    @property
-    def lower(self) -> np.ndarray:
-        """Lowest reference (rad): the lower joint limits plus the margin."""
-        return self.limits.lower
-
-    @property
-    def upper(self) -> np.ndarray:
-        """Highest reference (rad): the upper joint limits minus the margin."""
-        return self.limits.upper
-
-    @property
-    def max_vel(self) -> np.ndarray:
-        """Velocity limits (rad/s)."""
-        return self.limits.max_vel
-
-    @property
-    def max_acc(self) -> np.ndarray:
-        """Acceleration limits (rad/s^2)."""
-        return self.limits.max_acc
 
     def reset(self, q: np.ndarray) -> None:
         """Start from rest at ``q`` (rad): after init, recover, reconnect."""
@@ -935,6 +915,7 @@ class DriverLoop:
         if lat.size:
             latency = {"median_ms": float(np.median(lat) * 1e3),
                        "p99_ms": float(np.percentile(lat, 99) * 1e3), "max_ms": float(lat.max() * 1e3)}
+        # A keyword-built record: alike in shape only to other records' construction (IKAnswer).
         return LoopSnapshot(
             state=state,
             reason=reason,

@@ -68,7 +68,7 @@ from typing import Protocol, runtime_checkable
 import can
 
 from redarm_ros.can import protocol as p
-from redarm_ros.can.protocol import ActConfig, ActState, Command, MoveMode, Param
+from redarm_ros.can.protocol import POWER_STAGE_FAULTS, ActConfig, ActState, Command, MoveMode, Param
 from redarm_ros.errors import BusError, InvalidInputError
 
 logger = logging.getLogger(__name__)
@@ -85,12 +85,7 @@ STICKY_BITS = (
     | ActState.COMM_ERROR
     | ActState.BEYOND_SOFT
     | ActState.BEYOND_HARD
-    | ActState.POW_VOLT_ERR
-    | ActState.POW_FET_TEMP
-    | ActState.POW_WDG_TEMP
-    | ActState.POW_SHORTCUR
-    | ActState.POW_HALLERR
-    | ActState.POW_INTEGRAL_ERR
+    | POWER_STAGE_FAULTS
     | ActState.CPU_OVERLOAD
     | ActState.POW_SETUP_ERR
 )
@@ -136,7 +131,7 @@ def wire_time(msg: can.Message, clock: Callable[[], float] = time.monotonic) -> 
 
 
 @runtime_checkable
-class Plant(Protocol):
+class Plant(Protocol):  # its implementations (emulator, sim ramp) repeat the command_position signature
     """What a module needs from the joint it drives. Thread-safe if shared with another thread.
 
     Positions rad, velocities rad/s, accelerations rad/s^2, durations s.

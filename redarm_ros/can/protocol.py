@@ -288,6 +288,14 @@ class ActState(IntFlag):
     POW_SETUP_ERR = 0x8000000
 
 
+#: The power stage's fault bits of ACT_STATE (voltage, FET and winding temperature, short circuit,
+#: Hall sensor, integral error).
+POWER_STAGE_FAULTS: Final = (
+    ActState.POW_VOLT_ERR | ActState.POW_FET_TEMP | ActState.POW_WDG_TEMP | ActState.POW_SHORTCUR
+    | ActState.POW_HALLERR | ActState.POW_INTEGRAL_ERR
+)
+
+
 class ShortState(IntFlag):
     """Short state byte of extended SETMOVE acknowledgements."""
 
@@ -369,6 +377,7 @@ def long_state_from_short(short: int) -> ActState:
 
 # --------------------------------------------------------------------------------------------------
 # Decoded frames. Host -> module requests first, then module -> host replies.
+# One record per frame type and one builder per command: alike in shape, as the protocol table is.
 # --------------------------------------------------------------------------------------------------
 
 

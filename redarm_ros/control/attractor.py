@@ -25,9 +25,9 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
+from redarm_ros.control.checks import check_positive, field_names
 from redarm_ros.control.obstacles import Obstacle
 from redarm_ros.control.swivel_dynamics import wrap_angle
-from redarm_ros.errors import InvalidInputError
 
 Vec3 = tuple[float, float, float]
 
@@ -130,14 +130,11 @@ class HeadingParams:
     slow_min: float = 0.3
 
     def __post_init__(self) -> None:
-        for name, v in self.__dict__.items():
-            if not math.isfinite(v) or v < 0.0:
-                raise InvalidInputError(f"HeadingParams.{name} must be finite and >= 0, got {v!r}",
-                                        field=name, value=v)
+        check_positive(self, (), field_names(self))
 
 
 @dataclass(frozen=True)
-class HeadingRates:
+class HeadingRates:  # a record of floats: alike in shape only to other records (mcap TopicSummary)
     """d(phi)/dt and d(theta)/dt (rad/s) plus the target direction and per-term parts for plots."""
 
     dphi: float
@@ -360,10 +357,7 @@ class SpeedParams:
     j_max: float = 25.0
 
     def __post_init__(self) -> None:
-        for name, v in self.__dict__.items():
-            if not math.isfinite(v) or v <= 0.0:
-                raise InvalidInputError(f"SpeedParams.{name} must be finite and > 0, got {v!r}", field=name,
-                                        value=v)
+        check_positive(self, field_names(self))
 
 
 class SpeedProfile:

@@ -27,10 +27,7 @@ from redarm_ros.control.state import (
 from redarm_ros.control.swivel_dynamics import wrap_angle
 from redarm_ros.control.types import GoalKind, Phase
 from redarm_ros.errors import UnreachableError
-from redarm_ros.kinematics.quaternion import (
-    quat_angle,
-    rotvec_between,
-)
+from redarm_ros.kinematics.quaternion import quat_angle, rotvec_between
 
 LOG = logging.getLogger(__name__)
 

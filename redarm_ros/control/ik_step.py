@@ -86,21 +86,29 @@ def blend(pos0: Vec3, rot0: Quat, pos1: Vec3, rot1: Quat, t: float) -> tuple[Vec
     return pos, rot
 
 
-class IKStepper:
-    """The IK step of one arm (see the module docstring). ``flip_ratio``: a joint step above
-    ``flip_ratio * max_vel * dt`` is a branch change, never taken; ``search_step`` (rad) and
-    ``search_count``: the swivel search around a swivel without a continuous solution."""
+class StepperBase:
+    """What both IK steppers (7-DOF swivel, 6-DOF) keep of the arm: ``flip_ratio``, the search
+    ``search_step`` (rad) and ``search_count``, the joint limits and ``1 / max_vel``."""
 
-    def __init__(self, arm: Any, geom: ArmGeometry, flip_ratio: float, search_step: float,
-                 search_count: int) -> None:
+    def __init__(self, arm: Any, flip_ratio: float, search_step: float, search_count: int) -> None:
         self.arm = arm
-        self.geom = geom
         self.flip_ratio = float(flip_ratio)
         self.search_step = float(search_step)
         self.search_count = int(search_count)
         self.lower = np.asarray(arm.lower, float)
         self.upper = np.asarray(arm.upper, float)
         self.inv_vel = 1.0 / np.asarray(arm.max_vel, float)
+
+
+class IKStepper(StepperBase):
+    """The IK step of one arm (see the module docstring). ``flip_ratio``: a joint step above
+    ``flip_ratio * max_vel * dt`` is a branch change, never taken; ``search_step`` (rad) and
+    ``search_count``: the swivel search around a swivel without a continuous solution."""
+
+    def __init__(self, arm: Any, geom: ArmGeometry, flip_ratio: float, search_step: float,
+                 search_count: int) -> None:
+        super().__init__(arm, flip_ratio, search_step, search_count)
+        self.geom = geom
         self.wide = [j for j in range(arm.n) if self.upper[j] - self.lower[j] > 2.0 * math.pi]
 
     # -- selection --------------------------------------------------------------------------------
@@ -191,21 +199,30 @@ class IKStepper:
         whole hand step fits already or no shortening helps."""
         frac = 1.0
         for _ in range(4):
-            pos, rot = blend(pos0, rot0, pos1, rot1, frac)
-            T = pose_matrix(pos, rot)
-            try:
-                circle = elbow_circle(self.geom, T)
-            except UnreachableError:
+            tried = self._solve_blend(pos0, rot0, pos1, rot1, frac, s, q_prev, dt)
+            if tried is None or tried[4][1] > self.flip_ratio:
                 return None
-            pick = self.solve(T, s, q_prev, dt)
-            if pick is None or pick[1] > self.flip_ratio:
-                return None
-            if pick[1] <= 1.0 + 1e-9:
+            pos, rot, T, circle, (_, r) = tried
+            if r <= 1.0 + 1e-9:
                 if frac >= 1.0:
                     return None
                 return pos, rot, T, circle, frac
-            frac = 0.0 if frac < 0.1 else frac * 0.9 / pick[1]
+            frac = 0.0 if frac < 0.1 else frac * 0.9 / r
         return None
+
+    def _solve_blend(self, pos0: Vec3, rot0: Quat, pos1: Vec3, rot1: Quat, frac: float, s: float,
+                     q_prev: np.ndarray, dt: float
+                     ) -> tuple[Vec3, Quat, np.ndarray, ElbowCircle, tuple[np.ndarray, float]] | None:
+        """The pose ``frac`` of the way from (pos0, rot0) to (pos1, rot1), its 4x4, its elbow circle
+        and the IK pick (q, ratio) at swivel ``s``; None if the pose is out of reach or unsolved."""
+        pos, rot = blend(pos0, rot0, pos1, rot1, frac)
+        T = pose_matrix(pos, rot)
+        try:
+            circle = elbow_circle(self.geom, T)
+        except UnreachableError:
+            return None
+        pick = self.solve(T, s, q_prev, dt)
+        return None if pick is None else (pos, rot, T, circle, pick)
 
     def _yield_swivel(self, T: np.ndarray, s0: float, s1: float, q_prev: np.ndarray, dt: float,
                       ratio: float) -> tuple[float, np.ndarray, float] | None:
@@ -241,17 +258,11 @@ class IKStepper:
         frac = 1.0
         for _ in range(4):
             frac *= 0.98 / ratio  # shorten the (already shortened) step by the excess ratio
-            pos, rot = blend(pos0, rot0, pos1, rot1, frac)
             s = wrap_angle(s0 + frac * wrap_angle(s1 - s0))
-            T = pose_matrix(pos, rot)
-            try:
-                circle = elbow_circle(self.geom, T)
-            except UnreachableError:
+            tried = self._solve_blend(pos0, rot0, pos1, rot1, frac, s, q_prev, dt)
+            if tried is None:
                 return None
-            pick = self.solve(T, s, q_prev, dt)
-            if pick is None:
-                return None
-            q, ratio = pick
+            pos, rot, _, circle, (q, ratio) = tried
             if ratio <= 1.0 + 1e-9:
                 return pos, rot, s, q, circle, frac
         return None

@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 
 from redarm_ros.control.elbow import ElbowCircle
-from redarm_ros.control.ik_step import DEAD_END, DeadEnd, IKStep, blend, pose_matrix
+from redarm_ros.control.ik_step import DEAD_END, DeadEnd, IKStep, StepperBase, blend, pose_matrix
 from redarm_ros.control.types import Quat, Vec3
 from redarm_ros.kinematics.quaternion import (
     matrix_from_quat,
@@ -123,20 +123,14 @@ def fixed_circle(kp: Any) -> ElbowCircle:
     return ElbowCircle(p[2], (0.0, 0.0, 1.0), 0.0, (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), p[0], p[1], p[3], p[4])
 
 
-class IKStepper6:
+class IKStepper6(StepperBase):
     """The IK step of the 6-DOF arm (see the module docstring). ``flip_ratio``: a joint step above
     ``flip_ratio * max_vel * dt`` is a branch change, never taken; ``search_step`` (rad) and
     ``search_count``: the orientation search where the projected orientation has no solution."""
 
     def __init__(self, arm: Any, flip_ratio: float, search_step: float = 0.03,
                  search_count: int = 10) -> None:
-        self.arm = arm
-        self.flip_ratio = float(flip_ratio)
-        self.search_step = float(search_step)
-        self.search_count = int(search_count)
-        self.lower = np.asarray(arm.lower, float)
-        self.upper = np.asarray(arm.upper, float)
-        self.inv_vel = 1.0 / np.asarray(arm.max_vel, float)
+        super().__init__(arm, flip_ratio, search_step, search_count)
         self.min_vel = float(np.min(np.asarray(arm.max_vel, float)))
         self.wide: list[int] = []  # no joint of the PowerCube arm turns more than a full turn
 

@@ -95,22 +95,16 @@ def _circle_footprint(cx: float, cy: float, r: float, x: float, y: float) -> Foo
     return Footprint(direction, math.asin(r / d), d - r, d + r)
 
 
-@dataclass(frozen=True)
-class Sphere:
-    """Sphere: ``center`` (m, base frame), ``radius`` (m)."""
+class _Round:
+    """A shape that is a circle seen from above (a sphere, a vertical cylinder): its checked
+    ``center`` and ``radius`` and its top view."""
 
     center: Vec3
     radius: float
-    name: str = ""
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "center", _vec3(self.center, "center"))
         object.__setattr__(self, "radius", _positive(self.radius, "radius"))
-
-    @property
-    def top(self) -> float:
-        """Highest z of the shape (m)."""
-        return self.center[2] + self.radius
 
     @property
     def footprint_radius(self) -> float:
@@ -120,6 +114,20 @@ class Sphere:
     def footprint(self, x: float, y: float) -> Footprint:
         """Top view of the shape from (x, y) (m)."""
         return _circle_footprint(self.center[0], self.center[1], self.radius, x, y)
+
+
+@dataclass(frozen=True)
+class Sphere(_Round):
+    """Sphere: ``center`` (m, base frame), ``radius`` (m)."""
+
+    center: Vec3
+    radius: float
+    name: str = ""
+
+    @property
+    def top(self) -> float:
+        """Highest z of the shape (m)."""
+        return self.center[2] + self.radius
 
     def signed_distance(self, p: Sequence[float]) -> float:
         """Signed distance (m) from point ``p`` to the surface (negative inside)."""
@@ -136,7 +144,7 @@ class Sphere:
 
 
 @dataclass(frozen=True)
-class Cylinder:
+class Cylinder(_Round):
     """Vertical cylinder (axis parallel to z): ``center`` at mid-height, ``radius``, ``height`` (m)."""
 
     center: Vec3
@@ -145,23 +153,13 @@ class Cylinder:
     name: str = ""
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "center", _vec3(self.center, "center"))
-        object.__setattr__(self, "radius", _positive(self.radius, "radius"))
+        super().__post_init__()
         object.__setattr__(self, "height", _positive(self.height, "height"))
 
     @property
     def top(self) -> float:
         """Highest z of the shape (m)."""
         return self.center[2] + 0.5 * self.height
-
-    @property
-    def footprint_radius(self) -> float:
-        """Radius (m) of a vertical circle around ``center`` that covers the shape seen from above."""
-        return self.radius
-
-    def footprint(self, x: float, y: float) -> Footprint:
-        """Top view of the shape from (x, y) (m)."""
-        return _circle_footprint(self.center[0], self.center[1], self.radius, x, y)
 
     def signed_distance(self, p: Sequence[float]) -> float:
         """Signed distance (m) from point ``p`` to the surface (negative inside)."""
@@ -314,6 +312,27 @@ def _golden_min(f: Any) -> float:
     return min(f1, f2, f(0.0), f(1.0))
 
 
+def _secant(t0: float, t1: float, g0: float, g1: float) -> float:
+    """Zero of the line through (t0, g0) and (t1, g1)."""
+    return t0 - g0 * (t1 - t0) / (g1 - g0)
+
+
+def _first_rise(gprime: Any, ts: list[float], refine: Any) -> float:
+    """Minimiser over [0, 1] of a convex function with derivative ``gprime``, smooth between the
+    breakpoints ``ts`` (0 and 1 among them; sorted here): 0 if it rises from the start, 1 if it never
+    does, else ``refine(t0, t1, g0, g1)`` on the first bracket where ``gprime`` turns >= 0."""
+    ts.sort()
+    prev_t, prev_g = ts[0], gprime(ts[0])
+    if prev_g >= 0.0:
+        return 0.0
+    for t in ts[1:]:
+        gt = gprime(t)
+        if gt >= 0.0:
+            return refine(prev_t, t, prev_g, gt)
+        prev_t, prev_g = t, gt
+    return 1.0
+
+
 def _segment_box(a: Sequence[float], b: Sequence[float], h: Sequence[float]) -> float:
     """Exact distance from segment a + t b, t in [0, 1], to the axis-aligned box [-h, h].
 
@@ -347,19 +366,7 @@ def _segment_box(a: Sequence[float], b: Sequence[float], h: Sequence[float]) -> 
                 t = (plane - a[i]) / b[i]
                 if 0.0 < t < 1.0:
                     ts.append(t)
-    ts.sort()
-    g0 = gprime(ts[0])
-    if g0 >= 0.0:
-        tstar = 0.0
-    else:
-        tstar = 1.0
-        prev_t, prev_g = ts[0], g0
-        for t in ts[1:]:
-            gt = gprime(t)
-            if gt >= 0.0:
-                tstar = prev_t - prev_g * (t - prev_t) / (gt - prev_g)
-                break
-            prev_t, prev_g = t, gt
+    tstar = _first_rise(gprime, ts, _secant)  # gprime is piecewise linear: the secant is exact
     d2 = g(tstar)
     if d2 > 0.0:
         return math.sqrt(d2)
@@ -406,19 +413,7 @@ def _segment_cylinder(ax: float, ay: float, az: float, bx: float, by: float, bz:
         t = -qb / qa  # closest approach of the xy line to the axis
         if 0.0 < t < 1.0:
             ts.append(t)
-    ts.sort()
-    g0 = gprime(ts[0])
-    if g0 >= 0.0:
-        tstar = 0.0
-    else:
-        tstar = 1.0
-        prev_t, prev_g = ts[0], g0
-        for t in ts[1:]:
-            gt = gprime(t)
-            if gt >= 0.0:
-                tstar = _illinois(gprime, prev_t, t, prev_g, gt)
-                break
-            prev_t, prev_g = t, gt
+    tstar = _first_rise(gprime, ts, lambda t0, t1, g0, g1: _illinois(gprime, t0, t1, g0, g1))
     x, y, z = ax + tstar * bx, ay + tstar * by, az + tstar * bz
     er = max(math.hypot(x, y) - r, 0.0)
     ez = max(abs(z) - hz, 0.0)

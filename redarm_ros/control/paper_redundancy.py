@@ -45,6 +45,7 @@ from typing import Any
 import numpy as np
 
 from redarm_ros.control.attractor import direction, forcelet, heading_angles, target_attractor
+from redarm_ros.control.checks import check_positive
 from redarm_ros.control.elbow import ElbowCircle
 from redarm_ros.control.obstacles import ELBOW_LINKS, ArmCapsules, Scene, links_clearance
 from redarm_ros.control.swivel_dynamics import wrap_angle
@@ -92,12 +93,8 @@ class PaperSwivelParams:
     refresh_steps: int = 4
 
     def __post_init__(self) -> None:
-        for name in ("lam_tar", "lam_obs", "d0", "lam_lim", "obs_distance", "obs_cutoff", "wrist_margin",
-                     "lam_hand", "hand_distance"):
-            v = getattr(self, name)
-            if not (isinstance(v, int | float) and math.isfinite(v) and v > 0.0):
-                raise InvalidInputError(f"PaperSwivelParams.{name} must be finite and > 0, got {v!r}",
-                                        field=name, value=v)
+        check_positive(self, ("lam_tar", "lam_obs", "d0", "lam_lim", "obs_distance", "obs_cutoff",
+                              "wrist_margin", "lam_hand", "hand_distance"))
         for name, least in (("samples", 8), ("refresh_steps", 1)):
             v = getattr(self, name)
             if not isinstance(v, int) or isinstance(v, bool) or v < least:

@@ -13,21 +13,11 @@ from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
 from redarm_ros.control.attractor import HeadingParams, SpeedParams
+from redarm_ros.control.checks import check_positive as _check_positive
 from redarm_ros.control.obstacles import ArmCapsules
 from redarm_ros.control.paper_redundancy import PaperSwivelParams
 from redarm_ros.control.swivel_dynamics import SwivelParams
 from redarm_ros.errors import ConfigError, InvalidInputError
-
-
-def _check_positive(obj: Any, names: tuple[str, ...], allow_zero: tuple[str, ...] = ()) -> None:
-    """Raise InvalidInputError unless every named field is finite and > 0 (>= 0 for ``allow_zero``)."""
-    for name in names + allow_zero:
-        v = getattr(obj, name)
-        ok = isinstance(v, int | float) and math.isfinite(v) and (v >= 0.0 if name in allow_zero else v > 0.0)
-        if not ok:
-            bound = ">= 0" if name in allow_zero else "> 0"
-            raise InvalidInputError(f"{type(obj).__name__}.{name} must be finite and {bound}, got {v!r}",
-                                    field=name, value=v)
 
 
 @dataclass(frozen=True)

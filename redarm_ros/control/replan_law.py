@@ -16,14 +16,10 @@ from redarm_ros.control.elbow import ElbowCircle, elbow_circle
 from redarm_ros.control.ik_step import pose_matrix
 from redarm_ros.control.params import ReplanParams
 from redarm_ros.control.replan import JointPath, JointPlanner
-from redarm_ros.control.state import (
-    Mode,
-)
+from redarm_ros.control.state import CoreState, Mode
 from redarm_ros.control.types import GoalKind, Phase
 from redarm_ros.errors import UnreachableError
-from redarm_ros.kinematics.quaternion import (
-    quat_angle,
-)
+from redarm_ros.kinematics.quaternion import quat_angle
 
 LOG = logging.getLogger(__name__)
 
@@ -59,13 +55,20 @@ class ReplanMixin(ControllerBase):
         st.ref.q = st.cmd.q.copy()
         st.ref.qd = np.zeros_like(st.ref.q)
 
+    def _end_joint_motion(self, st: CoreState) -> bool:
+        """In PLAN/JOINT: drop the planner and its path, the reference goes on from its motion
+        (Cartesian again); the caller picks the next mode. False (nothing done) in any other mode."""
+        if st.mode not in (Mode.PLAN, Mode.JOINT):
+            return False
+        st.planner = None
+        st.path = None
+        self._resync_reference(keep_velocity=True)
+        return True
+
     def _leave_plan(self) -> None:
         """Out of PLAN/JOINT (a stop or rejection): the reference becomes Cartesian again."""
         st = self._state()
-        if st.mode in (Mode.PLAN, Mode.JOINT):
-            st.planner = None
-            st.path = None
-            self._resync_reference(keep_velocity=True)
+        if self._end_joint_motion(st):
             st.mode = Mode.ATTRACTOR
             self._enter_attractor()
 

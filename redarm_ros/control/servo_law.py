@@ -32,10 +32,7 @@ class ServoMixin(ControllerBase):
     def _enter_servo(self) -> None:
         """Servo state continuous with the reference's motion."""
         st = self._state()
-        if st.mode in (Mode.PLAN, Mode.JOINT):
-            st.planner = None
-            st.path = None
-            self._resync_reference(keep_velocity=True)
+        self._end_joint_motion(st)  # from a joint-space move: drop its plan (ReplanMixin)
         if st.mode is Mode.ATTRACTOR:
             e = direction(st.att.phi, st.att.theta)
             st.ref.vel = (st.att.v * e[0], st.att.v * e[1], st.att.v * e[2])

@@ -24,9 +24,9 @@ import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
+from redarm_ros.control.checks import check_positive
 from redarm_ros.control.elbow import ElbowCircle
 from redarm_ros.control.obstacles import ELBOW_LINKS, ArmCapsules, Scene, links_clearance
-from redarm_ros.errors import InvalidInputError
 
 Saturation = Callable[[float], float]
 Vec3 = tuple[float, float, float]
@@ -73,17 +73,9 @@ class SwivelParams:
     max_rate: float = 1.0
 
     def __post_init__(self) -> None:
-        for name in ("tau", "eps", "obs_influence", "obs_ref", "obs_min", "grad_scale", "sing_threshold",
-                     "lim_threshold", "max_rate"):
-            v = getattr(self, name)
-            if not (math.isfinite(v) and v > 0.0):
-                raise InvalidInputError(f"SwivelParams.{name} must be finite and > 0, got {v!r}", field=name,
-                                        value=v)
-        for name in ("lam_des", "lam_obs", "lam_sing", "lam_lim", "up_bias"):
-            v = getattr(self, name)
-            if not (math.isfinite(v) and v >= 0.0):
-                raise InvalidInputError(f"SwivelParams.{name} must be finite and >= 0, got {v!r}", field=name,
-                                        value=v)
+        check_positive(self, ("tau", "eps", "obs_influence", "obs_ref", "obs_min", "grad_scale",
+                              "sing_threshold", "lim_threshold", "max_rate"),
+                       ("lam_des", "lam_obs", "lam_sing", "lam_lim", "up_bias"))
 
 
 def smooth_sign(x: float, scale: float) -> float:

@@ -8,10 +8,14 @@ shaper (:mod:`redarm_ros.can.driver_loop`) and the simulator's setpoint generato
 
 from redarm_ros.motion.limits import (
     JointLimits,
+    LimitsView,
     braking_distance,
     braking_speed,
     braking_speed_scalar,
     velocity_bounds,
 )
 
-__all__ = ["JointLimits", "braking_distance", "braking_speed", "braking_speed_scalar", "velocity_bounds"]
+__all__ = [
+    "JointLimits", "LimitsView", "braking_distance", "braking_speed", "braking_speed_scalar",
+    "velocity_bounds",
+]

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from operator import attrgetter
 from typing import Any
 
 import numpy as np
@@ -197,3 +198,16 @@ class JointLimits:
         """Largest distance (rad) each joint can travel in ``elapsed_s`` seconds at its velocity limit,
         plus ``margin``: a measured position that moved further is implausible."""
         return self.max_vel * np.maximum(np.asarray(elapsed_s, dtype=float), 0.0) + margin
+
+
+class LimitsView:
+    """Mixin: ``lower``, ``upper``, ``max_vel`` and ``max_acc`` read through from ``self.limits``
+    (a :class:`JointLimits`), for classes that hold one and expose its arrays (the CAN driver, the
+    driver's reference shaper, whose ``limits`` are already inset by its margin)."""
+
+    limits: JointLimits
+
+    lower = property(attrgetter("limits.lower"), doc="Lower position limits (rad).")
+    upper = property(attrgetter("limits.upper"), doc="Upper position limits (rad).")
+    max_vel = property(attrgetter("limits.max_vel"), doc="Velocity limits (rad/s).")
+    max_acc = property(attrgetter("limits.max_acc"), doc="Acceleration limits (rad/s^2).")

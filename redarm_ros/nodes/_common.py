@@ -204,6 +204,44 @@ def pose_msg_to_matrix(pose: Pose, quaternion_tolerance: float) -> np.ndarray:
     return pose_to_matrix(p, [v / norm for v in q_wxyz], tol=1e-9)
 
 
+def spin_until(executor: Any, cond: Callable[[], object], timeout: float, period: float = 0.02) -> bool:
+    """Spin ``executor`` in steps of at most ``period`` s until ``cond()`` holds (True) or ``timeout``
+    seconds passed (False): for clients and tools that wait on topics or services."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        executor.spin_once(timeout_sec=period)
+        if cond():
+            return True
+    return False
+
+
+class ParamNode(Node):
+    """Base of the redarm_ros nodes: the one constructor signature all of them share.
+
+    A subclass names itself and its parameters in the class statement,
+    ``class ViewNode(ParamNode, node_name=NODE_NAME, params=PARAMS)``, and wires itself in
+    :meth:`_setup` from the declared values; the constructor takes ``context``,
+    ``parameter_overrides``, ``node_name`` (default: the class's) and ``namespace``, keywords only.
+    """
+
+    NODE_NAME: str = ""
+    PARAMS: Sequence[ParamSpec] = ()
+
+    def __init_subclass__(cls, *, node_name: str = "", params: Sequence[ParamSpec] = (), **kw: Any) -> None:
+        super().__init_subclass__(**kw)
+        cls.NODE_NAME = node_name or cls.NODE_NAME
+        cls.PARAMS = params or cls.PARAMS
+
+    def __init__(self, *, context: Any = None, parameter_overrides: list[Any] | None = None,
+                 node_name: str | None = None, namespace: str | None = None) -> None:
+        super().__init__(node_name or self.NODE_NAME, namespace=namespace, context=context,
+                         parameter_overrides=parameter_overrides or [])
+        self._setup(declare_params(self, self.PARAMS))
+
+    def _setup(self, p: dict[str, Any]) -> None:
+        """Wire the node (topics, services, timers) from its declared parameter values ``p``."""
+
+
 class DuplicateNodeError(RuntimeError):
     """Another node of this node's name runs in the domain: this one refuses to start."""
 

@@ -43,7 +43,6 @@ import yaml
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
-from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile
 from sensor_msgs.msg import JointState
@@ -63,7 +62,7 @@ from redarm_ros.can.driver_loop import (
 from redarm_ros.can.driver_process import DriverProcess, DriverSpec, build_loop
 from redarm_ros.errors import ConfigError, InvalidInputError, RedarmError
 from redarm_ros.kinematics import load_arm
-from redarm_ros.nodes._common import ParamSpec, declare_params, run_node, watch_duplicates
+from redarm_ros.nodes._common import ParamNode, ParamSpec, run_node, watch_duplicates
 
 NODE_NAME = "can_driver"
 DIAGNOSTICS_PERIOD_S = 0.5
@@ -194,7 +193,7 @@ def _duration_s(d: Any) -> float:
     return float(d.sec) + float(d.nanosec) * 1e-9
 
 
-class CanDriverNode(Node):
+class CanDriverNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
     """The ``can_driver`` node (importable for in-process tests; see the module docstring).
 
     The constructor only wires (parameters, topics, services, timers); the CAN cycle starts from a
@@ -203,11 +202,7 @@ class CanDriverNode(Node):
     is called with it (``main()`` uses that to end the process with exit code 1).
     """
 
-    def __init__(self, *, context: Any = None, parameter_overrides: list[Any] | None = None,
-                 node_name: str = NODE_NAME, namespace: str | None = None) -> None:
-        super().__init__(node_name, namespace=namespace, context=context,
-                         parameter_overrides=parameter_overrides or [])
-        p = declare_params(self, PARAMS)
+    def _setup(self, p: dict[str, Any]) -> None:
         try:
             self.arm = load_arm(p["arm"])
         except (RedarmError, OSError) as exc:

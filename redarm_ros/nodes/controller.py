@@ -40,7 +40,6 @@ from typing import Any
 import numpy as np
 from builtin_interfaces.msg import Duration, Time
 from geometry_msgs.msg import Point, PoseStamped, TwistStamped
-from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile
 from redarm_interfaces.msg import ControllerState
@@ -68,9 +67,9 @@ from redarm_ros.errors import InvalidInputError, RedarmError
 from redarm_ros.kinematics import load_arm
 from redarm_ros.kinematics.quaternion import matrix_to_quat, quat_to_matrix
 from redarm_ros.nodes._common import (
+    ParamNode,
     ParamSpec,
     UniqueNameCheck,
-    declare_params,
     in_range,
     non_negative,
     pose_msg_to_matrix,
@@ -228,14 +227,10 @@ def _pt(v: Sequence[float]) -> Point:
 # ----------------------------------------------------------------------------------------------
 # The node
 # ----------------------------------------------------------------------------------------------
-class ControllerNode(Node):
+class ControllerNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
     """``controller``: attractor-dynamics reaching (see the module docstring for topics)."""
 
-    def __init__(self, *, context: Any = None, parameter_overrides: list[Any] | None = None,
-                 node_name: str = NODE_NAME, namespace: str | None = None) -> None:
-        super().__init__(node_name, namespace=namespace, context=context,
-                         parameter_overrides=parameter_overrides or [])
-        p = declare_params(self, PARAMS)
+    def _setup(self, p: dict[str, Any]) -> None:
         try:
             self.arm = load_arm(p["arm"])
             self.base_scene = load_scene(p["scene"]) if p["scene"] else Scene()

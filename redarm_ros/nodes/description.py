@@ -19,16 +19,15 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
 from redarm_ros.errors import RedarmError
 from redarm_ros.kinematics import load_arm
 from redarm_ros.nodes._common import (
+    ParamNode,
     ParamSpec,
     UniqueNameCheck,
-    declare_params,
     non_negative,
     run_node,
     watch_duplicates,
@@ -125,21 +124,10 @@ def summarize(urdf: str) -> DescriptionSummary:
     )
 
 
-class DescriptionNode(Node):
+class DescriptionNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
     """``description``: publishes the URDF once on ``robot_description`` (transient local)."""
 
-    def __init__(
-        self,
-        *,
-        context: Any = None,
-        parameter_overrides: list[Any] | None = None,
-        node_name: str = NODE_NAME,
-        namespace: str | None = None,
-    ) -> None:
-        super().__init__(
-            node_name, namespace=namespace, context=context, parameter_overrides=parameter_overrides or []
-        )
-        p = declare_params(self, PARAMS)
+    def _setup(self, p: dict[str, Any]) -> None:
         self.urdf = robot_description(p["arm"], p["prefix"], p["urdf_file"])
         self.summary = summarize(self.urdf)
         self.name_check = UniqueNameCheck(self, p["duplicate_check_s"])  # a timer: no blocking here

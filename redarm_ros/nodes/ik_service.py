@@ -27,7 +27,6 @@ import math
 from collections.abc import Sequence
 from typing import Any
 
-from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from redarm_interfaces.srv import SolveIK
 from trajectory_msgs.msg import JointTrajectoryPoint
@@ -37,9 +36,9 @@ from redarm_ros.kinematics import load_arm
 from redarm_ros.kinematics.result import IKStatus
 from redarm_ros.kinematics.solve import IKAnswer, IKFrontEnd
 from redarm_ros.nodes._common import (
+    ParamNode,
     ParamSpec,
     UniqueNameCheck,
-    declare_params,
     non_negative,
     pose_msg_to_matrix,
     positive,
@@ -152,21 +151,10 @@ PARAMS = [
 # ----------------------------------------------------------------------------------------------
 # The node
 # ----------------------------------------------------------------------------------------------
-class IKServiceNode(Node):
+class IKServiceNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
     """``ik_service``: serves ``~/solve_ik`` (redarm_interfaces/srv/SolveIK) for the configured arms."""
 
-    def __init__(
-        self,
-        *,
-        context: Any = None,
-        parameter_overrides: list[Any] | None = None,
-        node_name: str = NODE_NAME,
-        namespace: str | None = None,
-    ) -> None:
-        super().__init__(
-            node_name, namespace=namespace, context=context, parameter_overrides=parameter_overrides or []
-        )
-        p = declare_params(self, PARAMS)
+    def _setup(self, p: dict[str, Any]) -> None:
         arms: dict[str, Any] = {}
         for name in p["arms"]:
             try:

@@ -33,7 +33,6 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from rclpy.action import ActionClient
-from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile
 from redarm_interfaces.action import Reach
 from redarm_interfaces.msg import ControllerState
@@ -42,7 +41,7 @@ from std_msgs.msg import String
 from visualization_msgs.msg import Marker, MarkerArray
 
 from redarm_ros.errors import InvalidInputError, RedarmError
-from redarm_ros.nodes._common import ParamSpec, declare_params, in_range, positive, run_node
+from redarm_ros.nodes._common import ParamNode, ParamSpec, in_range, positive, run_node
 from redarm_ros.view.urdf_model import UrdfModel, model_for_arm
 from redarm_ros.view.viewer import ArmViewer, MarkerSpec, RateMeter, Status, scene_markers
 
@@ -84,14 +83,10 @@ def marker_spec(m: Marker) -> MarkerSpec:
                       (m.color.r, m.color.g, m.color.b, m.color.a), pts)
 
 
-class ViewNode(Node):
+class ViewNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
     """``view``: ROS topics in, a viser page out (see the module docstring)."""
 
-    def __init__(self, *, context: Any = None, parameter_overrides: list[Any] | None = None,
-                 node_name: str = NODE_NAME, namespace: str | None = None) -> None:
-        super().__init__(node_name, namespace=namespace, context=context,
-                         parameter_overrides=parameter_overrides or [])
-        p = declare_params(self, PARAMS)
+    def _setup(self, p: dict[str, Any]) -> None:
         import viser  # here, not at import time: `--help` and the package tests need no web server
 
         try:

@@ -20,13 +20,14 @@ Quaternions at this API are pybullet's order (x, y, z, w); units SI, rad.
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
 import math
 import os
 import sys
 import tempfile
 import threading
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -92,6 +93,18 @@ def connect(gui: bool = False) -> int:
     return int(cid)
 
 
+def _under_plant_lock(method: Callable[..., Any]) -> Callable[..., Any]:
+    """A :class:`JointPlant` method that runs the :class:`JointRamp` ``method`` on the joint's ramp
+    under :attr:`PybulletPlant.lock`."""
+
+    @functools.wraps(method)
+    def call(self: JointPlant, *args: Any, **kwargs: Any) -> Any:
+        with self._plant.lock:
+            return method(self.ramp, *args, **kwargs)
+
+    return call
+
+
 class JointPlant:
     """One joint seen as a PowerCube module's plant. Thread-safe; never calls pybullet.
 
@@ -107,16 +120,8 @@ class JointPlant:
         """The setpoint generator (read it under :attr:`PybulletPlant.lock`)."""
         return self._plant._ramps[self.index]
 
-    def command_position(
-        self,
-        target: float,
-        vel_limit: float | None = None,
-        acc_limit: float | None = None,
-        duration_s: float | None = None,
-    ) -> None:
-        """Move to ``target`` (rad) within the limits; ``duration_s`` > 0 caps speed at distance/duration."""
-        with self._plant.lock:
-            self.ramp.command_position(target, vel_limit, acc_limit, duration_s)
+    # JointRamp.command_position (same arguments and doc), under the plant lock.
+    command_position = _under_plant_lock(JointRamp.command_position)
 
     def command_velocity(self, velocity: float, acc_limit: float | None = None) -> None:
         """Ramp to ``velocity`` (rad/s); the setpoint brakes to rest before a joint limit."""

@@ -39,7 +39,7 @@ class Visual:
 
 
 @dataclass(frozen=True)
-class Joint:
+class Joint:  # test/urdf_chain.py keeps its own URDF reader on purpose: an independent oracle
     """A URDF joint: ``origin`` 4x4 parent -> joint frame at zero, unit ``axis`` in the joint frame."""
 
     name: str

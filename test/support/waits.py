@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-
-from support.benches import load_bench
+from typing import Any
 
 
 def wait_until(pred: Callable[[], object], timeout: float = 5.0, step: float = 0.01) -> bool:
@@ -18,5 +17,9 @@ def wait_until(pred: Callable[[], object], timeout: float = 5.0, step: float = 0
     return bool(pred())
 
 
-# Spin an rclpy executor until a predicate holds: the benches' loop, one copy for both.
-spin_until = load_bench("bench_common").spin_until
+def spin_until(ex: Any, pred: Callable[[], object], timeout: float, spin_s: float = 0.02) -> bool:
+    """Spin the rclpy executor ``ex`` (``spin_s`` s per turn) until ``pred`` is true or ``timeout``
+    s have passed."""
+    from redarm_ros.nodes._common import spin_until as spin  # the runtime's own (needs rclpy)
+
+    return spin(ex, pred, timeout, spin_s)
