@@ -1,20 +1,27 @@
-"""Pieces every benchmark shares: the plot module, the load-average line and the results writer.
+"""Pieces every benchmark shares: the plot module, the load-average line, the results writer, the
+tool-down goal pose and the ramped arc-length timing of a path (the last two used by the tests too,
+through test/support).
 
 The benches import this module as ``bench_common`` after putting their own folder on ``sys.path``
-(the tests load benches by file path, without benchmarks/ on ``sys.path``).
+(the tests load benches, and this module, by file path, without benchmarks/ on ``sys.path``; it
+imports nothing of the other benches).
 """
 
 from __future__ import annotations
 
 import importlib.util
+import math
 import os
 import platform
 import sys
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from types import ModuleType
 from typing import Any
+
+import numpy as np
 
 _PLOTS = "redarm_bench_plots"
 
@@ -28,6 +35,46 @@ def plots() -> ModuleType:
         spec.loader.exec_module(mod)
         sys.modules[_PLOTS] = mod
     return sys.modules[_PLOTS]
+
+
+def pose_down(p: Any, yaw: float = 0.0) -> np.ndarray:
+    """4x4 tool pose at ``p`` with the tool z axis pointing down, turned by ``yaw`` about the vertical."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    T = np.eye(4)
+    T[:3, :3] = np.array([[c, s, 0.0], [s, -c, 0.0], [0.0, 0.0, -1.0]])
+    T[:3, 3] = p
+    return T
+
+
+def add_plot_dir(ap: Any) -> None:
+    """The ``--plot-dir`` option of a bench that draws its results (argparse parser ``ap``)."""
+    ap.add_argument("--plot-dir", type=Path, default=None,
+                    help="write the PNG plots here (default: beside the results file when it is written)")
+
+
+def doc_header(title: str, doc: str) -> list[str]:
+    """The opening lines of a results file: ``title`` and the bench's docstring up to its usage."""
+    return [title, "", doc.split("    .venv/bin/python")[0].strip(), ""]
+
+
+def ramp_arc(length: float, v: float, t_ramp: float = 0.5) -> tuple[Callable[[float], float], float]:
+    """Arc length s(t) for a cruise at ``v`` with smooth (smoothstep-speed) ramps at both ends, and the
+    duration: the timing of track_bench's paths and of test/test_control_tracking.py's circle."""
+    d_ramp = 0.5 * v * t_ramp
+    t_cruise = max(length - 2.0 * d_ramp, 0.0) / v
+    total = 2.0 * t_ramp + t_cruise
+
+    def s_of(t: float) -> float:
+        t = min(max(t, 0.0), total)
+        if t < t_ramp:
+            x = t / t_ramp
+            return v * t_ramp * (x**3 - 0.5 * x**4)
+        if t < t_ramp + t_cruise:
+            return d_ramp + v * (t - t_ramp)
+        x = (total - t) / t_ramp
+        return length - v * t_ramp * (x**3 - 0.5 * x**4)
+
+    return s_of, total
 
 
 def load_line(load0: tuple[float, float, float], t0: float) -> str:

@@ -303,8 +303,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rates", default="250,500", help="comma list of cycle rates (Hz)")
     ap.add_argument("--modes", default="core,node", help="comma list: core, node")
     ap.add_argument("--no-write", action="store_true", help="do not write the results file")
-    ap.add_argument("--plot-dir", type=Path, default=None,
-                    help="write the PNG plots here (default: beside the results file when it is written)")
+    bench_common.add_plot_dir(ap)
     args = ap.parse_args(argv)
     seconds = 5.0 if args.quick else args.seconds
     rates = [float(r) for r in args.rates.split(",") if r]

@@ -36,24 +36,12 @@ from pathlib import Path
 
 import numpy as np
 
-from redarm_ros.control.obstacles import (
-    ArmCapsules,
-    Box,
-    Cylinder,
-    Scene,
-    Sphere,
-    links_clearance,
-    min_distance,
-)
+from redarm_ros.control import obstacles as ob
+from redarm_ros.control.obstacles import ArmCapsules, Scene, links_clearance, min_distance
 from redarm_ros.control.reach_controller import ControllerParams, ReachController
 from redarm_ros.control.simulate import ReachMetrics, evaluate, run_controller
 from redarm_ros.kinematics import load_arm
-from redarm_ros.kinematics.quaternion import (
-    quat_from_matrix,
-    quat_from_rotvec,
-    quat_mul,
-    rotvec_between,
-)
+from redarm_ros.kinematics.quaternion import quat_from_matrix, quat_from_rotvec, quat_mul, rotvec_between
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench_common, also when loaded by path
 import bench_common  # noqa: E402
@@ -64,15 +52,6 @@ V_MAX = 0.4  # m/s, same cap for every method
 RESULTS = Path(__file__).resolve().parent / "results" / "reach_bench.md"
 QUICK_SCENES = 6
 Q_HOME = np.array([0.0, 0.5, 0.0, 1.5, 0.0, 1.0, 0.0])
-
-
-def pose(p: np.ndarray, yaw: float) -> np.ndarray:
-    """Tool pose at ``p`` with the tool z axis pointing down and yaw ``yaw`` about the vertical."""
-    c, s = math.cos(yaw), math.sin(yaw)
-    T = np.eye(4)
-    T[:3, :3] = np.array([[c, s, 0.0], [s, -c, 0.0], [0.0, 0.0, -1.0]])
-    T[:3, 3] = p
-    return T
 
 
 @dataclass
@@ -115,8 +94,8 @@ def make_case(arm, seed: int, caps: ArmCapsules) -> Case:
         dxy = np.linalg.norm((pg - ps)[:2])
         if dxy < 0.3 or np.linalg.norm(pg[:2]) < 0.3 or np.linalg.norm(ps[:2]) < 0.25:
             continue
-        Ts = pose(ps, rng.uniform(-0.6, 0.6))
-        Tg = pose(pg, rng.uniform(-0.6, 0.6))
+        Ts = bench_common.pose_down(ps, rng.uniform(-0.6, 0.6))
+        Tg = bench_common.pose_down(pg, rng.uniform(-0.6, 0.6))
         q0 = _start_q(arm, Ts, rng, Scene((), 0.0), caps)
         if q0 is None:
             continue
@@ -132,14 +111,14 @@ def make_case(arm, seed: int, caps: ArmCapsules) -> Case:
             kind = rng.choice(["cylinder", "box", "sphere"])
             if kind == "cylinder":
                 r, h = rng.uniform(0.03, 0.06), rng.uniform(0.08, 0.22)
-                obstacles.append(Cylinder((c_xy[0], c_xy[1], h / 2), r, h, f"cyl{_k}"))
+                obstacles.append(ob.Cylinder((c_xy[0], c_xy[1], h / 2), r, h, f"cyl{_k}"))
             elif kind == "box":
                 sx, sy, h = rng.uniform(0.05, 0.12), rng.uniform(0.05, 0.12), rng.uniform(0.08, 0.22)
                 yaw = rng.uniform(-1.5, 1.5)
-                obstacles.append(Box((c_xy[0], c_xy[1], h / 2), (sx, sy, h), yaw, f"box{_k}"))
+                obstacles.append(ob.Box((c_xy[0], c_xy[1], h / 2), (sx, sy, h), yaw, f"box{_k}"))
             else:
                 r = rng.uniform(0.04, 0.07)
-                obstacles.append(Sphere((c_xy[0], c_xy[1], r), r, f"ball{_k}"))
+                obstacles.append(ob.Sphere((c_xy[0], c_xy[1], r), r, f"ball{_k}"))
         scene = Scene(tuple(obstacles), 0.0, f"bench{seed}")
         # Keep scenes where the start is free and the goal acceptable.
         if min_distance(arm, q0, scene, caps).distance < 0.02:
@@ -269,8 +248,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--append", action="store_true",
                     help="append the table as a new section of the results file (keep what is there)")
     ap.add_argument("--verbose", action="store_true", help="one line per scene and method")
-    ap.add_argument("--plot-dir", type=Path, default=None,
-                    help="write the PNG plots here (default: beside the results file when it is written)")
+    bench_common.add_plot_dir(ap)
     args = ap.parse_args(argv)
     if args.quick:
         args.scenes = QUICK_SCENES

@@ -36,15 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from redarm_ros.control.obstacles import (
-    ArmCapsules,
-    Box,
-    Cylinder,
-    Scene,
-    Sphere,
-    load_scene,
-    min_distance,
-)
+from redarm_ros.control.obstacles import ArmCapsules, Box, Cylinder, Scene, Sphere, load_scene, min_distance
 from redarm_ros.control.reach_controller import Phase, ReachController
 from redarm_ros.kinematics import load_arm
 
@@ -327,19 +319,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--stack", action="store_true", help="also a short sequence through the whole stack")
     ap.add_argument("--stack-only", action="store_true", help="only the sequence through the stack")
     ap.add_argument("--verbose", action="store_true")
-    ap.add_argument("--plot-dir", type=Path, default=None,
-                    help="write the PNG plots here (default: beside the results file when it is written)")
+    bench_common.add_plot_dir(ap)
     args = ap.parse_args(argv)
     if args.quick:
         args.sequences, args.goals = 2, 5
     arm = load_arm("pa10")
 
-    header = [
-        "# Sequence benchmark (`benchmarks/sequence_bench.py`)",
-        "",
-        __doc__.split("    .venv/bin/python")[0].strip(),
-        "",
-    ]
+    header = bench_common.doc_header("# Sequence benchmark (`benchmarks/sequence_bench.py`)", __doc__)
     sections: dict[str, list[str]] = {}
     if not args.stack_only:
         load0, t0 = os.getloadavg(), time.time()

@@ -48,7 +48,9 @@ import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -90,36 +92,17 @@ class PathDef:
     q0: np.ndarray | None = None  # start posture (default: where the controller settles at the start)
 
 
-def _ramp_arc(length: float, v: float, t_ramp: float = 0.5) -> tuple[Callable[[float], float], float]:
-    """Arc length s(t) for a cruise at ``v`` with smooth (smoothstep-speed) ramps at both ends."""
-    d_ramp = 0.5 * v * t_ramp
-    t_cruise = max(length - 2.0 * d_ramp, 0.0) / v
-    total = 2.0 * t_ramp + t_cruise
-
-    def s_of(t: float) -> float:
-        t = min(max(t, 0.0), total)
-        if t < t_ramp:
-            x = t / t_ramp
-            return v * t_ramp * (x**3 - 0.5 * x**4)
-        if t < t_ramp + t_cruise:
-            return d_ramp + v * (t - t_ramp)
-        x = (total - t) / t_ramp
-        return length - v * t_ramp * (x**3 - 0.5 * x**4)
-
-    return s_of, total
-
-
 def _curve_path(
     name: str,
     curve: Callable[[float], np.ndarray],
     v: float,
     rot: Callable[[float], np.ndarray] | None = None,
 ) -> PathDef:
-    """A closed or open curve ``curve(u)``, u in [0, 1], traversed with :func:`_ramp_arc`."""
+    """A closed or open curve ``curve(u)``, u in [0, 1], traversed with ``bench_common.ramp_arc``."""
     u = np.linspace(0.0, 1.0, 4001)
     pts = np.array([curve(x) for x in u])
     arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
-    s_of, total = _ramp_arc(float(arc[-1]), v)
+    s_of, total = bench_common.ramp_arc(float(arc[-1]), v)
 
     def pose(t: float) -> np.ndarray:
         s = s_of(t)
@@ -330,40 +313,40 @@ def run_method(method: str, arm, path: PathDef, msgs: list[Message], q0: np.ndar
     steps: list[float] = []
     phases: set[str] = set()
     notes: set[str] = set()
-    mi = 0
+    deliver: Callable[[np.ndarray, float, float], None]
+    step: Callable[[float], Any]
+    record: Callable[[Any], None]
     if method == "dls":
         dls = DLSServo(arm)
         dls.reset(q0)
-        for k in range(1, n + 1):
-            t = k * DT
-            while mi < len(msgs) and msgs[mi].arrive <= t + 1e-9:
-                m = msgs[mi]
-                dls.message(path.pose(m.t), m.stamp, m.arrive)
-                mi += 1
-            t0 = time.perf_counter()
-            rows.append(dls.step(t))
-            steps.append(time.perf_counter() - t0)
-            times.append(t)
-        return Run(np.array(rows), np.array(times), steps, {"-"}, set())
-    params = ControllerParams()
-    if method == "point":  # every message a new point goal (no stream)
-        params = params.with_(stream=StreamParams(gap=1e-6))
-    ctl = ReachController(arm, path.scene, params)
-    ctl.reset(q0, now=0.0)
+        deliver, step, record = dls.message, dls.step, rows.append
+        phases.add("-")
+    else:
+        params = ControllerParams()
+        if method == "point":  # every message a new point goal (no stream)
+            params = params.with_(stream=StreamParams(gap=1e-6))
+        ctl = ReachController(arm, path.scene, params)
+        ctl.reset(q0, now=0.0)
+
+        def record(r: Any) -> None:
+            rows.append(r.q)
+            phases.add(r.phase.value)
+            if r.message:
+                notes.add(r.message.split(":")[0])
+
+        deliver, step = ctl.goal_message, partial(ctl.step, DT)
+    mi = 0
     for k in range(1, n + 1):
         t = k * DT
         while mi < len(msgs) and msgs[mi].arrive <= t + 1e-9:
             m = msgs[mi]
-            ctl.goal_message(path.pose(m.t), m.stamp, m.arrive)
+            deliver(path.pose(m.t), m.stamp, m.arrive)
             mi += 1
         t0 = time.perf_counter()
-        r = ctl.step(DT, t)
+        r = step(t)
         steps.append(time.perf_counter() - t0)
-        rows.append(r.q)
+        record(r)
         times.append(t)
-        phases.add(r.phase.value)
-        if r.message:
-            notes.add(r.message.split(":")[0])
     return Run(np.array(rows), np.array(times), steps, phases, notes)
 
 
@@ -538,15 +521,9 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--stack-repeats", type=int, default=1, help="stack runs per command timing (default 1)")
     ap.add_argument("--verbose", action="store_true")
-    ap.add_argument("--plot-dir", type=Path, default=None,
-                    help="write the PNG plots here (default: beside the results file when it is written)")
+    bench_common.add_plot_dir(ap)
     args = ap.parse_args(argv)
-    header = [
-        "# Track benchmark (`benchmarks/track_bench.py`)",
-        "",
-        __doc__.split("    .venv/bin/python")[0].strip(),
-        "",
-    ]
+    header = bench_common.doc_header("# Track benchmark (`benchmarks/track_bench.py`)", __doc__)
     sections: dict[str, list[str]] = {}
     if args.chain:
         load0, t0 = os.getloadavg(), time.time()
@@ -668,12 +645,9 @@ class StackClient:
         return self.node.get_clock().now().nanoseconds * 1e-9
 
     def spin_until(self, cond: Callable[[], bool], timeout: float) -> bool:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            self.ex.spin_once(timeout_sec=0.002)
-            if cond():
-                return True
-        return False
+        from redarm_ros.nodes._common import spin_until  # needs rclpy, as this client does
+
+        return spin_until(self.ex, cond, timeout, 0.002)
 
     def halts(self) -> int:
         return sum("HALTED:" in line for line in self._lines)
@@ -842,24 +816,10 @@ def _stack_row(
 ) -> str:
     ts = np.array([t for t, _ in series])
     ps = np.array([p for _, p in series])
-    live = (ts >= 0.0) & (ts <= path.duration)
-    ref = np.array([path.pose(min(max(t, 0.0), path.duration))[:3, 3] for t in ts])
-    err = np.linalg.norm(ps - ref, axis=1) * 1e3
-    e = err[live]
-    best = (math.inf, 0.0)
-    for tau in np.arange(-0.05, 0.301, 0.002):
-        sh = np.array([path.pose(min(max(t - tau, 0.0), path.duration))[:3, 3] for t in ts[live]])
-        m = float(np.mean(np.linalg.norm(ps[live] - sh, axis=1)))
-        if m < best[0]:
-            best = (m, tau)
-    end = path.pose(path.duration)[:3, 3]
-    u = end - path.pose(path.duration - 0.3)[:3, 3]
-    after = ps[ts > path.duration]
-    over = max(0.0, float(np.max((after - end) @ (u / np.linalg.norm(u))))) * 1e3 if len(after) else math.nan
-    final = float(np.linalg.norm(ps[-1] - end)) * 1e3
+    e, lag, over, final = _series_scores(path, ts, ps, lag_samples=None)
     return (
-        f"| {path.name} | 50 | {commands} | {name} | {int(live.sum())} | {np.median(e):.2f} | "
-        f"{np.percentile(e, 95):.2f} | {np.max(e):.2f} | {best[1] * 1e3:.0f} | {over:.2f} | {final:.2f} | "
+        f"| {path.name} | 50 | {commands} | {name} | {len(e)} | {np.median(e):.2f} | "
+        f"{np.percentile(e, 95):.2f} | {np.max(e):.2f} | {lag:.0f} | {over:.2f} | {final:.2f} | "
         f"{halts} | {load:.1f} |"
     )
 
@@ -898,14 +858,19 @@ def chain_section() -> tuple[str, list[str]]:
     return title, out
 
 
-def _series_scores(path: PathDef, ts: np.ndarray, ps: np.ndarray) -> tuple[np.ndarray, float, float, float]:
+def _series_scores(
+    path: PathDef, ts: np.ndarray, ps: np.ndarray, lag_samples: int | None = 400
+) -> tuple[np.ndarray, float, float, float]:
     """Errors (mm) while the stream runs, lag (ms), overshoot at the stop (mm), final error (mm) of a
-    timed series of tool positions."""
+    timed series of tool positions; the lag is fitted on about ``lag_samples`` of the running samples
+    (None: all of them)."""
     live = (ts >= 0.0) & (ts <= path.duration)
     ref = np.array([path.pose(min(max(t, 0.0), path.duration))[:3, 3] for t in ts])
     e = np.linalg.norm(ps - ref, axis=1)[live] * 1e3
     best = (math.inf, 0.0)
-    sub = np.flatnonzero(live)[:: max(1, int(live.sum() // 400))]
+    sub = np.flatnonzero(live)
+    if lag_samples is not None:
+        sub = sub[:: max(1, int(live.sum() // lag_samples))]
     for tau in np.arange(-0.05, 0.301, 0.002):
         sh = np.array([path.pose(min(max(ts[i] - tau, 0.0), path.duration))[:3, 3] for i in sub])
         m = float(np.mean(np.linalg.norm(ps[sub] - sh, axis=1)))

@@ -128,6 +128,13 @@ def make_driver(bus: can.BusABC, clock: Callable[[], float] = time.perf_counter,
     return PowerCubeArmDriver(bus, IDS, LOWER, UPPER, VMAX, AMAX, clock=clock, **kw)
 
 
+def ready_driver(bus: can.BusABC, clock: Callable[[], float] = time.perf_counter, **kw) -> PowerCubeArmDriver:
+    """``make_driver``, initialised without homing (READY at the emulated modules' positions)."""
+    drv = make_driver(bus, clock, **kw)
+    drv.init(home=False)
+    return drv
+
+
 # ------------------------------------------------------------------------------------------------
 # Scripted: discovery, init, the cycle byte by byte
 # ------------------------------------------------------------------------------------------------
@@ -135,14 +142,11 @@ def make_driver(bus: can.BusABC, clock: Callable[[], float] = time.perf_counter,
 
 def test_discovery_reports_a_missing_module(clock: FakeClock, arm: EmulatedArm) -> None:
     arm[3].silenced = True
-    bus = ScriptedBus(clock, arm.handle)
-    try:
+    with ScriptedBus(clock, arm.handle) as bus:
         report = make_driver(bus, clock).discover()
         assert report.found == {1: 0x0D1A, 2: 0x0D1A} and report.missing == [3] and not report.complete
         # the scan, then one retry for the silent id, as the vendor library's GETPARAM DEF_VERSION
         assert bus.take() == [(0x0C1, "0a 1d"), (0x0C2, "0a 1d"), (0x0C3, "0a 1d"), (0x0C3, "0a 1d")]
-    finally:
-        bus.shutdown()
 
 
 def test_init_configures_resets_homes_and_holds(scripted: ScriptedBus, arm: EmulatedArm, clock) -> None:
@@ -163,18 +167,14 @@ def test_init_configures_resets_homes_and_holds(scripted: ScriptedBus, arm: Emul
 
 def test_init_with_a_missing_module_raises_timeout(clock: FakeClock, arm: EmulatedArm) -> None:
     arm[2].silenced = True
-    bus = ScriptedBus(clock, arm.handle)
-    try:
+    with ScriptedBus(clock, arm.handle) as bus:
         with pytest.raises(BusTimeoutError) as info:
             make_driver(bus, clock).init()
         assert info.value.module_id == 2
-    finally:
-        bus.shutdown()
 
 
 def test_cycle_frames_byte_by_byte(scripted: ScriptedBus, clock: FakeClock) -> None:
-    drv = make_driver(scripted, clock, watchdog_refresh=True)
-    drv.init(home=False)
+    drv = ready_driver(scripted, clock, watchdog_refresh=True)
     scripted.take()
     q = np.array([0.201, -0.098, 0.003])
     res = drv.cycle(q, 0.004)
@@ -193,8 +193,7 @@ def test_cycle_frames_byte_by_byte(scripted: ScriptedBus, clock: FakeClock) -> N
 
 
 def test_cycle_duration_is_rounded_to_ms(scripted: ScriptedBus, clock: FakeClock) -> None:
-    drv = make_driver(scripted, clock)
-    drv.init(home=False)
+    drv = ready_driver(scripted, clock)
     scripted.take()
     drv.cycle(None, 0.0104)
     assert scripted.take()[0][1].endswith("0a 00")  # 10 ms
@@ -203,8 +202,7 @@ def test_cycle_duration_is_rounded_to_ms(scripted: ScriptedBus, clock: FakeClock
 
 
 def test_nan_target_is_refused_before_anything_is_sent(scripted: ScriptedBus, clock: FakeClock) -> None:
-    drv = make_driver(scripted, clock)
-    drv.init(home=False)
+    drv = ready_driver(scripted, clock)
     scripted.take()
     for bad in ([0.0, math.nan, 0.0], [0.0, 0.0, math.inf], [0.0, 0.0]):
         with pytest.raises(InvalidInputError):
@@ -215,8 +213,7 @@ def test_nan_target_is_refused_before_anything_is_sent(scripted: ScriptedBus, cl
 
 
 def test_targets_clamped_to_limits_and_speed(scripted: ScriptedBus, clock: FakeClock) -> None:
-    drv = make_driver(scripted, clock)
-    drv.init(home=False)
+    drv = ready_driver(scripted, clock)
     res = drv.cycle([0.2, -0.1, 9.0], 0.01)  # joint 3: beyond the limit, and a 1.5 rad jump
     assert res.clamped == (2,)
     assert res.clamped_to_limits.tolist() == [False, False, True]
@@ -229,18 +226,15 @@ def test_targets_clamped_to_limits_and_speed(scripted: ScriptedBus, clock: FakeC
 
 
 def test_hold_when_no_target(scripted: ScriptedBus, clock: FakeClock) -> None:
-    drv = make_driver(scripted, clock)
-    drv.init(home=False)
+    drv = ready_driver(scripted, clock)
     drv.cycle([0.21, -0.1, 0.0], 0.01)
     res = drv.cycle(None, 0.01)
     assert res.targets == pytest.approx([0.21, -0.1, 0.0])
 
 
 def test_latency_and_velocity_on_the_fake_clock(clock: FakeClock, arm: EmulatedArm) -> None:
-    bus = ScriptedBus(clock, arm.handle, delay_s=0.0005)  # every reply arrives 0.5 ms later
-    try:
-        drv = make_driver(bus, clock)
-        drv.init(home=False)
+    with ScriptedBus(clock, arm.handle, delay_s=0.0005) as bus:  # every reply arrives 0.5 ms later
+        drv = ready_driver(bus, clock)
         results = []
         for k in range(40):  # joint 1 ramps at 0.01 rad per cycle
             res = drv.cycle([0.2 + 0.01 * k, -0.1, 0.0], 0.01)
@@ -254,8 +248,6 @@ def test_latency_and_velocity_on_the_fake_clock(clock: FakeClock, arm: EmulatedA
         assert res.velocities == pytest.approx(v)
         assert res.velocities[0] == pytest.approx(1.0, rel=0.01)  # catching up at ACT_FMAXVEL
         assert res.velocities[1] == pytest.approx(0.0, abs=1e-6)
-    finally:
-        bus.shutdown()
 
 
 # ------------------------------------------------------------------------------------------------
@@ -268,8 +260,7 @@ def _halts(sent: list[tuple[int, str]]) -> list[tuple[int, str]]:
 
 
 def test_silenced_module_halts_all_and_raises_once(scripted: ScriptedBus, arm: EmulatedArm, clock) -> None:
-    drv = make_driver(scripted, clock, max_missed=3)
-    drv.init(home=False)
+    drv = ready_driver(scripted, clock, max_missed=3)
     drv.cycle(None, 0.004)
     scripted.take()
     arm[2].silenced = True
@@ -296,8 +287,7 @@ def test_silenced_module_halts_all_and_raises_once(scripted: ScriptedBus, arm: E
 
 
 def test_module_error_halts_all_and_reports_cause(scripted: ScriptedBus, arm: EmulatedArm, clock) -> None:
-    drv = make_driver(scripted, clock)
-    drv.init(home=False)
+    drv = ready_driver(scripted, clock)
     drv.cycle([0.3, -0.1, 0.0], 0.004)
     with arm.lock:
         arm[1].inject_fault(S.POWERFAULT)
@@ -319,8 +309,7 @@ def test_module_error_halts_all_and_reports_cause(scripted: ScriptedBus, arm: Em
 
 
 def test_tow_error_state_frame_is_a_fault(scripted: ScriptedBus, clock: FakeClock) -> None:
-    drv = make_driver(scripted, clock)
-    drv.init(home=False)
+    drv = ready_driver(scripted, clock)
     scripted.inject(p.state_frame(3, S.ERROR | S.TOW_ERROR))  # unsolicited, before the cycle
     res = drv.cycle(None, 0.004)
     assert res.fault.bits == {3: S.ERROR | S.TOW_ERROR} and "TOW_ERROR" in str(res.fault)
@@ -330,10 +319,8 @@ def test_tow_error_state_frame_is_a_fault(scripted: ScriptedBus, clock: FakeCloc
 def test_soft_limit_refusal_is_reported(clock: FakeClock) -> None:
     # Module soft limits tighter than the driver's: the module refuses, the driver reports.
     arm = EmulatedArm.kinematic([-0.5] * N, [0.5] * N, [2.0] * N, [20.0] * N, clock=clock)
-    bus = ScriptedBus(clock, arm.handle)
-    try:
-        drv = make_driver(bus, clock)
-        drv.init(home=False)
+    with ScriptedBus(clock, arm.handle) as bus:
+        drv = ready_driver(bus, clock)
         for k in range(1, 100):
             res = drv.cycle([min(0.01 * k, 1.0), 0.0, 0.0], 0.01)
             clock.t += 0.01
@@ -343,8 +330,6 @@ def test_soft_limit_refusal_is_reported(clock: FakeClock) -> None:
         assert arm.positions()[0] <= 0.5
         drv.recover()  # RESET clears BEYOND_SOFT; the module is inside its limits again
         assert drv.state is DriverState.READY
-    finally:
-        bus.shutdown()
 
 
 def forged_ack(module_id: int, position: float) -> can.Message:
@@ -361,18 +346,14 @@ def test_forged_reply_is_refused_and_the_genuine_one_taken(clock: FakeClock, arm
             out = [forged_ack(2, 1.4), *out]  # arrives first, 1.5 rad from where module 2 is
         return out
 
-    bus = ScriptedBus(clock, responder)
-    try:
-        drv = make_driver(bus, clock)
-        drv.init(home=False)
+    with ScriptedBus(clock, responder) as bus:
+        drv = ready_driver(bus, clock)
         forge["on"] = True
         res = drv.cycle(None, 0.004)
         assert res.implausible == 1 and res.replied.all() and res.fault is None
         assert res.positions[1] == pytest.approx(-0.1, abs=1e-6)  # the genuine reply, not 1.4
         assert drv.stats[1].implausible == 1 and drv.stats[1].last_implausible == pytest.approx(1.4)
         assert drv.state is DriverState.READY
-    finally:
-        bus.shutdown()
 
 
 def test_only_implausible_replies_are_a_fault(clock: FakeClock, arm: EmulatedArm) -> None:
@@ -382,10 +363,8 @@ def test_only_implausible_replies_are_a_fault(clock: FakeClock, arm: EmulatedArm
             return [forged_ack(3, 1.2)]  # module 3's encoder "jumps": every reply implausible
         return arm.handle(msg)
 
-    bus = ScriptedBus(clock, responder)
-    try:
-        drv = make_driver(bus, clock, max_missed=3)
-        drv.init(home=False)
+    with ScriptedBus(clock, responder) as bus:
+        drv = ready_driver(bus, clock, max_missed=3)
         faults = []
         for _ in range(3):
             res = drv.cycle(None, 0.004)
@@ -395,8 +374,6 @@ def test_only_implausible_replies_are_a_fault(clock: FakeClock, arm: EmulatedArm
         assert faults[2].kind is FaultKind.IMPLAUSIBLE and faults[2].module_ids == (3,)
         assert "implausible" in str(faults[2]) and drv.state is DriverState.FAULT
         assert all(arm[i].state() & S.HALTED for i in IDS)
-    finally:
-        bus.shutdown()
 
 
 def test_implausible_position_read_is_refused(clock: FakeClock, arm: EmulatedArm) -> None:
@@ -408,10 +385,8 @@ def test_implausible_position_read_is_refused(clock: FakeClock, arm: EmulatedArm
             return [p.get_param_reply(1, p.Param.ACT_FPOS, 2.5)]  # instead of the genuine reply
         return out
 
-    bus = ScriptedBus(clock, responder)
-    try:
-        drv = make_driver(bus, clock)
-        drv.init(home=False)
+    with ScriptedBus(clock, responder) as bus:
+        drv = ready_driver(bus, clock)
         mode["forge"] = True
         with pytest.raises(ImplausibleMeasurementError) as info:
             drv.read_state()
@@ -422,15 +397,11 @@ def test_implausible_position_read_is_refused(clock: FakeClock, arm: EmulatedArm
         mode["forge"] = True
         with pytest.raises(ImplausibleMeasurementError):
             drv.recover()
-    finally:
-        bus.shutdown()
 
 
 def test_recover_restores_what_a_power_cycled_module_lost(clock: FakeClock, arm: EmulatedArm) -> None:
-    bus = ScriptedBus(clock, arm.handle)
-    try:
-        drv = make_driver(bus, clock, enable_watchdog=True)
-        drv.init(home=False)
+    with ScriptedBus(clock, arm.handle) as bus:
+        drv = ready_driver(bus, clock, enable_watchdog=True)
         assert arm[2].config_bits & ActConfig.WATCHDOG_ENABLE
         # "Power cycle" module 2: factory configuration, factory limits, no watchdog.
         with arm.lock:
@@ -446,8 +417,6 @@ def test_recover_restores_what_a_power_cycled_module_lost(clock: FakeClock, arm:
         # The watchdog is armed again: without refreshes the module halts by itself.
         clock.t += 1.0
         assert arm[2].state() & S.COMM_ERROR
-    finally:
-        bus.shutdown()
 
 
 def test_every_frame_is_stamped_with_its_send_time(clock: FakeClock, arm: EmulatedArm) -> None:
@@ -457,30 +426,22 @@ def test_every_frame_is_stamped_with_its_send_time(clock: FakeClock, arm: Emulat
         stamps.append(msg.timestamp)
         return arm.handle(msg)
 
-    bus = ScriptedBus(clock, responder)
-    try:
-        drv = make_driver(bus, clock)
-        drv.init(home=False)
+    with ScriptedBus(clock, responder) as bus:
+        drv = ready_driver(bus, clock)
         t0 = time.time()
         drv.cycle(None, 0.004)
         assert stamps and all(abs(t - t0) < 60.0 for t in stamps[-N - 1:])
-    finally:
-        bus.shutdown()
 
 
 def test_a_flood_of_foreign_frames_does_not_stall_the_cycle(clock: FakeClock, arm: EmulatedArm) -> None:
-    bus = ScriptedBus(clock, arm.handle)
-    try:
-        drv = make_driver(bus, clock)
-        drv.init(home=False)
+    with ScriptedBus(clock, arm.handle) as bus:
+        drv = ready_driver(bus, clock)
         for k in range(5000):  # a backlog far larger than one drain reads
             bus.inject(can.Message(arbitration_id=0x123, data=[k % 256], is_extended_id=False))
         res = drv.cycle(None, 0.004)  # the drain stops early; the receive loop skips the rest
         while not res.replied.all():
             res = drv.cycle(None, 0.004)
         assert res.fault is None and drv.state is DriverState.READY
-    finally:
-        bus.shutdown()
 
 
 def test_recover_fails_while_a_fault_persists(clock: FakeClock, arm: EmulatedArm) -> None:
@@ -491,8 +452,7 @@ def test_recover_fails_while_a_fault_persists(clock: FakeClock, arm: EmulatedArm
                 arm[2].inject_fault(S.POWERFAULT)  # the cause is still there
         return out
 
-    bus = ScriptedBus(clock, responder)
-    try:
+    with ScriptedBus(clock, responder) as bus:
         drv = make_driver(bus, clock)
         with pytest.raises(ModuleFaultError) as info:
             drv.init(home=False)
@@ -500,8 +460,6 @@ def test_recover_fails_while_a_fault_persists(clock: FakeClock, arm: EmulatedArm
         with pytest.raises(ModuleFaultError):
             drv.recover()
         assert drv.state is DriverState.UNINITIALIZED
-    finally:
-        bus.shutdown()
 
 
 def test_malformed_and_late_frames_are_counted_and_ignored(clock: FakeClock, arm: EmulatedArm) -> None:
@@ -523,10 +481,8 @@ def test_malformed_and_late_frames_are_counted_and_ignored(clock: FakeClock, arm
             return []
         return out
 
-    bus = ScriptedBus(clock, responder)
-    try:
-        drv = make_driver(bus, clock, max_missed=5)
-        drv.init(home=False)
+    with ScriptedBus(clock, responder) as bus:
+        drv = ready_driver(bus, clock, max_missed=5)
         mode["garbage"] = True
         res = drv.cycle(None, 0.004)
         assert res.malformed == 2 and res.replied.all() and drv.stats[1].malformed == 2
@@ -538,15 +494,12 @@ def test_malformed_and_late_frames_are_counted_and_ignored(clock: FakeClock, arm
             bus.inject(m)
         res = drv.cycle(None, 0.004)
         assert res.late == 1 and res.replied.all() and drv.stats[2].late == 1
-    finally:
-        bus.shutdown()
 
 
 def test_bus_failure_then_resync_never_replays_the_old_target(
     scripted: ScriptedBus, clock: FakeClock
 ) -> None:
-    drv = make_driver(scripted, clock)
-    drv.init(home=False)
+    drv = ready_driver(scripted, clock)
     drv.cycle([0.25, -0.1, 0.0], 0.01)
     scripted.fail = OSError(32, "Broken pipe")
     with pytest.raises(BusError, match="CAN bus failed"):

@@ -26,6 +26,7 @@ def _msg(arb_id: int, data: bytes, **kw) -> can.Message:
 # ------------------------------------------------------------------------------------------------
 # Pinned vectors (id, data) byte by byte
 # ------------------------------------------------------------------------------------------------
+# One literal entry per frame, on purpose: these pin the wire format (entries of one kind look alike).
 
 PINNED = [
     # host -> module

@@ -80,13 +80,17 @@ def test_a_wrist_limit_sector_repels_the_swivel_and_the_target_attracts_it(arm) 
     assert r.target > 0.0 and abs(r.limits) < 1e-3 * r.target  # far away: the attractor dominates
 
 
-def test_bad_parameters_are_refused() -> None:
-    with pytest.raises(InvalidInputError):
-        PaperSwivelParams(lam_obs=-1.0)
-    with pytest.raises(InvalidInputError):
-        PaperSwivelParams(samples=4)
-    with pytest.raises(ConfigError):
-        ControllerParams(swivel_mode="paper")
+@pytest.mark.parametrize(("error", "make"), [
+    (InvalidInputError, lambda: PaperSwivelParams(lam_obs=-1.0)),
+    (InvalidInputError, lambda: PaperSwivelParams(samples=4)),
+    (ConfigError, lambda: ControllerParams(swivel_mode="paper")),
+], ids=["negative lam_obs", "too few samples", "unknown swivel_mode"])
+def test_bad_parameters_are_refused(error, make) -> None:
+    with pytest.raises(error):
+        make()
+
+
+def test_paper_parameters_are_read_from_a_dict() -> None:
     p = ControllerParams.from_dict({"swivel_mode": "attractor_paper", "paper_swivel": {"lam_obs": 5.0}})
     assert p.paper_swivel.lam_obs == 5.0 and isinstance(Sector(0.0, 0.1), Sector)
 

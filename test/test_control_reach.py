@@ -376,11 +376,15 @@ def test_guard_emergency_stop_rather_than_collide(arm, q_start) -> None:
     assert any(m.startswith("collision guard") for m in messages)
 
 
-def test_new_parameters_are_validated() -> None:
+@pytest.mark.parametrize("make", [
+    lambda: ControllerParams(collision_margin=-0.01),
+    lambda: ControllerParams(joint_brake_share=1.5),
+    lambda: ControllerParams.from_dict({"unfold_pitch": [0.4, 0.0, 1.0]}),
+], ids=["negative collision_margin", "joint_brake_share above 1", "unfold_pitch elbow under 0.2 rad"])
+def test_new_parameters_are_validated(make) -> None:
     with pytest.raises(ConfigError):
-        ControllerParams(collision_margin=-0.01)
-    with pytest.raises(ConfigError):
-        ControllerParams(joint_brake_share=1.5)
-    with pytest.raises(ConfigError):
-        ControllerParams.from_dict({"unfold_pitch": [0.4, 0.0, 1.0]})
+        make()
+
+
+def test_unfold_pitch_is_read_from_a_dict() -> None:
     assert ControllerParams.from_dict({"unfold_pitch": [0.3, 1.0, 0.8]}).unfold_pitch == (0.3, 1.0, 0.8)

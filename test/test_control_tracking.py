@@ -9,42 +9,23 @@ import math
 
 import numpy as np
 import pytest
+from support.benches import load_bench
+from support.control_scenes import pose
 
 from redarm_ros.control.obstacles import ArmCapsules, Scene, Sphere, min_distance
 from redarm_ros.control.reach_controller import GoalKind, Phase, ReachController
 from redarm_ros.kinematics import load_arm
 
+ramp_arc = load_bench("bench_common").ramp_arc
 ARM = load_arm("pa10")
 DT = 0.01
-R_DOWN = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])
 HINT = np.array([0.0, 0.5, 0.0, 1.3, 0.0, 1.0, 0.0])
-
-
-def pose(p) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, :3] = R_DOWN
-    T[:3, 3] = p
-    return T
 
 
 def circle_path(v: float, center=(0.7, 0.0, 0.2), r: float = 0.1, ramp: float = 0.5):
     """Pose at t along a horizontal circle at cruise speed v (smooth start and stop), and its
     duration (one turn)."""
-    L = 2 * math.pi * r
-    d_ramp = 0.5 * v * ramp
-    t_cruise = (L - 2 * d_ramp) / v
-    total = 2 * ramp + t_cruise
-
-    def s_of(t: float) -> float:
-        t = min(max(t, 0.0), total)
-        if t < ramp:
-            x = t / ramp
-            return v * ramp * (x**3 - 0.5 * x**4)
-        if t < ramp + t_cruise:
-            return d_ramp + v * (t - ramp)
-        x = (total - t) / ramp
-        return L - v * ramp * (x**3 - 0.5 * x**4)
-
+    s_of, total = ramp_arc(2 * math.pi * r, v, ramp)
     c = np.asarray(center)
 
     def at(t: float) -> np.ndarray:

@@ -4,7 +4,6 @@ that joins after the one publication still gets it, in process and over a ``reda
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -16,6 +15,7 @@ from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 from std_msgs.msg import String  # noqa: E402
+from support.waits import spin_until  # noqa: E402
 
 from redarm_ros.bringup import build_parser, config_from_args  # noqa: E402
 from redarm_ros.kinematics import load_arm  # noqa: E402
@@ -30,15 +30,6 @@ from redarm_ros.sim.urdf import build_urdf  # noqa: E402
 
 LATE_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                       durability=DurabilityPolicy.TRANSIENT_LOCAL)
-
-
-def _spin_until(ex: SingleThreadedExecutor, cond: Callable[[], bool], timeout: float) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        ex.spin_once(timeout_sec=0.05)
-        if cond():
-            return True
-    return False
 
 
 def _node(ctx: Any, **params: Any) -> DescriptionNode:
@@ -60,16 +51,16 @@ def test_late_subscriber_gets_the_description(rclpy_context: Any) -> None:
     listener = rclpy.create_node("late_listener", context=rclpy_context)
     ex.add_node(listener)
     try:
-        _spin_until(ex, lambda: False, 0.5)  # the one publication is long done
+        spin_until(ex, lambda: False, 0.5)  # the one publication is long done
         got: list[str] = []
         listener.create_subscription(String, "/robot_description", lambda m: got.append(m.data), LATE_QOS)
-        assert _spin_until(ex, lambda: bool(got), 10.0), "late subscriber got nothing"
+        assert spin_until(ex, lambda: bool(got), 10.0), "late subscriber got nothing"
         assert got[0] == build_urdf(load_arm("powercube7"), prefix="")
         # A volatile subscriber does not get the earlier sample: the durability is what makes it work.
         volatile: list[str] = []
         listener.create_subscription(String, "/robot_description", lambda m: volatile.append(m.data),
                                      QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE))
-        _spin_until(ex, lambda: bool(volatile), 1.0)
+        spin_until(ex, lambda: bool(volatile), 1.0)
         assert volatile == []
     finally:
         ex.shutdown()
@@ -130,10 +121,10 @@ def test_late_subscriber_gets_it_over_a_bringup(procs: Any, rclpy_context: Any) 
     ex = SingleThreadedExecutor(context=rclpy_context)
     ex.add_node(node)
     try:
-        _spin_until(ex, lambda: False, 1.0)  # join well after the publication
+        spin_until(ex, lambda: False, 1.0)  # join well after the publication
         got: list[str] = []
         node.create_subscription(String, "robot_description", lambda m: got.append(m.data), LATE_QOS)
-        assert _spin_until(ex, lambda: bool(got), 20.0), "no /robot_description for a late subscriber"
+        assert spin_until(ex, lambda: bool(got), 20.0), "no /robot_description for a late subscriber"
         assert got[0] == build_urdf(load_arm("pa10"), prefix="")
         # the publisher's node name arrives with the participant's discovery data, which may come
         # after the topic's endpoint data: wait for it rather than read it once
@@ -143,7 +134,7 @@ def test_late_subscriber_gets_it_over_a_bringup(procs: Any, rclpy_context: Any) 
             names[:] = [p.node_name for p in node.get_publishers_info_by_topic("/robot_description")]
             return "_NODE_NAME_UNKNOWN_" not in names
 
-        _spin_until(ex, publisher_names_known, 20.0)
+        spin_until(ex, publisher_names_known, 20.0)
         assert names == ["description"]
     finally:
         ex.shutdown()

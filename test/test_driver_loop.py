@@ -5,18 +5,16 @@ from __future__ import annotations
 import struct
 import threading
 import time
-import uuid
 
 import can
 import numpy as np
 import pytest
+from support.loop_rig import AMAX, LOWER, Q0, UPPER, VMAX, loop_rig
 from support.waits import wait_until
 
-from redarm_ros.can.driver_core import PowerCubeArmDriver
 from redarm_ros.can.driver_loop import (
     Backoff,
     CommandMode,
-    CycleSample,
     DriverLoop,
     JointCommandSource,
     LoopConfig,
@@ -25,7 +23,7 @@ from redarm_ros.can.driver_loop import (
     ReferenceShaper,
     braking_speed,
 )
-from redarm_ros.can.module_emulator import EmulatedArm, EmulatorRunner
+from redarm_ros.can.module_emulator import EmulatedArm
 from redarm_ros.errors import BusError, InvalidInputError
 from redarm_ros.motion import JointLimits
 
@@ -294,10 +292,6 @@ def test_backoff_doubles_to_a_cap_and_resets() -> None:
 # ------------------------------------------------------------------------------------------------
 # DriverLoop against the real driver core and emulated modules on an in-process virtual bus
 # ------------------------------------------------------------------------------------------------
-LOWER = [-2.0, -1.5, -2.0]
-UPPER = [2.0, 1.5, 2.0]
-VMAX = [1.0, 1.0, 2.0]
-AMAX = [5.0, 5.0, 10.0]
 
 
 class SilenceableArm(EmulatedArm):
@@ -350,33 +344,13 @@ class FlakyBus(can.BusABC):
 @pytest.fixture
 def rig():
     """Emulated 3-module arm served on a virtual channel, a DriverLoop on the same channel."""
-    channel = f"loop-{uuid.uuid4().hex[:8]}"
-    dev_bus = can.Bus(interface="virtual", channel=channel)
-    arm = SilenceableArm.kinematic(LOWER, UPPER, VMAX, AMAX, q0=[0.3, -0.2, 0.1])
+    arm = SilenceableArm.kinematic(LOWER, UPPER, VMAX, AMAX, q0=Q0)
     arm.silenced = set()
-    runner = EmulatorRunner(dev_bus, arm, tick_s=0.002).start()
-    host = FlakyBus(channel)
-    samples: list[CycleSample] = []
     logs: list[tuple[int, str]] = []
-
-    def factory(bus):
-        # Emulator and driver share this process's GIL (and a busy machine): generous timeouts, so
-        # only a module that really is silent counts as silent.
-        return PowerCubeArmDriver(bus, [1, 2, 3], LOWER, UPPER, VMAX, AMAX, reply_timeout_s=0.05,
-                                  max_missed=10, home_timeout_s=10.0)
-
     cfg = LoopConfig(rate_hz=100.0, poll_hz=20.0, hold_on_stream_stop_s=0.3, reconnect_first_s=0.02,
                      reconnect_max_s=0.1)
-    loop = DriverLoop(factory, lambda: host, 3, cfg, on_sample=samples.append,
-                      log=lambda lvl, msg: logs.append((lvl, msg)))
-    rigs = {"arm": arm, "loop": loop, "host": host, "samples": samples, "logs": logs}
-    try:
-        yield rigs
-    finally:
-        loop.stop()
-        runner.stop()
-        dev_bus.shutdown()
-        host.shutdown()
+    with loop_rig(arm, cfg, FlakyBus, log=lambda lvl, msg: logs.append((lvl, msg))) as r:
+        yield {**r, "logs": logs}
 
 
 def start_running(rig) -> DriverLoop:

@@ -4,24 +4,18 @@ from __future__ import annotations
 
 import threading
 import time
-import uuid
 
-import can
 import numpy as np
 import pytest
+from support.loop_rig import AMAX, LOWER, Q0, UPPER, VMAX, loop_rig
 from support.waits import wait_until
 
-from redarm_ros.can.driver_core import PowerCubeArmDriver
-from redarm_ros.can.driver_loop import CommandMode, CycleSample, DriverLoop, LoopConfig, LoopState
-from redarm_ros.can.module_emulator import EmulatedArm, EmulatorRunner
+from redarm_ros.can.driver_loop import CommandMode, LoopConfig, LoopState
+from redarm_ros.can.module_emulator import EmulatedArm
 from redarm_ros.errors import InvalidInputError
 from redarm_ros.motion import JointLimits
 from redarm_ros.motion.sync_move import synchronized_move
 
-LOWER = [-2.0, -1.5, -2.0]
-UPPER = [2.0, 1.5, 2.0]
-VMAX = [1.0, 1.0, 2.0]
-AMAX = [5.0, 5.0, 10.0]
 PARK = (0.6, -0.8, 1.2)
 LIMITS = JointLimits(LOWER, UPPER, VMAX, AMAX)
 
@@ -56,26 +50,10 @@ def test_synchronized_move_of_zero_length_and_bad_input() -> None:
 @pytest.fixture
 def rig():
     """Emulated 3-module arm on a virtual channel and a DriverLoop with a park posture."""
-    channel = f"park-{uuid.uuid4().hex[:8]}"
-    dev_bus = can.Bus(interface="virtual", channel=channel)
-    arm = EmulatedArm.kinematic(LOWER, UPPER, VMAX, AMAX, q0=[0.3, -0.2, 0.1])
-    runner = EmulatorRunner(dev_bus, arm, tick_s=0.002).start()
-    host = can.Bus(interface="virtual", channel=channel)
-    samples: list[CycleSample] = []
-
-    def factory(bus):
-        return PowerCubeArmDriver(bus, [1, 2, 3], LOWER, UPPER, VMAX, AMAX, reply_timeout_s=0.05,
-                                  max_missed=10, home_timeout_s=10.0)
-
+    arm = EmulatedArm.kinematic(LOWER, UPPER, VMAX, AMAX, q0=Q0)
     cfg = LoopConfig(rate_hz=100.0, poll_hz=20.0, reconnect_first_s=0.02, reconnect_max_s=0.1, park=PARK)
-    loop = DriverLoop(factory, lambda: host, 3, cfg, on_sample=samples.append)
-    try:
-        yield {"arm": arm, "loop": loop, "samples": samples}
-    finally:
-        loop.stop()
-        runner.stop()
-        dev_bus.shutdown()
-        host.shutdown()
+    with loop_rig(arm, cfg) as r:
+        yield r
 
 
 def test_park_is_refused_before_init_and_while_halted(rig) -> None:

@@ -14,26 +14,18 @@ from typing import Any
 
 import numpy as np
 import pytest
+from support.requires import require_ros
 
-rclpy = pytest.importorskip("rclpy")
-pytest.importorskip("redarm_interfaces", reason="redarm_interfaces not built (run scripts/setup_env.sh)")
-pytest.importorskip("redarm_ros.nodes.can_driver", reason="can_driver node not written yet")
-pytest.importorskip("redarm_ros.sim.hardware", reason="simulator not written yet")
+require_ros(stack=True)
 
 from action_msgs.msg import GoalStatus  # noqa: E402
 from rclpy.action import ActionClient  # noqa: E402
 from redarm_interfaces.action import Reach  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
-from support.stack_client import (  # noqa: E402
-    StackClient,
-    client_in_context,
-    pose_err,
-    running_stack,
-    sim_tool,
-)
+from support.stack_client import StackClient, client_in_context, pose_err, sim_tool, stack_fixture  # noqa: E402
 from support.stack_client import pose_down as pose  # noqa: E402
 
-from redarm_ros.bringup import Stack, StackConfig  # noqa: E402
+from redarm_ros.bringup import Stack  # noqa: E402
 from redarm_ros.nodes.controller import pose_to_msg  # noqa: E402
 
 pytestmark = [pytest.mark.hil, pytest.mark.slow]
@@ -41,14 +33,10 @@ pytestmark = [pytest.mark.hil, pytest.mark.slow]
 POS_TOL, ROT_TOL = 1e-3, 0.01
 
 
-@pytest.fixture(scope="module")
-def stack(ros_env: Any) -> Iterator[Stack]:
-    # A slow hand (0.15 m/s): the second goal is still under way when the cancel arrives, also on a
-    # starved machine.
-    cfg = StackConfig(arm="pa10", log_level="warn", ready_timeout_s=60.0, ik_service=False,
+# A slow hand (0.15 m/s): the second goal is still under way when the cancel arrives, also on a
+# starved machine.
+stack = stack_fixture(arm="pa10", ready_timeout_s=60.0, ik_service=False,
                       extra_args={"controller": ["-p", "max_speed:=0.15"]})
-    with running_stack(cfg, ros_env.domain_id, init_timeout=30.0) as st:
-        yield st
 
 
 class Client(StackClient):

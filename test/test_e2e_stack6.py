@@ -6,31 +6,22 @@ tool) and one out of reach (rejected with the base-move suggestion). Generous ti
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
 import pytest
+from support.requires import require_ros
 
-rclpy = pytest.importorskip("rclpy")
-pytest.importorskip("redarm_interfaces", reason="redarm_interfaces not built (run scripts/setup_env.sh)")
+require_ros()
 
 from redarm_interfaces.msg import ControllerState  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
-from support.stack_client import (  # noqa: E402
-    GoalClient,
-    client_in_context,
-    move_to_ready,
-    pose_err,
-    running_stack,
-    sim_tool,
-)
+from support import stack_client as sc  # noqa: E402
 
-from redarm_ros.bringup import Stack, StackConfig  # noqa: E402
+from redarm_ros.bringup import Stack  # noqa: E402
 from redarm_ros.demo import DEMOS  # noqa: E402
 from redarm_ros.kinematics import load_arm  # noqa: E402
-from redarm_ros.nodes.controller import pose_to_msg  # noqa: E402
 
 pytestmark = [pytest.mark.hil, pytest.mark.slow]
 
@@ -39,7 +30,7 @@ DEMO = DEMOS["powercube6"]
 READY_Q = np.array(DEMO.ready_q)
 
 
-class Client(GoalClient):
+class Client(sc.GoalClient):
     def __init__(self, ctx: Any) -> None:
         self.names: list[list[str]] = []  # joint names of each joint_states message
         super().__init__(ctx, "e2e6_client")
@@ -47,29 +38,10 @@ class Client(GoalClient):
     def on_joint_state(self, msg: JointState) -> None:
         self.names.append(list(msg.name))
 
-    def send(self, T: np.ndarray) -> int:
-        n = len(self.states)
-        msg = pose_to_msg(T)
-        msg.header.frame_id = "base_link"
-        self.goal_pub.publish(msg)
-        return n
 
-
-@pytest.fixture(scope="module")
-def stack(ros_env: Any) -> Iterator[Stack]:
-    cfg = StackConfig(arm="powercube6", log_level="warn", ready_timeout_s=90.0)
-    with running_stack(cfg, ros_env.domain_id, init_timeout=60.0) as st:
-        yield st
-
-
-@pytest.fixture(scope="module")
-def client(stack: Stack, ros_env: Any) -> Iterator[Client]:
-    with client_in_context(ros_env.domain_id, Client) as c:
-        assert c.spin_until(lambda: len(c.names) > 5 and len(c.states) > 0, 60.0), \
-            "no joint_states / controller state"
-        assert c.spin_until(c.ik.service_is_ready, 20.0)
-        move_to_ready(c, c.cmd_pub, stack, ARM.joint_names, READY_Q, reach_s=25.0, recover_s=20.0)
-        yield c
+stack = sc.stack_fixture(init_timeout=60.0, arm="powercube6", ready_timeout_s=90.0)
+client = sc.ready_client_fixture(Client, ARM.joint_names, READY_Q, start_s=60.0, ik_s=20.0,
+                                 reach_s=25.0, recover_s=20.0)
 
 
 def test_six_joints_and_a_goal_reached_by_the_simulated_arm(stack: Stack, client: Client) -> None:
@@ -96,9 +68,8 @@ def test_six_joints_and_a_goal_reached_by_the_simulated_arm(stack: Stack, client
         fut = recover.call_async(Trigger.Request())
         assert client.spin_until(fut.done, 20.0) and fut.result().success, "~/recover failed"
         client.spin_until(lambda: False, 1.0)  # the controller restarts from the still arm
-    ok = client.spin_until(lambda: all(e < t for e, t in zip(pose_err(sim_tool(stack), T), (2e-3, 0.02),
-                                                              strict=True)), 40.0)
-    assert ok, f"simulated tool {pose_err(sim_tool(stack), T)} from the goal"
+    ok = sc.sim_tool_reaches(client, stack, T, 2e-3, 0.02, 40.0)
+    assert ok, f"simulated tool {sc.pose_err(sc.sim_tool(stack), T)} from the goal"
     stack.check()
 
 

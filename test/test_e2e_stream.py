@@ -14,20 +14,18 @@ from typing import Any
 
 import numpy as np
 import pytest
+from support.requires import require_ros
 
-rclpy = pytest.importorskip("rclpy")
-pytest.importorskip("redarm_interfaces", reason="redarm_interfaces not built (run scripts/setup_env.sh)")
-pytest.importorskip("redarm_ros.nodes.can_driver", reason="can_driver node not written yet")
-pytest.importorskip("redarm_ros.sim.hardware", reason="simulator not written yet")
+require_ros(stack=True)
 
 from geometry_msgs.msg import PoseStamped  # noqa: E402
 from redarm_interfaces.msg import ControllerState  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
-from support.stack_client import StackClient, client_in_context, running_stack  # noqa: E402
+from support.stack_client import StackClient, client_in_context, stack_fixture  # noqa: E402
 from support.stack_client import pose_down as pose  # noqa: E402
 from trajectory_msgs.msg import JointTrajectory  # noqa: E402
 
-from redarm_ros.bringup import Stack, StackConfig  # noqa: E402
+from redarm_ros.bringup import Stack  # noqa: E402
 from redarm_ros.kinematics import load_arm  # noqa: E402
 from redarm_ros.nodes.controller import pose_to_msg  # noqa: E402
 
@@ -43,12 +41,8 @@ def line_path(t: float, duration: float = 2.0, length: float = 0.12) -> np.ndarr
     return pose((0.65, -0.06 + length * s, 0.25))
 
 
-@pytest.fixture(scope="module")
-def stack(ros_env: Any) -> Iterator[Stack]:
-    cfg = StackConfig(arm="pa10", log_level="warn", ready_timeout_s=60.0, ik_service=False,
+stack = stack_fixture(arm="pa10", ready_timeout_s=60.0, ik_service=False,
                       extra_args={"sim": ["--status-rate", "50"]})
-    with running_stack(cfg, ros_env.domain_id, init_timeout=30.0) as st:
-        yield st
 
 
 class Client(StackClient):

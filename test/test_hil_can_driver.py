@@ -16,6 +16,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
+from contextlib import closing
 from pathlib import Path
 from typing import Any
 
@@ -200,11 +201,8 @@ class Stack:
 
 @pytest.fixture
 def client(rclpy_context: Any) -> Iterator[Client]:
-    c = Client(rclpy_context)
-    try:
+    with closing(Client(rclpy_context)) as c:
         yield c
-    finally:
-        c.close()
 
 
 @pytest.fixture
@@ -223,10 +221,16 @@ def init_and_check(client: Client, stack: Stack) -> None:
     stack.wait_sim_at(np.zeros(N), 2e-3, 10)  # homed
 
 
-def test_hil_nominal_trajectory_followed(stack: Stack, client: Client) -> None:
-    stack.start_sim()
+def start_and_init(client: Client, stack: Stack) -> ManagedProcess:
+    """The simulator and the driver with their defaults, initialised and homed; the simulator."""
+    sim = stack.start_sim()
     stack.start_driver()
     init_and_check(client, stack)
+    return sim
+
+
+def test_hil_nominal_trajectory_followed(stack: Stack, client: Client) -> None:
+    start_and_init(client, stack)
     q1 = goal_pose()
     client.send_trajectory([q1 / 2, q1], [0.8, 1.6])
     stack.wait_sim_at(q1, 2e-3, 10)
@@ -269,9 +273,7 @@ def test_hil_dropped_replies_still_followed(stack: Stack, client: Client) -> Non
 
 
 def test_hil_silent_module_halts_all_until_recover(stack: Stack, client: Client) -> None:
-    stack.start_sim()
-    stack.start_driver()
-    init_and_check(client, stack)
+    start_and_init(client, stack)
     far = np.array([1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
     client.send_trajectory([far], [3.0])  # 1/3 rad/s on joint 1
     assert wait_for(lambda: stack.sim_q()[0] > 0.1, 5)
@@ -311,9 +313,7 @@ def test_hil_silent_module_halts_all_until_recover(stack: Stack, client: Client)
 
 
 def test_hil_simulator_killed_and_restarted(stack: Stack, client: Client) -> None:
-    sim = stack.start_sim()
-    stack.start_driver()
-    init_and_check(client, stack)
+    sim = start_and_init(client, stack)
     target = np.array([0.0, 0.0, 0.0, 1.2, 0.0, 0.0, 0.0])
     client.send_trajectory([target], [2.5])
     assert wait_for(lambda: stack.sim_q()[3] > 0.3, 5)
@@ -340,9 +340,7 @@ def test_hil_simulator_killed_and_restarted(stack: Stack, client: Client) -> Non
 
 
 def test_hil_malformed_frames_ignored_and_counted(stack: Stack, client: Client) -> None:
-    stack.start_sim()
-    stack.start_driver()
-    init_and_check(client, stack)
+    start_and_init(client, stack)
     q1 = goal_pose()
     client.send_trajectory([q1], [1.5])
     stack.wait_sim_at(q1, 2e-3, 10)
@@ -382,9 +380,7 @@ def test_hil_malformed_frames_ignored_and_counted(stack: Stack, client: Client) 
 
 
 def test_hil_command_beyond_joint_limit_clamped(stack: Stack, client: Client) -> None:
-    stack.start_sim()
-    stack.start_driver()
-    init_and_check(client, stack)
+    start_and_init(client, stack)
     j = 1  # +-91 deg
     beyond = np.zeros(N)
     beyond[j] = ARM.upper[j] + 0.5
@@ -417,9 +413,7 @@ def test_hil_command_beyond_joint_limit_clamped(stack: Stack, client: Client) ->
 def test_hil_bus_server_lost_and_back(stack: Stack, client: Client) -> None:
     from conftest import start_canbus_server
 
-    stack.start_sim()
-    stack.start_driver()
-    init_and_check(client, stack)
+    start_and_init(client, stack)
     target = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.5])
     client.send_trajectory([target], [3.0])
     assert wait_for(lambda: stack.sim_q()[6] > 0.2, 5)
@@ -473,9 +467,7 @@ def _module_config(canbus: Any, module_id: int) -> int:
 def test_hil_recover_after_power_cycle_rearms_the_watchdog(stack: Stack, client: Client) -> None:
     from redarm_ros.can.protocol import ActConfig
 
-    sim = stack.start_sim()
-    stack.start_driver()
-    init_and_check(client, stack)
+    sim = start_and_init(client, stack)
     q1 = goal_pose()
     client.send_trajectory([q1], [1.0])
     stack.wait_sim_at(q1, 2e-3, 10)
@@ -503,9 +495,7 @@ def test_hil_recover_after_power_cycle_rearms_the_watchdog(stack: Stack, client:
 def test_hil_forged_reply_is_never_published(stack: Stack, client: Client) -> None:
     from redarm_ros.can import protocol as pc
 
-    stack.start_sim()
-    stack.start_driver()
-    init_and_check(client, stack)
+    start_and_init(client, stack)
     q1 = goal_pose()
     q1[2] = 0.2
     client.send_trajectory([q1], [1.0])
@@ -552,9 +542,7 @@ print(f"FLOODED {sent}", flush=True)
 
 
 def test_hil_recover_after_a_flood(stack: Stack, client: Client) -> None:
-    stack.start_sim()
-    stack.start_driver()
-    init_and_check(client, stack)
+    start_and_init(client, stack)
     # 5 s of foreign frames at up to 20k frames/s from a node of its own (a process, so the rate is
     # not limited by this test's interpreter); it prints how many it sent.
     out = subprocess.run([sys.executable, "-c", FLOODER, stack.canbus.channel], capture_output=True,
@@ -580,9 +568,7 @@ def test_hil_recover_after_a_flood(stack: Stack, client: Client) -> None:
 
 
 def test_hil_park_reaches_the_posture_within_limits(stack: Stack, client: Client) -> None:
-    stack.start_sim()
-    stack.start_driver()
-    init_and_check(client, stack)
+    start_and_init(client, stack)
     client.send_trajectory([goal_pose()], [1.0])  # start the park from somewhere else than home
     stack.wait_sim_at(goal_pose(), 2e-3, 10)
     answer: list[Trigger.Response] = []

@@ -26,6 +26,9 @@ except ImportError as exc:  # a missing build is a failure, not a skip: the set-
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 
+# Each interface's fields are written out in full on purpose: the expected interface, not read back
+# from the .msg/.srv/.action files (so the tables look alike).
+
 
 def test_solve_ik_request_fields() -> None:
     assert SolveIK.Request.get_fields_and_field_types() == {

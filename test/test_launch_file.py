@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from support.setup_py import console_scripts
 
 ROOT = Path(__file__).resolve().parents[1]
 LAUNCH = ROOT / "launch" / "redarm_sim.launch.py"
@@ -28,17 +29,6 @@ EXTERNAL = {("robot_state_publisher", "robot_state_publisher"), ("rviz2", "rviz2
 
 def _tree() -> ast.Module:
     return ast.parse(LAUNCH.read_text(encoding="utf-8"), filename=str(LAUNCH))
-
-
-def _console_scripts() -> dict[str, str]:
-    tree = ast.parse((ROOT / "setup.py").read_text(encoding="utf-8"))
-    for node in ast.walk(tree):
-        if isinstance(node, ast.Dict):
-            for k, v in zip(node.keys, node.values, strict=True):
-                if isinstance(k, ast.Constant) and k.value == "console_scripts":
-                    entries = ast.literal_eval(v)
-                    return {e.split("=")[0].strip(): e.split("=")[1].strip() for e in entries}
-    raise AssertionError("setup.py declares no console_scripts")
 
 
 def _module_constants(tree: ast.Module) -> dict[str, object]:
@@ -79,7 +69,7 @@ def test_launch_file_is_python_and_generates_a_description() -> None:
 def test_every_executable_is_a_console_script_of_the_package() -> None:
     tree = _tree()
     consts = _module_constants(tree)
-    scripts = _console_scripts()
+    scripts = console_scripts()
     named: list[str] = []
     for call in _calls(tree, "Node") + _calls(tree, "ExecutableInPackage"):
         exe = _kw(call, "executable")

@@ -11,6 +11,7 @@ import threading
 import time
 import uuid
 from collections.abc import Callable, Iterator
+from contextlib import closing
 from typing import Any
 
 import can
@@ -127,11 +128,8 @@ def wait_for(pred: Callable[[], bool], timeout: float = 5.0) -> bool:
 
 @pytest.fixture
 def rig(rclpy_context: Any) -> Iterator[Rig]:
-    r = Rig(rclpy_context)
-    try:
+    with closing(Rig(rclpy_context)) as r:
         yield r
-    finally:
-        r.close()
 
 
 def trajectory(names: list[str], points: list[list[float]], times: list[float]) -> JointTrajectory:

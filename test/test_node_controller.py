@@ -11,10 +11,12 @@ from typing import Any
 
 import numpy as np
 import pytest
+from support.requires import require_ros
+from support.waits import spin_until
 
-rclpy = pytest.importorskip("rclpy")
-pytest.importorskip("redarm_interfaces", reason="redarm_interfaces not built (run scripts/setup_env.sh)")
+require_ros()
 
+import rclpy  # noqa: E402
 from geometry_msgs.msg import PoseStamped, TwistStamped  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
@@ -102,12 +104,7 @@ class Harness:
             self.ex.add_node(n)
 
     def spin_until(self, cond: Callable[[], bool], timeout: float) -> bool:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            self.ex.spin_once(timeout_sec=0.01)
-            if cond():
-                return True
-        return False
+        return spin_until(self.ex, cond, timeout, 0.01)
 
     def wait_connected(self) -> None:
         assert self.spin_until(lambda: self.goal_pub.get_subscription_count() > 0

@@ -103,6 +103,13 @@ def random_pose(arm: Any, rng: np.random.Generator) -> tuple[np.ndarray, np.ndar
             return q, arm.fk(q)
 
 
+def random_poses(arm: Any, seed: int, n: int) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """``n`` draws of ``random_pose`` from a generator seeded with ``seed``."""
+    rng = np.random.default_rng(seed)
+    for _ in range(n):
+        yield random_pose(arm, rng)
+
+
 GOOD_T = load_arm("pa10").fk(np.array([0.3, 0.4, -0.2, 1.0, 0.3, 0.5, 0.1]))
 
 
@@ -263,9 +270,7 @@ def test_slightly_non_unit_quaternion_is_renormalised(service: Any) -> None:
 def test_fk_round_trip_all_solutions(service: Any, arm_name: str) -> None:
     _, call = service
     arm = load_arm(arm_name)
-    rng = np.random.default_rng(7)
-    for _ in range(8):
-        q_true, T = random_pose(arm, rng)
+    for _, T in random_poses(arm, 7, 8):
         resp = call(make_request(T, arm_name, all_solutions=True))
         assert resp.status == R.SUCCESS, resp.message
         assert list(resp.solution.name) == list(arm.joint_names)
@@ -289,9 +294,7 @@ def test_seed_gives_nearest_solution(service: Any, arm_name: str) -> None:
     """With the true configuration as seed, the answer is that configuration (no branch flip)."""
     _, call = service
     arm = load_arm(arm_name)
-    rng = np.random.default_rng(11)
-    for _ in range(8):
-        q_true, T = random_pose(arm, rng)
+    for q_true, T in random_poses(arm, 11, 8):
         resp = call(make_request(T, arm_name, seed=[float(v) for v in q_true]))
         assert resp.status == R.SUCCESS, resp.message
         assert np.max(np.abs(np.array(resp.solution.position) - q_true)) < 1e-6
@@ -302,10 +305,8 @@ def test_seed_gives_nearest_solution(service: Any, arm_name: str) -> None:
 def test_swivel_given_solves_at_that_swivel(service: Any, arm_name: str) -> None:
     _, call = service
     arm = load_arm(arm_name)
-    rng = np.random.default_rng(3)
     solved = 0
-    for _ in range(10):
-        q_true, T = random_pose(arm, rng)
+    for q_true, T in random_poses(arm, 3, 10):
         s = float(arm.swivel(q_true))
         resp = call(
             make_request(
@@ -365,26 +366,17 @@ def test_pose_msg_to_matrix_tolerance() -> None:
         pose_msg_to_matrix(pose, 1e-4)
 
 
-def test_bad_parameters_refuse_to_start(ctx: Any) -> None:
-    with pytest.raises(ValueError, match="default_arm"):
-        IKServiceNode(
-            context=ctx,
-            node_name="ik_bad1",
-            parameter_overrides=[
-                Parameter("arms", value=["pa10"]),
-                Parameter("default_arm", value="powercube7"),
-                Parameter("duplicate_check_s", value=0.0),
-            ],
-        )
-    with pytest.raises(ValueError, match="no_such_arm"):
-        IKServiceNode(
-            context=ctx,
-            node_name="ik_bad2",
-            parameter_overrides=[
-                Parameter("arms", value=["no_such_arm"]),
-                Parameter("duplicate_check_s", value=0.0),
-            ],
-        )
+@pytest.mark.parametrize(("arms", "default_arm", "match"), [
+    (["pa10"], "powercube7", "default_arm"),  # the default is not among the served arms
+    (["no_such_arm"], None, "no_such_arm"),
+])
+def test_bad_parameters_refuse_to_start(ctx: Any, arms: list[str], default_arm: str | None,
+                                        match: str) -> None:
+    overrides = [Parameter("arms", value=arms), Parameter("duplicate_check_s", value=0.0)]
+    if default_arm is not None:
+        overrides.append(Parameter("default_arm", value=default_arm))
+    with pytest.raises(ValueError, match=match):
+        IKServiceNode(context=ctx, node_name=f"ik_bad_{match}", parameter_overrides=overrides)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -404,9 +396,7 @@ def test_cross_process_service_and_duplicate_refused(procs: Any, ctx: Any) -> No
     try:
         call.wait_ready(timeout=15.0)
         arm = load_arm("pa10")
-        rng = np.random.default_rng(1)
-        for _ in range(5):
-            q_true, T = random_pose(arm, rng)
+        for _, T in random_poses(arm, 1, 5):
             resp = call(make_request(T, "pa10"))
             assert resp.status == R.SUCCESS, resp.message
             assert arm.pose_error(np.array(resp.solution.position), T)[0] < 1e-9

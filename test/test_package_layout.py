@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from support.setup_py import console_scripts
 
 REPO = Path(__file__).resolve().parents[1]
 PACKAGE = "redarm_ros"
@@ -151,26 +152,14 @@ def test_manifest_ros_dependencies_exist() -> None:
     assert not missing, f"package.xml names ROS packages that are not installed: {missing}"
 
 
-def _console_scripts() -> dict[str, str]:
-    """setup.py's console_scripts, read from its source (name -> "module:function")."""
-    tree = ast.parse((REPO / "setup.py").read_text(encoding="utf-8"))
-    for node in ast.walk(tree):
-        if isinstance(node, ast.Dict):
-            for key, value in zip(node.keys, node.values, strict=True):
-                if isinstance(key, ast.Constant) and key.value == "console_scripts":
-                    entries = ast.literal_eval(value)
-                    return {n.strip(): t.strip() for n, t in (e.split("=", 1) for e in entries)}
-    raise AssertionError("setup.py has no console_scripts entry points")
-
-
 def test_ros_nodes_declared() -> None:
-    scripts = _console_scripts()
+    scripts = console_scripts()
     assert {name: scripts.get(name) for name in ROS_NODES} == ROS_NODES
 
 
-@pytest.mark.parametrize("name", sorted(_console_scripts()))
+@pytest.mark.parametrize("name", sorted(console_scripts()))
 def test_entry_point_importable(name: str) -> None:
-    module_name, _, func = _console_scripts()[name].partition(":")
+    module_name, _, func = console_scripts()[name].partition(":")
     if importlib.util.find_spec(module_name) is None:
         pytest.skip(f"{module_name} (entry point {name}) not written yet")
     module = importlib.import_module(module_name)
@@ -184,7 +173,7 @@ def test_venv_install_is_current() -> None:
     except importlib.metadata.PackageNotFoundError:
         pytest.fail("redarm_ros is not installed in this interpreter; run `make setup`", pytrace=False)
     installed = {ep.name: ep.value for ep in dist.entry_points if ep.group == "console_scripts"}
-    assert installed == _console_scripts(), "stale editable install: run `make setup`"
+    assert installed == console_scripts(), "stale editable install: run `make setup`"
     bindir = Path(sys.executable).parent
     missing = [n for n in installed if not (bindir / n).is_file()]
     assert not missing, f"missing from {bindir}: {missing}"
@@ -227,7 +216,7 @@ def test_launch_file_names_installed_executables() -> None:
     consts = _module_constants(tree)
     functions = {n.name for n in tree.body if isinstance(n, ast.FunctionDef)}
     assert "generate_launch_description" in functions, "no generate_launch_description()"
-    scripts = _console_scripts()
+    scripts = console_scripts()
     named: list[tuple[Any, Any]] = []
     for node in ast.walk(tree):
         if isinstance(node, ast.Call):

@@ -24,6 +24,7 @@ rclpy = pytest.importorskip("rclpy")
 from geometry_msgs.msg import TransformStamped  # noqa: E402
 from rclpy.serialization import deserialize_message, serialize_message  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
+from support.waits import spin_until  # noqa: E402
 
 ARM_JOINTS = [f"pa10_joint_{i}" for i in range(1, 8)]
 
@@ -116,14 +117,6 @@ def test_writer_file_reads_back_with_topics_counts_schemas_and_order(tmp_path: P
     assert tool.header.frame_id == "pa10_link_7" and math.isclose(tool.transform.translation.z, 0.08)
 
 
-def _spin(executor: Any, until: Any, timeout: float) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        executor.spin_once(timeout_sec=0.02)
-        if until():
-            return True
-    return False
-
 
 def test_recorder_node_records_what_is_published(rclpy_context: Any, tmp_path: Path) -> None:
     from rclpy.executors import SingleThreadedExecutor
@@ -146,14 +139,15 @@ def test_recorder_node_records_what_is_published(rclpy_context: Any, tmp_path: P
     ex.add_node(rec)
     ex.add_node(pub_node)
     try:
-        assert _spin(ex, lambda: set(rec.topics) >= {"/joint_states", "/robot_description"}, 20.0), rec.topics
-        assert _spin(ex, lambda: writer.counts.get("/robot_description", 0) == 1, 10.0)
+        assert spin_until(ex, lambda: set(rec.topics) >= {"/joint_states", "/robot_description"}, 20.0), \
+            rec.topics
+        assert spin_until(ex, lambda: writer.counts.get("/robot_description", 0) == 1, 10.0)
         # The subscription is matched once discovery has seen it both ways; then nothing is lost.
-        assert _spin(ex, lambda: js.get_subscription_count() > 0, 10.0)
+        assert spin_until(ex, lambda: js.get_subscription_count() > 0, 10.0)
         for i in range(40):
             js.publish(_joint_state(i))
             ex.spin_once(timeout_sec=0.005)
-        assert _spin(ex, lambda: writer.counts.get("/joint_states", 0) >= 40, 10.0), writer.counts
+        assert spin_until(ex, lambda: writer.counts.get("/joint_states", 0) >= 40, 10.0), writer.counts
     finally:
         ex.shutdown(timeout_sec=1.0)
         rec.destroy_node()

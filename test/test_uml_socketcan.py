@@ -173,6 +173,13 @@ class ScenarioRun:
             pytest.fail(f"scenario {name!r} produced no result\n{self.diagnosis}", pytrace=False)
         return self.results[name]
 
+    def part(self, name: str, key: str) -> dict[str, Any]:
+        """The ``key`` section of scenario ``name``'s result (the test fails, showing the result, if
+        the scenario did not get that far)."""
+        r = self.get(name)
+        assert r.get(key) is not None, r
+        return r[key]
+
 
 def _suite_args(channel: str, out_dir: Path) -> list[str]:
     return [SCENARIO.as_posix(), "suite", "--interface", "socketcan", "--channel", channel,
@@ -248,16 +255,14 @@ FINAL_TOL_RAD = 0.01  # after the hold, driver's reading and the simulator's own
 @pytest.mark.uml
 @pytest.mark.slow
 def test_hil_discovers_every_module(scenario_run: ScenarioRun) -> None:
-    disc = scenario_run.get("hil").get("discovery")
-    assert disc is not None, scenario_run.get("hil")
+    disc = scenario_run.part("hil", "discovery")
     assert disc["found"] == list(range(1, N_MODULES + 1)) and disc["missing"] == []
 
 
 @pytest.mark.uml
 @pytest.mark.slow
 def test_hil_init_homes_every_module(scenario_run: ScenarioRun) -> None:
-    init = scenario_run.get("hil").get("init")
-    assert init is not None, scenario_run.get("hil")
+    init = scenario_run.part("hil", "init")
     assert init["home_ok"] == [True] * N_MODULES
     assert init["errors"] == {} and init["state"] == "ready"
 
@@ -265,9 +270,8 @@ def test_hil_init_homes_every_module(scenario_run: ScenarioRun) -> None:
 @pytest.mark.uml
 @pytest.mark.slow
 def test_hil_trajectory_followed_within_tolerance(scenario_run: ScenarioRun) -> None:
+    tr = scenario_run.part("hil", "trajectory")
     hil = scenario_run.get("hil")
-    tr = hil.get("trajectory")
-    assert tr is not None, hil
     assert "fault" not in hil, hil.get("fault")
     assert tr["state"] == "ready"
     assert tr["max_delta_rad"] >= 0.5  # a real move, not a hold
@@ -281,9 +285,8 @@ def test_hil_trajectory_followed_within_tolerance(scenario_run: ScenarioRun) -> 
 @pytest.mark.uml
 @pytest.mark.slow
 def test_hil_survives_malformed_frames(scenario_run: ScenarioRun) -> None:
+    mal = scenario_run.part("hil", "malformed")
     hil = scenario_run.get("hil")
-    mal = hil.get("malformed")
-    assert mal is not None, hil
     assert mal["injected"] == mal["to_modules"] + mal["to_host"]
     assert mal["sim_counted"] >= mal["to_modules"], mal  # counted and skipped, not crashed
     assert mal["sim_handler_errors"] == 0, mal
@@ -297,8 +300,7 @@ def test_hil_survives_malformed_frames(scenario_run: ScenarioRun) -> None:
 @pytest.mark.uml
 @pytest.mark.slow
 def test_hil_halt_and_recover(scenario_run: ScenarioRun) -> None:
-    hr = scenario_run.get("hil").get("halt_recover")
-    assert hr is not None, scenario_run.get("hil")
+    hr = scenario_run.part("hil", "halt_recover")
     assert hr["halt_acked"] == list(range(1, N_MODULES + 1))
     assert hr["cycle_holding_after_halt"] and hr["halted_bits"] == [True] * N_MODULES
     assert hr["state_after_recover"] == "ready" and hr["recover_errors"] == {}
@@ -315,8 +317,7 @@ def test_ros_can_driver_node_follows_a_trajectory(scenario_run: ScenarioRun) -> 
     """~/init, a JointTrajectory on /joint_command followed on /joint_states, ~/halt, ~/recover."""
     ros = scenario_run.get("ros")
     assert ros.get("init", {}).get("success"), ros
-    tr = ros.get("trajectory")
-    assert tr is not None, ros
+    tr = scenario_run.part("ros", "trajectory")
     assert tr["reached"] and tr["final_err_max_rad"] < FINAL_TOL_RAD, tr
     # /joint_states streams every cycle; a loaded one-CPU guest runs fewer cycles (measured 12-35 Hz of
     # the 50 Hz asked), so only a live stream is required here, not its rate.

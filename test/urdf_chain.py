@@ -18,6 +18,7 @@ import numpy as np
 FK_TOL = 1e-9
 
 
+# Alike redarm_ros.view.urdf_model.Joint on purpose: this reader is the tests' independent oracle.
 @dataclass(frozen=True)
 class UrdfJoint:
     """One joint of the chain: ``name``, ``type``, ``parent``/``child`` links, ``origin`` (4x4), ``axis``."""

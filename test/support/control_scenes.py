@@ -2,24 +2,19 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from redarm_ros.control.obstacles import Cylinder, Scene, min_distance
 from redarm_ros.control.reach_controller import ControllerParams, ReachController, StepResult
+from support.benches import load_bench
 
 DT = 0.01
 
 
-def pose(p, yaw: float = 0.0) -> np.ndarray:
-    """Tool at p pointing down, rotated by yaw about the vertical."""
-    c, s = math.cos(yaw), math.sin(yaw)
-    T = np.eye(4)
-    T[:3, :3] = np.array([[c, s, 0.0], [s, -c, 0.0], [0.0, 0.0, -1.0]])
-    T[:3, 3] = p
-    return T
+# Tool at p pointing down, rotated by yaw about the vertical: the goal pose the benches use too.
+pose = load_bench("bench_common").pose_down
 
 
 @dataclass

@@ -11,6 +11,7 @@ from contextlib import contextmanager
 from typing import Any, TypeVar
 
 import numpy as np
+import pytest
 import rclpy
 from builtin_interfaces.msg import Duration
 from geometry_msgs.msg import PoseStamped
@@ -23,6 +24,7 @@ from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from redarm_ros.bringup import Stack, StackConfig
 from redarm_ros.kinematics.quaternion import from_xyzw, quat_to_matrix
+from redarm_ros.nodes.controller import pose_to_msg
 from redarm_ros.procs import group_members
 from support.waits import spin_until as spin_executor_until
 
@@ -61,6 +63,18 @@ def pose_err(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
     pe = float(np.linalg.norm(T_a[:3, 3] - T_b[:3, 3]))
     c = (np.trace(T_a[:3, :3].T @ T_b[:3, :3]) - 1.0) / 2.0
     return pe, float(math.acos(max(-1.0, min(1.0, c))))
+
+
+def stack_fixture(init_timeout: float = 30.0, **cfg: Any) -> Any:
+    """A module-scoped ``stack`` fixture: ``StackConfig(log_level="warn", **cfg)`` in ``running_stack``
+    on the test's ROS domain. Assign it to a module global named ``stack``."""
+
+    @pytest.fixture(scope="module")
+    def stack(ros_env: Any) -> Iterator[Stack]:
+        with running_stack(StackConfig(log_level="warn", **cfg), ros_env.domain_id, init_timeout) as st:
+            yield st
+
+    return stack
 
 
 @contextmanager
@@ -106,10 +120,23 @@ class GoalClient(StackClient):
         self.ik = self.node.create_client(SolveIK, "/ik_service/solve_ik")
         self.states: list[ControllerState] = []
         self.node.create_subscription(ControllerState, "/controller/state", self.states.append, 50)
-        self.node.create_subscription(JointState, "joint_states", self.on_joint_state, 50)
+        self.joint_states = 0  # how many joint_states messages came
+        self.node.create_subscription(JointState, "joint_states", self._joint_state, 50)
+
+    def _joint_state(self, msg: JointState) -> None:
+        self.joint_states += 1
+        self.on_joint_state(msg)
 
     def on_joint_state(self, msg: JointState) -> None:
         pass
+
+    def send(self, T: np.ndarray) -> int:
+        """Publish ``T`` as a goal in base_link; the index of the first state message after it."""
+        n = len(self.states)
+        msg = pose_to_msg(T)
+        msg.header.frame_id = "base_link"
+        self.goal_pub.publish(msg)
+        return n
 
 
 C = TypeVar("C", bound=StackClient)
@@ -126,6 +153,35 @@ def client_in_context(domain_id: int, make: Callable[[Any], C]) -> Iterator[C]:
     finally:
         c.close()
         rclpy.shutdown(context=ctx)
+
+
+def ready_client_fixture(make: Callable[[Any], GoalClient], joint_names: list[str], ready_q: np.ndarray,
+                         start_s: float, ik_s: float, reach_s: float, recover_s: float) -> Any:
+    """A module-scoped ``client`` fixture (assign it to a module global named ``client``): a
+    ``GoalClient`` made by ``make`` (``client_in_context``) that has seen joint_states and controller
+    state (``start_s``) and ik_service (``ik_s``), with the arm moved to ``ready_q``
+    (``move_to_ready``)."""
+
+    @pytest.fixture(scope="module")
+    def client(stack: Stack, ros_env: Any) -> Iterator[GoalClient]:
+        with client_in_context(ros_env.domain_id, make) as c:
+            assert c.spin_until(lambda: c.joint_states > 5 and len(c.states) > 0, start_s), \
+                "no joint_states / controller state"
+            assert c.spin_until(c.ik.service_is_ready, ik_s)
+            move_to_ready(c, c.cmd_pub, stack, joint_names, ready_q, reach_s=reach_s, recover_s=recover_s)
+            yield c
+
+    return client
+
+
+def sim_tool_reaches(c: StackClient, stack: Stack, T: np.ndarray, pos_tol: float, rot_tol: float,
+                     timeout: float) -> bool:
+    """Spin until the simulated tool is within ``pos_tol`` m and ``rot_tol`` rad of ``T``."""
+    def there() -> bool:
+        pe, re = pose_err(sim_tool(stack), T)
+        return pe < pos_tol and re < rot_tol
+
+    return c.spin_until(there, timeout)
 
 
 def move_to_ready(c: StackClient, cmd_pub: Any, stack: Stack, joint_names: list[str], ready_q: np.ndarray,

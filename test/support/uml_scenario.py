@@ -32,6 +32,7 @@ import statistics
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -537,62 +538,58 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="cmd", required=True)
 
-    def common(p: argparse.ArgumentParser) -> None:
+    def command(name: str, summary: str,
+                func: Callable[[argparse.Namespace], int]) -> argparse.ArgumentParser:
+        """A sub-command running ``func``, with the options every scenario takes."""
+        p = sub.add_parser(name, help=summary)
         p.add_argument("--interface", help="python-can interface (default: $CAN_INTERFACE)")
         p.add_argument("--channel", help="python-can channel (default: $CAN_CHANNEL)")
         p.add_argument("--result", help="write the JSON result here as well")
+        p.set_defaults(func=func)
+        return p
 
-    p = sub.add_parser("echo", help="answer frames (child of pingpong)")
-    common(p)
-    p.add_argument("--request-id", type=lambda s: int(s, 0), default=0x123)
-    p.add_argument("--reply-id", type=lambda s: int(s, 0), default=0x124)
-    p.add_argument("--count", type=int, default=1000)
+    def frames(p: argparse.ArgumentParser) -> None:  # the echo / pingpong frame ids and count
+        p.add_argument("--request-id", type=lambda s: int(s, 0), default=0x123)
+        p.add_argument("--reply-id", type=lambda s: int(s, 0), default=0x124)
+        p.add_argument("--count", type=int, default=1000)
+
+    def against_sim(p: argparse.ArgumentParser, rate_help: str, reply_help: str) -> None:
+        """The arm, the host's cycle rate and reply timeout, the simulator's rate (hil / ros)."""
+        p.add_argument("--arm", default="pa10")
+        p.add_argument("--rate", type=float, default=50.0, help=rate_help)
+        p.add_argument("--sim-rate", type=float, default=200.0,
+                       help="simulator physics rate [Hz] (sim default 1000; the guest has one slow CPU)")
+        p.add_argument("--reply-timeout", type=float, default=0.5, help=reply_help)
+
+    p = command("echo", "answer frames (child of pingpong)", cmd_echo)
+    frames(p)
     p.add_argument("--idle", type=float, default=10.0, help="give up after this long without a frame [s]")
-    p.set_defaults(func=cmd_echo)
 
-    p = sub.add_parser("pingpong", help="round trips between two processes")
-    common(p)
-    p.add_argument("--request-id", type=lambda s: int(s, 0), default=0x123)
-    p.add_argument("--reply-id", type=lambda s: int(s, 0), default=0x124)
-    p.add_argument("--count", type=int, default=1000)
+    p = command("pingpong", "round trips between two processes", cmd_pingpong)
+    frames(p)
     p.add_argument("--timeout", type=float, default=1.0, help="per round trip [s]")
     p.add_argument("--ready-timeout", type=float, default=60.0, help="echo start-up [s]")
-    p.set_defaults(func=cmd_pingpong)
 
-    p = sub.add_parser("hil", help="driver core against redarm-sim")
-    common(p)
-    p.add_argument("--arm", default="pa10")
-    p.add_argument("--rate", type=float, default=50.0, help="driver cycle rate [Hz]")
-    p.add_argument("--sim-rate", type=float, default=200.0,
-                   help="simulator physics rate [Hz] (sim default 1000; the guest has one slow CPU)")
-    p.add_argument("--reply-timeout", type=float, default=0.5,
-                   help="driver reply timeout [s] (driver default 0.02; the guest is slow)")
+    p = command("hil", "driver core against redarm-sim", cmd_hil)
+    against_sim(p, "driver cycle rate [Hz]",
+                "driver reply timeout [s] (driver default 0.02; the guest is slow)")
     p.add_argument("--duration", type=float, default=3.0, help="trajectory duration [s]")
     p.add_argument("--hold", type=float, default=1.0, help="hold at the goal afterwards [s]")
     p.add_argument("--ready-timeout", type=float, default=60.0, help="simulator start-up [s]")
-    p.set_defaults(func=cmd_hil)
 
-    p = sub.add_parser("ros", help="can_driver node against redarm-sim, driven over ROS")
-    common(p)
-    p.add_argument("--arm", default="pa10")
-    p.add_argument("--rate", type=float, default=50.0, help="node cycle rate [Hz] (node default 250)")
-    p.add_argument("--sim-rate", type=float, default=200.0,
-                   help="simulator physics rate [Hz] (sim default 1000; the guest has one slow CPU)")
-    p.add_argument("--reply-timeout", type=float, default=0.5,
-                   help="node reply_timeout_s [s] (node default 0.02; the guest is slow)")
+    p = command("ros", "can_driver node against redarm-sim, driven over ROS", cmd_ros)
+    against_sim(p, "node cycle rate [Hz] (node default 250)",
+                "node reply_timeout_s [s] (node default 0.02; the guest is slow)")
     p.add_argument("--watchdog", choices=("true", "false"), default="false",
                    help="node 'watchdog' parameter (node default true; the modules' 100 ms watchdog "
                         "cannot be held by a loaded one-CPU guest)")
     p.add_argument("--duration", type=float, default=3.0, help="trajectory duration [s]")
     p.add_argument("--tolerance", type=float, default=0.01, help="goal reached within [rad]")
     p.add_argument("--ready-timeout", type=float, default=90.0, help="simulator / node start-up [s]")
-    p.set_defaults(func=cmd_ros)
 
-    p = sub.add_parser("suite", help="every scenario in turn, results into --out")
-    common(p)
+    p = command("suite", "every scenario in turn, results into --out", cmd_suite)
     p.add_argument("--out", required=True, help="directory for result_<name>.json")
     p.add_argument("--only", nargs="*", choices=SUITE, help="run only these scenarios")
-    p.set_defaults(func=cmd_suite)
     return parser
 
 
