@@ -1,6 +1,6 @@
 """Pieces every benchmark shares: the plot module, the load-average line, the results writer, the
-tool-down goal pose and the ramped arc-length timing of a path (the last two used by the tests too,
-through test/support).
+tool-down goal pose, the ramped arc-length timing of a path and the generators of the collision
+benchmark's pose sets (the last three used by the tests too, through test/support).
 
 The benches import this module as ``bench_common`` after putting their own folder on ``sys.path``
 (the tests load benches, and this module, by file path, without benchmarks/ on ``sys.path``; it
@@ -16,7 +16,7 @@ import platform
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from types import ModuleType
 from typing import Any
@@ -44,6 +44,42 @@ def pose_down(p: Any, yaw: float = 0.0) -> np.ndarray:
     T[:3, :3] = np.array([[c, s, 0.0], [s, -c, 0.0], [0.0, 0.0, -1.0]])
     T[:3, 3] = p
     return T
+
+
+def mixed_collision_poses(
+    arm: Any, model: Any, rng: np.random.Generator
+) -> Iterator[tuple[np.ndarray, np.ndarray, Any]]:
+    """Endless poses (T, every in-limit solution on a 0.1 deg swivel sweep, their self-collision
+    result) of random postures above 0.3 m whose solutions are partly colliding, partly free."""
+    from redarm_ros.control.self_collision import self_collision_batch  # noqa: PLC0415
+
+    S = np.linspace(-math.pi, math.pi, 3600, endpoint=False)
+    while True:
+        T = arm.fk(rng.uniform(arm.lower, arm.upper))
+        if T[2, 3] < 0.3:
+            continue
+        Q, valid = arm.ik_batch(np.broadcast_to(T, (len(S), 4, 4)), S)
+        ii, bb = np.nonzero(valid)
+        rows = Q[ii, bb]
+        res = self_collision_batch(arm, rows, model=model)
+        if res.free.any() and res.colliding.any():
+            yield T, rows, res
+
+
+def shifted_poses(arm: Any, rng: np.random.Generator) -> Iterator[np.ndarray]:
+    """Endless tool poses of collision-free postures (within 80 % of the limits) moved sideways by
+    0.4-1.2 m: mostly out of the arm's reach from where it stands (the caller keeps those)."""
+    from redarm_ros.control.self_collision import self_collision  # noqa: PLC0415
+
+    while True:
+        q = rng.uniform(0.8 * arm.lower, 0.8 * arm.upper)
+        if self_collision(arm, q).colliding:
+            continue
+        T = arm.fk(q).copy()
+        ang, dist = rng.uniform(-math.pi, math.pi), rng.uniform(0.4, 1.2)
+        T[0, 3] += dist * math.cos(ang)
+        T[1, 3] += dist * math.sin(ang)
+        yield T
 
 
 def add_plot_dir(ap: Any) -> None:

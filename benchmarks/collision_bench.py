@@ -33,6 +33,9 @@ from pathlib import Path
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench_common
+import bench_common  # noqa: E402
+
 from redarm_ros.control.self_collision import self_collision, self_collision_batch
 from redarm_ros.kinematics import IKStatus, load_arm
 from redarm_ros.kinematics.base_placement import suggest_base_move
@@ -110,19 +113,8 @@ def bench_fallback(n: int) -> list[str]:
     front = IKFrontEnd({"wide": arm}, "wide")
     model = front.models["wide"]
     rng = np.random.default_rng(3)
-    S = np.linspace(-math.pi, math.pi, 3600, endpoint=False)
     times, excess, found = [], [], 0
-    while found < n:
-        q = rng.uniform(arm.lower, arm.upper)
-        T = arm.fk(q)
-        if T[2, 3] < 0.3:
-            continue
-        Q, valid = arm.ik_batch(np.broadcast_to(T, (len(S), 4, 4)), S)
-        ii, bb = np.nonzero(valid)
-        rows = Q[ii, bb]
-        res = self_collision_batch(arm, rows, model=model)
-        if not (res.free.any() and res.colliding.any()):
-            continue
+    for T, rows, res in bench_common.mixed_collision_poses(arm, model, rng):
         found += 1
         qc = rows[np.nonzero(res.colliding)[0][rng.integers(res.colliding.sum())]]
         t = time.perf_counter()
@@ -131,6 +123,8 @@ def bench_fallback(n: int) -> list[str]:
         assert f is not None and not self_collision(arm, f.q, model=model).colliding
         sweep = ((arm.nearest_copies(rows[res.free], qc) - qc) ** 2).sum(axis=1).min()
         excess.append(f.cost - sweep)
+        if found == n:
+            break
     med, p95, mx = _ms(times)
     return [
         "| poses | median ms | p95 ms | max ms | worse than the 0.1 deg sweep | largest excess (rad^2) |",
@@ -149,14 +143,7 @@ def bench_base(n: int) -> list[str]:
     for name, arm in arms.items():
         rng = np.random.default_rng(5)
         times, valid, optimal, solved, k = [], 0, 0, 0, 0
-        while k < n:
-            q = rng.uniform(0.8 * arm.lower, 0.8 * arm.upper)
-            if self_collision(arm, q).colliding:
-                continue
-            T = arm.fk(q).copy()
-            ang, dist = rng.uniform(-math.pi, math.pi), rng.uniform(0.4, 1.2)
-            T[0, 3] += dist * math.cos(ang)
-            T[1, 3] += dist * math.sin(ang)
+        for T in bench_common.shifted_poses(arm, rng):
             ans = front.solve(T, name, swivel=None, seed=[], all_solutions=False, timeout_s=0.05)
             if ans.status is IKStatus.SUCCESS:
                 continue
@@ -171,6 +158,8 @@ def bench_base(n: int) -> list[str]:
                     bp.apply(T), name, swivel=None, seed=[], all_solutions=False, timeout_s=0.05
                 )
                 solved += ans.status is IKStatus.SUCCESS
+            if k == n:
+                break
         med, _, mx = _ms(times)
         rows.append(f"| {name} | {n} | {valid} | {optimal} | {solved} | {med:.1f} | {mx:.1f} |")
     return rows

@@ -4,10 +4,12 @@ smallest displacement; the yaw, the hopeless cases, the hint sentence and the co
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
 import pytest
+from support.benches import load_bench
 
 from redarm_ros.control.self_collision import self_collision
 from redarm_ros.kinematics import IKStatus, load_arm
@@ -21,6 +23,9 @@ from redarm_ros.kinematics.base_placement import (
 from redarm_ros.kinematics.model import transform_from_xyz_rpy
 from redarm_ros.kinematics.solve import IKFrontEnd
 
+# The collision benchmark's unsolvable poses, drawn here on a small scale.
+SHIFTED = load_bench("bench_common").shifted_poses
+
 ARMS = ["pa10", "pa10_7c", "powercube6", "powercube7"]
 LOADED = {n: load_arm(n) for n in ARMS}
 FRONT = IKFrontEnd(LOADED, "pa10", suggest_base_move=False)
@@ -32,20 +37,8 @@ def _solve(T: np.ndarray, arm: str) -> object:
 
 def _unsolvable_poses(name: str, count: int, seed: int) -> list[np.ndarray]:
     """Poses of collision-free postures shifted sideways by 0.4-1.2 m until the arm cannot solve them."""
-    arm = LOADED[name]
-    rng = np.random.default_rng(seed)
-    out = []
-    while len(out) < count:
-        q = rng.uniform(0.8 * arm.lower, 0.8 * arm.upper)
-        if self_collision(arm, q).colliding:
-            continue
-        T = arm.fk(q).copy()
-        ang, dist = rng.uniform(-math.pi, math.pi), rng.uniform(0.4, 1.2)
-        T[0, 3] += dist * math.cos(ang)
-        T[1, 3] += dist * math.sin(ang)
-        if _solve(T, name).status is not IKStatus.SUCCESS:
-            out.append(T)
-    return out
+    poses = SHIFTED(LOADED[name], np.random.default_rng(seed))
+    return list(itertools.islice((T for T in poses if _solve(T, name).status is not IKStatus.SUCCESS), count))
 
 
 @pytest.mark.parametrize("name", ARMS)

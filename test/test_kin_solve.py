@@ -2,16 +2,21 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 from typing import Any
 
 import numpy as np
 import pytest
+from support.benches import load_bench
 
 from redarm_ros.control.self_collision import self_collision, self_collision_batch
 from redarm_ros.errors import InvalidInputError
 from redarm_ros.kinematics import IKStatus, load_arm
 from redarm_ros.kinematics.solve import IKFrontEnd, nearest_collision_free
+
+# The collision benchmark's pose set, drawn here on a small scale.
+MIXED = load_bench("bench_common").mixed_collision_poses
 
 ARMS = {name: load_arm(name) for name in ("pa10", "powercube6", "powercube7")}
 FRONT = IKFrontEnd(ARMS, "pa10")
@@ -134,21 +139,9 @@ def _mixed_poses(
     arm: Any, model: Any, count: int, seed: int
 ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """(T, a colliding solution of T, all collision-free solutions on a 0.1 deg sweep) for mixed poses."""
-    rng = np.random.default_rng(seed)
-    S = np.linspace(-math.pi, math.pi, 3600, endpoint=False)
-    out = []
-    while len(out) < count:
-        q = rng.uniform(arm.lower, arm.upper)
-        T = arm.fk(q)
-        if T[2, 3] < 0.3:
-            continue
-        Q, valid = arm.ik_batch(np.broadcast_to(T, (len(S), 4, 4)), S)
-        ii, bb = np.nonzero(valid)
-        rows = Q[ii, bb]
-        res = self_collision_batch(arm, rows, model=model)
-        if res.free.any() and res.colliding.any():
-            out.append((T, rows[np.nonzero(res.colliding)[0][0]], rows[res.free]))
-    return out
+    poses = MIXED(arm, model, np.random.default_rng(seed))
+    return [(T, rows[np.nonzero(res.colliding)[0][0]], rows[res.free])
+            for T, rows, res in itertools.islice(poses, count)]
 
 
 def test_nearest_collision_free_on_the_swivel_circle_matches_a_dense_sweep() -> None:
