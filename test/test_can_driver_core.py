@@ -15,20 +15,13 @@ import can
 import numpy as np
 import pytest
 
+from redarm_ros import errors
 from redarm_ros.can import protocol as p
 from redarm_ros.can.bus import open_bus
 from redarm_ros.can.bus_server import LoopbackBusServer
 from redarm_ros.can.driver_core import DriverState, FaultKind, PowerCubeArmDriver
 from redarm_ros.can.module_emulator import EmulatedArm, EmulatorRunner
 from redarm_ros.can.protocol import ActConfig, ActState
-from redarm_ros.errors import (
-    BusError,
-    BusTimeoutError,
-    ImplausibleMeasurementError,
-    InvalidInputError,
-    ModuleFaultError,
-    RedarmError,
-)
 
 S = ActState
 N = 3
@@ -151,7 +144,7 @@ def test_discovery_reports_a_missing_module(clock: FakeClock, arm: EmulatedArm) 
 
 def test_init_configures_resets_homes_and_holds(scripted: ScriptedBus, arm: EmulatedArm, clock) -> None:
     drv = make_driver(scripted, clock)
-    with pytest.raises(RedarmError, match="init"):
+    with pytest.raises(errors.RedarmError, match="init"):
         drv.cycle([0.0] * N, 0.004)
     assert scripted.take() == []
     st = drv.init()
@@ -168,7 +161,7 @@ def test_init_configures_resets_homes_and_holds(scripted: ScriptedBus, arm: Emul
 def test_init_with_a_missing_module_raises_timeout(clock: FakeClock, arm: EmulatedArm) -> None:
     arm[2].silenced = True
     with ScriptedBus(clock, arm.handle) as bus:
-        with pytest.raises(BusTimeoutError) as info:
+        with pytest.raises(errors.BusTimeoutError) as info:
             make_driver(bus, clock).init()
         assert info.value.module_id == 2
 
@@ -205,9 +198,9 @@ def test_nan_target_is_refused_before_anything_is_sent(scripted: ScriptedBus, cl
     drv = ready_driver(scripted, clock)
     scripted.take()
     for bad in ([0.0, math.nan, 0.0], [0.0, 0.0, math.inf], [0.0, 0.0]):
-        with pytest.raises(InvalidInputError):
+        with pytest.raises(errors.InvalidInputError):
             drv.cycle(bad, 0.004)
-    with pytest.raises(InvalidInputError):
+    with pytest.raises(errors.InvalidInputError):
         drv.cycle([0.0] * N, 0.0)
     assert scripted.take() == []
 
@@ -269,7 +262,7 @@ def test_silenced_module_halts_all_and_raises_once(scripted: ScriptedBus, arm: E
         assert res.lost == 1 and res.replied.tolist() == [True, False, True]
         assert drv.stats[1].consecutive_misses == k + 1
     assert _halts(scripted.take()) == []
-    with pytest.raises(BusTimeoutError) as info:
+    with pytest.raises(errors.BusTimeoutError) as info:
         drv.cycle(None, 0.004)
     assert info.value.module_id == 2 and info.value.timeout_s == drv.reply_timeout_s
     assert str(info.value.cycle_result.fault).startswith("module 2 stopped answering")
@@ -388,14 +381,14 @@ def test_implausible_position_read_is_refused(clock: FakeClock, arm: EmulatedArm
     with ScriptedBus(clock, responder) as bus:
         drv = ready_driver(bus, clock)
         mode["forge"] = True
-        with pytest.raises(ImplausibleMeasurementError) as info:
+        with pytest.raises(errors.ImplausibleMeasurementError) as info:
             drv.read_state()
         assert info.value.module_id == 1 and info.value.value == pytest.approx(2.5)
         mode["forge"] = False
         assert drv.read_state().positions[0] == pytest.approx(0.2, abs=1e-6)
         # init re-establishes the positions (homing): no reference, any position accepted
         mode["forge"] = True
-        with pytest.raises(ImplausibleMeasurementError):
+        with pytest.raises(errors.ImplausibleMeasurementError):
             drv.recover()
 
 
@@ -454,10 +447,10 @@ def test_recover_fails_while_a_fault_persists(clock: FakeClock, arm: EmulatedArm
 
     with ScriptedBus(clock, responder) as bus:
         drv = make_driver(bus, clock)
-        with pytest.raises(ModuleFaultError) as info:
+        with pytest.raises(errors.ModuleFaultError) as info:
             drv.init(home=False)
         assert info.value.module_id == 2 and info.value.state & S.POWERFAULT
-        with pytest.raises(ModuleFaultError):
+        with pytest.raises(errors.ModuleFaultError):
             drv.recover()
         assert drv.state is DriverState.UNINITIALIZED
 
@@ -502,7 +495,7 @@ def test_bus_failure_then_resync_never_replays_the_old_target(
     drv = ready_driver(scripted, clock)
     drv.cycle([0.25, -0.1, 0.0], 0.01)
     scripted.fail = OSError(32, "Broken pipe")
-    with pytest.raises(BusError, match="CAN bus failed"):
+    with pytest.raises(errors.BusError, match="CAN bus failed"):
         drv.cycle([0.26, -0.1, 0.0], 0.01)
     scripted.fail = None  # "reopened" by its owner
     clock.t += 1.0
@@ -514,20 +507,20 @@ def test_bus_failure_then_resync_never_replays_the_old_target(
 
 def test_reconnect_needs_a_reopenable_bus(scripted: ScriptedBus, clock: FakeClock) -> None:
     drv = make_driver(scripted, clock)
-    with pytest.raises(BusError, match="cannot be reopened"):
+    with pytest.raises(errors.BusError, match="cannot be reopened"):
         drv.reconnect()
 
 
 def test_constructor_validation(scripted: ScriptedBus) -> None:
-    with pytest.raises(InvalidInputError):
+    with pytest.raises(errors.InvalidInputError):
         PowerCubeArmDriver(scripted, [1, 1, 2], LOWER, UPPER, VMAX, AMAX)
-    with pytest.raises(InvalidInputError):
+    with pytest.raises(errors.InvalidInputError):
         PowerCubeArmDriver(scripted, [1, 2, 40], LOWER, UPPER, VMAX, AMAX)
-    with pytest.raises(InvalidInputError):
+    with pytest.raises(errors.InvalidInputError):
         PowerCubeArmDriver(scripted, IDS, LOWER, UPPER[:2], VMAX, AMAX)
-    with pytest.raises(InvalidInputError):
+    with pytest.raises(errors.InvalidInputError):
         PowerCubeArmDriver(scripted, IDS, UPPER, LOWER, VMAX, AMAX)
-    with pytest.raises(InvalidInputError):
+    with pytest.raises(errors.InvalidInputError):
         PowerCubeArmDriver(scripted, IDS, LOWER, UPPER, [0.0] * N, AMAX)
 
 
@@ -606,10 +599,10 @@ def test_remote_bus_loss_reconnect_holds_measured_position() -> None:
             drv.cycle([0.004 * k, 0.0, 0.0], 0.01)
             time.sleep(0.005)
         server.stop()
-        with pytest.raises(BusError):
+        with pytest.raises(errors.BusError):
             for _ in range(50):
                 drv.cycle([0.2, 0.0, 0.0], 0.01)
-        with pytest.raises(BusError):
+        with pytest.raises(errors.BusError):
             drv.reconnect()  # no server yet
         server = LoopbackBusServer(port=port).start()
         deadline = time.monotonic() + 10.0
@@ -617,7 +610,7 @@ def test_remote_bus_loss_reconnect_holds_measured_position() -> None:
             try:
                 st = drv.reconnect()
                 break
-            except BusError:
+            except errors.BusError:
                 assert time.monotonic() < deadline, "could not reconnect"
                 time.sleep(0.05)
         held = st.positions.copy()
