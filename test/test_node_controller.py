@@ -293,6 +293,21 @@ def test_markers_published(h: Harness) -> None:
     assert obs.type == Marker.CYLINDER and obs.scale.z == pytest.approx(0.2)
 
 
+def test_markers_built_only_for_listeners_and_a_late_one_gets_the_obstacles(h: Harness) -> None:
+    """With nobody on ~/markers nothing is built (a thousand obstacles cost half the control rate);
+    a listener that joins later gets the obstacles (re-sent for it)."""
+    h.obs_pub.publish(MarkerArray(markers=[_marker(Marker.SPHERE, (0.5, -0.4, 0.3), (0.1, 0.1, 0.1))]))
+    assert h.spin_until(lambda: any(m.ns == "obstacles" for ma in h.markers for m in ma.markers), 5.0)
+    sub = next(s for s in h.probe.subscriptions if s.topic_name == "/controller/markers")
+    h.probe.destroy_subscription(sub)
+    assert h.spin_until(lambda: h.ctl.marker_pub.get_subscription_count() == 0, 5.0)
+    h.spin_until(lambda: False, 0.3)
+    assert h.ctl._marker_listeners == 0 and h.ctl._last_marker_ids == set()
+    late: list[MarkerArray] = []
+    h.probe.create_subscription(MarkerArray, "/controller/markers", late.append, 10)
+    assert h.spin_until(lambda: any(m.ns == "obstacles" for ma in late for m in ma.markers), 5.0)
+
+
 def test_goal_before_joint_states_waits(ctx: Any) -> None:
     h = Harness(ctx)
     try:
