@@ -397,7 +397,7 @@ def cmd_ros(ns: argparse.Namespace) -> int:
     sim = _start_child_cmd(
         [sys.executable, "-m", "redarm_ros.sim.hardware", "--arm", ns.arm, "--rate", str(ns.sim_rate),
          "--status-file", str(out / "ros_sim_status.json"), "--status-rate", "10", "--log-level", "WARNING",
-         *_bus_cli(ns)],
+         "--realtime-priority", "0", *_bus_cli(ns)],  # normal scheduling in the guest, as the node below
         "REDARM_SIM_READY", ns.ready_timeout)
     kw = _bus_kwargs(ns)
     node_log = open(out / "can_driver_node.log", "w")  # closed in finally
@@ -405,10 +405,10 @@ def cmd_ros(ns: argparse.Namespace) -> int:
                 "-p", f"arm:={ns.arm}", "-p", f"rate_hz:={float(ns.rate)}",
                 "-p", f"reply_timeout_s:={float(ns.reply_timeout)}", "-p", "max_missed_replies:=5",
                 "-p", "request_timeout_s:=60.0", "-p", f"watchdog:={ns.watchdog}",
-                # Normal scheduling in the one-CPU guest: there the simulator that must answer runs
-                # on the same CPU, and a SCHED_FIFO cycle that waits on the guest's coarse timers
-                # starved it (RT throttling, 1.7 Hz, on a loaded host). Real modules answer in
-                # hardware; the host-side tests run the cycle at SCHED_FIFO.
+                # Normal scheduling for the node and the simulator in the one-CPU guest: whichever
+                # ran at SCHED_FIFO starved the others there (the cycle: RT throttling and 1.7 Hz
+                # joint_states; the simulator: physics 3.7 s behind, the arm 16 mrad short). Real
+                # modules answer in hardware; the host-side tests run both at SCHED_FIFO.
                 "-p", "realtime_priority:=0"]
     if "interface" in kw:
         node_cmd += ["-p", f"can.interface:={kw['interface']}"]
