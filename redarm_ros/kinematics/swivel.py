@@ -140,6 +140,46 @@ def _zyz_np(ax: Any, ay: Any, az: Any, bx: Any, by: Any, bz: Any, out: np.ndarra
     out[2] = np.arctan2(b21, az * b11 - r * bz)
 
 
+# The frame formulas below are written once and evaluated on floats (the scalar ``ik`` path, where numpy's
+# per-call overhead would dominate) or on (m,) arrays (``ik_batch``) alike; ``sqrt`` is math.sqrt or np.sqrt.
+def _unit_x3(x3x: Any, x3y: Any, x3z: Any, zx: Any, zy: Any, zz: Any, sqrt: Any) -> tuple[Any, ...]:
+    """x3 normalised, made orthogonal to z3 again and normalised (g is tiny next to f near the stretched
+    elbow), and y3 = z3 x x3: (x3x, x3y, x3z, y3x, y3y, y3z)."""
+    k = 1.0 / sqrt(x3x * x3x + x3y * x3y + x3z * x3z)
+    x3x, x3y, x3z = x3x * k, x3y * k, x3z * k
+    pd = x3x * zx + x3y * zy + x3z * zz
+    x3x, x3y, x3z = x3x - pd * zx, x3y - pd * zy, x3z - pd * zz
+    k = 1.0 / sqrt(x3x * x3x + x3y * x3y + x3z * x3z)
+    x3x, x3y, x3z = x3x * k, x3y * k, x3z * k
+    return x3x, x3y, x3z, zy * x3z - zz * x3y, zz * x3x - zx * x3z, zx * x3y - zy * x3x
+
+
+def _frame4_axes(f: tuple[Any, ...]) -> tuple[Any, ...]:
+    """x4 and z4 of frame 4 = frame 3 turned by theta4 about y3 (x4 = c4 x3 - s4 z3, z4 = s4 x3 + c4 z3),
+    from a frame tuple of ``_frame3`` / ``_frame_np``: (x4x, x4y, x4z, z4x, z4y, z4z)."""
+    zx, zy, zz, x3x, x3y, x3z, _, _, _, _, c4, s4 = f
+    return (c4 * x3x - s4 * zx, c4 * x3y - s4 * zy, c4 * x3z - s4 * zz,
+            s4 * x3x + c4 * zx, s4 * x3y + c4 * zy, s4 * x3z + c4 * zz)
+
+
+def _wrist_entries(f: tuple[Any, ...], rows: Sequence[Any]) -> tuple[Any, ...]:
+    """Entries (W13, W23, W33, W11, W21, W31) of the wrist rotation W = R4^T R_tool, from a frame tuple and
+    the first three rows of the tool pose (nested lists of floats or of (m,) arrays)."""
+    x4x, x4y, x4z, z4x, z4y, z4z = _frame4_axes(f)
+    y3x, y3y, y3z = f[6], f[7], f[8]
+    r0, r1, r2 = rows[0], rows[1], rows[2]
+    ax, ay, az = r0[2], r1[2], r2[2]  # tool z (approach)
+    bx, by, bz = r0[0], r1[0], r2[0]  # tool x
+    return (
+        x4x * ax + x4y * ay + x4z * az,
+        y3x * ax + y3y * ay + y3z * az,
+        z4x * ax + z4y * ay + z4z * az,
+        x4x * bx + x4y * by + x4z * bz,
+        y3x * bx + y3y * by + y3z * bz,
+        z4x * bx + z4y * by + z4z * bz,
+    )
+
+
 class SwivelArm(Arm):
     """7-DOF z,y,z,y,z,y,z arm with link lengths L1..L4 (m): closed-form swivel IK.
 
@@ -271,35 +311,16 @@ class SwivelArm(Arm):
             x3x, x3y, x3z = -(rux - pd * zx), -(ruy - pd * zy), -(ruz - pd * zz)
             if x3x * x3x + x3y * x3y + x3z * x3z < 1e-18:  # wrist at the shoulder: u along the arm
                 x3x, x3y, x3z = -zz * zx, -zz * zy, 1.0 - zz * zz
-        # normalise and orthogonalise again: g is tiny next to f near the stretched elbow
-        k = 1.0 / math.sqrt(x3x * x3x + x3y * x3y + x3z * x3z)
-        x3x, x3y, x3z = x3x * k, x3y * k, x3z * k
-        pd = x3x * zx + x3y * zy + x3z * zz
-        x3x, x3y, x3z = x3x - pd * zx, x3y - pd * zy, x3z - pd * zz
-        k = 1.0 / math.sqrt(x3x * x3x + x3y * x3y + x3z * x3z)
-        x3x, x3y, x3z = x3x * k, x3y * k, x3z * k
-        y3x, y3y, y3z = zy * x3z - zz * x3y, zz * x3x - zx * x3z, zx * x3y - zy * x3x
+        x3x, x3y, x3z, y3x, y3y, y3z = _unit_x3(x3x, x3y, x3z, zx, zy, zz, math.sqrt)
         return (zx, zy, zz, x3x, x3y, x3z, y3x, y3y, y3z, t4, fd / fn, gn / fn)
 
     def _base_from_circle(
         self, Tl: list[list[float]], circ: tuple[float, ...], ux: float, uy: float
     ) -> tuple[float, ...]:
-        zx, zy, zz, x3x, x3y, x3z, y3x, y3y, y3z, t4, c4, s4 = self._frame3(circ, ux, uy)
-        t1, t2, t3 = _zyz(zx, zy, zz, x3x, x3y, x3z)  # shoulder: R3 = [x3 y3 z3]
-        # R4 = R3 Ry(theta4): x4 = c4 x3 - s4 z3, y4 = y3, z4 = s4 x3 + c4 z3
-        x4x, x4y, x4z = c4 * x3x - s4 * zx, c4 * x3y - s4 * zy, c4 * x3z - s4 * zz
-        z4x, z4y, z4z = s4 * x3x + c4 * zx, s4 * x3y + c4 * zy, s4 * x3z + c4 * zz
-        r0, r1, r2 = Tl[0], Tl[1], Tl[2]
-        ax, ay, az = r0[2], r1[2], r2[2]
-        bx, by, bz = r0[0], r1[0], r2[0]
-        w13 = x4x * ax + x4y * ay + x4z * az
-        w23 = y3x * ax + y3y * ay + y3z * az
-        w33 = z4x * ax + z4y * ay + z4z * az
-        w11 = x4x * bx + x4y * by + x4z * bz
-        w21 = y3x * bx + y3y * by + y3z * bz
-        w31 = z4x * bx + z4y * by + z4z * bz
-        t5, t6, t7 = _zyz(w13, w23, w33, w11, w21, w31)  # wrist: W = R4^T R_tool
-        return (t1, t2, t3, t4, t5, t6, t7)
+        f = self._frame3(circ, ux, uy)
+        t1, t2, t3 = _zyz(*f[0:6])  # shoulder: R3 = [x3 y3 z3], from z3 and x3
+        t5, t6, t7 = _zyz(*_wrist_entries(f, Tl))  # wrist: W = R4^T R_tool
+        return (t1, t2, t3, f[9], t5, t6, t7)
 
     def _fit(self, j: int, x: float) -> list[float]:
         """In-limit 2*pi copies of angle x for joint j, nearest to 0 first (empty if none)."""
@@ -477,10 +498,10 @@ class SwivelArm(Arm):
         return PI if s <= -PI else s
 
     # ------------------------------------------------------------------ vectorised closed form
-    # These mirror the scalar _circle / _frame3 / _base_from_circle line by line on purpose: the scalar
-    # ones are plain math on floats (ik's 15 us; numpy on one pose costs 1 us a call), these run over
-    # thousands of poses with np.where for the singular branches. One shared version would slow one of
-    # the two hot paths; the tests hold them to the same answers (batch equals scalar).
+    # These mirror the scalar _circle / _frame3 where the singular branches differ: the scalar ones are
+    # plain math on floats with ifs (ik's 15 us; numpy on one pose costs 1 us a call), these run over
+    # thousands of poses with np.where. The branch-free tails (x3 made orthonormal, the wrist entries) are
+    # shared (_unit_x3, _wrist_entries: +0.5 us on ik); the tests hold both to the same answers.
     def _circle_np(self, P: list[Any]) -> tuple[Any, ...]:
         """Vectorised :meth:`_circle`: (dx, dy, dz, rxy2, D, Ds, nx, ny, nz, ca, sa, up, down, reach) with
         Ds = D (1 at the shoulder), up / down: n = +k / -k by convention. P: 3x4 nested (m,) entries."""
@@ -550,36 +571,18 @@ class SwivelArm(Arm):
             x3x = np.where(tiny, -zz * zx, x3x)
             x3y = np.where(tiny, -zz * zy, x3y)
             x3z = np.where(tiny, 1.0 - zz * zz, x3z)
-        # normalise, orthogonalise to z3 again, normalise (g is tiny next to f near the stretched elbow)
-        k = 1.0 / np.sqrt(x3x * x3x + x3y * x3y + x3z * x3z)
-        x3x, x3y, x3z = x3x * k, x3y * k, x3z * k
-        pd = x3x * zx + x3y * zy + x3z * zz
-        x3x, x3y, x3z = x3x - pd * zx, x3y - pd * zy, x3z - pd * zz
-        k = 1.0 / np.sqrt(x3x * x3x + x3y * x3y + x3z * x3z)
-        x3x, x3y, x3z = x3x * k, x3y * k, x3z * k
-        y3x, y3y, y3z = zy * x3z - zz * x3y, zz * x3x - zx * x3z, zx * x3y - zy * x3x
+        x3x, x3y, x3z, y3x, y3y, y3z = _unit_x3(x3x, x3y, x3z, zx, zy, zz, np.sqrt)
         return zx, zy, zz, x3x, x3y, x3z, y3x, y3y, y3z, t4, fd / fn, gn / fn
 
     def _base_np(self, P: list[Any], ux: Any, uy: Any) -> tuple[np.ndarray, np.ndarray]:
         """Vectorised base solutions. P: 3x4 nested (m,) entries of the poses; ux, uy: (m,) swivel
         quaternion. Returns (theta (7, m), reachable (m,) bool)."""
         c = self._circle_np(P)
-        zx, zy, zz, x3x, x3y, x3z, y3x, y3y, y3z, t4, c4, s4 = self._frame_np(c, ux, uy)
-        r0, r1, r2 = P
-        th = np.empty((7,) + np.shape(zx))
-        _zyz_np(zx, zy, zz, x3x, x3y, x3z, th[0:3])
-        th[3] = t4
-        x4x, x4y, x4z = c4 * x3x - s4 * zx, c4 * x3y - s4 * zy, c4 * x3z - s4 * zz
-        z4x, z4y, z4z = s4 * x3x + c4 * zx, s4 * x3y + c4 * zy, s4 * x3z + c4 * zz
-        ax, ay, az = r0[2], r1[2], r2[2]
-        bx, by, bz = r0[0], r1[0], r2[0]
-        w13 = x4x * ax + x4y * ay + x4z * az
-        w23 = y3x * ax + y3y * ay + y3z * az
-        w33 = z4x * ax + z4y * ay + z4z * az
-        w11 = x4x * bx + x4y * by + x4z * bz
-        w21 = y3x * bx + y3y * by + y3z * bz
-        w31 = z4x * bx + z4y * by + z4z * bz
-        _zyz_np(w13, w23, w33, w11, w21, w31, th[4:7])
+        f = self._frame_np(c, ux, uy)
+        th = np.empty((7,) + np.shape(f[0]))
+        _zyz_np(*f[0:6], th[0:3])
+        th[3] = f[9]
+        _zyz_np(*_wrist_entries(f, P), th[4:7])
         return th, c[-1]
 
     def _functions_np(
