@@ -142,6 +142,18 @@ def _zyz_np(ax: Any, ay: Any, az: Any, bx: Any, by: Any, bz: Any, out: np.ndarra
 
 # The frame formulas below are written once and evaluated on floats (the scalar ``ik`` path, where numpy's
 # per-call overhead would dominate) or on (m,) arrays (``ik_batch``) alike; ``sqrt`` is math.sqrt or np.sqrt.
+def _wrist_from_shoulder(rows: Sequence[Any], L: Sequence[float]) -> tuple[Any, ...]:
+    """d = pW - pS (the wrist pW = p - L4 a, the shoulder pS = L1 k) from the first three rows of the tool
+    pose, with |d_xy|^2 and |d|^2: (dx, dy, dz, rxy2, D2)."""
+    L1, L4 = L[0], L[3]
+    r0, r1, r2 = rows[0], rows[1], rows[2]
+    dx = r0[3] - L4 * r0[2]
+    dy = r1[3] - L4 * r1[2]
+    dz = r2[3] - L4 * r2[2] - L1
+    rxy2 = dx * dx + dy * dy
+    return dx, dy, dz, rxy2, rxy2 + dz * dz
+
+
 def _unit_x3(x3x: Any, x3y: Any, x3z: Any, zx: Any, zy: Any, zz: Any, sqrt: Any) -> tuple[Any, ...]:
     """x3 normalised, made orthogonal to z3 again and normalised (g is tiny next to f near the stretched
     elbow), and y3 = z3 x x3: (x3x, x3y, x3z, y3x, y3y, y3z)."""
@@ -223,13 +235,8 @@ class SwivelArm(Arm):
         Returns (dx, dy, dz, D, rxy2, nx, ny, nz, ca) with d = pW - pS, D = |d|, n = d / D and ca the
         cosine of the angle at the shoulder between n and the upper arm.
         """
-        L1, L2, L3, L4 = self._L
-        r0, r1, r2 = Tl[0], Tl[1], Tl[2]
-        dx = r0[3] - L4 * r0[2]
-        dy = r1[3] - L4 * r1[2]
-        dz = r2[3] - L4 * r2[2] - L1
-        rxy2 = dx * dx + dy * dy
-        D2 = rxy2 + dz * dz
+        L2, L3 = self._L[1], self._L[2]
+        dx, dy, dz, rxy2, D2 = _wrist_from_shoulder(Tl, self._L)
         D = math.sqrt(D2)
         if D > L2 + L3 + REACH_TOL:
             return D - (L2 + L3)
@@ -500,18 +507,13 @@ class SwivelArm(Arm):
     # ------------------------------------------------------------------ vectorised closed form
     # These mirror the scalar _circle / _frame3 where the singular branches differ: the scalar ones are
     # plain math on floats with ifs (ik's 15 us; numpy on one pose costs 1 us a call), these run over
-    # thousands of poses with np.where. The branch-free tails (x3 made orthonormal, the wrist entries) are
-    # shared (_unit_x3, _wrist_entries: +0.5 us on ik); the tests hold both to the same answers.
+    # thousands of poses with np.where. The branch-free parts are shared (_wrist_from_shoulder, _unit_x3,
+    # _wrist_entries: +0.7 us on ik); the tests hold both to the same answers.
     def _circle_np(self, P: list[Any]) -> tuple[Any, ...]:
         """Vectorised :meth:`_circle`: (dx, dy, dz, rxy2, D, Ds, nx, ny, nz, ca, sa, up, down, reach) with
         Ds = D (1 at the shoulder), up / down: n = +k / -k by convention. P: 3x4 nested (m,) entries."""
-        L1, L2, L3, L4 = self._L
-        r0, r1, r2 = P
-        dx = r0[3] - L4 * r0[2]
-        dy = r1[3] - L4 * r1[2]
-        dz = r2[3] - L4 * r2[2] - L1
-        rxy2 = dx * dx + dy * dy
-        D2 = rxy2 + dz * dz
+        L2, L3 = self._L[1], self._L[2]
+        dx, dy, dz, rxy2, D2 = _wrist_from_shoulder(P, self._L)
         D = np.sqrt(D2)
         reach = (D <= L2 + L3 + REACH_TOL) & (D >= abs(L2 - L3) - REACH_TOL)
         at_sh = D < 1e-12
@@ -789,20 +791,15 @@ class SwivelArm(Arm):
             deadline,
             lambda s, b, pred: self._realise(Tl, circ, s, b, pred, seed_l, w_l),
         )
-        if res.swivel is None:
-            return None, IKInfo(
-                IKStatus.NO_SOLUTION_IN_LIMITS,
-                "reachable, but no swivel gives a solution within the joint limits (closed-form feasible "
-                "set empty for all 8 flip patterns)",
-                candidates=res.candidates,
-            )
         if res.q is None:
-            return None, IKInfo(
-                IKStatus.NO_SOLUTION_IN_LIMITS,
-                "the closed-form feasible set is a sliver the scalar solve cannot hit within 1e-10 rad of "
-                "the limits (round-off)",
-                candidates=res.candidates,
+            why = (
+                "reachable, but no swivel gives a solution within the joint limits (closed-form feasible "
+                "set empty for all 8 flip patterns)"
+                if res.swivel is None
+                else "the closed-form feasible set is a sliver the scalar solve cannot hit within 1e-10 rad "
+                "of the limits (round-off)"
             )
+            return None, IKInfo(IKStatus.NO_SOLUTION_IN_LIMITS, why, candidates=res.candidates)
         q, s_best, b_best = np.array(res.q), res.swivel, res.branch
         pe, re = self._pose_err_lists(res.q, Tl)
         status = IKStatus.TIMEOUT if res.timed_out else IKStatus.SUCCESS
