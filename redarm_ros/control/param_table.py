@@ -403,7 +403,8 @@ def markdown() -> str:
                 "|---|---|---|---|---|"]
         for p in g.params:
             default = f"section `{p.group}`" if p.group else f"`{p.default!r}`"
-            out.append(f"| `{p.name}` | {default} | {p.unit} | {p.bound.phrase} | {p.doc} |")
+            doc = p.doc.replace("|", "\\|")  # |x| in a meaning is not a column
+            out.append(f"| `{p.name}` | {default} | {p.unit} | {p.bound.phrase} | {doc} |")
         out.append("")
     return "\n".join(out)
 
