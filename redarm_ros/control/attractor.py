@@ -25,8 +25,8 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
-from redarm_ros.control.checks import check_positive, field_names
 from redarm_ros.control.obstacles import Obstacle
+from redarm_ros.control.param_table import declared
 from redarm_ros.control.swivel_dynamics import wrap_angle
 
 Vec3 = tuple[float, float, float]
@@ -94,43 +94,15 @@ def heading_angles(v: Sequence[float], phi_default: float = 0.0) -> tuple[float,
 # ----------------------------------------------------------------------------------------------
 
 
-@dataclass(frozen=True)
+@declared("heading")
 class HeadingParams:
     """Parameters of the heading dynamics (rates in 1/s, lengths in m, angles in rad).
 
-    lam_tar: target attraction of azimuth and elevation. lam_obs: azimuth repulsion (eq. 18);
-    sigma: its Gaussian width; d0: distance scale of ``exp(-d/d0)``; beta, range_margin: eq. 19.
-    lam_up: elevation push over obstacles; clear_margin: height (m) above an obstacle top that the
-    end effector should keep, reached ``edge_margin`` (m) before the obstacle's edge; d0_up: distance
-    scale of the elevation push; edge_soft: smallest horizontal distance (m) used for the clearance
-    elevation (keeps it continuous over an obstacle). target_gate: width (m) of the smooth gate that
-    ignores obstacles lying beyond the target. max_turn_rate: clamp on |dphi/dt|, |dtheta/dt| (rad/s),
-    which bounds the lateral acceleration of the hand to ``speed * max_turn_rate``; max_turn_acc
-    (rad/s^2) limits how fast those rates change (lateral jerk ``speed * max_turn_acc``). slow_distance (m),
-    slow_min: an obstacle ahead that the hand is not yet above scales the speed down towards
-    ``slow_min`` as its distance falls below ``slow_distance`` (the speed dynamics of the dynamic
-    approach to navigation), which buys time for the elevation to rise.
+    The azimuth is attracted to the target's direction and repelled by obstacles (eq. 18, with the
+    range function of eq. 19); the elevation is attracted to the target's and pushed up over obstacles
+    (our formulation, see :meth:`HeadingDynamics.rates`). An obstacle ahead that the hand is not yet
+    above also slows the hand (the speed dynamics of the dynamic approach to navigation).
     """
-
-    lam_tar: float = 12.0
-    lam_obs: float = 10.0
-    sigma: float = 0.6
-    d0: float = 0.08
-    beta: float = 4.0
-    range_margin: float = 0.2
-    lam_up: float = 40.0
-    clear_margin: float = 0.09
-    edge_margin: float = 0.04
-    edge_soft: float = 0.05
-    max_turn_rate: float = 8.0
-    max_turn_acc: float = 80.0
-    d0_up: float = 0.4
-    target_gate: float = 0.03
-    slow_distance: float = 0.15
-    slow_min: float = 0.3
-
-    def __post_init__(self) -> None:
-        check_positive(self, (), field_names(self))
 
 
 @dataclass(frozen=True)
@@ -340,7 +312,7 @@ def sector_forcelet(blocked: Sequence[bool], angles: Sequence[float], lam: float
 # ----------------------------------------------------------------------------------------------
 
 
-@dataclass(frozen=True)
+@declared("speed")
 class SpeedParams:
     """Speed profile: ``v_des(d) = v_max * tanh(k * d / v_max)`` (m/s) for distance ``d`` (m) to the
     target, tracked by a critically damped second-order filter of natural frequency ``omega`` (rad/s),
@@ -349,15 +321,6 @@ class SpeedParams:
     Near the target ``v ~ k d``: with the filter the distance obeys a linear third-order equation
     with characteristic polynomial ``x^3 + 2 omega x^2 + omega^2 x + omega^2 k``, whose roots are all
     real (no overshoot of the target) iff ``k <= 4 omega / 27``; the defaults keep that margin."""
-
-    v_max: float = 0.4
-    k: float = 5.0
-    omega: float = 40.0
-    a_max: float = 2.5
-    j_max: float = 25.0
-
-    def __post_init__(self) -> None:
-        check_positive(self, field_names(self))
 
 
 class SpeedProfile:

@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from redarm_ros.control.elbow import ElbowCircle
+from redarm_ros.control.param_table import declared
 from redarm_ros.errors import ConfigError, InvalidInputError
 
 Vec3 = tuple[float, float, float]
@@ -666,23 +667,10 @@ def load_scene(name_or_path: str | Path) -> Scene:
 LINK_NAMES = ("base", "upper_arm", "forearm", "hand")
 
 
-@dataclass(frozen=True)
+@declared("capsules")
 class ArmCapsules:
-    """Capsule radii (m) of the four links between the key points base-shoulder-elbow-wrist-tool.
-
-    ``table_links``: links checked against the table top (the base link stands on it).
-    ``obstacle_links``: links checked against obstacles.
-    """
-
-    radii: tuple[float, float, float, float] = (0.08, 0.07, 0.06, 0.045)
-    table_links: tuple[int, ...] = (1, 2, 3)
-    obstacle_links: tuple[int, ...] = (0, 1, 2, 3)
-
-    def __post_init__(self) -> None:
-        radii = tuple(float(r) for r in self.radii)
-        if len(radii) != 4 or any(not math.isfinite(r) or r < 0.0 for r in radii):
-            raise InvalidInputError("radii must be 4 finite numbers >= 0", field="radii", value=self.radii)
-        object.__setattr__(self, "radii", radii)
+    """Capsules of the four links between the key points base-shoulder-elbow-wrist-tool (link indices
+    0..3, named in :data:`LINK_NAMES`)."""
 
 
 @dataclass(frozen=True)

@@ -45,12 +45,11 @@ from typing import Any
 import numpy as np
 
 from redarm_ros.control.attractor import direction, forcelet, heading_angles, target_attractor
-from redarm_ros.control.checks import check_positive
 from redarm_ros.control.elbow import ElbowCircle
 from redarm_ros.control.obstacles import ELBOW_LINKS, ArmCapsules, Scene, links_clearance
+from redarm_ros.control.param_table import declared
 from redarm_ros.control.swivel_dynamics import wrap_angle
 from redarm_ros.control.types import Quat, Vec3
-from redarm_ros.errors import InvalidInputError
 from redarm_ros.kinematics.quaternion import (
     quat_between_vectors,
     quat_mul,
@@ -64,42 +63,10 @@ __all__ = ["PaperSwivel", "PaperSwivelParams", "PaperSwivelStep", "Sector", "Tan
 MODE = "attractor_paper"  # the ControllerParams.swivel_mode that selects this module
 
 
-@dataclass(frozen=True)
+@declared("paper_swivel")
 class PaperSwivelParams:
-    """Parameters of eq. (20)-(24) as used here (rates 1/s, lengths m, angles rad).
-
-    lam_tar: attraction to the preferred swivel (eq. 22). lam_obs, d0: obstacle force-let strength and
-    distance scale (eq. 23). lam_lim: wrist-limit force-let strength (eq. 24). samples: swivels sampled
-    on the circle for the sectors. obs_distance: clearance below which a sample is in an obstacle
-    sector. obs_cutoff: clearance at the current swivel beyond which obstacle sectors are not computed
-    (``exp(-d/d0)`` is then negligible). wrist_margin: wrist-joint margin below which a sample is in a
-    wrist-limit sector. lam_hand: rate of the hand's azimuth/elevation attractors (eq. 20-21).
-    hand_distance: the tool axis follows the hand angles fully beyond twice this distance from the goal
-    and turns to the goal's orientation within it. refresh_steps: the sectors are sampled anew every
-    this many steps and kept in between (they move slowly with the pose; sampling is most of the
-    cost), the force-lets and the clearance factor are evaluated every step.
-    """
-
-    lam_tar: float = 2.0
-    lam_obs: float = 8.0
-    d0: float = 0.1
-    lam_lim: float = 6.0
-    samples: int = 24
-    obs_distance: float = 0.06
-    obs_cutoff: float = 0.4
-    wrist_margin: float = 0.2
-    lam_hand: float = 4.0
-    hand_distance: float = 0.1
-    refresh_steps: int = 4
-
-    def __post_init__(self) -> None:
-        check_positive(self, ("lam_tar", "lam_obs", "d0", "lam_lim", "obs_distance", "obs_cutoff",
-                              "wrist_margin", "lam_hand", "hand_distance"))
-        for name, least in (("samples", 8), ("refresh_steps", 1)):
-            v = getattr(self, name)
-            if not isinstance(v, int) or isinstance(v, bool) or v < least:
-                raise InvalidInputError(f"PaperSwivelParams.{name} must be an integer >= {least}", field=name,
-                                        value=v)
+    """Parameters of eq. (20)-(24) as used here (rates 1/s, lengths m, angles rad): the force-lets of the
+    redundancy angle, the sampled sectors they come from, and the hand's path-tangent attractors."""
 
 
 @dataclass(frozen=True)

@@ -24,9 +24,9 @@ import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
-from redarm_ros.control.checks import check_positive
 from redarm_ros.control.elbow import ElbowCircle
 from redarm_ros.control.obstacles import ELBOW_LINKS, ArmCapsules, Scene, links_clearance
+from redarm_ros.control.param_table import declared
 
 Saturation = Callable[[float], float]
 Vec3 = tuple[float, float, float]
@@ -40,42 +40,10 @@ def wrap_angle(x: float) -> float:
     return y - math.pi
 
 
-@dataclass(frozen=True)
+@declared("swivel")
 class SwivelParams:
-    """Parameters of eq. (31) and of its forces.
-
-    tau: time scale (s). lam_des, lam_obs, lam_sing, lam_lim: weights l_i (the paper keeps
-    sum(l_i) = 1; only their ratios to tau matter). eps: probe rotation (rad).
-    obs_influence: clearance (m) beyond which obstacles exert no force; obs_ref, obs_min: the
-    obstacle amplitude is ``obs_ref / max(|d|, obs_min) - obs_ref / obs_influence`` (inverse distance).
-    grad_scale: clearance gradient (m/rad) at which the force direction saturates (smooth sign).
-    up_bias: m/rad added to the clearance gradient in the direction that raises the elbow, so that a
-    symmetric situation resolves upward (the arm passes above obstacles, never below); keep it below
-    grad_scale so that it only breaks ties.
-    sing_threshold: singularity measure (|sin| of the shoulder/wrist pitch) below which F_sing acts.
-    lim_threshold: joint-limit margin (rad) below which F_lim acts.
-    max_rate: clamp on |ds/dt| (rad/s).
-    """
-
-    tau: float = 0.2
-    lam_des: float = 0.35
-    lam_obs: float = 0.45
-    lam_sing: float = 0.1
-    lam_lim: float = 0.1
-    eps: float = 0.02
-    obs_influence: float = 0.15
-    obs_ref: float = 0.03
-    obs_min: float = 0.005
-    grad_scale: float = 0.02
-    up_bias: float = 0.01
-    sing_threshold: float = 0.2
-    lim_threshold: float = 0.3
-    max_rate: float = 1.0
-
-    def __post_init__(self) -> None:
-        check_positive(self, ("tau", "eps", "obs_influence", "obs_ref", "obs_min", "grad_scale",
-                              "sing_threshold", "lim_threshold", "max_rate"),
-                       ("lam_des", "lam_obs", "lam_sing", "lam_lim", "up_bias"))
+    """Parameters of eq. (31) and of its forces: the time scale ``tau``, the weights ``l_i`` (``lam_*``),
+    and how each force's direction (probe ``eps``) and amplitude are found."""
 
 
 def smooth_sign(x: float, scale: float) -> float:

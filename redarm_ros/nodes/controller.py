@@ -60,6 +60,7 @@ from redarm_ros.control.obstacles import (
     load_scene,
     obstacle_from_marker,
 )
+from redarm_ros.control.param_table import table
 from redarm_ros.control.params import ReplanParams, ServoParams, StreamParams
 from redarm_ros.control.reach_controller import ControllerParams, GoalStatus, Phase, ReachController
 from redarm_ros.control.types import GoalKind
@@ -90,6 +91,11 @@ def _finite(value: Any) -> str | None:
     return None if isinstance(value, (int, float)) and math.isfinite(value) else "must be a finite number"
 
 
+def _choices(name: str) -> tuple[str, ...]:
+    """The choices of a top-level controller parameter, from the parameter table."""
+    return table()["controller"].param(name).bound.arg
+
+
 def _one_of(*choices: str) -> Any:
     def check(value: Any) -> str | None:
         return None if value in choices else f"must be one of {', '.join(choices)}"
@@ -108,11 +114,11 @@ PARAMS = [
               "may be changed at run time.", _finite),
     ParamSpec("swivel_reference", "high", "What preferred_swivel is measured from: 'high' (highest elbow), "
               "'low' (lowest elbow) or 'absolute' (the swivel angle itself).",
-              _one_of("high", "low", "absolute"), read_only=True),
+              _one_of(*_choices("swivel_reference")), read_only=True),
     ParamSpec("swivel_mode", "dynamics", "'dynamics' (swivel attractor + obstacle/limit force-lets), "
               "'fixed' (keep the start swivel) or 'attractor_paper' (the attractor paper's redundancy "
               "dynamics with sector force-lets and path-tangent hand orientation).",
-              _one_of("dynamics", "fixed", "attractor_paper"), read_only=True),
+              _one_of(*_choices("swivel_mode")), read_only=True),
     ParamSpec("max_speed", 0.4, "Largest end-effector speed (m/s).", positive, read_only=True),
     ParamSpec("pos_tolerance", 1e-3, "Phase 'reached' below this position error (m).", positive,
               read_only=True),
