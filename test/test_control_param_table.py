@@ -226,26 +226,11 @@ def test_table_is_installed_as_package_data() -> None:
     assert resources.files("redarm_ros.control").joinpath(TABLE_FILE).is_file()
 
 
-#: Controller node parameters that set a controller parameter: node name -> (section, name).
-NODE_TO_TABLE = {
-    "preferred_swivel": ("controller", "preferred_swivel"),
-    "swivel_reference": ("controller", "swivel_reference"),
-    "swivel_mode": ("controller", "swivel_mode"),
-    "max_speed": ("speed", "v_max"),
-    "pos_tolerance": ("controller", "pos_tolerance"),
-    "ori_tolerance": ("controller", "ori_tolerance"),
-    "stream_gap_s": ("stream", "gap"),
-    "stream_jump": ("stream", "jump"),
-    "twist_timeout_s": ("servo", "twist_timeout"),
-    "replan": ("replan", "enabled"),
-}
-
-
 def test_controller_node_defaults_and_choices_are_the_tables() -> None:
     pytest.importorskip("rclpy")
     node = pytest.importorskip("redarm_ros.nodes.controller")
     specs = {s.name: s for s in node.PARAMS}
-    for node_name, (section, name) in NODE_TO_TABLE.items():
+    for node_name, (section, name) in node.NODE_TO_TABLE.items():
         row = table()[section].param(name)
         spec = specs[node_name]
         assert spec.default == row.default and type(spec.default) is type(row.default), node_name

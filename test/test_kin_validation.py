@@ -78,53 +78,38 @@ def test_batch_names_the_bad_row_and_never_flags_it_valid() -> None:
     assert "Ts[1]" in str(err.value) and "1 more" in str(err.value) and err.value.value == [1, 3]
 
 
-@pytest.mark.parametrize(
-    "swivel, word",
-    [
-        (math.nan, "NaN"),
-        (math.inf, "finite"),
-        (1e308, "out of range"),
-        (1 + 2j, "real"),
-        ("x", "number"),
-        (True, "real"),
-        ([0.1, 0.2], "number"),
-    ],
-)
-def test_bad_swivel(swivel: Any, word: str) -> None:
+#: The entries that take one scalar or small-vector argument besides a good pose, fed the bad value.
+ENTRIES = {
+    "ik swivel": lambda v: ARM.ik(T0, v),
+    "ik_batch swivels": lambda v: ARM.ik_batch(np.array([T0, T0]), v),
+    "ik_u quaternion": lambda v: ARM.ik_u(T0, v),
+}
+#: (entry, bad value, a word the message must contain)
+BAD_ARGUMENTS = [
+    ("ik swivel", math.nan, "NaN"),
+    ("ik swivel", math.inf, "finite"),
+    ("ik swivel", 1e308, "out of range"),
+    ("ik swivel", 1 + 2j, "real"),
+    ("ik swivel", "x", "number"),
+    ("ik swivel", True, "real"),
+    ("ik swivel", [0.1, 0.2], "number"),
+    ("ik_batch swivels", [0.1, math.nan], "NaN"),
+    ("ik_batch swivels", [0.1, 1e300], "out of range"),
+    ("ik_batch swivels", [0.1, 0.2, 0.3], "shape"),
+    ("ik_batch swivels", [[0.1], [0.2, 0.3]], "ragged"),
+    ("ik_batch swivels", np.array([0.1, 0.2j]), "complex"),
+    ("ik_u quaternion", [1.0, 0.0, 0.5], "unit"),
+    ("ik_u quaternion", [2.0, 0.0, 0.0], "unit"),
+    ("ik_u quaternion", [1.0, 0.0], "shape"),
+    ("ik_u quaternion", [math.nan, 0, 0], "NaN"),
+    ("ik_u quaternion", [1j, 0, 0], "complex"),
+]
+
+
+@pytest.mark.parametrize("entry, value, word", BAD_ARGUMENTS)
+def test_a_bad_swivel_argument_is_refused_with_the_reason(entry: str, value: Any, word: str) -> None:
     with pytest.raises(InvalidInputError) as err:
-        ARM.ik(T0, swivel)
-    assert word in str(err.value)
-
-
-@pytest.mark.parametrize(
-    "swivels, word",
-    [
-        ([0.1, math.nan], "NaN"),
-        ([0.1, 1e300], "out of range"),
-        ([0.1, 0.2, 0.3], "shape"),
-        ([[0.1], [0.2, 0.3]], "ragged"),
-        (np.array([0.1, 0.2j]), "complex"),
-    ],
-)
-def test_bad_batch_swivels(swivels: Any, word: str) -> None:
-    with pytest.raises(InvalidInputError) as err:
-        ARM.ik_batch(np.array([T0, T0]), swivels)
-    assert word in str(err.value)
-
-
-@pytest.mark.parametrize(
-    "u, word",
-    [
-        ([1.0, 0.0, 0.5], "unit"),
-        ([2.0, 0.0, 0.0], "unit"),
-        ([1.0, 0.0], "shape"),
-        ([math.nan, 0, 0], "NaN"),
-        ([1j, 0, 0], "complex"),
-    ],
-)
-def test_bad_swivel_quaternion(u: Any, word: str) -> None:
-    with pytest.raises(InvalidInputError) as err:
-        ARM.ik_u(T0, u)
+        ENTRIES[entry](value)
     assert word in str(err.value)
 
 

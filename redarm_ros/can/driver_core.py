@@ -496,20 +496,28 @@ class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those o
 
         At most :data:`_DRAIN_MAX_FRAMES` frames: on a flooded bus the rest is read (and skipped)
         by the receive loop that follows, which has a deadline."""
-        # The receive-route-decode steps of _transact's loop, inline: once per cycle, no extra call.
         late = 0
         for _ in range(_DRAIN_MAX_FRAMES):
-            msg = self._recv(0.0)
-            if msg is None:
+            got = self._receive_reply(0.0)
+            if got is None:
                 break
-            j = self._route(msg)
-            if j is None:
-                continue
-            frame = self._decode_counted(msg, j)
+            j, frame = got
             if isinstance(frame, p.SetMoveExtAck):
-                self.stats[j].late += 1
+                self.stats[j].late += 1  # type: ignore[index]  (a decoded frame has its joint)
                 late += 1
         return late
+
+    def _receive_reply(self, timeout: float) -> tuple[int | None, p.Frame | None] | None:
+        """Receive one frame within ``timeout`` s: None if none came; (None, None) for a frame that is no
+        reply (a state frame is recorded on the way); else (joint index, decoded frame or None if it was
+        malformed)."""
+        msg = self._recv(timeout)
+        if msg is None:
+            return None
+        j = self._route(msg)
+        if j is None:
+            return None, None
+        return j, self._decode_counted(msg, j)
 
     def _transact(
         self,
@@ -538,15 +546,10 @@ class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those o
                 left = deadline - self._clock()
                 if left <= 0:
                     break
-                msg = self._recv(left)
-                if msg is None:
+                got = self._receive_reply(left)
+                if got is None or got[1] is None:
                     continue
-                j = self._route(msg)
-                if j is None:
-                    continue
-                frame = self._decode_counted(msg, j)
-                if frame is None:
-                    continue
+                j, frame = got
                 for key, jj, _msg, match in todo:
                     if jj == j and key not in results and match(frame):
                         results[key] = frame

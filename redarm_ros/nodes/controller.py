@@ -48,7 +48,6 @@ from std_msgs.msg import ColorRGBA
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 from visualization_msgs.msg import Marker, MarkerArray
 
-from redarm_ros.control.attractor import SpeedParams
 from redarm_ros.control.obstacles import (
     MARKER_CUBE,
     MARKER_CYLINDER,
@@ -61,7 +60,6 @@ from redarm_ros.control.obstacles import (
     obstacle_from_marker,
 )
 from redarm_ros.control.param_table import table
-from redarm_ros.control.params import ReplanParams, ServoParams, StreamParams
 from redarm_ros.control.reach_controller import ControllerParams, GoalStatus, Phase, ReachController
 from redarm_ros.control.types import GoalKind
 from redarm_ros.errors import InvalidInputError, RedarmError
@@ -230,6 +228,32 @@ def _pt(v: Sequence[float]) -> Point:
     return Point(x=float(v[0]), y=float(v[1]), z=float(v[2]))
 
 
+#: Node parameters that set one controller parameter each: node name -> (section of the controller's
+#: parameter table, name there); "controller" is the top level.
+NODE_TO_TABLE: dict[str, tuple[str, str]] = {
+    "preferred_swivel": ("controller", "preferred_swivel"),
+    "swivel_reference": ("controller", "swivel_reference"),
+    "swivel_mode": ("controller", "swivel_mode"),
+    "max_speed": ("speed", "v_max"),
+    "pos_tolerance": ("controller", "pos_tolerance"),
+    "ori_tolerance": ("controller", "ori_tolerance"),
+    "stream_gap_s": ("stream", "gap"),
+    "stream_jump": ("stream", "jump"),
+    "twist_timeout_s": ("servo", "twist_timeout"),
+    "replan": ("replan", "enabled"),
+}
+
+
+def controller_params(p: dict[str, Any]) -> ControllerParams:
+    """The controller's parameters from the node's: those of :data:`NODE_TO_TABLE`, the step from
+    ``rate_hz`` and the stream's lead from ``command_delay_s + stream_lead_s``; the rest at their defaults."""
+    d: dict[str, Any] = {"dt": 1.0 / p["rate_hz"],
+                         "stream": {"lead": float(p["command_delay_s"]) + float(p["stream_lead_s"])}}
+    for node_name, (section, name) in NODE_TO_TABLE.items():
+        (d if section == "controller" else d.setdefault(section, {}))[name] = p[node_name]
+    return ControllerParams.from_dict(d)
+
+
 # ----------------------------------------------------------------------------------------------
 # The node
 # ----------------------------------------------------------------------------------------------
@@ -240,17 +264,7 @@ class ControllerNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
         try:
             self.arm = load_arm(p["arm"])
             self.base_scene = load_scene(p["scene"]) if p["scene"] else Scene()
-            params = ControllerParams(
-                dt=1.0 / p["rate_hz"], preferred_swivel=float(p["preferred_swivel"]),
-                swivel_reference=p["swivel_reference"], swivel_mode=p["swivel_mode"],
-                pos_tolerance=float(p["pos_tolerance"]), ori_tolerance=float(p["ori_tolerance"]),
-                speed=SpeedParams(v_max=float(p["max_speed"])),
-                stream=StreamParams(gap=float(p["stream_gap_s"]), jump=float(p["stream_jump"]),
-                                    lead=float(p["command_delay_s"]) + float(p["stream_lead_s"])),
-                servo=ServoParams(twist_timeout=float(p["twist_timeout_s"])),
-                replan=ReplanParams(enabled=bool(p["replan"])),
-            )
-            self.ctl = ReachController(self.arm, self.base_scene, params)
+            self.ctl = ReachController(self.arm, self.base_scene, controller_params(p))
         except (RedarmError, OSError) as exc:
             raise ValueError(f"controller configuration: {exc}") from exc
         self.name_check = UniqueNameCheck(self, p["duplicate_check_s"])  # a timer: no blocking here
