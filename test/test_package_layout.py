@@ -267,3 +267,37 @@ def test_every_node_takes_the_same_constructor_keywords() -> None:
                 assert set(common) <= set(kw_only), f"{cls.__name__}: {list(params)}"
                 found.append(cls.__name__)
     assert len(found) >= 6, found
+
+
+def _flatten(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """A ROS parameters mapping with its nested groups as dotted names (``can.channel``)."""
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(_flatten(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+@pytest.mark.parametrize("node", ["controller", "can_driver", "ik_service", "description"])
+def test_config_file_lists_every_parameter_at_its_default(node: str) -> None:
+    """config/<node>.yaml says "every value here is the node's default": each declared parameter is there
+    with that default (a parameter without a default, e.g. can_driver's module_ids, may stay commented out),
+    and nothing else is."""
+    import yaml
+    from rclpy.parameter import Parameter
+
+    module = importlib.import_module(f"redarm_ros.nodes.{node}")
+    doc = yaml.safe_load((REPO / "config" / f"{node}.yaml").read_text())
+    (name, body), = doc.items()
+    assert name == f"/{node}"
+    listed = _flatten(body["ros__parameters"])
+    specs = {s.name: s.default for s in module.PARAMS}
+    assert set(listed) <= set(specs), sorted(set(listed) - set(specs))
+    for pname, default in specs.items():
+        if isinstance(default, Parameter.Type):  # declared without a default
+            continue
+        assert pname in listed, f"config/{node}.yaml lacks {pname} (default {default!r})"
+        value = listed[pname]
+        assert value == default and type(value) is type(default), (pname, value, default)
