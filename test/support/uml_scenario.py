@@ -45,6 +45,13 @@ _LOG = logging.getLogger("uml_scenario")
 HERE = Path(__file__).resolve()
 
 
+# Every process of the one-CPU guest runs at normal scheduling (SCHED_FIFO priority 0 = off): whichever ran
+# at SCHED_FIFO starved the others there (the driver's cycle: RT throttling and 1.7 Hz joint_states; the
+# simulator: physics 3.7 s behind, the arm 16 mrad short). Real modules answer in hardware; the host-side
+# tests run the cycle and the simulator at SCHED_FIFO.
+GUEST_RT_PRIORITY = 0
+
+
 def _bus_kwargs(ns: argparse.Namespace) -> dict[str, Any]:
     kwargs: dict[str, Any] = {}
     interface = ns.interface or os.environ.get("CAN_INTERFACE")
@@ -237,7 +244,7 @@ def cmd_hil(ns: argparse.Namespace) -> int:
     sim = _start_child_cmd(
         [sys.executable, "-m", "redarm_ros.sim.hardware", "--arm", ns.arm, "--rate", str(ns.sim_rate),
          "--status-file", str(status_path), "--status-rate", "10", "--log-level", "WARNING",
-         *_bus_cli(ns)],
+         "--realtime-priority", str(GUEST_RT_PRIORITY), *_bus_cli(ns)],
         "REDARM_SIM_READY", ns.ready_timeout)
     result["sim_start_s"] = round(time.monotonic() - t_start, 3)
     bus = None
@@ -397,7 +404,7 @@ def cmd_ros(ns: argparse.Namespace) -> int:
     sim = _start_child_cmd(
         [sys.executable, "-m", "redarm_ros.sim.hardware", "--arm", ns.arm, "--rate", str(ns.sim_rate),
          "--status-file", str(out / "ros_sim_status.json"), "--status-rate", "10", "--log-level", "WARNING",
-         "--realtime-priority", "0", *_bus_cli(ns)],  # normal scheduling in the guest, as the node below
+         "--realtime-priority", str(GUEST_RT_PRIORITY), *_bus_cli(ns)],
         "REDARM_SIM_READY", ns.ready_timeout)
     kw = _bus_kwargs(ns)
     node_log = open(out / "can_driver_node.log", "w")  # closed in finally
@@ -405,11 +412,7 @@ def cmd_ros(ns: argparse.Namespace) -> int:
                 "-p", f"arm:={ns.arm}", "-p", f"rate_hz:={float(ns.rate)}",
                 "-p", f"reply_timeout_s:={float(ns.reply_timeout)}", "-p", "max_missed_replies:=5",
                 "-p", "request_timeout_s:=60.0", "-p", f"watchdog:={ns.watchdog}",
-                # Normal scheduling for the node and the simulator in the one-CPU guest: whichever
-                # ran at SCHED_FIFO starved the others there (the cycle: RT throttling and 1.7 Hz
-                # joint_states; the simulator: physics 3.7 s behind, the arm 16 mrad short). Real
-                # modules answer in hardware; the host-side tests run both at SCHED_FIFO.
-                "-p", "realtime_priority:=0"]
+                "-p", f"realtime_priority:={GUEST_RT_PRIORITY}"]
     if "interface" in kw:
         node_cmd += ["-p", f"can.interface:={kw['interface']}"]
     if "channel" in kw:
