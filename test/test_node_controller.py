@@ -50,6 +50,8 @@ class IdealArm:
         self.q = q0.astype(float).copy()
         self.commands: list[np.ndarray] = []
         self.segment_starts_ok = True  # every two-point message starts at the previous command
+        self.speed_ratio = 0.0  # largest |dq| / (max_vel * duration) of a two-point segment, over the joints
+        self.longest_segment = 0.0  # s
         self.pub = self.node.create_publisher(JointState, "joint_states", 10)
         self.node.create_subscription(JointTrajectory, "joint_command", self._on_cmd, 100)
         self.node.create_timer(0.01, self.publish)
@@ -70,6 +72,11 @@ class IdealArm:
                      + end.time_from_start.nanosec * 1e-9)
             self.segment_ends.append(t_end - self.node.get_clock().now().nanoseconds * 1e-9)
         q = np.array(end.positions)
+        duration = end.time_from_start.sec + end.time_from_start.nanosec * 1e-9
+        self.longest_segment = max(self.longest_segment, duration)
+        if len(msg.points) == 2:  # the speed the segment asks for, whatever the step's duration was
+            dq = np.abs(q - np.array(msg.points[0].positions))
+            self.speed_ratio = max(self.speed_ratio, float(np.max(dq / (ARM.max_vel * duration))))
         self.commands.append(q)
         self.q = q
 
@@ -168,8 +175,12 @@ def rot_z(a: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
-def max_joint_step(cmds: list[np.ndarray]) -> float:
-    return float(np.max(np.abs(np.diff(np.array(cmds), axis=0)))) if len(cmds) > 1 else 0.0
+def assert_within_joint_speeds(arm: IdealArm) -> None:
+    """Continuous motion: every segment asks for at most each joint's velocity limit over its own duration,
+    and no segment is longer than the node's clamp of a late step (2 periods of 0.01 s). Judged on what
+    was commanded, not on how punctual the timer was on a loaded machine."""
+    assert arm.speed_ratio <= 1.0 + 1e-6, arm.speed_ratio
+    assert arm.longest_segment <= 0.02 + 1e-6, arm.longest_segment
 
 
 def test_reaches_goal_and_holds(h: Harness) -> None:
@@ -185,8 +196,7 @@ def test_reaches_goal_and_holds(h: Harness) -> None:
     assert st.distance_to_goal < 1e-3 and st.orientation_error < 0.01
     assert st.goal.position.x == pytest.approx(T[0, 3])
     assert st.clearance > 0.0  # no obstacles: the arm's clearance to itself and the ground
-    # Continuous motion: joint steps bounded by the velocity limits over a period (with margin).
-    assert max_joint_step(h.arm.commands) <= 1.5 * float(np.max(ARM.max_vel)) * 0.01 + 1e-9
+    assert_within_joint_speeds(h.arm)
     assert ARM.within_limits(np.array(h.arm.commands).min(axis=0), 1e-9)
     assert h.arm.segment_starts_ok
     # After REACHED the hand stays on the goal (the elbow may still settle towards its preferred swivel).
@@ -208,7 +218,7 @@ def test_retarget_mid_motion_is_smooth(h: Harness) -> None:
     assert h.wait_reached(25.0, after=n)
     pe, re = ARM.pose_error(h.arm.q, T2)
     assert pe < 1e-3 and re < 0.01
-    assert max_joint_step(h.arm.commands) <= 1.5 * float(np.max(ARM.max_vel)) * 0.01 + 1e-9
+    assert_within_joint_speeds(h.arm)
     # The state never went through REJECTED or IDLE on the way.
     assert not any(s.phase in (ControllerState.REJECTED, ControllerState.IDLE) for s in h.states[n:])
 
@@ -278,7 +288,7 @@ def test_obstacle_appearing_on_goal_drops_it(h: Harness) -> None:
     k = len(h.arm.commands)
     h.spin_until(lambda: False, 0.3)
     assert np.allclose(h.arm.q, h.arm.commands[k - 1], atol=1e-6)
-    assert max_joint_step(h.arm.commands) <= 1.5 * float(np.max(ARM.max_vel)) * 0.01 + 1e-9
+    assert_within_joint_speeds(h.arm)
 
 
 def test_markers_published(h: Harness) -> None:
@@ -455,7 +465,7 @@ def test_goal_stream_on_the_topic_is_tracked(h: Harness) -> None:
     assert mid.goal_velocity.linear.y == pytest.approx(0.08, rel=0.3)
     assert h.wait_reached(10.0, after=len(h.states))
     assert ARM.pose_error(h.arm.q, T)[0] < 1e-3
-    assert max_joint_step(h.arm.commands) <= 1.5 * float(np.max(ARM.max_vel)) * 0.01 + 1e-9
+    assert_within_joint_speeds(h.arm)
 
 
 def test_target_twist_moves_the_hand(h: Harness) -> None:
@@ -478,4 +488,4 @@ def test_target_twist_moves_the_hand(h: Harness) -> None:
     h.spin_until(lambda: False, 0.3)
     p1 = ARM.fk(h.arm.q)[:3, 3]
     assert 0.015 < p1[1] - p0[1] < 0.045 and abs(p1[0] - p0[0]) < 0.003 and abs(p1[2] - p0[2]) < 0.003
-    assert max_joint_step(h.arm.commands) <= 1.5 * float(np.max(ARM.max_vel)) * 0.01 + 1e-9
+    assert_within_joint_speeds(h.arm)
