@@ -191,3 +191,24 @@ def test_a_flood_leaves_no_unbounded_backlog_for_a_slow_reader() -> None:
             assert 0x7FF in got[-5:]  # the newest traffic got through
             assert len(got) < n // 2
             assert server.overflowed_frames + server.skipped_frames > 0
+
+
+def test_a_vanished_client_leaves_no_thread_exception(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A client killed while frames flow to it (the driver's cycle process, SIGKILL) breaks the pipe under
+    the server's send thread: that connection ends quietly and the others keep exchanging frames."""
+    import threading
+
+    errors: list[BaseException | None] = []
+    monkeypatch.setattr(threading, "excepthook", lambda args: errors.append(args.exc_value))
+    with LoopbackBusServer() as srv, open_bus(**srv.client_config()) as a, \
+            open_bus(**srv.client_config()) as b:
+        ws = _json_client(srv.channel)
+        ws.socket.close()  # gone without a close handshake, as a killed process
+        for k in range(400):  # frames the server must try to deliver to the vanished client too
+            a.send(_msg(0x100 + k % 16))
+            if k % 50 == 0:
+                time.sleep(0.01)
+        time.sleep(0.5)
+        a.send(_msg(0x0E1))
+        assert 0x0E1 in _drain_ids(b)
+    assert errors == []

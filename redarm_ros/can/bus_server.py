@@ -188,6 +188,26 @@ class _CheckedProtocol(RemoteServerProtocol):
         self.bus = _CheckedBus(self.bus, server, sock)
         self.sock = sock
 
+    # A client that went away (killed, crashed) breaks the pipe under the library's send thread: end
+    # this connection quietly (its receive side sees the close and cleans up) instead of leaving an
+    # unhandled exception in that thread.
+    def send_msg(self, msg: Any) -> None:
+        try:
+            super().send_msg(msg)
+        except OSError as exc:
+            self._client_gone(exc)
+
+    def send(self, event_type: str, payload: Any) -> None:
+        try:
+            super().send(event_type, payload)
+        except OSError as exc:
+            self._client_gone(exc)
+
+    def _client_gone(self, exc: OSError) -> None:
+        if getattr(self, "running", False):
+            logger.info("client connection lost while sending (%s); closing it", exc)
+        self.running = False
+
     def send_bus_response(self, channel_info: str) -> None:
         # The client may send as soon as it has this answer: bound our queue first.
         self._bound_queue(self.bus, self._checked_server)
