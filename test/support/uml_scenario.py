@@ -481,13 +481,24 @@ def cmd_ros(ns: argparse.Namespace) -> int:
             lambda: latest["q"] is not None and float(np.max(np.abs(latest["q"] - goal))) < ns.tolerance,
             ns.duration + 15.0)
         time_to_reach = time.monotonic() - t_pub
-        spin_until(lambda: False, 1.0)  # settle, then judge the final position
+        # settle for 1 s, then judge the final position; the error is traced every 0.1 s meanwhile (a
+        # failure in the starved one-CPU guest must say whether the arm was still arriving or moved away)
+        trace = []
+        for _ in range(10):
+            spin_until(lambda: False, 0.1)
+            if latest["q"] is not None:
+                trace.append(round(float(np.max(np.abs(latest["q"] - goal))), 5))
         dt_js = time.monotonic() - t_pub
+        final_err = np.abs(latest["q"] - goal) if latest["q"] is not None else np.full(arm.n, np.inf)
+        sim_q = np.asarray(_read_json(out / "ros_sim_status.json").get("q", [np.nan] * arm.n), dtype=float)
         result["trajectory"] = {
             "goal": [round(float(x), 5) for x in goal],
             "reached": reached,
             "time_to_reach_s": round(time_to_reach, 3),
-            "final_err_max_rad": round(float(np.max(np.abs(latest["q"] - goal))), 5),
+            "final_err_max_rad": round(float(np.max(final_err)), 5),
+            "final_err_rad": [round(float(x), 5) for x in final_err],
+            "settle_err_trace_rad": trace,
+            "sim_final_err_max_rad": round(float(np.max(np.abs(sim_q - goal))), 5),
             "joint_states_received": latest["count"] - count0,
             "joint_states_rate_hz": round((latest["count"] - count0) / dt_js, 1),
         }
@@ -501,6 +512,10 @@ def cmd_ros(ns: argparse.Namespace) -> int:
         rclpy.try_shutdown(context=ctx)
         result["node_rc"] = _stop_child(node_proc, grace_s=0.0)
         node_log.close()
+        settled = result.get("trajectory", {}).get("final_err_max_rad", float("inf")) < ns.tolerance
+        if not (result.get("ok") and settled):  # the node's warnings (halts, missed replies...) say why
+            lines = (out / "can_driver_node.log").read_text(errors="replace").splitlines()
+            result["node_log_tail"] = lines[-40:]
         result["sim_rc"] = _stop_child(sim, grace_s=0.0)
         result["duration_s"] = round(time.monotonic() - t_start, 3)
         _write_result(ns.result, result)
