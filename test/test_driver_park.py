@@ -10,7 +10,7 @@ import pytest
 from support.loop_rig import AMAX, LOWER, Q0, UPPER, VMAX, loop_rig
 from support.waits import wait_until
 
-from redarm_ros.can.driver_loop import CommandMode, LoopConfig, LoopState
+from redarm_ros.can.driver_loop import CommandMode, JointCommandSource, LoopConfig, LoopState
 from redarm_ros.can.module_emulator import EmulatedArm
 from redarm_ros.errors import InvalidInputError
 from redarm_ros.motion import JointLimits
@@ -45,6 +45,24 @@ def test_synchronized_move_of_zero_length_and_bad_input() -> None:
         synchronized_move([0.0, 0.0, 0.0], [0.0, 1.6, 0.0], LIMITS, 0.01)  # beyond the limit
     with pytest.raises(InvalidInputError):
         synchronized_move([0.0, 0.0], [0.0, 0.0], LIMITS, 0.01)
+
+
+def test_park_move_advances_one_planned_step_per_cycle_whatever_the_clock() -> None:
+    q0 = np.array(Q0)
+    times, points = synchronized_move(q0, PARK, LIMITS, 0.01, scale=0.9)
+    src = JointCommandSource(3)
+    src.set_park(times, points, 0.01)
+    # Cycles that come late, skip ticks or bunch up (an overloaded machine): the samples are still
+    # the planned points one after the other, so the move stays one synchronised line.
+    rng = np.random.default_rng(3)
+    now = 100.0 + np.cumsum(rng.choice([0.01, 0.01, 0.02, 0.05, 0.001], len(times) + 5))
+    got = np.array([src.sample(t, q0, q0) for t in now])
+    np.testing.assert_array_equal(got[0], q0)  # the first cycle starts from the reference
+    np.testing.assert_allclose(got[1:len(times) + 1], points, atol=1e-12)
+    np.testing.assert_array_equal(got[-1], points[-1])
+    assert src.mode is CommandMode.PARK
+    with pytest.raises(InvalidInputError):
+        src.set_park(times, points, 0.0)
 
 
 @pytest.fixture

@@ -157,6 +157,11 @@ class _Trajectory:
     points: np.ndarray  # (k, m) rad
     start: float  # monotonic s at which time 0 falls
     q_start: np.ndarray | None = None  # (n,) reference captured at the first sample
+    # Set for a move planned on the cycle grid (park): it advances this many s per cycle sampled,
+    # not with the wall clock, so cycles lost to an overloaded machine slow it down instead of
+    # making the target run ahead of the shaper (which would catch up joint by joint).
+    cycle_s: float | None = None
+    cycles: int = 0
 
 
 class JointCommandSource:
@@ -246,12 +251,16 @@ class JointCommandSource:
         with self._lock:
             return len(self._queued)
 
-    def set_park(self, times_s: Sequence[float], points: np.ndarray, start: float) -> int:
-        """Follow the park move (all joints, ``points`` (k, n) rad at ``times_s`` (k,)) as a trajectory
-        in mode PARK; returns the new :attr:`generation` (any later command or clear changes it)."""
+    def set_park(self, times_s: Sequence[float], points: np.ndarray, cycle_s: float) -> int:
+        """Follow the park move (all joints, ``points`` (k, n) rad at ``times_s`` (k,), planned on a
+        grid of ``cycle_s`` s) in mode PARK, one ``cycle_s`` per :meth:`sample` from the next one on;
+        returns the new :attr:`generation` (any later command or clear changes it)."""
         idx, t, p = check_trajectory(self.n, range(self.n), times_s, points)
+        if not cycle_s > 0:
+            raise InvalidInputError(f"park cycle must be > 0 s, got {cycle_s}", field="cycle_s",
+                                    value=cycle_s)
         with self._lock:
-            self._traj = _Trajectory(idx, t, p, float(start))
+            self._traj = _Trajectory(idx, t, p, 0.0, cycle_s=float(cycle_s))
             self._queued = []
             self._mode = CommandMode.PARK
             self._stream_q = None
@@ -291,6 +300,10 @@ class JointCommandSource:
                 assert tr is not None
                 if tr.q_start is None:
                     tr.q_start = np.array(q_ref, dtype=float)
+                if tr.cycle_s is not None:
+                    t_move = tr.cycles * tr.cycle_s
+                    tr.cycles += 1
+                    return _interpolate(tr, t_move)
                 return _interpolate(tr, now)
             if mode is CommandMode.STREAM:
                 assert self._stream_q is not None and self._stream_index is not None
@@ -386,12 +399,15 @@ class ReferenceShaper(LimitsView):  # lower/upper: the joint limits inset by the
         v_des = np.clip(v_des, -down, up)
         v_new = v + np.clip(v_des - v, -a * dt, a * dt)
         r_new = r + v_new * dt
-        # Land exactly on a stationary target instead of dithering around it.
-        land = (np.abs(g - r_new) <= a * dt * dt) & (np.abs(v) <= a * dt) & (u == 0)
+        # Land exactly on a stationary target instead of dithering around it, but only with a step
+        # the acceleration limit allows both now and for the stop in the next cycle.
+        step = (g - r) / dt
+        land = (np.abs(step - v) <= a * dt) & (np.abs(step) <= a * dt) & (u == 0)
         r_new = np.where(land, g, r_new)
-        v_new = np.where(land, 0.0, v_new)
         self.r = lim.clip(r_new)
-        self.v = np.where((self.r == lim.lower) | (self.r == lim.upper), 0.0, v_new)
+        # The velocity is the step actually sent (landing, clipping), so the next cycle's
+        # acceleration limit holds on the positions the modules receive.
+        self.v = (self.r - r) / dt
         return self.r.copy()
 
 
@@ -1273,7 +1289,7 @@ class DriverLoop:
         q0 = self._q_ref if self._q_ref is not None else self._read_positions()
         times, points = synchronized_move(limits.clip(q0), target, limits, self.period_s,
                                           self.config.park_speed_scale)
-        gen = self.commands.set_park(times, points, time.monotonic())
+        gen = self.commands.set_park(times, points, self.period_s)
         self._set_reason("moving to the park posture")
         self._log(logging.INFO, f"park: moving to {np.round(target, 4).tolist()} in {times[-1]:.2f} s")
         return True, "park started", _ParkMove(gen, target, float(times[-1]))
