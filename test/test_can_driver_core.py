@@ -161,9 +161,29 @@ def test_init_configures_resets_homes_and_holds(scripted: ScriptedBus, arm: Emul
 def test_init_with_a_missing_module_raises_timeout(clock: FakeClock, arm: EmulatedArm) -> None:
     arm[2].silenced = True
     with ScriptedBus(clock, arm.handle) as bus:
-        with pytest.raises(errors.BusTimeoutError) as info:
+        t0 = clock.t
+        with pytest.raises(errors.BusTimeoutError, match="module 2 did not answer .*3 requests") as info:
             make_driver(bus, clock).init()
         assert info.value.module_id == 2
+        assert info.value.timeout_s == pytest.approx(0.14)
+        assert clock.t - t0 < 0.5  # reported after the three waits, not later
+
+
+@pytest.mark.parametrize("delay_s", [0.03, 0.05, 0.07, 0.1, 0.13])
+def test_init_and_recover_wait_for_modules_that_answer_late(clock: FakeClock, arm: EmulatedArm,
+                                                            delay_s: float) -> None:
+    # Every reply late (a module process descheduled on a busy machine), beyond the 0.02 s a cycle
+    # waits: the retries' longer waits get the answers, and the late duplicates of the retried
+    # ACT_CONFIG read (the value from before the configuration) do not pass for the read-back.
+    with ScriptedBus(clock, arm.handle, delay_s=delay_s) as bus:
+        drv = make_driver(bus, clock, watchdog_refresh=True)
+        st = drv.init()
+        assert drv.state is DriverState.READY and all(s & S.HOME_OK for s in st.states)
+        assert all(arm[i].config_bits & ActConfig.SYNC_MOTION for i in IDS)
+        assert (0x100, "07 00") in bus.take()  # the watchdog refreshed before a retry
+        drv.halt()
+        drv.recover()
+        assert drv.state is DriverState.READY
 
 
 def test_cycle_frames_byte_by_byte(scripted: ScriptedBus, clock: FakeClock) -> None:

@@ -84,6 +84,11 @@ FAULT_BITS = (
     | POWER_STAGE_FAULTS
 )
 _LATENCY_WINDOW = 1024
+#: Requests outside the cycle (configure, reset, home, state reads) are sent this many times to a
+#: module that has not answered, waiting ``reply_timeout_s``, then twice, then four times that:
+#: 0.14 s in all at the default 0.02 s, while the watchdog (refreshed before every retry) allows 0.1 s
+#: between frames.
+REQUEST_ATTEMPTS = 3
 #: A plausibility check allows this much (rad) beyond what the velocity limit explains.
 DEFAULT_PLAUSIBILITY_MARGIN = 0.02
 # A drain before a cycle or request reads at most this many frames (a flooded bus must not stall it).
@@ -524,24 +529,29 @@ class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those o
         items: Sequence[tuple[Hashable, int, can.Message, _Matcher]],
         *,
         timeout_s: float | None = None,
-        attempts: int = 2,
+        attempts: int = REQUEST_ATTEMPTS,
     ) -> dict[Hashable, p.Frame]:
         """Send requests and collect matching replies.
 
         ``items`` are (key, joint index, request, matcher); a reply from joint j answers the
         first pending item of j whose matcher accepts it. Missing replies are re-requested
-        up to ``attempts`` times. Returns key -> reply for the items that were answered.
+        up to ``attempts`` times, each wait twice as long as the one before (a module process
+        descheduled on a busy machine answers late, not never), with a watchdog refresh before
+        each retry so that the modules already answered stay armed meanwhile. Returns key ->
+        reply for the items that were answered.
         """
         timeout = self.reply_timeout_s if timeout_s is None else timeout_s
         results: dict[Hashable, p.Frame] = {}
-        for _ in range(attempts):
+        for attempt in range(attempts):
             todo = [it for it in items if it[0] not in results]
             if not todo:
                 break
             self._drain()
+            if attempt and self.watchdog_refresh:
+                self._send(self._wd_refresh)
             for _key, _j, msg, _m in todo:
                 self._send(msg)
-            deadline = self._clock() + timeout
+            deadline = self._clock() + timeout * 2**attempt
             while len(results) < len(items):
                 left = deadline - self._clock()
                 if left <= 0:
@@ -557,17 +567,20 @@ class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those o
         return results
 
     def _require_all(self, results: dict[Hashable, p.Frame], keys: Sequence[Hashable], what: str) -> None:
+        waited = self.reply_timeout_s * (2**REQUEST_ATTEMPTS - 1)
         for key in keys:
             if key not in results:
                 j = key[0] if isinstance(key, tuple) else key
                 mid = self.module_ids[int(j)]  # type: ignore[arg-type]
                 raise BusTimeoutError(
-                    f"module {mid} did not answer {what} within {self.reply_timeout_s:.3f} s",
+                    f"module {mid} did not answer {what} ({REQUEST_ATTEMPTS} requests, "
+                    f"{waited:.3f} s of waiting)",
                     module_id=mid,
-                    timeout_s=self.reply_timeout_s,
+                    timeout_s=waited,
                 )
 
-    def _command_all(self, cmd: Command, *, require: bool = True, attempts: int = 2) -> list[int]:
+    def _command_all(self, cmd: Command, *, require: bool = True,
+                     attempts: int = REQUEST_ATTEMPTS) -> list[int]:
         items = [(j, j, p.command(mid, cmd), _is_ack(cmd)) for j, mid in enumerate(self.module_ids)]
         res = self._transact(items, attempts=attempts)
         if require:
@@ -635,7 +648,7 @@ class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those o
                 (j, j, p.get_param(mid, Param.DEF_VERSION), _is_param(Param.DEF_VERSION))
                 for j, mid in enumerate(self.module_ids)
             ]
-            res = self._transact(items, timeout_s=max(self.reply_timeout_s, 0.1))
+            res = self._transact(items, timeout_s=max(self.reply_timeout_s, 0.1), attempts=2)
             found = {self.module_ids[j]: int(f.value) for j, f in res.items()}  # type: ignore[attr-defined]
             missing = [mid for mid in self.module_ids if mid not in found]
             if missing:
@@ -646,7 +659,7 @@ class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those o
         """Read ACT_STATE and ACT_FPOS of every module (no motion).
 
         Raises:
-            BusTimeoutError: a module did not answer (after one retry).
+            BusTimeoutError: a module did not answer (after :data:`REQUEST_ATTEMPTS` requests).
             BusError: the bus failed.
         """
         with self._lock:
@@ -714,9 +727,20 @@ class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those o
                 ((j, "acc"), j, p.set_param(mid, Param.ACT_FMAXACC, float(self.max_acc[j])),
                  _is_setparam_ack(Param.ACT_FMAXACC))
             )  # fmt: skip
-        # Acks may be suppressed by a DISABLE_ACK left on: verify by reading back instead.
+        # Acks may be suppressed by a DISABLE_ACK left on: verify by reading back instead. A late
+        # reply to an earlier (retried) read may still be on its way with the old value: the
+        # read-back waits for a value that took; only if none comes is the plain value judged.
         self._transact(sets, attempts=1)
-        res = self._transact(items)
+
+        def took(f: p.Frame) -> bool:
+            if not (isinstance(f, p.GetParamReply) and f.param is Param.ACT_CONFIG):
+                return False
+            cfg = int(f.value)
+            return (cfg & int(want_set)) == int(want_set) and not cfg & int(want_clear)
+
+        res = self._transact([(j, j, msg, took) for j, _j, msg, _m in items])
+        if len(res) < self.n:
+            res = self._transact(items)
         self._require_all(res, list(range(self.n)), "GETPARAM ACT_CONFIG")
         for j, mid in enumerate(self.module_ids):
             cfg = int(res[j].value)  # type: ignore[attr-defined]
