@@ -186,6 +186,20 @@ def test_init_and_recover_wait_for_modules_that_answer_late(clock: FakeClock, ar
         assert drv.state is DriverState.READY
 
 
+def test_init_reports_a_module_that_does_not_take_its_configuration(clock: FakeClock,
+                                                                    arm: EmulatedArm) -> None:
+    def refusing(msg: can.Message) -> list[can.Message]:  # module 2 acks SETPARAM ACT_CONFIG, keeps 0
+        if msg.arbitration_id == 0x0E2 and bytes(msg.data[:2]) == b"\x08\x39":
+            return [can.Message(arbitration_id=0x0A2, data=b"\x08\x39\x64\x00", is_extended_id=False)]
+        return arm.handle(msg)
+
+    with ScriptedBus(clock, refusing) as bus:
+        refused = "module 2 did not take ACT_CONFIG 0x00000000"
+        with pytest.raises(errors.ModuleFaultError, match=refused) as info:
+            make_driver(bus, clock).init()
+        assert info.value.module_id == 2
+
+
 def test_cycle_frames_byte_by_byte(scripted: ScriptedBus, clock: FakeClock) -> None:
     drv = ready_driver(scripted, clock, watchdog_refresh=True)
     scripted.take()
