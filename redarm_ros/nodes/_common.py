@@ -11,8 +11,10 @@ from __future__ import annotations
 
 import logging
 import math
+import threading
 import time
 from collections.abc import Callable, Iterable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
 
@@ -128,6 +130,30 @@ def in_range(lo: float, hi: float) -> Validator:
     return check
 
 
+#: How long (s) main() waits at shutdown for callbacks still running in executor threads before it
+#: destroys the node.
+CALLBACK_DRAIN_S = 5.0
+
+
+def _drain_callbacks(executor: SingleThreadedExecutor | MultiThreadedExecutor, timeout_s: float) -> bool:
+    """Stop ``executor`` and wait up to ``timeout_s`` for callbacks still running in its threads.
+
+    ``Executor.shutdown`` of this rclpy does not wait for them, and the multi-threaded executor's
+    worker pool goes on running the callbacks it took. Destroying the node under a callback that is
+    still publishing crashes inside rcl (seen as a SIGSEGV at Ctrl-C on a slow one-CPU machine).
+    Returns False if some callback was still running after ``timeout_s``.
+    """
+    executor.shutdown(timeout_sec=0.0)
+    pool = getattr(executor, "_executor", None)  # the MultiThreadedExecutor's ThreadPoolExecutor
+    if not isinstance(pool, ThreadPoolExecutor):
+        return True
+    waiter = threading.Thread(target=pool.shutdown, kwargs={"wait": True, "cancel_futures": True},
+                              name="drain-callbacks", daemon=True)
+    waiter.start()
+    waiter.join(timeout_s)
+    return not waiter.is_alive()
+
+
 def run_node(
     make_node: Callable[[], Node],
     args: Sequence[str] | None = None,
@@ -136,13 +162,14 @@ def run_node(
 ) -> int:
     """The standard main(): init, build the node, spin, stop cleanly on Ctrl-C / external shutdown.
 
-    ``make_node`` is called after ``rclpy.init``. If the node has a ``close()``
-    method it is called before ``destroy_node()`` (to stop worker threads).
-    Returns the process exit code (0 on a normal or Ctrl-C stop, 1 if the
-    node could not be built).
+    ``make_node`` is called after ``rclpy.init``. If the node has a ``close()`` method it is called
+    as soon as spinning ends (to stop worker threads and end waits inside callbacks); then the
+    callbacks still running are waited for (:data:`CALLBACK_DRAIN_S`) before ``destroy_node()``.
+    Returns the process exit code (0 on a normal or Ctrl-C stop, 1 if the node could not be built).
     """
     rclpy.init(args=list(args) if args is not None else None)
     node: Node | None = None
+    executor: SingleThreadedExecutor | MultiThreadedExecutor | None = None
     code = 0
     try:
         try:
@@ -154,10 +181,7 @@ def run_node(
             return 1
         executor = MultiThreadedExecutor() if multithreaded else SingleThreadedExecutor()
         executor.add_node(node)
-        try:
-            executor.spin()
-        finally:
-            executor.shutdown(timeout_sec=1.0)
+        executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except DuplicateNodeError as exc:  # raised by UniqueNameCheck's timer
@@ -165,11 +189,19 @@ def run_node(
         _LOG.error("could not start: %s", exc)
         code = 1
     finally:
+        drained = True
         if node is not None:
             close = getattr(node, "close", None)
             if callable(close):
                 close()
-            node.destroy_node()
+        if executor is not None:
+            drained = _drain_callbacks(executor, CALLBACK_DRAIN_S)
+        if node is not None:
+            if drained:
+                node.destroy_node()
+            else:  # destroying it under a running callback would crash; the process ends anyway
+                _LOG.warning("a callback was still running %.0f s after shutdown; node not destroyed",
+                             CALLBACK_DRAIN_S)
         rclpy.try_shutdown()
     return code
 

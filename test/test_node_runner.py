@@ -1,0 +1,78 @@
+"""The nodes' standard main(): at shutdown it waits for callbacks still running in executor threads
+before the node is destroyed (destroying it under a publishing callback crashes inside rcl)."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Iterator
+
+import pytest
+
+rclpy = pytest.importorskip("rclpy")
+
+from rclpy.context import Context  # noqa: E402
+from rclpy.executors import MultiThreadedExecutor  # noqa: E402
+from rclpy.node import Node  # noqa: E402
+
+from redarm_ros.nodes._common import _drain_callbacks  # noqa: E402
+
+
+@pytest.fixture
+def ctx() -> Iterator[Context]:
+    context = Context()
+    rclpy.init(context=context)
+    yield context
+    rclpy.try_shutdown(context=context)
+
+
+def _spin_with_busy_timer(ctx: Context, release: threading.Event) -> tuple[Node, MultiThreadedExecutor,
+                                                                            threading.Thread, dict]:
+    """A node whose timer callback runs until ``release`` is set, spun by a multi-threaded executor;
+    returns once that callback is running."""
+    node = Node("runner_probe", context=ctx)
+    marks: dict[str, float] = {}
+
+    def busy() -> None:
+        if "started" in marks:
+            return
+        marks["started"] = time.monotonic()
+        release.wait(10.0)
+        marks["finished"] = time.monotonic()
+
+    node.create_timer(0.01, busy)
+    executor = MultiThreadedExecutor(context=ctx)
+    executor.add_node(node)
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner.start()
+    end = time.monotonic() + 10.0
+    while "started" not in marks and time.monotonic() < end:
+        time.sleep(0.01)
+    assert "started" in marks
+    return node, executor, spinner, marks
+
+
+def test_shutdown_waits_for_a_running_callback(ctx: Context) -> None:
+    release = threading.Event()
+    node, executor, spinner, marks = _spin_with_busy_timer(ctx, release)
+    threading.Timer(0.5, release.set).start()  # the callback ends 0.5 s from now
+    assert _drain_callbacks(executor, 5.0)
+    assert "finished" in marks  # it returned only after the callback had ended
+    spinner.join(5.0)
+    assert not spinner.is_alive()
+    node.destroy_node()
+
+
+def test_shutdown_gives_up_on_a_callback_that_does_not_end(ctx: Context) -> None:
+    release = threading.Event()
+    node, executor, spinner, marks = _spin_with_busy_timer(ctx, release)
+    t0 = time.monotonic()
+    assert not _drain_callbacks(executor, 0.3)  # still running: the caller must not destroy the node
+    assert time.monotonic() - t0 < 2.0 and "finished" not in marks
+    release.set()
+    spinner.join(5.0)
+    end = time.monotonic() + 5.0
+    while "finished" not in marks and time.monotonic() < end:
+        time.sleep(0.01)
+    assert "finished" in marks
+    node.destroy_node()
