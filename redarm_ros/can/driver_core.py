@@ -732,19 +732,18 @@ class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those o
         # read-back waits for a value that took; only if none comes is the plain value judged.
         self._transact(sets, attempts=1)
 
-        def took(f: p.Frame) -> bool:
-            if not (isinstance(f, p.GetParamReply) and f.param is Param.ACT_CONFIG):
-                return False
-            cfg = int(f.value)
+        def took(cfg: int) -> bool:
             return (cfg & int(want_set)) == int(want_set) and not cfg & int(want_clear)
 
-        res = self._transact([(j, j, msg, took) for j, _j, msg, _m in items])
-        if len(res) < self.n:
-            res = self._transact(items)
+        def reads_took(f: p.Frame) -> bool:
+            return isinstance(f, p.GetParamReply) and f.param is Param.ACT_CONFIG and took(int(f.value))
+
+        res = self._transact([(j, j, msg, reads_took) for j, _j, msg, _m in items])
+        res.update(self._transact([it for it in items if it[0] not in res]))  # only the ones still wrong
         self._require_all(res, list(range(self.n)), "GETPARAM ACT_CONFIG")
         for j, mid in enumerate(self.module_ids):
             cfg = int(res[j].value)  # type: ignore[attr-defined]
-            if (cfg & int(want_set)) != int(want_set) or cfg & int(want_clear):
+            if not took(cfg):
                 raise ModuleFaultError(
                     f"module {mid} did not take ACT_CONFIG 0x{cfg:08x}", module_id=mid, state=cfg
                 )
