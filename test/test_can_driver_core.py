@@ -186,6 +186,65 @@ def test_init_and_recover_wait_for_modules_that_answer_late(clock: FakeClock, ar
         assert drv.state is DriverState.READY
 
 
+class FrozenMachineBus(ScriptedBus):
+    """A ScriptedBus on a machine that stops now and then (a throttled container, a UML guest whose
+    host is busy): :meth:`freeze` makes the next receive that has to wait sleep ``freeze_s`` longer
+    than asked, with the modules' stand-in stopped too: replies due meanwhile become receivable only
+    after it. That receive comes back empty (the driver's timer fired first), or, ``woken_by_frame``,
+    with the first reply (the stand-in ran first), the others ``delay_s`` apart after it."""
+
+    def __init__(self, clock: FakeClock, responder: Responder, delay_s: float) -> None:
+        super().__init__(clock, responder, delay_s)
+        self._freeze_s = 0.0
+        self._woken_by_frame = False
+
+    def freeze(self, freeze_s: float, *, woken_by_frame: bool = False) -> None:
+        self._freeze_s, self._woken_by_frame = freeze_s, woken_by_frame
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        ready_now = bool(self.rx) and self._ready[0] <= self.clock.t
+        if self._freeze_s and timeout and not ready_now:
+            self.clock.t += timeout + self._freeze_s
+            self._freeze_s = 0.0
+            first = self.clock.t if self._woken_by_frame else self.clock.t + self.delay_s
+            self._ready = deque(first + self.delay_s * i for i in range(len(self._ready)))
+            if not self._woken_by_frame:
+                return None, False
+        return super()._recv_internal(timeout)
+
+
+def test_a_stall_of_the_whole_machine_is_not_a_silent_module(clock: FakeClock, arm: EmulatedArm) -> None:
+    # The driver and the modules' stand-in both stop for 0.3 s while replies are due: on waking,
+    # the driver does not count the time it was not running, and the replies, sent after the stall,
+    # answer this cycle (not lost now and late in the next), and the HALT's acks are collected.
+    with FrozenMachineBus(clock, arm.handle, delay_s=0.005) as bus:
+        drv = ready_driver(bus, clock)
+        q = drv.read_state().positions
+        for woken_by_frame in (False, True, False, True):
+            bus.freeze(0.3, woken_by_frame=woken_by_frame)
+            t0 = clock.t
+            res = drv.cycle(q, 0.02)
+            assert res.replied.all() and res.lost == 0, res
+            assert clock.t - t0 < 0.3 + 2 * drv.reply_timeout_s
+        assert drv.cycle(q, 0.02).late == 0  # nothing of the stalled cycle comes in late
+        bus.freeze(0.3)
+        assert drv.halt() == IDS
+
+
+def test_after_a_stall_a_silent_module_is_still_found_within_a_bounded_wait(clock: FakeClock,
+                                                                           arm: EmulatedArm) -> None:
+    with FrozenMachineBus(clock, arm.handle, delay_s=0.005) as bus:
+        drv = ready_driver(bus, clock)
+        q = drv.read_state().positions
+        arm[2].silenced = True
+        bus.freeze(0.3)
+        t0 = clock.t
+        res = drv.cycle(q, 0.02)
+        assert res.replied.tolist() == [True, False, True] and res.lost == 1
+        # the wait asked for and the stall, which happened anyway, then the timeout once more
+        assert clock.t - t0 == pytest.approx(0.3 + 2 * drv.reply_timeout_s)
+
+
 def test_init_reports_a_module_that_does_not_take_its_configuration(clock: FakeClock,
                                                                     arm: EmulatedArm) -> None:
     def refusing(msg: can.Message) -> list[can.Message]:  # module 2 acks SETPARAM ACT_CONFIG, keeps 0

@@ -62,6 +62,7 @@ import numpy as np
 
 from redarm_ros.can import protocol as p
 from redarm_ros.can.protocol import POWER_STAGE_FAULTS, ActConfig, ActState, Command, Param
+from redarm_ros.can.reply_deadline import ReplyDeadline
 from redarm_ros.errors import (
     BusError,
     BusTimeoutError,
@@ -385,6 +386,7 @@ class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those o
         self.home_timeout_s = float(home_timeout_s)
         self.poll_interval_s = float(poll_interval_s)
         self._clock = clock
+        self._deadline = ReplyDeadline(clock)  # one per driver: every wait holds self._lock
         self._lock = threading.Lock()
         self.state = DriverState.UNINITIALIZED
         self.fault: Fault | None = None  # why the driver is in FAULT (None otherwise)
@@ -551,12 +553,14 @@ class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those o
                 self._send(self._wd_refresh)
             for _key, _j, msg, _m in todo:
                 self._send(msg)
-            deadline = self._clock() + timeout * 2**attempt
+            deadline = self._deadline
+            deadline.start(self._clock(), timeout * 2**attempt)
             while len(results) < len(items):
-                left = deadline - self._clock()
+                left = deadline.left()
                 if left <= 0:
                     break
                 got = self._receive_reply(left)
+                deadline.waited(left)
                 if got is None or got[1] is None:
                     continue
                 j, frame = got
@@ -930,13 +934,15 @@ class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those o
         short = np.zeros(n, dtype=np.int64)
         remaining = n
         implausible = 0
-        deadline = stamp + self.reply_timeout_s
+        deadline = self._deadline
+        deadline.start(stamp, self.reply_timeout_s)
         fstep_ack = p.fstep_ext_ack_fields
         while remaining:
-            left = deadline - clock()
+            left = deadline.left()
             if left <= 0:
                 break
             msg = self._recv(left)
+            deadline.waited(left)
             if msg is None:
                 continue
             t = clock()
