@@ -50,9 +50,10 @@ def rig() -> Iterator[dict[str, Any]]:
         can_kwargs=server.client_config(), loop=LoopConfig(rate_hz=100.0, poll_hz=20.0),
         reply_timeout_s=0.1, max_missed=10, watchdog=True, realtime_priority=0,
     )
-    proc = DriverProcess(spec, on_sample=samples.append, log=lambda lvl, msg: logs.append((lvl, msg)))
+    sink: list[Callable[[Any], None]] = [samples.append]  # a test may swap in its own
+    proc = DriverProcess(spec, on_sample=lambda s: sink[0](s), log=lambda lvl, msg: logs.append((lvl, msg)))
     try:
-        yield {"proc": proc, "arm": arm, "logs": logs, "samples": samples}
+        yield {"proc": proc, "arm": arm, "logs": logs, "samples": samples, "sink": sink}
     finally:
         proc.stop()
         runner.stop()
@@ -87,6 +88,26 @@ def test_cycle_process_inits_follows_and_stops(rig: dict[str, Any]) -> None:
     assert proc.state is LoopState.STOPPED and not proc.alive
     with pytest.raises(ProcessLookupError):
         os.kill(pid, 0)
+
+
+def test_a_reader_that_falls_behind_hands_on_the_newest_sample(rig: dict[str, Any]) -> None:
+    # A starved node: every sample takes it 0.1 s to publish while the cycle makes one per 0.01 s.
+    # Handing on each in turn would make them ever older (the backlog of the socket); the newest
+    # queued is handed on instead, so a sample is never older than about one publishing delay.
+    ages: list[float] = []
+
+    def slow(s: Any) -> None:
+        ages.append(time.time() - s.stamp)
+        time.sleep(0.1)
+
+    rig["sink"][0] = slow
+    proc: DriverProcess = rig["proc"].start()
+    assert wait_for(lambda: proc.state is LoopState.IDLE)
+    ok, msg = proc.request("init", timeout=30.0)
+    assert ok, msg
+    assert wait_for(lambda: len(ages) >= 30, 30.0)
+    assert proc.samples_skipped > 100
+    assert max(ages[10:]) < 0.35, [round(a, 3) for a in ages]
 
 
 def test_a_killed_cycle_process_is_reported_and_the_watchdog_halts_the_arm(rig: dict[str, Any]) -> None:

@@ -493,6 +493,8 @@ class CanDriverNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
             "fault": snap.fault.kind.value if snap.fault is not None else "-",
             "fault_modules": str(list(snap.fault.module_ids)) if snap.fault is not None else "[]",
             "cycle_scheduling": snap.priority or "-",
+            # samples of the cycle process not published: a newer one was queued (a starved node)
+            "joint_states_skipped": str(getattr(self.loop, "samples_skipped", 0)),
         }
         if snap.totals is not None:
             values["period_error_p99_total_ms"] = f"{snap.totals['period_err_p99_ms']:.3f}"
