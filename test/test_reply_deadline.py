@@ -15,10 +15,15 @@ class Clock:
         return self.t
 
 
-def test_without_stalls_the_deadline_is_the_timeout_after_the_start() -> None:
+def started(timeout_s: float) -> tuple[Clock, ReplyDeadline]:
     c = Clock()
     d = ReplyDeadline(c)
-    d.start(c.t, 0.02)
+    d.start(c.t, timeout_s)
+    return c, d
+
+
+def test_without_stalls_the_deadline_is_the_timeout_after_the_start() -> None:
+    c, d = started(0.02)
     c.t += 0.001  # sending
     assert d.left() == pytest.approx(0.019)
     c.t += 0.019  # a receive that waited the whole time, no frame
@@ -26,20 +31,21 @@ def test_without_stalls_the_deadline_is_the_timeout_after_the_start() -> None:
     assert d.left() <= 0 and d.stalled_s == 0.0
 
 
-def test_a_receive_that_came_back_late_restarts_the_wait() -> None:
-    c = Clock()
-    d = ReplyDeadline(c)
-    d.start(c.t, 0.02)
+@pytest.mark.parametrize(("timeout_s", "came_back_after_s"), [
+    (0.02, 0.52),  # asked 20 ms, ran again 0.5 s later (empty)
+    (0.5, 0.665),  # a frame that came after the machine stood still for longer than the timeout
+])
+def test_a_receive_that_came_back_late_restarts_the_wait(timeout_s: float, came_back_after_s: float) -> None:
+    c, d = started(timeout_s)
     left = d.left()
-    c.t += left + 0.5  # asked 20 ms, ran again 0.5 s later
+    c.t += came_back_after_s
     d.waited(left)
-    assert d.left() == pytest.approx(0.02) and d.stalled_s == pytest.approx(0.5)
+    assert d.left() == pytest.approx(timeout_s)
+    assert d.stalled_s == pytest.approx(came_back_after_s - timeout_s)
 
 
 def test_a_pause_between_two_looks_at_the_clock_restarts_it_too() -> None:
-    c = Clock()
-    d = ReplyDeadline(c)
-    d.start(c.t, 0.02)
+    c, d = started(0.02)
     left = d.left()
     c.t += 0.005
     d.waited(left)  # a frame after 5 ms
@@ -49,20 +55,8 @@ def test_a_pause_between_two_looks_at_the_clock_restarts_it_too() -> None:
     assert d.left() == pytest.approx(0.02 - STALL_S / 2)
 
 
-def test_a_frame_that_woke_us_after_a_stall_restarts_the_wait() -> None:
-    c = Clock()
-    d = ReplyDeadline(c)
-    d.start(c.t, 0.5)
-    left = d.left()
-    c.t += 0.665  # the frame came after the machine stood still for longer than the whole timeout
-    d.waited(left)
-    assert d.left() == pytest.approx(0.5) and d.stalled_s == pytest.approx(0.165)
-
-
 def test_restarts_are_bounded_so_a_silent_module_is_still_found() -> None:
-    c = Clock()
-    d = ReplyDeadline(c)
-    d.start(c.t, 0.02)
+    c, d = started(0.02)
     waited = 0.0
     for _ in range(100):  # a process that stalls after every receive
         left = d.left()
