@@ -90,6 +90,9 @@ def test_ik_then_goal_reached_by_the_simulated_arm(stack: Stack, client: Client)
 
 
 def test_out_of_reach_goal_rejected_and_arm_holds(stack: Stack, client: Client) -> None:
+    # From a still arm: after a reached goal the elbow may still settle about its swivel for a while
+    # (CI, a busy machine: 23 mrad after the hand was within 1 mm), which is not the hold judged here.
+    assert sc.sim_arm_still(client, stack, timeout=20.0), "the arm never came to rest"
     q_before = np.array(stack.sim_status()["q"])
     T = np.eye(4)
     T[:3, 3] = (1.5, 0.0, 0.5)

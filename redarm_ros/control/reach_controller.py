@@ -543,7 +543,8 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
         """The reference is at the goal too, the commanded tool has (nearly) stopped (below
         ``pos_tolerance`` per 0.1 s) and so have the joints (below 5 % of their velocity limits, within
         1 mrad of the reference): REACHED neither flickers while the command catches up nor comes
-        while the elbow still swings about its swivel."""
+        while the elbow still swings about its swivel. The elbow's slow final approach to its preferred
+        swivel (a self-motion: the tool stands) may go on after REACHED."""
         st = self._state()
         p = self.params
         goal = st.goal
