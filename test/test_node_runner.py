@@ -3,6 +3,8 @@ before the node is destroyed (destroying it under a publishing callback crashes 
 
 from __future__ import annotations
 
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -76,3 +78,38 @@ def test_shutdown_gives_up_on_a_callback_that_does_not_end(ctx: Context) -> None
         time.sleep(0.01)
     assert "finished" in marks
     node.destroy_node()
+
+
+# A node whose first timer tick raises the bare RuntimeError rclpy's bindings raise when a take races the
+# shutdown of the context; with SHUT_DOWN set the tick shuts the context down first, as Ctrl-C does.
+_RACING_NODE = """
+import sys
+import rclpy
+from rclpy.node import Node
+from redarm_ros.nodes._common import run_node
+
+class Racing(Node):
+    def __init__(self):
+        super().__init__("runner_race_probe")
+        self.create_timer(0.05, self.tick)
+
+    def tick(self):
+        if sys.argv[1] == "shut_down":
+            rclpy.shutdown()
+        raise RuntimeError("Unable to convert call argument '0' to Python object")
+
+raise SystemExit(run_node(Racing, []))
+"""
+
+
+@pytest.mark.parametrize(("mode", "stops_cleanly"), [("shut_down", True), ("running", False)])
+def test_a_take_racing_shutdown_stops_cleanly_and_other_errors_still_raise(
+        ros_env: object, mode: str, stops_cleanly: bool) -> None:
+    proc = subprocess.run([sys.executable, "-c", _RACING_NODE, mode], capture_output=True, text=True,
+                          timeout=60)
+    if stops_cleanly:
+        assert proc.returncode == 0, proc.stderr
+        assert "Traceback" not in proc.stderr
+    else:  # the context is still up: a real error, not swallowed
+        assert proc.returncode != 0
+        assert "Unable to convert call argument" in proc.stderr

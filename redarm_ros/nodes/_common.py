@@ -184,6 +184,11 @@ def run_node(
         executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except RuntimeError:
+        # A take that raced Ctrl-C's shutdown of the context fails with a bare RuntimeError from
+        # rclpy's bindings; the stop was asked for, so stop. Anything else is a real error.
+        if rclpy.ok():
+            raise
     except DuplicateNodeError as exc:  # raised by UniqueNameCheck's timer
         logging.basicConfig()
         _LOG.error("could not start: %s", exc)

@@ -444,7 +444,12 @@ class CanDriverNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
         msg.position = s.positions.tolist()
         if s.velocities is not None:
             msg.velocity = s.velocities.tolist()
-        self._js_pub.publish(msg)
+        try:
+            self._js_pub.publish(msg)
+        except Exception:
+            if self.context.ok():
+                raise
+            # Ctrl-C shut the context down between the check above and the publish: nothing to report
 
     def _publish_diagnostics(self) -> None:
         if not self.started:
