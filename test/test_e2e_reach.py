@@ -22,7 +22,14 @@ from action_msgs.msg import GoalStatus  # noqa: E402
 from rclpy.action import ActionClient  # noqa: E402
 from redarm_interfaces.action import Reach  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
-from support.stack_client import StackClient, client_in_context, pose_err, sim_tool, stack_fixture  # noqa: E402
+from support.stack_client import (  # noqa: E402
+    StackClient,
+    client_in_context,
+    pose_err,
+    sim_arm_still,
+    sim_tool,
+    stack_fixture,
+)
 from support.stack_client import pose_down as pose  # noqa: E402
 
 from redarm_ros.bringup import Stack  # noqa: E402
@@ -116,10 +123,11 @@ def test_reach_goal_succeeds_then_a_cancel_stops_the_simulated_arm(stack: Stack,
     res = client.result(handle, 20.0)
     assert res.status == GoalStatus.STATUS_CANCELED
     assert res.result.status == Reach.Result.CANCELED, res.result.message
-    # The simulated arm comes to rest short of the goal and stays there.
-    client.spin_until(lambda: False, 0.5)
+    # The simulated arm comes to rest short of the goal and stays there (a busy machine brakes later:
+    # the rest is waited for, not timed).
+    assert sim_arm_still(client, stack, timeout=10.0), "the arm did not come to rest after the cancel"
     q0 = np.array(stack.sim_status()["q"])
-    client.spin_until(lambda: False, 0.5)
-    assert float(np.max(np.abs(np.array(stack.sim_status()["q"]) - q0))) < 2e-3
+    client.spin_until(lambda: False, 1.0)
+    assert float(np.max(np.abs(np.array(stack.sim_status()["q"]) - q0))) < 1e-3
     assert pose_err(sim_tool(stack), T2)[0] > 0.01
     stack.check()
