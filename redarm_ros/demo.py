@@ -47,6 +47,10 @@ from redarm_ros.procs import python_module_cmd, random_domain_id, stream_sink
 
 POS_TOL_M = 1e-3
 ROT_TOL_RAD = 0.01
+#: The final error of a reached goal is read once every simulated joint has moved less than this
+#: (rad) over --settle seconds, waited for at most REST_WAIT_S.
+REST_TOL_RAD = 1e-4
+REST_WAIT_S = 20.0
 # What redarm-record writes into <output>/demo.mcap (plus /tf, computed from /joint_states).
 RECORDED_TOPICS = ("/joint_states", "/joint_command", "/goal_pose", "/controller/state",
                    "/controller/markers", "/diagnostics", "/robot_description", "/obstacles")
@@ -329,6 +333,23 @@ class Demo:
         tool = st["tool"]
         return np.asarray(tool["position"], float), quat_to_matrix(from_xyzw(tool["quaternion_xyzw"]))
 
+    def _arm_at_rest(self, stack: Stack) -> Callable[[], bool]:
+        """A condition: the simulated joints moved less than REST_TOL_RAD over the last `settle` s."""
+        seen: list[tuple[float, np.ndarray]] = []
+
+        def at_rest() -> bool:
+            st = stack.sim_status()
+            if st is None:
+                return False
+            now = time.monotonic()
+            seen.append((now, np.asarray(st["q"], float)))
+            while len(seen) > 1 and seen[1][0] <= now - self.args.settle:  # keep one >= settle old
+                seen.pop(0)
+            return now - seen[0][0] >= self.args.settle and \
+                float(np.ptp(np.array([q for _, q in seen]), axis=0).max()) < REST_TOL_RAD
+
+        return at_rest
+
     def tool_error(self, stack: Stack, T: np.ndarray) -> tuple[float, float]:
         tool = self.sim_tool(stack)
         if tool is None:
@@ -523,18 +544,11 @@ class Demo:
 
             if client.spin_until(settled, 10.0):
                 t_end = time.monotonic()
-                # The final error is read once the tool has stayed within tolerance for `settle` s:
-                # after "reached" the elbow may still finish its self-motion towards the preferred
-                # swivel, and the joints' tracking lag moves the tool transiently while it does.
-                since = [time.monotonic()]
-
-                def at_rest() -> bool:
-                    now = time.monotonic()
-                    if not settled():
-                        since[0] = now
-                    return now - since[0] >= self.args.settle
-
-                client.spin_until(at_rest, 10.0)
+                # The final error is read once the arm is at rest (every joint within REST_TOL_RAD
+                # for `settle` s): after "reached" the elbow may still finish its self-motion towards
+                # the preferred swivel for several seconds (more on a busy machine), and the joints'
+                # tracking lag moves the tool transiently (up to ~1 mm) while it does.
+                client.spin_until(self._arm_at_rest(stack), REST_WAIT_S)
         else:
             client.spin_until(lambda: False, 0.5)  # let a rejected goal's stop settle for the snapshot
         pe, re = self.tool_error(stack, T)
@@ -733,8 +747,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--control-rate", type=float, default=100.0, help="controller rate (Hz)")
     ap.add_argument("--driver-rate", type=float, default=250.0, help="can_driver cycle rate (Hz)")
     ap.add_argument("--settle", type=float, default=0.5,
-                    help="seconds the simulated tool must stay within tolerance before the final "
-                    "error is read")
+                    help="seconds the simulated joints must stay still (within 0.1 mrad) before the "
+                    "final error is read (waited for at most 20 s)")
     ap.add_argument("--snapshot-size", default="640x480",
                     help="size of the PNG snapshots and the GIF, WIDTHxHEIGHT (default 640x480)")
     ap.add_argument("--gif-fps", type=float, default=10.0,
