@@ -401,8 +401,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Console entry point. Exit codes: 0 stopped by Ctrl-C/SIGTERM, 1 a child died or failed to start."""
     ns = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="[bringup] %(message)s", stream=sys.stderr)
-    # SIGTERM (systemd, a test, `kill`) takes the same clean path as Ctrl-C.
+    # SIGTERM (systemd, a test, `kill`) takes the same clean path as Ctrl-C. SIGINT is set too: a
+    # script's background job starts with it ignored, and then neither Ctrl-C nor `kill -INT` would
+    # stop the stack (the children, started after this, get the default handling back).
     signal.signal(signal.SIGTERM, _raise_keyboard_interrupt)
+    signal.signal(signal.SIGINT, _raise_keyboard_interrupt)
     cfg = config_from_args(ns)
     stack = Stack(cfg, domain_id=ns.domain_id)
     _LOG.info("ROS_DOMAIN_ID=%d, FASTDDS_BUILTIN_TRANSPORTS=SHM", stack.domain_id)

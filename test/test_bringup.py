@@ -65,19 +65,20 @@ def test_parser_defaults_and_flags() -> None:
     )
 
 
-def _start_light_bringup(procs: Any) -> tuple[Any, dict[str, int]]:
-    """bringup without hardware and controller (ik_service and description only), up; its child pids."""
-    bringup = procs.start(
-        "bringup",
-        python_module_cmd(
-            "redarm_ros.bringup", "--hardware", "none", "--no-controller", "--log-level", "warn"
-        ),
-    )
+def _start_light_bringup(procs: Any, sigint_ignored: bool = False) -> tuple[Any, dict[str, int]]:
+    """bringup without hardware and controller (ik_service and description only), up; its child pids.
+    ``sigint_ignored``: started as a script's background job (SIGINT ignored, inherited by exec)."""
+    cmd = python_module_cmd("redarm_ros.bringup", "--hardware", "none", "--no-controller",
+                            "--log-level", "warn")
+    if sigint_ignored:
+        cmd = ["bash", "-c", 'trap "" INT; exec "$@"', "bash", *cmd]
+    bringup = procs.start("bringup", cmd)
     return bringup, _child_pids(bringup.wait_for_line(UP, timeout=60.0))
 
 
-def test_ctrl_c_stops_all_children(procs: Any) -> None:
-    bringup, pids = _start_light_bringup(procs)
+@pytest.mark.parametrize("sigint_ignored", [False, True], ids=["foreground", "sigint-ignored-at-start"])
+def test_ctrl_c_stops_all_children(procs: Any, sigint_ignored: bool) -> None:
+    bringup, pids = _start_light_bringup(procs, sigint_ignored)
     assert set(pids) == {"ik_service", "description"}
     assert all(_alive(p) for p in pids.values())
     bringup.expect_exit()
