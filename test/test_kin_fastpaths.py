@@ -13,7 +13,7 @@ import pytest
 
 from redarm_ros.errors import InvalidInputError
 from redarm_ros.kinematics import SwivelArm, load_arm
-from redarm_ros.kinematics import feasible as F
+from redarm_ros.kinematics.feasible import ALT_SIGN
 from redarm_ros.kinematics.swivel import _PATTERN_GET
 
 SWIVEL_ARMS = ["pa10", "pa10_7c", "powercube7"]
@@ -96,4 +96,18 @@ def test_ik_numpy_swivel_same_as_float(name: str) -> None:
 
 def test_feasible_module_constants_unchanged() -> None:
     # (the fast paths rely on these: base alternatives even, flipped odd)
-    assert F.ALT_SIGN.tolist() == [[1.0, 1.0 if j % 2 == 0 else -1.0] for j in range(7)]
+    assert ALT_SIGN.tolist() == [[1.0, 1.0 if j % 2 == 0 else -1.0] for j in range(7)]
+
+
+def test_check_pose_rotation_range_each_entry() -> None:
+    # the written-out range test of check_pose: each rotation entry alone NaN, inf or beyond 2 is refused,
+    # as by the former all() over the nine entries
+    T = ARMS["pa10"].fk(np.zeros(7))
+    assert ARMS["pa10"].check_pose(T) == T.tolist()
+    for i in range(3):
+        for j in range(3):
+            for bad in (math.nan, math.inf, -math.inf, 2.5, -2.5):
+                Tb = T.copy()
+                Tb[i, j] = bad
+                with pytest.raises(InvalidInputError):
+                    SwivelArm.check_pose(Tb)
