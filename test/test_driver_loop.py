@@ -282,6 +282,29 @@ def test_shaper_follows_a_feasible_stream_without_lag() -> None:
     np.testing.assert_allclose(rs2[-1], stream[-1])
 
 
+@pytest.mark.parametrize("late_share", [0.2, 0.5])
+def test_shaper_lands_on_a_trajectory_end_when_cycles_skip_ticks(late_share: float) -> None:
+    """A rest-to-rest move sampled by a loop that skips one or two ticks in ``late_share`` of its cycles
+    (an overloaded machine): the reference lags, then catches up and stops on the end, never past it.
+    (Feeding forward the target's change per nominal period overshot by 96 / 183 mrad.)"""
+    sh = make_shaper()
+    sh.reset(np.zeros(2))
+    end = np.array([1.2, -1.8])
+    T = 2.5  # a quintic over 2.5 s: peak speed 1.875 * end / T, within both joints' limits
+    rng = np.random.default_rng(5)
+    t, last, rs = 0.0, 0.0, []
+    while t < 5.0:
+        t += sh.dt * (1 + (rng.integers(1, 3) if rng.random() < late_share else 0))
+        s = min(t / T, 1.0)
+        rs.append(sh.step(end * (10 * s**3 - 15 * s**4 + 6 * s**5), t - last))
+        last = t
+    r = np.array(rs)
+    assert np.max((r - end) * np.sign(end)) <= 1e-6  # never beyond the end (sub-step rounding only)
+    np.testing.assert_allclose(r[-1], end, atol=1e-9)
+    acc = np.diff(r, n=2, axis=0) / sh.dt**2  # the positions sent keep the acceleration limits
+    assert np.all(np.abs(acc) <= np.array([2.0, 8.0]) * (1 + 1e-6))
+
+
 def _adversarial_targets(rng: np.random.Generator, dt: float) -> np.ndarray:
     """A target stream as the loop may see it: a move sampled with late and skipped cycles, jumps,
     a stop at speed, a run into a limit."""

@@ -379,21 +379,32 @@ class ReferenceShaper(LimitsView):  # lower/upper: the joint limits inset by the
         self.v = np.zeros_like(self.r)
         self._g_prev = None
 
-    def step(self, target: np.ndarray) -> np.ndarray:
+    def step(self, target: np.ndarray, elapsed: float | None = None) -> np.ndarray:
         """Advance one cycle toward ``target`` (n,) rad (clamped into the inset limits); returns the
-        reference."""
+        reference. ``elapsed`` (s): the time since the previous target was sampled, when it was not
+        one nominal period (a late cycle, skipped ticks): the target's velocity is its change over
+        that time. Taken per nominal period instead, every skipped tick doubled or tripled the
+        velocity fed forward, and the reference overshot the end of a trajectory (96 mrad with 20 %
+        of the cycles one or two ticks late, measured offline on the PA10's limits)."""
         if self.r is None:
             self.reset(target)
             return self.r.copy()  # type: ignore[union-attr]
         lim, dt = self.limits, self.dt
         a, vmax = lim.max_acc, lim.max_vel
         g = lim.clip(target)
-        u = np.zeros_like(g) if self._g_prev is None else np.clip((g - self._g_prev) / dt, -vmax, vmax)
+        h = dt if elapsed is None else max(float(elapsed), 0.25 * dt)
+        u = np.zeros_like(g) if self._g_prev is None else np.clip((g - self._g_prev) / h, -vmax, vmax)
         self._g_prev = g
         r, v = self.r, self.v
         # Tracking error against where the target was: with u fed forward, r then lands on g.
         e = (g - u * dt) - r
         v_des = np.clip(u + np.sign(e) * braking_speed(np.abs(e), a, dt), -vmax, vmax)
+        # Approach the nearest point where the target can stop (braking at max_acc from u) no faster
+        # than allows stopping on it: a reference that lags (skipped ticks) catches up without its
+        # catch-up speed adding to the target's own, which carried it beyond a trajectory's end.
+        ahead = g + u * np.abs(u) / (2.0 * a) - r
+        cap = braking_speed(np.abs(ahead), a, dt)
+        v_des = np.clip(v_des, np.where(ahead < 0.0, -cap, -vmax), np.where(ahead > 0.0, cap, vmax))
         # Never faster toward a limit than allows stopping on it (exact discrete law: no overshoot).
         up, down = lim.stop_speeds(r, dt)
         v_des = np.clip(v_des, -down, up)
@@ -1146,6 +1157,7 @@ class DriverLoop:
         next_t = time.monotonic()
         gap = False
         first = True  # the first cycle after a pause (init, halt, reconnect) has no period
+        prev_now: float | None = None  # when the previous cycle sampled its target
         k = 0
         while not self._stop.is_set() and self._requests.empty():
             now = time.monotonic()
@@ -1158,7 +1170,8 @@ class DriverLoop:
             clipped = np.clip(target, lo, hi)
             outside = clipped != target
             beyond = tuple(int(j) for j in np.flatnonzero(outside)) if outside.any() else ()
-            ref = shaper.step(clipped)
+            ref = shaper.step(clipped, None if prev_now is None else now - prev_now)
+            prev_now = now
             result = drv.cycle(ref, period)
             q_meas = result.positions
             q_ref = result.targets
