@@ -1170,7 +1170,9 @@ class DriverLoop:
             clipped = np.clip(target, lo, hi)
             outside = clipped != target
             beyond = tuple(int(j) for j in np.flatnonzero(outside)) if outside.any() else ()
-            ref = shaper.step(clipped, None if prev_now is None else now - prev_now)
+            # (the park move advances per cycle run, not per wall-clock second: one period each)
+            per_cycle = prev_now is None or self.commands.mode is CommandMode.PARK
+            ref = shaper.step(clipped, None if per_cycle or prev_now is None else now - prev_now)
             prev_now = now
             result = drv.cycle(ref, period)
             q_meas = result.positions
