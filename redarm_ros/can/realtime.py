@@ -24,7 +24,10 @@ import os
 from dataclasses import dataclass
 from enum import Enum
 
-__all__ = ["Policy", "Priority", "collect_young", "drop_priority", "quiet_gc", "raise_priority", "restore_gc"]
+__all__ = [
+    "Policy", "Priority", "collect_young", "drop_priority", "quiet_gc", "raise_nice", "raise_priority",
+    "restore_gc",
+]
 
 _LOG = logging.getLogger(__name__)
 
@@ -87,6 +90,30 @@ def raise_priority(fifo_priority: int, *, who: str, tid: int = 0) -> Priority:
         f"{who}: SCHED_FIFO refused ({fifo_error.strerror}) and no higher nice level allowed; running at "
         "normal priority: the cycle can be delayed when the machine is busy (grant CAP_SYS_NICE or an "
         "rtprio limit, e.g. in /etc/security/limits.conf)"))
+
+
+def raise_nice(level: int, *, who: str) -> Priority:
+    """Run every thread of this process (and the threads it starts later) at nice ``level`` (-20..0),
+    or at the highest level allowed above it. For processes that are not real-time but must not be
+    starved by ordinary work beside them (the controller, the driver's ROS node). ``level`` 0 asks for
+    nothing. Linux applies nice per thread, so each existing thread is set. Never raises; log the
+    returned ``message`` once."""
+    if level >= 0:
+        return Priority(Policy.NORMAL, 0, f"{who}: normal priority (nice not requested)")
+    try:
+        tids = [int(t) for t in os.listdir("/proc/self/task")]
+    except OSError:
+        tids = [0]
+    for lvl in range(max(int(level), -20), 0):
+        try:
+            for tid in tids:
+                os.setpriority(os.PRIO_PROCESS, tid, lvl)
+        except OSError:
+            continue
+        return Priority(Policy.NICE, lvl, f"{who}: running at nice {lvl} (ahead of ordinary work)")
+    return Priority(Policy.NORMAL, 0, (
+        f"{who}: nice {level} not permitted; running at normal priority: other work on the machine can delay "
+        "it (grant CAP_SYS_NICE or a nice limit, e.g. in /etc/security/limits.conf)"))
 
 
 def drop_priority(*, tid: int = 0) -> None:

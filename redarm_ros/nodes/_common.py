@@ -52,6 +52,26 @@ class ParamSpec:
     range: tuple[float, float] | None = None
 
 
+#: The ``nice`` parameter of the nodes on the control path (controller, can_driver): ahead of ordinary
+#: work on the machine, behind the real-time chain (cycle, simulator, bus server at SCHED_FIFO).
+NICE_PARAM = ParamSpec(
+    "nice", -10, "Nice level of this node's process (-20..0; 0 = leave it). On a busy machine ordinary "
+    "work beside the stack starved the node (a fresh-clone test run: /joint_states paused for more than "
+    "the controller's timeout). Falls back to the best level permitted, with one log line.",
+    read_only=True, range=(-20, 0))
+
+
+def apply_nice(node: Node, level: int) -> None:
+    """Run ``node``'s process at nice ``level`` (see :data:`NICE_PARAM`) and log the outcome once."""
+    from redarm_ros.can import realtime  # (a shell may use the driver's scheduling helper)
+
+    prio = realtime.raise_nice(level, who=f"{node.get_name()} node")
+    if prio.policy is realtime.Policy.NICE or level >= 0:
+        node.get_logger().info(prio.message)
+    else:
+        node.get_logger().warning(prio.message)
+
+
 def declare_params(node: Node, specs: Sequence[ParamSpec]) -> dict[str, Any]:
     """Declare ``specs`` on ``node``, validate start-up values, install the on-set validator.
 

@@ -62,7 +62,7 @@ from redarm_ros.can.driver_loop import (
 from redarm_ros.can.driver_process import DriverProcess, DriverSpec, build_loop
 from redarm_ros.errors import ConfigError, InvalidInputError, RedarmError
 from redarm_ros.kinematics import load_arm
-from redarm_ros.nodes._common import ParamNode, ParamSpec, run_node, watch_duplicates
+from redarm_ros.nodes._common import NICE_PARAM, ParamNode, ParamSpec, apply_nice, run_node, watch_duplicates
 
 NODE_NAME = "can_driver"
 DIAGNOSTICS_PERIOD_S = 0.5
@@ -139,6 +139,7 @@ PARAMS = [
     ParamSpec("realtime_priority", 50, "SCHED_FIFO priority of the CAN cycle (1..98; 0 = normal "
               "scheduling). Falls back to a raised nice level, with one log line, when not permitted.",
               read_only=True, range=(0, 98)),
+    NICE_PARAM,
     ParamSpec("limit_margin_rad", DEFAULT_LIMIT_MARGIN, "How far (rad) the commanded reference stays inside "
               "each joint limit (the modules' soft limit).", read_only=True, range=(0.0, 0.1)),
     ParamSpec("plausibility_margin_rad", DEFAULT_PLAUSIBILITY_MARGIN, "A measured position may differ from "
@@ -207,6 +208,7 @@ class CanDriverNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
             self.arm = load_arm(p["arm"])
         except (RedarmError, OSError) as exc:
             raise ValueError(f"arm {p['arm']!r}: {exc}") from exc
+        apply_nice(self, int(p["nice"]))  # before the reader thread and the cycle process start
         n = self.arm.n
         ids = list(p["module_ids"] or range(1, n + 1))
         if len(ids) != n:

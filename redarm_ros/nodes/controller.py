@@ -66,9 +66,11 @@ from redarm_ros.errors import InvalidInputError, RedarmError
 from redarm_ros.kinematics import load_arm
 from redarm_ros.kinematics.quaternion import matrix_to_quat, quat_to_matrix
 from redarm_ros.nodes._common import (
+    NICE_PARAM,
     ParamNode,
     ParamSpec,
     UniqueNameCheck,
+    apply_nice,
     in_range,
     non_negative,
     pose_msg_to_matrix,
@@ -104,6 +106,7 @@ def _one_of(*choices: str) -> Any:
 PARAMS = [
     ParamSpec("arm", "pa10", "Arm model (config/arms/<name>.yaml or a path); a 7-DOF swivel arm or "
               "powercube6.", read_only=True),
+    NICE_PARAM,
     ParamSpec("rate_hz", 100.0, "Control rate (Hz): one step and one /joint_command point per period.",
               in_range(1.0, 1000.0), read_only=True),
     ParamSpec("scene", "", "Initial scene: name in config/scenes or a YAML path ('' = none). Its table "
@@ -267,6 +270,7 @@ class ControllerNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
             self.ctl = ReachController(self.arm, self.base_scene, controller_params(p))
         except (RedarmError, OSError) as exc:
             raise ValueError(f"controller configuration: {exc}") from exc
+        apply_nice(self, int(p["nice"]))
         self.name_check = UniqueNameCheck(self, p["duplicate_check_s"])  # a timer: no blocking here
         watch_duplicates(self)
         self.period = 1.0 / p["rate_hz"]

@@ -1,0 +1,72 @@
+"""realtime.raise_nice: every thread of the process, and the threads started later, run at the level
+asked for; 0 asks for nothing; a level that is not permitted falls back and says so. Each case runs in
+a subprocess so the test runner keeps its own nice level."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+
+import pytest
+
+_PROBE = r"""
+import json, os, sys, threading
+from redarm_ros.can import realtime
+
+stop = threading.Event()
+before = threading.Thread(target=stop.wait)
+before.start()
+prio = realtime.raise_nice(int(sys.argv[1]), who="probe")
+after_tid = []
+after = threading.Thread(target=lambda: (after_tid.append(threading.get_native_id()), stop.wait()))
+after.start()
+while not after_tid:
+    pass
+tids = [int(t) for t in os.listdir("/proc/self/task")]
+nice = {str(t): os.getpriority(os.PRIO_PROCESS, t) for t in tids}
+print(json.dumps({"policy": prio.policy.value, "value": prio.value, "message": prio.message,
+                  "nice": nice, "after": after_tid[0], "before": before.native_id}))
+stop.set()
+"""
+
+
+def _probe(level: int, prefix: tuple[str, ...] = ()) -> dict:
+    out = subprocess.run([*prefix, sys.executable, "-c", _PROBE, str(level)], capture_output=True, text=True,
+                         timeout=60, check=True)
+    return json.loads(out.stdout)
+
+
+def _may_raise_priority() -> bool:
+    try:
+        os.setpriority(os.PRIO_PROCESS, 0, os.getpriority(os.PRIO_PROCESS, 0))  # a no-op, permitted
+        return os.geteuid() == 0
+    except OSError:
+        return False
+
+
+@pytest.mark.skipif(not _may_raise_priority(), reason="needs CAP_SYS_NICE (root) to raise a nice level")
+def test_every_thread_and_later_ones_run_at_the_level() -> None:
+    r = _probe(-5)
+    assert r["policy"] == "nice" and r["value"] == -5, r
+    assert len(r["nice"]) >= 3 and set(r["nice"].values()) == {-5}, r["nice"]
+    assert r["nice"][str(r["before"])] == -5 and r["nice"][str(r["after"])] == -5
+    assert "nice -5" in r["message"]
+
+
+def test_zero_asks_for_nothing() -> None:
+    r = _probe(0)
+    assert r["policy"] == "normal" and "not requested" in r["message"]
+    assert set(r["nice"].values()) == {os.getpriority(os.PRIO_PROCESS, 0)}
+
+
+@pytest.mark.skipif(shutil.which("setpriv") is None or os.geteuid() != 0,
+                    reason="needs root and util-linux setpriv to take CAP_SYS_NICE away from the probe")
+def test_not_permitted_falls_back_with_one_line() -> None:
+    """Started at nice 5 without CAP_SYS_NICE (RLIMIT_NICE 0): an unprivileged user's view."""
+    r = _probe(-10, ("nice", "-n", "5", "setpriv", "--bounding-set", "-sys_nice", "--inh-caps", "-sys_nice"))
+    assert r["policy"] == "normal", r
+    assert "not permitted" in r["message"] and "CAP_SYS_NICE" in r["message"]
+    assert set(r["nice"].values()) == {5}
