@@ -3,6 +3,8 @@ before the node is destroyed (destroying it under a publishing callback crashes 
 
 from __future__ import annotations
 
+import json
+import os
 import subprocess
 import sys
 import threading
@@ -113,3 +115,33 @@ def test_a_take_racing_shutdown_stops_cleanly_and_other_errors_still_raise(
     else:  # the context is still up: a real error, not swallowed
         assert proc.returncode != 0
         assert "Unable to convert call argument" in proc.stderr
+
+
+_NICE_NODE = """
+import json, os
+import rclpy
+from rclpy.node import Node
+from redarm_ros.nodes._common import run_node
+
+class Niced(Node):
+    def __init__(self):
+        super().__init__("runner_nice_probe")
+        self.declare_parameter("nice", -3)
+        self.create_timer(0.05, self.tick)
+
+    def tick(self):
+        tids = os.listdir("/proc/self/task")
+        print(json.dumps(sorted({os.getpriority(os.PRIO_PROCESS, int(t)) for t in tids})), flush=True)
+        rclpy.shutdown()
+
+raise SystemExit(run_node(Niced, []))
+"""
+
+
+@pytest.mark.skipif(not hasattr(os, "getpriority") or os.geteuid() != 0, reason="needs root to lower nice")
+def test_run_node_applies_the_nodes_nice_parameter_to_every_thread(ros_env: object) -> None:
+    proc = subprocess.run([sys.executable, "-c", _NICE_NODE], capture_output=True, text=True, timeout=60,
+                          preexec_fn=lambda: os.setpriority(os.PRIO_PROCESS, 0, 0))
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads(proc.stdout.strip().splitlines()[-1]) == [-3]
+    assert "running at nice -3" in proc.stderr

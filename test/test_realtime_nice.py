@@ -33,9 +33,13 @@ stop.set()
 """
 
 
-def _probe(level: int, prefix: tuple[str, ...] = ()) -> dict:
+def _probe(level: int, prefix: tuple[str, ...] = (), start_nice: int | None = None) -> dict:
+    def preexec() -> None:  # an absolute start level, whatever this test runner's own is
+        if start_nice is not None:
+            os.setpriority(os.PRIO_PROCESS, 0, start_nice)
+
     out = subprocess.run([*prefix, sys.executable, "-c", _PROBE, str(level)], capture_output=True, text=True,
-                         timeout=60, check=True)
+                         timeout=60, check=True, preexec_fn=preexec)
     return json.loads(out.stdout)
 
 
@@ -49,7 +53,7 @@ def _may_raise_priority() -> bool:
 
 @pytest.mark.skipif(not _may_raise_priority(), reason="needs CAP_SYS_NICE (root) to raise a nice level")
 def test_every_thread_and_later_ones_run_at_the_level() -> None:
-    r = _probe(-5)
+    r = _probe(-5, start_nice=0)
     assert r["policy"] == "nice" and r["value"] == -5, r
     assert len(r["nice"]) >= 3 and set(r["nice"].values()) == {-5}, r["nice"]
     assert r["nice"][str(r["before"])] == -5 and r["nice"][str(r["after"])] == -5
@@ -66,7 +70,7 @@ def test_zero_asks_for_nothing() -> None:
                     reason="needs root and util-linux setpriv to take CAP_SYS_NICE away from the probe")
 def test_not_permitted_falls_back_with_one_line() -> None:
     """Started at nice 5 without CAP_SYS_NICE (RLIMIT_NICE 0): an unprivileged user's view."""
-    r = _probe(-10, ("nice", "-n", "5", "setpriv", "--bounding-set", "-sys_nice", "--inh-caps", "-sys_nice"))
+    r = _probe(-10, ("setpriv", "--bounding-set", "-sys_nice", "--inh-caps", "-sys_nice"), start_nice=5)
     assert r["policy"] == "normal", r
     assert "not permitted" in r["message"] and "CAP_SYS_NICE" in r["message"]
     assert set(r["nice"].values()) == {5}

@@ -62,7 +62,10 @@ NICE_PARAM = ParamSpec(
 
 
 def apply_nice(node: Node, level: int) -> None:
-    """Run ``node``'s process at nice ``level`` (see :data:`NICE_PARAM`) and log the outcome once."""
+    """Run ``node``'s process at nice ``level`` (see :data:`NICE_PARAM`) and log the outcome once.
+    :func:`run_node` calls it for a node that declares ``nice``, before the node's timers start its
+    threads and child processes (they inherit the level); a node built inside another program leaves
+    that program's scheduling alone."""
     from redarm_ros.can import realtime  # (a shell may use the driver's scheduling helper)
 
     prio = realtime.raise_nice(level, who=f"{node.get_name()} node")
@@ -199,6 +202,8 @@ def run_node(
             logging.basicConfig()
             _LOG.error("could not start: %s", exc)
             return 1
+        if node.has_parameter(NICE_PARAM.name):  # a process-wide setting: only where the node owns it
+            apply_nice(node, int(node.get_parameter(NICE_PARAM.name).value))
         executor = MultiThreadedExecutor() if multithreaded else SingleThreadedExecutor()
         executor.add_node(node)
         executor.spin()

@@ -62,7 +62,7 @@ from redarm_ros.can.driver_loop import (
 from redarm_ros.can.driver_process import DriverProcess, DriverSpec, build_loop
 from redarm_ros.errors import ConfigError, InvalidInputError, RedarmError
 from redarm_ros.kinematics import load_arm
-from redarm_ros.nodes._common import NICE_PARAM, ParamNode, ParamSpec, apply_nice, run_node, watch_duplicates
+from redarm_ros.nodes._common import NICE_PARAM, ParamNode, ParamSpec, run_node, watch_duplicates
 
 NODE_NAME = "can_driver"
 DIAGNOSTICS_PERIOD_S = 0.5
@@ -208,7 +208,6 @@ class CanDriverNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
             self.arm = load_arm(p["arm"])
         except (RedarmError, OSError) as exc:
             raise ValueError(f"arm {p['arm']!r}: {exc}") from exc
-        apply_nice(self, int(p["nice"]))  # before the reader thread and the cycle process start
         n = self.arm.n
         ids = list(p["module_ids"] or range(1, n + 1))
         if len(ids) != n:

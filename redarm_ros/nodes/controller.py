@@ -70,7 +70,6 @@ from redarm_ros.nodes._common import (
     ParamNode,
     ParamSpec,
     UniqueNameCheck,
-    apply_nice,
     in_range,
     non_negative,
     pose_msg_to_matrix,
@@ -270,7 +269,6 @@ class ControllerNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
             self.ctl = ReachController(self.arm, self.base_scene, controller_params(p))
         except (RedarmError, OSError) as exc:
             raise ValueError(f"controller configuration: {exc}") from exc
-        apply_nice(self, int(p["nice"]))
         self.name_check = UniqueNameCheck(self, p["duplicate_check_s"])  # a timer: no blocking here
         watch_duplicates(self)
         self.period = 1.0 / p["rate_hz"]
