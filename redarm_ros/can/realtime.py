@@ -18,6 +18,7 @@ collection off; the owner then calls :func:`collect_young` when it has time to s
 
 from __future__ import annotations
 
+import contextlib
 import gc
 import logging
 import os
@@ -107,7 +108,8 @@ def raise_nice(level: int, *, who: str) -> Priority:
     for lvl in range(max(int(level), -20), 0):
         try:
             for tid in tids:
-                os.setpriority(os.PRIO_PROCESS, tid, lvl)
+                with contextlib.suppress(ProcessLookupError):  # a thread that ended meanwhile
+                    os.setpriority(os.PRIO_PROCESS, tid, lvl)
         except OSError:
             continue
         return Priority(Policy.NICE, lvl, f"{who}: running at nice {lvl} (ahead of ordinary work)")

@@ -55,9 +55,8 @@ class ParamSpec:
 #: The ``nice`` parameter of the nodes on the control path (controller, can_driver): ahead of ordinary
 #: work on the machine, behind the real-time chain (cycle, simulator, bus server at SCHED_FIFO).
 NICE_PARAM = ParamSpec(
-    "nice", -10, "Nice level of this node's process (-20..0; 0 = leave it). On a busy machine ordinary "
-    "work beside the stack starved the node (a fresh-clone test run: /joint_states paused for more than "
-    "the controller's timeout). Falls back to the best level permitted, with one log line.",
+    "nice", -10, "Nice level of this node's process (-20..0; 0 = leave it): ordinary work beside the stack "
+    "must not starve the control path. Falls back to the best level permitted, with one log line.",
     read_only=True, range=(-20, 0))
 
 
