@@ -583,14 +583,17 @@ def test_hil_park_reaches_the_posture_within_limits(stack: Stack, client: Client
     assert "parked" in answer[0].message
     # It answered once the arm was there (the driver's tolerance is 2 mrad) ...
     np.testing.assert_allclose(stack.sim_q(), ARM.park, atol=2.5e-3)
-    # ... and the move kept the velocity and position limits (pybullet's measured joint velocity).
+    # ... and the move kept the velocity and position limits (pybullet's measured joint velocity). A
+    # busy machine polls less often (17 samples seen beside a CPU hog): distinct status writes only.
+    samples = list({s["wall_time"]: s for s in samples}.values())
     dq = np.array([s["dq"] for s in samples])
     q = np.array([s["q"] for s in samples])
-    assert len(samples) > 20
+    assert len(samples) >= 10, len(samples)
     assert np.all(np.abs(dq) <= ARM.max_vel * 1.05 + 1e-3), np.max(np.abs(dq) / ARM.max_vel, axis=0)
     assert np.all(q >= ARM.lower - 1e-4) and np.all(q <= ARM.upper + 1e-4)
-    # A synchronised move: every joint that moves is still on its way halfway through.
-    mid = q[len(q) // 2]
+    # A synchronised move: every joint that moves is still on its way halfway through (in time).
+    t = np.array([s["wall_time"] for s in samples])
+    mid = q[int(np.argmin(np.abs(t - 0.5 * (t[0] + t[-1]))))]
     moving = np.abs(ARM.park - goal_pose()) > 0.1
     assert np.all(np.abs(mid - ARM.park)[moving] > 0.01)
     mods = stack.status()["modules"]
