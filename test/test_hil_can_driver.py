@@ -512,7 +512,9 @@ def test_hil_forged_reply_is_never_published(stack: Stack, client: Client) -> No
     time.sleep(0.3)
     with client.lock:
         seen = [np.array(js.position) for js in client.joint_states]
-    assert len(seen) > 50  # joint states kept flowing
+    # Joint states kept flowing (how fast this starved test process takes them is not the claim: a
+    # fresh-clone run received 34 in the 1.3 s)
+    assert len(seen) >= 10, len(seen)
     assert max(abs(q[2] - 0.2) for q in seen) < 0.01  # never the forged 3.0 rad
     np.testing.assert_allclose(stack.sim_q(), q1, atol=2e-3)
     t0 = client.now_ns()
