@@ -255,6 +255,26 @@ class Stack:
         except (OSError, ValueError):
             return None
 
+    def sim_still(self, window_s: float, tol_rad: float) -> Callable[[], bool]:
+        """A polling condition: True once the simulated joints have each moved less than ``tol_rad``
+        over the last ``window_s`` seconds. A reached goal's elbow may still be settling about its
+        preferred swivel, and a busy machine settles later, so callers poll it with their own limit."""
+        seen: list[tuple[float, list[float]]] = []
+
+        def still() -> bool:
+            st = self.sim_status()
+            if st is None:
+                return False
+            now = time.monotonic()
+            seen.append((now, [float(v) for v in st["q"]]))
+            while len(seen) > 1 and seen[1][0] <= now - window_s:  # keep one sample >= window_s old
+                seen.pop(0)
+            if now - seen[0][0] < window_s:
+                return False
+            return max(max(col) - min(col) for col in zip(*(q for _, q in seen), strict=True)) < tol_rad
+
+        return still
+
     def sim_control(self, **data: Any) -> None:
         """Write the simulator's control file (atomically), e.g. ``sim_control(snapshot="goal_1")``.
 

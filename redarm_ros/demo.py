@@ -333,23 +333,6 @@ class Demo:
         tool = st["tool"]
         return np.asarray(tool["position"], float), quat_to_matrix(from_xyzw(tool["quaternion_xyzw"]))
 
-    def _arm_at_rest(self, stack: Stack) -> Callable[[], bool]:
-        """A condition: the simulated joints moved less than REST_TOL_RAD over the last `settle` s."""
-        seen: list[tuple[float, np.ndarray]] = []
-
-        def at_rest() -> bool:
-            st = stack.sim_status()
-            if st is None:
-                return False
-            now = time.monotonic()
-            seen.append((now, np.asarray(st["q"], float)))
-            while len(seen) > 1 and seen[1][0] <= now - self.args.settle:  # keep one >= settle old
-                seen.pop(0)
-            return now - seen[0][0] >= self.args.settle and \
-                float(np.ptp(np.array([q for _, q in seen]), axis=0).max()) < REST_TOL_RAD
-
-        return at_rest
-
     def tool_error(self, stack: Stack, T: np.ndarray) -> tuple[float, float]:
         tool = self.sim_tool(stack)
         if tool is None:
@@ -548,7 +531,7 @@ class Demo:
                 # for `settle` s): after "reached" the elbow may still finish its self-motion towards
                 # the preferred swivel for several seconds (more on a busy machine), and the joints'
                 # tracking lag moves the tool transiently (up to ~1 mm) while it does.
-                client.spin_until(self._arm_at_rest(stack), REST_WAIT_S)
+                client.spin_until(stack.sim_still(self.args.settle, REST_TOL_RAD), REST_WAIT_S)
         else:
             client.spin_until(lambda: False, 0.5)  # let a rejected goal's stop settle for the snapshot
         pe, re = self.tool_error(stack, T)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import signal
@@ -12,7 +13,8 @@ import pytest
 
 pytest.importorskip("redarm_interfaces", reason="redarm_interfaces not built (run scripts/setup_env.sh)")
 
-from redarm_ros.bringup import StackConfig, build_parser, config_from_args  # noqa: E402
+from redarm_ros import bringup  # noqa: E402
+from redarm_ros.bringup import Stack, StackConfig, build_parser, config_from_args  # noqa: E402
 from redarm_ros.procs import python_module_cmd  # noqa: E402
 
 UP = r"stack up: (.*); Ctrl-C to stop"
@@ -46,6 +48,29 @@ def _wait_gone(pids: list[int], timeout: float) -> list[int]:
             return []
         time.sleep(0.05)
     return [p for p in pids if _alive(p)]
+
+
+def test_sim_still_needs_a_full_quiet_window(tmp_path: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+    """`Stack.sim_still` is True only after every joint stayed within the tolerance for the whole
+    window, and a late motion inside the window makes it False again."""
+    clock = [100.0]
+    monkeypatch.setattr(bringup.time, "monotonic", lambda: clock[0])
+    status = tmp_path / "status.json"
+    stack = Stack(StackConfig(status_file=str(status)), domain_id=1)
+    still = stack.sim_still(0.5, 1e-4)
+    assert not still(), "no status yet is not still"
+
+    def at(t: float, q: list[float]) -> bool:
+        clock[0] = t
+        status.write_text(json.dumps({"q": q}), encoding="utf-8")
+        return still()
+
+    assert not at(100.0, [0.0, 1.0])
+    assert not at(100.3, [0.0, 1.0 + 5e-5]), "the window is not full yet"
+    assert at(100.6, [0.0, 1.0 + 9e-5]), "0.6 s within 1e-4 rad"
+    assert not at(100.7, [3e-4, 1.0]), "joint 0 moved 0.3 mrad inside the window"
+    assert not at(101.0, [3e-4, 1.0]), "the motion is still inside the last 0.5 s"
+    assert at(101.3, [3e-4, 1.0]), "0.6 s still again"
 
 
 def test_parser_defaults_and_flags() -> None:

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import math
 import sys
-import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any, TypeVar
@@ -188,19 +187,8 @@ def sim_tool_reaches(c: StackClient, stack: Stack, T: np.ndarray, pos_tol: float
 def sim_arm_still(c: StackClient, stack: Stack, window_s: float = 0.5, tol: float = 1e-4,
                   timeout: float = 15.0) -> bool:
     """Spin until the simulated joints have moved less than ``tol`` rad over the last ``window_s``
-    seconds (the elbow of a reached goal may still be settling about its swivel; a busy machine
-    settles later). False after ``timeout`` s."""
-    seen: list[tuple[float, np.ndarray]] = []
-
-    def still() -> bool:
-        now = time.monotonic()
-        seen.append((now, np.array(stack.sim_status()["q"])))
-        while len(seen) > 1 and seen[1][0] <= now - window_s:  # keep one sample >= window_s old
-            seen.pop(0)
-        return now - seen[0][0] >= window_s and \
-            float(np.ptp(np.array([q for _, q in seen]), axis=0).max()) < tol
-
-    return c.spin_until(still, timeout)
+    seconds (``Stack.sim_still``). False after ``timeout`` s."""
+    return c.spin_until(stack.sim_still(window_s, tol), timeout)
 
 
 def move_to_ready(c: StackClient, cmd_pub: Any, stack: Stack, joint_names: list[str], ready_q: np.ndarray,
