@@ -384,8 +384,9 @@ class ReferenceShaper(LimitsView):  # lower/upper: the joint limits inset by the
         reference. ``elapsed`` (s): the time since the previous target was sampled, when it was not
         one nominal period (a late cycle, skipped ticks): the target's velocity is its change over
         that time. Taken per nominal period instead, every skipped tick doubled or tripled the
-        velocity fed forward, and the reference overshot the end of a trajectory (96 mrad with 20 %
-        of the cycles one or two ticks late, measured offline on the PA10's limits)."""
+        velocity fed forward, and the reference overshot the end of a trajectory (134 / 340 mrad
+        with 20 % / 50 % of the cycles 1-3 ticks late, replayed offline on the PA10's limits; now 0,
+        see docs/can_driver.md, "Lost cycles")."""
         if self.r is None:
             self.reset(target)
             return self.r.copy()  # type: ignore[union-attr]
@@ -1171,8 +1172,9 @@ class DriverLoop:
             outside = clipped != target
             beyond = tuple(int(j) for j in np.flatnonzero(outside)) if outside.any() else ()
             # (the park move advances per cycle run, not per wall-clock second: one period each)
-            per_cycle = prev_now is None or self.commands.mode is CommandMode.PARK
-            ref = shaper.step(clipped, None if per_cycle or prev_now is None else now - prev_now)
+            # None = one nominal period: the first cycle after a pause has none of its own
+            elapsed = None if prev_now is None or self.commands.mode is CommandMode.PARK else now - prev_now
+            ref = shaper.step(clipped, elapsed)
             prev_now = now
             result = drv.cycle(ref, period)
             q_meas = result.positions
