@@ -769,7 +769,11 @@ def _sample_swivels(
         drop.extend(tab.dead_cols[0].tolist())
     if fn.deg_wrist:
         drop.extend(tab.dead_cols[2].tolist())
-    if drop:
+    if len(drop) <= 4:  # (one by one: a fancy assignment from a list costs a few us)
+        for c in drop:
+            if c >= 0:
+                ET[0, c] = np.inf
+    else:
         ET[0, [c for c in drop if c >= 0]] = np.inf
     # roots: with (e1, e2) = h (cos phi, sin phi) and r = e0 / h, s = phi + pi -+ acos(r), i.e. phi -+
     # acos(r) - pi (mod 2 pi); x - copysign(pi, x) wraps phi -+ acos(r) (in [-2 pi, 2 pi]) into [-pi, pi]
@@ -1005,7 +1009,7 @@ def nearest(
     M = len(flag)
     t4c = _theta4_copies(fn, tab, seed_l)
     c4a = [BIG if v is None else w_l[3] * (v[0] - seed_l[3]) ** 2 for v in t4c]
-    c4 = np.array([[c4a[(b >> 1) & 1]] for b in range(8)])  # theta4 follows the f4 bit of the pattern
+    c4 = np.array([c4a[0], c4a[0], c4a[1], c4a[1]] * 2).reshape(8, 1)  # theta4 follows the f4 bit
     unit = w_l.count(1.0) == 7
     cost, X, E = _alternative_costs(fn, tab, Sp, seed, None if unit else w, c4)
     cands, limit = _candidates(gaps, cost)
