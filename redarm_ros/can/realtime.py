@@ -22,12 +22,14 @@ import contextlib
 import gc
 import logging
 import os
+import resource
+import signal
 from dataclasses import dataclass
 from enum import Enum
 
 __all__ = [
     "Policy", "Priority", "collect_young", "drop_priority", "quiet_gc", "raise_nice", "raise_priority",
-    "restore_gc",
+    "raise_process_priority", "restore_gc", "scheduling_now",
 ]
 
 _LOG = logging.getLogger(__name__)
@@ -93,6 +95,76 @@ def raise_priority(fifo_priority: int, *, who: str, tid: int = 0) -> Priority:
         "rtprio limit, e.g. in /etc/security/limits.conf)"))
 
 
+def _thread_ids() -> list[int]:
+    """This process's threads (Linux), or ``[0]`` (the caller) where they cannot be listed."""
+    try:
+        return [int(t) for t in os.listdir("/proc/self/task")]
+    except OSError:
+        return [0]
+
+
+#: CPU time (s) a real-time thread of :func:`raise_process_priority` may use without blocking before
+#: it is demoted (SIGXCPU, RLIMIT_RTTIME soft limit), and before the kernel kills the process (the
+#: hard limit: a thread stuck in native code never runs the demoting handler). A control loop blocks
+#: every period; its longest legitimate stretch (a re-planner's slice, a scene of thousands of
+#: obstacles, a full garbage collection) took up to about 0.25 s on a 2-core machine.
+RT_BUDGET_S = (1.0, 3.0)
+
+
+def _demote_on_sigxcpu(who: str, soft_s: float) -> None:
+    """Install the SIGXCPU handler: every thread back to normal scheduling, one line on stderr."""
+    def handler(signum: int, frame: object) -> None:
+        for tid in _thread_ids():
+            drop_priority(tid=tid)
+        with contextlib.suppress(OSError, ValueError):  # the limit no longer applies: not real-time
+            resource.setrlimit(resource.RLIMIT_RTTIME, (resource.RLIM_INFINITY, resource.RLIM_INFINITY))
+        _LOG.error("%s: a real-time thread ran %g s without blocking: back to normal scheduling (a "
+                   "real-time loop that never sleeps would take a core from everyone)", who, soft_s)
+
+    with contextlib.suppress(ValueError):  # not the main thread: no handler, the hard limit still holds
+        signal.signal(signal.SIGXCPU, handler)
+
+
+def raise_process_priority(fifo_priority: int, *, who: str,
+                           budget_s: tuple[float, float] = RT_BUDGET_S) -> Priority:
+    """Give every thread of this process (and, inherited, those it starts later) SCHED_FIFO at
+    ``fifo_priority``. For a process on the control path that already runs helper threads when it
+    learns its priority (a ROS node: the middleware's threads deliver its inputs, so they must not wait
+    behind ordinary work either). ``fifo_priority`` 0 asks for nothing. When refused, the threads set
+    so far go back to normal scheduling and the result says ``Policy.NORMAL`` with the reason; the
+    caller then falls back to :func:`raise_nice`. Never raises.
+
+    A runaway real-time thread would take a core from everything else on the machine, so the process
+    gets an RLIMIT_RTTIME of ``budget_s`` (soft, hard; s of CPU without blocking): past the soft limit
+    every thread is demoted to normal scheduling with one error line; past the hard limit (a thread
+    stuck in native code) the kernel kills the process. Call from the main thread (the handler)."""
+    if fifo_priority <= 0:
+        return Priority(Policy.NORMAL, 0, f"{who}: normal scheduling (real-time priority not requested)")
+    if not hasattr(os, "sched_setscheduler"):
+        return Priority(Policy.NORMAL, 0, f"{who}: normal scheduling (no SCHED_FIFO on this platform)")
+    prio = max(1, min(int(fifo_priority), os.sched_get_priority_max(os.SCHED_FIFO)))
+    soft, hard = (int(b * 1e6) for b in budget_s)
+    try:
+        resource.setrlimit(resource.RLIMIT_RTTIME, (soft, hard))
+    except (OSError, ValueError, AttributeError) as exc:  # no limit, no real time: never unguarded
+        return Priority(Policy.NORMAL, 0, f"{who}: SCHED_FIFO not taken (cannot limit its CPU time: {exc})")
+    _demote_on_sigxcpu(who, budget_s[0])
+    done: list[int] = []
+    for tid in _thread_ids():
+        try:
+            os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(prio))
+        except ProcessLookupError:  # a thread that ended meanwhile
+            continue
+        except OSError as exc:
+            for t in done:
+                drop_priority(tid=t)
+            return Priority(Policy.NORMAL, 0, f"{who}: SCHED_FIFO refused ({exc.strerror})")
+        done.append(tid)
+    return Priority(Policy.FIFO, prio, f"{who}: real-time scheduling SCHED_FIFO priority {prio} "
+                                       f"({len(done)} threads; demoted after {budget_s[0]:g} s without "
+                                       "blocking)")
+
+
 def raise_nice(level: int, *, who: str) -> Priority:
     """Run every thread of this process (and the threads it starts later) at nice ``level`` (-20..0),
     or at the highest level allowed above it. For processes that are not real-time but must not be
@@ -101,10 +173,7 @@ def raise_nice(level: int, *, who: str) -> Priority:
     returned ``message`` once."""
     if level >= 0:
         return Priority(Policy.NORMAL, 0, f"{who}: normal priority (nice not requested)")
-    try:
-        tids = [int(t) for t in os.listdir("/proc/self/task")]
-    except OSError:
-        tids = [0]
+    tids = _thread_ids()
     for lvl in range(max(int(level), -20), 0):
         try:
             for tid in tids:
@@ -116,6 +185,17 @@ def raise_nice(level: int, *, who: str) -> Priority:
     return Priority(Policy.NORMAL, 0, (
         f"{who}: nice {level} not permitted; running at normal priority: other work on the machine can delay "
         "it (grant CAP_SYS_NICE or a nice limit, e.g. in /etc/security/limits.conf)"))
+
+
+def scheduling_now() -> str:
+    """The calling thread's scheduling in words: ``SCHED_FIFO 20``, ``nice -10`` or ``normal``."""
+    try:
+        if hasattr(os, "sched_getscheduler") and os.sched_getscheduler(0) == os.SCHED_FIFO:
+            return f"SCHED_FIFO {os.sched_getparam(0).sched_priority}"
+        level = os.getpriority(os.PRIO_PROCESS, 0)
+    except OSError:
+        return "unknown"
+    return f"nice {level}" if level else "normal"
 
 
 def drop_priority(*, tid: int = 0) -> None:
