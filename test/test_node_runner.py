@@ -145,3 +145,38 @@ def test_run_node_applies_the_nodes_nice_parameter_to_every_thread(ros_env: obje
     assert proc.returncode == 0, proc.stderr
     assert json.loads(proc.stdout.strip().splitlines()[-1]) == [-3]
     assert "running at nice -3" in proc.stderr
+
+
+_RT_NODE = """
+import json, os
+import rclpy
+from rclpy.node import Node
+from redarm_ros.nodes._common import run_node
+
+class RealTime(Node):
+    PROCESS_REALTIME = True
+
+    def __init__(self):
+        super().__init__("runner_rt_probe")
+        self.declare_parameter("nice", -3)
+        self.declare_parameter("realtime_priority", 6)
+        self.create_timer(0.05, self.tick)
+
+    def tick(self):
+        tids = [int(t) for t in os.listdir("/proc/self/task")]
+        print(json.dumps(sorted({(os.sched_getscheduler(t), os.sched_getparam(t).sched_priority)
+                                 for t in tids})), flush=True)
+        rclpy.shutdown()
+
+raise SystemExit(run_node(RealTime, []))
+"""
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_setscheduler") or os.geteuid() != 0,
+                    reason="needs root for SCHED_FIFO")
+def test_run_node_puts_every_thread_of_a_realtime_node_at_fifo(ros_env: object) -> None:
+    """The controller's case: the middleware's threads exist before the node learns its priority."""
+    proc = subprocess.run([sys.executable, "-c", _RT_NODE], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads(proc.stdout.strip().splitlines()[-1]) == [[os.SCHED_FIFO, 6]]
+    assert "SCHED_FIFO priority 6" in proc.stderr

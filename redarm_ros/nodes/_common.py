@@ -60,14 +60,36 @@ NICE_PARAM = ParamSpec(
     read_only=True, range=(-20, 0))
 
 
-def apply_nice(node: Node, level: int) -> None:
-    """Run ``node``'s process at nice ``level`` (see :data:`NICE_PARAM`) and log the outcome once.
+#: The ``realtime_priority`` parameter of a node whose whole process is on the control path (the
+#: controller): SCHED_FIFO below the CAN chain (cycle, simulator, bus server at 50). On two cores the
+#: stack itself fills the machine, and at nice -10 the controller still lost a fifth to half of its
+#: 100 Hz steps to the other processes (more with a thousand obstacles); at SCHED_FIFO it keeps them.
+PROCESS_RT_PARAM = ParamSpec(
+    "realtime_priority", 20, "SCHED_FIFO priority of this node's whole process (1..49, below the CAN "
+    "chain's 50; 0 = none, nice only). Falls back to the nice parameter, with one log line, when not "
+    "permitted.", read_only=True, range=(0, 49))
+
+
+def apply_nice(node: Node, level: int, fifo_priority: int = 0) -> None:
+    """Run ``node``'s process at SCHED_FIFO ``fifo_priority`` if asked (see :data:`PROCESS_RT_PARAM`),
+    else (or when refused) at nice ``level`` (see :data:`NICE_PARAM`), and log the outcome once.
     :func:`run_node` calls it for a node that declares ``nice``, before the node's timers start its
-    threads and child processes (they inherit the level); a node built inside another program leaves
+    threads and child processes (they inherit the setting); a node built inside another program leaves
     that program's scheduling alone."""
     from redarm_ros.can import realtime  # (a shell may use the driver's scheduling helper)
 
-    prio = realtime.raise_nice(level, who=f"{node.get_name()} node")
+    who = f"{node.get_name()} node"
+    refused = ""
+    if fifo_priority > 0:
+        rt = realtime.raise_process_priority(fifo_priority, who=who)
+        if rt.realtime:
+            node.get_logger().info(rt.message)
+            return
+        refused = f"{rt.message}; "
+    prio = realtime.raise_nice(level, who=who)
+    if refused:
+        node.get_logger().warning(f"{refused}falling back: {prio.message}")
+        return
     if prio.policy is realtime.Policy.NICE or level >= 0:
         node.get_logger().info(prio.message)
     else:
@@ -202,7 +224,9 @@ def run_node(
             _LOG.error("could not start: %s", exc)
             return 1
         if node.has_parameter(NICE_PARAM.name):  # a process-wide setting: only where the node owns it
-            apply_nice(node, int(node.get_parameter(NICE_PARAM.name).value))
+            fifo = int(node.get_parameter(PROCESS_RT_PARAM.name).value) \
+                if getattr(node, "PROCESS_REALTIME", False) else 0
+            apply_nice(node, int(node.get_parameter(NICE_PARAM.name).value), fifo)
         executor = MultiThreadedExecutor() if multithreaded else SingleThreadedExecutor()
         executor.add_node(node)
         executor.spin()

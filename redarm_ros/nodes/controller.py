@@ -39,6 +39,7 @@ from typing import Any
 
 import numpy as np
 from builtin_interfaces.msg import Duration, Time
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Point, PoseStamped, TwistStamped
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile
@@ -48,6 +49,7 @@ from std_msgs.msg import ColorRGBA
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 from visualization_msgs.msg import Marker, MarkerArray
 
+from redarm_ros.can.realtime import scheduling_now
 from redarm_ros.control.obstacles import (
     MARKER_CUBE,
     MARKER_CYLINDER,
@@ -67,6 +69,7 @@ from redarm_ros.kinematics import load_arm
 from redarm_ros.kinematics.quaternion import matrix_to_quat, quat_to_matrix
 from redarm_ros.nodes._common import (
     NICE_PARAM,
+    PROCESS_RT_PARAM,
     ParamNode,
     ParamSpec,
     UniqueNameCheck,
@@ -78,12 +81,14 @@ from redarm_ros.nodes._common import (
     watch_duplicates,
 )
 from redarm_ros.nodes.command_timing import CommandClock
+from redarm_ros.nodes.loop_stats import LoopStats
 from redarm_ros.nodes.reach_action import ReachActionServer
 
 NODE_NAME = "controller"
 STILL_WINDOW_S = 0.25  # s of joint_states looked at to decide that the arm stands still
 STILL_TOLERANCE = 1e-3  # rad: largest joint motion within that window of an arm standing still
 OBSTACLE_MARKERS_S = 2.0  # s between re-sends of unchanged obstacle markers
+DIAGNOSTICS_PERIOD_S = 1.0  # s between /diagnostics messages
 
 
 def _finite(value: Any) -> str | None:
@@ -105,6 +110,7 @@ def _one_of(*choices: str) -> Any:
 PARAMS = [
     ParamSpec("arm", "pa10", "Arm model (config/arms/<name>.yaml or a path); a 7-DOF swivel arm or "
               "powercube6.", read_only=True),
+    PROCESS_RT_PARAM,
     NICE_PARAM,
     ParamSpec("rate_hz", 100.0, "Control rate (Hz): one step and one /joint_command point per period.",
               in_range(1.0, 1000.0), read_only=True),
@@ -262,6 +268,9 @@ def controller_params(p: dict[str, Any]) -> ControllerParams:
 class ControllerNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
     """``controller``: attractor-dynamics reaching (see the module docstring for topics)."""
 
+    #: :func:`run_node` puts the whole process at ``realtime_priority`` (the control path).
+    PROCESS_REALTIME = True
+
     def _setup(self, p: dict[str, Any]) -> None:
         try:
             self.arm = load_arm(p["arm"])
@@ -294,15 +303,18 @@ class ControllerNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
         self._obstacle_markers: list[Marker] = []
         self._last_result: Any = None
         self.steps = 0
+        self.loop_stats = LoopStats(self.period)
         # Wiring.
         self.cmd_pub = self.create_publisher(JointTrajectory, "joint_command", QoSProfile(depth=10))
         self.state_pub = self.create_publisher(ControllerState, "~/state", QoSProfile(depth=10))
         self.marker_pub = self.create_publisher(MarkerArray, "~/markers", QoSProfile(depth=2))
+        self.diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", QoSProfile(depth=10))
         self.create_subscription(PoseStamped, "goal_pose", self._on_goal, 10)
         self.create_subscription(TwistStamped, "~/target_twist", self._on_twist, 10)
         self.create_subscription(MarkerArray, "obstacles", self._on_obstacles, 10)
         self.create_subscription(JointState, "joint_states", self._on_joint_states, 10)
         self.create_timer(self.period, self._on_timer)
+        self.create_timer(DIAGNOSTICS_PERIOD_S, self._publish_diagnostics)
         if p["markers_rate_hz"] > 0:
             self.create_timer(1.0 / p["markers_rate_hz"], self._publish_markers)
         self.add_post_set_parameters_callback(self._on_params_set)
@@ -516,6 +528,40 @@ class ControllerNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
         if moving or res.phase not in (Phase.IDLE, Phase.REJECTED):
             self._publish_command(res.q, t_step)
         self.state_pub.publish(self._state_msg(res))
+        self.loop_stats.step(now, time.monotonic() - now)
+
+    def _publish_diagnostics(self) -> None:
+        """``controller: loop`` on ``/diagnostics``: the steps the loop took (counted here, exact even
+        when a listener is too busy to receive every ``~/state``), missed ticks, the step's duration,
+        the obstacles (all, and those the broad phase keeps) and the process's scheduling."""
+        s = self.loop_stats.summary()
+        nominal = 1.0 / self.period
+        st = DiagnosticStatus(name=f"{NODE_NAME}: loop", hardware_id=self.arm.name)
+        if s.steps < 2:
+            st.level, st.message = DiagnosticStatus.OK, "not stepping yet (waiting for joint_states)"
+        elif s.rate_hz >= 0.9 * nominal:
+            st.level, st.message = DiagnosticStatus.OK, f"{s.rate_hz:.1f} Hz"
+        else:
+            st.level = DiagnosticStatus.WARN
+            st.message = f"{s.rate_hz:.1f} Hz of {nominal:g}: the loop misses ticks (a busy machine?)"
+        scene = self.ctl.scene
+        values = {
+            "rate_hz_target": f"{nominal:g}",
+            "rate_hz_achieved": f"{s.rate_hz:.1f}",
+            "steps": str(s.steps),
+            "loop_clock_s": f"{s.clock:.6f}",
+            "missed_ticks": str(s.missed),
+            "step_busy_median_ms": f"{s.busy_median * 1e3:.3f}",
+            "step_busy_max_ms": f"{s.busy_max * 1e3:.3f}",
+            "obstacles": str(len(scene.obstacles)),
+            "obstacles_within_reach": str(len(scene.obstacles) - self.ctl.culled_obstacles),
+            "scheduling": scheduling_now(),
+        }
+        st.values = [KeyValue(key=k, value=v) for k, v in values.items()]
+        arr = DiagnosticArray()
+        arr.header.stamp = self.get_clock().now().to_msg()
+        arr.status = [st]
+        self.diag_pub.publish(arr)
 
     def _resync_if_needed(self) -> None:
         """Restart from the measured joints when the arm is not where we commanded it (halt, homing)."""

@@ -1,0 +1,65 @@
+"""How well a periodic loop keeps its rate (ROS-free; used by the controller node's ``/diagnostics``).
+
+A ROS timer whose callback comes more than one period late skips the ticks it missed, so a starved
+or overloaded controller takes fewer steps, not longer ones. Counted by the loop itself, the steps it
+took are exact, whoever listens: a subscriber that is starved in turn loses messages and would report
+a lower rate than the loop achieved. Units: s.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+
+__all__ = ["LoopStats", "LoopSummary"]
+
+
+@dataclass(frozen=True)
+class LoopSummary:
+    """``steps`` since start (cumulative: a reader takes rates between two summaries), ``clock`` (s,
+    the loop's monotonic clock at the last step), ``rate_hz`` over the last window, ``missed`` ticks
+    since start (each interval longer than 1.5 periods counts its skipped ticks), the step's own
+    duration (median and max, s) over the window."""
+
+    steps: int
+    clock: float
+    rate_hz: float
+    missed: int
+    busy_median: float
+    busy_max: float
+
+
+class LoopStats:
+    """Step times and durations of a loop of nominal ``period`` (s), over a window of ``window`` s."""
+
+    def __init__(self, period: float, window: float = 2.0) -> None:
+        if not (period > 0.0 and math.isfinite(period)):
+            raise ValueError(f"period must be a positive number of seconds, got {period!r}")
+        self.period = period
+        self.window = window
+        self.steps = 0
+        self.missed = 0
+        self._last: float | None = None
+        self._recent: deque[tuple[float, float]] = deque()  # (time, duration) of the window's steps
+
+    def step(self, t: float, busy: float) -> None:
+        """Record a step that started at ``t`` (monotonic s) and took ``busy`` s."""
+        if self._last is not None:
+            gap = t - self._last
+            if gap > 1.5 * self.period:
+                self.missed += int(round(gap / self.period)) - 1
+        self._last = t
+        self.steps += 1
+        self._recent.append((t, busy))
+        while self._recent and t - self._recent[0][0] > self.window:
+            self._recent.popleft()
+
+    def summary(self) -> LoopSummary:
+        """The loop's figures now (rate 0 and durations NaN before two steps)."""
+        r = self._recent
+        rate = (len(r) - 1) / (r[-1][0] - r[0][0]) if len(r) >= 2 and r[-1][0] > r[0][0] else 0.0
+        busy = sorted(b for _, b in r)
+        med = busy[len(busy) // 2] if busy else math.nan
+        return LoopSummary(self.steps, self._last if self._last is not None else math.nan, rate,
+                           self.missed, med, busy[-1] if busy else math.nan)
