@@ -176,6 +176,36 @@ def test_local_scene_keeps_the_obstacles_near_the_arm_with_their_global_index() 
     assert local.floor <= min_distance(ARM, q, Scene((obs[0],), None)).distance + 1e-9
 
 
+def test_local_scene_of_several_postures_is_the_per_link_minimum() -> None:
+    """All links of all postures in one vectorised pass choose exactly what a link-by-link loop of the
+    plain kernel chooses, with the same floor; a repeated selection reuses its scene."""
+    rng = np.random.default_rng(3)
+    obs = tuple(Sphere(tuple(c), float(r), f"s{i}") for i, (c, r) in
+                enumerate(zip(rng.uniform([-0.9, -0.9, 0.0], [0.9, 0.9, 1.2], (120, 3)),
+                              rng.uniform(0.02, 0.1, 120), strict=True)))
+    idx = SceneIndex(Scene(obs, 0.0), (0.0, 0.0, 0.315), 1.1, 0.3)
+    kept = [obs[i] for i in idx.reach_scene.index]
+    centres = np.array([o.center for o in kept])
+    radii = np.array([o.radius for o in kept])
+    for _ in range(20):
+        sets = [np.asarray(ARM.key_points(rng.uniform(ARM.lower, ARM.upper))) for _ in range(2)]
+        gap = np.full(len(kept), np.inf)
+        for kp in sets:
+            for link in range(4):
+                d = segment_point_distances(kp[link], kp[link + 1], centres) - radii - CAPS.radii[link]
+                gap = np.minimum(gap, d)
+        local = idx.local(sets, CAPS.radii, 0.15)
+        want = tuple(idx.reach_scene.index[i] for i in np.flatnonzero(gap <= 0.15))
+        assert local.index == want
+        rest = gap[gap > 0.15]
+        floor = min(idx.reach_scene.floor, float(rest.min())) if rest.size else idx.reach_scene.floor
+        assert local.floor == pytest.approx(floor, abs=1e-12)
+        again = idx.local(sets, CAPS.radii, 0.15)
+        assert again.index == local.index and again.floor == local.floor
+        if 0 < len(want) < len(kept):
+            assert again.scene is local.scene  # the cached subset
+
+
 def test_far_clutter_does_not_change_the_motion() -> None:
     """The same reach with and without 300 obstacles out of the arm's reach: identical commands; the
     reported clearance is a lower bound when an obstacle left out might be nearer."""

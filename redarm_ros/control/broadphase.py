@@ -29,6 +29,8 @@ from redarm_ros.control.obstacles import Box, Cylinder, Obstacle, Scene, Sphere
 
 #: ``Clearance.obstacle`` of a clearance that is only a lower bound from obstacles left out.
 LEFT_OUT = -2
+#: Subsets kept per scene index (a step chooses among few: those near the arm now and soon).
+SUBSET_CACHE = 16
 
 
 def bounding_sphere(o: Obstacle) -> tuple[tuple[float, float, float], float]:
@@ -42,14 +44,22 @@ def bounding_sphere(o: Obstacle) -> tuple[tuple[float, float, float], float]:
     return o.center, math.sqrt(h[0] * h[0] + h[1] * h[1] + h[2] * h[2])
 
 
-def segment_point_distances(a: np.ndarray, b: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """Distances (m) from points ``p`` (m, 3) to the segment ``a``-``b`` (3-vectors), vectorised."""
+def segments_point_distances(a: np.ndarray, b: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Distances (m), shape (S, N), from points ``p`` (N, 3) to each segment ``a[i]``-``b[i]``
+    (``a``, ``b``: (S, 3)); a segment of zero length is its point."""
     ab = b - a
-    ap = p - a
-    den = float(ab @ ab)
-    t = np.zeros(len(p)) if den <= 0.0 else np.clip(ap @ ab / den, 0.0, 1.0)
-    d = ap - t[:, None] * ab
-    return np.sqrt(np.einsum("ij,ij->i", d, d))
+    ap = p[None, :, :] - a[:, None, :]
+    den = np.einsum("ij,ij->i", ab, ab)
+    t = np.einsum("snk,sk->sn", ap, ab) / np.where(den > 0.0, den, 1.0)[:, None]
+    np.clip(t, 0.0, 1.0, out=t)
+    d = ap - t[:, :, None] * ab[:, None, :]
+    return np.sqrt(np.einsum("snk,snk->sn", d, d))
+
+
+def segment_point_distances(a: np.ndarray, b: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Distances (m) from points ``p`` (N, 3) to the segment ``a``-``b`` (3-vectors)."""
+    return segments_point_distances(np.asarray(a, float)[None], np.asarray(b, float)[None],
+                                    np.asarray(p, float))[0]
 
 
 @dataclass(frozen=True)
@@ -92,6 +102,9 @@ class SceneIndex:
             float(np.min(gap[gap > margin])) if np.any(gap > margin) else math.inf)
         self._kc = self._c[keep]
         self._kr = self._r[keep]
+        # The last subsets built, by selection: from one step to the next the selection rarely
+        # changes, and building a Scene costs more than the distances that chose it.
+        self._subsets: dict[bytes, LocalScene] = {}
 
     @property
     def reach_scene(self) -> LocalScene:
@@ -105,14 +118,21 @@ class SceneIndex:
 
     def _subset(self, sel: np.ndarray, gaps: np.ndarray) -> LocalScene:
         rs = self._reach
-        idx = np.flatnonzero(sel)
         rest = gaps[~sel]
         floor = min(rs.floor, float(np.min(rest))) if rest.size else rs.floor
-        if idx.size == len(rs.index):
+        if rest.size == 0:
             return LocalScene(rs.scene, rs.index, floor)
-        obs = rs.scene.obstacles
-        return LocalScene(Scene(tuple(obs[i] for i in idx), rs.scene.table_height, rs.scene.name),
-                          tuple(rs.index[i] for i in idx), floor)
+        key = np.packbits(sel).tobytes()
+        hit = self._subsets.get(key)
+        if hit is None:
+            idx = np.flatnonzero(sel)
+            obs = rs.scene.obstacles
+            hit = LocalScene(Scene(tuple(obs[i] for i in idx), rs.scene.table_height, rs.scene.name),
+                             tuple(rs.index[i] for i in idx))
+            if len(self._subsets) >= SUBSET_CACHE:
+                self._subsets.pop(next(iter(self._subsets)))  # the oldest
+            self._subsets[key] = hit
+        return LocalScene(hit.scene, hit.index, floor)
 
     def local(self, key_point_sets: Sequence[np.ndarray], radii: Sequence[float],
               radius: float) -> LocalScene:
@@ -120,12 +140,11 @@ class SceneIndex:
         (``radii`` per link) of the arm at any of the given key-point sets ((5, 3) arrays, m)."""
         if self._kc.shape[0] == 0:
             return self._reach
-        gap = np.full(self._kc.shape[0], np.inf)
-        for kp in key_point_sets:
-            kp = np.asarray(kp, float)
-            for link in range(4):
-                d = segment_point_distances(kp[link], kp[link + 1], self._kc) - self._kr - radii[link]
-                np.minimum(gap, d, out=gap)
+        # Every link of every key-point set at once: segments a-b (S, 3), obstacle centres p (N, 3).
+        kps = np.asarray(key_point_sets, float).reshape(-1, 5, 3)
+        dist = segments_point_distances(kps[:, :4].reshape(-1, 3), kps[:, 1:].reshape(-1, 3), self._kc)
+        dist -= np.tile(np.asarray(radii, float)[:4], len(kps))[:, None]
+        gap = dist.min(axis=0) - self._kr
         return self._subset(gap <= radius, gap)
 
     def ahead(self, hand: Sequence[float], radius: float) -> LocalScene:
