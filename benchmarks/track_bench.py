@@ -652,6 +652,10 @@ class StackClient:
     def halts(self) -> int:
         return sum("HALTED:" in line for line in self._lines)
 
+    def halt_lines(self) -> list[str]:
+        """The driver's log lines that say it halted, and why."""
+        return [line for line in self._lines if "HALTED:" in line]
+
     def ensure_running(self) -> None:
         """Recover the driver if it halted since the last look (a starved machine at bring-up)."""
         if self.halts() > self._seen_halts:
@@ -678,6 +682,10 @@ class StackClient:
         w, x, y, z = quat_from_matrix(T[:3, :3])
         o = msg.pose.orientation
         o.x, o.y, o.z, o.w = x, y, z, w
+        # Until the controller's subscription has matched ours (discovery is slow on a busy machine),
+        # a goal would go nowhere.
+        if self.goal_pub.get_subscription_count() == 0:
+            self.spin_until(lambda: self.goal_pub.get_subscription_count() > 0, 10.0)
         self.goal_pub.publish(msg)
 
     def reach(self, T: np.ndarray, timeout: float) -> tuple[bool, float]:
