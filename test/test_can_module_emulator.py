@@ -276,6 +276,65 @@ def test_watchdog_judges_the_host_by_wire_time_not_by_when_frames_are_read(clock
     assert out and out[0].state & S.COMM_ERROR
 
 
+def test_a_tick_judges_time_as_of_when_the_queue_was_known_empty(clock: FakeClock) -> None:
+    """The reader found its queue empty, then waited 300 ms for the CPU before ticking; the host's
+    refreshes of that time are not read yet. Judged as of the empty queue, nothing expired; the
+    refreshes then arrive, and the next tick (now) is fine too. Judged at the late 'now' instead,
+    the module would have halted (the false watchdog expiry seen under load)."""
+    m = make_arm(clock, n=1, config=int(ActConfig.WATCHDOG_ENABLE))[1]
+    t_armed = clock()
+    clock.advance(0.3)
+    assert m.tick(behind_s=0.3) == [] and not m.sticky & S.ERROR  # (a state query would judge now)
+    for k in range(1, 7):
+        assert m.handle(p.Broadcast(p.BroadcastCommand.WATCHDOG_REFRESH, 0), t_armed + 0.05 * k) == []
+    assert m.tick() == [] and not m.sticky & S.ERROR
+    # The same wait without the frames having come meanwhile: the host really was silent.
+    clock.advance(0.3)
+    out = decoded(m.tick(behind_s=0.15))  # deadline +0.40; judged as of +0.45
+    assert out and out[0].state & S.COMM_ERROR
+
+
+class _QueueBus(can.BusABC):
+    """A bus whose receive finds nothing, during which the reader is descheduled (the clock moves
+    on) and the host's frames queue up; they are read by the next receive."""
+
+    def __init__(self, clock: FakeClock, frames_during_wait: list[can.Message], wait_s: float) -> None:
+        super().__init__(channel="queue")
+        self._clock, self._later, self._wait = clock, list(frames_during_wait), wait_s
+        self._queue: list[can.Message] = []
+        self.sent: list[can.Message] = []
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        if self._queue:
+            return self._queue.pop(0), False
+        if self._later:  # empty now; while the reader waits for the CPU the frames come
+            self._clock.advance(self._wait)
+            self._queue, self._later = self._later, []
+        return None, False
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        self.sent.append(msg)
+
+
+def test_runner_does_not_blame_the_host_for_frames_that_came_while_it_waited(clock: FakeClock) -> None:
+    arm = make_arm(clock, n=1, config=int(ActConfig.WATCHDOG_ENABLE))
+    t_armed = clock()
+    refreshes = []
+    for k in range(1, 7):  # every 50 ms while the reader was descheduled for 300 ms
+        msg = p.watchdog_refresh_all()
+        msg.timestamp = time.time() - 0.3 + 0.05 * k  # wire time: when it was on the bus
+        refreshes.append(msg)
+    bus = _QueueBus(clock, refreshes, 0.3)
+    runner = EmulatorRunner(bus, arm, tick_s=0.0, clock=clock)
+    runner.serve_once(0.0)  # finds the queue empty; descheduled; ticks
+    assert not arm[1].sticky & ActState.ERROR, "blamed the host for frames not yet read"
+    assert bus.sent == []  # no unsolicited error frame either
+    runner.serve_once(0.0)  # reads the six refreshes, ticks
+    assert runner.frames_in == 6
+    assert not arm[1].sticky & ActState.ERROR and bus.sent == []
+    assert clock() - t_armed == pytest.approx(0.3)
+
+
 def test_wire_time_converts_a_frame_stamp_to_the_module_clock() -> None:
     now = {"t": 100.0}
     clock = lambda: now["t"]  # noqa: E731

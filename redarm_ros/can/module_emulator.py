@@ -477,14 +477,17 @@ class PowerCubeModule:
 
     # -- time-driven behaviour -------------------------------------------------------------------
 
-    def tick(self) -> list[can.Message]:
-        """Advance time-driven behaviour (homing end, watchdog, soft limits in FVEL) to now.
+    def tick(self, behind_s: float = 0.0) -> list[can.Message]:
+        """Advance time-driven behaviour (homing end, watchdog, soft limits in FVEL) to now, or to
+        ``behind_s`` seconds ago: the last moment the caller knows its queue held no unread frame.
 
         Call it only after every frame already received has been handled (or the watchdog may
-        expire for frames that were waiting). Returns frames to send unsolicited (state frames
+        expire for frames that were waiting); a caller that may have been descheduled between
+        finding its queue empty and this call passes how long ago that was, so frames that came
+        meanwhile are not held against the host. Returns frames to send unsolicited (state frames
         when ERROR gets set).
         """
-        self._now = self._clock()
+        self._now = self._clock() - max(0.0, behind_s)
         self._update()
         out, self._out = self._out, []
         return out
@@ -790,12 +793,13 @@ class ModuleBank:
                 return [] if module is None else module.handle(frame, wire_time(msg, module.clock))
             return []  # replies and state frames of other nodes
 
-    def tick(self) -> list[can.Message]:
-        """Advance every module's time-driven behaviour; returns unsolicited frames."""
+    def tick(self, behind_s: float = 0.0) -> list[can.Message]:
+        """Advance every module's time-driven behaviour (as of ``behind_s`` s ago, see
+        :meth:`PowerCubeModule.tick`); returns unsolicited frames."""
         with self.lock:
             out: list[can.Message] = []
             for m in self.modules.values():
-                out += m.tick()
+                out += m.tick(behind_s)
             return out
 
     def positions(self) -> list[float]:
@@ -871,8 +875,10 @@ class EmulatorRunner:
     :class:`~redarm_ros.can.bus.ReconnectingBus` is reopened with backoff until :meth:`stop`.
     """
 
-    def __init__(self, bus: can.BusABC, bank: ModuleBank, *, tick_s: float = 0.005) -> None:
+    def __init__(self, bus: can.BusABC, bank: ModuleBank, *, tick_s: float = 0.005,
+                 clock: Callable[[], float] = time.monotonic) -> None:
         self.bus = bus
+        self.clock = clock  # the modules' clock (s): how long ago the queue was last seen empty
         self.bank = bank
         self.tick_s = tick_s
         self._stop = threading.Event()
@@ -923,7 +929,10 @@ class EmulatorRunner:
         """Receive frames (waiting up to ``timeout_s`` for the first) and answer them; every
         ``tick_s`` also advance all modules' time-driven behaviour (a frame already updates its
         own module). Ticks come only after the frames already queued were handled, so frames that
-        waited while this thread was descheduled refresh the watchdogs first."""
+        waited while this thread was descheduled refresh the watchdogs first; and they judge time
+        as of the start of the receive that found the queue empty (a frame that arrived after it,
+        while this thread waited for the CPU, is not yet read but was on time)."""
+        t_check = self.clock()
         msg = self.bus.recv(self.tick_s if timeout_s is None else timeout_s)
         for _ in range(256):
             if msg is None:
@@ -932,11 +941,12 @@ class EmulatorRunner:
             self.frames_in += 1
             self._send(self.bank.handle(msg))
             self.max_handle_s = max(self.max_handle_s, time.perf_counter() - t0)
+            t_check = self.clock()
             msg = self.bus.recv(0.0)
         now = time.monotonic()
         if now >= self._next_tick and msg is None:
             self._next_tick = now + self.tick_s
-            self._send(self.bank.tick())
+            self._send(self.bank.tick(self.clock() - t_check))
 
     def _run(self) -> None:
         delay = 0.05

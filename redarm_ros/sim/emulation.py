@@ -118,12 +118,13 @@ class PlantModules:
                 return out
             return m.handle(frame, t)
 
-    def tick(self, silenced: Collection[int] = ()) -> list[can.Message]:
-        """Advance the modules' time-driven behaviour; unsolicited frames of speaking modules."""
+    def tick(self, silenced: Collection[int] = (), behind_s: float = 0.0) -> list[can.Message]:
+        """Advance the modules' time-driven behaviour (as of ``behind_s`` s ago, see
+        ``PowerCubeModule.tick``); unsolicited frames of speaking modules."""
         out: list[can.Message] = []
         with self.bank.lock:
             for mid, m in self.bank.modules.items():
-                frames = m.tick()
+                frames = m.tick(behind_s)
                 if mid not in silenced:
                     out += frames
         return out

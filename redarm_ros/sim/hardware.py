@@ -182,6 +182,7 @@ class HardwareSim:
         self._decoder = pc.FrameDecoder()
         self._last_wire: float | None = None
         self._last_empty = time.monotonic()  # the bus thread last found nothing to read
+        self._known_empty = self._last_empty  # the start of the receive that found nothing to read
         self._control_sig: tuple[int, int] | None = None
         self._start = time.monotonic()
         self.emulator = (emulator_factory or _default_emulator)(plant, self.module_ids)
@@ -284,8 +285,12 @@ class HardwareSim:
         with self._lock:
             silenced = set(self.faults.silenced)
             drop, delay = self.faults.drop_replies, self.faults.delay_replies_ms
+        # The watchdogs judge time as of when the queue was known empty, less the bus server's transit:
+        # had this thread waited for the CPU between that receive and now, the frames sent meanwhile
+        # are not read yet, and the host must not be blamed for them.
+        behind = time.monotonic() - self._known_empty + WIRE_TRANSIT_ALLOWANCE_S
         try:
-            frames = self.emulator.tick(silenced)
+            frames = self.emulator.tick(silenced, behind)
         except Exception:  # noqa: BLE001 - as in handle_frame
             self.counters.handler_errors += 1
             _LOG.exception("error in module tick")
@@ -306,6 +311,7 @@ class HardwareSim:
             timeout = 0.0 if backlog else 0.01
             if self._pending:
                 timeout = max(0.0, min(timeout, self._pending[0][0] - now))
+            t_check = time.monotonic()
             try:
                 msg = self.bus.recv(timeout)
             except (BusError, can.CanError, OSError) as exc:
@@ -318,6 +324,7 @@ class HardwareSim:
                 self.handle_frame(msg, time.monotonic())
             else:
                 self._last_empty = time.monotonic()
+                self._known_empty = t_check
 
     def _on_bus_lost(self, exc: BaseException, delay: float) -> None:
         self.counters.bus_lost += 1
