@@ -188,6 +188,7 @@ def run_node(group: ProcessGroup, can_kwargs: dict[str, Any], rate: float, secon
     from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
     from redarm_ros.kinematics import load_arm
+    from redarm_ros.nodes._common import call_resending, poll_until
 
     arm = load_arm(ARM_NAME)
     params = {"arm": ARM_NAME, "can.interface": can_kwargs["interface"], "can.channel": can_kwargs["channel"],
@@ -222,12 +223,9 @@ def run_node(group: ProcessGroup, can_kwargs: dict[str, Any], rate: float, secon
     try:
         if not cli.wait_for_service(timeout_sec=20):
             raise RuntimeError("/can_driver/init not available")
-        fut = cli.call_async(Trigger.Request())
-        end = time.monotonic() + 60
-        while not fut.done() and time.monotonic() < end:
-            time.sleep(0.02)
-        if not fut.done() or not fut.result().success:
-            raise RuntimeError(f"init failed: {fut.result() if fut.done() else 'timeout'}")
+        resp = call_resending(cli, Trigger.Request(), poll_until, 60.0)
+        if resp is None or not resp.success:
+            raise RuntimeError(f"init failed: {resp if resp is not None else 'timeout'}")
         times, pts = sine_trajectory(arm, seconds + 12)
         msg = JointTrajectory(joint_names=arm.joint_names)
         for t, q in zip(times, pts, strict=True):

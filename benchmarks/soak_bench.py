@@ -125,6 +125,7 @@ def soak(seconds: float, hog: int, prio: int) -> tuple[Observed, dict[str, Any],
     from std_srvs.srv import Trigger
 
     from redarm_ros.kinematics import load_arm
+    from redarm_ros.nodes._common import call_resending, poll_until
 
     arm = load_arm(ARM_NAME)
     obs = Observed()
@@ -169,11 +170,8 @@ def soak(seconds: float, hog: int, prio: int) -> tuple[Observed, dict[str, Any],
             cli = clients[action]
             if not cli.wait_for_service(timeout_sec=30.0):
                 return False
-            fut = cli.call_async(Trigger.Request())
-            end = time.monotonic() + timeout
-            while not fut.done() and time.monotonic() < end:
-                time.sleep(0.02)
-            return bool(fut.done() and fut.result().success)
+            resp = call_resending(cli, Trigger.Request(), poll_until, timeout)
+            return resp is not None and bool(resp.success)
 
         hogs: list[ManagedProcess] = []
         try:

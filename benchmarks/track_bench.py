@@ -669,8 +669,10 @@ class StackClient:
     def recover(self) -> bool:
         if not self.spin_until(self.recover_cli.service_is_ready, 5.0):
             return False
-        fut = self.recover_cli.call_async(self.Trigger.Request())
-        return self.spin_until(fut.done, 20.0) and bool(fut.result().success)
+        from redarm_ros.nodes._common import call_resending
+
+        resp = call_resending(self.recover_cli, self.Trigger.Request(), self.spin_until, 20.0)
+        return resp is not None and bool(resp.success)
 
     def send(self, T: np.ndarray, stamp: float | None = None) -> None:
         msg = self.PoseStamped()

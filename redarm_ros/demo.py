@@ -273,19 +273,19 @@ class DemoClient:
         req.target = self.pose_msg(T)
         req.arm = arm
         req.seed = [float(v) for v in seed]
-        fut = self.ik.call_async(req)
-        if not self.spin_until(fut.done, 10.0):
-            return None
-        return fut.result()
+        from redarm_ros.nodes._common import call_resending
+
+        return call_resending(self.ik, req, self.spin_until, 10.0)
 
     def recover(self) -> tuple[bool, str]:
         """Call the driver's ``~/recover`` (reset the modules, resume from the measured pose)."""
         if not self.spin_until(self.recover_cli.service_is_ready, 5.0):
             return False, "~/recover not available"
-        fut = self.recover_cli.call_async(self.Trigger.Request())
-        if not self.spin_until(fut.done, 30.0):
+        from redarm_ros.nodes._common import call_resending
+
+        r = call_resending(self.recover_cli, self.Trigger.Request(), self.spin_until, 30.0)
+        if r is None:
             return False, "~/recover did not answer"
-        r = fut.result()
         return bool(r.success), r.message
 
     def move_joints(self, names: list[str], q: tuple[float, ...], duration_s: float) -> None:

@@ -93,9 +93,9 @@ def test_reach_goal_succeeds_then_a_cancel_stops_the_simulated_arm(stack: Stack,
         # out): recover, as an operator would, and say so.
         assert attempt < 2 and res.result.status == Reach.Result.TIMEOUT, res.result.message
         assert client.spin_until(client.recover.service_is_ready, 5.0)
-        fut = client.recover.call_async(Trigger.Request())
-        assert client.spin_until(fut.done, 15.0)
-        print(f"e2e reach set-up: goal timed out, ~/recover: {fut.result().message}")
+        resp = client.call(client.recover, Trigger.Request(), 15.0)
+        assert resp is not None, "~/recover did not answer"
+        print(f"e2e reach set-up: goal timed out, ~/recover: {resp.message}")
         client.spin_until(lambda: False, 1.0)  # the controller restarts from the still arm
     assert res.status == GoalStatus.STATUS_SUCCEEDED
     assert res.result.position_error < POS_TOL and res.result.orientation_error < ROT_TOL

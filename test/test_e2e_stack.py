@@ -51,9 +51,9 @@ class Client(sc.GoalClient):
         req.target = pose_to_msg(T)
         req.target.header.frame_id = "base_link"
         req.seed = [float(v) for v in seed]
-        fut = self.ik.call_async(req)
-        assert self.spin_until(fut.done, 10.0), "ik_service did not answer"
-        return fut.result()
+        resp = self.call(self.ik, req, 10.0)
+        assert resp is not None, "ik_service did not answer"
+        return resp
 
 
 stack = sc.stack_fixture(arm="pa10", ready_timeout_s=60.0)

@@ -65,8 +65,8 @@ def test_six_joints_and_a_goal_reached_by_the_simulated_arm(stack: Stack, client
         assert attempt < 2 and sum("HALTED:" in line for line in driver.output()) > halts, \
             f"goal not reached; last state: {client.states[-1]}"
         assert client.spin_until(recover.service_is_ready, 5.0)
-        fut = recover.call_async(Trigger.Request())
-        assert client.spin_until(fut.done, 20.0) and fut.result().success, "~/recover failed"
+        resp = client.call(recover, Trigger.Request(), 20.0)
+        assert resp is not None and resp.success, f"~/recover failed: {resp}"
         client.spin_until(lambda: False, 1.0)  # the controller restarts from the still arm
     ok = sc.sim_tool_reaches(client, stack, T, 2e-3, 0.02, 40.0)
     assert ok, f"simulated tool {sc.pose_err(sc.sim_tool(stack), T)} from the goal"

@@ -97,10 +97,10 @@ def test_stream_followed_by_the_simulated_tool(stack: Stack, client: Client) -> 
         assert attempt < 2, f"start not reached: {client.states[-1]}"
         assert client.spin_until(client.recover.service_is_ready, 5.0)
         for _ in range(3):
-            fut = client.recover.call_async(Trigger.Request())
-            assert client.spin_until(fut.done, 15.0)
-            print(f"e2e stream set-up: ~/recover: {fut.result().message}")
-            if fut.result().success:
+            resp = client.call(client.recover, Trigger.Request(), 15.0)
+            assert resp is not None, "~/recover did not answer"
+            print(f"e2e stream set-up: ~/recover: {resp.message}")
+            if resp.success:
                 break
             client.spin_until(lambda: False, 1.0)
         client.spin_until(lambda: False, 1.0)  # the controller restarts from the still arm

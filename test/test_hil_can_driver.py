@@ -34,6 +34,7 @@ from std_srvs.srv import Trigger  # noqa: E402
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint  # noqa: E402
 
 from redarm_ros.kinematics import load_arm  # noqa: E402
+from redarm_ros.nodes._common import call_resending  # noqa: E402
 from redarm_ros.procs import ManagedProcess, ProcessGroup, python_module_cmd  # noqa: E402
 
 pytestmark = pytest.mark.hil
@@ -87,9 +88,10 @@ class Client:
     def call(self, action: str, timeout: float = 30.0) -> Trigger.Response:
         cli = self.clients[action]
         assert cli.wait_for_service(timeout_sec=10.0), f"/can_driver/{action} not available"
-        fut = cli.call_async(Trigger.Request())
-        assert wait_for(fut.done, timeout), f"/can_driver/{action} did not answer in {timeout} s"
-        return fut.result()
+        resp = call_resending(cli, Trigger.Request(), wait_for, timeout,
+                              on_resend=lambda n: print(f"/can_driver/{action}: no answer, sent again ({n})"))
+        assert resp is not None, f"/can_driver/{action} did not answer in {timeout} s"
+        return resp
 
     def last_q(self) -> np.ndarray | None:
         with self.lock:

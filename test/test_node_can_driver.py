@@ -26,12 +26,14 @@ from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
+from support.waits import wait_until  # noqa: E402
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint  # noqa: E402
 
 from redarm_ros.can.driver_loop import LoopState  # noqa: E402
 from redarm_ros.can.module_emulator import EmulatedArm, EmulatorRunner  # noqa: E402
 from redarm_ros.errors import ConfigError, InvalidInputError  # noqa: E402
 from redarm_ros.kinematics import load_arm  # noqa: E402
+from redarm_ros.nodes._common import call_resending  # noqa: E402
 from redarm_ros.nodes.can_driver import (  # noqa: E402
     CanDriverNode,
     map_joint_names,
@@ -100,13 +102,10 @@ class Rig:
     def call(self, action: str, timeout: float = 30.0) -> Trigger.Response:
         cli = self.client.create_client(Trigger, f"/can_driver/{action}")
         assert cli.wait_for_service(timeout_sec=5.0)
-        fut = cli.call_async(Trigger.Request())
-        end = time.monotonic() + timeout
-        while not fut.done() and time.monotonic() < end:
-            time.sleep(0.01)
+        resp = call_resending(cli, Trigger.Request(), wait_until, timeout)
         self.client.destroy_client(cli)
-        assert fut.done(), f"~/{action} did not answer"
-        return fut.result()
+        assert resp is not None, f"~/{action} did not answer"
+        return resp
 
     def close(self) -> None:
         self.executor.shutdown(timeout_sec=2.0)

@@ -300,6 +300,56 @@ def spin_until(executor: Any, cond: Callable[[], object], timeout: float, period
     return False
 
 
+def poll_until(cond: Callable[[], object], timeout: float, period: float = 0.02) -> bool:
+    """Poll ``cond()`` every ``period`` s until it holds (True) or ``timeout`` s passed (False): for
+    callers whose executor spins in another thread."""
+    deadline = time.monotonic() + timeout
+    while not cond():
+        if time.monotonic() >= deadline:
+            return False
+        time.sleep(period)
+    return True
+
+
+#: Seconds :func:`call_resending` waits for an answer before it sends the request again.
+RESEND_AFTER_S = 8.0
+
+
+def call_resending(client: Any, request: Any, wait: Callable[[Callable[[], bool], float], bool],
+                   timeout: float, resend_after_s: float = RESEND_AFTER_S,
+                   on_resend: Callable[[int], None] | None = None) -> Any | None:
+    """Call the service ``client`` with ``request``; its response, or None after ``timeout`` s.
+
+    The server drops a response when it has not yet matched the caller's reply reader (Fast DDS
+    logs "failed to send response (timeout): client will not receive response"), and discovery on a
+    busy machine can lag the request by seconds. So the request goes out again every
+    ``resend_after_s`` s without an answer, and the first answer to any copy is taken: for
+    idempotent requests only (init, recover, halt, park, IK). ``wait(pred, seconds)`` waits until
+    ``pred()`` holds, spinning the caller's executor if nobody else does; ``on_resend(n)`` hears of
+    the n-th extra copy.
+    """
+    deadline = time.monotonic() + timeout
+    futures: list[Any] = []
+
+    def answered() -> bool:
+        return any(f.done() for f in futures)
+
+    while True:
+        futures.append(client.call_async(request))
+        left = deadline - time.monotonic()
+        if wait(answered, max(0.0, min(resend_after_s, left))) or answered():
+            break
+        if deadline - time.monotonic() <= 0.0:
+            break
+        if on_resend is not None:
+            on_resend(len(futures))
+    done = [f for f in futures if f.done()]
+    for f in futures:
+        if not f.done():
+            client.remove_pending_request(f)  # a late answer to an abandoned copy goes nowhere
+    return done[0].result() if done else None
+
+
 class ParamNode(Node):
     """Base of the redarm_ros nodes: the one constructor signature all of them share.
 

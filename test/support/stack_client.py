@@ -24,6 +24,7 @@ from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from redarm_ros.bringup import Stack, StackConfig
 from redarm_ros.kinematics.quaternion import from_xyzw, quat_to_matrix
+from redarm_ros.nodes._common import call_resending
 from redarm_ros.nodes.controller import pose_to_msg
 from redarm_ros.procs import group_members
 from support.waits import spin_until as spin_executor_until
@@ -103,6 +104,12 @@ class StackClient:
 
     def spin_until(self, cond: Callable[[], bool], timeout: float) -> bool:
         return spin_executor_until(self.ex, cond, timeout, self.SPIN_S)
+
+    def call(self, client: Any, request: Any, timeout: float) -> Any | None:
+        """The service's answer to ``request`` (sent again while unanswered), or None after ``timeout`` s."""
+        name = client.srv_name
+        return call_resending(client, request, self.spin_until, timeout,
+                              on_resend=lambda n: print(f"{name}: no answer, sent again ({n})"))
 
     def close(self) -> None:
         self.ex.shutdown()
@@ -211,7 +218,7 @@ def move_to_ready(c: StackClient, cmd_pub: Any, stack: Stack, joint_names: list[
             break
         assert attempt < 2, f"arm not at the ready pose: {stack.sim_status()['q']}"
         assert c.spin_until(recover.service_is_ready, 5.0)
-        fut = recover.call_async(Trigger.Request())
-        assert c.spin_until(fut.done, recover_s) and fut.result().success, "~/recover failed"
-        print(f"e2e set-up: driver halted before the ready pose; recovered ({fut.result().message})")
+        resp = c.call(recover, Trigger.Request(), recover_s)
+        assert resp is not None and resp.success, f"~/recover failed: {resp}"
+        print(f"e2e set-up: driver halted before the ready pose; recovered ({resp.message})")
     c.spin_until(lambda: False, 0.6)  # the controller sees a still arm away from its plan: resync

@@ -398,6 +398,7 @@ def cmd_ros(ns: argparse.Namespace) -> int:
     from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
     from redarm_ros.kinematics import load_arm
+    from redarm_ros.nodes._common import call_resending
 
     result["import_rclpy_s"] = round(time.monotonic() - t0, 3)
     arm = load_arm(ns.arm)
@@ -451,10 +452,9 @@ def cmd_ros(ns: argparse.Namespace) -> int:
 
         def call(action: str) -> dict[str, Any]:
             t = time.monotonic()
-            fut = services[action].call_async(Trigger.Request())
-            # spin_once until done: spin_until_future_complete adds 20-80 ms per call here.
-            done = spin_until(fut.done, 90.0)
-            resp = fut.result() if done else None
+            # spin_once until done: spin_until_future_complete adds 20-80 ms per call here. A slow
+            # guest can take longer than the default resend interval to init.
+            resp = call_resending(services[action], Trigger.Request(), spin_until, 90.0, resend_after_s=20.0)
             return {"success": bool(resp and resp.success), "message": resp.message if resp else "timeout",
                     "duration_s": round(time.monotonic() - t, 3)}
 
