@@ -315,6 +315,14 @@ def test_diagnostics_count_the_loops_steps_and_the_obstacles_kept(h: Harness) ->
     assert int(b["missed_ticks"]) >= 0 and float(b["step_busy_max_ms"]) >= float(b["step_busy_median_ms"]) > 0
     assert float(b["rate_hz_achieved"]) > 0.0 and b["_msg"].endswith("Hz") or "misses ticks" in b["_msg"]
     assert b["scheduling"]  # in a test process: whatever the runner has, said in words
+    assert float(b["last_step_age_s"]) < 0.5
+    # joint_states stop: the loop holds without stepping, and the diagnostics say so (not the last rate).
+    h.arm.publishing = False
+    n = len(diags)
+    assert h.spin_until(lambda: any(d["_msg"].startswith("no step for") for d in diags[n:]), 10.0), diags[n:]
+    stopped = next(d for d in diags[n:] if d["_msg"].startswith("no step for"))
+    assert float(stopped["last_step_age_s"]) > 0.1
+    assert float(stopped["rate_hz_achieved"]) < 0.9 * 100
 
 
 def test_markers_published(h: Harness) -> None:

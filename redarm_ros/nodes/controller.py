@@ -89,6 +89,7 @@ STILL_WINDOW_S = 0.25  # s of joint_states looked at to decide that the arm stan
 STILL_TOLERANCE = 1e-3  # rad: largest joint motion within that window of an arm standing still
 OBSTACLE_MARKERS_S = 2.0  # s between re-sends of unchanged obstacle markers
 DIAGNOSTICS_PERIOD_S = 1.0  # s between /diagnostics messages
+IDLE_PERIODS = 10  # periods without a step after which /diagnostics says the loop is not stepping
 
 
 def _finite(value: Any) -> str | None:
@@ -534,11 +535,15 @@ class ControllerNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
         """``controller: loop`` on ``/diagnostics``: the steps the loop took (counted here, exact even
         when a listener is too busy to receive every ``~/state``), missed ticks, the step's duration,
         the obstacles (all, and those the broad phase keeps) and the process's scheduling."""
-        s = self.loop_stats.summary()
+        s = self.loop_stats.summary(time.monotonic())
         nominal = 1.0 / self.period
         st = DiagnosticStatus(name=f"{NODE_NAME}: loop", hardware_id=self.arm.name)
         if s.steps < 2:
             st.level, st.message = DiagnosticStatus.OK, "not stepping yet (waiting for joint_states)"
+        elif s.idle_s > IDLE_PERIODS * self.period:
+            # The loop holds without stepping while joint_states are stale: not a rate problem.
+            st.level = DiagnosticStatus.WARN
+            st.message = f"no step for {s.idle_s:.1f} s (joint_states stale?)"
         elif s.rate_hz >= 0.9 * nominal:
             st.level, st.message = DiagnosticStatus.OK, f"{s.rate_hz:.1f} Hz"
         else:
@@ -551,6 +556,7 @@ class ControllerNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
             "steps": str(s.steps),
             "loop_clock_s": f"{s.clock:.6f}",
             "missed_ticks": str(s.missed),
+            "last_step_age_s": f"{s.idle_s:.3f}",
             "step_busy_median_ms": f"{s.busy_median * 1e3:.3f}",
             "step_busy_max_ms": f"{s.busy_max * 1e3:.3f}",
             "obstacles": str(len(scene.obstacles)),

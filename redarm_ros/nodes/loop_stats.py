@@ -18,9 +18,10 @@ __all__ = ["LoopStats", "LoopSummary"]
 @dataclass(frozen=True)
 class LoopSummary:
     """``steps`` since start (cumulative: a reader takes rates between two summaries), ``clock`` (s,
-    the loop's monotonic clock at the last step), ``rate_hz`` over the last window, ``missed`` ticks
-    since start (each interval longer than 1.5 periods counts its skipped ticks), the step's own
-    duration (median and max, s) over the window."""
+    the loop's monotonic clock at the last step), ``rate_hz`` over the window that ends at the time of
+    the summary, ``missed`` ticks since start (each interval longer than 1.5 periods counts its
+    skipped ticks), the step's own duration (median and max, s) over the window, and ``idle_s``, how
+    long before the summary the last step started."""
 
     steps: int
     clock: float
@@ -28,6 +29,7 @@ class LoopSummary:
     missed: int
     busy_median: float
     busy_max: float
+    idle_s: float
 
 
 class LoopStats:
@@ -55,11 +57,22 @@ class LoopStats:
         while self._recent and t - self._recent[0][0] > self.window:
             self._recent.popleft()
 
-    def summary(self) -> LoopSummary:
-        """The loop's figures now (rate 0 and durations NaN before two steps)."""
+    def summary(self, now: float) -> LoopSummary:
+        """The loop's figures at ``now`` (monotonic s, the clock of :meth:`step`): the window ends at
+        ``now``, so the rate of a loop that stopped stepping falls to 0 (rate 0 and durations NaN
+        before two steps)."""
         r = self._recent
-        rate = (len(r) - 1) / (r[-1][0] - r[0][0]) if len(r) >= 2 and r[-1][0] > r[0][0] else 0.0
+        while r and now - r[0][0] > self.window:
+            r.popleft()
+        # The steps after the window's first one, over the time from it to now, less the part of a
+        # period a punctual loop has not reached yet: a loop at its period scores its rate, a loop
+        # that stopped less and less.
+        span = now - r[0][0] if r else 0.0
+        if r and now - r[-1][0] < self.period:
+            span = r[-1][0] - r[0][0]
+        rate = (len(r) - 1) / span if len(r) >= 2 and span > 0.0 else 0.0
         busy = sorted(b for _, b in r)
         med = busy[len(busy) // 2] if busy else math.nan
-        return LoopSummary(self.steps, self._last if self._last is not None else math.nan, rate,
-                           self.missed, med, busy[-1] if busy else math.nan)
+        last = self._last if self._last is not None else math.nan
+        return LoopSummary(self.steps, last, rate, self.missed, med, busy[-1] if busy else math.nan,
+                           now - last)
