@@ -14,7 +14,7 @@ import sys
 import pytest
 
 _PROBE = r"""
-import json, os, sys, threading
+import json, os, resource, signal, sys, threading
 from redarm_ros.can import realtime
 
 stop = threading.Event()
@@ -30,7 +30,9 @@ while not after_tid:
 tids = [int(t) for t in os.listdir("/proc/self/task")]
 sched = {str(t): [os.sched_getscheduler(t), os.sched_getparam(t).sched_priority] for t in tids}
 print(json.dumps({"policy": prio.policy.value, "value": prio.value, "message": prio.message,
-                  "sched": sched, "after": after_tid[0], "before": [t.native_id for t in before]}))
+                  "sched": sched, "after": after_tid[0], "before": [t.native_id for t in before],
+                  "rttime": list(resource.getrlimit(resource.RLIMIT_RTTIME)),
+                  "sigxcpu_default": signal.getsignal(signal.SIGXCPU) == signal.SIG_DFL}))
 stop.set()
 """
 
@@ -58,6 +60,7 @@ def test_every_thread_and_later_ones_run_at_fifo() -> None:
     assert r["sched"][str(r["after"])] == [os.SCHED_FIFO, 7]
     assert all(r["sched"][str(t)] == [os.SCHED_FIFO, 7] for t in r["before"])
     assert "SCHED_FIFO priority 7" in r["message"]
+    assert r["rttime"] == [1_000_000, 3_000_000] and not r["sigxcpu_default"]  # the runaway guard
 
 
 def test_zero_asks_for_nothing() -> None:
@@ -75,6 +78,7 @@ def test_refused_leaves_every_thread_normal_and_says_why() -> None:
     assert r["policy"] == "normal", r
     assert "SCHED_FIFO refused" in r["message"]
     assert {v[0] for v in r["sched"].values()} == {os.SCHED_OTHER}, r["sched"]
+    assert r["sigxcpu_default"]  # nothing real-time to guard: SIGXCPU handled as before
 
 
 _RUNAWAY = r"""

@@ -26,6 +26,7 @@ import resource
 import signal
 from dataclasses import dataclass
 from enum import Enum
+from typing import Any
 
 __all__ = [
     "Policy", "Priority", "collect_young", "drop_priority", "quiet_gc", "raise_nice", "raise_priority",
@@ -70,11 +71,9 @@ def raise_priority(fifo_priority: int, *, who: str, tid: int = 0) -> Priority:
 
     Never raises; the outcome is in the returned :class:`Priority` (log its ``message`` once).
     """
-    if fifo_priority <= 0:
-        return Priority(Policy.NORMAL, 0, f"{who}: normal scheduling (real-time priority not requested)")
-    if not hasattr(os, "sched_setscheduler"):
-        return Priority(Policy.NORMAL, 0, f"{who}: normal scheduling (no SCHED_FIFO on this platform)")
-    prio = max(1, min(int(fifo_priority), os.sched_get_priority_max(os.SCHED_FIFO)))
+    prio, not_asked = _fifo_level(fifo_priority, who)
+    if not_asked is not None:
+        return not_asked
     try:
         os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(prio))
         return Priority(Policy.FIFO, prio, f"{who}: real-time scheduling SCHED_FIFO priority {prio}")
@@ -95,6 +94,16 @@ def raise_priority(fifo_priority: int, *, who: str, tid: int = 0) -> Priority:
         "rtprio limit, e.g. in /etc/security/limits.conf)"))
 
 
+def _fifo_level(fifo_priority: int, who: str) -> tuple[int, Priority | None]:
+    """The SCHED_FIFO level to ask for (1..max), or the normal-scheduling outcome when none is to
+    be asked for (0 requested, or no SCHED_FIFO on this platform)."""
+    if fifo_priority <= 0:
+        return 0, Priority(Policy.NORMAL, 0, f"{who}: normal scheduling (real-time priority not requested)")
+    if not hasattr(os, "sched_setscheduler"):
+        return 0, Priority(Policy.NORMAL, 0, f"{who}: normal scheduling (no SCHED_FIFO on this platform)")
+    return max(1, min(int(fifo_priority), os.sched_get_priority_max(os.SCHED_FIFO))), None
+
+
 def _thread_ids() -> list[int]:
     """This process's threads (Linux), or ``[0]`` (the caller) where they cannot be listed."""
     try:
@@ -111,8 +120,9 @@ def _thread_ids() -> list[int]:
 RT_BUDGET_S = (1.0, 3.0)
 
 
-def _demote_on_sigxcpu(who: str, soft_s: float) -> None:
-    """Install the SIGXCPU handler: every thread back to normal scheduling, one line on stderr."""
+def _demote_on_sigxcpu(who: str, soft_s: float) -> Any:
+    """Install the SIGXCPU handler: every thread back to normal scheduling, one line on stderr.
+    Returns the handler it replaced (None when it could not install one)."""
     def handler(signum: int, frame: object) -> None:
         for tid in _thread_ids():
             drop_priority(tid=tid)
@@ -121,8 +131,21 @@ def _demote_on_sigxcpu(who: str, soft_s: float) -> None:
         _LOG.error("%s: a real-time thread ran %g s without blocking: back to normal scheduling (a "
                    "real-time loop that never sleeps would take a core from everyone)", who, soft_s)
 
-    with contextlib.suppress(ValueError):  # not the main thread: no handler, the hard limit still holds
-        signal.signal(signal.SIGXCPU, handler)
+    try:
+        return signal.signal(signal.SIGXCPU, handler)
+    except ValueError:  # not the main thread: no handler, the hard limit still holds
+        return None
+
+
+def _unguard(limit: tuple[int, int], handler: Any) -> None:
+    """Undo the RLIMIT_RTTIME and SIGXCPU handler of :func:`raise_process_priority` after a refusal.
+    A lowered hard limit comes back only with CAP_SYS_RESOURCE; without it the limit stays, harmless:
+    it counts the CPU time of real-time threads only, and the process has none."""
+    with contextlib.suppress(OSError, ValueError):
+        resource.setrlimit(resource.RLIMIT_RTTIME, limit)
+    if handler is not None:
+        with contextlib.suppress(ValueError, TypeError):
+            signal.signal(signal.SIGXCPU, handler)
 
 
 def raise_process_priority(fifo_priority: int, *, who: str,
@@ -138,17 +161,16 @@ def raise_process_priority(fifo_priority: int, *, who: str,
     gets an RLIMIT_RTTIME of ``budget_s`` (soft, hard; s of CPU without blocking): past the soft limit
     every thread is demoted to normal scheduling with one error line; past the hard limit (a thread
     stuck in native code) the kernel kills the process. Call from the main thread (the handler)."""
-    if fifo_priority <= 0:
-        return Priority(Policy.NORMAL, 0, f"{who}: normal scheduling (real-time priority not requested)")
-    if not hasattr(os, "sched_setscheduler"):
-        return Priority(Policy.NORMAL, 0, f"{who}: normal scheduling (no SCHED_FIFO on this platform)")
-    prio = max(1, min(int(fifo_priority), os.sched_get_priority_max(os.SCHED_FIFO)))
+    prio, not_asked = _fifo_level(fifo_priority, who)
+    if not_asked is not None:
+        return not_asked
     soft, hard = (int(b * 1e6) for b in budget_s)
-    try:
+    try:  # the guard first: no thread is real-time without it, even for a moment
+        old_limit = resource.getrlimit(resource.RLIMIT_RTTIME)
         resource.setrlimit(resource.RLIMIT_RTTIME, (soft, hard))
     except (OSError, ValueError, AttributeError) as exc:  # no limit, no real time: never unguarded
         return Priority(Policy.NORMAL, 0, f"{who}: SCHED_FIFO not taken (cannot limit its CPU time: {exc})")
-    _demote_on_sigxcpu(who, budget_s[0])
+    old_handler = _demote_on_sigxcpu(who, budget_s[0])
     done: list[int] = []
     for tid in _thread_ids():
         try:
@@ -158,6 +180,7 @@ def raise_process_priority(fifo_priority: int, *, who: str,
         except OSError as exc:
             for t in done:
                 drop_priority(tid=t)
+            _unguard(old_limit, old_handler)  # nothing real-time left to guard
             return Priority(Policy.NORMAL, 0, f"{who}: SCHED_FIFO refused ({exc.strerror})")
         done.append(tid)
     return Priority(Policy.FIFO, prio, f"{who}: real-time scheduling SCHED_FIFO priority {prio} "

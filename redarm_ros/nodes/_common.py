@@ -70,7 +70,7 @@ PROCESS_RT_PARAM = ParamSpec(
     "permitted.", read_only=True, range=(0, 49))
 
 
-def apply_nice(node: Node, level: int, fifo_priority: int = 0) -> None:
+def apply_scheduling(node: Node, level: int, fifo_priority: int = 0) -> None:
     """Run ``node``'s process at SCHED_FIFO ``fifo_priority`` if asked (see :data:`PROCESS_RT_PARAM`),
     else (or when refused) at nice ``level`` (see :data:`NICE_PARAM`), and log the outcome once.
     :func:`run_node` calls it for a node that declares ``nice``, before the node's timers start its
@@ -226,7 +226,7 @@ def run_node(
         if node.has_parameter(NICE_PARAM.name):  # a process-wide setting: only where the node owns it
             fifo = int(node.get_parameter(PROCESS_RT_PARAM.name).value) \
                 if getattr(node, "PROCESS_REALTIME", False) else 0
-            apply_nice(node, int(node.get_parameter(NICE_PARAM.name).value), fifo)
+            apply_scheduling(node, int(node.get_parameter(NICE_PARAM.name).value), fifo)
         executor = MultiThreadedExecutor() if multithreaded else SingleThreadedExecutor()
         executor.add_node(node)
         executor.spin()
