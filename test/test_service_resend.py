@@ -4,7 +4,6 @@ is taken (Fast DDS drops a response when the server has not matched the caller's
 from __future__ import annotations
 
 import threading
-from collections.abc import Iterator
 
 import pytest
 
@@ -61,15 +60,7 @@ def test_an_answered_first_request_is_not_sent_again() -> None:
     assert len(cli.futures) == 1 and cli.removed == []
 
 
-@pytest.fixture
-def ctx() -> Iterator[Context]:
-    context = Context()
-    rclpy.init(context=context)
-    yield context
-    rclpy.try_shutdown(context=context)
-
-
-def test_a_real_service_whose_first_answer_never_comes(ctx: Context) -> None:
+def test_a_real_service_whose_first_answer_never_comes(rclpy_context: Context) -> None:
     """Through rclpy: the server holds its first request until the end of the test (as good as a lost
     response for the caller); the copy sent after ``resend_after_s`` is answered."""
     release = threading.Event()
@@ -82,6 +73,7 @@ def test_a_real_service_whose_first_answer_never_comes(ctx: Context) -> None:
         resp.success, resp.message = True, f"request {len(calls)}"
         return resp
 
+    ctx = rclpy_context
     server = rclpy.create_node("resend_server", context=ctx)
     server.create_service(Trigger, "resend_probe", on_request, callback_group=ReentrantCallbackGroup())
     caller = rclpy.create_node("resend_caller", context=ctx)
