@@ -25,6 +25,7 @@ import platform
 import statistics
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -148,11 +149,16 @@ def main(argv: list[str] | None = None) -> int:
                 raise SystemExit("ik_service did not come up in 30 s")
             ex.spin_once(timeout_sec=0.05)
 
+        from redarm_ros.nodes._common import call_resending, spin_until
+
+        def wait(pred: Callable[[], object], seconds: float) -> bool:
+            return spin_until(ex, pred, seconds, 0.1)
+
         def call(req: SolveIK.Request) -> SolveIK.Response:
-            fut = cli.call_async(req)
-            while not fut.done():
-                ex.spin_once(timeout_sec=0.1)
-            return fut.result()
+            resp = call_resending(cli, req, wait, 60.0)  # (a first answer may be lost: sent again)
+            if resp is None:
+                raise SystemExit("ik_service did not answer in 60 s")
+            return resp
 
         for r in modes["swivel"][:50]:  # warm-up (discovery, caches)
             call(r)
@@ -161,6 +167,8 @@ def main(argv: list[str] | None = None) -> int:
         floor_cli = node.create_client(Trigger, "/bench_floor/trigger")
         while not floor_cli.service_is_ready():
             ex.spin_once(timeout_sec=0.05)
+        if call_resending(floor_cli, Trigger.Request(), wait, 60.0) is None:  # the answer path is matched
+            raise SystemExit("the floor service did not answer in 60 s")
         results: dict[str, tuple[list[float], int]] = {}
         times = []
         for i in range(calls + 50):
@@ -191,6 +199,9 @@ def main(argv: list[str] | None = None) -> int:
         while not all(c.service_is_ready() for c in bclients):
             ex.spin_once(timeout_sec=0.05)
         reqs = modes["nearest"]
+        for c in bclients:  # one answered request each: the burst measures the queue, not discovery
+            if call_resending(c, reqs[0], wait, 60.0) is None:
+                raise SystemExit("ik_service did not answer a burst client in 60 s")
         t0 = time.perf_counter()
         futs = [
             bclients[k].call_async(reqs[(4 * i + k) % len(reqs)]) for i in range(per_client) for k in range(4)

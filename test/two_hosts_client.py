@@ -78,8 +78,9 @@ class Client:
         return spin_until(self.ex, cond, timeout)
 
     def call(self, client: object, request: object, timeout: float) -> object | None:
-        fut = client.call_async(request)  # type: ignore[attr-defined]
-        return fut.result() if self.spin_until(fut.done, timeout) else None
+        from redarm_ros.nodes._common import call_resending  # (sent again: a first answer may be lost)
+
+        return call_resending(client, request, self.spin_until, timeout)
 
 
 def say(*parts: object) -> None:
