@@ -164,6 +164,42 @@ def test_feasible_swivels_equal_dense_ik(name: str) -> None:
                 assert dist.max() < 1e-7, (b, S[diff][:3])
 
 
+@pytest.mark.parametrize("name", SWIVEL_ARMS)
+def test_swivel_interval_is_the_feasible_interval_of_qs_pattern_that_holds_it(name: str) -> None:
+    """swivel_interval(q) is the row of feasible_swivels(fk(q))[p] that holds swivel(q), p being the
+    flip pattern whose ik_batch solution at swivel(q) is q: inside it, pattern p has an in-limit
+    solution (ik_batch valid); just beyond its ends (outside every interval of p) it has none."""
+    arm = ARMS[name]
+    rng = np.random.default_rng(7)
+    checked = 0
+    for q in rng.uniform(arm.lower, arm.upper, (60, 7)):
+        iv = arm.swivel_interval(q)
+        if iv is None:
+            continue
+        T, s0 = arm.fk(q), arm.swivel(q)
+        Q, valid = arm.ik_batch(T[None], np.array([s0]))
+        d = np.abs(np.remainder(Q[0] - q + math.pi, TWO_PI) - math.pi).max(axis=1)
+        p = int(np.argmin(np.where(valid[0], d, np.inf)))
+        assert valid[0, p] and d[p] < 1e-6, (name, q)
+        rows = arm.feasible_swivels(T)[p]
+        a, b = iv
+        assert any(abs(a - r0) < 1e-12 and abs(b - r1) < 1e-12 for r0, r1 in rows), (iv, rows)
+        assert a - 1e-9 <= a + (s0 - a) % TWO_PI <= b + 1e-9
+        inside = np.linspace(a, b, 22)[1:-1]
+        assert arm.ik_batch(np.repeat(T[None], len(inside), 0), inside)[1][:, p].all(), (name, q)
+
+        def in_rows(x: float, rows: np.ndarray = rows) -> bool:
+            return any(r0 - 1e-9 <= r0 + (x - r0) % TWO_PI <= r1 + 1e-9 for r0, r1 in rows)
+
+        if b - a < TWO_PI - 2e-3:
+            for x in (b + 1e-3, a - 1e-3):
+                if not in_rows(x):
+                    assert not arm.ik_batch(T[None], np.array([x]))[1][0, p], (name, q, x)
+        checked += 1
+    assert checked >= 20
+    assert arm.swivel_interval(arm.upper + 0.1) is None  # outside the limits
+
+
 def test_every_interval_end_is_a_limit_or_an_intersection() -> None:
     """At an interval end some joint of that flip pattern sits on a limit (the ends are roots)."""
     arm = ARMS["powercube7"]

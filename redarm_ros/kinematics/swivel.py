@@ -744,6 +744,36 @@ class SwivelArm(Arm):
         fn = self.swivel_functions(T)
         return feasible_intervals(fn, self._interval_tables)
 
+    def swivel_interval(self, q: Sequence[float]) -> tuple[float, float] | None:
+        """How far the elbow of configuration ``q`` can swivel, the hand held, before a joint meets its
+        limit: the interval [a, b] (rad, a in [-pi, pi), a <= swivel(q) (mod 2 pi) <= b <= a + 2 pi) of
+        :meth:`feasible_swivels` of q's pose, on q's flip pattern, that holds q's swivel. None if q is
+        outside the limits, its elbow stretched or folded (no swivel circle), or its pattern unknown
+        (a joint at a singular angle). Raises :class:`InvalidInputError` for a malformed q."""
+        qa = self.check_q(q)
+        if not self.within_limits(qa):
+            return None
+        T = self.fk(qa)
+        Tl = self.check_pose(T)
+        circ = self._circle(Tl)
+        if not isinstance(circ, tuple):
+            return None
+        s = self._swivel_lists(qa.tolist())
+        ql = qa.tolist()
+        ones = [1.0] * 7
+        pattern = None
+        for b in range(8):
+            r = self._branch_eval(Tl, circ, s, b, ql, ones)
+            if r is not None and r[1] < 1e-12:
+                pattern = b
+                break
+        if pattern is None:
+            return None
+        for a0, a1 in feasible_intervals(swivel_functions(self, Tl, circ), self._interval_tables)[pattern]:
+            if a0 + (s - a0) % TWO_PI <= a1 + 1e-9:
+                return float(a0), float(a1)
+        return None
+
     def ik_nearest(
         self,
         T: np.ndarray,
