@@ -230,6 +230,34 @@ def test_goal_sequences_from_random_postures_are_all_reached(scene_name: str) ->
     assert min(min_distance(ARM, qi, scene).distance for qi in q) >= 0.0
 
 
+@pytest.mark.parametrize("seed", [31, 33, 34])
+def test_reached_means_the_arm_stays_at_the_goal(seed: int) -> None:
+    """A user acts on REACHED (grasps, measures, sends the next goal later): for 2 s after it, with
+    nothing new asked, the phase stays REACHED, the commanded hand stays within pos_tolerance of the
+    goal and no joint turns faster than 10 % of its limit. Before, REACHED came when a joint-space move
+    ended, and the elbow then swung to its preferred swivel at full joint speed: the phase went back to
+    REACHING in 40-70 % of such goals, and the commanded hand left the goal by up to 12 cm."""
+    scene = load_scene("table_empty")
+    goals = random_goals(scene, np.random.default_rng(seed), 5)
+    ctl = ReachController(ARM, scene)
+    ctl.reset(READY)
+    vmax = np.asarray(ARM.max_vel)
+    for i, T in enumerate(goals):
+        assert ctl.set_goal(T).accepted
+        for _ in range(1500):
+            r = ctl.step(DT)
+            if r.phase is Phase.REACHED:
+                break
+        assert r.phase is Phase.REACHED, (i, r.message)
+        q_prev = r.q
+        for k in range(int(2.0 / DT)):
+            r = ctl.step(DT)
+            assert r.phase is Phase.REACHED, (i, k, r.phase, r.message)
+            assert r.distance_to_goal <= ctl.params.pos_tolerance, (i, k, r.distance_to_goal)
+            assert np.max(np.abs(r.q - q_prev) / DT / vmax) <= 0.1 + 1e-9, (i, k)
+            q_prev = r.q
+
+
 def test_a_dead_end_is_reported_at_once_and_left_by_a_joint_move() -> None:
     """The straight route folds the elbow onto its limit: the controller says so at the first step
     (REPLANNING, the reason in the message), moves in joint space and reaches the goal."""

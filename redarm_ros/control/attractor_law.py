@@ -35,6 +35,24 @@ from redarm_ros.kinematics.quaternion import (
 )
 
 
+def _brake_for_limit(sd: float, margins: tuple[float, float, float], eps: float, s_acc: float,
+                     dt: float) -> float:
+    """The swivel rate ``sd`` (rad/s) capped so that the swivel can still stop, decelerating at
+    ``s_acc``, before the nearest joint reaches its limit. ``margins``: the joints' least limit margin
+    (rad) at s, s + eps, s - eps. Run into a limit at speed, the IK step would stop the swivel at once,
+    and the joints, braking each at its own acceleration limit, would take the hand off its pose."""
+    m0, m_plus, m_minus = margins
+    slope = ((m_plus if sd > 0.0 else m_minus) - m0) / eps  # margin change per rad of swivel, ahead
+    if slope >= 0.0:
+        return sd
+    cap = float(braking_speed(max(m0, 0.0) / -slope, s_acc, dt))
+    return max(-cap, min(cap, sd))
+
+
+#: swivels sampled along the goal's in-limit swivel interval to find where the elbow can rest
+REST_SAMPLES = 64
+
+
 def _swivel_low(circle: ElbowCircle) -> float | None:
     """Swivel (rad) of the lowest elbow position on the circle; None if the circle is horizontal."""
     az, bz = circle.a[2], circle.b[2]
@@ -192,8 +210,10 @@ class AttractorMixin(ControllerBase):
 
         def swivel(circle: ElbowCircle, T: np.ndarray, s0: float) -> tuple[float, float, bool]:
             if p.swivel_mode == "fixed":
+                st.ref.sdot_want = 0.0
                 return st.ref.s_fixed, st.ref.s_fixed, False
             s_des = self._desired_swivel(circle)
+            margins = None
             if p.swivel_mode == PAPER_MODE:  # the attractor paper's eq. 22-24 (paper_redundancy.py)
                 paper = self.paper_swivel.step(circle, T, s0, s_des, st.ref.q, dt, self._local.scene,
                                                self.stepper)
@@ -204,6 +224,7 @@ class AttractorMixin(ControllerBase):
                 s_new, clearance = self.swivel_dyn.step(s0, s_des, dt, forces), forces.clearance
             # The swivel rate changes by at most max_swivel_acc per second.
             sd = wrap_angle(s_new - s0) / dt
+            st.ref.sdot_want = sd  # (the dynamics' own: the feed-forward is added below)
             if feed:
                 # The dynamics' own rate (attraction, obstacles, limits) within its share of the
                 # joints' acceleration; the preferred swivel's motion is fed forward on top.
@@ -213,10 +234,31 @@ class AttractorMixin(ControllerBase):
             else:
                 s_acc = self._joint_share_acc(abs(st.ref.sdot), p.max_swivel_acc)
                 sd = max(st.ref.sdot - s_acc * dt, min(st.ref.sdot + s_acc * dt, sd))
+                if margins is not None and sd != 0.0:
+                    sd = _brake_for_limit(sd, margins, p.swivel.eps, s_acc, dt)
+                sd = self._settling_rate_cap(sd)
             st.ref.s_des = s_des
             return wrap_angle(s0 + sd * dt), s_des, clearance < p.elbow_priority_clearance
 
         return swivel
+
+    def _settling_rate_cap(self, sd: float) -> float:
+        """With the hand at the goal, the swivel rate ``sd`` (rad/s) capped so that no joint turns
+        faster than ``settle_speed_share`` of its velocity limit (the joint rates of the last step
+        scaled with the swivel rate: with the hand still, the joints move with the swivel alone). The
+        elbow's way to its preferred swivel is a self-motion nobody waits for; at full joint speed the
+        joints could not follow its turns within their acceleration limits and took the hand along."""
+        st = self._state()
+        p = self.params
+        goal = st.goal
+        if goal is None or math.dist(st.ref.pos, goal.pos) > p.pos_tolerance:
+            return sd
+        rate = abs(st.ref.sdot)
+        ratio = float(np.max(np.abs(st.ref.qd) / self._max_vel))
+        if rate < 1e-9 or ratio < 1e-12:
+            return sd
+        cap = p.settle_speed_share * rate / ratio
+        return max(-cap, min(cap, sd))
 
     def _hand_acc(self) -> float | None:
         """Largest hand acceleration (m/s^2) along the path that keeps every joint within
@@ -267,12 +309,59 @@ class AttractorMixin(ControllerBase):
     def _desired_swivel(self, circle: ElbowCircle) -> float:
         p = self.params
         if p.swivel_reference == "absolute":
-            return wrap_angle(p.preferred_swivel)
+            return self._feasible_at_goal(wrap_angle(p.preferred_swivel))
         low = _swivel_low(circle)
         if low is None:
             return self._state().ref.s_des
         ref = low if p.swivel_reference == "low" else low + math.pi
-        return wrap_angle(ref + p.preferred_swivel)
+        return self._feasible_at_goal(wrap_angle(ref + p.preferred_swivel))
+
+    def _feasible_at_goal(self, s_des: float) -> float:
+        """With the hand at the goal, ``s_des`` moved to where the elbow can rest: the nearest of
+        :data:`REST_SAMPLES` swivels along the in-limit interval of the arm's branch that holds the
+        current swivel (closed form) at which every joint keeps the swivel dynamics' ``lim_threshold``
+        from its limits, or, if none does, the one with the widest margin. A preferred swivel beyond
+        a joint limit, or within the joint-limit force's reach, pins the elbow where that force and
+        the attraction meet, and it chatters there (joints at 10-15 % of their speed, ~2 Hz) and
+        never settles."""
+        st = self._state()
+        goal = st.goal
+        interval = getattr(self.arm, "swivel_interval", None)
+        if goal is None or interval is None or math.dist(st.ref.pos, goal.pos) > self.params.pos_tolerance:
+            return s_des
+        if not goal.rest_known:  # once per goal: the hand stays there
+            goal.rest_known = True
+            goal.rest = self._rest_swivels(interval(st.ref.q), pose_matrix(goal.pos, goal.rot))
+        if goal.rest is None:
+            return s_des
+        a, samples, ok = goal.rest
+        x = a + ((s_des - a) % (2.0 * math.pi))  # s_des on the interval's unwrapped axis
+        # the nearest sample where the margins were checked (between two of them a joint may still dip
+        # into the limit force's reach)
+        k = int(np.argmin(np.abs(samples - x) + np.where(ok, 0.0, 1e3)))
+        return wrap_angle(float(samples[k]))
+
+    def _rest_swivels(self, iv: tuple[float, float] | None, T: np.ndarray
+                      ) -> tuple[float, np.ndarray, np.ndarray] | None:
+        """Samples of the in-limit swivel interval ``iv`` of pose T (the interval's start, the swivels
+        unwrapped from it, and which of them keep every joint ``lim_threshold`` inside its limits; if
+        none does, only the one with the widest margin counts)."""
+        if iv is None:
+            return None
+        a, b = iv
+        st = self._state()
+        samples = np.linspace(a, b, REST_SAMPLES)
+        margins = np.full(REST_SAMPLES, -math.inf)
+        for i, sv in enumerate(samples):
+            pick = self.stepper.solve(T, wrap_angle(float(sv)), st.ref.q, 1.0)
+            if pick is not None:
+                margins[i] = self.stepper.margin(pick[0])
+        if not np.isfinite(margins).any():
+            return None
+        ok = margins >= self.params.swivel.lim_threshold
+        if not ok.any():
+            ok = margins >= margins.max()
+        return a, samples, ok
 
     def _heading_to_goal(self) -> tuple[float, float]:
         st = self._state()

@@ -30,6 +30,8 @@ from redarm_ros.errors import UnreachableError
 from redarm_ros.kinematics.quaternion import quat_angle, rotvec_between
 
 LOG = logging.getLogger(__name__)
+#: m: a reference hand step longer than this is motion (restarts the settle dwell of the swivel)
+HAND_STILL_STEP = 1e-6
 
 
 class CommandMixin(ControllerBase):
@@ -69,6 +71,8 @@ class CommandMixin(ControllerBase):
         moved = math.dist(pos, ref.pos)
         ratio = float(np.max(np.abs(q - ref.q) * self._inv_vel)) / dt
         ref.sdot = wrap_angle(s - ref.s) / dt if p.swivel_mode != "fixed" else 0.0
+        if abs(ref.sdot) > p.settle_swivel_rate or moved > HAND_STILL_STEP:
+            ref.swivel_moved_at = st.time  # (a swivel that waits for the hand is not held by a limit)
         ref.w_ori = quat_angle(ref.rot, rot) / dt
         ref.vel = ((pos[0] - ref.pos[0]) / dt, (pos[1] - ref.pos[1]) / dt, (pos[2] - ref.pos[2]) / dt)
         wv = rotvec_between(ref.rot, rot)
@@ -162,6 +166,8 @@ class CommandMixin(ControllerBase):
             ref.circle = None
         ref.sdot = 0.0
         ref.sdot_dyn = 0.0
+        ref.sdot_want = math.nan
+        ref.swivel_moved_at = st.time
         ref.w_ori = 0.0
         if keep_velocity:
             J = np.asarray(self.arm.jacobian(cmd.q), float)

@@ -68,6 +68,8 @@ from redarm_ros.kinematics.quaternion import (
 
 LOG = logging.getLogger(__name__)
 SETTLING = "at the goal; the elbow is settling on its preferred swivel"
+#: s a swivel must stand (below settle_swivel_rate) while its dynamics asks to move, to count as settled
+SETTLE_DWELL_S = 0.3
 
 __all__ = [
     "ControllerParams",
@@ -530,7 +532,9 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
         d = math.dist(st.cmd.pos, goal.pos)
         err = quat_angle(st.cmd.rot, goal.rot)
         at_goal = d <= p.pos_tolerance and err <= p.ori_tolerance
-        if at_goal and self._settled():
+        # Hysteresis: once REACHED, the rate thresholds are doubled, so a rate that hovers at a
+        # threshold does not make the phase flicker (the tolerances on the pose stay as they are).
+        if at_goal and self._settled(2.0 if st.phase is Phase.REACHED else 1.0):
             st.phase = Phase.REACHED
             if st.message.startswith(SETTLING):
                 st.message = ""
@@ -539,12 +543,16 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
             if at_goal and not st.message:
                 st.message = SETTLING
 
-    def _settled(self) -> bool:
+    def _settled(self, slack: float = 1.0) -> bool:
         """The reference is at the goal too, the commanded tool has (nearly) stopped (below
         ``pos_tolerance`` per 0.1 s) and so have the joints (below 5 % of their velocity limits, within
-        1 mrad of the reference): REACHED neither flickers while the command catches up nor comes
-        while the elbow still swings about its swivel. The elbow's slow final approach to its preferred
-        swivel (a self-motion: the tool stands) may go on after REACHED."""
+        1 mrad of the reference), and the elbow has settled: the swivel's rate below
+        ``settle_swivel_rate``, and so the rate its dynamics asks for, unless the swivel has stood for
+        :data:`SETTLE_DWELL_S` anyway (held by the joint limits). So REACHED neither flickers while the
+        command catches up nor comes while the elbow still has to swing to its swivel (after a
+        joint-space move the joints stop first, then the swivel dynamics turns the elbow). The elbow's
+        last slow approach (below that rate; a self-motion: the tool stands) may go on after REACHED.
+        ``slack`` scales the rate thresholds."""
         st = self._state()
         p = self.params
         goal = st.goal
@@ -552,9 +560,19 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
         if math.dist(st.ref.pos, goal.pos) > p.pos_tolerance or \
                 quat_angle(st.ref.rot, goal.rot) > p.ori_tolerance:
             return False
-        if st.cmd.tool_speed > p.pos_tolerance / 0.1:
+        if st.cmd.tool_speed > slack * p.pos_tolerance / 0.1:
             return False
-        return float(np.max(np.abs(st.cmd.qd) / self._max_vel)) <= 0.05 and \
+        # The elbow too: right after a joint-space move the joints are at rest, but the swivel dynamics
+        # has yet to run (sdot_want NaN) and turn the elbow to its preferred swivel, starting slowly
+        # (its acceleration is limited). A swivel its dynamics asks to move that stands for
+        # SETTLE_DWELL_S is held by the limits: settled too.
+        settle = slack * p.settle_swivel_rate
+        ref = st.ref
+        if math.isnan(ref.sdot_want) or abs(ref.sdot) > settle:
+            return False
+        if abs(ref.sdot_want) > settle and st.time - ref.swivel_moved_at < SETTLE_DWELL_S:
+            return False
+        return float(np.max(np.abs(st.cmd.qd) / self._max_vel)) <= slack * 0.05 and \
             float(np.max(np.abs(st.ref.q - st.cmd.q))) <= 1e-3
 
     def _result(self) -> StepResult:

@@ -49,6 +49,13 @@ class Reference:
     s_fixed: float = 0.0
     sdot: float = 0.0  # swivel rate of the last step (rad/s)
     sdot_dyn: float = 0.0  # the swivel dynamics' part of it while tracking (without the feed-forward)
+    # the rate the swivel dynamics asked for at the last step, before the rate limits (rad/s); NaN until
+    # the dynamics has run from the current reference (e.g. right after a joint-space move)
+    sdot_want: float = 0.0
+    # controller time (s) at which the swivel last turned faster than settle_swivel_rate, the hand
+    # last moved, or the reference was reset: a swivel its dynamics asks to move that stands this long
+    # with the hand still is held by the limits, and counts as settled after SETTLE_DWELL_S
+    swivel_moved_at: float = -math.inf
     w_ori: float = 0.0  # orientation rate of the last step (rad/s)
     v_tool: float = 0.0  # tool speed of the last step (m/s)
     vel: Vec3 = ZERO3  # tool velocity of the last step (m/s), the servo's state
@@ -92,6 +99,10 @@ class Goal:
     rot: Quat
     kind: GoalKind
     since: float
+    # where the elbow may rest at this goal (start, swivel samples, which are clear of the limit force):
+    # found once, when the hand first gets there (rest_known), None if it could not be found
+    rest: tuple[float, np.ndarray, np.ndarray] | None = None
+    rest_known: bool = False
 
 
 @dataclass
