@@ -16,7 +16,9 @@ Scored from the commanded joints (FK, capsules), not from the controller's repor
 the largest joint step over the velocity limit and second difference over the acceleration limit
 (1.0 = at the limit). Path ratio = tool path / straight distance of reached goals. "explained" counts
 the goals not reached for which the controller said why (a phase HOLDING / REPLANNING / BLOCKED or a
-message) within 1 s of its last progress.
+message) within 1 s of its last progress. After REACHED the arm is watched for 2 s before the next goal (a
+user acts on REACHED: grasps, measures): how far the commanded hand drifts from the goal, how far the
+joints travel, and whether the phase leaves REACHED.
 
     .venv/bin/python benchmarks/sequence_bench.py                # 50 sequences x 10 goals per scene
     .venv/bin/python benchmarks/sequence_bench.py --quick --no-write
@@ -45,6 +47,7 @@ import bench_common  # noqa: E402
 
 DT = 0.01
 GOAL_TIMEOUT = 10.0
+AFTER_S = 2.0  # s the arm is watched after REACHED (a user acts then: grasp, measure, next goal)
 READY = np.array([0.0, 0.5, 0.0, 1.3, 0.0, 1.0, 0.0])
 RESULTS = Path(__file__).resolve().parent / "results" / "sequence_bench.md"
 SCENES = ("table_empty", "table_cylinder", "narrow_passage", "random")
@@ -64,6 +67,9 @@ class GoalOutcome:
     phases: set[str]
     last: str  # final phase and message when not reached
     explained: bool
+    after_drift: float = math.nan  # m: farthest the commanded hand got from the goal in AFTER_S after REACHED
+    after_travel: float = math.nan  # rad: largest joint travel in AFTER_S after REACHED
+    after_left: bool = False  # the phase left REACHED within AFTER_S (no new goal, no scene change)
 
 
 @dataclass
@@ -158,6 +164,19 @@ def run_sequence(arm, scene: Scene, goals: list[np.ndarray], stats: SceneStats, 
                 break
         assert r is not None
         reached = r.phase is Phase.REACHED
+        drift = travel = math.nan
+        left = False
+        if reached:  # the user acts on REACHED: the arm must stay at the goal
+            q_at = r.q
+            drift = travel = 0.0
+            for _ in range(int(round(AFTER_S / DT))):
+                ra = ctl.step(DT)
+                drift = max(drift, ra.distance_to_goal)
+                travel = max(travel, float(np.max(np.abs(ra.q - q_at))))
+                left |= ra.phase is not Phase.REACHED
+                vel = max(vel, float(np.max(np.abs(ra.q - q_prev) / vmax)))
+                acc = max(acc, float(np.max(np.abs(ra.q - 2 * q_prev + q_prev2) / amax)))
+                q_prev2, q_prev = q_prev, ra.q
         Q = np.array(qs)
         tool = arm.fk_batch(Q)[:, :3, 3]
         plen = float(np.sum(np.linalg.norm(np.diff(tool, axis=0), axis=1)))
@@ -178,6 +197,9 @@ def run_sequence(arm, scene: Scene, goals: list[np.ndarray], stats: SceneStats, 
                 phases,
                 "" if reached else f"[{label} goal {gi}] {r.phase.value}: {r.message.split(' (')[0][:80]}",
                 explained,
+                drift,
+                travel,
+                left,
             )
         )
 
@@ -211,12 +233,18 @@ def _q(x: list[float], p: float) -> str:
     return f"{np.percentile(x, p):.2f}" if x else "-"
 
 
+def _after(o: list[GoalOutcome], key: str, scale: float) -> str:
+    v = [getattr(x, key) for x in o if x.reached]
+    return f"{max(v) * scale:.2f}" if v else "-"
+
+
 def report(stats: dict[str, SceneStats]) -> list[str]:
     lines = [
         "| scene | goals | reached % (10 s) | collision-free % | time per goal median / p95 s | "
         "path ratio median / p95 | re-planned % | largest joint vel / acc ratio | limit violations | "
-        "not reached: explained | goals accepted of sampled |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "not reached: explained | goals accepted of sampled | after REACHED: hand drift max mm / "
+        "> 1 mm % | after REACHED: joint travel max rad | after REACHED: left REACHED % |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for name, st in stats.items():
         o = st.outcomes
@@ -232,7 +260,9 @@ def report(stats: dict[str, SceneStats]) -> list[str]:
             f"{_q([x.time_s for x in o], 95)} | {_q([x.path_ratio for x in o], 50)} / "
             f"{_q([x.path_ratio for x in o], 95)} | {_pct(replanned, n)} | "
             f"{max(x.vel_ratio for x in o):.3f} / {max(x.acc_ratio for x in o):.3f} | {viol} | "
-            f"{sum(x.explained for x in miss)} of {len(miss)} | {acc_goals} of {st.sampled} |"
+            f"{sum(x.explained for x in miss)} of {len(miss)} | {acc_goals} of {st.sampled} | "
+            f"{_after(o, 'after_drift', 1e3)} / {_pct(sum(x.after_drift > 1e-3 for x in o), reached)} | "
+            f"{_after(o, 'after_travel', 1.0)} | {_pct(sum(x.after_left for x in o), reached)} |"
         )
     lines.append("")
     for name, st in stats.items():
