@@ -188,7 +188,8 @@ def run_node(group: ProcessGroup, can_kwargs: dict[str, Any], rate: float, secon
     from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
     from redarm_ros.kinematics import load_arm
-    from redarm_ros.nodes._common import call_resending, poll_until
+    from redarm_ros.nodes._common import call_resending
+    from redarm_ros.procs import poll_until
 
     arm = load_arm(ARM_NAME)
     params = {"arm": ARM_NAME, "can.interface": can_kwargs["interface"], "can.channel": can_kwargs["channel"],

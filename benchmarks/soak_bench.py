@@ -125,7 +125,8 @@ def soak(seconds: float, hog: int, prio: int) -> tuple[Observed, dict[str, Any],
     from std_srvs.srv import Trigger
 
     from redarm_ros.kinematics import load_arm
-    from redarm_ros.nodes._common import call_resending, poll_until
+    from redarm_ros.nodes._common import call_resending
+    from redarm_ros.procs import poll_until
 
     arm = load_arm(ARM_NAME)
     obs = Observed()

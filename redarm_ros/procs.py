@@ -47,6 +47,7 @@ __all__ = [
     "ChildDiedError",
     "die_with_parent_preexec",
     "ManagedProcess",
+    "poll_until",
     "ProcessGroup",
     "ReadinessTimeoutError",
     "python_module_cmd",
@@ -112,6 +113,17 @@ class ReadinessTimeoutError(RedarmError, TimeoutError):
         self.pattern = pattern
         self.timeout_s = timeout_s
         self.tail = list(tail)
+
+
+def poll_until(cond: Callable[[], object], timeout: float, period: float = 0.02) -> bool:
+    """Poll ``cond()`` every ``period`` s until it holds (True) or ``timeout`` s passed (False): for
+    callers whose rclpy executor spins in another thread, and for tests waiting on a child."""
+    deadline = time.monotonic() + timeout
+    while not cond():
+        if time.monotonic() >= deadline:
+            return False
+        time.sleep(period)
+    return True
 
 
 def random_domain_id(rng: random.Random | None = None) -> int:

@@ -15,7 +15,8 @@ from rclpy.executors import MultiThreadedExecutor  # noqa: E402
 from rclpy.task import Future  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
-from redarm_ros.nodes._common import call_resending, poll_until  # noqa: E402
+from redarm_ros.nodes._common import call_resending  # noqa: E402
+from redarm_ros.procs import poll_until  # noqa: E402
 
 
 class FakeClient:

@@ -300,17 +300,6 @@ def spin_until(executor: Any, cond: Callable[[], object], timeout: float, period
     return False
 
 
-def poll_until(cond: Callable[[], object], timeout: float, period: float = 0.02) -> bool:
-    """Poll ``cond()`` every ``period`` s until it holds (True) or ``timeout`` s passed (False): for
-    callers whose executor spins in another thread."""
-    deadline = time.monotonic() + timeout
-    while not cond():
-        if time.monotonic() >= deadline:
-            return False
-        time.sleep(period)
-    return True
-
-
 #: Seconds :func:`call_resending` waits for an answer before it sends the request again.
 RESEND_AFTER_S = 8.0
 

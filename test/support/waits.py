@@ -2,19 +2,15 @@
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable
 from typing import Any
 
+from redarm_ros.procs import poll_until
+
 
 def wait_until(pred: Callable[[], object], timeout: float = 5.0, step: float = 0.01) -> bool:
-    """Poll ``pred`` every ``step`` s until it is true or ``timeout`` s have passed; its last value."""
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if pred():
-            return True
-        time.sleep(step)
-    return bool(pred())
+    """Poll ``pred`` every ``step`` s until it is true (True) or ``timeout`` s have passed (False)."""
+    return poll_until(pred, timeout, step)
 
 
 def spin_until(ex: Any, pred: Callable[[], object], timeout: float, spin_s: float = 0.02) -> bool:
