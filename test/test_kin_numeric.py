@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from redarm_ros.kinematics import IKStatus, load_arm
+from redarm_ros.kinematics import IKStatus, load_arm, pose_error
 from redarm_ros.kinematics.numeric import fk_jacobian, solve_dls, solve_flow
 
 ARMS = ["pa10", "powercube7", "powercube6"]
@@ -126,3 +126,6 @@ def test_generic_chain_uses_numeric_nearest(tmp_path: Path) -> None:
     q = np.array([0.3, -0.5, 0.4, 0.2, -0.3, 0.1])
     qs, info = arm.ik_nearest(arm.fk(q), q + 0.1, timeout_s=None, max_iter=500)
     assert info.ok and info.pos_err < 1e-5 and info.rot_err < 1e-5
+    assert qs is not None and arm.within_limits(qs)
+    pe, re = pose_error(arm.fk(qs), arm.fk(q))  # the returned q, not only the report, solves it
+    assert pe < 1e-5 and re < 1e-5

@@ -21,6 +21,7 @@ MIXED = load_bench("bench_common").mixed_collision_poses
 ARMS = {name: load_arm(name) for name in ("pa10", "powercube6", "powercube7")}
 FRONT = IKFrontEnd(ARMS, "pa10")
 PA10 = ARMS["pa10"]
+TWO_PI = 2.0 * math.pi
 
 
 def _solve(T: np.ndarray, arm: str = "pa10", **kw: Any) -> Any:
@@ -77,6 +78,10 @@ def test_at_swivel_without_solution_names_the_nearest_feasible_swivels() -> None
                 assert "nearest in-limit swivels" in ans.message
                 a, b = (float(v) for v in ans.message.split("[")[1].split("]")[0].split(","))
                 assert len(PA10.ik(T, 0.5 * (a + b))) >= 1  # the named interval has solutions
+                # ... and no feasible swivel is nearer s than it (to the message's 4 decimals)
+                gaps = [min((a0 - s) % TWO_PI, (s - b0) % TWO_PI) for iv in ivs for a0, b0 in iv.tolist()]
+                named = min((a - s) % TWO_PI, (s - b) % TWO_PI)
+                assert named <= min(gaps) + 2e-4, (named, min(gaps))
                 return
     pytest.fail("no pose with an infeasible swivel found")
 

@@ -64,7 +64,9 @@ def test_swivel_inverts_the_elbow_construction(name: str) -> None:
         qa = shortest_rotation(n)
         assert np.allclose(C + rho * qrotate(qa, u), pE, atol=1e-9)
         # every solution at s puts the elbow there and reports the same swivel
-        for sol in arm.ik(T, s):
+        sols = arm.ik(T, s)
+        assert len(sols) >= 1  # q itself is one
+        for sol in sols:
             assert np.allclose(arm.key_points(sol)[2], pE, atol=1e-9)
             assert abs(math.remainder(arm.swivel(sol) - s, 2 * math.pi)) < 1e-7
 
