@@ -107,7 +107,8 @@ def test_sync_braking_keeps_the_joint_space_direction() -> None:
     q_b, v_b, _ = g.brake(Q_A, qd, math.inf, 0.01, Scene(), sync=True)
     assert np.all(np.abs(v_b - qd) <= ARM.max_acc * 0.01 + 1e-12)
     ratio = v_b[qd != 0] / qd[qd != 0]
-    assert np.allclose(ratio, ratio[0])
+    assert np.allclose(ratio, ratio[0]) and 0.0 <= ratio[0] < 1.0  # braked, along the same direction
+    assert np.all(v_b[qd == 0] == 0.0)  # still joints stay still
 
 
 # ------------------------------------------------------------------------------------------------

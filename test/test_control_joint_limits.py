@@ -45,6 +45,7 @@ def test_clipped_when_one_joint_must_brake_and_another_speed_up() -> None:
     r = limit_step(q0, v0, target, DT, VMAX, AMAX, LO, HI)
     assert r.mode is LimitMode.CLIPPED
     assert np.all(np.abs(r.v - v0) <= AMAX * DT + 1e-12)
+    assert r.v[0] < v0[0] and r.v[1] > 0.0  # joint 0 brakes, joint 1 starts
 
 
 def test_braking_speed_stops_on_the_spot() -> None:
@@ -56,6 +57,8 @@ def test_braking_speed_stops_on_the_spot() -> None:
             q += vel * DT
             vel = max(vel - 2.0 * DT, 0.0)
         assert q <= d + 1e-12
+        assert q == pytest.approx(d, abs=1e-9)  # ... and stop on it: the largest such speed
+        assert (v > 0.0) == (d > 0.0)
 
 
 def test_random_steps_always_respect_every_limit() -> None:

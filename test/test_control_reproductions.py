@@ -81,7 +81,9 @@ def test_reproductions_write_pngs_and_report(tmp_path) -> None:
     reports = json.loads((tmp_path / "reproductions.json").read_text())
     assert "| scenario |" in (tmp_path / "reproductions.md").read_text()
     by = {(r["scenario"], r["variant"]): r for r in reports}
-    for key in [k for k in by if k[0] in ("narrow", "moved_target", "appearing_obstacle")]:
+    attractor = ("narrow", "moved_target", "appearing_obstacle")
+    assert set(attractor) <= {k[0] for k in by}  # every attractor scenario is in the report
+    for key in [k for k in by if k[0] in attractor]:
         r = by[key]
         assert r["reached"] and r["pos_err"] < 1e-3, key
         assert r["min_clearance"] > 0.0, key

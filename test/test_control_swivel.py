@@ -205,13 +205,23 @@ def test_singularity_force_points_away_from_singularity(geom) -> None:
         assert math.copysign(1.0, f.singularity) == math.copysign(1.0, ds)
 
 
-def test_limit_force_from_probed_margins() -> None:
-    dyn = SwivelDynamics(SwivelParams(lim_threshold=0.3))
-    f_none = SwivelForces()
-    assert dyn.rate(0.0, 0.0, f_none) == 0.0
-    # margin grows towards +s: the force is positive
+def test_limit_force_from_probed_margins(geom) -> None:
     from redarm_ros.control.swivel_dynamics import probe_direction, ramp_amplitude
 
     assert ramp_amplitude(0.1, 0.3) == pytest.approx(2 / 3)
     assert ramp_amplitude(0.5, 0.3) == 0.0
     assert probe_direction(0.12, 0.08, 0.02, 0.05) > 0.5
+    dyn = SwivelDynamics(SwivelParams(lam_des=0.0, lam_obs=0.0, lam_sing=0.0, lam_lim=1.0, lim_threshold=0.3))
+    assert dyn.rate(0.0, 0.0, SwivelForces()) == 0.0
+    circle = elbow_circle(geom, _tool_pose([0.5, 0.0, 0.4]))
+    s = 0.7
+    # inside the threshold, the margin growing towards +s: the force and the swivel rate point to +s
+    f = dyn.forces(circle, s, None, ArmCapsules(), limit_margins=(0.1, 0.12, 0.08))
+    assert f.limits == pytest.approx((2 / 3) * probe_direction(0.12, 0.08, dyn.params.eps, 0.05))
+    assert f.limits > 0.0 and dyn.rate(s, s, f) > 0.0
+    # ... towards -s: negative
+    f = dyn.forces(circle, s, None, ArmCapsules(), limit_margins=(0.1, 0.08, 0.12))
+    assert f.limits < 0.0 and dyn.rate(s, s, f) < 0.0
+    # margins beyond the threshold, or none probed: no limit force
+    assert dyn.forces(circle, s, None, ArmCapsules(), limit_margins=(0.3, 0.35, 0.25)).limits == 0.0
+    assert dyn.forces(circle, s, None, ArmCapsules()).limits == 0.0

@@ -264,6 +264,9 @@ def test_twist_into_the_table_is_stopped_by_the_slide_and_the_guard() -> None:
         qs.append(ctl.step(DT, t).q)
     assert min(min_distance(ARM, q, Scene((), 0.0)).distance for q in qs) >= 0.0
     check_limits(np.array(qs))
+    z = np.array([ARM.fk(q)[2, 3] for q in qs])
+    assert z[-1] < z[0] - 0.02  # the hand went down with the twist ...
+    assert np.max(np.abs(np.diff(z[-20:]))) < 1e-4  # ... and was stopped above the table
 
 
 def test_twist_validation() -> None:

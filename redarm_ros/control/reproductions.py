@@ -111,7 +111,8 @@ def run_swivel_example(arm: Any, scene: Scene, s_des_fn: Any, laps: float = 3.0,
 
     ``s_des_fn(t)`` gives the desired swivel (rad). With ``quaternion_form`` the state is the swivel
     quaternion u and the loop uses no trigonometric call (probes r+/- u with constant cos/sin eps).
-    The joint solution at each step is the in-limit one nearest the previous (no branch flip).
+    The joint solution at each step is the in-limit one nearest the previous (no branch flip); NaN
+    where there is none.
     ``score_scene``: scene the recorded clearance is measured against (default: ``scene``).
     """
     caps = capsules or ArmCapsules()
@@ -145,7 +146,8 @@ def run_swivel_example(arm: Any, scene: Scene, s_des_fn: Any, laps: float = 3.0,
             else:
                 q = sols[int(np.argmin(np.max(np.abs(sols - q_prev), axis=1)))]
             q_prev = q
-        qs.append(q_prev if q_prev is not None else np.full(arm.n, np.nan))
+        # a step without an in-limit solution is NaN (not the last one again): the report counts them
+        qs.append(q if sols.shape[0] else np.full(arm.n, np.nan))
         ts.append(t)
         ss.append(s)
         sds.append(sd)
