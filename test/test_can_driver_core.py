@@ -514,9 +514,12 @@ def test_every_frame_is_stamped_with_its_send_time(clock: FakeClock, arm: Emulat
 
     with ScriptedBus(clock, responder) as bus:
         drv = ready_driver(bus, clock)
+        n0 = len(stamps)
         t0 = time.time()
         drv.cycle(None, 0.004)
-        assert stamps and all(abs(t - t0) < 60.0 for t in stamps[-N - 1:])
+        t1 = time.time()
+        cycle = stamps[n0:]  # every frame of the cycle, stamped when it was sent
+        assert len(cycle) >= N + 1 and all(t0 <= t <= t1 for t in cycle), (t0, cycle, t1)
 
 
 def test_a_flood_of_foreign_frames_does_not_stall_the_cycle(clock: FakeClock, arm: EmulatedArm) -> None:

@@ -208,6 +208,9 @@ def test_halt_sets_halted_and_refuses_motion_until_reset(clock: FakeClock) -> No
     assert arm.positions()[0] == at
     arm.handle(p.reset(1))
     assert not state_of(arm, 1) & S.HALTED
+    arm.handle(p.framp(1, 1.0))  # ... and moves again after the reset
+    clock.advance(3.0)
+    assert arm.positions()[0] == pytest.approx(1.0)
 
 
 def test_sync_motion_waits_for_startmove_broadcast(clock: FakeClock) -> None:
@@ -353,7 +356,7 @@ def test_soft_limit_change_reaches_the_plant(clock: FakeClock) -> None:
     arm.handle(p.set_param(1, Param.ACT_FMAXPOS, 0.5))
     arm.handle(p.fvel(1, 1.0))
     clock.advance(3.0)
-    assert arm.positions()[0] <= 0.5 + 1e-9  # braked before the new soft limit
+    assert 0.45 < arm.positions()[0] <= 0.5 + 1e-9  # moved, and braked before the new soft limit
     assert not state_of(arm, 1) & S.BEYOND_SOFT
 
 

@@ -33,8 +33,10 @@ def test_segments_go_out_unstamped_when_the_driver_clock_differs(offset: float) 
 def test_unstamped_joint_states_or_none_mean_unstamped_segments() -> None:
     clk = CommandClock(0.03)
     assert not clk.stamping and math.isinf(clk.offset())
+    assert clk.segment(t_step=50.0, dt=0.01).stamp is None  # no joint_states yet
     clk.joint_state(stamp=0.0, now=50.0)
     assert not clk.stamping
+    assert clk.segment(t_step=50.0, dt=0.01).stamp is None  # an unstamped one
 
 
 def test_the_check_forgets_samples_older_than_its_window() -> None:

@@ -103,6 +103,7 @@ def test_park_answers_when_the_arm_is_there_within_the_limits(rig) -> None:
     assert loop.commands.mode is CommandMode.PARK
     # The reference sent each cycle kept the velocity and acceleration limits (100 Hz cycles).
     refs = np.array([s.target for s in rig["samples"][n0:] if s.target is not None])
+    assert len(refs) > 50, len(refs)  # the move took cycles (not an empty check)
     v = np.diff(refs, axis=0) * 100.0
     a = np.diff(v, axis=0) * 100.0
     assert np.all(np.abs(v) <= np.array(VMAX) + 1e-6)

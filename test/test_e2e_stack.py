@@ -98,6 +98,8 @@ def test_out_of_reach_goal_rejected_and_arm_holds(stack: Stack, client: Client) 
     T[:3, 3] = (1.5, 0.0, 0.5)
     n = client.send(T)
     assert client.spin_until(lambda: client.seen(ControllerState.REJECTED, n), 10.0)
+    why = next(s.message for s in client.states[n:] if s.phase == ControllerState.REJECTED)
+    assert "out of reach" in why, why  # rejected for the right reason
     assert client.solve(T, READY_Q).status == SolveIK.Response.OUT_OF_REACH
     client.spin_until(lambda: False, 1.0)
     # Holding: the arm stays where it was (the elbow may not drift either).

@@ -233,8 +233,9 @@ def test_every_solution_colliding_is_reported_and_the_flag_allows_it(service: An
 
 @pytest.mark.parametrize("arm_name", ARMS)
 def test_solutions_are_collision_free_and_carry_their_clearance(service: Any, arm_name: str) -> None:
-    """Uniform postures over the whole range (some collide): every SUCCESS answer and every listed
-    solution is collision-free; the others say ALL_SOLUTIONS_COLLIDE."""
+    """Uniform postures over the whole range: every SUCCESS answer and every listed solution is
+    collision-free; any other answer is ALL_SOLUTIONS_COLLIDE and hands out no solution (a pose whose
+    every solution collides is the test above)."""
     _, call = service
     arm = load_arm(arm_name)
     rng = np.random.default_rng(17)
@@ -250,6 +251,8 @@ def test_solutions_are_collision_free_and_carry_their_clearance(service: Any, ar
             assert not sc.colliding and resp.clearance == pytest.approx(sc.min_distance, abs=1e-12)
             rows = np.array([pt.positions for pt in resp.solutions])
             assert not self_collision_batch(arm, rows).colliding.any()
+        else:  # no solution handed out
+            assert len(resp.solution.position) == 0 and len(resp.solutions) == 0
     assert R.SUCCESS in statuses
 
 
@@ -347,7 +350,9 @@ def test_default_arm_and_base_frame(service: Any) -> None:
     req.target.header.frame_id = "base_link"
     resp = call(req)
     assert resp.status == R.SUCCESS
-    assert len(resp.solution.position) == 7
+    pa10 = load_arm("pa10")  # the default arm solved it (its joint names, its pose)
+    assert list(resp.solution.name) == list(pa10.joint_names)
+    assert pa10.pose_error(np.array(resp.solution.position), GOOD_T)[0] < 1e-9
 
 
 def test_pose_msg_to_matrix_tolerance() -> None:
@@ -490,10 +495,9 @@ def test_burst_of_2000_outstanding_requests_all_answered(procs: Any, ctx: Any) -
             executor.spin_once(timeout_sec=0.05)
         answered = [(idx, f.result()) for idx, f in futures if f.done()]
         assert len(answered) == 2000, f"{2000 - len(answered)} of 2000 requests never answered"
-        for idx, resp in answered[::50]:  # each answer solves its own request
+        for idx, resp in answered:  # each answer solves its own request
             assert resp.status == R.SUCCESS, resp.message
             assert arm.pose_error(np.array(resp.solution.position), arm.fk(Q[idx]))[0] < 1e-9
-        assert all(resp.status == R.SUCCESS for _, resp in answered)
     finally:
         executor.shutdown()
         for n in nodes:

@@ -69,8 +69,11 @@ def test_random_command_sequences_respect_limits():
 def test_velocity_mode_brakes_before_the_limit_and_halt_stops():
     r = JointRamp(0.0, -1.0, 1.0, max_vel=1.0, max_acc=1.0)
     r.command_velocity(5.0)  # clamped to max_vel
-    _run(r, 4000)
+    ps = [r.pos] + _run(r, 4000)
     assert r.pos == pytest.approx(1.0) and r.vel == 0.0
+    v, a = _vel_acc(ps)  # it braked before the limit (no clamp onto it at speed)
+    assert max(ps) <= 1.0 and np.abs(v).max() == pytest.approx(1.0)
+    assert np.abs(a).max() <= 1.0 * (1 + 1e-6)
     r.command_velocity(-0.5)
     _run(r, 1000)
     assert r.vel == pytest.approx(-0.5)
@@ -166,16 +169,29 @@ def test_position_and_velocity_moves_brake_for_moved_limits():
     v, a = _vel_acc(ps)
     assert max(ps) <= 1.2 and ps[-1] == pytest.approx(1.2)
     assert np.abs(a).max() <= 2.0 * (1 + 1e-6)
+    # a velocity move alike
+    r = JointRamp(0.0, -2.0, 2.0, max_vel=1.0, max_acc=2.0)
+    r.command_velocity(1.0)
+    _run(r, 700)
+    assert r.vel == pytest.approx(1.0)
+    r.set_limits(-2.0, 1.2)
+    ps = [r.pos] + _run(r, 2000)
+    v, a = _vel_acc(ps)
+    assert max(ps) <= 1.2 and ps[-1] == pytest.approx(1.2) and r.vel == 0.0
+    assert np.abs(a).max() <= 2.0 * (1 + 1e-6)
     with pytest.raises(ValueError):
         r.set_limits(1.0, 0.0)
 
 
 def test_stream_end_brakes_within_the_acceleration_limit_and_settles_on_target():
     r = JointRamp(0.0, -3, 3, max_vel=2.0, max_acc=8.0)
+    stream = [r.pos]
     for k in range(100):  # 1 rad/s ramp stream
         r.command_position(k * 0.01, duration_s=0.01)
-        _run(r, 10)
+        stream += _run(r, 10)
     ps = _run(r, 1000)
+    _, a = _vel_acc(stream + ps)  # following the stream and braking at its end
+    assert np.abs(a).max() <= 8.0 * (1 + 1e-6)
     overshoot = max(ps) - r.target
     assert 0 < overshoot <= 1.0**2 / (2 * 8.0) + 1e-3
     assert ps[-1] == r.target and r.mode is RampMode.IDLE
