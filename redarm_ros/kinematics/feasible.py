@@ -90,6 +90,8 @@ DIRECTIONS = 8  # equal-angle samples per pivot joint: atan2(Y, X) = k pi / DIRE
 BIG = 1e30  # cost of an out-of-limit alternative (finite, so pattern sums stay one matrix product)
 DEPTH_MARGIN = 3.0  # a candidate basin may lie this many times its parabolic depth below its sample
 UNEVEN = 4.0  # neighbouring gaps this uneven: a basin may also lie the wide gap's rise below its sample
+ARC_GAIN = 1e-10  # rad^2 (relative to 1 + cost): an arc is refined if its bound is this far below the best
+ARC_ROUNDS = 3  # halvings of the arcs whose bound is below the best before they are refined
 
 # flip pattern b -> (f2, f4, f6) = bits of b (f2 most significant); per joint which alternative
 ALT_INDEX = np.array(
@@ -982,6 +984,99 @@ def _candidates(
     return out, limit
 
 
+def _monotone_bound(e0: np.ndarray, e1: np.ndarray, w6: np.ndarray | None) -> np.ndarray:
+    """Lower bound of the cost of joints that are monotone between two swivels where they are
+    ``e0`` and ``e1`` away from the seed (rad, joints along axis 0): each joint costs at least the
+    smaller end's square, or nothing where the seed lies between the ends. Summed over axis 0."""
+    lo = np.minimum(e0 * e0, e1 * e1)
+    np.copyto(lo, 0.0, where=e0 * e1 <= 0.0)
+    if w6 is not None:
+        lo *= w6.reshape((6,) + (1,) * (lo.ndim - 1))
+    return lo.sum(axis=0)
+
+
+def _unrefined_arcs(
+    fn: SwivelFunctions,
+    tab: LimitTables,
+    seed: np.ndarray,
+    w: np.ndarray | None,
+    c4: np.ndarray,
+    Sp: np.ndarray,
+    E: np.ndarray,
+    cost: np.ndarray,
+    flag: np.ndarray,
+    gaps: np.ndarray,
+    done: set[tuple[int, int]],
+    limit: float,
+    rounds: int = ARC_ROUNDS,
+) -> list[tuple[float, int, int, float]]:
+    """Arcs that may still hold a solution cheaper than ``limit``, as candidates (bound, pattern, left
+    sample, offset from it): branch and bound on the arcs between neighbouring samples.
+
+    The bound is rigorous: no joint of any pattern is stationary or crosses a limit inside an arc
+    (each such swivel is a critical sample), so on an arc (and on any part of it) each joint lies
+    between its end values (:func:`_monotone_bound`). Arcs that a refinement covered (a candidate
+    (b, i) refined from sample i covers the arcs on both sides of it) are left out; the others whose
+    bound is below ``limit`` are halved ``rounds`` times (all at once: one evaluation of the joint
+    functions per round), keeping the halves whose bound still is, and a half whose middle costs
+    less than ``limit`` is a candidate at once. Arguments: :func:`_alternative_costs`' arrays at the
+    padded samples ``Sp`` and the rest as :func:`nearest` has them.
+    """
+    M = len(flag)
+    w6 = None if w is None else w[_J6A]
+    e0 = E[:, :, 1 : M + 1]  # arc t runs from sample t to sample t + 1 (mod M)
+    e1 = E[:, :, 2 : M + 2]
+    lo = np.minimum(e0 * e0, e1 * e1)
+    np.copyto(lo, 0.0, where=e0 * e1 <= 0.0)
+    if w6 is not None:
+        lo *= w6[:, None, None]
+    lb = np.dot(_SEL6, lo.reshape(12, M))
+    lb += c4
+    # an arc is feasible for a pattern where its plain end is (an arc has no critical swivel inside)
+    plain = np.where(flag, np.arange(2, M + 2), np.arange(1, M + 1))
+    np.copyto(lb, math.inf, where=cost[:, plain] >= 0.5 * BIG)
+    bs, ts = np.nonzero(lb < limit)
+    keep = [k for k, (b, t) in enumerate(zip(bs.tolist(), ts.tolist(), strict=True))
+            if (b, t) not in done and (b, (t + 1) % M) not in done]
+    if not keep:
+        return []
+    bs, ts = bs[keep], ts[keep]
+    a6 = ALT_INDEX[bs][:, _J6A]  # (n, 6) each arc's alternative per joint
+    rows = np.arange(6)
+    ea = E[rows, a6, ts[:, None] + 1].T  # (6, n) at the arc's start and end
+    ec = E[rows, a6, ts[:, None] + 2].T
+    sa = Sp[ts + 1]
+    sc = sa + gaps[ts + 1]
+    out: list[tuple[float, int, int, float]] = []
+    for _ in range(rounds):
+        sm = 0.5 * (sa + sc)
+        cm, _, Em = _alternative_costs(fn, tab, sm, seed, w, c4)
+        n = len(sm)
+        em = Em[rows, a6, np.arange(n)[:, None]].T
+        fm = cm[bs, np.arange(n)]
+        for k in np.nonzero(fm < limit)[0].tolist():  # a cheaper point: refine from it
+            out.append((float(fm[k]), int(bs[k]), int(ts[k]), float(sm[k] - Sp[ts[k] + 1])))
+        c4b = c4[bs, 0]
+        lbl = _monotone_bound(ea, em, w6) + c4b
+        lbr = _monotone_bound(em, ec, w6) + c4b
+        go_l, go_r = (lbl < limit) & (fm >= limit), (lbr < limit) & (fm >= limit)
+        if not (go_l.any() or go_r.any()):
+            break
+        bs = np.concatenate((bs[go_l], bs[go_r]))
+        ts = np.concatenate((ts[go_l], ts[go_r]))
+        a6 = np.concatenate((a6[go_l], a6[go_r]))
+        ea, ec = np.concatenate((ea[:, go_l], em[:, go_r]), 1), np.concatenate((em[:, go_l], ec[:, go_r]), 1)
+        sa, sc = np.concatenate((sa[go_l], sm[go_r])), np.concatenate((sm[go_l], sc[go_r]))
+        bound = np.concatenate((lbl[go_l], lbr[go_r]))
+    else:
+        # still open after the last round: refine from each remaining part's middle
+        for k in range(len(sa)):
+            mid_k = 0.5 * (sa[k] + sc[k]) - Sp[ts[k] + 1]
+            out.append((float(bound[k]), int(bs[k]), int(ts[k]), float(mid_k)))
+    out.sort()
+    return out
+
+
 def nearest(
     fn: SwivelFunctions,
     tab: LimitTables,
@@ -1055,33 +1150,55 @@ def nearest(
     refined = nev = 0
     timed_out = False
     done: set[tuple[int, int]] = set()
-    while cands:
+
+    def take(b: int, i: int, dx: float) -> None:
+        """Refine candidate (pattern b, sample i); keep it if it beats the best so far."""
+        nonlocal best_f, best_s, best_b, best_q, pred_s, pred_b, pred_f, refined, nev
+        sx, fx, ne = refine(b, i, dx)
+        nev += ne
+        refined += 1
+        done.add((b, i))
+        sx -= TWO_PI * math.floor((sx + PI) * INV_2PI)
+        if fx < pred_f:
+            pred_s, pred_b, pred_f = sx, b, fx
+        if fx < best_f:
+            if realise is None:
+                best_f, best_s, best_b = fx, sx, b
+            else:
+                r = realise(sx, b, fx)
+                if r is not None and r[3] < best_f:
+                    best_q, best_s, best_b, best_f = r
+
+    def run(cands: list[tuple[float, int, int, float]], slack: float, arcs: bool = False) -> bool:
+        """Take the candidates, lowest bound first, while their bound is below the best so far (plus
+        ``slack`` relative); ``arcs``: skip an arc a refinement has covered meanwhile. False if the
+        deadline cut it short."""
         for lb, b, i, dx in cands:
-            if lb > best_f + 1e-12 * (1.0 + best_f):
+            if lb > best_f + slack * (1.0 + best_f):
                 break
+            if arcs and ((b, i) in done or (b, (i + 1) % M) in done):
+                continue
             if deadline is not None and refined > 0 and time.perf_counter() > deadline:
-                timed_out = True
-                break
-            sx, fx, ne = refine(b, i, dx)
-            nev += ne
-            refined += 1
-            done.add((b, i))
-            sx -= TWO_PI * math.floor((sx + PI) * INV_2PI)
-            if fx < pred_f:
-                pred_s, pred_b, pred_f = sx, b, fx
-            if fx < best_f:
-                if realise is None:
-                    best_f, best_s, best_b = fx, sx, b
-                else:
-                    r = realise(sx, b, fx)
-                    if r is not None and r[3] < best_f:
-                        best_q, best_s, best_b, best_f = r
-        if timed_out or best_f <= limit:
+                return False
+            take(b, i, dx)
+        return True
+
+    while cands:
+        if not run(cands, 1e-12):
+            timed_out = True
+            break
+        if best_f <= limit:
             break
         # the best realised cost is above the bound the candidates were cut at (a sample's prediction
         # that ik could not realise, at a singular swivel): the candidates below the realised cost too
         limit = best_f + 1e-12 * (1.0 + best_f) if best_f < math.inf else 0.5 * BIG
         cands = [cd for cd in _candidates(gaps, cost, limit)[0] if (cd[1], cd[2]) not in done]
+    if not timed_out:
+        # the parabolas' depth is a guess: every arc whose rigorous bound is still below the best is
+        # refined too (seen: a basin 2.3e-3 rad^2 below its samples where theta6 passes near 0)
+        arcs = _unrefined_arcs(fn, tab, seed, None if unit else w, c4, Sp, E, cost, flag, gaps, done,
+                               best_f - ARC_GAIN * (1.0 + best_f))
+        timed_out = not run(arcs, -ARC_GAIN, arcs=True)
     if best_s is None:
         return NearestResult(pred_s, pred_b, pred_f, 8 * M, refined, nev, timed_out)
     return NearestResult(best_s, best_b, best_f, 8 * M, refined, nev, timed_out, best_q)
