@@ -92,6 +92,7 @@ DEPTH_MARGIN = 3.0  # a candidate basin may lie this many times its parabolic de
 UNEVEN = 4.0  # neighbouring gaps this uneven: a basin may also lie the wide gap's rise below its sample
 ARC_GAIN = 1e-10  # rad^2 (relative to 1 + cost): an arc is refined if its bound is this far below the best
 ARC_ROUNDS = 3  # halvings of the arcs whose bound is below the best before they are refined
+ARC_SINGULAR_SIN = 0.2  # arcs are bounded where |sin theta2| or |sin theta6| is below this at an end
 
 # flip pattern b -> (f2, f4, f6) = bits of b (f2 most significant); per joint which alternative
 ALT_INDEX = np.array(
@@ -1035,6 +1036,12 @@ def _unrefined_arcs(
     # an arc is feasible for a pattern where its plain end is (an arc has no critical swivel inside)
     plain = np.where(flag, np.arange(2, M + 2), np.arange(1, M + 1))
     np.copyto(lb, math.inf, where=cost[:, plain] >= 0.5 * BIG)
+    # only where theta2 or theta6 comes near 0 or pi at an end of the arc: there theta1 and theta3
+    # (theta5 and theta7) turn fast between samples, the only place the parabolas were seen to fail
+    # (elsewhere the bound, loose to first order in how far the joints move, would flag many arcs)
+    hinge = E[4:6, 0, :] + seed[[1, 5]][:, None]  # theta2, theta6 (either alternative: the same |sin|)
+    near = np.abs(np.sin(hinge)).min(axis=0) < ARC_SINGULAR_SIN
+    np.copyto(lb, math.inf, where=~(near[1 : M + 1] | near[2 : M + 2]))
     bs, ts = np.nonzero(lb < limit)
     keep = [k for k, (b, t) in enumerate(zip(bs.tolist(), ts.tolist(), strict=True))
             if (b, t) not in done and (b, (t + 1) % M) not in done]
