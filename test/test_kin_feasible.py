@@ -677,3 +677,38 @@ def test_folded_and_stretched_with_open_elbow_limits(t4: float) -> None:
             assert info.status is IKStatus.SUCCESS, info.message
             assert _solved(arm, qn, T)
             assert float(np.sum((qn - seed) ** 2)) <= _bench().dense_nearest(arm, T, seed) + 1e-6
+
+
+# Two poses where the parabola bound of the candidates failed (found by the full-size benchmark): the
+# optimum lies where theta6 passes near 0, in a basin between two samples 2.3e-3 (2.8e-3) rad^2 deeper
+# than the parabola through them allowed. The arcs' monotone-joint bound finds it.
+_BASIN_POSES = [
+    (
+        [[0.910600131619277, -0.3564056507987097, -0.20924247268110677, -0.20795363860573426],
+         [-0.10857586461709254, -0.6948028463106141, 0.7109573027835918, -0.032633788826563724],
+         [-0.3987714657765853, -0.6246791311044555, -0.6713846149897807, -0.034022094736451285],
+         [0.0, 0.0, 0.0, 1.0]],
+        None,  # the mid-range seed
+    ),
+    (
+        [[-0.7936855304948546, 0.231081819839809, 0.562729483164534, 0.21746103256988386],
+         [-0.6032270573797258, -0.4185092281355285, -0.6789456113787032, -0.6028881168956242],
+         [0.0786154941986516, -0.8783229579744152, 0.4715595249456589, 0.49995795533133824],
+         [0.0, 0.0, 0.0, 1.0]],
+        [2.194099323398361, -1.3112561520034323, -1.6024114882402376, -0.361290921846942,
+         0.8350133186555544, 0.1504098711595434, 0.07337751140596316],
+    ),
+]
+
+
+@pytest.mark.parametrize(("T", "seed"), _BASIN_POSES)
+def test_nearest_finds_a_basin_between_samples_near_the_wrist_singularity(T, seed) -> None:
+    arm = ARMS["powercube7"]
+    T = np.array(T)
+    qs = (arm.lower + arm.upper) / 2 if seed is None else np.array(seed)
+    q, info = arm.ik_nearest(T, qs)
+    assert info.ok and _solved(arm, q, T)
+    assert abs(math.sin(q[5])) < 0.2  # (the optimum is near the wrist singularity)
+    assert float(np.sum((q - qs) ** 2)) <= _bench().dense_nearest(arm, T, qs) + 1e-9
+    res = arm.ik_nearest_batch(T[None], qs)
+    assert res.cost[0] <= _bench().dense_nearest(arm, T, qs) + 1e-9
