@@ -92,7 +92,8 @@ DEPTH_MARGIN = 3.0  # a candidate basin may lie this many times its parabolic de
 UNEVEN = 4.0  # neighbouring gaps this uneven: a basin may also lie the wide gap's rise below its sample
 ARC_GAIN = 1e-10  # rad^2 (relative to 1 + cost): an arc is refined if its bound is this far below the best
 ARC_ROUNDS = 3  # halvings of the arcs whose bound is below the best before they are refined
-ARC_SINGULAR_SIN = 0.2  # arcs are bounded where |sin theta2| or |sin theta6| is below this at an end
+ARC_SINGULAR_SIN = 1.01  # arcs are bounded where |sin theta2| or |sin theta6| is below this at an end (0.2
+# missed an optimum at |sin theta2| = 0.214: every arc, until the bound is tight enough to be cheap)
 
 # flip pattern b -> (f2, f4, f6) = bits of b (f2 most significant); per joint which alternative
 ALT_INDEX = np.array(
