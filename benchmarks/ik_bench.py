@@ -15,7 +15,9 @@ Pose sets, all generated here from a fixed seed (``--seed``):
 Rows per arm and set: ``ik(T, s)`` at the configuration's own swivel (uniform set), ``ik_nearest``
 (mid-range seed; on the uniform set also a random seed), and its **nearest optimality**: the share of
 poses where its distance to the seed is within 1e-9 rad^2 of (or below) a dense sweep, 7200 swivels x 8
-flip patterns x every in-limit 2*pi copy, built only from the public ``ik_batch``. Throughput rows:
+flip patterns x every in-limit 2*pi copy, built only from the public ``ik_batch``. Each ``ik_nearest``
+row has an ``exhaustive`` twin (``ik_nearest(..., exhaustive=True)``, timed interleaved with it pose by
+pose, against the same sweep). Throughput rows:
 ``ik_batch`` (poses/s, all poses in one call, at their own swivels) and ``ik_nearest_batch``. Peers:
 ikpy (scipy least squares, orientation_mode="all"), timed pose by pose interleaved with
 ``ik_nearest`` on the same poses (alternating which runs first), so both see the same machine load;
@@ -273,33 +275,40 @@ def nearest_rows(
     dense_n: int,
     label: str,
     best_of: int = BEST_OF,
-) -> Row:
-    times, bests, good, opt = [], [], 0, 0
+) -> list[Row]:
+    """ik_nearest and ik_nearest(exhaustive=True), interleaved pose by pose, both against one dense sweep."""
+    modes = (False, True)
+    times = {m: [] for m in modes}
+    bests = {m: [] for m in modes}
+    good = dict.fromkeys(modes, 0)
+    opt = dict.fromkeys(modes, 0)
     for i, T in enumerate(Ts):
-        t = _timed(lambda i=i, T=T: arm.ik_nearest(T, seeds[i]), best_of)
-        q, _ = t[0]
-        times.append(t[1])
-        bests.append(t[2])
-        good += ok(arm, q, T)
-        if i < dense_n:
-            ref = dense_nearest(arm, T, seeds[i])
-            mine = math.inf if q is None else float(np.sum((q - seeds[i]) ** 2))
-            opt += mine <= ref + OPT_TOL
-    med, p99 = _stats(times)
-    row = Row(
-        arm.name,
-        set_name,
-        label,
-        len(Ts),
-        good / len(Ts),
-        med,
-        p99,
-        opt / max(1, min(dense_n, len(Ts))),
-        f"optimality on the first {min(dense_n, len(Ts))}",
-        *_stats(bests),
-    )
-    row.samples_us = np.asarray(times) * 1e6
-    return row
+        ref = dense_nearest(arm, T, seeds[i]) if i < dense_n else math.nan
+        for ex in modes if i % 2 == 0 else modes[::-1]:
+            t = _timed(lambda i=i, T=T, ex=ex: arm.ik_nearest(T, seeds[i], exhaustive=ex), best_of)
+            q, _ = t[0]
+            times[ex].append(t[1])
+            bests[ex].append(t[2])
+            good[ex] += ok(arm, q, T)
+            if i < dense_n:
+                mine = math.inf if q is None else float(np.sum((q - seeds[i]) ** 2))
+                opt[ex] += mine <= ref + OPT_TOL
+    rows = []
+    for ex in modes:
+        row = Row(
+            arm.name,
+            set_name,
+            label + (", exhaustive" if ex else ""),
+            len(Ts),
+            good[ex] / len(Ts),
+            *_stats(times[ex]),
+            opt[ex] / max(1, min(dense_n, len(Ts))),
+            f"optimality on the first {min(dense_n, len(Ts))}",
+            *_stats(bests[ex]),
+        )
+        row.samples_us = np.asarray(times[ex]) * 1e6
+        rows.append(row)
+    return rows
 
 
 def bench_arm(name: str, args: argparse.Namespace, log: Callable[[str], None]) -> list[Row]:
@@ -336,10 +345,10 @@ def bench_arm(name: str, args: argparse.Namespace, log: Callable[[str], None]) -
     )
     rows[-1].samples_us = np.asarray(times) * 1e6
     log(f"{name}: ik done")
-    rows.append(nearest_rows(arm, "uniform", Ts, mids, args.dense_n, "ik_nearest", args.best_of))
+    rows += nearest_rows(arm, "uniform", Ts, mids, args.dense_n, "ik_nearest", args.best_of)
     log(f"{name}: ik_nearest (mid seed) done")
-    rows.append(
-        nearest_rows(arm, "uniform", Ts, rand_seeds, args.dense_n, "ik_nearest, random seed", args.best_of)
+    rows += nearest_rows(
+        arm, "uniform", Ts, rand_seeds, args.dense_n, "ik_nearest, random seed", args.best_of
     )
     log(f"{name}: ik_nearest (random seed) done")
 
@@ -390,7 +399,7 @@ def bench_arm(name: str, args: argparse.Namespace, log: Callable[[str], None]) -
         if kind == "narrow":
             w = np.degrees(feasible_width(arm, Th))
             note = f"widths {w.min():.2g}..{w.max():.2g} deg"
-        r = nearest_rows(
+        for r in nearest_rows(
             arm,
             kind,
             Th,
@@ -398,9 +407,9 @@ def bench_arm(name: str, args: argparse.Namespace, log: Callable[[str], None]) -
             args.dense_n // 3,
             "ik_nearest",
             args.best_of,
-        )
-        r.note = (note + "; " if note else "") + r.note
-        rows.append(r)
+        ):
+            r.note = (note + "; " if note else "") + r.note
+            rows.append(r)
         log(f"{name}: {kind} done")
 
     # peers on the first peer_n uniform poses, interleaved pose by pose with ik_nearest
@@ -626,6 +635,7 @@ def targets(rows: list[Row], best_of: int) -> str:
 PLOT_TIMES = (  # (pose set, solver) rows drawn in the time distribution, in this order
     ("uniform", "ik(T, s)"),
     ("uniform", "ik_nearest"),
+    ("uniform", "ik_nearest, exhaustive"),
     ("uniform (peer subset)", "ik_nearest (interleaved)"),
     ("uniform (peer subset)", "ikpy 4.2.1 (interleaved)"),
     ("uniform (peer subset)", "DLS (ours, numeric)"),
