@@ -20,11 +20,10 @@ from redarm_ros.control.paper_redundancy import MODE as PAPER_MODE
 from redarm_ros.control.replan import check_route, move_time
 from redarm_ros.control.slide import obstacle_slide, workspace_slide
 from redarm_ros.control.state import (
-    Goal,
     Mode,
 )
 from redarm_ros.control.swivel_dynamics import wrap_angle
-from redarm_ros.control.types import GoalKind, Quat, Vec3
+from redarm_ros.control.types import Quat, Vec3
 from redarm_ros.kinematics.quaternion import (
     quat_between_vectors,
     quat_from_rotvec,
@@ -52,12 +51,6 @@ def _brake_for_limit(sd: float, margins: tuple[float, float, float], eps: float,
 
 #: swivels sampled along the goal's in-limit swivel interval to find where the elbow can rest
 REST_SAMPLES = 64
-
-
-def _at_point_goal(goal: Goal | None, pos: Vec3, tol: float) -> bool:
-    """The reference hand ``pos`` is at a point goal (within ``tol`` m). Not for streams and twists:
-    their goal moves (a twist's follows the hand), so the elbow's rest there would go stale."""
-    return goal is not None and goal.kind is GoalKind.POINT and math.dist(pos, goal.pos) <= tol
 
 
 def _swivel_low(circle: ElbowCircle) -> float | None:
@@ -258,7 +251,7 @@ class AttractorMixin(ControllerBase):
         st = self._state()
         p = self.params
         goal = st.goal
-        if not _at_point_goal(goal, st.ref.pos, p.pos_tolerance):
+        if goal is None or not goal.point_at(st.ref.pos, p.pos_tolerance):
             return sd
         rate = abs(st.ref.sdot)
         ratio = float(np.max(np.abs(st.ref.qd) / self._max_vel))
@@ -334,7 +327,7 @@ class AttractorMixin(ControllerBase):
         st = self._state()
         goal = st.goal
         interval = getattr(self.arm, "swivel_interval", None)
-        if interval is None or not _at_point_goal(goal, st.ref.pos, self.params.pos_tolerance):
+        if goal is None or interval is None or not goal.point_at(st.ref.pos, self.params.pos_tolerance):
             return s_des
         if not goal.rest_known:  # once per goal: the hand stays there
             goal.rest_known = True

@@ -343,7 +343,7 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
         t = self.stream.stamp_time(stamp, now)
         goal = st.goal
         p = self.params
-        if goal is not None and goal.kind is GoalKind.POINT and math.dist(goal.pos, pos) <= p.pos_tolerance \
+        if goal is not None and goal.point_at(pos, p.pos_tolerance) \
                 and quat_angle(goal.rot, rot) <= p.ori_tolerance:
             self.stream.add(pos, rot, t, now)  # the same goal again: nothing changes
             return GoalCheck(GoalStatus.ACCEPTED, "the active goal again", kind=GoalKind.POINT, repeat=True)

@@ -104,6 +104,11 @@ class Goal:
     rest: tuple[float, np.ndarray, np.ndarray] | None = None
     rest_known: bool = False
 
+    def point_at(self, pos: Vec3, tol: float) -> bool:
+        """A point goal within ``tol`` m of ``pos``. Not a stream's or a twist's: their goal moves (a
+        twist's follows the hand), so what is found for it at one instant goes stale."""
+        return self.kind is GoalKind.POINT and math.dist(pos, self.pos) <= tol
+
 
 @dataclass
 class Progress:
