@@ -1035,12 +1035,11 @@ def _unrefined_arcs(
     # an arc is feasible for a pattern where its plain end is (an arc has no critical swivel inside)
     plain = np.where(flag, np.arange(2, M + 2), np.arange(1, M + 1))
     np.copyto(lb, math.inf, where=cost[:, plain] >= 0.5 * BIG)
+    for b, i in done:  # a refinement from sample i covered arc i - 1 (from sample i - 1) and arc i
+        lb[b, i] = lb[b, i - 1] = math.inf
     bs, ts = np.nonzero(lb < limit)
-    keep = [k for k, (b, t) in enumerate(zip(bs.tolist(), ts.tolist(), strict=True))
-            if (b, t) not in done and (b, (t + 1) % M) not in done]
-    if not keep:
+    if not len(bs):
         return []
-    bs, ts = bs[keep], ts[keep]
     a6 = ALT_INDEX[bs][:, _J6A]  # (n, 6) each arc's alternative per joint
     rows = np.arange(6)
     ea = E[rows, a6, ts[:, None] + 1].T  # (6, n) at the arc's start and end
