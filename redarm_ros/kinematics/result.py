@@ -76,6 +76,17 @@ class IKBatchResult:
     cost: np.ndarray
     status: np.ndarray
 
+    @classmethod
+    def unsolved(cls, m: int, n: int = 7) -> IKBatchResult:
+        """m rows of no answer (status OUT_OF_REACH), to be filled in."""
+        return cls(
+            np.full((m, n), np.nan),
+            np.full(m, np.nan),
+            np.full(m, -1, dtype=int),
+            np.full(m, np.inf),
+            np.full(m, BATCH_OUT_OF_REACH, dtype=np.int8),
+        )
+
     @property
     def ok(self) -> np.ndarray:
         """(m,) bool: a solution was returned."""

@@ -69,7 +69,6 @@ from redarm_ros.kinematics.model import (
 from redarm_ros.kinematics.quaternion import shortest_rotation_xy
 from redarm_ros.kinematics.result import (
     BATCH_NO_SOLUTION_IN_LIMITS,
-    BATCH_OUT_OF_REACH,
     BATCH_SUCCESS,
     IKBatchResult,
     IKInfo,
@@ -931,13 +930,7 @@ class SwivelArm(Arm):
         w = self._check_weights(weights)
         if exhaustive:
             return self._nearest_one_by_one(Ts, seeds, w)
-        out = IKBatchResult(
-            np.full((m, 7), np.nan),
-            np.full(m, np.nan),
-            np.full(m, -1, dtype=int),
-            np.full(m, np.inf),
-            np.full(m, BATCH_OUT_OF_REACH, dtype=np.int8),
-        )
+        out = IKBatchResult.unsolved(m)
         step = max(1, int(chunk))
         ws = NearestWorkspace(min(step, max(m, 1)), self._tables.batch_samples)
         # the closed-form functions of all poses first, in blocks of 2048 as ik_batch: their (3, poses)
@@ -1002,13 +995,7 @@ class SwivelArm(Arm):
     def _nearest_one_by_one(self, Ts: np.ndarray, seeds: np.ndarray, w: np.ndarray) -> IKBatchResult:
         """The exhaustive batched nearest: :meth:`ik_nearest` with ``exhaustive`` per pose (checked input)."""
         m = len(Ts)
-        out = IKBatchResult(
-            np.full((m, 7), np.nan),
-            np.full(m, np.nan),
-            np.full(m, -1, dtype=int),
-            np.full(m, np.inf),
-            np.full(m, BATCH_OUT_OF_REACH, dtype=np.int8),
-        )
+        out = IKBatchResult.unsolved(m)
         for i in range(m):
             qi, info = self.ik_nearest(Ts[i], seeds[i], weights=w, exhaustive=True)
             if qi is not None and info.swivel is not None and info.branch is not None:
