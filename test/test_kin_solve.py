@@ -261,3 +261,31 @@ def test_swivel_without_in_limit_solution_suggests_no_base_move() -> None:
                 assert ans.status is IKStatus.NO_SOLUTION_IN_LIMITS and ans.base_offset is None
                 return
     pytest.fail("no pose with an infeasible swivel found")
+
+
+def test_exhaustive_nearest_option_is_passed_to_the_swivel_arms_only() -> None:
+    """powercube7, theta6 near 0 at the optimum: the default search stops 2.3e-3 rad^2 short of it, the
+    exhaustive one reaches it; the front end's option switches between them (powercube6 has no such
+    option and is still answered)."""
+    T = np.array(
+        [[0.910600131619277, -0.3564056507987097, -0.20924247268110677, -0.20795363860573426],
+         [-0.10857586461709254, -0.6948028463106141, 0.7109573027835918, -0.032633788826563724],
+         [-0.3987714657765853, -0.6246791311044555, -0.6713846149897807, -0.034022094736451285],
+         [0.0, 0.0, 0.0, 1.0]]
+    )
+    arm = ARMS["powercube7"]
+    seed = (arm.lower + arm.upper) / 2
+    opts = {"swivel": None, "seed": seed.tolist(), "all_solutions": False, "timeout_s": 0.05,
+            "check_collisions": False}
+    exhaustive = IKFrontEnd(ARMS, "pa10", exhaustive_nearest=True)
+    q_fast, _ = arm.ik_nearest(T, seed)
+    q_ex, _ = arm.ik_nearest(T, seed, exhaustive=True)
+    a_fast = FRONT.solve(T, "powercube7", **opts)
+    a_ex = exhaustive.solve(T, "powercube7", **opts)
+    assert a_fast.status is IKStatus.SUCCESS and a_ex.status is IKStatus.SUCCESS
+    np.testing.assert_allclose(a_fast.q, q_fast, atol=1e-12)
+    np.testing.assert_allclose(a_ex.q, q_ex, atol=1e-12)
+    assert float(np.sum((q_ex - seed) ** 2)) <= float(np.sum((q_fast - seed) ** 2))
+    pc6 = ARMS["powercube6"]
+    ans = exhaustive.solve(pc6.fk(pc6.park), "powercube6", **{**opts, "seed": []})
+    assert ans.status is IKStatus.SUCCESS, ans.message

@@ -368,17 +368,33 @@ def test_pose_msg_to_matrix_tolerance() -> None:
         pose_msg_to_matrix(pose, 1e-4)
 
 
-@pytest.mark.parametrize(("arms", "default_arm", "match"), [
-    (["pa10"], "powercube7", "default_arm"),  # the default is not among the served arms
-    (["no_such_arm"], None, "no_such_arm"),
+@pytest.mark.parametrize(("arms", "default_arm", "extra", "match"), [
+    (["pa10"], "powercube7", None, "default_arm"),  # the default is not among the served arms
+    (["no_such_arm"], None, None, "no_such_arm"),
+    (["pa10"], None, ("nearest_exhaustive", "yes"), "nearest_exhaustive"),  # not a bool
 ])
 def test_bad_parameters_refuse_to_start(ctx: Any, arms: list[str], default_arm: str | None,
-                                        match: str) -> None:
+                                        extra: tuple[str, Any] | None, match: str) -> None:
     overrides = [Parameter("arms", value=arms), Parameter("duplicate_check_s", value=0.0)]
     if default_arm is not None:
         overrides.append(Parameter("default_arm", value=default_arm))
+    if extra is not None:
+        overrides.append(Parameter(extra[0], value=extra[1]))
     with pytest.raises(ValueError, match=match):
         IKServiceNode(context=ctx, node_name=f"ik_bad_{match}", parameter_overrides=overrides)
+
+
+def test_nearest_exhaustive_parameter_reaches_the_solver(ctx: Any) -> None:
+    overrides = [Parameter("arms", value=["pa10"]), Parameter("duplicate_check_s", value=0.0)]
+    plain = IKServiceNode(context=ctx, node_name="ik_plain", parameter_overrides=overrides)
+    exhaustive = IKServiceNode(context=ctx, node_name="ik_exhaustive",
+                               parameter_overrides=[*overrides, Parameter("nearest_exhaustive", value=True)])
+    try:
+        assert plain.front.exhaustive_nearest is False
+        assert exhaustive.front.exhaustive_nearest is True
+    finally:
+        plain.destroy_node()
+        exhaustive.destroy_node()
 
 
 # ---------------------------------------------------------------------------------------------

@@ -86,7 +86,9 @@ class IKFrontEnd:
     ``arms`` maps names to loaded models; ``default_arm`` answers requests that name none. ``capsules``:
     the collision model's radii (m; default the controller's). ``suggest_base_move``: attach a
     base-move suggestion to answers that a base move can fix (``base_move_yaw``: it may turn the base
-    too; ``base_move_timeout_s``: its own time budget in s). Raises :class:`InvalidInputError` if
+    too; ``base_move_timeout_s``: its own time budget in s). ``exhaustive_nearest``: solve requests without
+    a swivel with ``ik_nearest(..., exhaustive=True)`` on the 7-DOF swivel arms (2-3x the time; the
+    others have no such option). Raises :class:`InvalidInputError` if
     ``default_arm`` is not among ``arms`` (:class:`~redarm_ros.errors.ConfigError` for a malformed
     ``self_collision`` entry of an arm).
     """
@@ -100,6 +102,7 @@ class IKFrontEnd:
         suggest_base_move: bool = True,
         base_move_yaw: bool = True,
         base_move_timeout_s: float = 0.5,
+        exhaustive_nearest: bool = False,
     ) -> None:
         if default_arm not in arms:
             raise InvalidInputError(
@@ -113,6 +116,7 @@ class IKFrontEnd:
         self.suggest_base_move = bool(suggest_base_move)
         self.base_move_yaw = bool(base_move_yaw)
         self.base_move_timeout_s = float(base_move_timeout_s)
+        self.exhaustive_nearest = bool(exhaustive_nearest)
 
     def arm_for(self, name: str) -> Arm:
         """The model named ``name`` ('' = the default arm); InvalidInputError if not served."""
@@ -181,7 +185,8 @@ class IKFrontEnd:
                     arm, T, swivel, q_seed, all_solutions, t0 + timeout_s, model
                 )
             else:
-                ans = self._solve_nearest(arm, T, q_seed, all_solutions, timeout_s, t0, model)
+                exhaustive = self.exhaustive_nearest and has_swivel(arm)
+                ans = self._solve_nearest(arm, T, q_seed, all_solutions, timeout_s, t0, model, exhaustive)
                 whole_pose = True
             ans.joint_names = list(arm.joint_names)
             if ans.q is not None and not math.isfinite(ans.position_error):
@@ -320,8 +325,10 @@ class IKFrontEnd:
         timeout_s: float,
         t0: float,
         model: CollisionModel | None,
+        exhaustive: bool = False,
     ) -> IKAnswer:
-        q, info = arm.ik_nearest(T, q_seed, timeout_s=timeout_s)
+        extra = {"exhaustive": True} if exhaustive else {}  # (only the swivel arms take it)
+        q, info = arm.ik_nearest(T, q_seed, timeout_s=timeout_s, **extra)
         if info.status is IKStatus.INVALID_INPUT:
             raise InvalidInputError(info.message or "invalid request")
         if q is None:
