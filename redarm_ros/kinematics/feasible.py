@@ -985,14 +985,14 @@ def _candidates(
 
 
 def _monotone_bound(e0: np.ndarray, e1: np.ndarray, w6: np.ndarray | None) -> np.ndarray:
-    """Lower bound of the cost of joints that are monotone between two swivels where they are
-    ``e0`` and ``e1`` away from the seed (rad, joints along axis 0): each joint costs at least the
-    smaller end's square, or nothing where the seed lies between the ends. Summed over axis 0."""
+    """Per joint, a lower bound of the cost of a joint that is monotone between two swivels where it is
+    ``e0`` and ``e1`` away from the seed (rad, joints along axis 0): at least the smaller end's square
+    (weighted), or nothing where the seed lies between the ends."""
     lo = np.minimum(e0 * e0, e1 * e1)
     np.copyto(lo, 0.0, where=e0 * e1 <= 0.0)
     if w6 is not None:
         lo *= w6.reshape((6,) + (1,) * (lo.ndim - 1))
-    return lo.sum(axis=0)
+    return lo
 
 
 def _unrefined_arcs(
@@ -1024,12 +1024,8 @@ def _unrefined_arcs(
     """
     M = len(flag)
     w6 = None if w is None else w[_J6A]
-    e0 = E[:, :, 1 : M + 1]  # arc t runs from sample t to sample t + 1 (mod M)
-    e1 = E[:, :, 2 : M + 2]
-    lo = np.minimum(e0 * e0, e1 * e1)
-    np.copyto(lo, 0.0, where=e0 * e1 <= 0.0)
-    if w6 is not None:
-        lo *= w6[:, None, None]
+    # arc t runs from sample t to sample t + 1 (mod M)
+    lo = _monotone_bound(E[:, :, 1 : M + 1], E[:, :, 2 : M + 2], w6)
     lb = np.dot(_SEL6, lo.reshape(12, M))
     lb += c4
     # an arc is feasible for a pattern where its plain end is (an arc has no critical swivel inside)
@@ -1056,8 +1052,8 @@ def _unrefined_arcs(
         for k in np.nonzero(fm < limit)[0].tolist():  # a cheaper point: refine from it
             out.append((float(fm[k]), int(bs[k]), int(ts[k]), float(sm[k] - Sp[ts[k] + 1])))
         c4b = c4[bs, 0]
-        lbl = _monotone_bound(ea, em, w6) + c4b
-        lbr = _monotone_bound(em, ec, w6) + c4b
+        lbl = _monotone_bound(ea, em, w6).sum(axis=0) + c4b
+        lbr = _monotone_bound(em, ec, w6).sum(axis=0) + c4b
         go_l, go_r = (lbl < limit) & (fm >= limit), (lbr < limit) & (fm >= limit)
         if not (go_l.any() or go_r.any()):
             break
