@@ -928,9 +928,11 @@ class SwivelArm(Arm):
                 f"q_seeds must have shape (7,) or ({m}, 7), got {seeds.shape}", field="q_seeds", value=q_seeds
             )
         w = self._check_weights(weights)
-        if exhaustive:
-            return self._nearest_one_by_one(Ts, seeds, w)
         out = IKBatchResult.unsolved(m)
+        if exhaustive:
+            for i in range(m):
+                self._nearest_row(out, i, Ts[i], seeds[i], w, exhaustive=True)
+            return out
         step = max(1, int(chunk))
         ws = NearestWorkspace(min(step, max(m, 1)), self._tables.batch_samples)
         # the closed-form functions of all poses first, in blocks of 2048 as ik_batch: their (3, poses)
@@ -960,12 +962,7 @@ class SwivelArm(Arm):
             out.status[gi] = BATCH_NO_SOLUTION_IN_LIMITS
             b[odd] = -1  # (near-equal samples, which the scalar search merges: solved one by one below)
             for i in np.nonzero(odd)[0]:
-                qi, info = self.ik_nearest(T[ri[i]], sd[i], weights=w)
-                if qi is not None and info.swivel is not None and info.branch is not None:
-                    g = k0 + ri[i]
-                    out.q[g], out.swivel[g], out.branch[g] = qi, info.swivel, info.branch
-                    out.cost[g] = float(np.sum(w * (qi - sd[i]) ** 2))
-                    out.status[g] = BATCH_SUCCESS
+                self._nearest_row(out, k0 + ri[i], T[ri[i]], sd[i], w)
             hit = b >= 0
             if not hit.any():
                 continue
@@ -992,19 +989,23 @@ class SwivelArm(Arm):
             out.status[g] = BATCH_SUCCESS
         return out
 
-    def _nearest_one_by_one(self, Ts: np.ndarray, seeds: np.ndarray, w: np.ndarray) -> IKBatchResult:
-        """The exhaustive batched nearest: :meth:`ik_nearest` with ``exhaustive`` per pose (checked input)."""
-        m = len(Ts)
-        out = IKBatchResult.unsolved(m)
-        for i in range(m):
-            qi, info = self.ik_nearest(Ts[i], seeds[i], weights=w, exhaustive=True)
-            if qi is not None and info.swivel is not None and info.branch is not None:
-                out.q[i], out.swivel[i], out.branch[i] = qi, info.swivel, info.branch
-                out.cost[i] = float(np.sum(w * (qi - seeds[i]) ** 2))
-                out.status[i] = BATCH_SUCCESS
-            elif info.status == IKStatus.NO_SOLUTION_IN_LIMITS:
-                out.status[i] = BATCH_NO_SOLUTION_IN_LIMITS
-        return out
+    def _nearest_row(
+        self,
+        out: IKBatchResult,
+        g: int,
+        T: np.ndarray,
+        seed: np.ndarray,
+        w: np.ndarray,
+        exhaustive: bool = False,
+    ) -> None:
+        """Row g of a batched nearest answer solved alone by :meth:`ik_nearest` (checked input)."""
+        qi, info = self.ik_nearest(T, seed, weights=w, exhaustive=exhaustive)
+        if qi is not None and info.swivel is not None and info.branch is not None:
+            out.q[g], out.swivel[g], out.branch[g] = qi, info.swivel, info.branch
+            out.cost[g] = float(np.sum(w * (qi - seed) ** 2))
+            out.status[g] = BATCH_SUCCESS
+        elif info.status == IKStatus.NO_SOLUTION_IN_LIMITS:
+            out.status[g] = BATCH_NO_SOLUTION_IN_LIMITS
 
     def _nearest_copies(
         self, th: np.ndarray, branch: np.ndarray, seeds: np.ndarray, w: np.ndarray
