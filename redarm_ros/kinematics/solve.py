@@ -185,8 +185,9 @@ class IKFrontEnd:
                     arm, T, swivel, q_seed, all_solutions, t0 + timeout_s, model
                 )
             else:
-                exhaustive = self.exhaustive_nearest and has_swivel(arm)
-                ans = self._solve_nearest(arm, T, q_seed, all_solutions, timeout_s, t0, model, exhaustive)
+                ans = self._solve_nearest(
+                    arm, T, q_seed, all_solutions, timeout_s, t0, model, self.exhaustive_nearest
+                )
                 whole_pose = True
             ans.joint_names = list(arm.joint_names)
             if ans.q is not None and not math.isfinite(ans.position_error):
@@ -327,7 +328,7 @@ class IKFrontEnd:
         model: CollisionModel | None,
         exhaustive: bool = False,
     ) -> IKAnswer:
-        extra = {"exhaustive": True} if exhaustive else {}  # (only the swivel arms take it)
+        extra = {"exhaustive": True} if exhaustive and has_swivel(arm) else {}  # (only they take it)
         q, info = arm.ik_nearest(T, q_seed, timeout_s=timeout_s, **extra)
         if info.status is IKStatus.INVALID_INPUT:
             raise InvalidInputError(info.message or "invalid request")
