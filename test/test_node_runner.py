@@ -163,20 +163,44 @@ class RealTime(Node):
         self.create_timer(0.05, self.tick)
 
     def tick(self):
-        tids = [int(t) for t in os.listdir("/proc/self/task")]
-        print(json.dumps(sorted({(os.sched_getscheduler(t), os.sched_getparam(t).sched_priority)
-                                 for t in tids})), flush=True)
+        print("RUNNING", scheduling(), flush=True)
         rclpy.shutdown()
 
-raise SystemExit(run_node(RealTime, []))
+def scheduling():
+    tids = [int(t) for t in os.listdir("/proc/self/task")]
+    return json.dumps(sorted({(os.sched_getscheduler(t), os.sched_getparam(t).sched_priority)
+                              for t in tids}))
+
+code = run_node(RealTime, [])
+print("ENDED", scheduling(), flush=True)
+raise SystemExit(code)
 """
+
+
+def _rt_node_run() -> tuple[dict[str, list[list[int]]], str]:
+    proc = subprocess.run([sys.executable, "-c", _RT_NODE], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    seen = {}
+    for line in proc.stdout.splitlines():
+        tag, _, rest = line.partition(" ")
+        if tag in ("RUNNING", "ENDED"):
+            seen[tag] = json.loads(rest)
+    return seen, proc.stderr
 
 
 @pytest.mark.skipif(not hasattr(os, "sched_setscheduler") or os.geteuid() != 0,
                     reason="needs root for SCHED_FIFO")
 def test_run_node_puts_every_thread_of_a_realtime_node_at_fifo(ros_env: object) -> None:
     """The controller's case: the middleware's threads exist before the node learns its priority."""
-    proc = subprocess.run([sys.executable, "-c", _RT_NODE], capture_output=True, text=True, timeout=60)
-    assert proc.returncode == 0, proc.stderr
-    assert json.loads(proc.stdout.strip().splitlines()[-1]) == [[os.SCHED_FIFO, 6]]
-    assert "SCHED_FIFO priority 6" in proc.stderr
+    seen, stderr = _rt_node_run()
+    assert seen["RUNNING"] == [[os.SCHED_FIFO, 6]]
+    assert "SCHED_FIFO priority 6" in stderr
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_setscheduler") or os.geteuid() != 0,
+                    reason="needs root for SCHED_FIFO")
+def test_run_node_tears_a_realtime_node_down_at_normal_scheduling(ros_env: object) -> None:
+    """Teardown is not real-time work: when run_node returns, no thread is at SCHED_FIFO any more."""
+    seen, _ = _rt_node_run()
+    assert seen["RUNNING"] == [[os.SCHED_FIFO, 6]]
+    assert seen["ENDED"] == [[os.SCHED_OTHER, 0]]

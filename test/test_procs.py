@@ -16,7 +16,9 @@ from redarm_ros.procs import (
     ManagedProcess,
     ProcessGroup,
     ReadinessTimeoutError,
+    poll_until,
     ros_child_env,
+    thread_states,
 )
 
 FAST = (1.0, 1.0, 2.0)
@@ -225,3 +227,21 @@ def test_a_child_dies_with_its_killed_parent(sched_fifo: bool) -> None:
         parent.kill()
     if sched_fifo and not real_time:
         pytest.skip("the kernel refused SCHED_FIFO here: the child was not real-time")
+
+
+def test_thread_states_names_the_threads_that_are_not_sleeping() -> None:
+    """The line logged for a child that does not stop: a spinning thread shows up with its scheduling."""
+    import subprocess
+
+    spin = subprocess.Popen(py("while True: pass"))
+    idle = subprocess.Popen(py("import time; time.sleep(60)"))
+    try:
+        assert poll_until(lambda: "R normal" in thread_states(spin.pid), 10.0)
+        line = thread_states(spin.pid)
+        assert line.startswith("threads: 1 R; not sleeping: ") and "cpu " in line
+        assert poll_until(lambda: thread_states(idle.pid) == "threads: 1 S", 10.0), thread_states(idle.pid)
+    finally:
+        for p in (spin, idle):
+            p.kill()
+            p.wait()
+    assert thread_states(spin.pid) == "no thread information"

@@ -124,8 +124,7 @@ def _demote_on_sigxcpu(who: str, soft_s: float) -> Any:
     """Install the SIGXCPU handler: every thread back to normal scheduling, one line on stderr.
     Returns the handler it replaced (None when it could not install one)."""
     def handler(signum: int, frame: object) -> None:
-        for tid in _thread_ids():
-            drop_priority(tid=tid)
+        drop_process_priority()
         with contextlib.suppress(OSError, ValueError):  # the limit no longer applies: not real-time
             resource.setrlimit(resource.RLIMIT_RTTIME, (resource.RLIM_INFINITY, resource.RLIM_INFINITY))
         _LOG.error("%s: a real-time thread ran %g s without blocking: back to normal scheduling (a "
@@ -219,6 +218,12 @@ def scheduling_now() -> str:
     except OSError:
         return "unknown"
     return f"nice {level}" if level else "normal"
+
+
+def drop_process_priority() -> None:
+    """Every thread of this process back to normal scheduling (see :func:`drop_priority`)."""
+    for tid in _thread_ids():
+        drop_priority(tid=tid)
 
 
 def drop_priority(*, tid: int = 0) -> None:

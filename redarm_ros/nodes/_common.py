@@ -70,12 +70,12 @@ PROCESS_RT_PARAM = ParamSpec(
     "permitted.", read_only=True, range=(0, 49))
 
 
-def apply_scheduling(node: Node, level: int, fifo_priority: int = 0) -> None:
+def apply_scheduling(node: Node, level: int, fifo_priority: int = 0) -> bool:
     """Run ``node``'s process at SCHED_FIFO ``fifo_priority`` if asked (see :data:`PROCESS_RT_PARAM`),
     else (or when refused) at nice ``level`` (see :data:`NICE_PARAM`), and log the outcome once.
     :func:`run_node` calls it for a node that declares ``nice``, before the node's timers start its
     threads and child processes (they inherit the setting); a node built inside another program leaves
-    that program's scheduling alone."""
+    that program's scheduling alone. Returns True if the process now runs at SCHED_FIFO."""
     from redarm_ros.can import realtime  # (a shell may use the driver's scheduling helper)
 
     who = f"{node.get_name()} node"
@@ -84,16 +84,17 @@ def apply_scheduling(node: Node, level: int, fifo_priority: int = 0) -> None:
         rt = realtime.raise_process_priority(fifo_priority, who=who)
         if rt.realtime:
             node.get_logger().info(rt.message)
-            return
+            return True
         refused = f"{rt.message}; "
     prio = realtime.raise_nice(level, who=who)
     if refused:
         node.get_logger().warning(f"{refused}falling back: {prio.message}")
-        return
+        return False
     if prio.policy is realtime.Policy.NICE or level >= 0:
         node.get_logger().info(prio.message)
     else:
         node.get_logger().warning(prio.message)
+    return False
 
 
 def declare_params(node: Node, specs: Sequence[ParamSpec]) -> dict[str, Any]:
@@ -214,6 +215,7 @@ def run_node(
     rclpy.init(args=list(args) if args is not None else None)
     node: Node | None = None
     executor: SingleThreadedExecutor | MultiThreadedExecutor | None = None
+    realtime_taken = False
     code = 0
     try:
         try:
@@ -226,7 +228,7 @@ def run_node(
         if node.has_parameter(NICE_PARAM.name):  # a process-wide setting: only where the node owns it
             fifo = int(node.get_parameter(PROCESS_RT_PARAM.name).value) \
                 if getattr(node, "PROCESS_REALTIME", False) else 0
-            apply_scheduling(node, int(node.get_parameter(NICE_PARAM.name).value), fifo)
+            realtime_taken = apply_scheduling(node, int(node.get_parameter(NICE_PARAM.name).value), fifo)
         executor = MultiThreadedExecutor() if multithreaded else SingleThreadedExecutor()
         executor.add_node(node)
         executor.spin()
@@ -242,6 +244,12 @@ def run_node(
         _LOG.error("could not start: %s", exc)
         code = 1
     finally:
+        if realtime_taken:
+            # Teardown is not real-time work: at SCHED_FIFO, middleware threads that wait on other
+            # processes while they end could keep a core from those very processes.
+            from redarm_ros.can import realtime
+
+            realtime.drop_process_priority()
         drained = True
         if node is not None:
             close = getattr(node, "close", None)
