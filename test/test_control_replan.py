@@ -54,6 +54,35 @@ def test_select_takes_the_two_pi_copy_of_a_wide_joint_nearest_the_previous() -> 
     assert q[6] == pytest.approx(5.9) and ratio == pytest.approx(0.0)
 
 
+def test_swivel_search_stops_at_the_limit_edge_not_a_whole_step_beyond() -> None:
+    """Joint 5 exactly at its lower limit: a hair further in swivel there is no in-limit solution on the
+    branch. The search finds the in-limit swivel nearest the one asked for, not one a whole search step
+    (0.03 rad) back: that jump, taken as the elbow's rate, swung the elbow off and the hand 15 mm off its
+    goal after REACHED."""
+    st = stepper()
+    q = np.array([1.5458, -1.0662, 0.8798, 0.9728, ARM.lower[4], 0.3743, 2.5382])
+    T, s0 = ARM.fk(q), ARM.swivel(q)
+    blocked = st.solve(T, s0 + 0.001, q, DT)
+    assert blocked is None or blocked[1] > st.flip_ratio  # (the situation: no continuous solution there)
+    pick, s = st._search_swivel(T, s0 + 0.001, q, DT)
+    assert pick is not None
+    assert -1e-3 < s - s0 <= 0.0  # at the edge, within 1 mrad (0.03 / 2^8 = 1.2e-4 rad)
+    assert pick[1] <= 1.0  # a step within the velocity limits
+    assert np.all(pick[0] >= ARM.lower) and np.all(pick[0] <= ARM.upper)
+
+
+def test_limit_probe_sees_a_wide_joints_limit_not_its_copy_two_pi_away() -> None:
+    """Joint 5 (range 8.9 rad) 1 mrad inside its lower limit: a swivel step towards the limit takes it
+    beyond, where the probe must see a negative margin (the swivel brakes in time), not the in-limit
+    copy of the joint 2 pi away, or another branch, far from any limit."""
+    st = stepper()
+    q = np.array([1.5458, -1.0662, 0.8798, 0.9728, ARM.lower[4] + 1e-3, 0.3743, 2.5382])
+    T, s0 = ARM.fk(q), ARM.swivel(q)
+    m0, m_plus, m_minus = st.limit_margins(T, s0, q, 0.02, 0.3)
+    assert m0 == pytest.approx(1e-3)
+    assert m_plus < 0.0 < m0 < m_minus  # towards the limit (+ swivel here) and away from it
+
+
 def test_advance_shortens_a_step_that_is_too_fast_and_reports_dead_ends() -> None:
     st = stepper()
     T0 = ARM.fk(READY)

@@ -7,7 +7,8 @@ For a proposed tool pose and the swivel the dynamics asks for, :meth:`IKStepper.
    limits* (each wide joint at its 2 pi copy nearest the previous value): no branch flip;
 2. if a joint would exceed its velocity limit, lets the elbow yield first (a shorter swivel change),
    then shortens the whole step (pose and swivel);
-3. if no continuous solution exists at that swivel, searches nearby swivels;
+3. if no continuous solution exists at that swivel, searches nearby swivels for the nearest one
+   that has one;
 4. if still none, halves the Cartesian step, up to four times;
 5. reports a dead end (:class:`DeadEnd`) otherwise: the caller holds and may re-plan.
 
@@ -40,6 +41,8 @@ from redarm_ros.kinematics.quaternion import (
 )
 
 DEAD_END = "no joint solution continuous with the current configuration (joint limits or singularity)"
+#: halvings of the swivel search's last step (0.03 rad by default: to about 1e-4 rad)
+SEARCH_BISECTIONS = 8
 
 
 @dataclass(frozen=True)
@@ -143,9 +146,22 @@ class IKStepper(StepperBase):
             return None
         out = [m0]
         for ds in (eps, -eps):
-            pick = self.solve(T, s + ds, q_ref, 1.0)
-            out.append(self.margin(pick[0]) if pick is not None else -1.0)
+            out.append(self._continued_margin(T, s + ds, q_ref))
         return out[0], out[1], out[2]
+
+    def _continued_margin(self, T: np.ndarray, s: float, q_ref: np.ndarray) -> float:
+        """Least limit margin (rad, negative beyond a limit) at swivel ``s`` of the solution nearest
+        ``q_ref``, each wide joint on its 2 pi copy nearest ``q_ref`` even beyond its limit; -1 if there
+        is no solution. :meth:`solve` would put a wide joint that passed its limit on its in-limit copy
+        2 pi away, far from any limit: probed that way, the limit just ahead looked like open space and
+        the swivel ran into it at speed."""
+        sols = self.arm.ik(T, s)
+        if sols.shape[0] == 0:
+            return -1.0
+        sols = sols.copy()
+        for j in self.wide:
+            sols[:, j] -= 2.0 * math.pi * np.round((sols[:, j] - q_ref[j]) / (2.0 * math.pi))
+        return self.margin(sols[int(np.argmin(np.max(np.abs(sols - q_ref), axis=1)))])
 
     # -- the cascade ------------------------------------------------------------------------------
     def advance(self, pos0: Vec3, rot0: Quat, s0: float, q_prev: np.ndarray, new_pos: Vec3, new_rot: Quat,
@@ -244,13 +260,32 @@ class IKStepper(StepperBase):
 
     def _search_swivel(self, T: np.ndarray, s_new: float, q_prev: np.ndarray, dt: float
                        ) -> tuple[tuple[np.ndarray, float] | None, float]:
+        """The swivel nearest ``s_new`` with a continuous solution: the first of s_new +- k
+        ``search_step`` (k = 1 .. ``search_count``) that has one, then bisected towards the step before
+        it (which had none) to :data:`SEARCH_BISECTIONS` halvings. A whole search step would be a jump
+        of the elbow: at a joint limit, where the swivel is held and the hand drifts by a hair, the
+        elbow was thrown back 0.03 rad in one step and swung off, taking the hand 15 mm off its goal."""
         for k in range(1, self.search_count + 1):
             for sign in (1.0, -1.0):
                 s_try = wrap_angle(s_new + sign * k * self.search_step)
                 pick = self.solve(T, s_try, q_prev, dt)
                 if pick is not None and pick[1] <= self.flip_ratio:
-                    return pick, s_try
+                    s_bad = wrap_angle(s_new + sign * (k - 1) * self.search_step)
+                    return self._bisect_edge(T, s_bad, s_try, pick, q_prev, dt)
         return None, s_new
+
+    def _bisect_edge(self, T: np.ndarray, s_bad: float, s_ok: float, pick: tuple[np.ndarray, float],
+                     q_prev: np.ndarray, dt: float) -> tuple[tuple[np.ndarray, float], float]:
+        """Between swivel ``s_bad`` (no continuous solution) and ``s_ok`` (``pick``), the swivel with one
+        nearest ``s_bad`` to :data:`SEARCH_BISECTIONS` halvings, and its pick."""
+        for _ in range(SEARCH_BISECTIONS):
+            s_mid = wrap_angle(s_bad + 0.5 * wrap_angle(s_ok - s_bad))
+            mid = self.solve(T, s_mid, q_prev, dt)
+            if mid is not None and mid[1] <= self.flip_ratio:
+                s_ok, pick = s_mid, mid
+            else:
+                s_bad = s_mid
+        return pick, s_ok
 
     def _scale_step(self, pos0: Vec3, rot0: Quat, s0: float, pos1: Vec3, rot1: Quat, s1: float,
                     q_prev: np.ndarray, dt: float, ratio: float
