@@ -23,7 +23,7 @@ from redarm_ros.control.state import (
     Mode,
 )
 from redarm_ros.control.swivel_dynamics import wrap_angle
-from redarm_ros.control.types import Quat, Vec3
+from redarm_ros.control.types import Phase, Quat, Vec3
 from redarm_ros.kinematics.quaternion import (
     quat_between_vectors,
     quat_from_rotvec,
@@ -253,11 +253,12 @@ class AttractorMixin(ControllerBase):
         goal = st.goal
         if goal is None or not goal.point_at(st.ref.pos, p.pos_tolerance):
             return sd
+        # once REACHED, the elbow only creeps on (below the settled rate): the user acts on REACHED
+        cap = p.settle_swivel_rate if st.phase is Phase.REACHED else math.inf
         rate = abs(st.ref.sdot)
         ratio = float(np.max(np.abs(st.ref.qd) / self._max_vel))
-        if rate < 1e-9 or ratio < 1e-12:
-            return sd
-        cap = p.settle_speed_share * rate / ratio
+        if rate >= 1e-9 and ratio >= 1e-12:
+            cap = min(cap, p.settle_speed_share * rate / ratio)
         return max(-cap, min(cap, sd))
 
     def _hand_acc(self) -> float | None:
