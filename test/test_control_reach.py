@@ -422,6 +422,46 @@ _PASSAGE_SEQUENCES = {
 }
 
 
+# Three goals of a sequence in the narrow passage (sequence_bench, seed 2005): the third is reached with
+# joint 2 at -0.08 rad, near the shoulder singularity, where a slow swivel turns joints 1 and 3 fast. The
+# elbow's creep after REACHED took them to 44 % of their speed limit and the phase back to REACHING.
+_SINGULAR_SHOULDER_GOALS = [
+    [[0.09879299872225189, -0.03942910835436183, -0.9943265503937049, -0.11750666283033416],
+     [0.8807985481721246, 0.46844588480343974, 0.06893743938238323, -0.3622277022508918],
+     [0.4630700389156509, -0.8826119183565915, 0.08100827509307362, 1.0308706711948201],
+     [0.0, 0.0, 0.0, 1.0]],
+    [[0.7162508413050025, -0.1535619118945322, -0.6807374468509662, -0.5472481875541099],
+     [-0.5362173698772174, 0.5031832100791392, -0.6777002208472506, 0.6740994463480215],
+     [0.4466045953321971, 0.8504265966617864, 0.2780628330403323, 0.31560428434698484],
+     [0.0, 0.0, 0.0, 1.0]],
+    [[0.3119538807487402, 0.04184160884176763, 0.9491754611531703, -0.34008229292163783],
+     [-0.04201145827558794, -0.9974451741374408, 0.05777682894975436, -0.17090420049278293],
+     [0.9491679586139429, -0.057899951290680485, -0.3093990659022379, 0.47710355888377515],
+     [0.0, 0.0, 0.0, 1.0]],
+]
+
+
+def test_after_reached_near_the_shoulder_singularity_the_joints_stay_at_rest(arm) -> None:
+    ctl = ReachController(arm, load_scene("narrow_passage"))
+    ctl.reset(np.array([0.0, 0.5, 0.0, 1.3, 0.0, 1.0, 0.0]), now=0.0)
+    vmax = np.asarray(arm.max_vel)
+    for T in _SINGULAR_SHOULDER_GOALS:
+        assert ctl.set_goal(np.array(T)).accepted
+        for _ in range(2000):
+            r = ctl.step(DT)
+            if r.phase is Phase.REACHED:
+                break
+        assert r.phase is Phase.REACHED, r.message
+        q_prev = r.q
+        for _ in range(200):  # 2 s after REACHED
+            r = ctl.step(DT)
+            assert r.phase is Phase.REACHED, r.message
+            assert r.distance_to_goal <= 1e-3
+            assert float(np.max(np.abs(r.q - q_prev) / (vmax * DT))) <= 0.1  # at rest: REACHED's own 2 x 5 %
+            q_prev = r.q
+    assert abs(r.q[1]) < 0.1  # (the situation: joint 2 near 0)
+
+
 @pytest.mark.parametrize("case", sorted(_PASSAGE_SEQUENCES))
 def test_the_hand_stays_at_the_goal_after_reached_with_the_elbow_at_a_wide_joints_limit(arm, case) -> None:
     joint, goals = _PASSAGE_SEQUENCES[case]

@@ -19,9 +19,7 @@ from redarm_ros.control.joint_limits import braking_speed
 from redarm_ros.control.paper_redundancy import MODE as PAPER_MODE
 from redarm_ros.control.replan import check_route, move_time
 from redarm_ros.control.slide import obstacle_slide, workspace_slide
-from redarm_ros.control.state import (
-    Mode,
-)
+from redarm_ros.control.state import REST_SPEED_SHARE, Mode
 from redarm_ros.control.swivel_dynamics import wrap_angle
 from redarm_ros.control.types import Phase, Quat, Vec3
 from redarm_ros.kinematics.quaternion import (
@@ -253,12 +251,15 @@ class AttractorMixin(ControllerBase):
         goal = st.goal
         if goal is None or not goal.point_at(st.ref.pos, p.pos_tolerance):
             return sd
-        # once REACHED, the elbow only creeps on (below the settled rate): the user acts on REACHED
-        cap = p.settle_swivel_rate if st.phase is Phase.REACHED else math.inf
+        # Once REACHED (the user acts on it), what is left of the elbow's way is a creep that keeps the
+        # arm at rest as REACHED defines it: the swivel below its settled rate, every joint below its
+        # rest share (near the shoulder singularity a slow swivel turns joints 1 and 3 fast).
+        reached = st.phase is Phase.REACHED
+        cap = p.settle_swivel_rate if reached else math.inf
         rate = abs(st.ref.sdot)
         ratio = float(np.max(np.abs(st.ref.qd) / self._max_vel))
         if rate >= 1e-9 and ratio >= 1e-12:
-            cap = min(cap, p.settle_speed_share * rate / ratio)
+            cap = min(cap, (REST_SPEED_SHARE if reached else p.settle_speed_share) * rate / ratio)
         return max(-cap, min(cap, sd))
 
     def _hand_acc(self) -> float | None:

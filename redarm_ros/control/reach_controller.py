@@ -49,6 +49,7 @@ from redarm_ros.control.replan_law import ReplanMixin
 from redarm_ros.control.servo_law import ServoMixin
 from redarm_ros.control.slide import wrist_shell
 from redarm_ros.control.state import (
+    REST_SPEED_SHARE,
     ZERO3,
     Command,
     CoreState,
@@ -572,7 +573,7 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
             return False
         if abs(ref.sdot_want) > settle and st.time - ref.swivel_moved_at < SETTLE_DWELL_S:
             return False
-        return float(np.max(np.abs(st.cmd.qd) / self._max_vel)) <= slack * 0.05 and \
+        return float(np.max(np.abs(st.cmd.qd) / self._max_vel)) <= slack * REST_SPEED_SHARE and \
             float(np.max(np.abs(st.ref.q - st.cmd.q))) <= 1e-3
 
     def _result(self) -> StepResult:

@@ -22,6 +22,8 @@ from redarm_ros.control.stream import StreamEstimator
 from redarm_ros.control.types import GoalKind, Phase, Quat, Vec3
 
 ZERO3: Vec3 = (0.0, 0.0, 0.0)
+#: share of its velocity limit below which a joint counts as at rest for REACHED
+REST_SPEED_SHARE = 0.05
 
 
 class Mode(enum.Enum):
