@@ -462,6 +462,34 @@ def test_after_reached_near_the_shoulder_singularity_the_joints_stay_at_rest(arm
     assert abs(r.q[1]) < 0.1  # (the situation: joint 2 near 0)
 
 
+def test_the_elbow_keeps_one_rest_swivel_when_the_preferred_one_is_midway_between_two() -> None:
+    """The third goal after the first two of the joint 5 case: the preferred swivel lies midway between the
+    ends of a stretch where a joint is within the limit force's reach, so the rest swivels on either side
+    are equally near. As the hand settled they took turns, and the elbow set off for the far one right
+    after REACHED (the phase went back to REACHING). Now the first choice is kept, and the rest swivel
+    is chosen (from twice the position tolerance on) before REACHED is judged."""
+    arm = load_arm("pa10")
+    goals = [*_PASSAGE_SEQUENCES["joint 5"][1],
+             [[0.9134055276191193, -0.1428682829330417, -0.3811548187372199, -0.25462830168332723],
+              [0.0630711992542891, 0.9747471211060789, -0.21421968565012203, 0.12792053615425952],
+              [0.4021347609191032, 0.171629553478344, 0.8993502823891033, 0.6540499721405489],
+              [0.0, 0.0, 0.0, 1.0]]]
+    ctl = ReachController(arm, load_scene("narrow_passage"))
+    ctl.reset(np.array([0.0, 0.5, 0.0, 1.3, 0.0, 1.0, 0.0]), now=0.0)
+    for T in goals:
+        assert ctl.set_goal(np.array(T)).accepted
+        for _ in range(2000):
+            r = ctl.step(DT)
+            if r.phase is Phase.REACHED:
+                break
+        assert r.phase is Phase.REACHED, r.message
+        s_des = r.swivel_desired
+        for _ in range(200):  # 2 s after REACHED
+            r = ctl.step(DT)
+            assert r.phase is Phase.REACHED, r.message
+            assert r.swivel_desired == pytest.approx(s_des, abs=1e-6)  # one rest swivel
+
+
 @pytest.mark.parametrize("case", sorted(_PASSAGE_SEQUENCES))
 def test_the_hand_stays_at_the_goal_after_reached_with_the_elbow_at_a_wide_joints_limit(arm, case) -> None:
     joint, goals = _PASSAGE_SEQUENCES[case]

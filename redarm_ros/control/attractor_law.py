@@ -319,8 +319,8 @@ class AttractorMixin(ControllerBase):
         return self._feasible_at_goal(wrap_angle(ref + p.preferred_swivel))
 
     def _feasible_at_goal(self, s_des: float) -> float:
-        """With the hand at the goal, ``s_des`` moved to where the elbow can rest: the nearest of
-        :data:`REST_SAMPLES` swivels along the in-limit interval of the arm's branch that holds the
+        """With the hand at the goal (within twice ``pos_tolerance``), ``s_des`` moved to where the elbow
+        can rest: the nearest of :data:`REST_SAMPLES` swivels along the in-limit interval of the arm's branch that holds the
         current swivel (closed form) at which every joint keeps the swivel dynamics' ``lim_threshold``
         from its limits, or, if none does, the one with the widest margin. A preferred swivel beyond
         a joint limit, or within the joint-limit force's reach, pins the elbow where that force and
@@ -329,7 +329,9 @@ class AttractorMixin(ControllerBase):
         st = self._state()
         goal = st.goal
         interval = getattr(self.arm, "swivel_interval", None)
-        if goal is None or interval is None or not goal.point_at(st.ref.pos, self.params.pos_tolerance):
+        # (from twice the tolerance on: when REACHED is first judged, with the hand within it, the elbow's
+        # wanted rate is already the one towards its rest swivel, not the one on the way)
+        if goal is None or interval is None or not goal.point_at(st.ref.pos, 2.0 * self.params.pos_tolerance):
             return s_des
         if not goal.rest_known:  # once per goal: the hand stays there
             goal.rest_known = True
@@ -339,8 +341,15 @@ class AttractorMixin(ControllerBase):
         a, samples, ok = goal.rest
         x = a + ((s_des - a) % (2.0 * math.pi))  # s_des on the interval's unwrapped axis
         # the nearest sample where the margins were checked (between two of them a joint may still dip
-        # into the limit force's reach)
-        k = int(np.argmin(np.abs(samples - x) + np.where(ok, 0.0, 1e3)))
+        # into the limit force's reach); the one of last step while it is within a sample spacing of
+        # that: a preferred swivel midway between the two ends of a stretch near a limit had them take
+        # turns as the hand settled, and the elbow turned back and forth after REACHED
+        dist = np.abs(samples - x) + np.where(ok, 0.0, 1e3)
+        k = int(np.argmin(dist))
+        last = goal.rest_pick
+        if last is not None and len(samples) > 1 and dist[last] <= dist[k] + (samples[1] - samples[0]):
+            k = last
+        goal.rest_pick = k
         return wrap_angle(float(samples[k]))
 
     def _rest_swivels(self, iv: tuple[float, float] | None, T: np.ndarray

@@ -105,6 +105,7 @@ class Goal:
     # found once, when the hand first gets there (rest_known), None if it could not be found
     rest: tuple[float, np.ndarray, np.ndarray] | None = None
     rest_known: bool = False
+    rest_pick: int | None = None  # the sample of ``rest`` the elbow was last sent to
 
     def point_at(self, pos: Vec3, tol: float) -> bool:
         """A point goal within ``tol`` m of ``pos``. Not a stream's or a twist's: their goal moves (a
