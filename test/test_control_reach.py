@@ -384,6 +384,29 @@ def test_guard_emergency_stop_rather_than_collide(arm, q_start) -> None:
     assert first_still - guarded[0] <= 10, (guarded[:5], first_still)
 
 
+def _reached_then_watched(arm, scene_name: str, goals: list, watch_s: float = 2.0) -> list:
+    """Reach ``goals`` one after the other from the ready pose (each within 20 s: the way there is not
+    what the tests below are about) and watch each for ``watch_s`` after REACHED, as a user who acts on
+    it: per goal, (the REACHED step's result, the results of the steps after it)."""
+    ctl = ReachController(arm, load_scene(scene_name))
+    ctl.reset(np.array([0.0, 0.5, 0.0, 1.3, 0.0, 1.0, 0.0]), now=0.0)
+    out = []
+    for T in goals:
+        assert ctl.set_goal(np.array(T)).accepted
+        for _ in range(2000):
+            r = ctl.step(DT)
+            if r.phase is Phase.REACHED:
+                break
+        assert r.phase is Phase.REACHED, r.message
+        out.append((r, [ctl.step(DT) for _ in range(round(watch_s / DT))]))
+    return out
+
+
+def _left_reached(after: list) -> str:
+    """'' if every result stayed REACHED, else the first one that did not (phase and message)."""
+    return next((f"{a.phase.value}: {a.message}" for a in after if a.phase is not Phase.REACHED), "")
+
+
 # Goal sequences in the narrow passage (sequence_bench, seeds 2006 and 2018) that end with the elbow
 # settling against a wide joint's limit: joint 5's lower limit after the 2nd goal of the first, joint 7's
 # (-2 pi) after the 4th of the second. The swivel search used to throw the elbow back a whole search step
@@ -442,24 +465,13 @@ _SINGULAR_SHOULDER_GOALS = [
 
 
 def test_after_reached_near_the_shoulder_singularity_the_joints_stay_at_rest(arm) -> None:
-    ctl = ReachController(arm, load_scene("narrow_passage"))
-    ctl.reset(np.array([0.0, 0.5, 0.0, 1.3, 0.0, 1.0, 0.0]), now=0.0)
     vmax = np.asarray(arm.max_vel)
-    for T in _SINGULAR_SHOULDER_GOALS:
-        assert ctl.set_goal(np.array(T)).accepted
-        for _ in range(2000):
-            r = ctl.step(DT)
-            if r.phase is Phase.REACHED:
-                break
-        assert r.phase is Phase.REACHED, r.message
-        q_prev = r.q
-        for _ in range(200):  # 2 s after REACHED
-            r = ctl.step(DT)
-            assert r.phase is Phase.REACHED, r.message
-            assert r.distance_to_goal <= 1e-3
-            assert float(np.max(np.abs(r.q - q_prev) / (vmax * DT))) <= 0.1  # at rest: REACHED's own 2 x 5 %
-            q_prev = r.q
-    assert abs(r.q[1]) < 0.1  # (the situation: joint 2 near 0)
+    for reached, after in _reached_then_watched(arm, "narrow_passage", _SINGULAR_SHOULDER_GOALS):
+        assert _left_reached(after) == ""
+        assert max(a.distance_to_goal for a in after) <= 1e-3
+        Q = np.array([reached.q] + [a.q for a in after])
+        assert float(np.max(np.abs(np.diff(Q, axis=0)) / (vmax * DT))) <= 0.1  # at rest: REACHED's 2 x 5 %
+    assert abs(after[-1].q[1]) < 0.1  # (the situation: joint 2 near 0)
 
 
 def test_the_elbow_keeps_one_rest_swivel_when_the_preferred_one_is_midway_between_two() -> None:
@@ -474,38 +486,18 @@ def test_the_elbow_keeps_one_rest_swivel_when_the_preferred_one_is_midway_betwee
               [0.0630711992542891, 0.9747471211060789, -0.21421968565012203, 0.12792053615425952],
               [0.4021347609191032, 0.171629553478344, 0.8993502823891033, 0.6540499721405489],
               [0.0, 0.0, 0.0, 1.0]]]
-    ctl = ReachController(arm, load_scene("narrow_passage"))
-    ctl.reset(np.array([0.0, 0.5, 0.0, 1.3, 0.0, 1.0, 0.0]), now=0.0)
-    for T in goals:
-        assert ctl.set_goal(np.array(T)).accepted
-        for _ in range(2000):
-            r = ctl.step(DT)
-            if r.phase is Phase.REACHED:
-                break
-        assert r.phase is Phase.REACHED, r.message
-        s_des = r.swivel_desired
-        for _ in range(200):  # 2 s after REACHED
-            r = ctl.step(DT)
-            assert r.phase is Phase.REACHED, r.message
-            assert r.swivel_desired == pytest.approx(s_des, abs=1e-6)  # one rest swivel
+    for reached, after in _reached_then_watched(arm, "narrow_passage", goals):
+        assert _left_reached(after) == ""
+        assert {a.swivel_desired for a in after} == {reached.swivel_desired}  # one rest swivel
 
 
 @pytest.mark.parametrize("case", sorted(_PASSAGE_SEQUENCES))
 def test_the_hand_stays_at_the_goal_after_reached_with_the_elbow_at_a_wide_joints_limit(arm, case) -> None:
     joint, goals = _PASSAGE_SEQUENCES[case]
-    ctl = ReachController(arm, load_scene("narrow_passage"))
-    ctl.reset(np.array([0.0, 0.5, 0.0, 1.3, 0.0, 1.0, 0.0]), now=0.0)
-    for T in goals:
-        assert ctl.set_goal(np.array(T)).accepted
-        for _ in range(2000):  # (the way there is not what this test is about)
-            r = ctl.step(DT)
-            if r.phase is Phase.REACHED:
-                break
-        assert r.phase is Phase.REACHED, r.message
-        for _ in range(200):  # 2 s after REACHED: the user grasps (the elbow may still creep: self-motion)
-            r = ctl.step(DT)
-            assert r.phase is Phase.REACHED, r.message
-            assert r.distance_to_goal <= 1e-3
+    for _, after in _reached_then_watched(arm, "narrow_passage", goals):
+        assert _left_reached(after) == ""  # (the elbow may still creep: a self-motion)
+        assert max(a.distance_to_goal for a in after) <= 1e-3
+    r = after[-1]
     # (the situation: the elbow settled against that joint's limit)
     assert min(r.q[joint] - arm.lower[joint], arm.upper[joint] - r.q[joint]) < 0.05
 

@@ -320,12 +320,12 @@ class AttractorMixin(ControllerBase):
 
     def _feasible_at_goal(self, s_des: float) -> float:
         """With the hand at the goal (within twice ``pos_tolerance``), ``s_des`` moved to where the elbow
-        can rest: the nearest of :data:`REST_SAMPLES` swivels along the in-limit interval of the arm's branch that holds the
-        current swivel (closed form) at which every joint keeps the swivel dynamics' ``lim_threshold``
-        from its limits, or, if none does, the one with the widest margin. A preferred swivel beyond
-        a joint limit, or within the joint-limit force's reach, pins the elbow where that force and
-        the attraction meet, and it chatters there (joints at 10-15 % of their speed, ~2 Hz) and
-        never settles."""
+        can rest: the nearest of :data:`REST_SAMPLES` swivels along the in-limit interval of the arm's
+        branch that holds the current swivel (closed form) at which every joint keeps the swivel
+        dynamics' ``lim_threshold`` from its limits, or, if none does, the one with the widest margin. A
+        preferred swivel beyond a joint limit, or within the joint-limit force's reach, pins the elbow
+        where that force and the attraction meet, and it chatters there (joints at 10-15 % of their
+        speed, ~2 Hz) and never settles."""
         st = self._state()
         goal = st.goal
         interval = getattr(self.arm, "swivel_interval", None)
