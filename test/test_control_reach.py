@@ -445,33 +445,33 @@ _PASSAGE_SEQUENCES = {
 }
 
 
-# Three goals of a sequence in the narrow passage (sequence_bench, seed 2005): the third is reached with
-# joint 2 at -0.08 rad, near the shoulder singularity, where a slow swivel turns joints 1 and 3 fast. The
-# elbow's creep after REACHED took them to 44 % of their speed limit and the phase back to REACHING.
-_SINGULAR_SHOULDER_GOALS = [
-    [[0.09879299872225189, -0.03942910835436183, -0.9943265503937049, -0.11750666283033416],
-     [0.8807985481721246, 0.46844588480343974, 0.06893743938238323, -0.3622277022508918],
-     [0.4630700389156509, -0.8826119183565915, 0.08100827509307362, 1.0308706711948201],
+# Three goals of a sequence on the empty table (sequence_bench, seed 2019). After REACHED the elbow's
+# creep towards its rest swivel kept the swivel below its settled rate, but a slow swivel can still turn
+# a joint fast (near the shoulder singularity joints 1 and 3 turned at 44 % of their speed limit), and
+# the phase went back to REACHING; in the sequence benchmark after 7 goals per scene of 200.
+_CREEP_GOALS = [
+    [[-0.7830739272324876, -0.1756272144165901, -0.5966157105247545, -0.42225144945093274],
+     [0.0011484281505040883, 0.9588893421588662, -0.2837779248055068, 0.010185839966740513],
+     [0.6219275726332381, -0.22290426431633345, -0.7506795477086894, 0.4322083746880148],
      [0.0, 0.0, 0.0, 1.0]],
-    [[0.7162508413050025, -0.1535619118945322, -0.6807374468509662, -0.5472481875541099],
-     [-0.5362173698772174, 0.5031832100791392, -0.6777002208472506, 0.6740994463480215],
-     [0.4466045953321971, 0.8504265966617864, 0.2780628330403323, 0.31560428434698484],
+    [[0.6229515347622966, -0.673114447845588, 0.39855780689735354, 0.30480427836788326],
+     [-0.7423188670004128, -0.669386233911751, 0.029745075973442614, 0.519319504057946],
+     [0.24676726896515755, -0.3143867203794899, -0.9166607360504246, 0.24631980728184727],
      [0.0, 0.0, 0.0, 1.0]],
-    [[0.3119538807487402, 0.04184160884176763, 0.9491754611531703, -0.34008229292163783],
-     [-0.04201145827558794, -0.9974451741374408, 0.05777682894975436, -0.17090420049278293],
-     [0.9491679586139429, -0.057899951290680485, -0.3093990659022379, 0.47710355888377515],
+    [[0.3453125693530285, 0.33494618153265154, -0.8766814044586014, -0.08245333051591115],
+     [0.5418182140580607, 0.6915854275128083, 0.4776427738036656, 0.39013088960199327],
+     [0.766284707117233, -0.6399380063167232, 0.05733319901797221, 0.5520091308884919],
      [0.0, 0.0, 0.0, 1.0]],
 ]
 
 
-def test_after_reached_near_the_shoulder_singularity_the_joints_stay_at_rest(arm) -> None:
+def test_after_reached_the_elbows_creep_keeps_every_joint_at_rest(arm) -> None:
     vmax = np.asarray(arm.max_vel)
-    for reached, after in _reached_then_watched(arm, "narrow_passage", _SINGULAR_SHOULDER_GOALS):
+    for reached, after in _reached_then_watched(arm, "table_empty", _CREEP_GOALS):
         assert _left_reached(after) == ""
         assert max(a.distance_to_goal for a in after) <= 1e-3
         Q = np.array([reached.q] + [a.q for a in after])
         assert float(np.max(np.abs(np.diff(Q, axis=0)) / (vmax * DT))) <= 0.1  # at rest: REACHED's 2 x 5 %
-    assert abs(after[-1].q[1]) < 0.1  # (the situation: joint 2 near 0)
 
 
 def test_the_elbow_keeps_one_rest_swivel_when_the_preferred_one_is_midway_between_two() -> None:

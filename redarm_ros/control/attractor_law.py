@@ -335,7 +335,11 @@ class AttractorMixin(ControllerBase):
             return s_des
         if not goal.rest_known:  # once per goal: the hand stays there
             goal.rest_known = True
-            goal.rest = self._rest_swivels(interval(st.ref.q), pose_matrix(goal.pos, goal.rot))
+            T_goal = pose_matrix(goal.pos, goal.rot)
+            # the interval at the goal pose itself (not at the hand's pose, up to 2 mm away): where a
+            # joint's extreme along the circle just touches its limit, 2 mm split the interval at a limit
+            at_goal = self.stepper.solve(T_goal, st.ref.s, st.ref.q, 1.0)
+            goal.rest = None if at_goal is None else self._rest_swivels(interval(at_goal[0]), T_goal)
         if goal.rest is None:
             return s_des
         a, samples, ok = goal.rest
