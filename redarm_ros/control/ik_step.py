@@ -120,12 +120,9 @@ class IKStepper(StepperBase):
         over ``dt``; each wide joint at the in-limit 2 pi copy nearest ``q_ref``."""
         if sols.shape[0] == 0:
             return None
-        sols = sols.copy()
-        for j in self.wide:
-            k = np.round((sols[:, j] - q_ref[j]) / (2.0 * math.pi))
-            cand = sols[:, j] - 2.0 * math.pi * k
-            ok = (cand >= self.lower[j]) & (cand <= self.upper[j])
-            sols[ok, j] = cand[ok]
+        cont = self._continued_copies(sols, q_ref)
+        ok = (cont >= self.lower) & (cont <= self.upper)
+        sols = np.where(ok, cont, sols)  # (only wide joints differ)
         ratios = np.max(np.abs(sols - q_ref) * self.inv_vel, axis=1) / dt
         i = int(np.argmin(ratios))
         return sols[i], float(ratios[i])
@@ -158,10 +155,15 @@ class IKStepper(StepperBase):
         sols = self.arm.ik(T, s)
         if sols.shape[0] == 0:
             return -1.0
-        sols = sols.copy()
-        for j in self.wide:
-            sols[:, j] -= 2.0 * math.pi * np.round((sols[:, j] - q_ref[j]) / (2.0 * math.pi))
+        sols = self._continued_copies(sols, q_ref)
         return self.margin(sols[int(np.argmin(np.max(np.abs(sols - q_ref), axis=1)))])
+
+    def _continued_copies(self, sols: np.ndarray, q_ref: np.ndarray) -> np.ndarray:
+        """``sols`` with each wide joint on its 2 pi copy nearest ``q_ref``, in its limits or not."""
+        out = sols.copy()
+        for j in self.wide:
+            out[:, j] -= 2.0 * math.pi * np.round((sols[:, j] - q_ref[j]) / (2.0 * math.pi))
+        return out
 
     # -- the cascade ------------------------------------------------------------------------------
     def advance(self, pos0: Vec3, rot0: Quat, s0: float, q_prev: np.ndarray, new_pos: Vec3, new_rot: Quat,
