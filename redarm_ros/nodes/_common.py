@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import math
+import signal
 import threading
 import time
 from collections.abc import Callable, Iterable, Sequence
@@ -70,12 +71,12 @@ PROCESS_RT_PARAM = ParamSpec(
     "permitted.", read_only=True, range=(0, 49))
 
 
-def apply_scheduling(node: Node, level: int, fifo_priority: int = 0) -> bool:
+def apply_scheduling(node: Node, level: int, fifo_priority: int = 0) -> None:
     """Run ``node``'s process at SCHED_FIFO ``fifo_priority`` if asked (see :data:`PROCESS_RT_PARAM`),
     else (or when refused) at nice ``level`` (see :data:`NICE_PARAM`), and log the outcome once.
     :func:`run_node` calls it for a node that declares ``nice``, before the node's timers start its
     threads and child processes (they inherit the setting); a node built inside another program leaves
-    that program's scheduling alone. Returns True if the process now runs at SCHED_FIFO."""
+    that program's scheduling alone."""
     from redarm_ros.can import realtime  # (a shell may use the driver's scheduling helper)
 
     who = f"{node.get_name()} node"
@@ -84,17 +85,16 @@ def apply_scheduling(node: Node, level: int, fifo_priority: int = 0) -> bool:
         rt = realtime.raise_process_priority(fifo_priority, who=who)
         if rt.realtime:
             node.get_logger().info(rt.message)
-            return True
+            return
         refused = f"{rt.message}; "
     prio = realtime.raise_nice(level, who=who)
     if refused:
         node.get_logger().warning(f"{refused}falling back: {prio.message}")
-        return False
+        return
     if prio.policy is realtime.Policy.NICE or level >= 0:
         node.get_logger().info(prio.message)
     else:
         node.get_logger().warning(prio.message)
-    return False
 
 
 def declare_params(node: Node, specs: Sequence[ParamSpec]) -> dict[str, Any]:
@@ -199,6 +199,37 @@ def _drain_callbacks(executor: SingleThreadedExecutor | MultiThreadedExecutor, t
     return not waiter.is_alive()
 
 
+class _StopSignals:
+    """Python's SIGINT handler for a node process: Ctrl-C stops the spin, and once teardown has begun
+    a repeated one is noted, not raised.
+
+    A second SIGINT (a supervisor's staged stop sends one after its grace period) raising
+    KeyboardInterrupt inside the teardown would abandon it and end the process by the signal
+    (exit code -2) instead of with its own code. SIGKILL remains the way to end it at once.
+    """
+
+    def __init__(self) -> None:
+        self.tearing_down = False
+        self._count = 0
+
+    @classmethod
+    def install(cls) -> _StopSignals:
+        """Install the handler (only the main thread can); it stays until the process ends."""
+        guard = cls()
+        if threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGINT, guard._on_sigint)
+        return guard
+
+    def _on_sigint(self, signum: int, _frame: object) -> None:
+        self._count += 1
+        if not self.tearing_down:
+            raise KeyboardInterrupt
+        # The first one can land here too: rclpy's own handler may have ended the spin before it ran.
+        if self._count == 2:
+            _LOG.warning("signal %d during shutdown: already stopping (SIGKILL ends the process at once)",
+                         signum)
+
+
 def run_node(
     make_node: Callable[[], Node],
     args: Sequence[str] | None = None,
@@ -212,10 +243,10 @@ def run_node(
     callbacks still running are waited for (:data:`CALLBACK_DRAIN_S`) before ``destroy_node()``.
     Returns the process exit code (0 on a normal or Ctrl-C stop, 1 if the node could not be built).
     """
+    stop_signals = _StopSignals.install()  # before rclpy.init, whose handler chains to it
     rclpy.init(args=list(args) if args is not None else None)
     node: Node | None = None
     executor: SingleThreadedExecutor | MultiThreadedExecutor | None = None
-    realtime_taken = False
     code = 0
     try:
         try:
@@ -228,7 +259,7 @@ def run_node(
         if node.has_parameter(NICE_PARAM.name):  # a process-wide setting: only where the node owns it
             fifo = int(node.get_parameter(PROCESS_RT_PARAM.name).value) \
                 if getattr(node, "PROCESS_REALTIME", False) else 0
-            realtime_taken = apply_scheduling(node, int(node.get_parameter(NICE_PARAM.name).value), fifo)
+            apply_scheduling(node, int(node.get_parameter(NICE_PARAM.name).value), fifo)
         executor = MultiThreadedExecutor() if multithreaded else SingleThreadedExecutor()
         executor.add_node(node)
         executor.spin()
@@ -244,12 +275,7 @@ def run_node(
         _LOG.error("could not start: %s", exc)
         code = 1
     finally:
-        if realtime_taken:
-            # Teardown is not real-time work: at SCHED_FIFO, middleware threads that wait on other
-            # processes while they end could keep a core from those very processes.
-            from redarm_ros.can import realtime
-
-            realtime.drop_process_priority()
+        stop_signals.tearing_down = True  # first: from here a Ctrl-C must not abandon the teardown
         drained = True
         if node is not None:
             close = getattr(node, "close", None)
