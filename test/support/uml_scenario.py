@@ -510,13 +510,18 @@ def cmd_ros(ns: argparse.Namespace) -> int:
         if client is not None:
             client.destroy_node()
         rclpy.try_shutdown(context=ctx)
+        t_stop = time.monotonic()
         result["node_rc"] = _stop_child(node_proc, grace_s=0.0)
+        result["node_stop_s"] = round(time.monotonic() - t_stop, 3)
         node_log.close()
         settled = result.get("trajectory", {}).get("final_err_max_rad", float("inf")) < ns.tolerance
-        if not (result.get("ok") and settled):  # the node's warnings (halts, missed replies...) say why
+        if not (result.get("ok") and settled and result["node_rc"] == 0):
+            # the node's warnings (halts, missed replies, a traceback at exit...) say why
             lines = (out / "can_driver_node.log").read_text(errors="replace").splitlines()
             result["node_log_tail"] = lines[-40:]
+        t_stop = time.monotonic()
         result["sim_rc"] = _stop_child(sim, grace_s=0.0)
+        result["sim_stop_s"] = round(time.monotonic() - t_stop, 3)
         result["duration_s"] = round(time.monotonic() - t_start, 3)
         _write_result(ns.result, result)
     return 0 if result["ok"] else 1
