@@ -405,12 +405,18 @@ class ManagedProcess:
             except subprocess.TimeoutExpired:
                 _LOG.error("%s: not ended %.1f s after SIGKILL (%s)", self.name, t3, thread_states(self.pid))
                 raise
-        # Descendants that outlived the child die with its group; they were ours.
+        # Descendants that outlived the child die with its group; they were ours. A SIGKILLed
+        # process takes a moment to die (longer on a busy machine): wait for that, bounded.
         if self.group_alive():
             try:
                 os.killpg(self.pid, signal.SIGKILL)
             except (ProcessLookupError, PermissionError):
                 pass
+        end = time.monotonic() + t3
+        while self.group_alive() and time.monotonic() < end:
+            time.sleep(0.01)
+        if self.group_alive():
+            _LOG.error("%s: its process group outlived SIGKILL by %.1f s", self.name, t3)
         self._reader.join(timeout=2.0)
         rc = self.popen.returncode
         assert rc is not None
