@@ -194,7 +194,7 @@ def test_run_node_puts_every_thread_of_a_realtime_node_at_fifo(ros_env: object) 
 
 
 # A node whose close() (the start of run_node's teardown) takes a while, as a real one does on a
-# starved machine; it says when teardown starts and ends.
+# starved machine; it says when it spins, and when teardown starts and ends.
 _SLOW_TEARDOWN_NODE = """
 import time
 from rclpy.node import Node
@@ -203,6 +203,10 @@ from redarm_ros.nodes._common import run_node
 class SlowTeardown(Node):
     def __init__(self):
         super().__init__("runner_teardown_probe")
+        self.timer = self.create_timer(0.05, self.ready)
+
+    def ready(self):  # from a callback: the node is built and spinning
+        self.timer.cancel()
         print("READY", flush=True)
 
     def close(self):
