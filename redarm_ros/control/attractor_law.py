@@ -348,7 +348,10 @@ class AttractorMixin(ControllerBase):
         # into the limit force's reach); the one of last step while it is within a sample spacing of
         # that: a preferred swivel midway between the two ends of a stretch near a limit had them take
         # turns as the hand settled, and the elbow turned back and forth after REACHED
-        dist = np.abs(samples - x) + np.where(ok, 0.0, 1e3)
+        # (around the circle: a preferred swivel just below the interval's start is nearest to that
+        # start, not to its far end, where x lands on the unwrapped axis)
+        gap = np.abs(samples - x)
+        dist = np.minimum(gap, 2.0 * math.pi - gap) + np.where(ok, 0.0, 1e3)
         k = int(np.argmin(dist))
         last = goal.rest_pick
         if last is not None and len(samples) > 1 and dist[last] <= dist[k] + (samples[1] - samples[0]):
