@@ -111,6 +111,35 @@ def test_wide_joints_copy_nearest_zero_and_all_copies() -> None:
     assert np.allclose(qn, q, atol=0.05)
 
 
+@pytest.mark.parametrize("name", SWIVEL_ARMS)
+def test_limits_false_gives_all_eight_branches_beyond_the_limits_too(name: str) -> None:
+    """``ik(T, s, limits=False)``: the 8 branches whatever the limits, each exact, in (-pi, pi], and
+    the in-limit solutions among them; a posture 1 mrad beyond a limit is one of them (it is not in
+    ``ik(T, s)``)."""
+    arm = ARMS[name]
+    for q in _rand_q(arm, 50, 13):
+        T, s = arm.fk(q), arm.swivel(q)
+        allb = arm.ik(T, s, limits=False)
+        assert allb.shape == (8, 7)
+        assert np.all(np.abs(allb) <= math.pi)
+        for sol in allb:
+            assert np.max(np.abs(arm.fk(sol) - T)) < 1e-9
+        assert np.any(np.all(_wrapdiff(allb, q) < 1e-7, axis=1))
+        for sol in arm.ik(T, s):
+            assert np.any(np.all(_wrapdiff(allb, sol) < 1e-7, axis=1))
+    q = _rand_q(arm, 1, 14)[0]
+    q[0] = arm.upper[0] + 1e-3  # (joint 1's range is under 2 pi on every arm here)
+    T, s = arm.fk(q), arm.swivel(q)
+    assert not np.any(np.all(_wrapdiff(arm.ik(T, s), q) < 1e-7, axis=1))
+    assert np.any(np.all(_wrapdiff(arm.ik(T, s, limits=False), q) < 1e-7, axis=1))
+    with pytest.raises(InvalidInputError, match="limits must be True or False"):
+        arm.ik(T, s, limits="no")  # type: ignore[arg-type]
+    assert arm.ik(T, s, limits=False).shape == (8, 7)
+    far = T.copy()
+    far[:3, 3] = [5.0, 0.0, 0.0]  # out of reach
+    assert arm.ik(far, 0.0, limits=False).shape == (0, 7)
+
+
 def _fk_ok(arm: SwivelArm, sols: np.ndarray, T: np.ndarray) -> None:
     assert np.all(np.isfinite(sols))
     for sol in sols:

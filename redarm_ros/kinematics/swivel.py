@@ -424,21 +424,30 @@ class SwivelArm(Arm):
         C = self.shoulder + L2 * ca * n
         return C, n, L2 * math.sqrt(max(0.0, 1.0 - ca * ca))
 
-    def ik(self, T: np.ndarray, swivel: float | None = 0.0, *, all_copies: bool = False) -> np.ndarray:
+    def ik(self, T: np.ndarray, swivel: float | None = 0.0, *, all_copies: bool = False,
+           limits: bool = True) -> np.ndarray:
         """Every joint solution (k, 7), k <= 8, of pose T (4x4, base frame) at swivel angle ``swivel`` (rad).
 
         Only solutions inside the joint limits are returned, each angle wrapped to its in-limit 2*pi copy
-        nearest 0 (``all_copies=True``: one row per in-limit copy). An unreachable pose gives (0, 7);
-        ``swivel=None`` means 0. Raises :class:`InvalidInputError` for a malformed T (shape, NaN/inf,
-        position out of range, non-orthonormal rotation) or a swivel that is not a finite real number
-        within +-1e6 rad.
+        nearest 0 (``all_copies=True``: one row per in-limit copy). ``limits=False``: all 8 branches
+        (flip patterns, in their order) whatever the limits, each angle in (-pi, pi] (``all_copies`` is
+        then ignored); a controller probing how near a limit a branch runs needs the branch beyond it
+        too. An unreachable pose gives (0, 7); ``swivel=None`` means 0. Raises
+        :class:`InvalidInputError` for a malformed T (shape, NaN/inf, position out of range,
+        non-orthonormal rotation) or a swivel that is not a finite real number within +-1e6 rad.
         """
         # (a float or numpy float64 in range, NaN fails the test: check_scalar costs 2 us, 5-10 % of ik)
         if isinstance(swivel, float) and -ANGLE_RANGE <= swivel <= ANGLE_RANGE:
             s = float(swivel)
         else:
             s = 0.0 if swivel is None else check_scalar(swivel, "swivel", ANGLE_RANGE)
-        return self._ik_u(self.check_pose(T), math.cos(s), math.sin(s), all_copies)
+        Tl = self.check_pose(T)
+        if limits is False:
+            return self._branches_u(Tl, math.cos(s), math.sin(s))
+        if limits is not True:
+            raise InvalidInputError(f"limits must be True or False, got {limits!r}", field="limits",
+                                    value=limits)
+        return self._ik_u(Tl, math.cos(s), math.sin(s), all_copies)
 
     def ik_u(self, T: np.ndarray, u: Sequence[float], *, all_copies: bool = False) -> np.ndarray:
         """Like :meth:`ik` with the swivel quaternion u = Qz(s) i Qz(s)*: a pure unit quaternion in the
@@ -460,6 +469,16 @@ class SwivelArm(Arm):
             return np.empty((0, 7))
         rows = self._expand(base, all_copies)
         return np.array(rows) if rows else np.empty((0, 7))
+
+    def _branches_u(self, Tl: list[list[float]], ux: float, uy: float) -> np.ndarray:
+        """The 8 branches at swivel quaternion u, limits ignored, angles in (-pi, pi]; (0, 7) out of reach."""
+        base = self._base_solution(Tl, ux, uy)
+        if not isinstance(base, tuple):
+            return np.empty((0, 7))
+        t1, t2, t3, t4, t5, t6, t7 = base
+        alt = [t1, _wrap(t1 + PI), t2, -t2, t3, _wrap(t3 + PI), t4, -t4, t5, _wrap(t5 + PI), t6, -t6, t7,
+               _wrap(t7 + PI)]
+        return np.array([get(alt) for get in _PATTERN_GET])
 
     def swivel(self, q: Sequence[float]) -> float:
         """Swivel angle s in (-pi, pi] of q (eq. 16): u = qA* (pE - C)/rho qA, s = atan2(u_y, u_x).
