@@ -83,6 +83,20 @@ def test_limit_probe_sees_a_wide_joints_limit_not_its_copy_two_pi_away() -> None
     assert m_plus < 0.0 < m0 < m_minus  # towards the limit (+ swivel here) and away from it
 
 
+def test_limit_probe_sees_a_narrow_joints_limit_not_another_branch() -> None:
+    """Joint 1 (range under 2 pi) 0.5 mrad inside its upper limit, a swivel step taking it beyond: the
+    probe must see a negative margin there. Among the in-limit solutions only, that branch was gone
+    and another one (0.6 rad from every limit) looked like open space: the limit force pushed the
+    elbow into the limit, where it balanced the attraction to a false rest (REACHED), then swung
+    0.5 rad once the hand had crept off the limit (sequence benchmark, table_cylinder)."""
+    st = stepper()
+    q = np.array([ARM.upper[0] - 5e-4, -0.4313, -2.979, 1.0728, 1.9667, 2.2615, -4.6924])
+    T, s0 = ARM.fk(q), ARM.swivel(q)
+    m0, m_plus, m_minus = st.limit_margins(T, s0, q, 0.02, 0.3)
+    assert m0 == pytest.approx(5e-4)
+    assert m_minus < 0.0 < m0 < m_plus  # towards the limit (- swivel here) and away from it
+
+
 def test_advance_shortens_a_step_that_is_too_fast_and_reports_dead_ends() -> None:
     st = stepper()
     T0 = ARM.fk(READY)

@@ -147,15 +147,16 @@ class IKStepper(StepperBase):
         return out[0], out[1], out[2]
 
     def _continued_margin(self, T: np.ndarray, s: float, q_ref: np.ndarray) -> float:
-        """Least limit margin (rad, negative beyond a limit) at swivel ``s`` of the solution nearest
-        ``q_ref``, each wide joint on its 2 pi copy nearest ``q_ref`` even beyond its limit; -1 if there
-        is no solution. :meth:`solve` would put a wide joint that passed its limit on its in-limit copy
-        2 pi away, far from any limit: probed that way, the limit just ahead looked like open space and
-        the swivel ran into it at speed."""
-        sols = self.arm.ik(T, s)
+        """Least limit margin (rad, negative beyond a limit) at swivel ``s`` of the branch continued from
+        ``q_ref``: the solution nearest ``q_ref`` with the limits ignored, every joint on its 2 pi copy
+        nearest ``q_ref``; -1 if the pose has no solution. Probed among the in-limit solutions only,
+        a joint that passed its limit left that branch out, and the nearest in-limit solution (another
+        branch, or a wide joint's copy 2 pi away) looked like open space: the limit force then pushed
+        the elbow into the limit (a false rest, then a swing after REACHED) or let it run in at speed."""
+        sols = self.arm.ik(T, s, limits=False)
         if sols.shape[0] == 0:
             return -1.0
-        sols = self._continued_copies(sols, q_ref)
+        sols = sols - 2.0 * math.pi * np.round((sols - q_ref) / (2.0 * math.pi))
         return self.margin(sols[int(np.argmin(np.max(np.abs(sols - q_ref), axis=1)))])
 
     def _continued_copies(self, sols: np.ndarray, q_ref: np.ndarray) -> np.ndarray:
