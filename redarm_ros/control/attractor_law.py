@@ -208,7 +208,7 @@ class AttractorMixin(ControllerBase):
 
         def swivel(circle: ElbowCircle, T: np.ndarray, s0: float) -> tuple[float, float, bool]:
             if p.swivel_mode == "fixed":
-                st.ref.sdot_want = 0.0
+                st.ref.sdot_want, st.ref.want_over_since = 0.0, math.inf
                 return st.ref.s_fixed, st.ref.s_fixed, False
             s_des = self._desired_swivel(circle)
             margins = None
@@ -223,6 +223,8 @@ class AttractorMixin(ControllerBase):
             # The swivel rate changes by at most max_swivel_acc per second.
             sd = wrap_angle(s_new - s0) / dt
             st.ref.sdot_want = sd  # (the dynamics' own: the feed-forward is added below)
+            over = abs(sd) > 2.0 * p.settle_swivel_rate
+            st.ref.want_over_since = min(st.ref.want_over_since, st.time) if over else math.inf
             if feed:
                 # The dynamics' own rate (attraction, obstacles, limits) within its share of the
                 # joints' acceleration; the preferred swivel's motion is fed forward on top.

@@ -166,7 +166,7 @@ class CommandMixin(ControllerBase):
             ref.circle = None
         ref.sdot = 0.0
         ref.sdot_dyn = 0.0
-        ref.sdot_want = math.nan
+        ref.sdot_want, ref.want_over_since = math.nan, math.inf
         ref.swivel_moved_at = st.time
         ref.w_ori = 0.0
         if keep_velocity:

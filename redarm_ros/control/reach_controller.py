@@ -71,6 +71,10 @@ LOG = logging.getLogger(__name__)
 SETTLING = "at the goal; the elbow is settling on its preferred swivel"
 #: s a swivel must stand (below settle_swivel_rate) while its dynamics asks to move, to count as settled
 SETTLE_DWELL_S = 0.3
+#: s the elbow's wanted rate must stay above REACHED's threshold to make REACHED leave: near a joint
+#: limit the limit force and the attraction balance, and the wanted rate flickers over it for a step
+#: or two while the elbow stands (sequence benchmark: REACHED left for 0.07 s, 0.01 rad of travel)
+WANT_HOLD_S = 0.1
 
 __all__ = [
     "ControllerParams",
@@ -553,7 +557,8 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
         command catches up nor comes while the elbow still has to swing to its swivel (after a
         joint-space move the joints stop first, then the swivel dynamics turns the elbow). The elbow's
         last slow approach (below that rate; a self-motion: the tool stands) may go on after REACHED.
-        ``slack`` scales the rate thresholds."""
+        ``slack`` scales the rate thresholds; with ``slack`` > 1 (REACHED) the wanted rate counts only
+        once it has lasted :data:`WANT_HOLD_S`."""
         st = self._state()
         p = self.params
         goal = st.goal
@@ -572,7 +577,8 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
         if math.isnan(ref.sdot_want) or abs(ref.sdot) > settle:
             return False
         if abs(ref.sdot_want) > settle and st.time - ref.swivel_moved_at < SETTLE_DWELL_S:
-            return False
+            if slack <= 1.0 or st.time - ref.want_over_since >= WANT_HOLD_S:
+                return False
         return float(np.max(np.abs(st.cmd.qd) / self._max_vel)) <= slack * REST_SPEED_SHARE and \
             float(np.max(np.abs(st.ref.q - st.cmd.q))) <= 1e-3
 

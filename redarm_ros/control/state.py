@@ -54,6 +54,9 @@ class Reference:
     # the rate the swivel dynamics asked for at the last step, before the rate limits (rad/s); NaN until
     # the dynamics has run from the current reference (e.g. right after a joint-space move)
     sdot_want: float = 0.0
+    # controller time (s) since which sdot_want has stayed above twice settle_swivel_rate (REACHED's
+    # threshold; inf while below): only a wanted rate that lasts makes REACHED leave (WANT_HOLD_S)
+    want_over_since: float = math.inf
     # controller time (s) at which the swivel last turned faster than settle_swivel_rate, the hand
     # last moved, or the reference was reset: a swivel its dynamics asks to move that stands this long
     # with the hand still is held by the limits, and counts as settled after SETTLE_DWELL_S
