@@ -385,16 +385,17 @@ def test_guard_emergency_stop_rather_than_collide(arm, q_start) -> None:
     assert first_still - guarded[0] <= 10, (guarded[:5], first_still)
 
 
-def _reached_then_watched(arm, scene_name: str, goals: list, watch_s: float = 2.0) -> list:
-    """Reach ``goals`` one after the other from the ready pose (each within 20 s: the way there is not
-    what the tests below are about) and watch each for ``watch_s`` after REACHED, as a user who acts on
-    it: per goal, (the REACHED step's result, the results of the steps after it)."""
+def _reached_then_watched(arm, scene_name: str, goals: list, watch_s: float = 2.0,
+                          budget_s: float = 20.0) -> list:
+    """Reach ``goals`` one after the other from the ready pose (each within ``budget_s``: the way there
+    is not what most tests below are about) and watch each for ``watch_s`` after REACHED, as a user who
+    acts on it: per goal, (the REACHED step's result, the results of the steps after it)."""
     ctl = ReachController(arm, load_scene(scene_name))
     ctl.reset(np.array([0.0, 0.5, 0.0, 1.3, 0.0, 1.0, 0.0]), now=0.0)
     out = []
     for T in goals:
         assert ctl.set_goal(np.array(T)).accepted
-        for _ in range(2000):
+        for _ in range(round(budget_s / DT)):
             r = ctl.step(DT)
             if r.phase is Phase.REACHED:
                 break
@@ -482,11 +483,7 @@ def test_the_elbow_keeps_one_rest_swivel_when_the_preferred_one_is_midway_betwee
     after REACHED (the phase went back to REACHING). Now the first choice is kept, and the rest swivel
     is chosen (from twice the position tolerance on) before REACHED is judged."""
     arm = load_arm("pa10")
-    goals = [*_PASSAGE_SEQUENCES["joint 5"][1],
-             [[0.9134055276191193, -0.1428682829330417, -0.3811548187372199, -0.25462830168332723],
-              [0.0630711992542891, 0.9747471211060789, -0.21421968565012203, 0.12792053615425952],
-              [0.4021347609191032, 0.171629553478344, 0.8993502823891033, 0.6540499721405489],
-              [0.0, 0.0, 0.0, 1.0]]]
+    goals = [*_PASSAGE_SEQUENCES["joint 5"][1], _PASSAGE_JOINT5_ON[0]]
     for reached, after in _reached_then_watched(arm, "narrow_passage", goals):
         assert _left_reached(after) == ""
         assert {a.swivel_desired for a in after} == {reached.swivel_desired}  # one rest swivel
@@ -541,31 +538,9 @@ _WRAP_GAP_SEQUENCE = [
 ]
 
 
-def test_the_rest_swivel_is_the_nearest_around_the_circle_not_on_the_unwrapped_interval() -> None:
-    arm = load_arm("pa10")
-    ctl = ReachController(arm, load_scene("table_empty"))
-    ctl.reset(np.array([0.0, 0.5, 0.0, 1.3, 0.0, 1.0, 0.0]), now=0.0)
-    # the last goal within the benchmark's 10 s; before, the elbow was still swinging then
-    assert _send_and_watch(ctl, _WRAP_GAP_SEQUENCE, watch_s=0.0), ctl.step(DT).message
-
-
-def _send_and_watch(ctl: ReachController, goals: list, watch_s: float = 2.0) -> list:
-    """As the sequence benchmark sends goals: each until REACHED (10 s at most), then ``watch_s``
-    seconds more; the results after REACHED of the last goal (empty if it was not reached)."""
-    after: list = []
-    for T in goals:
-        assert ctl.set_goal(np.array(T)).accepted
-        r = None
-        for _ in range(round(10.0 / DT)):
-            r = ctl.step(DT)
-            if r.phase is Phase.REACHED:
-                break
-        assert r is not None
-        reached = r.phase is Phase.REACHED
-        after = [ctl.step(DT) for _ in range(round(watch_s / DT))] if reached else []
-        if reached:
-            after.insert(0, r)
-    return after
+def test_the_rest_swivel_is_the_nearest_around_the_circle_not_on_the_unwrapped_interval(arm) -> None:
+    # every goal within the benchmark's 10 s; before, the elbow was still swinging then at the last
+    _reached_then_watched(arm, "table_empty", _WRAP_GAP_SEQUENCE, budget_s=10.0)
 
 
 # table_cylinder, sequence 16, goals 0-1 of the sequence benchmark (seed 2000): at goal 1 joint 1 stands
@@ -581,17 +556,10 @@ _LIMIT_PROBE_SEQUENCE = [
      [0.0, 0.0, 0.0, 1.0]],
 ]
 
-# narrow_passage, sequence 6, goals 0-4: goal 4 ends a joint-space move with joint 3 0.14 rad from its
-# limit, where the limit force and the attraction balance
-_FORCE_BALANCE_SEQUENCE = [
-    [[0.5640511197310488, -0.48499485645873064, 0.6683010725254939, 0.11511199581192097],
-     [0.18137067870120338, 0.8623390404923794, 0.47273254187769576, 0.2354064360373697],
-     [-0.8055749569330064, -0.14543510047872832, 0.5743671476600375, 1.1274074116895068],
-     [0.0, 0.0, 0.0, 1.0]],
-    [[0.5238435676264591, -0.3247547146955691, -0.7874784390314333, -0.39412782899455023],
-     [-0.06798170497002021, 0.9055839981541007, -0.4186837829157021, -0.538434888926958],
-     [0.8490974057466861, 0.2728589334623901, 0.45230697317641955, 0.9353515720040166],
-     [0.0, 0.0, 0.0, 1.0]],
+# narrow_passage, sequence 6 (seed 2006): goals 2-4 after the two of the joint 5 case above; goal 4 ends
+# a joint-space move with joint 3 0.14 rad from its limit, where the limit force and the attraction
+# balance
+_PASSAGE_JOINT5_ON = [
     [[0.9134055276191193, -0.1428682829330417, -0.3811548187372199, -0.25462830168332723],
      [0.0630711992542891, 0.9747471211060789, -0.21421968565012203, 0.12792053615425952],
      [0.4021347609191032, 0.171629553478344, 0.8993502823891033, 0.6540499721405489],
@@ -606,28 +574,20 @@ _FORCE_BALANCE_SEQUENCE = [
      [0.0, 0.0, 0.0, 1.0]],
 ]
 
-
-def test_after_reached_the_elbow_stays_when_a_joint_stood_at_its_limit() -> None:
+def test_after_reached_the_elbow_stays_when_a_joint_stood_at_its_limit(arm) -> None:
     """The limit probe saw another branch beyond joint 1's limit (open space), pushed the elbow into
     the limit against its attraction, and the wanted rate there fell below REACHED's threshold: REACHED
     came with the elbow 0.3 rad from its rest swivel, then it swung 0.54 rad after REACHED."""
-    arm = load_arm("pa10")
-    ctl = ReachController(arm, load_scene("table_cylinder"))
-    ctl.reset(np.array([0.0, 0.5, 0.0, 1.3, 0.0, 1.0, 0.0]), now=0.0)
-    after = _send_and_watch(ctl, _LIMIT_PROBE_SEQUENCE)
-    assert after, "goal 1 not reached in 10 s"
-    assert all(r.phase is Phase.REACHED for r in after)
-    assert max(float(np.max(np.abs(r.q - after[0].q))) for r in after) < 0.05
-    assert abs(wrap_angle(after[-1].swivel - after[-1].swivel_desired)) < 0.05
+    reached, after = _reached_then_watched(arm, "table_cylinder", _LIMIT_PROBE_SEQUENCE, budget_s=10.0)[-1]
+    assert _left_reached(after) == ""
+    assert max(float(np.max(np.abs(a.q - reached.q))) for a in after) < 0.05
+    assert abs(wrap_angle(reached.swivel - reached.swivel_desired)) < 0.05  # at its rest swivel already
 
 
-def test_reached_does_not_flicker_when_the_wanted_swivel_rate_does() -> None:
+def test_reached_does_not_flicker_when_the_wanted_swivel_rate_does(arm) -> None:
     """In a force balance near a joint limit the elbow's wanted rate flickers over REACHED's threshold
     for a step or two while the elbow stands: REACHED stays (it left for 0.07 s before)."""
-    arm = load_arm("pa10")
-    ctl = ReachController(arm, load_scene("narrow_passage"))
-    ctl.reset(np.array([0.0, 0.5, 0.0, 1.3, 0.0, 1.0, 0.0]), now=0.0)
-    after = _send_and_watch(ctl, _FORCE_BALANCE_SEQUENCE)
-    assert after, "goal 4 not reached in 10 s"
-    assert all(r.phase is Phase.REACHED for r in after)
-    assert max(float(np.max(np.abs(r.q - after[0].q))) for r in after) < 0.05
+    goals = [*_PASSAGE_SEQUENCES["joint 5"][1], *_PASSAGE_JOINT5_ON]
+    reached, after = _reached_then_watched(arm, "narrow_passage", goals, budget_s=10.0)[-1]
+    assert _left_reached(after) == ""
+    assert max(float(np.max(np.abs(a.q - reached.q))) for a in after) < 0.05
