@@ -428,6 +428,28 @@ def test_silenced_module_does_not_answer(clock: FakeClock) -> None:
     assert len(arm.handle(p.get_param(1, Param.DEF_VERSION))) == 1
 
 
+
+def test_a_silenced_set_drops_requests_and_state_frames_but_time_goes_on(clock: FakeClock) -> None:
+    """The bank's ``silenced`` ids (the simulator's fault switch): requests and broadcasts change
+    nothing there and get no reply, the modules' unsolicited frames are dropped, and their watchdog
+    still runs out (its state frame is only withheld while silenced)."""
+    arm = make_arm(clock, n=2)
+    for mid in (1, 2):
+        arm.handle(p.set_param(mid, Param.ACT_CONFIG, int(ActConfig.WATCHDOG_ENABLE)))
+    assert arm.dispatch(p.decode(p.get_param(2, Param.DEF_VERSION)), None, {2}) == []
+    reply = arm.dispatch(p.decode(p.get_param(1, Param.DEF_VERSION)), None, {2})
+    assert raw(reply) == [(0x0A1, "0a 1d 1a 0d")]
+    arm.dispatch(p.decode(p.fvel(2, 0.5)), None, {2})  # ignored: module 2 does not move
+    clock.advance(0.05)
+    assert arm.dispatch(p.decode(p.watchdog_refresh_all()), None, {2}) == []  # refreshes module 1 only
+    assert arm.tick(0.0, {2}) == []
+    assert arm.positions()[1] == pytest.approx(0.0)
+    clock.advance(0.08)  # module 2 last heard 130 ms ago, module 1 80 ms ago
+    assert arm.tick(0.0, {2}) == []  # module 2's watchdog state frame withheld
+    assert state_of(arm, 2) & S.COMM_ERROR  # ... but it did run out
+    assert not state_of(arm, 1) & S.ERROR
+
+
 def test_bad_construction() -> None:
     with pytest.raises(InvalidInputError):
         PowerCubeModule(0, KinematicPlant())

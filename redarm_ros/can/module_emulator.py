@@ -60,7 +60,7 @@ import math
 import struct
 import threading
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Collection, Iterable, Sequence
 from dataclasses import dataclass
 from enum import Enum
 from typing import Protocol, runtime_checkable
@@ -756,6 +756,10 @@ PARAM_ACCESS: dict[Param, ParamAccess] = {
 # --------------------------------------------------------------------------------------------------
 
 
+#: the frames a module answers (broadcasts aside)
+_REQUESTS = (p.CommandRequest, p.SetParamRequest, p.GetParamRequest, p.SetMoveRequest)
+
+
 class ModuleBank:
     """Modules by id: routes a CAN frame to its module (or all, for broadcasts), returns replies.
 
@@ -781,25 +785,40 @@ class ModuleBank:
         """Dispatch one received frame; returns the frames to send (replies first)."""
         with self.lock:
             frame = self.decoder.decode(msg)
-            if frame is None:
-                return []
-            if isinstance(frame, p.Broadcast):
-                out: list[can.Message] = []
-                for m in self.modules.values():
-                    out += m.handle(frame, wire_time(msg, m.clock))
-                return out
-            if isinstance(frame, (p.CommandRequest, p.SetParamRequest, p.GetParamRequest, p.SetMoveRequest)):
-                module = self.modules.get(frame.module_id)
-                return [] if module is None else module.handle(frame, wire_time(msg, module.clock))
-            return []  # replies and state frames of other nodes
+            return [] if frame is None else self.dispatch(frame, msg)
 
-    def tick(self, behind_s: float = 0.0) -> list[can.Message]:
+    def dispatch(
+        self, frame: p.Frame, on_wire: can.Message | float | None = None, silenced: Collection[int] = ()
+    ) -> list[can.Message]:
+        """Frames to send for one decoded frame: a broadcast goes to every module, a request to its
+        module; replies and state frames of other nodes, and frames for ids without a module, are
+        ignored. ``on_wire``: the received message (its stamp read on each module's clock, see
+        :func:`wire_time`) or when the frame was on the bus (the modules' clock scale); default now.
+        Modules in ``silenced`` ignore the frame (a fault: no state change, no reply)."""
+        with self.lock:
+            if isinstance(frame, p.Broadcast):
+                targets = [m for mid, m in self.modules.items() if mid not in silenced]
+            elif isinstance(frame, _REQUESTS):
+                module = self.modules.get(frame.module_id)
+                targets = [] if module is None or frame.module_id in silenced else [module]
+            else:
+                return []
+            out: list[can.Message] = []
+            for m in targets:
+                t = wire_time(on_wire, m.clock) if isinstance(on_wire, can.Message) else on_wire
+                out += m.handle(frame, t)
+            return out
+
+    def tick(self, behind_s: float = 0.0, silenced: Collection[int] = ()) -> list[can.Message]:
         """Advance every module's time-driven behaviour (as of ``behind_s`` s ago, see
-        :meth:`PowerCubeModule.tick`); returns unsolicited frames."""
+        :meth:`PowerCubeModule.tick`); returns unsolicited frames, none of the modules in
+        ``silenced`` (their time goes on: a silenced module's watchdog still runs out)."""
         with self.lock:
             out: list[can.Message] = []
-            for m in self.modules.values():
-                out += m.tick(behind_s)
+            for mid, m in self.modules.items():
+                frames = m.tick(behind_s)
+                if mid not in silenced:
+                    out += frames
             return out
 
     def positions(self) -> list[float]:

@@ -105,29 +105,12 @@ class PlantModules:
 
         ``t`` is when the frame was on the bus (``time.monotonic`` scale; see
         :func:`redarm_ros.can.module_emulator.wire_time`), default now."""
-        out: list[can.Message] = []
-        with self.bank.lock:
-            if isinstance(frame, pc.Broadcast):
-                for mid, m in self.bank.modules.items():
-                    if mid not in silenced:
-                        out += m.handle(frame, t)
-                return out
-            mid = getattr(frame, "module_id", None)
-            m = self.bank.modules.get(mid) if mid is not None else None
-            if m is None or mid in silenced or not isinstance(frame, _REQUESTS):
-                return out
-            return m.handle(frame, t)
+        return self.bank.dispatch(frame, t, silenced)
 
     def tick(self, silenced: Collection[int] = (), behind_s: float = 0.0) -> list[can.Message]:
         """Advance the modules' time-driven behaviour (as of ``behind_s`` s ago, see
         ``PowerCubeModule.tick``); unsolicited frames of speaking modules."""
-        out: list[can.Message] = []
-        with self.bank.lock:
-            for mid, m in self.bank.modules.items():
-                frames = m.tick(behind_s)
-                if mid not in silenced:
-                    out += frames
-        return out
+        return self.bank.tick(behind_s, silenced)
 
     def describe(self) -> list[dict[str, Any]]:
         """Per module: id, ACT_STATE (int and flag names), homed, position (rad). No side effects."""
@@ -148,5 +131,3 @@ class PlantModules:
                 )
         return out
 
-
-_REQUESTS = (pc.CommandRequest, pc.SetParamRequest, pc.GetParamRequest, pc.SetMoveRequest)
