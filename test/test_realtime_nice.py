@@ -4,43 +4,15 @@ a subprocess so the test runner keeps its own nice level."""
 
 from __future__ import annotations
 
-import json
 import os
 import shutil
-import subprocess
-import sys
 
 import pytest
-
-_PROBE = r"""
-import json, os, sys, threading
-from redarm_ros.can import realtime
-
-stop = threading.Event()
-before = threading.Thread(target=stop.wait)
-before.start()
-prio = realtime.raise_nice(int(sys.argv[1]), who="probe")
-after_tid = []
-after = threading.Thread(target=lambda: (after_tid.append(threading.get_native_id()), stop.wait()))
-after.start()
-while not after_tid:
-    pass
-tids = [int(t) for t in os.listdir("/proc/self/task")]
-nice = {str(t): os.getpriority(os.PRIO_PROCESS, t) for t in tids}
-print(json.dumps({"policy": prio.policy.value, "value": prio.value, "message": prio.message,
-                  "nice": nice, "after": after_tid[0], "before": before.native_id}))
-stop.set()
-"""
+from support.thread_probe import probe_threads
 
 
 def _probe(level: int, prefix: tuple[str, ...] = (), start_nice: int | None = None) -> dict:
-    def preexec() -> None:  # an absolute start level, whatever this test runner's own is
-        if start_nice is not None:
-            os.setpriority(os.PRIO_PROCESS, 0, start_nice)
-
-    out = subprocess.run([*prefix, sys.executable, "-c", _PROBE, str(level)], capture_output=True, text=True,
-                         timeout=60, check=True, preexec_fn=preexec)
-    return json.loads(out.stdout)
+    return probe_threads("raise_nice", level, prefix, start_nice)
 
 
 def _may_raise_priority() -> bool:
@@ -55,8 +27,8 @@ def _may_raise_priority() -> bool:
 def test_every_thread_and_later_ones_run_at_the_level() -> None:
     r = _probe(-5, start_nice=0)
     assert r["policy"] == "nice" and r["value"] == -5, r
-    assert len(r["nice"]) >= 3 and set(r["nice"].values()) == {-5}, r["nice"]
-    assert r["nice"][str(r["before"])] == -5 and r["nice"][str(r["after"])] == -5
+    assert len(r["nice"]) >= 4 and set(r["nice"].values()) == {-5}, r["nice"]  # main, 2 before, 1 after
+    assert all(r["nice"][str(t)] == -5 for t in [*r["before"], r["after"]])
     assert "nice -5" in r["message"]
 
 

@@ -5,42 +5,17 @@ the test runner keeps its own scheduling."""
 
 from __future__ import annotations
 
-import json
 import os
 import shutil
 import subprocess
 import sys
 
 import pytest
-
-_PROBE = r"""
-import json, os, resource, signal, sys, threading
-from redarm_ros.can import realtime
-
-stop = threading.Event()
-before = [threading.Thread(target=stop.wait) for _ in range(2)]
-for t in before:
-    t.start()
-prio = realtime.raise_process_priority(int(sys.argv[1]), who="probe")
-after_tid = []
-after = threading.Thread(target=lambda: (after_tid.append(threading.get_native_id()), stop.wait()))
-after.start()
-while not after_tid:
-    pass
-tids = [int(t) for t in os.listdir("/proc/self/task")]
-sched = {str(t): [os.sched_getscheduler(t), os.sched_getparam(t).sched_priority] for t in tids}
-print(json.dumps({"policy": prio.policy.value, "value": prio.value, "message": prio.message,
-                  "sched": sched, "after": after_tid[0], "before": [t.native_id for t in before],
-                  "rttime": list(resource.getrlimit(resource.RLIMIT_RTTIME)),
-                  "sigxcpu_default": signal.getsignal(signal.SIGXCPU) == signal.SIG_DFL}))
-stop.set()
-"""
+from support.thread_probe import probe_threads
 
 
 def _probe(priority: int, prefix: tuple[str, ...] = ()) -> dict:
-    out = subprocess.run([*prefix, sys.executable, "-c", _PROBE, str(priority)], capture_output=True,
-                         text=True, timeout=60, check=True)
-    return json.loads(out.stdout)
+    return probe_threads("raise_process_priority", priority, prefix)
 
 
 def _fifo_permitted() -> bool:
