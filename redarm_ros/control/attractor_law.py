@@ -340,8 +340,13 @@ class AttractorMixin(ControllerBase):
             T_goal = pose_matrix(goal.pos, goal.rot)
             # the interval at the goal pose itself (not at the hand's pose, up to 2 mm away): where a
             # joint's extreme along the circle just touches its limit, 2 mm split the interval at a limit
-            at_goal = self.stepper.solve(T_goal, st.ref.s, st.ref.q, 1.0)
-            goal.rest = None if at_goal is None else self._rest_swivels(interval(at_goal[0]), T_goal)
+            # on the reference's own branch: with a joint at its limit, 2 mm can take that branch a hair
+            # beyond it, and the nearest in-limit solution was another branch (a flipped wrist), whose
+            # interval and rest swivel the elbow could not reach
+            q_goal = self.stepper.follow(T_goal, st.ref.s, st.ref.q)
+            if q_goal is not None:
+                q_goal = np.clip(q_goal, self.stepper.lower, self.stepper.upper)
+            goal.rest = None if q_goal is None else self._rest_swivels(interval(q_goal), T_goal, q_goal)
         if goal.rest is None:
             return s_des
         a, samples, ok = goal.rest
@@ -361,21 +366,33 @@ class AttractorMixin(ControllerBase):
         goal.rest_pick = k
         return wrap_angle(float(samples[k]))
 
-    def _rest_swivels(self, iv: tuple[float, float] | None, T: np.ndarray
+    def _rest_swivels(self, iv: tuple[float, float] | None, T: np.ndarray, q0: np.ndarray
                       ) -> tuple[float, np.ndarray, np.ndarray] | None:
         """Samples of the in-limit swivel interval ``iv`` of pose T (the interval's start, the swivels
         unwrapped from it, and which of them keep every joint ``lim_threshold`` inside its limits; if
-        none does, only the one with the widest margin counts)."""
+        none does, only the one with the widest margin counts). ``q0``: the joints at T at the current
+        swivel, from which the samples are followed along the elbow circle either way; a sample beyond
+        one where a joint passes its limit is out of reach. The interval counts a wide joint in limits
+        on any 2 pi copy, but the elbow cannot jump to another copy: a joint 5 at its limit made the
+        elbow pull towards a swivel on the far side of that limit, held there, and never settle."""
         if iv is None:
             return None
         a, b = iv
         st = self._state()
         samples = np.linspace(a, b, REST_SAMPLES)
         margins = np.full(REST_SAMPLES, -math.inf)
-        for i, sv in enumerate(samples):
-            pick = self.stepper.solve(T, wrap_angle(float(sv)), st.ref.q, 1.0)
-            if pick is not None:
-                margins[i] = self.stepper.margin(pick[0])
+        x0 = a + (st.ref.s - a) % (2.0 * math.pi)  # the current swivel on the interval's axis
+        first_up = int(np.searchsorted(samples, x0))
+        for walk in (range(first_up, REST_SAMPLES), range(first_up - 1, -1, -1)):
+            q = q0
+            for i in walk:
+                q = self.stepper.follow(T, wrap_angle(float(samples[i])), q)
+                if q is None:
+                    break
+                margins[i] = self.stepper.margin(q)
+                if margins[i] < 0.0:
+                    margins[i] = -math.inf
+                    break
         if not np.isfinite(margins).any():
             return None
         ok = margins >= self.params.swivel.lim_threshold

@@ -146,6 +146,16 @@ class IKStepper(StepperBase):
             out.append(self._continued_margin(T, s + ds, q_ref))
         return out[0], out[1], out[2]
 
+    def follow(self, T: np.ndarray, s: float, q_ref: np.ndarray) -> np.ndarray | None:
+        """The solution of pose T at swivel ``s`` on the branch continued from ``q_ref`` (the limits
+        ignored, every joint on its 2 pi copy nearest ``q_ref``: beyond a limit where the branch passes
+        it), or None if the pose has no solution."""
+        sols = self.arm.ik(T, s, limits=False)
+        if sols.shape[0] == 0:
+            return None
+        sols = sols - 2.0 * math.pi * np.round((sols - q_ref) / (2.0 * math.pi))
+        return sols[int(np.argmin(np.max(np.abs(sols - q_ref), axis=1)))]
+
     def _continued_margin(self, T: np.ndarray, s: float, q_ref: np.ndarray) -> float:
         """Least limit margin (rad, negative beyond a limit) at swivel ``s`` of the branch continued from
         ``q_ref``: the solution nearest ``q_ref`` with the limits ignored, every joint on its 2 pi copy
@@ -153,11 +163,8 @@ class IKStepper(StepperBase):
         a joint that passed its limit left that branch out, and the nearest in-limit solution (another
         branch, or a wide joint's copy 2 pi away) looked like open space: the limit force then pushed
         the elbow into the limit (a false rest, then a swing after REACHED) or let it run in at speed."""
-        sols = self.arm.ik(T, s, limits=False)
-        if sols.shape[0] == 0:
-            return -1.0
-        sols = sols - 2.0 * math.pi * np.round((sols - q_ref) / (2.0 * math.pi))
-        return self.margin(sols[int(np.argmin(np.max(np.abs(sols - q_ref), axis=1)))])
+        q = self.follow(T, s, q_ref)
+        return -1.0 if q is None else self.margin(q)
 
     def _continued_copies(self, sols: np.ndarray, q_ref: np.ndarray) -> np.ndarray:
         """``sols`` with each wide joint on its 2 pi copy nearest ``q_ref``, in its limits or not."""
