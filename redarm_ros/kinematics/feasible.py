@@ -121,6 +121,10 @@ for _b in range(8):
     for _k, _j in enumerate(_J6):
         _SEL6[_b, 2 * _k + ALT_INDEX[_b, _j]] = 1.0
 _PM = np.array([[1.0], [-1.0]])  # the two roots of a row: phi + d and phi - d
+# a pattern's cost slope from its joints' rates: 2 w e theta' per alternative. Pivot joints keep their
+# rate when flipped (theta + pi); a hinge's rate is -Z'/rho, and its flipped alternative (-theta) has +Z'/rho
+_SLOPE_SIGN = np.array([[2.0, 2.0]] * 4 + [[-2.0, 2.0]] * 2)[:, :, None]
+_SEL6_SLOPE = _SEL6 * _SLOPE_SIGN.reshape(1, 12)
 
 # rows of the coefficient table K (const, cos s, sin s): pivot X rows, pivot Y rows, hinge Z rows
 # 0..3: X1, X3, X5, X7   4..7: Y1, Y3, Y5, Y7   8, 9: Z2, Z6
@@ -335,6 +339,15 @@ class SwivelFunctions:
     deg_shoulder: bool
     deg_wrist: bool
     Ka: np.ndarray | None = None  # (11, 3): K and the constant row (1, 0, 0), for one-product equations
+    KV: np.ndarray | None = None  # (20, 3): the rates' coefficients (d/ds of each row), then K
+
+    def __post_init__(self) -> None:
+        # (swivel_functions passes both; built here for functions made from K alone)
+        if self.Ka is None:
+            self.Ka = np.vstack([self.K, [1.0, 0.0, 0.0]])
+        if self.KV is None:
+            K = np.asarray(self.K, dtype=float)
+            self.KV = np.vstack([np.stack([np.zeros(10), K[:, 2], -K[:, 1]], axis=1), K])
 
     def angles(self, s: np.ndarray) -> np.ndarray:
         """(7, M) base-pattern joint angles (rad) at the swivels s (M,); pivot joints in (-pi, pi]."""
@@ -462,8 +475,12 @@ def swivel_functions(arm: SwivelArm, Tl: list[list[float]], circ: tuple[float, .
         k0 = dz4 * my_
         Y7 = [k0, z4x * yx + z4y * yy + z4z * yz - k0, cz4x * yx + cz4y * yy + cz4z * yz]
     Kl = [X1, X3, X5, X7, Y1, Y3, Y5, Y7, Z2, Z6]
-    Ka = np.fromiter(chain(X1, X3, X5, X7, Y1, Y3, Y5, Y7, Z2, Z6, (1.0, 0.0, 0.0)), float, 33).reshape(11, 3)
-    return SwivelFunctions(Ka[:10], Kl, t4, deg_sh, deg_wr, Ka)
+    # rows: the rates' coefficients (0, k2, -k1) of the ten, the ten (k0, k1, k2), the constant row
+    rows = (X1, X3, X5, X7, Y1, Y3, Y5, Y7, Z2, Z6)
+    A = np.fromiter(
+        chain(chain.from_iterable((0.0, r[2], -r[1]) for r in rows), *rows, (1.0, 0.0, 0.0)), float, 63
+    ).reshape(21, 3)
+    return SwivelFunctions(A[10:20], Kl, t4, deg_sh, deg_wr, A[10:], A[:20])
 
 
 def roots(E: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -875,23 +892,31 @@ def _alternative_costs(
     seed: np.ndarray,
     w: np.ndarray | None,
     c4: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    slopes: bool = False,
+) -> tuple[np.ndarray, ...]:
     """Costs (8, K) of the flip patterns at the K swivels Sp, and the per-alternative arrays behind them.
 
     Returns (cost, X, E): X (6, 2, K) per joint of _J6 and alternative the lowest copy >= lower - tol,
     minus (lower - tol) (feasible where X <= width6); E (6, 2, K) the in-limit copy nearest the seed,
     minus the seed. ``w``: weights (7,), None for all ones. ``c4`` (8, 1): theta4's share of each
     pattern's cost (BIG where out of limits). The eight patterns share their joints' alternatives, so the
-    per-alternative work is done once (12 rows) and the patterns are one matrix product.
+    per-alternative work is done once (12 rows) and the patterns are one matrix product. ``slopes``: also
+    return D (8, K), each pattern's d(cost)/ds (meaningful where the cost is below BIG; at a critical
+    swivel one side's, and huge where theta2 or theta6 is exactly 0 at a sample).
     """
     K = Sp.shape[0]
     CS = np.empty((3, K))
     CS[0] = 1.0
     np.cos(Sp, out=CS[1])
     np.sin(Sp, out=CS[2])
-    V = np.empty((12, K))
-    np.dot(fn.K, CS, out=V[:10])  # X1, X3, X5, X7, Y1, Y3, Y5, Y7, Z2, Z6
-    np.hypot(V[0:3:2], V[4:7:2], out=V[10:12])  # rho2 = |(X1, Y1)|, rho6 = |(X5, Y5)|
+    W = np.empty((22, K))
+    np.dot(fn.KV, CS, out=W[:20])  # X1' .. Z6' (rows 0..9), then X1, X3, X5, X7, Y1, Y3, Y5, Y7, Z2, Z6
+    V = W[10:]
+    if slopes:
+        R = np.hypot(V[0:4], V[4:8])  # |(X, Y)| of the pivot joints
+        V[10:12] = R[0::2]  # rho2 = |(X1, Y1)|, rho6 = |(X5, Y5)|
+    else:
+        np.hypot(V[0:3:2], V[4:7:2], out=V[10:12])
     T = np.dot(tab.rot, V)
     X = np.arctan2(T[12:], T[:12])  # (the alternative - (lower - tol)) mod 2 pi, minus pi
     X += PI
@@ -917,11 +942,30 @@ def _alternative_costs(
     np.copyto(C, BIG, where=X > tab.width6)
     cost = np.dot(_SEL6, C.reshape(12, K))
     cost += c4
-    return cost, X, E
+    if not slopes:
+        return cost, X, E
+    # the joints' rates: pivot (X Y' - Y X') / (X^2 + Y^2), hinge -Z' / rho (the minus in _SEL6_SLOPE). The
+    # tiny terms keep an exactly singular sample finite: a huge rate, below BIG, no warning
+    Vd = W[:10]
+    Q = R * R
+    Q += 1e-24
+    G = np.empty((6, K))
+    N = V[0:4] * Vd[4:8]
+    N -= V[4:8] * Vd[0:4]
+    np.divide(N, Q, out=G[:4])
+    np.divide(Vd[8:10], R[0::2] + 1e-12, out=G[4:])
+    if fn.deg_shoulder:  # theta1 and theta2 constant on the circle
+        G[0] = G[4] = 0.0
+    if fn.deg_wrist:
+        G[2] = G[5] = 0.0
+    Dl = E * G[:, None, :]
+    if w is not None:
+        Dl *= w[_J6A][:, None, None]
+    return cost, X, E, np.dot(_SEL6_SLOPE, Dl.reshape(12, K))
 
 
 def _candidates(
-    gaps: np.ndarray, cost: np.ndarray, limit: float | None = None
+    gaps: np.ndarray, cost: np.ndarray, limit: float | None = None, slope: np.ndarray | None = None
 ) -> tuple[list[tuple[float, int, int, float]], float]:
     """Candidate basins: each pattern's sample-wise local minima, as (bound, pattern, sample, offset).
 
@@ -930,7 +974,11 @@ def _candidates(
     and a bound on how much lower the basin may be (DEPTH_MARGIN times the vertex depth, or where the gaps
     are uneven the rise across the wide one, if more); only candidates
     whose bound is at most ``limit`` (default: the best sample) are returned, sorted by bound, with the
-    limit used. With d0, d1 the slopes left and
+    limit used. ``slope`` (8, M + 2): the cost's d/ds at the samples; the bound then also allows the
+    basin to lie as low as the tangent at the sample reaches across the gap it points down into (a
+    lower bound wherever the cost is convex on that arc, which the parabola is not: near a hinge passing
+    close to 0 the cost falls steeply beside a sample and the parabola through three samples is far too
+    shallow). With d0, d1 the slopes left and
     right of the sample and hl, hr the gaps, the vertex lies -(d0 hr + d1 hl) / (2 (d1 - d0)) from the
     sample and (d0 hr + d1 hl)^2 / (4 (d1 - d0)(hl + hr)) deep.
 
@@ -967,6 +1015,14 @@ def _candidates(
     rise -= f0
     rise *= nb
     np.minimum(lb, f0 - rise, out=lb)
+    if slope is not None:
+        # the tangent across the gap the sample's slope points down into: f0 - |g| h (feasible samples)
+        # (the slopes stay below 1e26 even at an exact singularity, so an infeasible sample stays above
+        # BIG / 2; fmin: a NaN slope leaves the parabola's bound)
+        gs = slope.ravel()[1:-1]
+        tan = np.maximum(gs, 0.0) * hl
+        tan -= np.minimum(gs, 0.0) * hr
+        np.fmin(lb, f0 - tan, out=lb)
     if limit is None:
         fbest = float(cf.min())
         if fbest >= 0.5 * BIG:
@@ -1108,8 +1164,8 @@ def nearest(
     c4a = [BIG if v is None else w_l[3] * (v[0] - seed_l[3]) ** 2 for v in t4c]
     c4 = np.array([c4a[0], c4a[0], c4a[1], c4a[1]] * 2).reshape(8, 1)  # theta4 follows the f4 bit
     unit = w_l.count(1.0) == 7
-    cost, X, E = _alternative_costs(fn, tab, Sp, seed, None if unit else w, c4)
-    cands, limit = _candidates(gaps, cost)
+    cost, X, E, D = _alternative_costs(fn, tab, Sp, seed, None if unit else w, c4, slopes=True)
+    cands, limit = _candidates(gaps, cost, slope=D)
     lo, up = tab.lo_l, tab.up_l
     lot6 = tab.lot6_l
 
@@ -1194,7 +1250,7 @@ def nearest(
         # the best realised cost is above the bound the candidates were cut at (a sample's prediction
         # that ik could not realise, at a singular swivel): the candidates below the realised cost too
         limit = best_f + 1e-12 * (1.0 + best_f) if best_f < math.inf else 0.5 * BIG
-        cands = [cd for cd in _candidates(gaps, cost, limit)[0] if (cd[1], cd[2]) not in done]
+        cands = [cd for cd in _candidates(gaps, cost, limit, D)[0] if (cd[1], cd[2]) not in done]
     if exhaustive and not timed_out:
         # the parabolas' depth is an estimate: every arc whose rigorous bound is still below the best is
         # refined too
@@ -1672,14 +1728,56 @@ def _alternative_costs_batch(
     return cost, X4, E4
 
 
+def _slopes_batch(
+    K: np.ndarray,
+    deg_sh: np.ndarray,
+    deg_wr: np.ndarray,
+    Sp: np.ndarray,
+    E4: np.ndarray,
+    w: np.ndarray | None,
+    pose: np.ndarray,
+    b: np.ndarray,
+    t: np.ndarray,
+) -> np.ndarray:
+    """d(cost)/ds of pattern b at sample t of each pose (the slopes of :func:`_alternative_costs`, only at
+    the given entries): K (m, 10, 3), Sp (m, K), E4 (6, 2, m, K) as :func:`_alternative_costs_batch`."""
+    s = Sp[pose, t]
+    L = len(pose)
+    CS = np.empty((L, 3, 2))  # columns: (1, cos s, sin s) for the values, (0, -sin s, cos s) for the rates
+    CS[:, 0, 0] = 1.0
+    CS[:, 0, 1] = 0.0
+    np.cos(s, out=CS[:, 1, 0])
+    np.sin(s, out=CS[:, 2, 0])
+    np.negative(CS[:, 2, 0], out=CS[:, 1, 1])
+    CS[:, 2, 1] = CS[:, 1, 0]
+    PP = np.matmul(K[pose], CS)  # (L, 10, 2): values, rates
+    P, Pd = PP[:, :, 0], PP[:, :, 1]
+    X, Y = P[:, 0:4], P[:, 4:8]
+    Q = X * X + Y * Y
+    G = np.empty((L, 6))
+    G[:, :4] = (X * Pd[:, 4:8] - Y * Pd[:, 0:4]) / (Q + 1e-24)  # (the scalar search's guards)
+    G[:, 4:] = Pd[:, 8:10] / (np.sqrt(Q[:, 0::2]) + 1e-12)  # -Z' / rho (joints 2 and 6), sign in _SLOPE_SIGN
+    dsh, dwr = deg_sh[pose], deg_wr[pose]
+    G[dsh, 0] = G[dsh, 4] = 0.0
+    G[dwr, 2] = G[dwr, 5] = 0.0
+    k6 = np.arange(6)[None, :]
+    alt6 = ALT_INDEX[b][:, _J6A]
+    D = E4[k6, alt6, pose[:, None], t[:, None]] * G * _SLOPE_SIGN[k6, alt6, 0]
+    if w is not None:
+        D *= w[_J6A]
+    return D.sum(axis=1)
+
+
 def _candidates_batch(
-    gaps: np.ndarray, cost: np.ndarray, first: np.ndarray
+    gaps: np.ndarray, cost: np.ndarray, first: np.ndarray, slope_args: tuple | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """:func:`_candidates` for n poses, cost (8, n, K): (pose, pattern, column, bound, vertex offset) of
     every candidate whose bound is at most its pose's best sample, sorted by pose and bound.
 
     The local minima are found on the whole table (flattened); the parabolas only at them (a few in a
-    thousand entries), which keeps the full-size temporaries to two.
+    thousand entries), which keeps the full-size temporaries to two. ``slope_args``: the arguments of
+    :func:`_slopes_batch` before (pose, b, t), for the tangent bound of :func:`_candidates` (computed at
+    the local minima only).
     """
     _, n, Kn = cost.shape
     cf = cost.ravel()
@@ -1705,6 +1803,9 @@ def _candidates_batch(
     # uneven gaps: the rise across the wide one too (see _candidates)
     rise = np.where(hl > UNEVEN * hr, fm, np.where(hr > UNEVEN * hl, fp, f0)) - f0
     lb = np.minimum(lb, f0 - np.where(nb, rise, 0.0))
+    if slope_args is not None and len(k):
+        g = _slopes_batch(*slope_args, pose, b, t)
+        lb = np.fmin(lb, f0 - (np.maximum(g, 0.0) * hl - np.minimum(g, 0.0) * hr))
     fbest = cost.min(axis=(0, 2))
     keep = lb <= (fbest + 1e-12 * (1.0 + fbest))[pose]
     pose, b, t, lb, depth, num, curv = (
@@ -1749,7 +1850,9 @@ def nearest_batch(
     cost, X, E = _alternative_costs_batch(
         K, deg_sh, deg_wr, tab, Sp, seeds, None if unit else w, c4, unused, ws
     )
-    cm, cb, col, lb, dx = _candidates_batch(gaps, cost, col0)
+    cm, cb, col, lb, dx = _candidates_batch(
+        gaps, cost, col0, (K, deg_sh, deg_wr, Sp, E, None if unit else w)
+    )
     best_s = np.full(m, np.nan)
     best_b = np.full(m, -1)
     best_f = np.full(m, np.inf)
