@@ -69,3 +69,19 @@ def test_fk_pq_quaternion_order() -> None:
         ref = qmul(ref, qz(t) if i % 2 == 0 else qy(t))
     ref = ref if ref[0] >= 0 else -ref
     assert np.allclose(quat, ref, atol=1e-12) and np.allclose(p, arm.fk(q)[:3, 3])
+
+
+def test_nearest_miss_benchmark_smoke(monkeypatch: pytest.MonkeyPatch) -> None:
+    """benchmarks/nearest_miss_bench.py on a few poses of one arm: every set and seed kind is solved both
+    ways and compared (no miss on these 20 fixed-seed poses), and the table sums them."""
+    path = BENCH.with_name("nearest_miss_bench.py")
+    spec = importlib.util.spec_from_file_location("nearest_miss_bench", path)
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, "nearest_miss_bench", mod)
+    monkeypatch.setattr(sys, "path", list(sys.path))  # (the bench puts benchmarks/ on the path)
+    spec.loader.exec_module(mod)
+    rows = mod.run_arm(("powercube7", 20, 5))
+    assert [(r["set"], r["seed"]) for r in rows] == [(k, s) for k in mod.KINDS for s in ("mid", "random")]
+    assert all(15 <= r["poses"] <= 20 and r["misses"] == 0 and r["t_def"] > 0.0 for r in rows)
+    assert f"| all | | | {sum(r['poses'] for r in rows)} | 0 |" in mod.table(rows)
