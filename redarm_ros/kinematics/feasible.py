@@ -1150,9 +1150,10 @@ def nearest(
     rad limit tolerance; the realised cost, not the predicted one, then bounds the candidates still to
     refine, so a prediction that cannot be realised never prunes a basin that can.
 
-    The candidate basins are the samples' local minima, each allowed a parabolic depth below its sample.
-    That depth is an estimate: where a hinge passes near 0 the pivot joints beside it turn fast between
-    two samples, and a basin was seen 2.7e-3 rad^2 below its samples (3 poses in about 36000).
+    The candidate basins are the samples' local minima, each allowed a parabolic depth below its sample
+    and the reach of its tangent across the gap it points down into (:func:`_candidates`). Both are
+    estimates: where a hinge passes near 0 the pivot joints beside it turn fast between two samples,
+    and a basin can lie deeper than either allows (measured: 2 poses in 480000, at most 1.9e-2 rad^2).
     ``exhaustive``: then also bound every arc between two samples rigorously (:func:`_unrefined_arcs`)
     and refine each arc that may still hold a nearer solution; 2-3 times the time.
     """
