@@ -558,19 +558,24 @@ def test_left_out_equal_angle_roots_repeat_critical_swivels(name: str) -> None:
     assert checked > 100
 
 
-def test_candidate_bound_is_the_three_point_parabola() -> None:
-    """_candidates: each candidate is a sample-wise local minimum of its pattern, its offset the vertex of
-    the parabola through it and its neighbours, its bound the sample minus DEPTH_MARGIN times the depth,
-    or minus the rise across the wider gap where one gap is more than UNEVEN times the other."""
-    rng = np.random.default_rng(32)
-    M = 30
+def _random_sample_table(rng: np.random.Generator, M: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """M random sorted swivels, their gaps around the circle and a padded (8, M + 2) cost table as the
+    nearest search lays them out (one infeasible sample: pattern 2, sample 5)."""
     S = np.sort(rng.uniform(-math.pi, math.pi, M))
     gaps = np.empty(M + 1)
     gaps[1:-1] = np.diff(S)
     gaps[0] = gaps[-1] = S[0] + TWO_PI - S[-1]
     cost = rng.uniform(0.0, 1.0, (8, M))
     cost[2, 5] = fz.BIG  # an infeasible sample: no parabola through it
-    pad = np.concatenate([cost[:, -1:], cost, cost[:, :1]], axis=1)
+    return S, gaps, np.concatenate([cost[:, -1:], cost, cost[:, :1]], axis=1)
+
+
+def test_candidate_bound_is_the_three_point_parabola() -> None:
+    """_candidates: each candidate is a sample-wise local minimum of its pattern, its offset the vertex of
+    the parabola through it and its neighbours, its bound the sample minus DEPTH_MARGIN times the depth,
+    or minus the rise across the wider gap where one gap is more than UNEVEN times the other."""
+    M = 30
+    S, gaps, pad = _random_sample_table(np.random.default_rng(32), M)
     cands, limit = fz._candidates(gaps, pad, 10.0)  # noqa: SLF001
     assert limit == 10.0 and cands == sorted(cands)
     Sx = np.concatenate([[S[-1] - TWO_PI], S, [S[0] + TWO_PI]])
@@ -603,14 +608,7 @@ def test_candidate_bound_with_slopes_is_also_the_tangent_across_the_downhill_gap
     of the parabola's and f0 - |g| h, h the gap on the side the slope g points down into; at a tight limit
     a local minimum whose parabola is too shallow but whose tangent reaches below the limit stays in."""
     rng = np.random.default_rng(33)
-    M = 30
-    S = np.sort(rng.uniform(-math.pi, math.pi, M))
-    gaps = np.empty(M + 1)
-    gaps[1:-1] = np.diff(S)
-    gaps[0] = gaps[-1] = S[0] + TWO_PI - S[-1]
-    cost = rng.uniform(0.0, 1.0, (8, M))
-    cost[2, 5] = fz.BIG
-    pad = np.concatenate([cost[:, -1:], cost, cost[:, :1]], axis=1)
+    _, gaps, pad = _random_sample_table(rng, 30)
     slope = rng.normal(0.0, 5.0, pad.shape)
     plain, _ = fz._candidates(gaps, pad, 10.0)  # noqa: SLF001
     tang, _ = fz._candidates(gaps, pad, 10.0, slope)  # noqa: SLF001
