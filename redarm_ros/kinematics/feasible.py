@@ -964,6 +964,14 @@ def _alternative_costs(
     return cost, X, E, np.dot(_SEL6_SLOPE, Dl.reshape(12, K))
 
 
+def _tangent_drop(g: np.ndarray, hl: np.ndarray, hr: np.ndarray) -> np.ndarray:
+    """How far the tangent at a sample (slope g) falls across the gap it points down into: g hl where the
+    cost rises (the left gap hl), -g hr where it falls (the right gap hr)."""
+    drop = np.maximum(g, 0.0) * hl
+    drop -= np.minimum(g, 0.0) * hr
+    return drop
+
+
 def _candidates(
     gaps: np.ndarray, cost: np.ndarray, limit: float | None = None, slope: np.ndarray | None = None
 ) -> tuple[list[tuple[float, int, int, float]], float]:
@@ -1019,10 +1027,7 @@ def _candidates(
         # the tangent across the gap the sample's slope points down into: f0 - |g| h (feasible samples)
         # (the slopes stay below 1e26 even at an exact singularity, so an infeasible sample stays above
         # BIG / 2; fmin: a NaN slope leaves the parabola's bound)
-        gs = slope.ravel()[1:-1]
-        tan = np.maximum(gs, 0.0) * hl
-        tan -= np.minimum(gs, 0.0) * hr
-        np.fmin(lb, f0 - tan, out=lb)
+        np.fmin(lb, f0 - _tangent_drop(slope.ravel()[1:-1], hl, hr), out=lb)
     if limit is None:
         fbest = float(cf.min())
         if fbest >= 0.5 * BIG:
@@ -1805,8 +1810,7 @@ def _candidates_batch(
     rise = np.where(hl > UNEVEN * hr, fm, np.where(hr > UNEVEN * hl, fp, f0)) - f0
     lb = np.minimum(lb, f0 - np.where(nb, rise, 0.0))
     if slope_args is not None and len(k):
-        g = _slopes_batch(*slope_args, pose, b, t)
-        lb = np.fmin(lb, f0 - (np.maximum(g, 0.0) * hl - np.minimum(g, 0.0) * hr))
+        lb = np.fmin(lb, f0 - _tangent_drop(_slopes_batch(*slope_args, pose, b, t), hl, hr))
     fbest = cost.min(axis=(0, 2))
     keep = lb <= (fbest + 1e-12 * (1.0 + fbest))[pose]
     pose, b, t, lb, depth, num, curv = (
