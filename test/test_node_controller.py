@@ -473,6 +473,29 @@ def test_second_controller_of_the_same_name_refuses_to_start(h: Harness, ctx: An
         other.destroy_node()
 
 
+def test_a_twin_found_after_its_start_up_check_stops_itself(h: Harness, ctx: Any) -> None:
+    """A second /controller whose start-up window passed before discovery showed the first (slow
+    discovery under load) stops itself as soon as it hears the first one's announcement: it is the
+    younger. Its graph check is taken out here, so only the announcement can stop it."""
+    twin = ControllerNode(context=ctx, parameter_overrides=[Parameter("duplicate_check_s", value=1.0)])
+    twin.name_check._cancel()  # noqa: SLF001  (as if the window had passed without a twin)
+    twin.name_check.done = True
+    ex = SingleThreadedExecutor(context=ctx)
+    ex.add_node(twin)
+    try:
+        with pytest.raises(DuplicateNodeError, match="started before this one"):
+            deadline = time.monotonic() + 15.0
+            while time.monotonic() < deadline:
+                ex.spin_once(timeout_sec=0.05)
+    finally:
+        ex.remove_node(twin)
+        ex.shutdown()
+        twin.destroy_node()
+    # the first one keeps working
+    h.send_goal(goal_from(Q0, (0.0, 0.1, 0.0)))
+    assert h.wait_phase(ControllerState.REACHED, 30.0), h.states[-1]
+
+
 def test_singular_start_is_reported_and_left(ctx: Any) -> None:
     """From the homed, stretched pose (all zeros) the elbow circle degenerates: the controller says so
     on ~/state (phase replanning, the reason in the message), moves in joint space and reaches the

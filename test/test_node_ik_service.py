@@ -432,6 +432,8 @@ def test_cross_process_service_and_duplicate_refused(procs: Any, ctx: Any) -> No
         while second.returncode is None and time.monotonic() < deadline:
             time.sleep(0.05)
         assert second.returncode == 1
+        # one line, not a traceback (DuplicateNodeError is a RuntimeError: caught before that)
+        assert not any("Traceback" in line for line in second.output()), second.tail()
         assert first.is_running()
         resp = call(make_request(GOOD_T, "pa10"))
         assert resp.status == R.SUCCESS, resp.message
@@ -444,6 +446,21 @@ def test_cross_process_service_and_duplicate_refused(procs: Any, ctx: Any) -> No
         )
         first.wait_for_line(r"another node named /ik_service is running in this domain", timeout=20.0)
         procs.stop(third)
+        # One whose start-up window (1 ms) passes before discovery shows the first: it serves for a
+        # moment, then hears the first one's announcement and stops itself, the younger of the two
+        fourth = procs.start(
+            "ik_service_4",
+            python_module_cmd("redarm_ros.nodes.ik_service", "--ros-args", "-p", "duplicate_check_s:=0.001"),
+        )
+        fourth.expect_exit()
+        deadline = time.monotonic() + 30.0
+        while fourth.returncode is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert fourth.returncode == 1, fourth.tail()
+        assert any("already running" in line for line in fourth.output()), fourth.tail()
+        assert first.is_running()
+        resp = call(make_request(GOOD_T, "pa10"))
+        assert resp.status == R.SUCCESS, resp.message
     finally:
         executor.shutdown()
         call.node.destroy_node()

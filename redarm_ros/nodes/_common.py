@@ -11,9 +11,11 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import signal
 import threading
 import time
+import uuid
 from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -26,6 +28,7 @@ from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescri
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
 from redarm_ros.errors import InvalidInputError
 from redarm_ros.kinematics.quaternion import pose_to_matrix
@@ -265,15 +268,16 @@ def run_node(
         executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except DuplicateNodeError as exc:  # raised by UniqueNameCheck's timer or watch_duplicates
+        # (before RuntimeError, its base class: one line and exit code 1, no traceback)
+        logging.basicConfig()
+        _LOG.error("could not start: %s", exc)
+        code = 1
     except RuntimeError:
         # A take that raced Ctrl-C's shutdown of the context fails with a bare RuntimeError from
         # rclpy's bindings; the stop was asked for, so stop. Anything else is a real error.
         if rclpy.ok():
             raise
-    except DuplicateNodeError as exc:  # raised by UniqueNameCheck's timer
-        logging.basicConfig()
-        _LOG.error("could not start: %s", exc)
-        code = 1
     finally:
         stop_signals.tearing_down = True  # first: from here a Ctrl-C must not abandon the teardown
         drained = True
@@ -458,17 +462,69 @@ class UniqueNameCheck:
             self._timer.cancel()
 
 
-def watch_duplicates(node: Node, period_s: float = 2.0) -> None:
-    """Keep looking (timer) for a node of the same name that the start-up check could not see yet
-    (slow discovery under load) or that started later; log an error once per appearance."""
+INSTANCE_TOPIC = "~/_instance"  # hidden (leading underscore); the same topic for every twin of a name
+
+
+def watch_duplicates(node: Node, period_s: float = 2.0, *, yield_to_elder: bool = False) -> None:
+    """Keep looking for a node of the same name that the start-up check could not see yet (discovery
+    under load can take longer than ``duplicate_check_s``) or that started later.
+
+    Every node of a name announces its start time on one latched hidden topic (``~/_instance``). With
+    ``yield_to_elder`` the younger of two twins stops itself as soon as it hears the elder
+    (:class:`DuplicateNodeError` out of the executor's spin: exit code 1 through :func:`run_node`), so
+    the node already in service keeps running however late discovery was. A twin that will not stop
+    (one started with the checks off, or another program under this name) is logged once per
+    appearance, from the announcement or from the graph.
+    """
+    from std_msgs.msg import String  # (only the nodes need std_msgs, not this module's other users)
+
     me = (node.get_name(), node.get_namespace())
-    state = {"seen": False}
+    fqn = node.get_fully_qualified_name()
+    start, uid = time.time_ns(), uuid.uuid4().hex
+    state: dict[str, Any] = {"seen": False, "heard": set()}
+    latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    pub = node.create_publisher(String, INSTANCE_TOPIC, latched)
+    pub.publish(String(data=f"{start} {uid} {os.getpid()} {int(yield_to_elder)}"))
+
+    def heard(msg: String) -> None:
+        parts = msg.data.split()
+        if len(parts) != 4 or parts[1] == uid or parts[1] in state["heard"]:
+            return
+        state["heard"].add(parts[1])
+        try:
+            other_is_elder = (int(parts[0]), parts[1]) < (start, uid)
+        except ValueError:
+            return  # not an announcement of ours
+        pid, other_yields = parts[2], parts[3] == "1"
+        if other_is_elder and yield_to_elder:
+            reason = (
+                f"another node named {fqn} is already running in ROS_DOMAIN_ID "
+                f"{node.context.get_domain_id()} (pid {pid}, started before this one; discovery found it "
+                "only now); stopping this one (remap the name with --ros-args -r __node:=<name> to run a "
+                "second one)"
+            )
+            node.get_logger().error(reason)
+            raise DuplicateNodeError(reason)
+        if not other_is_elder and other_yields:
+            node.get_logger().error(
+                f"another node named {fqn} is running in this domain (pid {pid}, started later): it "
+                "stops itself, this one keeps running"
+            )
+        else:
+            node.get_logger().error(
+                f"another node named {fqn} is running in this domain (pid {pid}): calls and topics now "
+                "reach both; stop one or remap its name (--ros-args -r __node:=<name>)"
+            )
+        state["seen"] = True  # (said: the graph check below need not say it again)
+
+    node.create_subscription(String, INSTANCE_TOPIC, heard, latched)
 
     def check() -> None:
         count = sum(1 for nm_ns in node.get_node_names_and_namespaces() if tuple(nm_ns) == me)
         if count > 1 and not state["seen"]:
             node.get_logger().error(
-                f"another node named {node.get_fully_qualified_name()} is running in this domain: calls "
+                f"another node named {fqn} is running in this domain: calls "
                 "and topics now reach both; stop one or remap its name (--ros-args -r __node:=<name>)"
             )
         state["seen"] = count > 1

@@ -280,7 +280,7 @@ class ControllerNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
         except (RedarmError, OSError) as exc:
             raise ValueError(f"controller configuration: {exc}") from exc
         self.name_check = UniqueNameCheck(self, p["duplicate_check_s"])  # a timer: no blocking here
-        watch_duplicates(self)
+        watch_duplicates(self, yield_to_elder=p["duplicate_check_s"] > 0)
         self.period = 1.0 / p["rate_hz"]
         self._names = list(self.arm.joint_names)
         self._q_meas: np.ndarray | None = None

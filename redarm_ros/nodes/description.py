@@ -131,7 +131,7 @@ class DescriptionNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
         self.urdf = robot_description(p["arm"], p["prefix"], p["urdf_file"])
         self.summary = summarize(self.urdf)
         self.name_check = UniqueNameCheck(self, p["duplicate_check_s"])  # a timer: no blocking here
-        watch_duplicates(self)
+        watch_duplicates(self, yield_to_elder=p["duplicate_check_s"] > 0)
         self.pub = self.create_publisher(String, TOPIC, DESCRIPTION_QOS)
         self.pub.publish(String(data=self.urdf))
         s = self.summary

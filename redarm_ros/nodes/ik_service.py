@@ -194,7 +194,7 @@ class IKServiceNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
         self._queue_depth = int(p["request_queue_depth"])
         # The service is offered once the duplicate-name check has passed (a timer: no blocking here).
         self.name_check = UniqueNameCheck(self, p["duplicate_check_s"], on_passed=self._serve)
-        watch_duplicates(self)
+        watch_duplicates(self, yield_to_elder=p["duplicate_check_s"] > 0)
 
     def _serve(self) -> None:
         qos = QoSProfile(
