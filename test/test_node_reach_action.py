@@ -289,3 +289,19 @@ def test_preemption_aborts_the_running_goal(h: Harness, rc: ReachClient, send_ne
     if newer is not None:  # a newer Reach goal runs on to its own result
         assert newer.accepted
         assert rc.result(newer).result.status == Reach.Result.SUCCESS
+
+
+def test_a_rejected_goal_on_goal_pose_preempts_nothing(h: Harness, rc: ReachClient) -> None:
+    """A goal on goal_pose that the goal check rejects (5 m away: out of reach) while a Reach goal runs
+    is reported on ~/state and leaves the Reach goal running to its own result."""
+    first = rc.send(rc.goal(goal_from(Q0, FAR)))
+    assert first.accepted
+    wait_moving(h, 20)
+    m = len(h.states)
+    T = goal_from(Q0, (0.0, 0.0, 0.0))
+    T[:3, 3] = (5.0, 0.0, 0.5)
+    h.send_goal(T)
+    said = "the running Reach goal goes on"
+    assert h.spin_until(lambda: any(said in s.message for s in h.states[m:]), 30.0)
+    res = rc.result(first)
+    assert res.result.status == Reach.Result.SUCCESS, res.result.message

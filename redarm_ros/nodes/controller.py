@@ -381,6 +381,14 @@ class ControllerNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
             self._reject_message(f"goal refused: {exc}")
             return
         stamp = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+        if self.reach.running:
+            # a goal the core would reject (out of reach, in an obstacle) pre-empts nothing: the
+            # running Reach goal goes on (the same check, without changing state)
+            check = self.ctl.check_goal(T)
+            if not check.accepted:
+                self._reject_message(f"goal on goal_pose rejected [{check.status.name}]: {check.message}; "
+                                     "the running Reach goal goes on")
+                return
         self.reach.preempt("a goal on goal_pose")
         if not self._started:
             self._pending_goal = T

@@ -168,6 +168,12 @@ class ReachActionServer:
         return result
 
     # -- the node's hooks -----------------------------------------------------------------------------
+    @property
+    def running(self) -> bool:
+        """A Reach goal is active and handed to the core (not one waiting for the arm state)."""
+        g = self._active
+        return g is not None and g.applied
+
     def preempt(self, by: str) -> None:
         """A newer goal arrived (``by`` says which): abort the running Reach goal, if any. The arm is
         left to the newer goal."""
