@@ -399,7 +399,24 @@ def test_parameters(ctx: Any) -> None:
         assert node.set_parameters([Parameter("preferred_swivel", value=-0.4)])[0].successful
         assert node.ctl.params.preferred_swivel == pytest.approx(-0.4)
         assert not node.set_parameters([Parameter("preferred_swivel", value=math.nan)])[0].successful
+        assert not node.set_parameters([Parameter("preferred_swivel", value=1e300)])[0].successful
+        assert node.ctl.params.preferred_swivel == pytest.approx(-0.4)
         assert not node.set_parameters([Parameter("rate_hz", value=10.0)])[0].successful  # read-only
+        # an empty base_frame would refuse every goal given in base_link: refused itself
+        assert not node.set_parameters([Parameter("base_frame", value="")])[0].successful
+        assert node.get_parameter("base_frame").value == "base_link"
+        # the marker rate applies at run time: 0 stops the markers, 50 Hz runs them at 50 Hz
+        assert node.set_parameters([Parameter("markers_rate_hz", value=0.0)])[0].successful
+        h.spin_until(lambda: False, 0.3)  # (a message already in flight)
+        n = len(h.markers)
+        h.spin_until(lambda: False, 1.0)
+        assert len(h.markers) == n
+        assert node.set_parameters([Parameter("markers_rate_hz", value=50.0)])[0].successful
+        h.spin_until(lambda: False, 0.2)
+        n = len(h.markers)
+        h.spin_until(lambda: False, 1.0)
+        assert len(h.markers) - n >= 25  # 50 Hz (10 Hz before): generous for a loaded machine
+        assert not node.set_parameters([Parameter("markers_rate_hz", value=-1.0)])[0].successful
     finally:
         h.close()
     with pytest.raises(ValueError):

@@ -137,6 +137,8 @@ def _bad(kind: str) -> SolveIK.Request:
         req.timeout = -1.0
     elif kind == "nan_swivel":
         req.swivel_given, req.swivel = True, math.nan
+    elif kind == "huge_swivel":  # its 2*pi copy would be round-off
+        req.swivel_given, req.swivel = True, 1e300
     elif kind == "swivel_on_chain_without_swivel":
         req.arm = "powercube6"  # its analytic IK has no swivel; asking for one must not crash
         req.swivel_given, req.swivel = True, 0.3
@@ -158,6 +160,7 @@ BAD = [
     "foreign_frame",
     "negative_timeout",
     "nan_swivel",
+    "huge_swivel",
 ]
 
 
@@ -372,6 +375,8 @@ def test_pose_msg_to_matrix_tolerance() -> None:
     (["pa10"], "powercube7", None, "default_arm"),  # the default is not among the served arms
     (["no_such_arm"], None, None, "no_such_arm"),
     (["pa10"], None, ("nearest_exhaustive", "yes"), "nearest_exhaustive"),  # not a bool
+    (["pa10"], None, ("quaternion_tolerance", 5.0), "quaternion_tolerance"),  # norm 2 is no rotation
+    (["pa10"], None, ("base_frame", ""), "base_frame"),
 ])
 def test_bad_parameters_refuse_to_start(ctx: Any, arms: list[str], default_arm: str | None,
                                         extra: tuple[str, Any] | None, match: str) -> None:

@@ -238,6 +238,12 @@ class IKFrontEnd:
         """(answer, whole_pose): ``whole_pose`` is True when the failure holds for every swivel."""
         if not math.isfinite(swivel):
             raise InvalidInputError(f"swivel must be finite, got {swivel}", field="swivel", value=swivel)
+        if abs(swivel) > ANGLE_RANGE:  # its 2*pi copy would be round-off, not the angle asked for
+            raise InvalidInputError(
+                f"swivel {swivel:.6g} rad is out of range (|swivel| <= {ANGLE_RANGE:g} rad)",
+                field="swivel",
+                value=swivel,
+            )
         if not has_swivel(arm):
             raise InvalidInputError(
                 f"arm {arm.name!r} has no swivel parameterisation (kind {arm.kind}); "

@@ -168,6 +168,11 @@ def non_negative(value: Any) -> str | None:
     return None if isinstance(value, (int, float)) and value >= 0 else "must be >= 0"
 
 
+def non_empty_string(value: Any) -> str | None:
+    """Validator: a string that is not empty (frame ids, names)."""
+    return None if isinstance(value, str) and value else "must be a non-empty string"
+
+
 def in_range(lo: float, hi: float) -> Validator:
     """Validator factory: a number in [lo, hi]."""
 

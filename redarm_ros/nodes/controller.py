@@ -74,6 +74,7 @@ from redarm_ros.nodes._common import (
     ParamSpec,
     UniqueNameCheck,
     in_range,
+    non_empty_string,
     non_negative,
     pose_msg_to_matrix,
     positive,
@@ -90,10 +91,6 @@ STILL_TOLERANCE = 1e-3  # rad: largest joint motion within that window of an arm
 OBSTACLE_MARKERS_S = 2.0  # s between re-sends of unchanged obstacle markers
 DIAGNOSTICS_PERIOD_S = 1.0  # s between /diagnostics messages
 IDLE_PERIODS = 10  # periods without a step after which /diagnostics says the loop is not stepping
-
-
-def _finite(value: Any) -> str | None:
-    return None if isinstance(value, (int, float)) and math.isfinite(value) else "must be a finite number"
 
 
 def _choices(name: str) -> tuple[str, ...]:
@@ -117,8 +114,8 @@ PARAMS = [
               in_range(1.0, 1000.0), read_only=True),
     ParamSpec("scene", "", "Initial scene: name in config/scenes or a YAML path ('' = none). Its table "
               "stays when obstacles arrive on the obstacles topic.", read_only=True),
-    ParamSpec("preferred_swivel", 0.0, "Preferred elbow swivel (rad), relative to swivel_reference; "
-              "may be changed at run time.", _finite),
+    ParamSpec("preferred_swivel", 0.0, "Preferred elbow swivel (rad, -2 pi .. 2 pi), relative to "
+              "swivel_reference; may be changed at run time.", in_range(-2.0 * math.pi, 2.0 * math.pi)),
     ParamSpec("swivel_reference", "high", "What preferred_swivel is measured from: 'high' (highest elbow), "
               "'low' (lowest elbow) or 'absolute' (the swivel angle itself).",
               _one_of(*_choices("swivel_reference")), read_only=True),
@@ -132,8 +129,9 @@ PARAMS = [
     ParamSpec("ori_tolerance", 0.01, "Phase 'reached' below this orientation error (rad).", positive,
               read_only=True),
     ParamSpec("base_frame", "base_link", "Frame of goals and obstacles ('' frame_id means this one) and of "
-              "the published markers.", None),
-    ParamSpec("markers_rate_hz", 10.0, "RViz marker rate (Hz, 0 = none).", non_negative),
+              "the published markers.", non_empty_string),
+    ParamSpec("markers_rate_hz", 10.0, "RViz marker rate (Hz, 0 = none, at most 100); may be changed at "
+              "run time.", in_range(0.0, 100.0)),
     ParamSpec("resync_threshold", 0.2, "If the arm stands still while its measured joints differ from the "
               "last command by more than this (rad, any joint), the controller restarts from the measured "
               "state (after a halt, homing, a collision).", positive),
@@ -316,8 +314,8 @@ class ControllerNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
         self.create_subscription(JointState, "joint_states", self._on_joint_states, 10)
         self.create_timer(self.period, self._on_timer)
         self.create_timer(DIAGNOSTICS_PERIOD_S, self._publish_diagnostics)
-        if p["markers_rate_hz"] > 0:
-            self.create_timer(1.0 / p["markers_rate_hz"], self._publish_markers)
+        self._markers_timer = None
+        self._set_markers_rate(p["markers_rate_hz"])
         self.add_post_set_parameters_callback(self._on_params_set)
         self.reach = ReachActionServer(self)  # ~/reach (redarm_interfaces/action/Reach)
         self.get_logger().info(
@@ -340,11 +338,22 @@ class ControllerNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
     def _frame_ok(self, frame: str) -> bool:
         return not frame or frame.lstrip("/") == self.get_parameter("base_frame").value
 
+    def _set_markers_rate(self, hz: float) -> None:
+        """(Re)start the marker timer at ``hz`` (0: no markers)."""
+        if self._markers_timer is not None:
+            self.destroy_timer(self._markers_timer)
+            self._markers_timer = None
+        if hz > 0:
+            self._markers_timer = self.create_timer(1.0 / hz, self._publish_markers)
+
     def _on_params_set(self, params: list[Parameter]) -> None:
         for prm in params:
             if prm.name == "preferred_swivel":
                 self.ctl.set_preferred_swivel(float(prm.value))
                 self.get_logger().info(f"preferred swivel now {float(prm.value):g} rad")
+            elif prm.name == "markers_rate_hz":
+                self._set_markers_rate(float(prm.value))
+                self.get_logger().info(f"markers now at {float(prm.value):g} Hz")
 
     # -- inputs -----------------------------------------------------------------------------------
     def _on_joint_states(self, msg: JointState) -> None:

@@ -28,6 +28,7 @@ from redarm_ros.nodes._common import (
     ParamNode,
     ParamSpec,
     UniqueNameCheck,
+    non_empty_string,
     non_negative,
     run_node,
     watch_duplicates,
@@ -47,17 +48,13 @@ DESCRIPTION_QOS = QoSProfile(
 )
 
 
-def _non_empty_string(value: Any) -> str | None:
-    return None if isinstance(value, str) and value else "must be a non-empty string"
-
-
 def _string(value: Any) -> str | None:
     return None if isinstance(value, str) else "must be a string"
 
 
 PARAMS = [
     ParamSpec("arm", "pa10", "Arm model: name of config/arms/<name>.yaml, or a YAML path.",
-              _non_empty_string, read_only=True),
+              non_empty_string, read_only=True),
     ParamSpec("prefix", "", "Put in front of every link name and of the tool joint (e.g. 'left_'); "
               "joint names stay the model's.", _string, read_only=True),
     ParamSpec("urdf_file", "", "Publish this URDF file instead of generating one from `arm`.",

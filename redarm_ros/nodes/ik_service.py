@@ -39,6 +39,8 @@ from redarm_ros.nodes._common import (
     ParamNode,
     ParamSpec,
     UniqueNameCheck,
+    in_range,
+    non_empty_string,
     non_negative,
     pose_msg_to_matrix,
     positive,
@@ -69,10 +71,6 @@ def _non_empty_string_list(value: Any) -> str | None:
     return None
 
 
-def _non_empty_string(value: Any) -> str | None:
-    return None if isinstance(value, str) and value else "must be a non-empty string"
-
-
 PARAMS = [
     ParamSpec(
         "arms",
@@ -85,20 +83,21 @@ PARAMS = [
         "default_arm",
         "pa10",
         "Arm used when a request leaves `arm` empty; must be in `arms`.",
-        _non_empty_string,
+        non_empty_string,
         read_only=True,
     ),
     ParamSpec(
         "base_frame",
         "base_link",
         "Frame the targets must be given in (an empty frame_id means this frame).",
-        _non_empty_string,
+        non_empty_string,
     ),
     ParamSpec(
         "quaternion_tolerance",
         1e-3,
-        "Largest accepted | |q| - 1 | of a target quaternion; within it the quaternion is renormalised.",
-        positive,
+        "Largest accepted | |q| - 1 | of a target quaternion; within it the quaternion is renormalised "
+        "(1e-12 .. 0.1: beyond that a quaternion is not a rotation given with round-off).",
+        in_range(1e-12, 0.1),
     ),
     ParamSpec(
         "default_timeout", 0.05, "Solver time budget (s) when a request leaves `timeout` at 0.", positive
