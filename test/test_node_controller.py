@@ -27,6 +27,7 @@ from trajectory_msgs.msg import JointTrajectory  # noqa: E402
 from visualization_msgs.msg import Marker, MarkerArray  # noqa: E402
 
 from redarm_ros.control.obstacles import Box, Cylinder, Sphere  # noqa: E402
+from redarm_ros.errors import InvalidInputError  # noqa: E402
 from redarm_ros.kinematics import load_arm  # noqa: E402
 from redarm_ros.nodes._common import DuplicateNodeError  # noqa: E402
 from redarm_ros.nodes.controller import (  # noqa: E402
@@ -455,6 +456,14 @@ def test_marker_conversions_are_conservative() -> None:
     assert shape.radius == pytest.approx(0.1)  # an ellipsoid is bounded by its largest axis
     shape, note = marker_to_obstacle(_marker(Marker.ARROW, (0, 0, 0), (1, 1, 1)))
     assert shape is None and "not an obstacle" in note
+    # a size that is not one is refused, not guessed (|-0.1| would be a smaller ball than meant)
+    for bad in ((-0.1, -0.1, -0.1), (math.nan, 0.1, 0.1), (0.1, math.inf, 0.1), (0.0, 0.1, 0.1)):
+        with pytest.raises(InvalidInputError, match="scale"):
+            marker_to_obstacle(_marker(Marker.SPHERE, (0.5, 0.0, 0.3), bad))
+    tilted = _marker(Marker.CYLINDER, (0.3, 0.0, 0.2), (0.1, 0.1, math.inf))
+    tilted.pose.orientation.x, tilted.pose.orientation.w = math.sin(0.5), math.cos(0.5)
+    with pytest.raises(InvalidInputError, match="scale"):
+        marker_to_obstacle(tilted)
 
 
 def test_second_controller_of_the_same_name_refuses_to_start(h: Harness, ctx: Any) -> None:

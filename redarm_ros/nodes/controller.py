@@ -189,10 +189,13 @@ def marker_to_obstacle(m: Marker) -> tuple[Sphere | Cylinder | Box | None, str]:
     """
     p = (m.pose.position.x, m.pose.position.y, m.pose.position.z)
     o = m.pose.orientation
-    scale = (abs(m.scale.x), abs(m.scale.y), abs(m.scale.z))
+    scale = (m.scale.x, m.scale.y, m.scale.z)
     name = f"{m.ns}/{m.id}"
     if m.type not in (MARKER_CUBE, MARKER_SPHERE, MARKER_CYLINDER):
         return None, f"marker type {m.type} is not an obstacle shape (SPHERE, CYLINDER, CUBE)"
+    if not all(math.isfinite(v) and v > 0.0 for v in scale):  # (a guessed size could be too small)
+        raise InvalidInputError(f"scale {scale} must be finite and > 0 on every axis", field="scale",
+                                value=scale)
     try:
         return obstacle_from_marker(m.type, p, (o.x, o.y, o.z, o.w), scale, name), ""
     except InvalidInputError as exc:
@@ -422,7 +425,7 @@ class ControllerNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
                 self.get_logger().info(f"{what} ({p[0]:.3f}, {p[1]:.3f}, {p[2]:.3f}) m")
         else:
             self._goal_T = None
-            self.get_logger().warning(f"goal ({p[0]:.3f}, {p[1]:.3f}, {p[2]:.3f}) m rejected "
+            self.get_logger().warning(f"goal ({p[0]:.4g}, {p[1]:.4g}, {p[2]:.4g}) m rejected "
                                       f"[{check.status.name}]: {check.message}; holding")
 
     def _on_twist(self, msg: TwistStamped) -> None:
@@ -469,22 +472,26 @@ class ControllerNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
             elif m.action == Marker.DELETE:
                 changed |= self._markers.pop(key, None) is not None
             elif m.action == Marker.ADD:  # ADD and MODIFY share the value 0
+                # (warnings throttled per marker: one bad marker must not hide another's warning)
                 if not self._frame_ok(m.header.frame_id):
-                    self._warn_throttled("obs-frame", f"obstacle {m.ns}/{m.id} in frame "
+                    self._warn_throttled(f"obs-frame {key}", f"obstacle {m.ns}/{m.id} in frame "
                                          f"{m.header.frame_id!r} ignored (no tf here)")
                     continue
                 try:
                     shape, note = marker_to_obstacle(m)
                 except (InvalidInputError, ValueError) as exc:
-                    self._warn_throttled("obs-bad", f"obstacle {m.ns}/{m.id} ignored: {exc}")
+                    self._warn_throttled(f"obs-bad {key}", f"obstacle {m.ns}/{m.id} ignored: {exc}")
                     continue
                 if shape is None:
-                    self._warn_throttled("obs-type", f"obstacle {m.ns}/{m.id} ignored: {note}")
+                    self._warn_throttled(f"obs-type {key}", f"obstacle {m.ns}/{m.id} ignored: {note}")
                     continue
                 if note:
-                    self._warn_throttled("obs-note", f"obstacle {m.ns}/{m.id}: {note}")
+                    self._warn_throttled(f"obs-note {key}", f"obstacle {m.ns}/{m.id}: {note}")
                 self._markers[key] = shape
                 changed = True
+            else:
+                self._warn_throttled(f"obs-action {key}", f"obstacle {m.ns}/{m.id} ignored: action "
+                                     f"{m.action} is none of ADD/MODIFY (0), DELETE (2), DELETEALL (3)")
         if not changed:
             return
         scene = self.base_scene.with_obstacles(self._markers.values())
