@@ -426,6 +426,13 @@ def test_parameters(ctx: Any) -> None:
     with pytest.raises(ValueError):
         ControllerNode(context=ctx, node_name="ctl_bad2", parameter_overrides=[
             Parameter("duplicate_check_s", value=0.0), Parameter("swivel_mode", value="sideways")])
+    # a misspelt parameter is named in a warning (the node starts with its defaults)
+    typo = ControllerNode(context=ctx, node_name="ctl_typo", parameter_overrides=[
+        Parameter("duplicate_check_s", value=0.0), Parameter("prefered_swivel", value=0.3)])
+    try:
+        assert typo.unknown_parameters == ["prefered_swivel"]
+    finally:
+        typo.destroy_node()
 
 
 def test_marker_obstacle_round_trip() -> None:

@@ -404,6 +404,14 @@ class ParamNode(Node):
         super().__init__(node_name or self.NODE_NAME, namespace=namespace, context=context,
                          parameter_overrides=parameter_overrides or [])
         self._setup(declare_params(self, self.PARAMS))
+        # a misspelt -p name:=value or YAML key would otherwise vanish without a word
+        overrides = getattr(self, "_parameter_overrides", {})
+        self.unknown_parameters = sorted(k for k in overrides if not self.has_parameter(k))
+        if self.unknown_parameters:
+            self.get_logger().warning(
+                f"unknown parameter(s) {', '.join(self.unknown_parameters)} ignored: this node has no "
+                f"such parameter (`ros2 param list {self.get_fully_qualified_name()}` lists its own)"
+            )
 
     def _setup(self, p: dict[str, Any]) -> None:
         """Wire the node (topics, services, timers) from its declared parameter values ``p``."""
