@@ -482,7 +482,8 @@ def watch_duplicates(node: Node, period_s: float = 2.0, *, yield_to_elder: bool 
     """Keep looking for a node of the same name that the start-up check could not see yet (discovery
     under load can take longer than ``duplicate_check_s``) or that started later.
 
-    Every node of a name announces its start time on one latched hidden topic (``~/_instance``). With
+    Every node of a name announces its start time on one latched hidden topic (``~/_instance``), and
+    again every ``period_s``. With
     ``yield_to_elder`` the younger of two twins stops itself as soon as it hears the elder
     (:class:`DuplicateNodeError` out of the executor's spin: exit code 1 through :func:`run_node`), so
     the node already in service keeps running however late discovery was. A twin that will not stop
@@ -498,7 +499,8 @@ def watch_duplicates(node: Node, period_s: float = 2.0, *, yield_to_elder: bool 
     latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
     pub = node.create_publisher(String, INSTANCE_TOPIC, latched)
-    pub.publish(String(data=f"{start} {uid} {os.getpid()} {int(yield_to_elder)}"))
+    announcement = String(data=f"{start} {uid} {os.getpid()} {int(yield_to_elder)}")
+    pub.publish(announcement)
 
     def heard(msg: String) -> None:
         parts = msg.data.split()
@@ -534,6 +536,9 @@ def watch_duplicates(node: Node, period_s: float = 2.0, *, yield_to_elder: bool 
     node.create_subscription(String, INSTANCE_TOPIC, heard, latched)
 
     def check() -> None:
+        # again every period: a latched sample for a late joiner was seen not to arrive (in-process,
+        # under load); a repeat costs one small message per period
+        pub.publish(announcement)
         count = sum(1 for nm_ns in node.get_node_names_and_namespaces() if tuple(nm_ns) == me)
         if count > 1 and not state["seen"]:
             node.get_logger().error(
