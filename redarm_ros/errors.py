@@ -74,3 +74,7 @@ class ImplausibleMeasurementError(ModuleFaultError):
     def __init__(self, message: str, *, module_id: int | None = None, value: float | None = None) -> None:
         super().__init__(message, module_id=module_id)
         self.value = value
+
+
+class RequestHaltedError(RedarmError):
+    """A running init or recover was stopped by a halt request (every module has been halted)."""

@@ -12,6 +12,7 @@ import pytest
 from support.loop_rig import AMAX, LOWER, Q0, UPPER, VMAX, loop_rig
 from support.waits import wait_until
 
+from redarm_ros.can import protocol
 from redarm_ros.can.driver_loop import (
     Backoff,
     CommandMode,
@@ -24,6 +25,7 @@ from redarm_ros.can.driver_loop import (
     braking_speed,
 )
 from redarm_ros.can.module_emulator import EmulatedArm
+from redarm_ros.can.protocol import Command
 from redarm_ros.errors import BusError, InvalidInputError
 from redarm_ros.motion import JointLimits
 
@@ -564,3 +566,43 @@ def test_stop_ends_the_thread_and_closes_the_bus(rig) -> None:
     assert loop.state is LoopState.STOPPED
     assert not any(t.name == "can-driver-loop" for t in threading.enumerate())
     assert loop.bus is None and bus._bus is None  # shut down by the loop, not by the rig's teardown
+
+
+def _halt_frames(sent: list[can.Message], since: float) -> list[float]:
+    """Send times of the HALT commands (to any module 1..3) and haltAll broadcasts sent after ``since``."""
+    halts = {(m.arbitration_id, bytes(m.data)) for m in
+             [protocol.command(mid, Command.HALT) for mid in (1, 2, 3)] + [protocol.halt_all()]}
+    return [m.timestamp for m in list(sent)
+            if (m.arbitration_id, bytes(m.data)) in halts and m.timestamp >= since]
+
+
+def test_halt_during_init_stops_homing_at_once() -> None:
+    # Homing from far away takes seconds (ramp velocity half of VMAX): a halt meanwhile must stop the
+    # modules at once, not queue behind the init; the init then fails.
+    arm = EmulatedArm.kinematic(LOWER, UPPER, VMAX, AMAX, q0=[1.8, -1.2, 1.5])
+    cfg = LoopConfig(rate_hz=100.0, poll_hz=20.0)
+    with loop_rig(arm, cfg, FlakyBus) as r:
+        loop = r["loop"].start()
+        assert wait_until(lambda: loop.state is LoopState.IDLE), loop.snapshot().reason
+        answer: list[tuple[bool, str]] = []
+        t = threading.Thread(target=lambda: answer.append(loop.request("init", timeout=30)))
+        t.start()
+        assert wait_until(lambda: arm.positions()[0] < 1.6, timeout=10)  # homing under way
+        t_req = time.time()
+        ok, msg = loop.request("halt", timeout=10)
+        t_answer = time.time()
+        t.join(10)
+        assert ok, msg
+        assert answer and not answer[0][0] and "halted during homing" in answer[0][1], answer
+        halts = _halt_frames(r["host"].sent, t_req)
+        # Generous bounds (a busy machine): homing would have taken about 3 s more.
+        assert halts and halts[0] - t_req < 1.0, halts[:1]
+        assert t_answer - t_req < 2.0
+        assert loop.state is LoopState.HALTED
+        q_halt = np.array(arm.positions())
+        assert q_halt[0] > 0.8  # stopped where it was, far from home (0 rad)
+        time.sleep(0.3)
+        np.testing.assert_allclose(arm.positions(), q_halt, atol=0.05)
+        ok, msg = loop.request("init", timeout=30)  # the halt request is spent: init runs
+        assert ok and loop.state is LoopState.RUNNING, msg
+

@@ -53,7 +53,8 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Callable, Hashable, Mapping, Sequence
+from collections.abc import Callable, Hashable, Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from enum import Enum
 
@@ -70,6 +71,7 @@ from redarm_ros.errors import (
     InvalidInputError,
     ModuleFaultError,
     RedarmError,
+    RequestHaltedError,
 )
 from redarm_ros.motion import JointLimits, LimitsView
 
@@ -92,6 +94,9 @@ _LATENCY_WINDOW = 1024
 REQUEST_ATTEMPTS = 3
 #: A plausibility check allows this much (rad) beyond what the velocity limit explains.
 DEFAULT_PLAUSIBILITY_MARGIN = 0.02
+#: While init or recover runs, receive waits are cut into slices this long (s), so a halt request
+#: from another thread is noticed within about one cycle (4 ms at 250 Hz).
+HALT_POLL_S = 0.002
 # A drain before a cycle or request reads at most this many frames (a flooded bus must not stall it).
 _DRAIN_MAX_FRAMES = 256
 _SHORT_ERROR = int(p.ShortState.ERROR)
@@ -408,6 +413,10 @@ class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those o
         self._prev_q: np.ndarray | None = None
         self._needs_resync = False
         self._pending_faults: dict[int, ActState] = {}
+        # Set by request_halt() from any thread (no lock: init/recover hold it for seconds); the
+        # running init/recover notices it in its receive waits and halts everything.
+        self._halt_requested = threading.Event()
+        self._interruptible = False  # init/recover in progress: receive waits watch _halt_requested
 
     @property
     def frames_per_cycle(self) -> int:
@@ -444,10 +453,26 @@ class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those o
             raise self._lost(exc, "send") from exc
 
     def _recv(self, timeout: float) -> can.Message | None:
+        if self._interruptible:
+            return self._recv_interruptible(timeout)
         try:
             return self.bus.recv(timeout)
         except Exception as exc:
             raise self._lost(exc, "receive") from exc
+
+    def _recv_interruptible(self, timeout: float) -> can.Message | None:
+        # Short slices so that a halt requested meanwhile is acted on within about one cycle.
+        while True:
+            if self._halt_requested.is_set():
+                raise RequestHaltedError("halt requested")
+            chunk = min(timeout, HALT_POLL_S)
+            try:
+                msg = self.bus.recv(chunk)
+            except Exception as exc:
+                raise self._lost(exc, "receive") from exc
+            timeout -= chunk
+            if msg is not None or timeout <= 0:
+                return msg
 
     def _route(self, msg: can.Message) -> int | None:
         """Joint index of a reply frame; a state frame is recorded here and, like a foreign id, gives None."""
@@ -677,7 +702,11 @@ class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those o
         HOME_OK (``home_timeout_s``). Homing establishes the positions anew: the plausibility
         check starts from the positions read at the end.
 
+        :meth:`request_halt` (from another thread) stops it within about one cycle: every module is
+        halted and :class:`RequestHaltedError` ("halted during homing") raised.
+
         Raises:
+            RequestHaltedError: a halt was requested meanwhile (every module halted).
             BusTimeoutError: a module did not answer, or homing did not finish in time.
             ModuleFaultError: a module is in error after reset or homing.
             BusError: the bus failed.
@@ -685,10 +714,12 @@ class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those o
         with self._lock:
             self._fire(DriverEvent.INIT_STARTED)
             self._t_meas[:] = math.nan
-            self._configure_locked()
-            self._command_all(Command.RESET)
+            with self._interruptible_locked("init"):
+                self._configure_locked()
+                self._command_all(Command.RESET)
             if home:
-                self._home_locked()
+                with self._interruptible_locked("homing"):
+                    self._home_locked()
             return self._ready_locked("init", "PowerCube arm initialised at %s")
 
     def _ready_locked(self, what: str, log_format: str) -> ArmState:
@@ -807,8 +838,35 @@ class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those o
         with self._lock:
             acked = self._halt_all()
             self._fire(DriverEvent.HALT)
+            self._halt_requested.clear()  # served: a later init/recover runs normally
             logger.warning("PowerCube arm halted (acknowledged by %s)", acked)
             return acked
+
+    def request_halt(self) -> None:
+        """Any thread, without waiting for the driver's lock: make an :meth:`init` or :meth:`recover`
+        in progress (or starting next) stop within about one cycle: it HALTs every module and raises
+        :class:`RequestHaltedError`. Cleared by :meth:`halt` (or :meth:`clear_halt_request`)."""
+        self._halt_requested.set()
+
+    def clear_halt_request(self) -> None:
+        """Forget a :meth:`request_halt` that will not be followed by :meth:`halt` (e.g. refused)."""
+        self._halt_requested.clear()
+
+    @contextmanager
+    def _interruptible_locked(self, what: str) -> Iterator[None]:
+        """Run a step of init/recover so that :meth:`request_halt` stops it: every module is halted
+        at once and :class:`RequestHaltedError` ("halted during ``what``") raised."""
+        self._interruptible = True
+        try:
+            yield
+        except RequestHaltedError:
+            self._interruptible = False
+            acked = self._halt_all()
+            self._fire(DriverEvent.HALT)
+            logger.warning("PowerCube arm halted during %s (acknowledged by %s)", what, acked)
+            raise RequestHaltedError(f"halted during {what}; all modules halted") from None
+        finally:
+            self._interruptible = False
 
     def recover(self) -> ArmState:
         """Bring every module back as :meth:`init` left it, without homing; hold the measured position.
@@ -817,17 +875,19 @@ class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those o
         that was power-cycled meanwhile has lost: ACT_CONFIG (SYNC_MOTION, WATCHDOG_ENABLE when the
         watchdog is on, no DISABLE_ACK) and ACT_FMAXVEL/ACT_FMAXACC; re-reads the positions (checked
         for plausibility) and holds them (READY again). Modules without HOME_OK are reported by
-        the returned states (``~/init`` homes them).
+        the returned states (``~/init`` homes them). :meth:`request_halt` stops it at once.
 
         Raises:
+            RequestHaltedError: a halt was requested meanwhile (every module halted).
             BusTimeoutError: a module did not answer.
             ModuleFaultError: a module is still in error after the reset, refused the configuration,
                 or reports an implausible position (:class:`ImplausibleMeasurementError`).
             BusError: the bus failed.
         """
         with self._lock:
-            self._command_all(Command.RESET)
-            self._configure_locked()
+            with self._interruptible_locked("recover"):
+                self._command_all(Command.RESET)
+                self._configure_locked()
             return self._ready_locked("recover", "PowerCube arm recovered, holding %s")
 
     def reconnect(self) -> ArmState:

@@ -585,6 +585,12 @@ class ArmDriver(Protocol):
     def halt(self) -> list[int]:
         """Halt every module; HALTED."""
 
+    def request_halt(self) -> None:
+        """Any thread: stop an init/recover in progress at once (it halts every module and raises)."""
+
+    def clear_halt_request(self) -> None:
+        """Forget a :meth:`request_halt` whose halt will not be run."""
+
     def recover(self) -> ArmState:
         """Reset and reconfigure; READY, holding."""
 
@@ -870,6 +876,12 @@ class DriverLoop:
             return False, "driver loop is not running"
         timeout = max(0.0, timeout - (time.monotonic() - t0))
         req = _Request(action, timeout)
+        if action == "halt":
+            # An init (homing) or recover in progress holds the loop thread for seconds: tell the
+            # driver directly, so it halts every module now instead of after the request.
+            drv = self.driver
+            if drv is not None:
+                drv.request_halt()
         self._requests.put(req)
         self._wake.set()
         if not req.done.wait(timeout):
@@ -1280,6 +1292,8 @@ class DriverLoop:
                 continue  # never run a request nobody waits for any more
             if refuse is not None:
                 req.ok, req.message = False, refuse
+                if req.action == "halt" and self.driver is not None:
+                    self.driver.clear_halt_request()  # no halt follows: the next init must not stop
             else:
                 if req.action == "park":
                     req.ok, req.message, req.park = self._start_park()

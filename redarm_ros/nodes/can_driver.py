@@ -242,8 +242,11 @@ class CanDriverNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
         self.create_subscription(JointTrajectory, "joint_command", self._on_trajectory, 10)
         self.create_subscription(JointState, "joint_command_state", self._on_joint_state_command, 10)
         services = MutuallyExclusiveCallbackGroup()  # init may take seconds; keep topics flowing
-        for action in ("init", "halt", "recover"):
+        for action in ("init", "recover"):
             self.create_service(Trigger, f"~/{action}", self._trigger(action), callback_group=services)
+        # halt must be served while init is homing (or recover runs): a group of its own.
+        self.create_service(Trigger, "~/halt", self._trigger("halt"),
+                            callback_group=MutuallyExclusiveCallbackGroup())
         # park waits for the arm to arrive: a group of its own, so ~/halt is served meanwhile.
         self.create_service(Trigger, "~/park", self._trigger("park"),
                             callback_group=MutuallyExclusiveCallbackGroup())
