@@ -78,3 +78,7 @@ class ImplausibleMeasurementError(ModuleFaultError):
 
 class RequestHaltedError(RedarmError):
     """A running init or recover was stopped by a halt request (every module has been halted)."""
+
+
+class RequestRefusedError(RedarmError):
+    """A request was refused before anything was sent (e.g. recover on an arm that was never homed)."""

@@ -534,21 +534,66 @@ def test_a_flood_of_foreign_frames_does_not_stall_the_cycle(clock: FakeClock, ar
 
 
 def test_recover_fails_while_a_fault_persists(clock: FakeClock, arm: EmulatedArm) -> None:
+    persist = {"on": False}
+
     def responder(msg: can.Message) -> list[can.Message]:
         out = arm.handle(msg)
-        if (msg.arbitration_id, bytes(msg.data)) == (0x0E2, b"\x00"):  # RESET of module 2
+        if persist["on"] and (msg.arbitration_id, bytes(msg.data)) == (0x0E2, b"\x00"):  # RESET of module 2
             with arm.lock:
                 arm[2].inject_fault(S.POWERFAULT)  # the cause is still there
         return out
 
     with ScriptedBus(clock, responder) as bus:
         drv = make_driver(bus, clock)
+        drv.init(home=False)
+        persist["on"] = True
+        drv.halt()
         with pytest.raises(errors.ModuleFaultError) as info:
-            drv.init(home=False)
-        assert info.value.module_id == 2 and info.value.state & S.POWERFAULT
-        with pytest.raises(errors.ModuleFaultError):
             drv.recover()
+        assert info.value.module_id == 2 and info.value.state & S.POWERFAULT
+        assert drv.state is DriverState.HALTED
+        with pytest.raises(errors.ModuleFaultError) as info:
+            drv.init(home=False)  # init does not get past it either
+        assert info.value.module_id == 2
         assert drv.state is DriverState.UNINITIALIZED
+
+
+def test_recover_is_refused_unless_initialised(clock: FakeClock, arm: EmulatedArm) -> None:
+    # Without a successful init the positions were never established by homing: recover must not
+    # make such an arm movable, and it sends nothing.
+    with ScriptedBus(clock, arm.handle) as bus:
+        drv = make_driver(bus, clock)
+        with pytest.raises(errors.RequestRefusedError, match="never initialised"):
+            drv.recover()
+        assert drv.state is DriverState.UNINITIALIZED and not bus.take()
+        with pytest.raises(errors.RedarmError):
+            drv.cycle(None, 0.004)
+        drv.halt()  # a halted, never-initialised arm: still refused
+        with pytest.raises(errors.RequestRefusedError):
+            drv.recover()
+        assert drv.state is DriverState.HALTED
+
+
+def test_recover_is_refused_when_a_module_lost_home_ok(clock: FakeClock, arm: EmulatedArm) -> None:
+    # A module restarted (power-cycled) after init has no HOME_OK and its position is not the
+    # arm's any more: recover refuses, halts, and only init (re-homing) helps.
+    with ScriptedBus(clock, arm.handle) as bus:
+        drv = make_driver(bus, clock)
+        drv.init()
+        drv.halt()
+        with arm.lock:
+            arm[2]._st &= ~int(S.HOME_OK)  # as a power-cycled module reports
+        with pytest.raises(errors.ModuleFaultError, match=r"modules \[2\] report no HOME_OK") as info:
+            drv.recover()
+        assert info.value.module_id == 2
+        assert drv.state is DriverState.HALTED and not drv.initialised
+        with pytest.raises(errors.RequestRefusedError):
+            drv.recover()
+        drv.init()
+        assert drv.state is DriverState.READY
+        drv.halt()
+        drv.recover()
+        assert drv.state is DriverState.READY
 
 
 def test_malformed_and_late_frames_are_counted_and_ignored(clock: FakeClock, arm: EmulatedArm) -> None:

@@ -603,6 +603,21 @@ def test_halt_during_init_stops_homing_at_once() -> None:
         assert q_halt[0] > 0.8  # stopped where it was, far from home (0 rad)
         time.sleep(0.3)
         np.testing.assert_allclose(arm.positions(), q_halt, atol=0.05)
+        ok, msg = loop.request("recover", timeout=10)  # never homed: refused
+        assert not ok and "never initialised" in msg, msg
         ok, msg = loop.request("init", timeout=30)  # the halt request is spent: init runs
         assert ok and loop.state is LoopState.RUNNING, msg
+
+
+def test_recover_before_init_is_refused(rig) -> None:
+    loop = rig["loop"].start()
+    assert wait_until(lambda: loop.state is LoopState.IDLE)
+    ok, msg = loop.request("recover", timeout=10)
+    assert not ok and "never initialised" in msg and "~/init" in msg, msg
+    assert loop.state is LoopState.IDLE and not loop.accepting_commands()[0]
+    ok, msg = loop.request("halt", timeout=10)
+    assert ok and loop.state is LoopState.HALTED, msg
+    ok, msg = loop.request("recover", timeout=10)
+    assert not ok and "never initialised" in msg, msg
+    assert loop.state is LoopState.HALTED and not loop.accepting_commands()[0]
 

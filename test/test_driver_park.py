@@ -90,6 +90,24 @@ def test_park_is_refused_before_init_and_while_halted(rig) -> None:
     np.testing.assert_allclose(rig["arm"].positions(), q_halted, atol=1e-6)  # nothing moved
 
 
+
+def test_park_stays_refused_when_recover_is_tried_instead_of_init(rig) -> None:
+    # recover must not stand in for init: the arm was never homed, so park (a move) stays refused.
+    loop = rig["loop"].start()
+    assert wait_until(lambda: loop.state is LoopState.IDLE)
+    q0 = np.array(rig["arm"].positions())
+    ok, msg = loop.request("recover", timeout=10)
+    assert not ok and "never initialised" in msg, msg
+    ok, msg = loop.request("park", timeout=10)
+    assert not ok and "not initialised" in msg, msg
+    assert loop.request("halt", timeout=10)[0]
+    ok, msg = loop.request("recover", timeout=10)
+    assert not ok and "never initialised" in msg, msg
+    ok, msg = loop.request("park", timeout=10)
+    assert not ok, msg
+    time.sleep(0.3)
+    np.testing.assert_allclose(rig["arm"].positions(), q0, atol=1e-6)  # nothing moved
+
 def test_park_answers_when_the_arm_is_there_within_the_limits(rig) -> None:
     loop = rig["loop"].start()
     assert wait_until(lambda: loop.state is LoopState.IDLE)

@@ -326,17 +326,20 @@ def test_hil_simulator_killed_and_restarted(stack: Stack, client: Client) -> Non
     q_crash = np.array(stack.status()["q"])  # last status written before the crash
     stack.driver.wait_for_line(r"HALTED: module \d+ stopped answering", 5)
 
-    # Power back on where the arm stood (modules fresh: not homed, default config).
+    # Power back on where the arm stood (modules fresh: not homed, default config). A module without
+    # HOME_OK has lost its position: recover refuses, and only init (re-homing) brings the arm back.
     stack.start_sim(name="sim_restarted", initial_q=q_crash)
     r = client.call("recover")
-    assert r.success, r.message
-    q_after = stack.sim_q()
-    np.testing.assert_allclose(q_after, q_crash, atol=1e-3)
+    assert not r.success and "HOME_OK" in r.message and "~/init" in r.message, r.message
     # No stale command: the arm does not continue toward the old target.
     time.sleep(1.0)
     st = stack.status()
-    np.testing.assert_allclose(st["q"], q_after, atol=1e-3)
-    assert max(abs(np.array(st["q_setpoint"]) - q_after)) < 1e-3
+    np.testing.assert_allclose(st["q"], q_crash, atol=1e-3)
+    assert max(abs(np.array(st["q_setpoint"]) - q_crash)) < 1e-3
+    r = client.call("init")
+    assert r.success, r.message
+    q_after = stack.sim_q()
+    np.testing.assert_allclose(q_after, np.zeros(N), atol=2e-3)  # homed
     # And it drives again.
     q2 = q_after.copy()
     q2[3] = 0.2
@@ -469,7 +472,7 @@ def _module_config(canbus: Any, module_id: int) -> int:
     raise AssertionError(f"module {module_id} did not answer GETPARAM ACT_CONFIG")
 
 
-def test_hil_recover_after_power_cycle_rearms_the_watchdog(stack: Stack, client: Client) -> None:
+def test_hil_power_cycle_refuses_recover_and_init_rearms_the_watchdog(stack: Stack, client: Client) -> None:
     from redarm_ros.can.protocol import ActConfig
 
     sim = start_and_init(client, stack)
@@ -479,7 +482,9 @@ def test_hil_recover_after_power_cycle_rearms_the_watchdog(stack: Stack, client:
     sim.kill()  # power lost: the restarted modules have factory settings (no watchdog, no sync)
     stack.driver.wait_for_line(r"HALTED: module \d+ stopped answering", 10)
     stack.start_sim(name="sim_restarted", initial_q=q1)
-    r = client.call("recover")
+    r = client.call("recover")  # not homed any more: only init may make the arm movable again
+    assert not r.success and "HOME_OK" in r.message, r.message
+    r = client.call("init")
     assert r.success, r.message
     for mid in range(1, N + 1):
         cfg = _module_config(stack.canbus, mid)

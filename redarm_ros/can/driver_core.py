@@ -72,6 +72,7 @@ from redarm_ros.errors import (
     ModuleFaultError,
     RedarmError,
     RequestHaltedError,
+    RequestRefusedError,
 )
 from redarm_ros.motion import JointLimits, LimitsView
 
@@ -417,6 +418,10 @@ class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those o
         # running init/recover notices it in its receive waits and halts everything.
         self._halt_requested = threading.Event()
         self._interruptible = False  # init/recover in progress: receive waits watch _halt_requested
+        # init() succeeded since construction: the positions are established by homing. recover()
+        # needs it (without homing, a module's position may be anything).
+        self.initialised = False
+        self._home_ok_at_init = [False] * n  # HOME_OK of each module when init() ended
 
     @property
     def frames_per_cycle(self) -> int:
@@ -713,6 +718,7 @@ class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those o
         """
         with self._lock:
             self._fire(DriverEvent.INIT_STARTED)
+            self.initialised = False
             self._t_meas[:] = math.nan
             with self._interruptible_locked("init"):
                 self._configure_locked()
@@ -720,13 +726,30 @@ class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those o
             if home:
                 with self._interruptible_locked("homing"):
                     self._home_locked()
-            return self._ready_locked("init", "PowerCube arm initialised at %s")
+            st = self._ready_locked("init", "PowerCube arm initialised at %s")
+            self._home_ok_at_init = [bool(s & ActState.HOME_OK) for s in st.states]
+            self.initialised = True
+            return st
 
-    def _ready_locked(self, what: str, log_format: str) -> ArmState:
+    def _ready_locked(self, what: str, log_format: str, *, require_home: bool = False) -> ArmState:
         """End of init/recover: read the state, refuse on module errors (``what`` names the step in
-        the exception), hold the measured position, clear pending faults, READY."""
+        the exception) and, with ``require_home``, on modules without HOME_OK; hold the measured
+        position, clear pending faults, READY."""
         st = self._read_state_locked()
         self._raise_on_errors(st, what)
+        if require_home:
+            # A module that had HOME_OK after init and lacks it now was restarted (power-cycled).
+            states = zip(self.module_ids, st.states, self._home_ok_at_init, strict=True)
+            lost = [mid for mid, s, homed in states if homed and not s & ActState.HOME_OK]
+            if lost:
+                # A module without HOME_OK was power-cycled: its position is not established any more.
+                self.initialised = False
+                self._halt_all()
+                self._fire(DriverEvent.HALT)
+                raise ModuleFaultError(
+                    f"{what} refused: modules {lost} report no HOME_OK (restarted without their "
+                    "position?); call ~/init to home them", module_id=lost[0],
+                    state=int(st.states[self.module_ids.index(lost[0])]))
         self._hold_measured()
         self._pending_faults.clear()
         self._fire(DriverEvent.READY)
@@ -874,21 +897,28 @@ class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those o
         RESETs every module (clears ERROR, HALTED and the causes), then restores what a module
         that was power-cycled meanwhile has lost: ACT_CONFIG (SYNC_MOTION, WATCHDOG_ENABLE when the
         watchdog is on, no DISABLE_ACK) and ACT_FMAXVEL/ACT_FMAXACC; re-reads the positions (checked
-        for plausibility) and holds them (READY again). Modules without HOME_OK are reported by
-        the returned states (``~/init`` homes them). :meth:`request_halt` stops it at once.
+        for plausibility) and holds them (READY again). Refused unless :meth:`init` succeeded
+        before; a module that had HOME_OK after init and lacks it now (restarted, its position
+        lost) makes it fail with every module halted, and only :meth:`init` (re-homing) helps.
+        :meth:`request_halt` stops it at once.
 
         Raises:
+            RequestRefusedError: never initialised (nothing was sent).
             RequestHaltedError: a halt was requested meanwhile (every module halted).
             BusTimeoutError: a module did not answer.
             ModuleFaultError: a module is still in error after the reset, refused the configuration,
-                or reports an implausible position (:class:`ImplausibleMeasurementError`).
+                lost HOME_OK, or reports an implausible position (:class:`ImplausibleMeasurementError`).
             BusError: the bus failed.
         """
         with self._lock:
+            if not self.initialised:
+                # Without homing the positions are not established: never make such an arm movable.
+                raise RequestRefusedError(
+                    "recover refused: the arm was never initialised (homed); call ~/init")
             with self._interruptible_locked("recover"):
                 self._command_all(Command.RESET)
                 self._configure_locked()
-            return self._ready_locked("recover", "PowerCube arm recovered, holding %s")
+            return self._ready_locked("recover", "PowerCube arm recovered, holding %s", require_home=True)
 
     def reconnect(self) -> ArmState:
         """Reopen the bus (one attempt; call again with backoff) and re-read the positions.

@@ -56,13 +56,11 @@ from redarm_ros.can.driver_core import (
     ModuleStats,
     ModuleStatsView,
 )
-from redarm_ros.can.protocol import ActState
-from redarm_ros.errors import BusError, BusTimeoutError, InvalidInputError, RedarmError
+from redarm_ros.errors import BusError, BusTimeoutError, InvalidInputError, RedarmError, RequestRefusedError
 from redarm_ros.motion import JointLimits, LimitsView, braking_speed
 from redarm_ros.motion.sync_move import synchronized_move
 
 _LOG = logging.getLogger(__name__)
-_HOME_OK = int(ActState.HOME_OK)
 
 __all__ = [
     "ACTIONS",
@@ -1336,6 +1334,8 @@ class DriverLoop:
                 self._set_reason("halted on request")
                 return True, f"all modules halted (acknowledged by {acked})"
             st = drv.init() if action == "init" else drv.recover()
+        except RequestRefusedError as exc:  # refused before anything was sent: nothing to halt
+            return False, str(exc)
         except BusTimeoutError as exc:
             mids = (exc.module_id,) if exc.module_id is not None else ()
             self._halted_by(Fault(FaultKind.REQUEST_FAILED, mids,
@@ -1361,8 +1361,4 @@ class DriverLoop:
         if action == "init" and self.config.park_after_init:
             ok, msg, _move = self._start_park()
             note = "; moving to the park posture" if ok else f"; {msg}"
-        if action == "recover":
-            not_homed = [i + 1 for i, b in enumerate(st.states) if not int(b) & _HOME_OK]
-            if not_homed:
-                note = f"; joints {not_homed} report no HOME_OK (a restarted module? ~/init homes)"
         return True, f"{action} done; holding position {np.round(q, 4).tolist()}{note}"
