@@ -621,3 +621,13 @@ def test_recover_before_init_is_refused(rig) -> None:
     assert not ok and "never initialised" in msg, msg
     assert loop.state is LoopState.HALTED and not loop.accepting_commands()[0]
 
+
+def test_halt_runs_even_when_its_caller_stopped_waiting(rig) -> None:
+    loop = start_running(rig)
+    arm = rig["arm"]
+    loop.commands.set_trajectory([0], [3.0], np.array([[1.5]]), start=time.monotonic())
+    assert wait_until(lambda: arm.positions()[0] > 0.1)
+    loop.request("halt", timeout=0.0)  # the caller gives up at once: the halt is run all the same
+    assert wait_until(lambda: loop.state is LoopState.HALTED, timeout=3), loop.snapshot().reason
+    assert wait_until(lambda: _at_rest(arm), timeout=3)
+    assert arm.positions()[0] < 1.0

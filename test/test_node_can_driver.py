@@ -224,6 +224,10 @@ def test_node_parameters_validated(rclpy_context: Any) -> None:
     with pytest.raises(ValueError, match="arm"):
         CanDriverNode(context=rclpy_context,
                       parameter_overrides=[Parameter("arm", value="no_such_arm"), no_dup])
+    # 0 s would make every service, ~/halt included, give up before it could run.
+    with pytest.raises(ValueError, match="request_timeout_s"):
+        CanDriverNode(context=rclpy_context,
+                      parameter_overrides=[Parameter("request_timeout_s", value=0.0), no_dup])
 
 
 def test_node_runtime_parameter_updates(rig: Rig) -> None:
@@ -234,6 +238,10 @@ def test_node_runtime_parameter_updates(rig: Rig) -> None:
     assert rig.node.loop.commands.stream_timeout_s == 1.5
     res = rig.node.set_parameters([Parameter("rate_hz", value=100.0)])
     assert not res[0].successful  # read-only: takes effect at start only
+    res = rig.node.set_parameters([Parameter("request_timeout_s", value=0.0)])
+    assert not res[0].successful and "request_timeout_s" in res[0].reason
+    res = rig.node.set_parameters([Parameter("request_timeout_s", value=0.5)])
+    assert res[0].successful
 
 
 def test_second_driver_with_the_same_name_refuses_to_start(rig: Rig, rclpy_context: Any) -> None:

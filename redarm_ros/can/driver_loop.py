@@ -1284,10 +1284,10 @@ class DriverLoop:
                 req = self._requests.get_nowait()
             except queue.Empty:
                 return
-            if time.monotonic() >= req.deadline:
+            if time.monotonic() >= req.deadline and req.action != "halt":
                 req.ok, req.message = False, "the caller stopped waiting"
                 req.done.set()
-                continue  # never run a request nobody waits for any more
+                continue  # never run a request nobody waits for any more (but always halt)
             if refuse is not None:
                 req.ok, req.message = False, refuse
                 if req.action == "halt" and self.driver is not None:

@@ -82,6 +82,11 @@ def _module_ids(value: Any) -> str | None:
     return None
 
 
+def _positive(value: Any) -> str | None:
+    # 0 would make every service give up before the loop thread could run it.
+    return None if value > 0 else f"must be > 0, got {value}"
+
+
 def _yaml_mapping(value: Any) -> str | None:
     try:
         parse_can_config(value)
@@ -125,8 +130,8 @@ PARAMS = [
     ParamSpec("frame_id", "", "header.frame_id of /joint_states.", None),
     ParamSpec("watchdog", True, "Arm the modules' watchdog at init and recover and refresh it every cycle "
               "(a stalled or dead driver then halts the arm).", None, read_only=True),
-    ParamSpec("request_timeout_s", 60.0, "Longest a ~/init, ~/halt, ~/recover or ~/park call may take (s).",
-              range=(0.0, 3600.0)),
+    ParamSpec("request_timeout_s", 60.0, "Longest a ~/init, ~/halt, ~/recover or ~/park call may take (s); "
+              "> 0 (~/halt is run even after its caller gave up).", _positive, range=(0.001, 3600.0)),
     ParamSpec("park_tolerance_rad", 2e-3, "~/park succeeds once every measured joint is this close (rad) "
               "to the park posture.", read_only=True, range=(1e-5, 0.1)),
     ParamSpec("park_speed_scale", 0.9, "Fraction of the velocity and acceleration limits the ~/park move "
