@@ -285,3 +285,18 @@ def test_constructor_starts_nothing_and_declares_ranges(rclpy_context: Any) -> N
         assert not res[0].successful  # beyond the declared range
     finally:
         node.destroy_node()
+
+
+def test_halt_has_a_callback_group_of_its_own(rclpy_context: Any) -> None:
+    # ~/init blocks its callback while homing: a ~/halt in the same mutually exclusive group would
+    # wait for it (with a multi-threaded executor, as the node runs).
+    node = CanDriverNode(context=rclpy_context, parameter_overrides=[
+        Parameter("can.interface", value="virtual"), Parameter("can.channel", value="unused"),
+        Parameter("duplicate_check_s", value=0.0)])
+    try:
+        groups = {s.srv_name.rsplit("/", 1)[-1]: s.callback_group for s in node.services}
+        assert {"init", "halt", "recover", "park"} <= set(groups)
+        others = [groups[a] for a in ("init", "recover", "park")]
+        assert all(groups["halt"] is not g for g in others)
+    finally:
+        node.destroy_node()
