@@ -20,7 +20,7 @@ from redarm_ros.can import protocol as p
 from redarm_ros.can.bus import open_bus
 from redarm_ros.can.bus_server import LoopbackBusServer
 from redarm_ros.can.driver_core import DriverState, FaultKind, PowerCubeArmDriver
-from redarm_ros.can.module_emulator import EmulatedArm, EmulatorRunner
+from redarm_ros.can.module_emulator import EmulatedArm, EmulatorRunner, KinematicPlant
 from redarm_ros.can.protocol import ActConfig, ActState
 
 S = ActState
@@ -764,3 +764,37 @@ def test_remote_bus_loss_reconnect_holds_measured_position() -> None:
         host.shutdown()
         dev.shutdown()
         server.stop()
+
+
+@pytest.mark.parametrize("silence_s", [0.5, 30.0])
+def test_a_position_jump_after_a_silence_is_refused(clock: FakeClock, arm: EmulatedArm,
+                                                    silence_s: float) -> None:
+    # A module silent for a while comes back restarted, its position lost (0.39 rad off). The velocity
+    # bound alone (max_vel times the silence) would take any jump after long enough; the module
+    # cannot have moved further than where it was sent plus its braking distance.
+    with ScriptedBus(clock, arm.handle) as bus:
+        drv = ready_driver(bus, clock, max_missed=3)
+        for _ in range(3):
+            drv.cycle(None, 0.004)
+        arm[1].silenced = True
+        with pytest.raises(errors.BusTimeoutError):
+            for _ in range(5):
+                drv.cycle(None, 0.004)
+        clock.t += silence_s
+        q1 = arm.positions()[0]
+        with arm.lock:  # "power cycle" module 1 at another position
+            plant = KinematicPlant(q1 - 0.39, lower=LOWER[0], upper=UPPER[0], max_vel=VMAX[0],
+                                   max_acc=AMAX[0], clock=clock)
+            arm.modules[1] = type(arm[1])(1, plant, arm[1].cfg, clock=clock)
+        with pytest.raises(errors.ImplausibleMeasurementError, match="~/init") as info:
+            drv.read_state()
+        assert info.value.module_id == 1
+        with pytest.raises(errors.ModuleFaultError):
+            drv.recover()
+        assert drv.state is not DriverState.READY
+        # Back where it was (within its braking distance): accepted.
+        with arm.lock:
+            plant = KinematicPlant(q1 + 0.01, lower=LOWER[0], upper=UPPER[0], max_vel=VMAX[0],
+                                   max_acc=AMAX[0], clock=clock)
+            arm.modules[1] = type(arm[1])(1, plant, arm[1].cfg, clock=clock)
+        assert drv.read_state().positions[0] == pytest.approx(q1 + 0.01, abs=1e-6)

@@ -14,8 +14,10 @@ Safety rules, all enforced before anything is sent:
   commanded target; clamped joints are listed in :attr:`CycleResult.clamped`;
 * every measured position (extended acknowledgement or ACT_FPOS) is checked for plausibility: a
   jump from the last accepted measurement of more than ``max_vel * (elapsed + reply_timeout_s) +
-  plausibility_margin_rad`` is refused (counted per module, never taken as the arm's state; the
-  cycle keeps waiting for a plausible reply from that module);
+  plausibility_margin_rad``, or a position further than the braking distance from full speed plus
+  ``plausibility_margin_rad`` outside the span of that measurement and the targets sent since (so
+  the allowance stays bounded while a module is silent), is refused (counted per module, never
+  taken as the arm's state; the cycle keeps waiting for a plausible reply from that module);
 * a module that misses ``max_missed`` consecutive replies -> every module is halted, the driver
   enters FAULT and :class:`BusTimeoutError` (``module_id``, ``timeout_s``) is raised once, with
   the cycle's result in its ``cycle_result`` attribute; if the module answered only with
@@ -338,7 +340,9 @@ class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those o
         home_timeout_s: how long :meth:`init` waits for HOME_OK.
         poll_interval_s: ACT_STATE polling interval while homing.
         plausibility_margin_rad: a measured position may differ from the last accepted one by
-            ``max_vel * (elapsed + reply_timeout_s)`` plus this much (rad); more is refused.
+            ``max_vel * (elapsed + reply_timeout_s)`` plus this much (rad), and lie at most the
+            braking distance plus this much outside the span of the last one and the targets sent
+            since; more is refused.
         clock: time source (s).
 
     Raises:
@@ -409,6 +413,14 @@ class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those o
         self._q_meas = np.zeros(n)  # last measured (plausible) positions
         self._t_meas = np.full(n, math.nan)  # clock time of each; NaN: no reference (accept any)
         self._q_cmd = np.zeros(n)  # last commanded target
+        # Where each module can be: the span of its last accepted position and every target sent
+        # since (a module follows its FSTEP targets, or is halted and brakes). Bounds the
+        # plausibility check however long a module was silent.
+        self._q_sent = np.zeros(n)  # the last target sent (holding: the measured position)
+        self._reach_lo = np.zeros(n)
+        self._reach_hi = np.zeros(n)
+        self._brake = np.asarray(self.limits.max_vel, dtype=float) ** 2 / (
+            2.0 * np.asarray(self.limits.max_acc, dtype=float))  # braking distance from max_vel (rad)
         self._states = np.zeros(n, dtype=np.int64)
         self._prev_stamp: float | None = None
         self._prev_q: np.ndarray | None = None
@@ -502,9 +514,14 @@ class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those o
         if t0 != t0:  # NaN: no reference yet
             return True
         dt = max(0.0, t - t0) + self.reply_timeout_s
-        bound = self.max_vel[j] * dt + self.plausibility_margin_rad
+        margin = self.plausibility_margin_rad
+        bound = self.max_vel[j] * dt + margin
         q0 = self._q_meas[j]
-        if abs(x - q0) <= bound:
+        # The velocity bound alone grows without limit while a module is silent; but a module only
+        # goes where it was sent, or brakes to a stop when halted (or by its watchdog), so a module
+        # restarted without its position is refused however long it was away.
+        slack = self._brake[j] + margin
+        if abs(x - q0) <= bound and self._reach_lo[j] - slack <= x <= self._reach_hi[j] + slack:
             return True
         s = self.stats[j]
         s.implausible += 1
@@ -519,6 +536,10 @@ class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those o
     def _accept_position(self, j: int, x: float, t: float) -> None:
         self._q_meas[j] = x
         self._t_meas[j] = t
+        # Following targets, the step in flight is reachable too; otherwise nothing moves it.
+        sent = self._q_sent[j] if self.state is DriverState.READY else x
+        self._reach_lo[j] = min(x, sent)
+        self._reach_hi[j] = max(x, sent)
         self.stats[j].consecutive_implausible = 0
 
     def _note_state_frame(self, msg: can.Message, j: int) -> None:
@@ -640,7 +661,7 @@ class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those o
                 raise ImplausibleMeasurementError(
                     f"module {self.module_ids[j]} reports an implausible position "
                     f"{s.last_implausible:.4f} rad (last measured {self._q_meas[j]:.4f} rad); if the module "
-                    "was power-cycled without its position, ~init re-homes it",
+                    "was power-cycled without its position, call ~/init to re-home it",
                     module_id=self.module_ids[j], value=s.last_implausible,
                 )
         self._require_all(res, [it[0] for it in items], "GETPARAM ACT_STATE/ACT_FPOS")
@@ -662,6 +683,9 @@ class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those o
 
     def _hold_measured(self) -> None:
         self._q_cmd[:] = self._q_meas
+        self._q_sent[:] = self._q_meas
+        self._reach_lo[:] = self._q_meas
+        self._reach_hi[:] = self._q_meas
         for s in self.stats:
             s.consecutive_misses = 0
             s.consecutive_implausible = 0
@@ -1006,6 +1030,9 @@ class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those o
 
         late = self._drain()
         malformed0 = self.decoder.malformed
+        self._q_sent[:] = q
+        np.minimum(self._reach_lo, q, out=self._reach_lo)
+        np.maximum(self._reach_hi, q, out=self._reach_hi)
         t_sent = np.empty(n)
         clock = self._clock
         patch = p.patch_fstep

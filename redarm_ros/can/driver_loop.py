@@ -694,6 +694,9 @@ class LoopSnapshot:
 #: How long (s) every measured joint must stay within the park tolerance before ``park`` succeeds.
 PARK_SETTLE_S = 0.1
 
+#: A refused state poll (e.g. a restarted module's implausible position) is logged at most this often (s).
+POLL_WARN_INTERVAL_S = 5.0
+
 #: The requests :meth:`DriverLoop.request` serves.
 ACTIONS = ("init", "halt", "recover", "park")
 
@@ -795,6 +798,7 @@ class DriverLoop:
         # drop it (the next run of cycles starts from rest at the reference).
         self._shaper: ReferenceShaper | None = None
         self._last_clamp_log = -1e9
+        self._last_poll_warn = -1e9
         self._priority = ""
         # Reply latencies (s) of the last 500 cycles, all joints (small: diagnostics run in
         # another thread and numpy holds the GIL while it sorts), and frame counters.
@@ -1139,7 +1143,10 @@ class DriverLoop:
         except BusError:
             raise
         except RedarmError as exc:  # an implausible position: not published, reported
-            self._log(logging.WARNING, f"state poll refused: {exc}")
+            now = time.monotonic()
+            if now - self._last_poll_warn >= POLL_WARN_INTERVAL_S:  # it repeats at poll_hz
+                self._last_poll_warn = now
+                self._log(logging.WARNING, f"state poll refused: {exc}")
             return
         self._emit(CycleSample(time.time(), q, None, None))
 

@@ -148,7 +148,9 @@ PARAMS = [
     ParamSpec("limit_margin_rad", DEFAULT_LIMIT_MARGIN, "How far (rad) the commanded reference stays inside "
               "each joint limit (the modules' soft limit).", read_only=True, range=(0.0, 0.1)),
     ParamSpec("plausibility_margin_rad", DEFAULT_PLAUSIBILITY_MARGIN, "A measured position may differ from "
-              "the last one by max_vel * (elapsed + reply_timeout_s) plus this (rad); more is a fault.",
+              "the last one by max_vel * (elapsed + reply_timeout_s) plus this (rad), and lie at most the "
+              "braking distance plus this outside the span of the last one and the targets sent since; more "
+              "is a fault.",
               read_only=True, range=(0.0, 1.0)),
 ]
 
