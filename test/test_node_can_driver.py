@@ -262,6 +262,8 @@ def test_second_driver_with_the_same_name_refuses_to_start(rig: Rig, rclpy_conte
     try:
         assert wait_for(lambda: bool(refusals), timeout=10.0)  # the callback runs after `refused` is set
         assert "already running" in refusals[0] and refusals == [second.refused]
+        # No advice to rename it and run both: under another name it would still share the bus.
+        assert "to run both" not in refusals[0] and "never run two on the same bus" in refusals[0]
         time.sleep(1.2)  # past its duplicate window: still not started, the bus never opened
         assert not second.started and second.loop.bus is None
     finally:

@@ -302,8 +302,10 @@ class CanDriverNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
             if twins > 0:
                 self.refused = (
                     f"another node named {self.get_fully_qualified_name()} is already running in "
-                    f"ROS_DOMAIN_ID {self.context.get_domain_id()}; refusing to start a second one (it would "
-                    "fight over the modules; remap the name with --ros-args -r __node:=<name> to run both)")
+                    f"ROS_DOMAIN_ID {self.context.get_domain_id()}; refusing to start a second one: two "
+                    "drivers on one CAN bus fight over the modules, whatever their names. A driver for "
+                    "another bus needs a name or namespace of its own (--ros-args -r __ns:=/<arm>); never "
+                    "run two on the same bus")
                 self.get_logger().error(self.refused)
                 if self.on_refused is not None:
                     self.on_refused(self.refused)
