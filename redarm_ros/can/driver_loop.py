@@ -1282,6 +1282,8 @@ class DriverLoop:
                     keep.append(req)
                 else:
                     req.ok, req.message = False, f"{req.action}: {refuse}"
+                    if req.action == "halt" and self.driver is not None:
+                        self.driver.clear_halt_request()  # no halt follows: the next init must not stop
                     req.done.set()
             for req in keep:
                 self._requests.put(req)
