@@ -62,15 +62,18 @@ from redarm_ros.can.driver_loop import (
 from redarm_ros.can.driver_process import DriverProcess, DriverSpec, build_loop
 from redarm_ros.errors import ConfigError, InvalidInputError, RedarmError
 from redarm_ros.kinematics import load_arm
-from redarm_ros.nodes._common import NICE_PARAM, ParamNode, ParamSpec, run_node, watch_duplicates
+from redarm_ros.nodes._common import (
+    NICE_PARAM,
+    ParamNode,
+    ParamSpec,
+    non_empty_string,
+    run_node,
+    watch_duplicates,
+)
 
 NODE_NAME = "can_driver"
 DIAGNOSTICS_PERIOD_S = 0.5
 FUTURE_STAMP_WARN_S = 1.0  # a trajectory stamped further ahead than this (s) is logged (clocks apart?)
-
-
-def _non_empty_string(value: Any) -> str | None:
-    return None if isinstance(value, str) and value else "must be a non-empty string"
 
 
 def _module_ids(value: Any) -> str | None:
@@ -101,7 +104,7 @@ class DuplicateNodeError(RuntimeError):
 
 PARAMS = [
     ParamSpec("arm", "pa10", "Arm model (config/arms/<name>.yaml or a path): joint names, limits.",
-              _non_empty_string, read_only=True),
+              non_empty_string, read_only=True),
     ParamSpec("module_ids", Parameter.Type.INTEGER_ARRAY,
               "CAN module id of each joint, in joint order (unset or empty: 1..n).", _module_ids,
               read_only=True),
