@@ -67,6 +67,7 @@ from redarm_ros.nodes._common import (
     ParamNode,
     ParamSpec,
     non_empty_string,
+    positive,
     run_node,
     watch_duplicates,
 )
@@ -83,11 +84,6 @@ def _module_ids(value: Any) -> str | None:
     if not all(isinstance(i, int) and 1 <= i <= 31 for i in ids) or len(set(ids)) != len(ids):
         return "must be distinct module ids in 1..31 (empty: 1..n)"
     return None
-
-
-def _positive(value: Any) -> str | None:
-    # 0 would make every service give up before the loop thread could run it.
-    return None if value > 0 else f"must be > 0, got {value}"
 
 
 def _yaml_mapping(value: Any) -> str | None:
@@ -134,7 +130,7 @@ PARAMS = [
     ParamSpec("watchdog", True, "Arm the modules' watchdog at init and recover and refresh it every cycle "
               "(a stalled or dead driver then halts the arm).", None, read_only=True),
     ParamSpec("request_timeout_s", 60.0, "Longest a ~/init, ~/halt, ~/recover or ~/park call may take (s); "
-              "> 0 (~/halt is run even after its caller gave up).", _positive, range=(0.001, 3600.0)),
+              "> 0 (~/halt is run even after its caller gave up).", positive, range=(0.001, 3600.0)),
     ParamSpec("park_tolerance_rad", 2e-3, "~/park succeeds once every measured joint is this close (rad) "
               "to the park posture.", read_only=True, range=(1e-5, 0.1)),
     ParamSpec("park_speed_scale", 0.9, "Fraction of the velocity and acceleration limits the ~/park move "
