@@ -1268,6 +1268,13 @@ class DriverLoop:
             except Exception as exc:  # a dead transport may complain; it is closed either way
                 self._log(logging.INFO, f"ignoring error closing the bus: {exc!r}")
 
+    def _refuse(self, req: _Request, message: str) -> None:
+        """Answer ``req`` as refused; a refused halt also withdraws its early request to the driver (no
+        halt follows, and the next init must not stop on it)."""
+        req.ok, req.message = False, message
+        if req.action == "halt" and self.driver is not None:
+            self.driver.clear_halt_request()
+
     def _serve_requests(self, refuse: str | None = None, *, hold: bool = False) -> None:
         """Run the queued requests; with ``refuse``, answer them with that instead; with ``hold``,
         keep them queued (dropping those whose caller gave up)."""
@@ -1281,9 +1288,7 @@ class DriverLoop:
                 if time.monotonic() < req.deadline:
                     keep.append(req)
                 else:
-                    req.ok, req.message = False, f"{req.action}: {refuse}"
-                    if req.action == "halt" and self.driver is not None:
-                        self.driver.clear_halt_request()  # no halt follows: the next init must not stop
+                    self._refuse(req, f"{req.action}: {refuse}")
                     req.done.set()
             for req in keep:
                 self._requests.put(req)
@@ -1298,9 +1303,7 @@ class DriverLoop:
                 req.done.set()
                 continue  # never run a request nobody waits for any more (but always halt)
             if refuse is not None:
-                req.ok, req.message = False, refuse
-                if req.action == "halt" and self.driver is not None:
-                    self.driver.clear_halt_request()  # no halt follows: the next init must not stop
+                self._refuse(req, refuse)
             else:
                 if req.action == "park":
                     req.ok, req.message, req.park = self._start_park()
