@@ -29,9 +29,10 @@ from cdp_browser import Chromium, chromium_path  # noqa: E402
 GOAL_XYZ = (0.55, 0.15, 0.30)  # m, base_link; the tool pointing down, beside the can
 # viser's notice that WebGL runs in software (true here: headless SwiftShader) is not part of the view.
 HIDE_WEBGL_NOTICE = """
-for (const el of document.querySelectorAll('div')) {
-  if (el.childElementCount < 8 && el.textContent.startsWith('Software WebGL rendering detected')) {
-    const box = el.closest('[class*=Notification]') || el; box.style.display = 'none';
+for (const b of document.querySelectorAll('button')) {
+  const box = b.closest('[role=alert]') || (b.parentElement && b.parentElement.parentElement);
+  if (box && box.textContent.length < 400 && box.textContent.includes('Software WebGL rendering detected')) {
+    b.click();
   }
 }"""
 
