@@ -1,4 +1,4 @@
-"""docs/nodes.md "Managed (lifecycle) nodes": rclpy's lifecycle support and lifecycle_msgs install with
+"""Managed (lifecycle) nodes are possible here: rclpy's lifecycle support and lifecycle_msgs install with
 the rest of the ROS wheels, and a LifecycleNode goes unconfigured -> inactive -> active through its
 ~/change_state service, as a managed can_driver would."""
 

@@ -185,7 +185,7 @@ def hosts() -> Iterator[tuple[Host, Host]]:
 
 
 def _dds_env(host: Host, peer: Host, log_dir: Path) -> dict[str, str]:
-    """What README.md "Two machines" tells users to set, plus the test's domain, logs and PYTHONPATH."""
+    """What docs/setup.md "Two machines" tells users to set, plus the test's domain, logs and PYTHONPATH."""
     env = dict(os.environ)
     env.update(
         FASTDDS_BUILTIN_TRANSPORTS="UDPv4",  # SHM is host-local; UDP is the only way between hosts
