@@ -173,8 +173,10 @@ class Stack:
         if self.cfg.namespace:
             args += ["-r", f"__ns:={self.cfg.namespace}"]
         if self.cfg.log_level in ("warn", "error", "fatal"):
-            # The readiness line is an info message of the node's own logger: keep that one at info.
-            args += ["--log-level", f"{node}:=info"]
+            # The readiness line is an info message of the node's own logger (named after the namespace
+            # and the node: left.can_driver under /left): keep that one at info.
+            logger = ".".join([*(self.cfg.namespace or "").strip("/").split("/"), node]).lstrip(".")
+            args += ["--log-level", f"{logger}:=info"]
         for k, v in params.items():
             args += ["-p", f"{k}:={v}"]
         return args
