@@ -11,6 +11,9 @@ package). Arguments:
   starts no bus server and no simulator and uses ``can_interface``/``can_channel`` (e.g. socketcan
   vcan0 with a simulator started by hand, or a real ``can0``);
 * ``can_port`` (29536), ``can_interface`` (socketcan), ``can_channel`` (vcan0);
+* ``auto_init`` (auto): whether ``can_driver`` resets and homes the modules by itself (homing moves the
+  arm). ``auto`` homes only the simulated arm (``bus:=loopback``); with ``bus:=external`` a real arm
+  waits for a call of ``/can_driver/init`` unless ``auto_init:=true``;
 * ``controller`` (true), ``ik_service`` (true): start those nodes;
 * ``gui`` (false): pybullet GUI; ``snapshot_dir``, ``status_file`` (''): simulator outputs;
 * ``shm_only`` (true): ``FASTDDS_BUILTIN_TRANSPORTS=SHM`` so no DDS packet leaves the machine;
@@ -22,7 +25,8 @@ package). Arguments:
 The URDF is ``share/redarm_ros/urdf/<arm>.urdf`` (generated at build time) for a bundled arm, or
 generated from the model for an arm given as a YAML path.
 
-Simulator defaults (rate, scene, ...) come from ``config/sim.yaml``; node parameters from
+The simulator waits for the bus server it starts beside (``redarm-sim --bus-wait``). Simulator defaults
+(rate, scene, ...) come from ``config/sim.yaml``; node parameters from
 ``config/<node>.yaml``. This file is not imported by the tests (launch/launch_ros are not
 installable on the build machines); test/test_launch_file.py checks it with ``ast``.
 """
@@ -44,6 +48,13 @@ PACKAGE = "redarm_ros"
 
 def _truthy(value: str) -> bool:
     return value.strip().lower() in ("1", "true", "yes", "on")
+
+
+def auto_init(value: str, bus: str) -> bool:
+    """The ``auto_init`` launch argument: ``auto`` homes only the simulated arm (``bus`` loopback)."""
+    if value.strip().lower() == "auto":
+        return bus == "loopback"
+    return _truthy(value)
 
 
 def _installed(package: str) -> bool:
@@ -106,7 +117,8 @@ def _stack(context, *args, **kwargs):
     actions.append(Node(
         package=PACKAGE, executable="can_driver", name="can_driver", output="screen",
         parameters=[os.path.join(config, "can_driver.yaml"),
-                    {"arm": arm, "auto_init": True, "can.interface": can_interface,
+                    {"arm": arm, "auto_init": auto_init(arg("auto_init"), arg("bus")),
+                     "can.interface": can_interface,
                      "can.channel": can_channel}],
     ))
     if _truthy(arg("ik_service")):
@@ -150,6 +162,9 @@ def generate_launch_description():
         DeclareLaunchArgument("can_port", default_value="29536", description="loopback bus TCP port"),
         DeclareLaunchArgument("can_interface", default_value="socketcan", description="bus=external"),
         DeclareLaunchArgument("can_channel", default_value="vcan0", description="bus=external"),
+        DeclareLaunchArgument("auto_init", default_value="auto", choices=["auto", "true", "false"],
+                              description="can_driver homes the modules by itself (moves the arm): auto = "
+                              "only the simulated arm (bus:=loopback); true = a real arm too"),
         DeclareLaunchArgument("controller", default_value="true"),
         DeclareLaunchArgument("ik_service", default_value="true"),
         DeclareLaunchArgument("gui", default_value="false"),

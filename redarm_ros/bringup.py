@@ -110,6 +110,7 @@ class StackConfig:
     auto_init: bool = False  # real hardware: let can_driver reset + home by itself (the sim always does)
     view: bool = False  # also start the browser view (redarm-view) on 127.0.0.1:view_port
     view_port: int = 8080
+    namespace: str | None = None  # ROS namespace of every node (e.g. /left: /left/joint_states, ...)
     extra_args: dict[str, list[str]] = field(default_factory=dict)  # per child: appended arguments
 
 
@@ -169,9 +170,13 @@ class Stack:
 
     def _ros_args(self, node: str, params: dict[str, str]) -> list[str]:
         args = ["--ros-args", "--log-level", self.cfg.log_level, *_params_file(node)]
+        if self.cfg.namespace:
+            args += ["-r", f"__ns:={self.cfg.namespace}"]
         if self.cfg.log_level in ("warn", "error", "fatal"):
-            # The readiness line is an info message of the node's own logger: keep that one at info.
-            args += ["--log-level", f"{node}:=info"]
+            # The readiness line is an info message of the node's own logger (named after the namespace
+            # and the node: left.can_driver under /left): keep that one at info.
+            logger = ".".join([*(self.cfg.namespace or "").strip("/").split("/"), node]).lstrip(".")
+            args += ["--log-level", f"{logger}:=info"]
         for k, v in params.items():
             args += ["-p", f"{k}:={v}"]
         return args
@@ -186,6 +191,8 @@ class Stack:
         cfg = self.cfg
         if cfg.hardware not in ("sim", "real", "none"):
             raise ValueError(f"hardware must be sim, real or none, got {cfg.hardware!r}")
+        if cfg.namespace and not cfg.namespace.startswith("/"):
+            raise ValueError(f"namespace must start with '/', got {cfg.namespace!r}")
         try:
             if cfg.hardware == "sim":
                 bus = self._start(
@@ -364,6 +371,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--view", action="store_true",
                     help="also start the browser view (redarm-view) on http://127.0.0.1:VIEW_PORT/")
     ap.add_argument("--view-port", type=int, default=8080, help="port of the browser view (default 8080)")
+    ap.add_argument("--namespace", help="ROS namespace of every node (e.g. /left: topics /left/joint_states, "
+                    "/left/goal_pose, services /left/can_driver/init, ...); default none")
     ap.add_argument("--gui", action="store_true", help="open the pybullet GUI (needs a display)")
     ap.add_argument("--status-file", type=Path, help="where the simulator writes its JSON status")
     ap.add_argument("--snapshot-dir", type=Path, help="where the simulator writes PNG snapshots")
@@ -410,6 +419,7 @@ def config_from_args(ns: argparse.Namespace) -> StackConfig:
         auto_init=ns.auto_init,
         view=ns.view,
         view_port=ns.view_port,
+        namespace=ns.namespace,
     )
 
 

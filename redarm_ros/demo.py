@@ -244,14 +244,14 @@ class DemoClient:
         self.ControllerState = ControllerState
         self.goal_pub = self.node.create_publisher(PoseStamped, "goal_pose", 10)
         self.cmd_pub = self.node.create_publisher(JointTrajectory, "joint_command", 10)
-        self.ik = self.node.create_client(SolveIK, "/ik_service/solve_ik")
+        self.ik = self.node.create_client(SolveIK, "ik_service/solve_ik")
         from std_srvs.srv import Trigger
 
-        self.recover_cli = self.node.create_client(Trigger, "/can_driver/recover")
+        self.recover_cli = self.node.create_client(Trigger, "can_driver/recover")
         self.Trigger = Trigger
         self.states: list[tuple[float, Any]] = []
         self.joint_times: list[float] = []
-        self.node.create_subscription(ControllerState, "/controller/state",
+        self.node.create_subscription(ControllerState, "controller/state",
                                       lambda m: self.states.append((time.monotonic(), m)), 100)
         self.node.create_subscription(JointState, "joint_states",
                                       lambda m: self.joint_times.append(time.monotonic()), 100)

@@ -41,6 +41,12 @@ class BusError(RedarmError):
     """The CAN bus could not be opened or used; the original error is kept as ``__cause__``."""
 
 
+class BusConfigError(BusError, ValueError):
+    """The CAN bus configuration can never work as given: no interface configured, an unknown interface
+    type, no SocketCAN in the kernel (errno 97), no such interface (errno 19). Retrying does not help;
+    the message says what to do."""
+
+
 class BusTimeoutError(BusError, TimeoutError):
     """A module did not answer in time (``module_id`` and ``timeout_s``)."""
 

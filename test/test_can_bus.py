@@ -14,9 +14,16 @@ import pytest
 from support.can_buses import OpenBusTracker
 
 from redarm_ros.can import bus as busmod
-from redarm_ros.can.bus import ReconnectingBus, open_bus, resolve_config, safe_shutdown
+from redarm_ros.can.bus import (
+    ReconnectingBus,
+    check_config,
+    open_bus,
+    open_bus_waiting,
+    resolve_config,
+    safe_shutdown,
+)
 from redarm_ros.can.bus_server import LoopbackBusServer
-from redarm_ros.errors import BusError, InvalidInputError
+from redarm_ros.errors import BusConfigError, BusError, InvalidInputError
 
 CAN_ENV = ("CAN_INTERFACE", "CAN_CHANNEL", "CAN_BITRATE", "CAN_CONFIG")
 
@@ -139,13 +146,113 @@ def test_socketcan_missing_interface_is_errno_19_with_recipe(monkeypatch: pytest
     assert info.value.__cause__.errno == errno.ENODEV
 
 
-def test_socketcan_interface_down_is_enetdown(monkeypatch: pytest.MonkeyPatch) -> None:
+def _no_device(monkeypatch: pytest.MonkeyPatch) -> None:
+    def no_device(**cfg):
+        raise OSError(errno.ENODEV, "No such device")
+
+    monkeypatch.setattr(can, "Bus", no_device)
+
+
+def test_socketcan_missing_real_adapter_gets_adapter_advice(monkeypatch: pytest.MonkeyPatch) -> None:
+    """errno 19 on can0 (a real adapter's name): plug it in, bring it up at the arm's bit rate, check the
+    cable and the power; the vcan recipe only as the alternative. vcan0 keeps the vcan recipe alone."""
+    _no_device(monkeypatch)
+    with pytest.raises(BusConfigError) as info:
+        open_bus(interface="socketcan", channel="can0")
+    text = str(info.value)
+    assert "'can0' does not exist (errno 19 ENODEV)" in text
+    assert "sudo ip link set can0 up type can bitrate 500000" in text
+    assert "cable" in text and "powered" in text
+    assert text.index("bitrate 500000") < text.index("type vcan")
+    with pytest.raises(BusConfigError) as info:
+        open_bus(interface="socketcan", channel="vcan0")
+    assert "sudo ip link add dev vcan0 type vcan" in str(info.value)
+    assert "bitrate" not in str(info.value) and "cable" not in str(info.value)
+
+
+@pytest.mark.parametrize(("channel", "advice"), [("can0", "sudo ip link set can0 up type can bitrate 500000"),
+                                                 ("vcan0", "sudo ip link set up vcan0")])
+def test_socketcan_interface_down_is_enetdown(monkeypatch: pytest.MonkeyPatch, channel: str,
+                                              advice: str) -> None:
     def down(**cfg):
         raise can.CanOperationError("down", error_code=errno.ENETDOWN)
 
     monkeypatch.setattr(can, "Bus", down)
-    with pytest.raises(BusError, match="is down.*sudo ip link set up can0"):
-        open_bus(interface="socketcan", channel="can0")
+    with pytest.raises(BusError, match="is down") as info:
+        open_bus(interface="socketcan", channel=channel)
+    assert advice in str(info.value)
+    assert not isinstance(info.value, BusConfigError)  # down is transient: retried
+
+
+# ------------------------------------------------------------------------------------------------
+# configurations that can never work vs. transient failures
+# ------------------------------------------------------------------------------------------------
+
+
+def test_never_working_configurations_are_bus_config_errors(monkeypatch: pytest.MonkeyPatch) -> None:
+    with pytest.raises(BusConfigError, match="no CAN interface configured"):
+        check_config()
+    with pytest.raises(BusConfigError, match="invalid CAN configuration"):
+        check_config(interface="no_such_interface", channel="x")
+    _no_device(monkeypatch)
+    with pytest.raises(BusConfigError, match="errno 19"):
+        check_config(interface="socketcan", channel="can0")
+
+
+@pytest.mark.skipif(_kernel_has_socketcan(), reason="this kernel has SocketCAN; errno 97 cannot happen")
+def test_no_socketcan_in_the_kernel_is_a_bus_config_error() -> None:
+    with pytest.raises(BusConfigError, match="errno 97"):
+        check_config(interface="socketcan", channel="can0")
+
+
+def test_transient_failures_pass_the_check(monkeypatch: pytest.MonkeyPatch) -> None:
+    # a bus server not listening yet: the driver's retries are for that (nothing is opened by the check)
+    cfg = check_config(interface="remote", channel=f"ws://127.0.0.1:{_free_port()}/")
+    assert cfg["interface"] == "remote"
+
+    def down(**cfg):
+        raise can.CanOperationError("down", error_code=errno.ENETDOWN)
+
+    monkeypatch.setattr(can, "Bus", down)
+    assert check_config(interface="socketcan", channel="can0")["channel"] == "can0"
+
+
+def test_open_bus_waiting_retries_transient_failures_until_its_deadline() -> None:
+    now = [0.0]
+    slept: list[float] = []
+    said: list[str] = []
+
+    def sleep(s: float) -> None:
+        slept.append(s)
+        now[0] += s
+
+    with pytest.raises(BusError, match="no CAN bus server listens there"):
+        open_bus_waiting(3.0, log=said.append, sleep=sleep, clock=lambda: now[0], interface="remote",
+                         channel=f"ws://127.0.0.1:{_free_port()}/")
+    assert len(said) == 1 and "waiting up to 3 s for the CAN bus" in said[0]
+    assert len(slept) > 2 and sum(slept) == pytest.approx(3.0)
+    slept.clear()
+    with pytest.raises(BusConfigError):  # never waited for
+        open_bus_waiting(3.0, sleep=sleep, clock=lambda: now[0], interface="no_such_interface", channel="x")
+    assert slept == []
+
+
+def test_open_bus_waiting_returns_the_bus_once_it_opens(monkeypatch: pytest.MonkeyPatch) -> None:
+    real_bus = can.Bus
+    calls = [0]
+
+    def late(**cfg):
+        calls[0] += 1
+        if calls[0] < 3:
+            raise OSError(errno.ECONNREFUSED, "refused")
+        return real_bus(**cfg)
+
+    monkeypatch.setattr(can, "Bus", late)
+    bus = open_bus_waiting(10.0, sleep=lambda s: None, interface="virtual", channel=_channel())
+    try:
+        assert calls[0] == 3
+    finally:
+        bus.shutdown()
 
 
 # ------------------------------------------------------------------------------------------------

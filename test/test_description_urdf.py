@@ -210,7 +210,7 @@ def _display(cfg: dict, cls: str) -> dict:
 def test_rviz_shows_arm_markers_and_goal_in_the_shared_frame() -> None:
     cfg = _rviz()
     controller = yaml.safe_load((REPO / "config" / "controller.yaml").read_text(encoding="utf-8"))
-    base_frame = controller["/controller"]["ros__parameters"].get("base_frame", "base_link")
+    base_frame = controller["/**"]["ros__parameters"].get("base_frame", "base_link")
     fixed = cfg["Visualization Manager"]["Global Options"]["Fixed Frame"]
     assert fixed == base_frame == urdf_chain.root_link(_description("pa10"))
     robot = _display(cfg, "RobotModel")

@@ -262,3 +262,24 @@ def test_rviz_on_request_with_the_packages_config(prefix: Path) -> None:
     args = nodes[("rviz2", "rviz2")].kwargs["arguments"]
     assert args[0] == "-d" and Path(args[1]) == prefix / "share" / "redarm_ros" / "config" / "redarm.rviz"
     assert Path(args[1]).is_file()
+
+
+@pytest.mark.parametrize(("overrides", "homes"), [
+    ({}, True),                                            # the simulated arm: homed by itself
+    ({"bus": "external"}, False),                          # a real arm waits for ~/init
+    ({"bus": "external", "auto_init": "true"}, True),      # ... unless asked
+    ({"bus": "loopback", "auto_init": "false"}, False),
+])
+def test_can_driver_homes_a_real_arm_only_when_asked(prefix: Path, overrides: dict[str, str],
+                                                     homes: bool) -> None:
+    driver = _nodes(_run_launch(**overrides))[("redarm_ros", "can_driver")]
+    assert _params(driver)["auto_init"] is homes
+
+
+def test_simulator_waits_for_the_bus_server_it_starts() -> None:
+    """The launch file starts redarm-canbus and redarm-sim together: the simulator must wait for the
+    server (redarm-sim --bus-wait, by default BUS_WAIT_S > 0), not try once and exit."""
+    from redarm_ros.sim.hardware import BUS_WAIT_S, build_parser
+
+    assert BUS_WAIT_S > 0
+    assert build_parser().parse_args([]).bus_wait == BUS_WAIT_S

@@ -540,3 +540,38 @@ def test_burst_of_2000_outstanding_requests_all_answered(procs: Any, ctx: Any) -
         executor.shutdown()
         for n in nodes:
             n.destroy_node()
+
+
+def test_empty_seed_uses_the_latest_joint_states(ctx: Any) -> None:
+    """SolveIK.srv: an empty seed means the current joints (the latest joint_states of the node's
+    namespace) when the service has them, else mid-range."""
+    from sensor_msgs.msg import JointState
+
+    arm = load_arm("pa10")
+    q_now = np.array([2.4, 1.1, -2.2, 1.2, 2.1, 1.0, -2.6])  # far from mid-range (0), on another branch
+    T = arm.fk(q_now)
+    node = IKServiceNode(context=ctx, namespace="/seed_test",
+                         parameter_overrides=[Parameter("duplicate_check_s", value=0.0)])
+    executor = SingleThreadedExecutor(context=ctx)
+    executor.add_node(node)
+    call = Caller(ctx, executor, "/seed_test/ik_service/solve_ik")
+    pub = call.node.create_publisher(JointState, "/seed_test/joint_states", 10)
+    try:
+        call.wait_ready()
+        mid = call(make_request(T, "pa10", ignore_collisions=True))
+        assert mid.status == R.SUCCESS and node.last_seed_source == "mid-range"
+        assert np.max(np.abs(np.array(mid.solution.position) - q_now)) > 0.5  # a different solution
+        msg = JointState(name=list(arm.joint_names), position=[float(v) for v in q_now])
+        assert spin_until(executor, lambda: (pub.publish(msg), bool(node.joint_positions))[1], 10.0, 0.05)
+        now = call(make_request(T, "pa10", ignore_collisions=True))
+        assert now.status == R.SUCCESS and node.last_seed_source == "joint_states"
+        np.testing.assert_allclose(now.solution.position, q_now, atol=1e-6)
+        # a seed in the request still wins
+        given = call(make_request(T, "pa10", ignore_collisions=True,
+                                  seed=[float(v) for v in mid.solution.position]))
+        assert node.last_seed_source == "request"
+        np.testing.assert_allclose(given.solution.position, mid.solution.position, atol=1e-6)
+    finally:
+        executor.shutdown()
+        call.node.destroy_node()
+        node.destroy_node()

@@ -291,7 +291,7 @@ def test_config_file_lists_every_parameter_at_its_default(node: str) -> None:
     module = importlib.import_module(f"redarm_ros.nodes.{node}")
     doc = yaml.safe_load((REPO / "config" / f"{node}.yaml").read_text())
     (name, body), = doc.items()
-    assert name == f"/{node}"
+    assert name == "/**", "the file must apply to the node in any namespace (__ns:=/left), not only /" + node
     listed = _flatten(body["ros__parameters"])
     specs = {s.name: s.default for s in module.PARAMS}
     assert set(listed) <= set(specs), sorted(set(listed) - set(specs))

@@ -241,7 +241,10 @@ def _free_port() -> int:
         (["--drop-replies", "1.5", "--can-interface", "virtual"], EXIT_BAD_ARGS),
         (["--arm", "no_such_arm", "--can-interface", "virtual"], EXIT_BAD_ARGS),
         (["--initial-q", "0", "0", "--can-interface", "virtual"], EXIT_BAD_ARGS),
-        (["--can-interface", "remote", "--can-channel", f"ws://127.0.0.1:{_free_port()}/"], EXIT_NO_BUS),
+        (["--can-interface", "remote", "--can-channel", f"ws://127.0.0.1:{_free_port()}/",
+          "--bus-wait", "0.5"], EXIT_NO_BUS),
+        # A configuration that can never work is not waited for (the long --bus-wait would time the test out).
+        (["--can-interface", "no_such_interface", "--bus-wait", "600"], EXIT_NO_BUS),
     ],
 )
 def test_bad_arguments_and_missing_bus_exit_with_a_code(procs, args, code):
@@ -249,6 +252,25 @@ def test_bad_arguments_and_missing_bus_exit_with_a_code(procs, args, code):
     proc.expect_exit()
     proc.popen.wait(timeout=30)
     assert proc.returncode == code
+
+
+def test_sim_waits_for_a_bus_server_that_starts_after_it(procs, tmp_path):
+    """As in the launch file, which starts redarm-canbus and redarm-sim together: the simulator retries
+    the bus (saying so once) and comes up when the server does."""
+    port = _free_port()
+
+    class _Server:  # what _start_sim needs of the canbus fixture
+        def cli_args(self) -> list[str]:
+            return ["--can-interface", "remote", "--can-channel", f"ws://127.0.0.1:{port}/"]
+
+    cmd = python_module_cmd("redarm_ros.sim.hardware", "--arm", "pa10", *_Server().cli_args(),
+                            "--bus-wait", "60")
+    sim = procs.start("sim-early", cmd)
+    sim.wait_for_line(r"waiting up to 60 s for the CAN bus", timeout=30.0)
+    server_cmd = python_module_cmd("redarm_ros.can.bus_server", "--host", "127.0.0.1", "--port", str(port))
+    procs.start("canbus", server_cmd, ready=r"REDARM_CANBUS_PORT=", ready_timeout=20.0)
+    sim.wait_for_line(READY_LINE, timeout=40.0, from_start=True)
+    assert sim.popen.poll() is None
 
 
 def test_sim_reconnects_when_the_bus_server_comes_back(procs, tmp_path):

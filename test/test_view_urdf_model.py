@@ -26,12 +26,12 @@ def test_fk_of_generated_urdf_matches_the_arm_model(name: str) -> None:
 
 def test_visuals_and_colours_of_the_generated_urdf() -> None:
     model = model_for_arm("pa10")
-    assert model.root == "pa10_base_link"
+    assert model.root == "base_link"
     kinds = {v.kind for vs in model.visuals.values() for v in vs}
     assert kinds == {"sphere", "cylinder"}
-    tool = model.visuals["pa10_tool"][0]
+    tool = model.visuals["tool"][0]
     assert tool.kind == "sphere" and tool.rgba == pytest.approx((0.95, 0.75, 0.1, 1.0))
-    housing = model.visuals["pa10_link_2"][0]
+    housing = model.visuals["link_2"][0]
     assert housing.rgba == pytest.approx((0.85, 0.15, 0.12, 1.0))  # top-level named material
 
 
@@ -70,3 +70,15 @@ def test_rpy_matches_the_urdf_convention() -> None:
 def test_malformed_urdf_is_refused_with_a_reason(text: str, what: str) -> None:
     with pytest.raises(InvalidInputError, match=what.replace("<", r"\<").replace(">", r"\>")):
         UrdfModel.from_string(text)
+
+
+@pytest.mark.parametrize("name", ["pa10", "powercube6"])
+def test_fallback_model_uses_the_installed_urdfs_frame_names(name: str) -> None:
+    """The view and the recorder draw / record this model until /robot_description arrives: its frames
+    must be the installed URDF's (setup.py: prefix ""), or /tf from the recorder names frames nobody else
+    uses and the goal's base_link is not the drawn base."""
+    installed = UrdfModel.from_string(build_urdf(load_arm(name), prefix=""))
+    model = model_for_arm(name)
+    assert model.root == installed.root == "base_link"
+    assert set(model.visuals) | {model.root} >= {"base_link", "link_1", "tool"}
+    assert [j.child for j in model.joints] == [j.child for j in installed.joints]

@@ -62,7 +62,7 @@ def test_arm_frames_follow_the_joint_states(server: Any) -> None:
     goals: list[tuple[np.ndarray, np.ndarray]] = []
     v = ArmViewer(server, model_for_arm("pa10"), on_goal=lambda p, q: goals.append((p, q)))
     v.set_joints(ARM.joint_names, Q)
-    tool = v._link_frames["pa10_tool"]
+    tool = v._link_frames["tool"]
     T = ARM.fk(Q)
     np.testing.assert_allclose(tool.position, T[:3, 3], atol=1e-9)
     np.testing.assert_allclose(_wxyz_to_R(tool.wxyz), T[:3, :3], atol=1e-9)
@@ -188,7 +188,7 @@ def test_view_node_wires_topics_to_the_viewer(rclpy_context: Any) -> None:
 
     try:
         assert node.url.startswith("http://127.0.0.1:") and not node.url.endswith(":0/")
-        tool = node.viewer._link_frames["pa10_tool"]
+        tool = node.viewer._link_frames["tool"]
 
         def publish_all() -> None:
             js.publish(JointState(name=list(ARM.joint_names), position=[float(v) for v in Q]))

@@ -10,11 +10,17 @@ python-can's own configuration chain, with this precedence (python-can's, fixed)
 4. config files (``~/can.conf``, ``/etc/can.conf``, ``~/.can``, ``~/.canrc``, or ``config_file``).
 
 Errors are translated into :class:`~redarm_ros.errors.BusError` (cause kept) with a message that
-says what to do:
+says what to do. A configuration that can never work raises its subclass
+:class:`~redarm_ros.errors.BusConfigError` (retrying does not help): no interface configured, an
+unknown interface type or a missing backend, and for socketcan
 
-* socketcan, errno 97 ``EAFNOSUPPORT``: the kernel has no SocketCAN at all;
-* socketcan, errno 19 ``ENODEV``: the interface (e.g. ``vcan0``) does not exist, with the
-  ``ip link`` commands to create it (see ``setup_vcan.sh`` next to this file);
+* errno 97 ``EAFNOSUPPORT``: the kernel has no SocketCAN at all;
+* errno 19 ``ENODEV``: the interface does not exist: for a ``vcan*`` name the ``ip link`` commands to
+  create it (see ``setup_vcan.sh`` next to this file), for a real adapter (``can0``) what to check.
+
+Transient failures stay plain :class:`~redarm_ros.errors.BusError`: the interface exists but is down
+(errno 100 ``ENETDOWN``), the loopback bus server is not listening (yet, or again). This module holds
+every piece of advice text about opening the bus (:func:`describe_open_error`, :data:`NO_ANSWER_ADVICE`).
 * remote (python-can-remote 0.3.0): a dead server surfaces as ``WebsocketClosed`` or
   ``OSError`` rather than ``CanError``, clients do not reconnect, and ``shutdown()`` can raise
   ``OSError``. :class:`ReconnectingBus` converts the first, offers :meth:`ReconnectingBus.reopen`
@@ -37,11 +43,16 @@ from typing import Any, Protocol, runtime_checkable
 
 import can
 
-from redarm_ros.errors import BusError, InvalidInputError
+from redarm_ros.errors import BusConfigError, BusError, InvalidInputError
 
 logger = logging.getLogger(__name__)
 
 VCAN_RECIPE = "sudo ip link add dev {ch} type vcan && sudo ip link set up {ch}"
+#: Bringing a real SocketCAN adapter up; 500 kbit/s is the bit rate deployed PowerCube arms use.
+ADAPTER_UP_RECIPE = "sudo ip link set {ch} up type can bitrate 500000"
+#: What to check when the bus is open but no module answers (a real arm).
+NO_ANSWER_ADVICE = ("check the CAN cable and its 120 ohm termination, that the modules are powered, and "
+                    "that the bit rate and module_ids match the modules")
 
 try:  # python-can-remote is optional for socketcan-only deployments
     from can_remote.websocket import WebsocketClosed as _WebsocketClosed
@@ -76,12 +87,12 @@ def resolve_config(
         cfg = can.util.load_config(path=config_file, config=given, context=config_context)
     except (can.CanInterfaceNotImplementedError, NotImplementedError, ValueError, TypeError) as exc:
         if not (given.get("interface") or given.get("bustype")) and "None" in str(exc):
-            raise BusError(
+            raise BusConfigError(
                 "no CAN interface configured: pass interface/channel, or set CAN_INTERFACE and "
                 "CAN_CHANNEL (e.g. CAN_INTERFACE=remote CAN_CHANNEL=ws://127.0.0.1:<port>/ for "
                 "the redarm-canbus server, or CAN_INTERFACE=socketcan CAN_CHANNEL=vcan0)"
             ) from exc
-        raise BusError(f"invalid CAN configuration: {exc}") from exc
+        raise BusConfigError(f"invalid CAN configuration: {exc}") from exc
     return dict(cfg)
 
 
@@ -101,6 +112,39 @@ def _find_errno(exc: BaseException) -> int | None:
     return None
 
 
+def is_virtual_channel(channel: str) -> bool:
+    """True for a SocketCAN channel named like a virtual one (``vcan0``); ``can0`` counts as a real adapter
+    (a vcan may be named ``can0`` too, so its messages give the vcan recipe as well)."""
+    return channel.startswith("vcan")
+
+
+def _socketcan_advice(ch: str, code: int | None) -> str | None:
+    """What to do about errno ``code`` on SocketCAN channel ``ch`` (None: no advice for that code)."""
+    if code == errno.EAFNOSUPPORT:
+        return (
+            "this kernel has no SocketCAN at all (errno 97 EAFNOSUPPORT: socket(AF_CAN) is not supported). "
+            "Use a kernel with CAN/vcan modules (e.g. the User-Mode Linux guest in scripts/setup_uml.sh) or "
+            "the loopback bus server: run redarm-canbus and set CAN_INTERFACE=remote "
+            "CAN_CHANNEL=ws://127.0.0.1:<port>/"
+        )
+    if code == errno.ENODEV:
+        if is_virtual_channel(ch):
+            return (f"interface {ch!r} does not exist (errno 19 ENODEV). Create it with: "
+                    f"{VCAN_RECIPE.format(ch=ch)} (or run redarm_ros/can/setup_vcan.sh {ch})")
+        return (f"interface {ch!r} does not exist (errno 19 ENODEV): plug the CAN adapter in and check that "
+                f"its kernel driver is loaded (`ip link show` lists the interfaces), then bring it up with: "
+                f"{ADAPTER_UP_RECIPE.format(ch=ch)}; {NO_ANSWER_ADVICE}. (A virtual bus named {ch} "
+                f"instead: {VCAN_RECIPE.format(ch=ch)})")
+    if code == errno.ENETDOWN:
+        up = f"sudo ip link set up {ch}" if is_virtual_channel(ch) else ADAPTER_UP_RECIPE.format(ch=ch)
+        return f"interface {ch!r} is down (errno 100 ENETDOWN): {up}"
+    return None
+
+
+#: errno values that make a SocketCAN configuration fail for good (see the module docstring).
+_PERMANENT_SOCKETCAN = (errno.EAFNOSUPPORT, errno.ENODEV)
+
+
 def describe_open_error(cfg: dict[str, Any], exc: BaseException) -> str:
     """A message saying why opening ``cfg`` failed and what to do about it."""
     interface = cfg.get("interface")
@@ -108,24 +152,11 @@ def describe_open_error(cfg: dict[str, Any], exc: BaseException) -> str:
     code = _find_errno(exc)
     where = f"CAN bus interface={interface!r} channel={channel!r}"
     if interface == "socketcan":
-        ch = channel or "vcan0"
-        if code == errno.EAFNOSUPPORT:
-            return (
-                f"cannot open {where}: this kernel has no SocketCAN at all (errno 97 EAFNOSUPPORT: "
-                "socket(AF_CAN) is not supported). Use a kernel with CAN/vcan modules (e.g. the "
-                "User-Mode Linux guest in scripts/setup_uml.sh) or the loopback bus server: "
-                "run redarm-canbus and set CAN_INTERFACE=remote CAN_CHANNEL=ws://127.0.0.1:<port>/"
-            )
-        if code == errno.ENODEV:
-            return (
-                f"cannot open {where}: interface {ch!r} does not exist (errno 19 ENODEV). "
-                f"Create it with: {VCAN_RECIPE.format(ch=ch)} (or run redarm_ros/can/setup_vcan.sh {ch})"
-            )
-        if code == errno.ENETDOWN:
-            return (
-                f"cannot open {where}: interface {ch!r} is down"
-                f" (errno 100 ENETDOWN): sudo ip link set up {ch}"
-            )
+        advice = _socketcan_advice(str(channel or "vcan0"), code)
+        if advice is not None:
+            return f"cannot open {where}: {advice}"
+    if isinstance(exc, (can.CanInterfaceNotImplementedError, ImportError)):
+        return f"cannot open {where}: the python-can backend is not usable here ({exc})"
     if interface == "remote":
         if code == errno.ECONNREFUSED:
             return (
@@ -136,13 +167,21 @@ def describe_open_error(cfg: dict[str, Any], exc: BaseException) -> str:
     return f"cannot open {where}: {exc!r}"
 
 
+def is_permanent_open_error(cfg: dict[str, Any], exc: BaseException) -> bool:
+    """True if opening ``cfg`` failed with ``exc`` for a reason that retrying cannot fix."""
+    if isinstance(exc, (can.CanInterfaceNotImplementedError, ImportError)):
+        return True
+    return cfg.get("interface") == "socketcan" and _find_errno(exc) in _PERMANENT_SOCKETCAN
+
+
 def _open_raw(cfg: dict[str, Any]) -> can.BusABC:
     try:
         return can.Bus(ignore_config=True, **cfg)
     except BusError:
         raise
     except Exception as exc:  # any backend failure becomes a BusError with its cause
-        raise BusError(describe_open_error(cfg, exc)) from exc
+        kind = BusConfigError if is_permanent_open_error(cfg, exc) else BusError
+        raise kind(describe_open_error(cfg, exc)) from exc
 
 
 def safe_shutdown(bus: can.BusABC | None) -> None:
@@ -372,3 +411,60 @@ def open_bus(
     return ReconnectingBus(
         config_file=config_file, config_context=config_context, can_filters=can_filters, **kwargs
     )
+
+
+def check_config(*, config_file: str | None = None, config_context: str | None = None,
+                 **kwargs: Any) -> dict[str, Any]:
+    """Fail at once on a bus configuration that can never work; the resolved configuration otherwise.
+
+    Resolves the configuration (see :func:`resolve_config`); a ``socketcan`` bus is also opened and
+    closed once (cheap, touches no device), so a kernel without SocketCAN or a missing interface is
+    found before any retry loop starts. Transient failures (an interface that is down, a bus server
+    not listening yet) pass: the caller's retries are for them.
+
+    Raises:
+        BusConfigError: the configuration can never work; the message says what to do.
+    """
+    cfg = resolve_config(config_file=config_file, config_context=config_context, **kwargs)
+    if cfg.get("interface") == "socketcan":
+        try:
+            safe_shutdown(_open_raw(cfg))
+        except BusConfigError:
+            raise
+        except BusError:
+            pass  # transient (e.g. down): the retries are for that
+    return cfg
+
+
+def open_bus_waiting(
+    wait_s: float,
+    *,
+    log: Callable[[str], None] = logger.warning,
+    sleep: Callable[[float], None] = time.sleep,
+    clock: Callable[[], float] = time.monotonic,
+    **kwargs: Any,
+) -> ReconnectingBus:
+    """:func:`open_bus`, retried with backoff for up to ``wait_s`` seconds while the failure is transient
+    (a bus server that is still starting, an interface still down); ``log`` gets one line when the
+    waiting starts. Keyword arguments as for :func:`open_bus`.
+
+    Raises:
+        BusConfigError: at once, for a configuration that can never work.
+        BusError: still failing after ``wait_s`` (the last error, with its advice).
+    """
+    deadline = clock() + max(0.0, float(wait_s))
+    delays = backoff_delays(0.05, 1.0)
+    said = False
+    while True:
+        try:
+            return open_bus(**kwargs)
+        except BusConfigError:
+            raise
+        except BusError as exc:
+            left = deadline - clock()
+            if left <= 0:
+                raise
+            if not said:
+                log(f"{exc}; waiting up to {wait_s:g} s for the CAN bus")
+                said = True
+            sleep(min(next(delays), left))

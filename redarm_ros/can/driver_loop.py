@@ -45,7 +45,7 @@ import can
 import numpy as np
 
 from redarm_ros.can import realtime
-from redarm_ros.can.bus import ReopenableBus
+from redarm_ros.can.bus import NO_ANSWER_ADVICE, ReopenableBus
 from redarm_ros.can.driver_core import (
     ArmState,
     CycleResult,
@@ -1089,7 +1089,7 @@ class DriverLoop:
             return True
         missing = list(report.missing)
         if len(missing) == self.n:
-            self._retry_reason("CAN bus open, but no module answers discovery")
+            self._retry_reason(f"CAN bus open, but no module answers discovery ({NO_ANSWER_ADVICE})")
             return False
         with self._lock:
             self._connects += 1

@@ -12,7 +12,9 @@ from __future__ import annotations
 import logging
 import math
 import os
+import re
 import signal
+import sys
 import threading
 import time
 import uuid
@@ -238,6 +240,97 @@ class _StopSignals:
                          signum)
 
 
+# -- parameter files (--params-file) -----------------------------------------------------------------
+def params_file_paths(args: Sequence[str]) -> list[str]:
+    """The ``--params-file`` paths given in the ``--ros-args`` sections of ``args``."""
+    paths: list[str] = []
+    in_ros = False
+    items = iter(args)
+    for a in items:
+        if a == "--ros-args":
+            in_ros = True
+        elif a == "--":
+            in_ros = False
+        elif in_ros and a == "--params-file":
+            paths.append(next(items, ""))
+    return paths
+
+
+def read_params_file(path: str) -> dict[str, Any]:
+    """A ROS 2 parameter file as ``{node key: {"ros__parameters": ...}}``.
+
+    Raises:
+        ValueError: the file cannot be read, is not YAML (the message names the file, the line and the
+            column), or is not a mapping of node keys.
+    """
+    import yaml  # (only the nodes' start-up needs it)
+
+    try:
+        with open(path, encoding="utf-8") as fh:
+            text = fh.read()
+    except OSError as exc:
+        raise ValueError(f"parameter file {path}: {exc.strerror or exc}") from exc
+    try:
+        doc = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f"line {mark.line + 1}, column {mark.column + 1}" if mark is not None else "YAML"
+        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        raise ValueError(f"parameter file {path}, {where}: {problem} (not valid YAML)") from exc
+    if doc is None:
+        return {}
+    if not isinstance(doc, dict) or not all(isinstance(k, str) for k in doc):
+        raise ValueError(f"parameter file {path}: must map node names (e.g. /**: or /my_node:) to "
+                         "ros__parameters")
+    return doc
+
+
+def node_key_matches(key: str, fully_qualified_name: str) -> bool:
+    """True if the node key ``key`` of a parameter file applies to the node ``fully_qualified_name``.
+
+    The rules of rcl/rclpy: a key is a node's full name, ``/`` prefixed or not (``can_driver`` is
+    ``/can_driver``); ``*`` stands for one name token, ``**`` for any number of them, so ``/**`` is every
+    node and ``/**/can_driver`` a ``can_driver`` in any namespace.
+    """
+    key = key if key.startswith("/") else "/" + key
+    parts = [re.escape(tok) for tok in key.strip("/").split("/")]
+    pattern = ""
+    for tok in parts:
+        if tok == re.escape("**"):
+            pattern += "(/[^/]+)*"
+        elif tok == re.escape("*"):
+            pattern += "/[^/]+"
+        else:
+            pattern += "/" + tok.replace(re.escape("*"), "[^/]*")
+    return re.fullmatch(pattern or "/", fully_qualified_name) is not None
+
+
+def check_params_files(args: Sequence[str]) -> dict[str, list[str]]:
+    """Read every ``--params-file`` of ``args`` before rclpy does (its own error is a traceback without
+    the line); path -> the file's node keys.
+
+    Raises:
+        ValueError: one of the files is unreadable or not valid YAML (see :func:`read_params_file`).
+    """
+    return {path: list(read_params_file(path)) for path in params_file_paths(args)}
+
+
+def warn_unmatched_params_files(node: Node, files: dict[str, list[str]]) -> list[str]:
+    """Warn for each parameter file of which no node key applies to ``node`` (a misspelt ``/can_drvier:``,
+    or ``/can_driver:`` given to a node under a namespace): its parameters would vanish without a word.
+    Returns the paths warned about."""
+    fqn = node.get_fully_qualified_name()
+    unmatched = [path for path, keys in files.items()
+                 if keys and not any(node_key_matches(k, fqn) for k in keys)]
+    for path in unmatched:
+        node.get_logger().warning(
+            f"parameter file {path} has no section for this node {fqn} (its node keys: "
+            f"{', '.join(files[path])}): none of its values apply. Use `/**:` (every node the file is given "
+            f"to), `/**/{node.get_name()}:` or `{fqn}:`"
+        )
+    return unmatched
+
+
 def run_node(
     make_node: Callable[[], Node],
     args: Sequence[str] | None = None,
@@ -252,7 +345,14 @@ def run_node(
     Returns the process exit code (0 on a normal or Ctrl-C stop, 1 if the node could not be built).
     """
     stop_signals = _StopSignals.install()  # before rclpy.init, whose handler chains to it
-    rclpy.init(args=list(args) if args is not None else None)
+    argv = list(args) if args is not None else list(sys.argv)
+    try:
+        files = check_params_files(argv)
+        rclpy.init(args=argv)
+    except Exception as exc:  # noqa: BLE001 - a bad parameter file or argument: one line, exit code 1
+        logging.basicConfig()
+        _LOG.error("could not start: %s", exc)
+        return 1
     node: Node | None = None
     executor: SingleThreadedExecutor | MultiThreadedExecutor | None = None
     code = 0
@@ -264,6 +364,7 @@ def run_node(
             logging.basicConfig()
             _LOG.error("could not start: %s", exc)
             return 1
+        warn_unmatched_params_files(node, files)
         if node.has_parameter(NICE_PARAM.name):  # a process-wide setting: only where the node owns it
             fifo = int(node.get_parameter(PROCESS_RT_PARAM.name).value) \
                 if getattr(node, "PROCESS_REALTIME", False) else 0

@@ -50,6 +50,7 @@ from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
 
 from redarm_ros.can import protocol as pc
+from redarm_ros.can.bus import check_config as check_bus_config
 from redarm_ros.can.driver_core import DEFAULT_PLAUSIBILITY_MARGIN
 from redarm_ros.can.driver_loop import (
     DEFAULT_LIMIT_MARGIN,
@@ -222,6 +223,9 @@ class CanDriverNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
         self.joint_names = list(self.arm.joint_names)
         can_kwargs = {"interface": p["can.interface"], "channel": p["can.channel"],
                       **parse_can_config(p["can.config"])}
+        # A configuration that can never work ends the node here (BusConfigError is a ValueError: one line,
+        # exit code 1); only transient failures (interface down, bus server restarting) are retried.
+        check_bus_config(**can_kwargs)
         self._frame_id = p["frame_id"]
         self._request_timeout_s = float(p["request_timeout_s"])
         self._duplicate_check_s = float(p["duplicate_check_s"])

@@ -9,6 +9,10 @@ Solutions whose links collide with each other or go below the arm's ground plane
 unless a request sets ``ignore_collisions``; a pose that cannot be solved at all carries a base-move
 suggestion (``base_offset``, ``base_offset_yaw``, ``base_offset_valid``) when ``suggest_base_move`` is on.
 
+A request with an empty ``seed`` is seeded with the latest ``joint_states`` (relative: the topic of the
+stack in this node's namespace) when that message names every joint of the requested arm, else with
+mid-range; the per-request debug line says which (``--log-level ik_service:=debug``).
+
 Requests wait in the service's middleware queue (reliable, KEEP_LAST with depth
 ``request_queue_depth``, default 4096, for requests and responses alike), so a burst of that many
 outstanding calls is answered in order. Callers that keep many calls outstanding need a deep queue
@@ -29,6 +33,7 @@ from typing import Any
 
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from redarm_interfaces.srv import SolveIK
+from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectoryPoint
 
 from redarm_ros.errors import InvalidInputError, RedarmError
@@ -185,12 +190,16 @@ class IKServiceNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
             raise ValueError(str(exc)) from exc
         self.requests = 0
         self.failures = 0
+        self.last_seed_source = ""  # request, joint_states or mid-range (see seed_of)
         self.srv = None
         self._serving_note = (
             f"serving {self.get_fully_qualified_name()}/solve_ik for arms {', '.join(sorted(arms))} "
             f"(default {p['default_arm']}, targets in frame '{p['base_frame']}')"
         )
         self._queue_depth = int(p["request_queue_depth"])
+        # The latest measured joint positions by name: the seed of a request that gives none.
+        self.joint_positions: dict[str, float] = {}
+        self.create_subscription(JointState, "joint_states", self._on_joint_states, 10)
         # The service is offered once the duplicate-name check has passed (a timer: no blocking here).
         self.name_check = UniqueNameCheck(self, p["duplicate_check_s"], on_passed=self._serve)
         watch_duplicates(self, yield_to_elder=p["duplicate_check_s"] > 0)
@@ -203,6 +212,27 @@ class IKServiceNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
         )
         self.srv = self.create_service(SolveIK, "~/solve_ik", self._on_solve, qos_profile=qos)
         self.get_logger().info(self._serving_note)
+
+    def _on_joint_states(self, msg: JointState) -> None:
+        if len(msg.position) != len(msg.name):
+            return  # not a measurement of positions
+        if not self.joint_positions:
+            self.get_logger().info("empty seeds now use the latest joint_states")
+        self.joint_positions.update(zip(msg.name, (float(v) for v in msg.position), strict=True))
+
+    def seed_of(self, req: SolveIK.Request) -> tuple[list[float], str]:
+        """The seed for ``req`` and where it came from: the request's own (``request``), the latest
+        joint_states when they name every joint of the arm (``joint_states``), else mid-range (``[]``,
+        ``mid-range``)."""
+        if len(req.seed):
+            return list(req.seed), "request"
+        try:
+            names = self.front.arm_for(req.arm).joint_names
+        except InvalidInputError:
+            return [], "mid-range"  # the solve answers the unknown arm
+        if names and all(n in self.joint_positions for n in names):
+            return [self.joint_positions[n] for n in names], "joint_states"
+        return [], "mid-range"
 
     # Short callback: read parameters, delegate, convert.
     def _on_solve(self, req: SolveIK.Request, resp: SolveIK.Response) -> SolveIK.Response:
@@ -218,8 +248,8 @@ class IKServiceNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
         self._fill(resp, ans, base_frame)
         if ans.status is IKStatus.SUCCESS:
             self.get_logger().debug(
-                f"solved for {req.arm or self.front.default_arm}: swivel {ans.swivel:.4f}, "
-                f"pos err {ans.position_error:.2e} m"
+                f"solved for {req.arm or self.front.default_arm} (seed: {self.last_seed_source}): swivel "
+                f"{ans.swivel:.4f}, pos err {ans.position_error:.2e} m"
             )
         else:
             self.failures += 1
@@ -245,11 +275,12 @@ class IKServiceNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
             raise InvalidInputError(f"timeout must be >= 0 s, got {timeout}", field="timeout", value=timeout)
         if timeout == 0:
             timeout = float(self.get_parameter("default_timeout").value)
+        seed, self.last_seed_source = self.seed_of(req)
         return self.front.solve(
             T,
             req.arm,
             swivel=float(req.swivel) if req.swivel_given else None,
-            seed=list(req.seed),
+            seed=seed,
             all_solutions=req.all_solutions,
             timeout_s=timeout,
             check_collisions=not req.ignore_collisions,

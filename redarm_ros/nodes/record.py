@@ -39,8 +39,9 @@ from redarm_ros.view.urdf_model import UrdfModel, model_for_arm
 _LOG = logging.getLogger("redarm_ros.record")
 NODE_NAME = "redarm_record"
 TF_TOPIC = "/tf"
-JOINT_STATES = "/joint_states"
-ROBOT_DESCRIPTION = "/robot_description"
+# Relative: resolved in the recorder's namespace (a stack under __ns:=/left has /left/joint_states).
+JOINT_STATES = "joint_states"
+ROBOT_DESCRIPTION = "robot_description"
 
 
 def _ns(duration: Any) -> int:
@@ -98,7 +99,10 @@ class RecorderNode(Node):
         super().__init__(node_name, namespace=namespace, context=context,
                          parameter_overrides=parameter_overrides or [])
         self.writer = writer
-        self.wanted = None if topics is None else {t if t.startswith("/") else f"/{t}" for t in topics}
+        # relative names resolve in this node's namespace, as a node's own topics would
+        self.wanted = None if topics is None else {self.resolve_topic_name(t) for t in topics}
+        self.joint_states_topic = self.resolve_topic_name(JOINT_STATES)
+        self.description_topic = self.resolve_topic_name(ROBOT_DESCRIPTION)
         self.exclude = re.compile(exclude) if exclude else None
         self.tf_model = tf_model
         self.tf_period_ns = int(1e9 / tf_rate_hz) if tf_rate_hz > 0 else 0
@@ -119,7 +123,7 @@ class RecorderNode(Node):
             # The URDF on /robot_description (latched), when someone publishes it, replaces the model.
             latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL)
             self.create_subscription(String, ROBOT_DESCRIPTION, self._on_description, latched)
-            if JOINT_STATES not in self._subs and self._wants(JOINT_STATES) is False:
+            if self.joint_states_topic not in self._subs and self._wants(self.joint_states_topic) is False:
                 # /tf needs the joint states even when they are not recorded themselves.
                 self.create_subscription(JointState, JOINT_STATES, self._on_joint_state_for_tf, 50)
         self.create_timer(discovery_period_s, self.discover)
@@ -175,7 +179,7 @@ class RecorderNode(Node):
     def _on_raw(self, topic: str, data: bytes) -> None:
         t = self.now_ns()
         self.writer.write(topic, data, t)
-        if topic == JOINT_STATES and self._joint_state_cls is not None and self._tf_due(t):
+        if topic == self.joint_states_topic and self._joint_state_cls is not None and self._tf_due(t):
             from rclpy.serialization import deserialize_message  # only for the /tf samples
 
             self._tf_from(deserialize_message(data, self._joint_state_cls), t)
@@ -193,7 +197,8 @@ class RecorderNode(Node):
         if not self.writer.has_topic(TF_TOPIC):
             # What a tf broadcaster offers: reliable, volatile, keep last 100.
             self.writer.add_topic(TF_TOPIC, TF_MESSAGE_TYPE, offers=[QosOffer(depth=100)])
-            self.get_logger().info(f"recording {TF_TOPIC} ({TF_MESSAGE_TYPE}, from {JOINT_STATES})")
+            self.get_logger().info(
+                f"recording {TF_TOPIC} ({TF_MESSAGE_TYPE}, from {self.joint_states_topic})")
         stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
         positions = dict(zip(msg.name, msg.position, strict=False))
         self.writer.write_dict(TF_TOPIC, tf_message(self.tf_model, positions, stamp or t, self.base_frame), t)
@@ -202,11 +207,11 @@ class RecorderNode(Node):
         try:
             model = UrdfModel.from_string(msg.data)
         except InvalidInputError as exc:
-            self.get_logger().warning(f"{ROBOT_DESCRIPTION} not usable for /tf: {exc}")
+            self.get_logger().warning(f"{self.description_topic} not usable for /tf: {exc}")
             return
         if self.tf_model is None or model.text != self.tf_model.text:
             self.tf_model = model
-            self.get_logger().info(f"/tf now from the URDF on {ROBOT_DESCRIPTION} ({model.name})")
+            self.get_logger().info(f"/tf now from the URDF on {self.description_topic} ({model.name})")
 
 
 def _executor() -> Any:

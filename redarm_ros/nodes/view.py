@@ -4,16 +4,19 @@ A thin rclpy shell around :class:`redarm_ros.view.viewer.ArmViewer`, which serve
 ``viser`` (its web client is bundled in the wheel, so no network is needed) on ``host:port``
 (127.0.0.1:8080 by default; port 0 picks a free one). Prints ``view ready: http://HOST:PORT/``.
 
-* in  ``/joint_states`` (sensor_msgs/JointState): poses the arm (redrawn at ``update_rate_hz``);
-* in  ``/controller/state`` (redarm_interfaces/ControllerState): phase, swivel, clearance, distance;
-* in  ``/controller/markers``, ``/obstacles`` (visualization_msgs/MarkerArray): goal, heading arrow,
+Topic names are relative, so a view started in the namespace of a stack (``--ros-args -r __ns:=/left``)
+shows that stack (``/left/joint_states`` ...); ``/diagnostics`` is global by ROS convention.
+
+* in  ``joint_states`` (sensor_msgs/JointState): poses the arm (redrawn at ``update_rate_hz``);
+* in  ``controller/state`` (redarm_interfaces/ControllerState): phase, swivel, clearance, distance;
+* in  ``controller/markers``, ``obstacles`` (visualization_msgs/MarkerArray): goal, heading arrow,
   elbow circle, table, obstacles;
 * in  ``/diagnostics`` (diagnostic_msgs/DiagnosticArray): the CAN driver's state and loop rate;
-* in  ``/robot_description`` (std_msgs/String, transient local), when someone publishes it: the URDF
+* in  ``robot_description`` (std_msgs/String, transient local), when someone publishes it: the URDF
   to draw; until then (or without it) the URDF generated from the ``arm`` model;
-* out ``/goal_pose`` (geometry_msgs/PoseStamped in ``base_frame``): the transform gizmo's pose, streamed
+* out ``goal_pose`` (geometry_msgs/PoseStamped in ``base_frame``): the transform gizmo's pose, streamed
   while it is dragged (at most ``goal_stream_hz``) or sent with the "Send goal" button;
-* action client of ``/controller/reach`` (redarm_interfaces/action/Reach): the "Reach (action)" button
+* action client of ``controller/reach`` (redarm_interfaces/action/Reach): the "Reach (action)" button
   sends the gizmo pose as a Reach goal; its feedback and result show in the status panel.
 
 Command line: ``redarm-view [--host H] [--port P] [--arm NAME] [--scene NAME|PATH]`` (shorthands for
@@ -46,7 +49,10 @@ from redarm_ros.view.urdf_model import UrdfModel, model_for_arm
 from redarm_ros.view.viewer import ArmViewer, MarkerSpec, RateMeter, Status, scene_markers
 
 NODE_NAME = "view"
-REACH_ACTION = "/controller/reach"
+REACH_ACTION = "controller/reach"
+# Relative names: resolved in the node's namespace (see the module docstring).
+JOINT_STATES, GOAL_POSE, ROBOT_DESCRIPTION = "joint_states", "goal_pose", "robot_description"
+CONTROLLER_STATE, CONTROLLER_MARKERS, OBSTACLES = "controller/state", "controller/markers", "obstacles"
 REACH_REJECTED = "Reach goal rejected"  # how the controller's state message starts for a rejected goal
 DRIVER_LOOP_STATUS = "can_driver: loop"  # DiagnosticStatus name of the driver's loop (can_driver node)
 
@@ -97,8 +103,9 @@ class ViewNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
         self.base_frame = p["base_frame"]
         self.server = viser.ViserServer(host=p["host"], port=int(p["port"]), verbose=False)
         self.url = f"http://{p['host']}:{self.server.get_port()}/"
-        self.goal_pub = self.create_publisher(PoseStamped, "/goal_pose", QoSProfile(depth=10))
+        self.goal_pub = self.create_publisher(PoseStamped, GOAL_POSE, QoSProfile(depth=10))
         self.reach_client = ActionClient(self, Reach, REACH_ACTION)
+        self.reach_action = self.resolve_topic_name(REACH_ACTION)  # e.g. /left/controller/reach
         self.viewer = ArmViewer(self.server, model, on_goal=self._publish_goal, on_reach=self._send_reach,
                                 goal_stream_hz=float(p["goal_stream_hz"]), base_frame=self.base_frame)
         if scene is not None:
@@ -112,17 +119,18 @@ class ViewNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
         self._description = ""
         self._reach_request: tuple[np.ndarray, np.ndarray] | None = None  # the Reach button's pose
         # Wiring.
-        self.create_subscription(JointState, "/joint_states", self._on_joint_states, 20)
-        self.create_subscription(ControllerState, "/controller/state", self._on_state, 20)
-        self.create_subscription(MarkerArray, "/controller/markers",
+        self._js_sub = self.create_subscription(JointState, JOINT_STATES, self._on_joint_states, 20)
+        self._state_sub = self.create_subscription(ControllerState, CONTROLLER_STATE, self._on_state, 20)
+        self.create_subscription(MarkerArray, CONTROLLER_MARKERS,
                                  lambda m: self._on_markers("controller", m), 5)
-        self.create_subscription(MarkerArray, "/obstacles", lambda m: self._on_markers("obstacles", m), 5)
+        self.create_subscription(MarkerArray, OBSTACLES, lambda m: self._on_markers("obstacles", m), 5)
         self.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, 10)
         latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        self.create_subscription(String, "/robot_description", self._on_description, latched)
+        self.create_subscription(String, ROBOT_DESCRIPTION, self._on_description, latched)
         self.create_timer(1.0 / float(p["update_rate_hz"]), self._redraw)
         self.create_timer(0.5, self._refresh_status)
-        self.get_logger().info(f"view ready: {self.url} (arm {p['arm']}, goals on /goal_pose in "
+        goals = self.goal_pub.topic_name
+        self.get_logger().info(f"view ready: {self.url} (arm {p['arm']}, goals on {goals} in "
                                f"{self.base_frame!r})")
 
     # -- inputs: store, the timers draw ---------------------------------------------------------------
@@ -185,7 +193,7 @@ class ViewNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
 
     def _send_reach_goal(self, position: np.ndarray, quat_xyzw: np.ndarray) -> None:
         if not self.reach_client.server_is_ready():
-            self.status.reach = f"no action server {REACH_ACTION}"
+            self.status.reach = f"no action server {self.reach_action}"
             return
         goal = Reach.Goal()
         goal.target.header.frame_id = self.base_frame
@@ -229,8 +237,8 @@ class ViewNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
 
     def _refresh_status(self) -> None:
         now = time.monotonic()
-        rates = {"/joint_states": self.rates["joint_states"].rate(now),
-                 "/controller/state": self.rates["controller"].rate(now)}
+        rates = {self._js_sub.topic_name: self.rates["joint_states"].rate(now),
+                 self._state_sub.topic_name: self.rates["controller"].rate(now)}
         if math.isfinite(self._driver_rate):
             rates["driver loop (diagnostics)"] = self._driver_rate
         self.status.rates_hz = rates

@@ -20,7 +20,8 @@ No ROS here: to the rest of the system this process *is* the hardware. It
   the silence of the ``--silence-module`` set), ``SIGUSR2`` (snapshot) and ``--control-file``.
 
 See ``docs/sim.md`` for the status schema and the control file format. Exit codes: 0 clean stop
-(SIGINT/SIGTERM), 2 bad arguments, 3 bus could not be opened, -9 (killed) after ``--die-after``.
+(SIGINT/SIGTERM), 2 bad arguments, 3 bus could not be opened (at once for a configuration that can
+never work, else after ``--bus-wait`` seconds of retries), -9 (killed) after ``--die-after``.
 """
 
 from __future__ import annotations
@@ -66,6 +67,8 @@ WIRE_TRANSIT_ALLOWANCE_S = 0.02
 ENV_PREFIX = "REDARM_SIM_"
 EXIT_BAD_ARGS = 2
 EXIT_NO_BUS = 3
+#: How long (s) the simulator waits for its bus by default: a launch file starts the bus server beside it.
+BUS_WAIT_S = 20.0
 
 
 # --------------------------------------------------------------------------------------------------
@@ -608,6 +611,9 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--can-channel", default=None, help="python-can channel (else CAN_CHANNEL)")
     g.add_argument("--can-config-file", default=None, help="python-can config file")
     g.add_argument("--can-bitrate", type=int, default=None, help="bitrate (interfaces that take one)")
+    g.add_argument("--bus-wait", type=float, default=float(env(ENV_PREFIX + "BUS_WAIT") or BUS_WAIT_S),
+                   metavar="S", help="wait up to S seconds for a bus that is not there yet (a bus server "
+                   f"still starting; default {BUS_WAIT_S:g}), then exit 3")
     f = ap.add_argument_group("fault injection (for tests)")
     f.add_argument(
         "--drop-replies",
@@ -722,10 +728,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         _LOG.error("%s", exc)
         return EXIT_BAD_ARGS
 
-    from redarm_ros.can.bus import open_bus
+    from redarm_ros.can.bus import open_bus_waiting
 
     try:
-        bus = open_bus(
+        bus = open_bus_waiting(
+            args.bus_wait,
+            log=_LOG.warning,
             interface=args.can_interface,
             channel=args.can_channel,
             config_file=args.can_config_file,

@@ -233,11 +233,13 @@ def _joint(el: ET.Element) -> Joint:
 
 
 def model_for_arm(arm_name: str) -> UrdfModel:
-    """The URDF model that :mod:`redarm_ros.sim.urdf` generates for ``config/arms/<arm_name>.yaml``."""
+    """The URDF model of ``config/arms/<arm_name>.yaml`` as installed (``share/redarm_ros/urdf/<arm>.urdf``)
+    and published by the description node: link names without a prefix (``base_link``, ``link_1``..,
+    ``tool``)."""
     from redarm_ros.kinematics import load_arm
     from redarm_ros.sim.urdf import build_urdf
 
-    return UrdfModel.from_string(build_urdf(load_arm(arm_name)))
+    return UrdfModel.from_string(build_urdf(load_arm(arm_name), prefix=""))
 
 
 def matrix_to_quat_xyzw(R: np.ndarray) -> tuple[float, float, float, float]:

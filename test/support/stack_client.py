@@ -97,8 +97,8 @@ class StackClient:
 
     SPIN_S = 0.02  # executor wait per spin in spin_until
 
-    def __init__(self, ctx: Any, name: str) -> None:
-        self.node = rclpy.create_node(name, context=ctx)
+    def __init__(self, ctx: Any, name: str, namespace: str = "") -> None:
+        self.node = rclpy.create_node(name, context=ctx, namespace=namespace)
         self.ex = SingleThreadedExecutor(context=ctx)
         self.ex.add_node(self.node)
 
@@ -117,16 +117,17 @@ class StackClient:
 
 
 class GoalClient(StackClient):
-    """A client of the whole stack: goals on /goal_pose, joint commands, ik_service, the controller's
-    state messages; subclasses keep what they need of joint_states in ``on_joint_state``."""
+    """A client of the whole stack: goals on goal_pose, joint commands, ik_service, the controller's
+    state messages; subclasses keep what they need of joint_states in ``on_joint_state``. Every name is
+    relative: a client in ``namespace`` talks to the stack started there."""
 
-    def __init__(self, ctx: Any, name: str) -> None:
-        super().__init__(ctx, name)
+    def __init__(self, ctx: Any, name: str, namespace: str = "") -> None:
+        super().__init__(ctx, name, namespace)
         self.goal_pub = self.node.create_publisher(PoseStamped, "goal_pose", 10)
         self.cmd_pub = self.node.create_publisher(JointTrajectory, "joint_command", 10)
-        self.ik = self.node.create_client(SolveIK, "/ik_service/solve_ik")
+        self.ik = self.node.create_client(SolveIK, "ik_service/solve_ik")
         self.states: list[ControllerState] = []
-        self.node.create_subscription(ControllerState, "/controller/state", self.states.append, 50)
+        self.node.create_subscription(ControllerState, "controller/state", self.states.append, 50)
         self.joint_states = 0  # how many joint_states messages came
         self.node.create_subscription(JointState, "joint_states", self._joint_state, 50)
 
@@ -211,7 +212,7 @@ def move_to_ready(c: StackClient, cmd_pub: Any, stack: Stack, joint_names: list[
     def at_ready() -> bool:
         return float(np.max(np.abs(np.array(stack.sim_status()["q"]) - ready_q))) < 1e-3
 
-    recover = c.node.create_client(Trigger, "/can_driver/recover")
+    recover = c.node.create_client(Trigger, "can_driver/recover")
     for attempt in range(3):
         cmd_pub.publish(traj)
         if c.spin_until(at_ready, reach_s):
