@@ -505,6 +505,25 @@ def test_recover_restores_what_a_power_cycled_module_lost(clock: FakeClock, arm:
         assert arm[2].state() & S.COMM_ERROR
 
 
+def test_recover_while_moving_holds_where_the_arm_comes_to_rest(clock: FakeClock, arm: EmulatedArm) -> None:
+    with ScriptedBus(clock, arm.handle) as bus:
+        drv = ready_driver(bus, clock)
+        q = np.array(arm.positions())
+        for _ in range(100):  # joint 1 at its full 1 rad/s (braking distance 0.05 rad at 10 rad/s^2)
+            clock.t += 0.004
+            q[0] += 0.004
+            drv.cycle(q, 0.004)
+        assert arm[1].state() & S.MOTION
+        st = drv.recover()
+        clock.t += 1.0
+        rest = np.array(arm.positions())
+        # What recover holds is where the arm came to rest, not a reading taken while it braked (the
+        # hold then drove it back by up to its braking distance).
+        np.testing.assert_allclose(st.positions, rest, atol=1e-4)
+        res = drv.cycle(None, 0.004)
+        np.testing.assert_allclose(res.targets, rest, atol=1e-4)
+
+
 def test_every_frame_is_stamped_with_its_send_time(clock: FakeClock, arm: EmulatedArm) -> None:
     stamps: list[float] = []
 

@@ -97,6 +97,11 @@ _LATENCY_WINDOW = 1024
 REQUEST_ATTEMPTS = 3
 #: A plausibility check allows this much (rad) beyond what the velocity limit explains.
 DEFAULT_PLAUSIBILITY_MARGIN = 0.02
+#: ``recover`` holds the arm where it comes to rest: it waits until no module reports MOTION and two
+#: position reads in a row agree within this (rad), for at most the longest braking time plus
+#: :data:`SETTLE_EXTRA_S`.
+SETTLE_TOLERANCE_RAD = 1e-4
+SETTLE_EXTRA_S = 1.0
 #: While init or recover runs, receive waits are cut into slices this long (s), so a halt request
 #: from another thread is noticed within about one cycle (4 ms at 250 Hz).
 HALT_POLL_S = 0.002
@@ -918,7 +923,9 @@ class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those o
     def recover(self) -> ArmState:
         """Bring every module back as :meth:`init` left it, without homing; hold the measured position.
 
-        RESETs every module (clears ERROR, HALTED and the causes), then restores what a module
+        HALTs every module and waits until the arm is at rest (no module reports MOTION, the
+        positions settled), so what is held is where the arm stopped, not a reading taken while it
+        braked. RESETs every module (clears ERROR, HALTED and the causes), then restores what a module
         that was power-cycled meanwhile has lost: ACT_CONFIG (SYNC_MOTION, WATCHDOG_ENABLE when the
         watchdog is on, no DISABLE_ACK) and ACT_FMAXVEL/ACT_FMAXACC; re-reads the positions (checked
         for plausibility) and holds them (READY again). Refused unless :meth:`init` succeeded
@@ -940,9 +947,37 @@ class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those o
                 raise RequestRefusedError(
                     "recover refused: the arm was never initialised (homed); call ~/init")
             with self._interruptible_locked("recover"):
+                # A moving arm first brakes to rest, and that rest is what is held: taken mid-brake,
+                # the hold would drive the arm back by its braking distance (0.1-0.24 rad seen).
+                self._halt_all()
+                self._settle_locked()
                 self._command_all(Command.RESET)
                 self._configure_locked()
             return self._ready_locked("recover", "PowerCube arm recovered, holding %s", require_home=True)
+
+    def _settle_locked(self) -> None:
+        """Poll the modules until none reports MOTION and the positions agree with the previous read
+        within :data:`SETTLE_TOLERANCE_RAD`.
+
+        Raises:
+            ModuleFaultError: still moving after the longest braking time plus :data:`SETTLE_EXTRA_S`.
+            BusTimeoutError, ImplausibleMeasurementError, BusError: from the state reads.
+        """
+        vel, acc = np.asarray(self.limits.max_vel, dtype=float), np.asarray(self.limits.max_acc, dtype=float)
+        end = self._clock() + float(np.max(vel / acc)) + SETTLE_EXTRA_S
+        prev: np.ndarray | None = None
+        while True:
+            st = self._read_state_locked()
+            moving = [mid for mid, bits in zip(self.module_ids, st.states, strict=True)
+                      if bits & ActState.MOTION]
+            settled = prev is not None and np.max(np.abs(st.positions - prev)) <= SETTLE_TOLERANCE_RAD
+            if not moving and settled:
+                return
+            if self._clock() > end:
+                raise ModuleFaultError(f"recover: modules {moving or self.module_ids} did not come to rest "
+                                       "after the halt", module_id=(moving or self.module_ids)[0])
+            prev = st.positions
+            self._sleep(self.poll_interval_s)
 
     def reconnect(self) -> ArmState:
         """Reopen the bus (one attempt; call again with backoff) and re-read the positions.
