@@ -61,6 +61,8 @@ def test_map_joint_names() -> None:
         map_joint_names(["x"], names)
     with pytest.raises(InvalidInputError, match="repeated"):
         map_joint_names(["a", "a"], names)
+    with pytest.raises(InvalidInputError, match="no joint_names"):
+        map_joint_names([], names, empty_means_all=False)  # a trajectory names its joints
 
 
 def test_state_bit_names() -> None:
@@ -189,17 +191,46 @@ def test_node_stream_command_limits_and_bad_input(rig: Rig) -> None:
     rig.js_pub.publish(bad)
     time.sleep(0.3)
     np.testing.assert_allclose(rig.arm.positions(), 0.0, atol=1e-3)
-    # Streamed target beyond joint 2's limit (+-91 deg): clamped at the limit, never beyond.
+    # Streamed target beyond joint 2's limit (+-91 deg) by less than command_limit_tolerance_rad:
+    # clamped at the limit, never beyond.
     j = 1
     # Generous deadline: the loop ends as soon as the joint arrives; a loaded CI machine is slower.
     end = time.monotonic() + 15.0
     while time.monotonic() < end and rig.arm.positions()[j] < ARM.upper[j] - 1e-3:
-        rig.js_pub.publish(JointState(name=[ARM.joint_names[j]], position=[3.0]))
+        rig.js_pub.publish(JointState(name=[ARM.joint_names[j]], position=[ARM.upper[j] + 0.004]))
         time.sleep(0.02)
         assert rig.arm.positions()[j] <= ARM.upper[j] + 1e-6
     assert rig.arm.positions()[j] == pytest.approx(ARM.upper[j], abs=2e-3)
     assert rig.arm.positions()[j] <= ARM.upper[j] + 1e-6
     assert rig.node.loop.snapshot().clamps > 0
+
+
+def test_node_refuses_nameless_and_far_beyond_limit_commands_and_holds(rig: Rig) -> None:
+    assert wait_for(lambda: rig.node.loop.state is LoopState.IDLE)
+    assert rig.call("init").success
+    warnings: list[str] = []
+    warn = rig.node._warn_throttled
+    rig.node._warn_throttled = lambda key, message, period_s=2.0: (  # type: ignore[method-assign]
+        warnings.append(message), warn(key, message, period_s))
+    # No joint_names: refused with a reason (it used to move every joint).
+    rig.traj_pub.publish(trajectory([], [[0.3] * ARM.n], [0.5]))
+    assert wait_for(lambda: any("no joint_names" in w for w in warnings), 3), warnings
+    # A move under way, then a command 10 rad beyond every limit: refused, and the arm holds.
+    goal = np.zeros(ARM.n)
+    goal[0] = 0.6
+    rig.traj_pub.publish(trajectory(ARM.joint_names, [goal], [3.0]))
+    assert wait_for(lambda: rig.arm.positions()[0] > 0.1, 5)
+    rig.traj_pub.publish(trajectory(ARM.joint_names, [[10.0] * ARM.n], [1.0]))
+    assert wait_for(lambda: any("beyond the joint limits" in w for w in warnings), 3), warnings
+    rig.js_pub.publish(JointState(name=[ARM.joint_names[6]], position=[10.0]))
+    assert wait_for(lambda: any("joint state command refused" in w and "beyond" in w for w in warnings), 3)
+    time.sleep(1.0)
+    q = rig.arm.positions()
+    time.sleep(0.5)
+    np.testing.assert_allclose(rig.arm.positions(), q, atol=1e-4)  # at rest: held, not moving on
+    assert q[0] < 0.5  # stopped short of the earlier goal: the refusal held the arm
+    np.testing.assert_allclose(q[1:], 0.0, atol=1e-3)  # nothing went towards the 10 rad
+    assert rig.node.loop.state is LoopState.RUNNING
 
 
 def test_node_halt_and_recover_services(rig: Rig) -> None:

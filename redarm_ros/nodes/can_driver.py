@@ -75,6 +75,9 @@ from redarm_ros.nodes._common import (
 NODE_NAME = "can_driver"
 DIAGNOSTICS_PERIOD_S = 0.5
 FUTURE_STAMP_WARN_S = 1.0  # a trajectory stamped further ahead than this (s) is logged (clocks apart?)
+#: Default of ``command_limit_tolerance_rad``: a command this far (rad) beyond a joint limit is clamped
+#: to it (rounding upstream); further beyond, it is refused (a bug upstream, not a wish to go there).
+DEFAULT_COMMAND_LIMIT_TOLERANCE = 0.005
 
 
 def _module_ids(value: Any) -> str | None:
@@ -146,6 +149,9 @@ PARAMS = [
     NICE_PARAM,
     ParamSpec("limit_margin_rad", DEFAULT_LIMIT_MARGIN, "How far (rad) the commanded reference stays inside "
               "each joint limit (the modules' soft limit).", read_only=True, range=(0.0, 0.1)),
+    ParamSpec("command_limit_tolerance_rad", DEFAULT_COMMAND_LIMIT_TOLERANCE, "A joint command at most this "
+              "far (rad) beyond a joint limit is clamped to the limit; one further beyond refuses the whole "
+              "message and the arm holds.", read_only=True, range=(0.0, 0.5)),
     ParamSpec("plausibility_margin_rad", DEFAULT_PLAUSIBILITY_MARGIN, "A measured position may differ from "
               "the last one by max_vel * (elapsed + reply_timeout_s) plus this (rad), and lie at most the "
               "braking distance plus this outside the span of the last one and the targets sent since; more "
@@ -172,13 +178,18 @@ def parse_can_config(text: Any) -> dict[str, Any]:
     return value
 
 
-def map_joint_names(names: Sequence[str], model_names: Sequence[str]) -> list[int]:
-    """Model joint indices of ``names`` (empty ``names``: all joints in model order).
+def map_joint_names(names: Sequence[str], model_names: Sequence[str], *,
+                    empty_means_all: bool = True) -> list[int]:
+    """Model joint indices of ``names`` (empty ``names``: all joints in model order, if
+    ``empty_means_all``).
 
     Raises:
-        InvalidInputError: an unknown or repeated name.
+        InvalidInputError: an unknown or repeated name, or no name when ``empty_means_all`` is False.
     """
     if not names:
+        if not empty_means_all:
+            raise InvalidInputError(f"no joint_names; name the joints commanded (this arm has "
+                                    f"{list(model_names)})", field="joint_names", value=[])
         return list(range(len(model_names)))
     index = {n: i for i, n in enumerate(model_names)}
     unknown = [n for n in names if n not in index]
@@ -225,6 +236,7 @@ class CanDriverNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
         self._frame_id = p["frame_id"]
         self._request_timeout_s = float(p["request_timeout_s"])
         self._duplicate_check_s = float(p["duplicate_check_s"])
+        self._command_limit_tolerance = float(p["command_limit_tolerance_rad"])
         cfg = LoopConfig(
             rate_hz=float(p["rate_hz"]), poll_hz=float(p["poll_hz"]),
             hold_on_stream_stop_s=float(p["hold_on_stream_stop_s"]),
@@ -376,12 +388,37 @@ class CanDriverNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
             self._warn_throttled("not-running", why)
         return ok
 
-    def _warn_beyond_limits(self, index: Sequence[int], q: np.ndarray) -> None:
+    def _check_limits(self, index: Sequence[int], q: np.ndarray) -> None:
+        """Refuse positions ``q`` (k, m) for joints ``index`` further than ``command_limit_tolerance_rad``
+        beyond a joint limit; warn (throttled) about those within it, which the loop clamps.
+
+        Raises:
+            InvalidInputError: a position beyond a limit by more than the tolerance.
+        """
         lo, hi = self.arm.lower[list(index)], self.arm.upper[list(index)]
-        bad = np.nonzero((q < lo) | (q > hi))
-        if bad[0].size:
-            j = [self.joint_names[index[k]] for k in sorted(set(bad[-1].tolist()))]
+        excess = np.maximum(lo - q, q - hi)  # > 0: beyond a limit by that much (rad)
+        worst = excess.max(axis=0)
+        far = np.flatnonzero(worst > self._command_limit_tolerance)
+        if far.size:
+            what = ", ".join(
+                f"{self.joint_names[index[k]]} by {worst[k]:.4f} rad (limits [{lo[k]:.4f}, {hi[k]:.4f}])"
+                for k in far.tolist())
+            raise InvalidInputError(
+                f"positions beyond the joint limits: {what}; more than command_limit_tolerance_rad "
+                f"({self._command_limit_tolerance:g} rad): holding position", field="positions")
+        near = np.flatnonzero(worst > 0.0)
+        if near.size:
+            j = [self.joint_names[index[k]] for k in near.tolist()]
             self._warn_throttled("limits", f"command beyond joint limits for {j}: clamped to the limits")
+
+    def _check_limits_or_hold(self, index: Sequence[int], q: np.ndarray) -> None:
+        """:meth:`_check_limits`; a command refused for its limits also stops the one being followed:
+        a wildly wrong target is a bug upstream, and whatever that sender commanded before is suspect."""
+        try:
+            self._check_limits(index, q)
+        except InvalidInputError:
+            self.loop.commands.clear(None)
+            raise
 
     def _on_trajectory(self, msg: JointTrajectory) -> None:
         if not self._accepting():
@@ -392,7 +429,7 @@ class CanDriverNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
             self.get_logger().info("empty trajectory: holding position")
             return
         try:
-            index = map_joint_names(list(msg.joint_names), self.joint_names)
+            index = map_joint_names(list(msg.joint_names), self.joint_names, empty_means_all=False)
             if any(len(pt.positions) != len(index) for pt in msg.points):
                 raise InvalidInputError(f"every point needs {len(index)} positions", field="points")
             points = np.array([pt.positions for pt in msg.points], dtype=float)
@@ -406,11 +443,12 @@ class CanDriverNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
                 if ahead > FUTURE_STAMP_WARN_S:
                     self._warn_throttled("future-stamp", f"trajectory stamped {ahead:.1f} s ahead of this "
                                          "node's clock: it starts then (clocks not synchronised?)")
+            if not np.all(np.isfinite(points)):
+                raise InvalidInputError("trajectory contains NaN or inf", field="points")
+            self._check_limits_or_hold(index, points)
             self.loop.commands.set_trajectory(index, times, points, start)
         except InvalidInputError as exc:
             self._warn_throttled("bad-trajectory", f"trajectory refused: {exc}", 0.5)
-            return
-        self._warn_beyond_limits(index, points)
 
     def _on_joint_state_command(self, msg: JointState) -> None:
         if not self._accepting():
@@ -420,11 +458,12 @@ class CanDriverNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
             q = np.array(msg.position, dtype=float)
             if q.size != len(index):
                 raise InvalidInputError(f"{q.size} positions for {len(index)} joints", field="position")
+            if not np.all(np.isfinite(q)):
+                raise InvalidInputError("target contains NaN or inf", field="position")
+            self._check_limits_or_hold(index, q[None, :])
             self.loop.commands.set_stream_target(index, q, time.monotonic())
         except InvalidInputError as exc:
             self._warn_throttled("bad-joint-state", f"joint state command refused: {exc}", 0.5)
-            return
-        self._warn_beyond_limits(index, q[None, :])
 
     # -- services ---------------------------------------------------------------------------------------
     def _trigger(self, action: str) -> Any:
