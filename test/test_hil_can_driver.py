@@ -391,7 +391,8 @@ def test_hil_command_beyond_joint_limit_clamped(stack: Stack, client: Client) ->
     start_and_init(client, stack)
     j = 1  # +-91 deg
     beyond = np.zeros(N)
-    beyond[j] = ARM.upper[j] + 0.5
+    # within command_limit_tolerance_rad (5 mrad) of the limit: clamped (further beyond: refused)
+    beyond[j] = ARM.upper[j] + 0.004
     client.send_trajectory([beyond], [1.0])
     worst_setpoint = worst_q = -math.inf
     end = time.monotonic() + 30.0
