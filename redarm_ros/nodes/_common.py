@@ -29,6 +29,7 @@ from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, Si
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.signals import SignalHandlerOptions
 
 from redarm_ros.errors import InvalidInputError
 from redarm_ros.kinematics.quaternion import pose_to_matrix
@@ -207,17 +208,30 @@ def _drain_callbacks(executor: SingleThreadedExecutor | MultiThreadedExecutor, t
     return not waiter.is_alive()
 
 
-class _StopSignals:
-    """Python's SIGINT handler for a node process: Ctrl-C stops the spin, and once teardown has begun
-    a repeated one is noted, not raised.
+#: Signals that stop a node: Ctrl-C, and SIGTERM as ``docker stop``, systemd or ``kill`` send it.
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
-    A second SIGINT (a supervisor's staged stop sends one after its grace period) raising
-    KeyboardInterrupt inside the teardown would abandon it and end the process by the signal
-    (exit code -2) instead of with its own code. SIGKILL remains the way to end it at once.
+#: While spinning, :func:`run_node` looks at least this often (s) whether a stop signal came: a
+#: KeyboardInterrupt raised where it is swallowed (a ``__del__``, a library's catch-all) is not lost.
+STOP_POLL_S = 0.25
+
+
+class _StopSignals:
+    """Python's handler of SIGINT and SIGTERM for a node process: either stops the spin (the same
+    clean path for both), and once teardown has begun a repeated one is noted, not raised.
+
+    The handler raises KeyboardInterrupt (so a wait in the main thread ends at once) and also records
+    the stop in :attr:`requested`, which :func:`run_node` checks before it spins and while it spins:
+    a signal that came while the node was being built, inside code that swallowed the
+    KeyboardInterrupt, is still acted on. A second signal (a supervisor's staged stop sends one after
+    its grace period) raising KeyboardInterrupt inside the teardown would abandon it and end the
+    process by the signal (exit code -2) instead of with its own code. SIGKILL remains the way to
+    end it at once.
     """
 
     def __init__(self) -> None:
         self.tearing_down = False
+        self.requested = False
         self._count = 0
 
     @classmethod
@@ -225,11 +239,13 @@ class _StopSignals:
         """Install the handler (only the main thread can); it stays until the process ends."""
         guard = cls()
         if threading.current_thread() is threading.main_thread():
-            signal.signal(signal.SIGINT, guard._on_sigint)
+            for sig in STOP_SIGNALS:
+                signal.signal(sig, guard._on_signal)
         return guard
 
-    def _on_sigint(self, signum: int, _frame: object) -> None:
+    def _on_signal(self, signum: int, _frame: object) -> None:
         self._count += 1
+        self.requested = True
         if not self.tearing_down:
             raise KeyboardInterrupt
         # The first one can land here too: rclpy's own handler may have ended the spin before it ran.
@@ -238,21 +254,36 @@ class _StopSignals:
                          signum)
 
 
+def _spin_until_stopped(executor: SingleThreadedExecutor | MultiThreadedExecutor, node: Node,
+                        stop_signals: _StopSignals) -> None:
+    """``executor.spin()``, that also ends within :data:`STOP_POLL_S` of a stop signal whose
+    KeyboardInterrupt was swallowed."""
+    context = node.context
+    while context.ok() and not stop_signals.requested:
+        executor.spin_once(timeout_sec=STOP_POLL_S)
+
+
 def run_node(
     make_node: Callable[[], Node],
     args: Sequence[str] | None = None,
     *,
     multithreaded: bool = False,
 ) -> int:
-    """The standard main(): init, build the node, spin, stop cleanly on Ctrl-C / external shutdown.
+    """The standard main(): init, build the node, spin, stop cleanly on Ctrl-C, SIGTERM or external
+    shutdown (the same path for all, at any moment: see :class:`_StopSignals`).
 
     ``make_node`` is called after ``rclpy.init``. If the node has a ``close()`` method it is called
     as soon as spinning ends (to stop worker threads and end waits inside callbacks); then the
     callbacks still running are waited for (:data:`CALLBACK_DRAIN_S`) before ``destroy_node()``.
-    Returns the process exit code (0 on a normal or Ctrl-C stop, 1 if the node could not be built).
+    Returns the process exit code (0 on a normal, Ctrl-C or SIGTERM stop, 1 if the node could not be
+    built).
     """
-    stop_signals = _StopSignals.install()  # before rclpy.init, whose handler chains to it
-    rclpy.init(args=list(args) if args is not None else None)
+    stop_signals = _StopSignals.install()
+    # Without rclpy's own handlers: they shut the context down at the signal, before the teardown
+    # (whose log lines then failed to reach /rosout: "Failed to publish log message to rosout"; a node
+    # still being built failed with "context is not valid"). The spin wakes every STOP_POLL_S instead.
+    rclpy.init(args=list(args) if args is not None else None,
+               signal_handler_options=SignalHandlerOptions.NO)
     node: Node | None = None
     executor: SingleThreadedExecutor | MultiThreadedExecutor | None = None
     code = 0
@@ -268,9 +299,11 @@ def run_node(
             fifo = int(node.get_parameter(PROCESS_RT_PARAM.name).value) \
                 if getattr(node, "PROCESS_REALTIME", False) else 0
             apply_scheduling(node, int(node.get_parameter(NICE_PARAM.name).value), fifo)
+        if stop_signals.requested:  # a stop signal came while the node was built: do not start
+            raise KeyboardInterrupt
         executor = MultiThreadedExecutor() if multithreaded else SingleThreadedExecutor()
         executor.add_node(node)
-        executor.spin()
+        _spin_until_stopped(executor, node, stop_signals)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except DuplicateNodeError as exc:  # raised by UniqueNameCheck's timer or watch_duplicates
