@@ -53,6 +53,7 @@ from redarm_ros.can.driver_core import (
     DriverState,
     Fault,
     FaultKind,
+    ForeignHostError,
     ModuleStats,
     ModuleStatsView,
 )
@@ -1142,6 +1143,9 @@ class DriverLoop:
             return  # a silent module while halted: keep polling quietly; state stays
         except BusError:
             raise
+        except ForeignHostError as exc:  # the driver core has halted every module
+            self._halted_by(exc.fault, halt=False)
+            return
         except RedarmError as exc:  # an implausible position: not published, reported
             now = time.monotonic()
             if now - self._last_poll_warn >= POLL_WARN_INTERVAL_S:  # it repeats at poll_hz
