@@ -302,6 +302,37 @@ def test_second_driver_with_the_same_name_refuses_to_start(rig: Rig, rclpy_conte
         second.destroy_node()
 
 
+def _announce_an_elder_twin(rig: Rig) -> None:
+    """What an elder can_driver of the same name announces on ~/_instance (found late: discovery)."""
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from std_msgs.msg import String
+
+    latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    pub = rig.client.create_publisher(String, "/can_driver/_instance", latched)
+    pub.publish(String(data=f"1 {uuid.uuid4().hex} 4242 1"))  # started at 1 ns: the elder
+
+
+@pytest.mark.parametrize("commanding", [False, True])
+def test_a_twin_found_late_stops_the_younger_driver_safely(rclpy_context: Any, commanding: bool) -> None:
+    with closing(Rig(rclpy_context, {"duplicate_check_s": 0.1})) as rig:
+        refusals: list[str] = []
+        rig.node.on_refused = refusals.append
+        assert wait_for(lambda: rig.node.loop.state is LoopState.IDLE, 10)
+        if commanding:
+            assert rig.call("init").success
+        _announce_an_elder_twin(rig)
+        assert wait_for(lambda: bool(refusals), 10), "the younger driver did not stop"
+        assert "already running" in refusals[0]
+        assert rig.node.loop.state is LoopState.STOPPED  # its command stream ended
+        halted = [bool(rig.arm[i].state() & 0x4) for i in range(1, ARM.n + 1)]
+        # The elder's arm is halted only if this one was commanding the modules too.
+        assert halted == [commanding] * ARM.n
+        sent = {i: rig.arm[i].requests for i in range(1, ARM.n + 1)}
+        time.sleep(0.3)
+        assert {i: rig.arm[i].requests for i in range(1, ARM.n + 1)} == sent  # sends nothing more
+
+
 def test_constructor_starts_nothing_and_declares_ranges(rclpy_context: Any) -> None:
     before = {t.ident for t in threading.enumerate()}
     node = CanDriverNode(context=rclpy_context, parameter_overrides=[

@@ -511,7 +511,8 @@ class UniqueNameCheck:
 INSTANCE_TOPIC = "~/_instance"  # hidden (leading underscore); the same topic for every twin of a name
 
 
-def watch_duplicates(node: Node, period_s: float = 2.0, *, yield_to_elder: bool = False) -> None:
+def watch_duplicates(node: Node, period_s: float = 2.0, *, yield_to_elder: bool = False,
+                     on_yield: Callable[[str], None] | None = None) -> None:
     """Keep looking for a node of the same name that the start-up check could not see yet (discovery
     under load can take longer than ``duplicate_check_s``) or that started later.
 
@@ -519,7 +520,9 @@ def watch_duplicates(node: Node, period_s: float = 2.0, *, yield_to_elder: bool 
     again every ``period_s``. With
     ``yield_to_elder`` the younger of two twins stops itself as soon as it hears the elder
     (:class:`DuplicateNodeError` out of the executor's spin: exit code 1 through :func:`run_node`), so
-    the node already in service keeps running however late discovery was. A twin that will not stop
+    the node already in service keeps running however late discovery was; ``on_yield(reason)``, if
+    given, is called instead of raising (once), for a node that must stop its own work safely first.
+    A twin that will not stop
     (one started with the checks off, or another program under this name) is logged once per
     appearance, from the announcement or from the graph.
     """
@@ -553,7 +556,12 @@ def watch_duplicates(node: Node, period_s: float = 2.0, *, yield_to_elder: bool 
                 "second one)"
             )
             node.get_logger().error(reason)
-            raise DuplicateNodeError(reason)
+            if on_yield is None:
+                raise DuplicateNodeError(reason)
+            if not state.get("yielded"):
+                state["yielded"] = True
+                on_yield(reason)
+            return
         if not other_is_elder and other_yields:
             node.get_logger().error(
                 f"another node named {fqn} is running in this domain (pid {pid}, started later): it "

@@ -290,7 +290,8 @@ class CanDriverNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
         self._start_lock = threading.Lock()
         self._created = time.monotonic()
         self._start_timer = self.create_timer(0.05, self._on_start_timer)
-        watch_duplicates(self)
+        # A twin found after the start-up window: the younger one stops itself (see _yield_to_elder).
+        watch_duplicates(self, yield_to_elder=self._duplicate_check_s > 0, on_yield=self._yield_to_elder)
         iface = can_kwargs.get("interface") or "$CAN_INTERFACE"
         chan = can_kwargs.get("channel") or "$CAN_CHANNEL"
         where = "its own process" if self.separate_process else "a thread"
@@ -325,6 +326,27 @@ class CanDriverNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
                 return
             self.loop.start()
             self.started = True
+
+    def _yield_to_elder(self, reason: str) -> None:
+        """A twin of this name that started earlier was found after the start-up window: stop this
+        driver's own command stream (it sends nothing more). The elder's arm motion is left alone,
+        unless this one was commanding the modules too (running: its FSTEPs reached the same modules,
+        so what they did was a mix of both): then every module is halted first. Then :attr:`refused`
+        is set and ``on_refused`` called (``main()`` ends the process with exit code 1)."""
+        with self._start_lock:
+            if self.refused is not None:
+                return
+            self.refused = reason
+            started = self.started
+        if started and self.loop.state is LoopState.RUNNING:
+            ok, message = self.loop.request("halt", 5.0)
+            self.get_logger().error(f"this driver was commanding the modules too: {message}" if ok
+                                    else f"halting the modules before stopping failed: {message}")
+        if started:
+            self.loop.stop()  # sends nothing more
+        self.get_logger().error("stopped this driver's CAN cycle; the elder driver keeps the bus")
+        if self.on_refused is not None:
+            self.on_refused(reason)
 
     def _on_start_timer(self) -> None:
         """The start timer: try to start; once started (or refused) the timer cancels itself. Only
