@@ -501,6 +501,19 @@ def test_a_second_driver_on_the_bus_is_seen_and_everything_halts(rig) -> None:
     assert all(rig["arm"][i].state() & protocol.ActState.HALTED for i in (1, 2, 3))
 
 
+def test_the_reason_on_diagnostics_says_what_the_arm_does_now(rig) -> None:
+    loop = start_running(rig)
+    assert loop.snapshot().reason == "holding position"  # (not the stale "init done; ...")
+    loop.commands.set_trajectory([0], [0.3], np.array([[0.2]]), start=time.monotonic())
+    assert "following a trajectory" in loop.snapshot().reason
+    ok, _ = loop.request("halt")
+    assert ok and loop.snapshot().reason == "halted on request"
+    ok, _ = loop.request("recover")
+    assert ok and loop.snapshot().reason == "holding position"
+    loop.commands.set_stream_target([1], [0.1], time.monotonic())
+    assert loop.snapshot().reason == "following streamed targets"
+
+
 def test_a_request_made_before_start_waits_for_the_bus(rig) -> None:
     loop = rig["loop"]
     answer: list[tuple[bool, str]] = []

@@ -37,6 +37,7 @@ from redarm_ros.nodes._common import call_resending  # noqa: E402
 from redarm_ros.nodes.can_driver import (  # noqa: E402
     CanDriverNode,
     map_joint_names,
+    module_info,
     parse_can_config,
     state_bit_names,
 )
@@ -68,6 +69,25 @@ def test_map_joint_names() -> None:
 def test_state_bit_names() -> None:
     assert state_bit_names(0x2 | 0x800) == ["HOME_OK", "MOTION"]
     assert state_bit_names(0) == []
+
+
+def test_a_module_warning_clears_when_its_cause_has_passed() -> None:
+    from dataclasses import replace
+
+    from redarm_ros.can.driver_core import ModuleStatsView
+    from redarm_ros.can.driver_loop import CommandMode, LoopSnapshot
+
+    stats = ModuleStatsView(module_id=1, replies=100, lost=0, late=0, malformed=0, implausible=3,
+                            silent=False, latency_median_ms=1.0, latency_max_ms=2.0, implausible_age_s=0.5)
+    snap = LoopSnapshot(state=LoopState.RUNNING, reason="holding position", period={}, cycles=100,
+                        overruns=0, connects=1, bus_losses=0, clamps=0, command_mode=CommandMode.HOLD,
+                        missing_modules=[], module_stats=[stats], last_result=None, positions=None)
+    info = module_info(snap, 0, 1)
+    assert info["_level"] == DiagnosticStatus.WARN and "3 implausible" in info["_message"]
+    # A minute later, nothing refused since: OK again (the count stays in the values).
+    snap.module_stats = [replace(stats, implausible_age_s=60.0)]
+    info = module_info(snap, 0, 1)
+    assert (info["_level"], info["_message"], info["implausible"]) == (DiagnosticStatus.OK, "ok", 3)
 
 
 class Rig:

@@ -209,6 +209,7 @@ class ModuleStats:
         "silent",
         "implausible",
         "last_implausible",
+        "last_implausible_at",
         "_lat",
         "_k",
     )
@@ -224,6 +225,7 @@ class ModuleStats:
         self.silent = False  # missed max_missed replies in a row (cleared by the next reply)
         self.implausible = 0  # measured positions refused by the plausibility check
         self.last_implausible = math.nan  # the last refused position (rad)
+        self.last_implausible_at = -math.inf  # when it was refused (time.monotonic() s)
         self._lat = np.zeros(_LATENCY_WINDOW)
         self._k = 0
 
@@ -253,6 +255,7 @@ class ModuleStats:
             module_id=self.module_id, replies=self.replies, lost=self.lost, late=self.late,
             malformed=self.malformed, implausible=self.implausible, silent=self.silent,
             latency_median_ms=self.latency_median_ms, latency_max_ms=self.latency_max_ms,
+            implausible_age_s=time.monotonic() - self.last_implausible_at,
         )
 
     def as_dict(self) -> dict[str, float | int | bool]:
@@ -276,6 +279,7 @@ class ModuleStatsView:
     silent: bool
     latency_median_ms: float
     latency_max_ms: float
+    implausible_age_s: float = math.inf  # since the last implausible position was refused (s)
 
     def as_dict(self) -> dict[str, float | int | bool]:
         """Plain values for logs and diagnostics."""
@@ -627,6 +631,7 @@ class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those o
         s.implausible += 1
         s.consecutive_implausible += 1
         s.last_implausible = float(x)
+        s.last_implausible_at = time.monotonic()
         if s.implausible == 1 or s.implausible % 100 == 0:
             logger.warning(
                 "module %d: implausible position %.4f rad refused (last %.4f rad %.3f s before; at most "

@@ -74,6 +74,8 @@ from redarm_ros.nodes._common import (
 
 NODE_NAME = "can_driver"
 DIAGNOSTICS_PERIOD_S = 0.5
+#: A module's status is WARN for this long (s) after it last sent an implausible position.
+IMPLAUSIBLE_WARN_S = 10.0
 FUTURE_STAMP_WARN_S = 1.0  # a trajectory stamped further ahead than this (s) is logged (clocks apart?)
 #: Default of ``command_limit_tolerance_rad``: a command this far (rad) beyond a joint limit is clamped
 #: to it (rounding upstream); further beyond, it is refused (a bug upstream, not a wish to go there).
@@ -630,8 +632,10 @@ def module_info(snap: LoopSnapshot, j: int, module_id: int) -> dict[str, Any]:
         info["implausible"] = s.implausible
         if s.silent and level != DiagnosticStatus.ERROR:
             level, message = DiagnosticStatus.ERROR, "not answering"
-        elif s.implausible and level == DiagnosticStatus.OK:
-            level, message = DiagnosticStatus.WARN, f"{s.implausible} implausible positions refused"
+        elif s.implausible and s.implausible_age_s < IMPLAUSIBLE_WARN_S and level == DiagnosticStatus.OK:
+            # a warning while it lasts, not for ever: the count stays in `implausible`
+            level, message = DiagnosticStatus.WARN, (
+                f"{s.implausible} implausible positions refused (the last {s.implausible_age_s:.0f} s ago)")
     if snap.state is LoopState.HALTED and snap.fault is not None and snap.fault.involves(module_id):
         level, message = DiagnosticStatus.ERROR, snap.fault.message
     info["_level"], info["_message"] = level, message
