@@ -670,7 +670,8 @@ def test_hil_a_second_driver_in_another_namespace_is_seen_on_the_bus(stack: Stac
     cmd = python_module_cmd("redarm_ros.nodes.can_driver", "--ros-args", "-r", "__ns:=/other",
                             "-p", "arm:=pa10", "-p", "can.interface:=remote",
                             "-p", f"can.channel:={stack.canbus.channel}")
-    second = stack.procs.start("can_driver_other", cmd, ready=r"can_driver ready", ready_timeout=30)
+    # (a third ROS process on a loaded machine: give its start-up time)
+    second = stack.procs.start("can_driver_other", cmd, ready=r"can_driver ready", ready_timeout=90)
     stack.driver.wait_for_line(r"another host is driving these modules", 30)
     t0 = client.now_ns()
     assert wait_for(lambda: any(d["can_driver: loop"][2]["state"] == "halted"
