@@ -19,7 +19,14 @@ from redarm_ros import errors
 from redarm_ros.can import protocol as p
 from redarm_ros.can.bus import open_bus
 from redarm_ros.can.bus_server import LoopbackBusServer
-from redarm_ros.can.driver_core import DriverState, FaultKind, PowerCubeArmDriver
+from redarm_ros.can.driver_core import (
+    FOREIGN_REPLIES,
+    FOREIGN_WINDOW_S,
+    DriverState,
+    FaultKind,
+    ForeignHostError,
+    PowerCubeArmDriver,
+)
 from redarm_ros.can.module_emulator import EmulatedArm, EmulatorRunner, KinematicPlant
 from redarm_ros.can.protocol import ActConfig, ActState
 
@@ -503,6 +510,72 @@ def test_recover_restores_what_a_power_cycled_module_lost(clock: FakeClock, arm:
         # The watchdog is armed again: without refreshes the module halts by itself.
         clock.t += 1.0
         assert arm[2].state() & S.COMM_ERROR
+
+
+def test_recover_while_moving_holds_where_the_arm_comes_to_rest(clock: FakeClock, arm: EmulatedArm) -> None:
+    with ScriptedBus(clock, arm.handle) as bus:
+        drv = ready_driver(bus, clock)
+        q = np.array(arm.positions())
+        for _ in range(100):  # joint 1 at its full 1 rad/s (braking distance 0.05 rad at 10 rad/s^2)
+            clock.t += 0.004
+            q[0] += 0.004
+            drv.cycle(q, 0.004)
+        assert arm[1].state() & S.MOTION
+        st = drv.recover()
+        clock.t += 1.0
+        rest = np.array(arm.positions())
+        # What recover holds is where the arm came to rest, not a reading taken while it braked (the
+        # hold then drove it back by up to its braking distance).
+        np.testing.assert_allclose(st.positions, rest, atol=1e-4)
+        res = drv.cycle(None, 0.004)
+        np.testing.assert_allclose(res.targets, rest, atol=1e-4)
+
+
+def _foreign_replies(arm: EmulatedArm, bus: ScriptedBus, count: int) -> None:
+    """Another host's requests answered by the modules: the replies reach this driver's bus."""
+    for k in range(count):
+        for reply in arm.handle(p.get_param(1 + k % N, p.Param.ACT_FPOS)):
+            bus.inject(reply)
+
+
+def test_replies_nobody_here_asked_for_halt_everything_as_another_host(clock: FakeClock,
+                                                                        arm: EmulatedArm) -> None:
+    with ScriptedBus(clock, arm.handle) as bus:
+        drv = ready_driver(bus, clock)
+        # A few (a tool reading a parameter) are no second driver ...
+        _foreign_replies(arm, bus, 5)
+        for _ in range(3):
+            clock.t += 0.004
+            assert drv.cycle(None, 0.004).fault is None
+        # ... nor are forged replies with positions the modules cannot be at ...
+        forged = p.set_move_ext_ack(2, p.MoveMode.FSTEP_EXT, 1.4, 0x20, 0)
+        for _ in range(50):
+            bus.inject(forged)
+        clock.t += 0.004
+        assert drv.cycle(None, 0.004).fault is None and drv.state is DriverState.READY
+        # ... but a stream of them is another host driving the modules: everything halts.
+        clock.t += FOREIGN_WINDOW_S + 0.1  # (the few above have aged out of the window)
+        _foreign_replies(arm, bus, FOREIGN_REPLIES)
+        bus.take()
+        res = drv.cycle(None, 0.004)
+        assert res.fault is not None and res.fault.kind is FaultKind.FOREIGN_HOST, res.fault
+        assert "another host" in res.fault.message and set(res.fault.module_ids) == set(IDS)
+        assert drv.state is DriverState.FAULT
+        assert [(0x0E0 + i, "02") for i in IDS] == [s for s in bus.take() if s[1] == "02"]  # HALT each
+        assert all(arm[i].state() & S.HALTED for i in IDS)
+
+
+def test_another_host_is_detected_while_polling_too(clock: FakeClock, arm: EmulatedArm) -> None:
+    with ScriptedBus(clock, arm.handle) as bus:
+        drv = make_driver(bus, clock)  # idle: never initialised, only polling the state
+        drv.read_state()
+        _foreign_replies(arm, bus, FOREIGN_REPLIES)
+        with pytest.raises(ForeignHostError, match="another host"):
+            drv.read_state()
+        assert drv.state is DriverState.FAULT and drv.fault.kind is FaultKind.FOREIGN_HOST
+        # Still there: not reported again while in that fault.
+        _foreign_replies(arm, bus, FOREIGN_REPLIES)
+        drv.read_state()
 
 
 def test_every_frame_is_stamped_with_its_send_time(clock: FakeClock, arm: EmulatedArm) -> None:

@@ -122,3 +122,18 @@ def test_a_killed_cycle_process_is_reported_and_the_watchdog_halts_the_arm(rig: 
     assert not ok
     arm = rig["arm"]
     assert wait_for(lambda: all(int(arm[i].state()) & 0x20 for i in (1, 2, 3)), timeout=5.0)  # COMM_ERROR
+
+
+def test_a_sigterm_to_the_process_group_leaves_the_stop_to_the_parent(rig: dict[str, Any]) -> None:
+    """systemd (and a supervisor stopping a process group) sends SIGTERM to the node and its cycle
+    process alike: the cycle process lets the node stop it, so the node's clean stop is not taken for a
+    crash ("cycle process ended unexpectedly (exit code -15)", "driver process unreachable")."""
+    proc: DriverProcess = rig["proc"].start()
+    assert wait_for(lambda: proc.state is LoopState.IDLE)
+    os.kill(proc.pid, signal.SIGTERM)
+    time.sleep(0.5)
+    assert proc.alive and proc.state is LoopState.IDLE
+    proc.stop()
+    assert proc.state is LoopState.STOPPED and not proc.alive
+    errors = [m for lvl, m in rig["logs"] if lvl >= logging.ERROR]
+    assert not errors, errors

@@ -482,6 +482,38 @@ def test_silent_module_halts_all_until_recover(rig) -> None:
     np.testing.assert_allclose(arm.positions(), q0, atol=1e-3)
 
 
+def test_a_second_driver_on_the_bus_is_seen_and_everything_halts(rig) -> None:
+    from redarm_ros.can.driver_core import FaultKind, PowerCubeArmDriver
+
+    loop = start_running(rig)
+    loop.commands.set_trajectory([0], [2.0], np.array([[1.0]]), start=time.monotonic())
+    # Another driver (any name, any namespace: the bus does not know) polls the same modules.
+    with can.Bus(interface="virtual", channel=rig["host"]._channel) as other_bus:
+        other = PowerCubeArmDriver(other_bus, [1, 2, 3], LOWER, UPPER, VMAX, AMAX, reply_timeout_s=0.05)
+        end = time.monotonic() + 10.0
+        while loop.state is LoopState.RUNNING and time.monotonic() < end:
+            other.read_state()
+            time.sleep(0.02)
+    assert loop.state is LoopState.HALTED
+    fault = loop.snapshot().fault
+    assert fault is not None and fault.kind is FaultKind.FOREIGN_HOST, fault
+    assert any("another host is driving these modules" in m for _l, m in rig["logs"])
+    assert all(rig["arm"][i].state() & protocol.ActState.HALTED for i in (1, 2, 3))
+
+
+def test_the_reason_on_diagnostics_says_what_the_arm_does_now(rig) -> None:
+    loop = start_running(rig)
+    assert loop.snapshot().reason == "holding position"  # (not the stale "init done; ...")
+    loop.commands.set_trajectory([0], [0.3], np.array([[0.2]]), start=time.monotonic())
+    assert "following a trajectory" in loop.snapshot().reason
+    ok, _ = loop.request("halt")
+    assert ok and loop.snapshot().reason == "halted on request"
+    ok, _ = loop.request("recover")
+    assert ok and loop.snapshot().reason == "holding position"
+    loop.commands.set_stream_target([1], [0.1], time.monotonic())
+    assert loop.snapshot().reason == "following streamed targets"
+
+
 def test_a_request_made_before_start_waits_for_the_bus(rig) -> None:
     loop = rig["loop"]
     answer: list[tuple[bool, str]] = []

@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import signal
 import subprocess
 import sys
 import threading
@@ -391,7 +393,8 @@ def test_hil_command_beyond_joint_limit_clamped(stack: Stack, client: Client) ->
     start_and_init(client, stack)
     j = 1  # +-91 deg
     beyond = np.zeros(N)
-    beyond[j] = ARM.upper[j] + 0.5
+    # within command_limit_tolerance_rad (5 mrad) of the limit: clamped (further beyond: refused)
+    beyond[j] = ARM.upper[j] + 0.004
     client.send_trajectory([beyond], [1.0])
     worst_setpoint = worst_q = -math.inf
     end = time.monotonic() + 30.0
@@ -642,3 +645,38 @@ def test_hil_park_refused_while_halted_and_sim_starts_in_park(stack: Stack, clie
     r = client.call("park", timeout=60)
     assert r.success, r.message
     np.testing.assert_allclose(stack.sim_q(), ARM.park, atol=2.5e-3)
+
+
+def test_hil_sigterm_stops_the_driver_cleanly(stack: Stack, client: Client) -> None:
+    """docker stop and systemd send SIGTERM (systemd to the whole process group, so the cycle process
+    gets it too): the driver takes the same clean path as on Ctrl-C."""
+    start_and_init(client, stack)
+    driver = stack.driver
+    assert driver is not None
+    driver.expect_exit()
+    os.killpg(driver.pid, signal.SIGTERM)
+    assert driver.popen.wait(30) == 0, driver.tail(30)
+    out = "\n".join(driver.output())
+    for bad in ("ended unexpectedly", "unreachable", "Broken pipe", "Failed to publish", "Traceback"):
+        assert bad not in out, (bad, driver.tail(30))
+
+
+def test_hil_a_second_driver_in_another_namespace_is_seen_on_the_bus(stack: Stack, client: Client) -> None:
+    """Two drivers on one bus, under different namespaces (the ROS graph check cannot see it): the
+    replies each did not ask for give the other away, and the modules are halted."""
+    start_and_init(client, stack)
+    q1 = goal_pose()
+    client.send_trajectory([q1], [2.0])
+    cmd = python_module_cmd("redarm_ros.nodes.can_driver", "--ros-args", "-r", "__ns:=/other",
+                            "-p", "arm:=pa10", "-p", "can.interface:=remote",
+                            "-p", f"can.channel:={stack.canbus.channel}")
+    # (a third ROS process on a loaded machine: give its start-up time)
+    second = stack.procs.start("can_driver_other", cmd, ready=r"can_driver ready", ready_timeout=90)
+    stack.driver.wait_for_line(r"another host is driving these modules", 30)
+    t0 = client.now_ns()
+    assert wait_for(lambda: any(d["can_driver: loop"][2]["state"] == "halted"
+                                and d["can_driver: loop"][2]["fault"] == "foreign_host"
+                                for d in client.diag_since(t0)), 10)
+    mods = stack.status()["modules"]
+    assert all("HALTED" in m["flags"] for m in mods), mods
+    second.stop()

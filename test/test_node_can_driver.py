@@ -37,6 +37,7 @@ from redarm_ros.nodes._common import call_resending  # noqa: E402
 from redarm_ros.nodes.can_driver import (  # noqa: E402
     CanDriverNode,
     map_joint_names,
+    module_info,
     parse_can_config,
     state_bit_names,
 )
@@ -61,11 +62,32 @@ def test_map_joint_names() -> None:
         map_joint_names(["x"], names)
     with pytest.raises(InvalidInputError, match="repeated"):
         map_joint_names(["a", "a"], names)
+    with pytest.raises(InvalidInputError, match="no joint_names"):
+        map_joint_names([], names, empty_means_all=False)  # a trajectory names its joints
 
 
 def test_state_bit_names() -> None:
     assert state_bit_names(0x2 | 0x800) == ["HOME_OK", "MOTION"]
     assert state_bit_names(0) == []
+
+
+def test_a_module_warning_clears_when_its_cause_has_passed() -> None:
+    from dataclasses import replace
+
+    from redarm_ros.can.driver_core import ModuleStatsView
+    from redarm_ros.can.driver_loop import CommandMode, LoopSnapshot
+
+    stats = ModuleStatsView(module_id=1, replies=100, lost=0, late=0, malformed=0, implausible=3,
+                            silent=False, latency_median_ms=1.0, latency_max_ms=2.0, implausible_age_s=0.5)
+    snap = LoopSnapshot(state=LoopState.RUNNING, reason="holding position", period={}, cycles=100,
+                        overruns=0, connects=1, bus_losses=0, clamps=0, command_mode=CommandMode.HOLD,
+                        missing_modules=[], module_stats=[stats], last_result=None, positions=None)
+    info = module_info(snap, 0, 1)
+    assert info["_level"] == DiagnosticStatus.WARN and "3 implausible" in info["_message"]
+    # A minute later, nothing refused since: OK again (the count stays in the values).
+    snap.module_stats = [replace(stats, implausible_age_s=60.0)]
+    info = module_info(snap, 0, 1)
+    assert (info["_level"], info["_message"], info["implausible"]) == (DiagnosticStatus.OK, "ok", 3)
 
 
 class Rig:
@@ -189,17 +211,46 @@ def test_node_stream_command_limits_and_bad_input(rig: Rig) -> None:
     rig.js_pub.publish(bad)
     time.sleep(0.3)
     np.testing.assert_allclose(rig.arm.positions(), 0.0, atol=1e-3)
-    # Streamed target beyond joint 2's limit (+-91 deg): clamped at the limit, never beyond.
+    # Streamed target beyond joint 2's limit (+-91 deg) by less than command_limit_tolerance_rad:
+    # clamped at the limit, never beyond.
     j = 1
     # Generous deadline: the loop ends as soon as the joint arrives; a loaded CI machine is slower.
     end = time.monotonic() + 15.0
     while time.monotonic() < end and rig.arm.positions()[j] < ARM.upper[j] - 1e-3:
-        rig.js_pub.publish(JointState(name=[ARM.joint_names[j]], position=[3.0]))
+        rig.js_pub.publish(JointState(name=[ARM.joint_names[j]], position=[ARM.upper[j] + 0.004]))
         time.sleep(0.02)
         assert rig.arm.positions()[j] <= ARM.upper[j] + 1e-6
     assert rig.arm.positions()[j] == pytest.approx(ARM.upper[j], abs=2e-3)
     assert rig.arm.positions()[j] <= ARM.upper[j] + 1e-6
     assert rig.node.loop.snapshot().clamps > 0
+
+
+def test_node_refuses_nameless_and_far_beyond_limit_commands_and_holds(rig: Rig) -> None:
+    assert wait_for(lambda: rig.node.loop.state is LoopState.IDLE)
+    assert rig.call("init").success
+    warnings: list[str] = []
+    warn = rig.node._warn_throttled
+    rig.node._warn_throttled = lambda key, message, period_s=2.0: (  # type: ignore[method-assign]
+        warnings.append(message), warn(key, message, period_s))
+    # No joint_names: refused with a reason (it used to move every joint).
+    rig.traj_pub.publish(trajectory([], [[0.3] * ARM.n], [0.5]))
+    assert wait_for(lambda: any("no joint_names" in w for w in warnings), 3), warnings
+    # A move under way, then a command 10 rad beyond every limit: refused, and the arm holds.
+    goal = np.zeros(ARM.n)
+    goal[0] = 0.6
+    rig.traj_pub.publish(trajectory(ARM.joint_names, [goal], [3.0]))
+    assert wait_for(lambda: rig.arm.positions()[0] > 0.1, 5)
+    rig.traj_pub.publish(trajectory(ARM.joint_names, [[10.0] * ARM.n], [1.0]))
+    assert wait_for(lambda: any("beyond the joint limits" in w for w in warnings), 3), warnings
+    rig.js_pub.publish(JointState(name=[ARM.joint_names[6]], position=[10.0]))
+    assert wait_for(lambda: any("joint state command refused" in w and "beyond" in w for w in warnings), 3)
+    time.sleep(1.0)
+    q = rig.arm.positions()
+    time.sleep(0.5)
+    np.testing.assert_allclose(rig.arm.positions(), q, atol=1e-4)  # at rest: held, not moving on
+    assert q[0] < 0.5  # stopped short of the earlier goal: the refusal held the arm
+    np.testing.assert_allclose(q[1:], 0.0, atol=1e-3)  # nothing went towards the 10 rad
+    assert rig.node.loop.state is LoopState.RUNNING
 
 
 def test_node_halt_and_recover_services(rig: Rig) -> None:
@@ -269,6 +320,37 @@ def test_second_driver_with_the_same_name_refuses_to_start(rig: Rig, rclpy_conte
     finally:
         rig.executor.remove_node(second)
         second.destroy_node()
+
+
+def _announce_an_elder_twin(rig: Rig) -> None:
+    """What an elder can_driver of the same name announces on ~/_instance (found late: discovery)."""
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from std_msgs.msg import String
+
+    latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    pub = rig.client.create_publisher(String, "/can_driver/_instance", latched)
+    pub.publish(String(data=f"1 {uuid.uuid4().hex} 4242 1"))  # started at 1 ns: the elder
+
+
+@pytest.mark.parametrize("commanding", [False, True])
+def test_a_twin_found_late_stops_the_younger_driver_safely(rclpy_context: Any, commanding: bool) -> None:
+    with closing(Rig(rclpy_context, {"duplicate_check_s": 0.1})) as rig:
+        refusals: list[str] = []
+        rig.node.on_refused = refusals.append
+        assert wait_for(lambda: rig.node.loop.state is LoopState.IDLE, 10)
+        if commanding:
+            assert rig.call("init").success
+        _announce_an_elder_twin(rig)
+        assert wait_for(lambda: bool(refusals), 10), "the younger driver did not stop"
+        assert "already running" in refusals[0]
+        assert rig.node.loop.state is LoopState.STOPPED  # its command stream ended
+        halted = [bool(rig.arm[i].state() & 0x4) for i in range(1, ARM.n + 1)]
+        # The elder's arm is halted only if this one was commanding the modules too.
+        assert halted == [commanding] * ARM.n
+        sent = {i: rig.arm[i].requests for i in range(1, ARM.n + 1)}
+        time.sleep(0.3)
+        assert {i: rig.arm[i].requests for i in range(1, ARM.n + 1)} == sent  # sends nothing more
 
 
 def test_constructor_starts_nothing_and_declares_ranges(rclpy_context: Any) -> None:

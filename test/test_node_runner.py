@@ -253,3 +253,93 @@ def test_ctrl_c_during_teardown_is_noted_and_the_teardown_finishes(ros_env: obje
     assert out.split() == ["READY", "CLOSING", "CLOSED", "RETURNED", "0"], (out, err)
     assert "Traceback" not in err, err
     assert ("already stopping" in err) == (times > 1), err
+
+
+# A node that logs through its own logger (to /rosout) while it tears down, as can_driver does when its
+# cycle process reports that it stopped.
+_LOGGING_TEARDOWN_NODE = """
+import time
+from rclpy.node import Node
+from redarm_ros.nodes._common import run_node
+
+class LoggingTeardown(Node):
+    def __init__(self):
+        super().__init__("runner_sigterm_probe")
+        self.timer = self.create_timer(0.05, self.ready)
+
+    def ready(self):
+        self.timer.cancel()
+        print("READY", flush=True)
+
+    def close(self):
+        print("CLOSING", flush=True)
+        self.get_logger().info("closing: this line goes to /rosout too")
+        time.sleep(0.3)
+        print("CLOSED", flush=True)
+
+code = run_node(LoggingTeardown, [])
+print("RETURNED", code, flush=True)
+raise SystemExit(code)
+"""
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_sigterm_takes_the_same_clean_path_as_ctrl_c(ros_env: object, sig: int) -> None:
+    """docker stop and systemd send SIGTERM: the node tears down as on Ctrl-C, its logs still reach
+    /rosout, and it exits with code 0 (it used to end with "Failed to publish log message to rosout")."""
+    proc = subprocess.Popen([sys.executable, "-c", _LOGGING_TEARDOWN_NODE], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        assert proc.stdout.readline().strip() == "READY"
+        proc.send_signal(sig)
+        out, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0, (out, err)
+    assert out.split() == ["CLOSING", "CLOSED", "RETURNED", "0"], (out, err)
+    assert "Traceback" not in err and "Failed to publish" not in err, err
+
+
+# A node whose construction takes a while and, like a library's catch-all or a finaliser, swallows the
+# KeyboardInterrupt that a Ctrl-C raises meanwhile.
+_SWALLOWING_CONSTRUCTOR_NODE = """
+import time
+from rclpy.node import Node
+from redarm_ros.nodes._common import run_node
+
+class SlowStart(Node):
+    def __init__(self):
+        super().__init__("runner_slow_start_probe")
+        print("BUILDING", flush=True)
+        end = time.monotonic() + 1.0
+        while time.monotonic() < end:
+            try:
+                time.sleep(0.01)
+            except BaseException:
+                pass
+        self.create_timer(0.05, lambda: print("SPINNING", flush=True))
+
+code = run_node(SlowStart, [])
+print("RETURNED", code, flush=True)
+raise SystemExit(code)
+"""
+
+
+def test_a_ctrl_c_while_the_node_is_built_is_not_lost(ros_env: object) -> None:
+    """A SIGINT in a node's first second, whose KeyboardInterrupt some code swallowed, still stops it
+    (the controller once went on running after a bring-up's Ctrl-C in its first second)."""
+    proc = subprocess.Popen([sys.executable, "-c", _SWALLOWING_CONSTRUCTOR_NODE], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        assert proc.stdout.readline().strip() == "BUILDING"
+        time.sleep(0.2)
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=20)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        out, err = proc.communicate()
+        raise AssertionError(f"still running 20 s after SIGINT: {out} {err}") from None
+    assert proc.returncode == 0, (out, err)
+    assert "SPINNING" not in out and out.split()[-2:] == ["RETURNED", "0"], (out, err)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import signal
+import subprocess
 import sys
 import textwrap
 import time
@@ -134,6 +135,32 @@ def test_sigkill_when_sigint_is_ignored_and_descendants_go_too(tmp_path: Path) -
     state = Path(f"/proc/{grandchild}/stat")
     # Gone, or a zombie waiting for init to reap it.
     assert not state.exists() or state.read_text().rsplit(")", 1)[-1].split()[0] == "Z"
+
+
+def test_a_child_reaped_late_after_sigkill_still_gets_its_exit_code(monkeypatch: pytest.MonkeyPatch) -> None:
+    """On a saturated machine the killed child was not reaped within the last wait: the stop raised and
+    the bring-up skipped that child's "stopped" line. It waits longer now (a killed process ends)."""
+    code = """
+        import signal, time
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        print("ready", flush=True)
+        time.sleep(60)
+    """
+    child = ManagedProcess("slow_to_reap", py(code), sink=lambda _l: None)
+    child.wait_for_line("ready", 10)
+    real_wait = child.popen.wait
+    ran_out = []
+
+    def wait(timeout: float | None = None) -> int:
+        if timeout == 1.0 and not ran_out:  # the wait after SIGKILL runs out once
+            ran_out.append(timeout)
+            time.sleep(0.2)
+            raise subprocess.TimeoutExpired(child.cmd, timeout)
+        return real_wait(timeout)
+
+    monkeypatch.setattr(child.popen, "wait", wait)
+    assert child.stop((0.2, 0.3, 1.0)) == -signal.SIGKILL
+    assert ran_out
 
 
 def test_group_stops_in_reverse_order(tmp_path: Path) -> None:

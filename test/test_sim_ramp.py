@@ -213,3 +213,44 @@ def test_braking_speed_is_exact():
         JointRamp(0.0, -1, 1, 0.0, 1.0)
     with pytest.raises(ValueError):
         JointRamp(0.0, -1, 1, 1.0, 1.0).command_position(float("nan"))
+
+
+def _late_stream_to_the_margin(seed: int, margin: float = 1e-3) -> float:
+    """The CAN driver's reference shaper driving a joint at full speed to ``upper - margin`` in 4 ms
+    FSTEPs, delivered to the generator late and in bursts (a simulator running behind, 0-30 ms);
+    returns how far (rad) the setpoint got past ``upper - margin`` (<= 0: never)."""
+    from redarm_ros.can.driver_loop import ReferenceShaper
+    from redarm_ros.motion import JointLimits
+
+    rng = np.random.default_rng(seed)
+    cycle, upper = 0.004, 1.0
+    worst = -math.inf
+    for _ in range(4):
+        vmax, amax = rng.uniform(0.5, 2.0), rng.uniform(2.0, 10.0)
+        shaper = ReferenceShaper(JointLimits([-upper], [upper], [vmax], [amax]), cycle, margin)
+        shaper.reset(np.array([rng.uniform(-0.5, 0.5)]))
+        r = JointRamp(float(shaper.r[0]), -upper, upper, vmax, amax)
+        t_host = t_sim = 0.0
+        waiting: list[tuple[float, float]] = []
+        for _ in range(600):
+            t_host += cycle + (rng.choice([0.0, 0.0, 0.0, 0.004, 0.008]) if rng.random() < 0.2 else 0.0)
+            waiting.append((t_host, float(shaper.step(np.array([5.0]))[0])))
+            lag = rng.choice([0.0, 0.0, 0.01, 0.03])
+            while waiting and waiting[0][0] <= t_sim + lag:
+                t, q = waiting.pop(0)
+                while t_sim < t - lag:
+                    worst = max(worst, r.step(DT))
+                    t_sim += DT
+                r.command_position(q, duration_s=cycle)
+            while t_sim < t_host - lag:
+                worst = max(worst, r.step(DT))
+                t_sim += DT
+        worst = max(worst, *_run(r, 1000))
+    return worst - (upper - margin)
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_a_late_stream_never_carries_the_setpoint_past_the_hosts_stop(seed: int) -> None:
+    # The host brakes for its 1 mrad margin; however late its steps come, the setpoint stops there
+    # (it used to run on to the limit itself, 1 mrad further, and the joint 0.5-0.9 mrad past).
+    assert _late_stream_to_the_margin(seed) <= 1e-9

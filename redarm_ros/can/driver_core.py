@@ -55,6 +55,7 @@ import logging
 import math
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Hashable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -97,6 +98,19 @@ _LATENCY_WINDOW = 1024
 REQUEST_ATTEMPTS = 3
 #: A plausibility check allows this much (rad) beyond what the velocity limit explains.
 DEFAULT_PLAUSIBILITY_MARGIN = 0.02
+#: Another host on the bus shows in replies this driver did not ask for: a module answers only a
+#: request, so a well-formed, plausible reply on 0x0A0+id with no request of ours waiting for it (a
+#: request waits at most :data:`REQUEST_TTL_S`) was asked for by someone else. This many such replies
+#: within :data:`FOREIGN_WINDOW_S` (a second driver makes hundreds a second, even idle at 0.5 Hz
+#: polling 14 per second; a tool reading a parameter or a forged frame a few) halt every module.
+FOREIGN_REPLIES = 10
+FOREIGN_WINDOW_S = 2.0
+REQUEST_TTL_S = 5.0
+#: ``recover`` holds the arm where it comes to rest: it waits until no module reports MOTION and two
+#: position reads in a row agree within this (rad), for at most the longest braking time plus
+#: :data:`SETTLE_EXTRA_S`.
+SETTLE_TOLERANCE_RAD = 1e-4
+SETTLE_EXTRA_S = 1.0
 #: While init or recover runs, receive waits are cut into slices this long (s), so a halt request
 #: from another thread is noticed within about one cycle (4 ms at 250 Hz).
 HALT_POLL_S = 0.002
@@ -145,6 +159,7 @@ class FaultKind(Enum):
     REQUEST_FAILED = "request_failed"  # init or recover did not succeed
     MISSING = "missing"  # modules missing when the bus came back
     INTERNAL = "internal"  # a bug in the loop (it halts rather than keep moving)
+    FOREIGN_HOST = "foreign_host"  # replies this driver did not ask for: another host drives the modules
 
 
 @dataclass(frozen=True)
@@ -166,6 +181,15 @@ class Fault:
         return module_id in self.module_ids
 
 
+class ForeignHostError(RedarmError):
+    """Another host drives the modules (replies this driver did not ask for); every module was halted.
+    ``fault`` is the :class:`Fault` (kind FOREIGN_HOST) the driver is in."""
+
+    def __init__(self, fault: Fault) -> None:
+        super().__init__(fault.message)
+        self.fault = fault
+
+
 def fault_bit_names(bits: int) -> str:
     """``"ERROR|POWERFAULT"``: names of the :data:`FAULT_BITS` set in ``bits``."""
     return "|".join(b.name or "" for b in ActState if b & bits and b & FAULT_BITS)
@@ -185,6 +209,7 @@ class ModuleStats:
         "silent",
         "implausible",
         "last_implausible",
+        "last_implausible_at",
         "_lat",
         "_k",
     )
@@ -200,6 +225,7 @@ class ModuleStats:
         self.silent = False  # missed max_missed replies in a row (cleared by the next reply)
         self.implausible = 0  # measured positions refused by the plausibility check
         self.last_implausible = math.nan  # the last refused position (rad)
+        self.last_implausible_at = -math.inf  # when it was refused (time.monotonic() s)
         self._lat = np.zeros(_LATENCY_WINDOW)
         self._k = 0
 
@@ -229,6 +255,7 @@ class ModuleStats:
             module_id=self.module_id, replies=self.replies, lost=self.lost, late=self.late,
             malformed=self.malformed, implausible=self.implausible, silent=self.silent,
             latency_median_ms=self.latency_median_ms, latency_max_ms=self.latency_max_ms,
+            implausible_age_s=time.monotonic() - self.last_implausible_at,
         )
 
     def as_dict(self) -> dict[str, float | int | bool]:
@@ -252,6 +279,7 @@ class ModuleStatsView:
     silent: bool
     latency_median_ms: float
     latency_max_ms: float
+    implausible_age_s: float = math.inf  # since the last implausible position was refused (s)
 
     def as_dict(self) -> dict[str, float | int | bool]:
         """Plain values for logs and diagnostics."""
@@ -405,6 +433,12 @@ class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those o
         # Routing tables: reply id / state id -> joint index.
         self._reply_index = {p.IdBase.CMD_ACK + i: j for j, i in enumerate(ids)}
         self._state_index = {p.IdBase.STATE + i: j for j, i in enumerate(ids)}
+        self._request_index = {**{p.IdBase.CMD_PUT + i: j for j, i in enumerate(ids)},
+                               **{p.IdBase.CMD_GET + i: j for j, i in enumerate(ids)}}
+        # Requests of ours waiting for their reply (send times, per joint), and the replies nobody
+        # here asked for (clock time, module id): see FOREIGN_REPLIES.
+        self._asked: list[deque[float]] = [deque() for _ in ids]
+        self._unasked: deque[tuple[float, int]] = deque()
         # Pre-built frames, patched in place every cycle.
         self._fstep_msgs = [p.fstep(i, 0.0, 1) for i in ids]
         self._startmove = p.start_motion_all()
@@ -468,6 +502,82 @@ class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those o
             raise
         except Exception as exc:
             raise self._lost(exc, "send") from exc
+        j = self._request_index.get(msg.arbitration_id)
+        if j is not None:
+            self._asked[j].append(self._clock())
+
+    def _note_reply(self, j: int, t: float) -> None:
+        """A well-formed, plausible reply of joint ``j`` came at clock time ``t``: it answers the oldest
+        request of ours still waiting, or, with none waiting, somebody else's request."""
+        asked = self._asked[j]
+        while asked and t - asked[0] > REQUEST_TTL_S:
+            asked.popleft()  # never answered (lost): no longer expected
+        if asked:
+            asked.popleft()
+            return
+        unasked = self._unasked
+        unasked.append((t, self.module_ids[j]))
+        while t - unasked[0][0] > FOREIGN_WINDOW_S:
+            unasked.popleft()
+
+    def _foreign_host_fault(self) -> Fault | None:
+        """The fault when :data:`FOREIGN_REPLIES` unasked replies came within :data:`FOREIGN_WINDOW_S`
+        (the evidence is then used up), else None."""
+        unasked = self._unasked
+        if len(unasked) < FOREIGN_REPLIES:
+            return None
+        t = self._clock()
+        while unasked and t - unasked[0][0] > FOREIGN_WINDOW_S:
+            unasked.popleft()
+        if len(unasked) < FOREIGN_REPLIES:
+            return None
+        mids = tuple(sorted({mid for _t, mid in unasked}))
+        count = len(unasked)
+        unasked.clear()
+        return Fault(FaultKind.FOREIGN_HOST, mids, (
+            f"another host is driving these modules: {count} replies from modules {list(mids)} within "
+            f"{FOREIGN_WINDOW_S:g} s that this driver did not ask for (a second driver or tool on this CAN "
+            "bus, whatever its name or namespace); all modules halted. Stop the other one, then ~/recover"))
+
+    def _check_foreign_host_locked(self) -> Fault | None:
+        """Halt every module and enter FAULT if another host was seen (not again while already in
+        FAULT for that); returns the fault."""
+        fault = self._foreign_host_fault()
+        if fault is None:
+            return None
+        if self.state is DriverState.FAULT and self.fault is not None \
+                and self.fault.kind is FaultKind.FOREIGN_HOST:
+            return None
+        self._halt_all()
+        self._fire(DriverEvent.FAULT, fault)
+        logger.error("PowerCube fault, all modules halted: %s", fault.message)
+        return fault
+
+    def _reachable(self, j: int, x: float, t: float) -> bool:
+        """Whether position ``x`` of joint ``j`` at clock time ``t`` passes the plausibility bounds
+        (no counting: see :meth:`_plausible`)."""
+        t0 = self._t_meas[j]
+        if t0 != t0:
+            return True
+        bound = self.max_vel[j] * (max(0.0, t - t0) + self.reply_timeout_s) + self.plausibility_margin_rad
+        slack = self._brake[j] + self.plausibility_margin_rad
+        within_span = self._reach_lo[j] - slack <= x <= self._reach_hi[j] + slack
+        return abs(x - self._q_meas[j]) <= bound and within_span
+
+    def _note_frame(self, j: int, frame: p.Frame | None, t: float) -> None:
+        """:meth:`_note_reply` for a decoded frame of joint ``j``; a malformed one, or one reporting a
+        position the module cannot be at (a forgery), is no evidence of another host."""
+        if frame is None:
+            return
+        if isinstance(frame, p.SetMoveExtAck):
+            x = float(frame.position)
+        elif isinstance(frame, p.GetParamReply) and frame.param is Param.ACT_FPOS:
+            x = float(frame.value)
+        else:
+            self._note_reply(j, t)
+            return
+        if self._reachable(j, x, t):
+            self._note_reply(j, t)
 
     def _recv(self, timeout: float) -> can.Message | None:
         if self._interruptible:
@@ -510,23 +620,18 @@ class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those o
     def _plausible(self, j: int, x: float, t: float) -> bool:
         """Whether position ``x`` (rad) of joint ``j`` measured at clock time ``t`` is reachable from
         the last accepted measurement; an implausible one is counted (and logged, rate-limited)."""
-        t0 = self._t_meas[j]
-        if t0 != t0:  # NaN: no reference yet
-            return True
-        dt = max(0.0, t - t0) + self.reply_timeout_s
-        margin = self.plausibility_margin_rad
-        bound = self.max_vel[j] * dt + margin
-        q0 = self._q_meas[j]
         # The velocity bound alone grows without limit while a module is silent; but a module only
         # goes where it was sent, or brakes to a stop when halted (or by its watchdog), so a module
-        # restarted without its position is refused however long it was away.
-        slack = self._brake[j] + margin
-        if abs(x - q0) <= bound and self._reach_lo[j] - slack <= x <= self._reach_hi[j] + slack:
+        # restarted without its position is refused however long it was away (see _reachable).
+        if self._reachable(j, x, t):
             return True
+        t0, q0 = self._t_meas[j], self._q_meas[j]
+        bound = self.max_vel[j] * (max(0.0, t - t0) + self.reply_timeout_s) + self.plausibility_margin_rad
         s = self.stats[j]
         s.implausible += 1
         s.consecutive_implausible += 1
         s.last_implausible = float(x)
+        s.last_implausible_at = time.monotonic()
         if s.implausible == 1 or s.implausible % 100 == 0:
             logger.warning(
                 "module %d: implausible position %.4f rad refused (last %.4f rad %.3f s before; at most "
@@ -575,7 +680,9 @@ class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those o
         j = self._route(msg)
         if j is None:
             return None, None
-        return j, self._decode_counted(msg, j)
+        frame = self._decode_counted(msg, j)
+        self._note_frame(j, frame, self._clock())
+        return j, frame
 
     def _transact(
         self,
@@ -721,7 +828,11 @@ class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those o
             BusError: the bus failed.
         """
         with self._lock:
-            return self._read_state_locked()
+            st = self._read_state_locked()
+            fault = self._check_foreign_host_locked()
+            if fault is not None:
+                raise ForeignHostError(fault)
+            return st
 
     def init(self, *, home: bool = True) -> ArmState:
         """Configure, reset and home every module, then hold the measured position.
@@ -861,7 +972,9 @@ class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those o
         while (left := end - self._clock()) > 0:
             msg = self._recv(left)
             if msg is not None:
-                self._route(msg)  # records state frames; replies here are stale and dropped
+                j = self._route(msg)  # records state frames; replies here are stale and dropped
+                if j is not None:
+                    self._note_frame(j, self._decode_counted(msg, j), self._clock())
 
     def _raise_on_errors(self, st: ArmState, during: str) -> None:
         errs = st.errors
@@ -918,7 +1031,9 @@ class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those o
     def recover(self) -> ArmState:
         """Bring every module back as :meth:`init` left it, without homing; hold the measured position.
 
-        RESETs every module (clears ERROR, HALTED and the causes), then restores what a module
+        HALTs every module and waits until the arm is at rest (no module reports MOTION, the
+        positions settled), so what is held is where the arm stopped, not a reading taken while it
+        braked. RESETs every module (clears ERROR, HALTED and the causes), then restores what a module
         that was power-cycled meanwhile has lost: ACT_CONFIG (SYNC_MOTION, WATCHDOG_ENABLE when the
         watchdog is on, no DISABLE_ACK) and ACT_FMAXVEL/ACT_FMAXACC; re-reads the positions (checked
         for plausibility) and holds them (READY again). Refused unless :meth:`init` succeeded
@@ -940,9 +1055,37 @@ class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those o
                 raise RequestRefusedError(
                     "recover refused: the arm was never initialised (homed); call ~/init")
             with self._interruptible_locked("recover"):
+                # A moving arm first brakes to rest, and that rest is what is held: taken mid-brake,
+                # the hold would drive the arm back by its braking distance (0.1-0.24 rad seen).
+                self._halt_all()
+                self._settle_locked()
                 self._command_all(Command.RESET)
                 self._configure_locked()
             return self._ready_locked("recover", "PowerCube arm recovered, holding %s", require_home=True)
+
+    def _settle_locked(self) -> None:
+        """Poll the modules until none reports MOTION and the positions agree with the previous read
+        within :data:`SETTLE_TOLERANCE_RAD`.
+
+        Raises:
+            ModuleFaultError: still moving after the longest braking time plus :data:`SETTLE_EXTRA_S`.
+            BusTimeoutError, ImplausibleMeasurementError, BusError: from the state reads.
+        """
+        vel, acc = np.asarray(self.limits.max_vel, dtype=float), np.asarray(self.limits.max_acc, dtype=float)
+        end = self._clock() + float(np.max(vel / acc)) + SETTLE_EXTRA_S
+        prev: np.ndarray | None = None
+        while True:
+            st = self._read_state_locked()
+            moving = [mid for mid, bits in zip(self.module_ids, st.states, strict=True)
+                      if bits & ActState.MOTION]
+            settled = prev is not None and np.max(np.abs(st.positions - prev)) <= SETTLE_TOLERANCE_RAD
+            if not moving and settled:
+                return
+            if self._clock() > end:
+                raise ModuleFaultError(f"recover: modules {moving or self.module_ids} did not come to rest "
+                                       "after the halt", module_id=(moving or self.module_ids)[0])
+            prev = st.positions
+            self._sleep(self.poll_interval_s)
 
     def reconnect(self) -> ArmState:
         """Reopen the bus (one attempt; call again with backoff) and re-read the positions.
@@ -1068,15 +1211,18 @@ class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those o
                 continue
             fields = fstep_ack(msg)
             if fields is None:  # anything else: full decode (counts malformed frames)
-                self._decode_counted(msg, j)
+                self._note_frame(j, self._decode_counted(msg, j), t)
                 continue
             if replied[j]:  # a second ack in one cycle: the first was a late one
                 self.stats[j].late += 1
                 late += 1
+                if self._reachable(j, fields[0], t):
+                    self._note_reply(j, t)
                 continue
             if not self._plausible(j, fields[0], t):
                 implausible += 1  # never taken as the arm's state; a genuine reply may still come
                 continue
+            self._note_reply(j, t)
             replied[j] = True
             remaining -= 1
             self._accept_position(j, fields[0], t)
@@ -1128,6 +1274,11 @@ class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those o
             holding=holding,
             resynced=resynced,
         )
+        foreign = self._check_foreign_host_locked()
+        if foreign is not None:
+            result.fault = foreign
+            self._pending_faults.clear()
+            return result
         if self.state is DriverState.FAULT:
             self._pending_faults.clear()
             return result

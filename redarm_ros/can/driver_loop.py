@@ -53,6 +53,7 @@ from redarm_ros.can.driver_core import (
     DriverState,
     Fault,
     FaultKind,
+    ForeignHostError,
     ModuleStats,
     ModuleStatsView,
 )
@@ -691,6 +692,15 @@ class LoopSnapshot:
     totals: dict[str, float] | None = None  # since the start: PeriodStats.totals()
 
 
+#: The loop's reason on /diagnostics while running, by what the command source follows: the reason of
+#: the request or event that made it run ("init done", "reconnected") stayed while it followed commands.
+RUNNING_REASON: dict[CommandMode, str] = {
+    CommandMode.HOLD: "holding position",
+    CommandMode.TRAJECTORY: "following a trajectory (its last point held at its end)",
+    CommandMode.STREAM: "following streamed targets",
+    CommandMode.PARK: "park move (the park posture held at its end)",
+}
+
 #: How long (s) every measured joint must stay within the park tolerance before ``park`` succeeds.
 PARK_SETTLE_S = 0.1
 
@@ -937,10 +947,13 @@ class DriverLoop:
             return False, f"driver is {state.value} ({self._fault_locked()[1]}); command ignored"
 
     def snapshot(self) -> LoopSnapshot:
-        """A copy of the status for diagnostics."""
+        """A copy of the status for diagnostics. While running, the reason says what the arm does now
+        (:data:`RUNNING_REASON`), not what the last request or event was."""
         with self._lock:
             state = self._state_locked()
             fault, reason = self._fault_locked()
+            if state is LoopState.RUNNING:
+                reason = RUNNING_REASON[self.commands.mode]
             last = self._last_result
             q = None if self._q_meas is None else self._q_meas.copy()
             missing = list(self._missing)
@@ -1142,6 +1155,9 @@ class DriverLoop:
             return  # a silent module while halted: keep polling quietly; state stays
         except BusError:
             raise
+        except ForeignHostError as exc:  # the driver core has halted every module
+            self._halted_by(exc.fault, halt=False)
+            return
         except RedarmError as exc:  # an implausible position: not published, reported
             now = time.monotonic()
             if now - self._last_poll_warn >= POLL_WARN_INTERVAL_S:  # it repeats at poll_hz

@@ -20,7 +20,7 @@ commands, requests and snapshot queries one way; every cycle's sample, state cha
 answers the other way. Samples travel through a bounded queue and a sender thread, so a slow
 parent loses samples (counted) but never stalls the cycle; a parent reader that fell behind hands
 on only the newest sample queued (``samples_skipped`` counts the others), so what it publishes is
-never older than its own delay. The child ignores SIGINT (the parent
+never older than its own delay. The child ignores SIGINT and SIGTERM (the parent
 stops it) and ends when the parent's end of the socket closes, so a killed node takes its cycle
 with it: the modules' watchdog then halts the arm.
 """
@@ -512,7 +512,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="redarm_ros.can.driver_process")
     ap.add_argument("--fd", type=int, required=True, help="socket (pair) to the parent")
     args = ap.parse_args(argv)
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent stops us; a terminal Ctrl-C reaches both
+    # The parent stops us. A terminal's Ctrl-C reaches both, and so does a SIGTERM to the process group
+    # (systemd, a supervisor): ended by it before the parent, we made the parent's clean stop look
+    # like a crash ("cycle process ended unexpectedly (exit code -15)", "Broken pipe").
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, signal.SIG_IGN)
     # The cycle thread gets the interpreter back within 0.5 ms when a helper thread (status, commands)
     # runs Python, not the default 5 ms.
     sys.setswitchinterval(5e-4)

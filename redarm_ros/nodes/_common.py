@@ -31,6 +31,7 @@ from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, Si
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.signals import SignalHandlerOptions
 
 from redarm_ros.errors import InvalidInputError
 from redarm_ros.kinematics.quaternion import pose_to_matrix
@@ -209,17 +210,30 @@ def _drain_callbacks(executor: SingleThreadedExecutor | MultiThreadedExecutor, t
     return not waiter.is_alive()
 
 
-class _StopSignals:
-    """Python's SIGINT handler for a node process: Ctrl-C stops the spin, and once teardown has begun
-    a repeated one is noted, not raised.
+#: Signals that stop a node: Ctrl-C, and SIGTERM as ``docker stop``, systemd or ``kill`` send it.
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
-    A second SIGINT (a supervisor's staged stop sends one after its grace period) raising
-    KeyboardInterrupt inside the teardown would abandon it and end the process by the signal
-    (exit code -2) instead of with its own code. SIGKILL remains the way to end it at once.
+#: While spinning, :func:`run_node` looks at least this often (s) whether a stop signal came: a
+#: KeyboardInterrupt raised where it is swallowed (a ``__del__``, a library's catch-all) is not lost.
+STOP_POLL_S = 0.25
+
+
+class _StopSignals:
+    """Python's handler of SIGINT and SIGTERM for a node process: either stops the spin (the same
+    clean path for both), and once teardown has begun a repeated one is noted, not raised.
+
+    The handler raises KeyboardInterrupt (so a wait in the main thread ends at once) and also records
+    the stop in :attr:`requested`, which :func:`run_node` checks before it spins and while it spins:
+    a signal that came while the node was being built, inside code that swallowed the
+    KeyboardInterrupt, is still acted on. A second signal (a supervisor's staged stop sends one after
+    its grace period) raising KeyboardInterrupt inside the teardown would abandon it and end the
+    process by the signal (exit code -2) instead of with its own code. SIGKILL remains the way to
+    end it at once.
     """
 
     def __init__(self) -> None:
         self.tearing_down = False
+        self.requested = False
         self._count = 0
 
     @classmethod
@@ -227,11 +241,13 @@ class _StopSignals:
         """Install the handler (only the main thread can); it stays until the process ends."""
         guard = cls()
         if threading.current_thread() is threading.main_thread():
-            signal.signal(signal.SIGINT, guard._on_sigint)
+            for sig in STOP_SIGNALS:
+                signal.signal(sig, guard._on_signal)
         return guard
 
-    def _on_sigint(self, signum: int, _frame: object) -> None:
+    def _on_signal(self, signum: int, _frame: object) -> None:
         self._count += 1
+        self.requested = True
         if not self.tearing_down:
             raise KeyboardInterrupt
         # The first one can land here too: rclpy's own handler may have ended the spin before it ran.
@@ -331,24 +347,38 @@ def warn_unmatched_params_files(node: Node, files: dict[str, list[str]]) -> list
     return unmatched
 
 
+def _spin_until_stopped(executor: SingleThreadedExecutor | MultiThreadedExecutor, node: Node,
+                        stop_signals: _StopSignals) -> None:
+    """``executor.spin()``, that also ends within :data:`STOP_POLL_S` of a stop signal whose
+    KeyboardInterrupt was swallowed."""
+    context = node.context
+    while context.ok() and not stop_signals.requested:
+        executor.spin_once(timeout_sec=STOP_POLL_S)
+
+
 def run_node(
     make_node: Callable[[], Node],
     args: Sequence[str] | None = None,
     *,
     multithreaded: bool = False,
 ) -> int:
-    """The standard main(): init, build the node, spin, stop cleanly on Ctrl-C / external shutdown.
+    """The standard main(): init, build the node, spin, stop cleanly on Ctrl-C, SIGTERM or external
+    shutdown (the same path for all, at any moment: see :class:`_StopSignals`).
 
     ``make_node`` is called after ``rclpy.init``. If the node has a ``close()`` method it is called
     as soon as spinning ends (to stop worker threads and end waits inside callbacks); then the
     callbacks still running are waited for (:data:`CALLBACK_DRAIN_S`) before ``destroy_node()``.
-    Returns the process exit code (0 on a normal or Ctrl-C stop, 1 if the node could not be built).
+    Returns the process exit code (0 on a normal, Ctrl-C or SIGTERM stop, 1 if the node could not be
+    built).
     """
-    stop_signals = _StopSignals.install()  # before rclpy.init, whose handler chains to it
+    stop_signals = _StopSignals.install()
     argv = list(args) if args is not None else list(sys.argv)
     try:
         files = check_params_files(argv)
-        rclpy.init(args=argv)
+        # Without rclpy's own handlers: they shut the context down at the signal, before the teardown
+        # (whose log lines then failed to reach /rosout: "Failed to publish log message to rosout"; a
+        # node still being built failed with "context is not valid"). The spin wakes every STOP_POLL_S.
+        rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
     except Exception as exc:  # noqa: BLE001 - a bad parameter file or argument: one line, exit code 1
         logging.basicConfig()
         _LOG.error("could not start: %s", exc)
@@ -369,9 +399,11 @@ def run_node(
             fifo = int(node.get_parameter(PROCESS_RT_PARAM.name).value) \
                 if getattr(node, "PROCESS_REALTIME", False) else 0
             apply_scheduling(node, int(node.get_parameter(NICE_PARAM.name).value), fifo)
+        if stop_signals.requested:  # a stop signal came while the node was built: do not start
+            raise KeyboardInterrupt
         executor = MultiThreadedExecutor() if multithreaded else SingleThreadedExecutor()
         executor.add_node(node)
-        executor.spin()
+        _spin_until_stopped(executor, node, stop_signals)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except DuplicateNodeError as exc:  # raised by UniqueNameCheck's timer or watch_duplicates
@@ -579,7 +611,8 @@ class UniqueNameCheck:
 INSTANCE_TOPIC = "~/_instance"  # hidden (leading underscore); the same topic for every twin of a name
 
 
-def watch_duplicates(node: Node, period_s: float = 2.0, *, yield_to_elder: bool = False) -> None:
+def watch_duplicates(node: Node, period_s: float = 2.0, *, yield_to_elder: bool = False,
+                     on_yield: Callable[[str], None] | None = None) -> None:
     """Keep looking for a node of the same name that the start-up check could not see yet (discovery
     under load can take longer than ``duplicate_check_s``) or that started later.
 
@@ -587,7 +620,9 @@ def watch_duplicates(node: Node, period_s: float = 2.0, *, yield_to_elder: bool 
     again every ``period_s``. With
     ``yield_to_elder`` the younger of two twins stops itself as soon as it hears the elder
     (:class:`DuplicateNodeError` out of the executor's spin: exit code 1 through :func:`run_node`), so
-    the node already in service keeps running however late discovery was. A twin that will not stop
+    the node already in service keeps running however late discovery was; ``on_yield(reason)``, if
+    given, is called instead of raising (once), for a node that must stop its own work safely first.
+    A twin that will not stop
     (one started with the checks off, or another program under this name) is logged once per
     appearance, from the announcement or from the graph.
     """
@@ -621,7 +656,12 @@ def watch_duplicates(node: Node, period_s: float = 2.0, *, yield_to_elder: bool 
                 "second one)"
             )
             node.get_logger().error(reason)
-            raise DuplicateNodeError(reason)
+            if on_yield is None:
+                raise DuplicateNodeError(reason)
+            if not state.get("yielded"):
+                state["yielded"] = True
+                on_yield(reason)
+            return
         if not other_is_elder and other_yields:
             node.get_logger().error(
                 f"another node named {fqn} is running in this domain (pid {pid}, started later): it "

@@ -75,7 +75,12 @@ from redarm_ros.nodes._common import (
 
 NODE_NAME = "can_driver"
 DIAGNOSTICS_PERIOD_S = 0.5
+#: A module's status is WARN for this long (s) after it last sent an implausible position.
+IMPLAUSIBLE_WARN_S = 10.0
 FUTURE_STAMP_WARN_S = 1.0  # a trajectory stamped further ahead than this (s) is logged (clocks apart?)
+#: Default of ``command_limit_tolerance_rad``: a command this far (rad) beyond a joint limit is clamped
+#: to it (rounding upstream); further beyond, it is refused (a bug upstream, not a wish to go there).
+DEFAULT_COMMAND_LIMIT_TOLERANCE = 0.005
 
 
 def _module_ids(value: Any) -> str | None:
@@ -147,6 +152,9 @@ PARAMS = [
     NICE_PARAM,
     ParamSpec("limit_margin_rad", DEFAULT_LIMIT_MARGIN, "How far (rad) the commanded reference stays inside "
               "each joint limit (the modules' soft limit).", read_only=True, range=(0.0, 0.1)),
+    ParamSpec("command_limit_tolerance_rad", DEFAULT_COMMAND_LIMIT_TOLERANCE, "A joint command at most this "
+              "far (rad) beyond a joint limit is clamped to the limit; one further beyond refuses the whole "
+              "message and the arm holds.", read_only=True, range=(0.0, 0.5)),
     ParamSpec("plausibility_margin_rad", DEFAULT_PLAUSIBILITY_MARGIN, "A measured position may differ from "
               "the last one by max_vel * (elapsed + reply_timeout_s) plus this (rad), and lie at most the "
               "braking distance plus this outside the span of the last one and the targets sent since; more "
@@ -173,13 +181,18 @@ def parse_can_config(text: Any) -> dict[str, Any]:
     return value
 
 
-def map_joint_names(names: Sequence[str], model_names: Sequence[str]) -> list[int]:
-    """Model joint indices of ``names`` (empty ``names``: all joints in model order).
+def map_joint_names(names: Sequence[str], model_names: Sequence[str], *,
+                    empty_means_all: bool = True) -> list[int]:
+    """Model joint indices of ``names`` (empty ``names``: all joints in model order, if
+    ``empty_means_all``).
 
     Raises:
-        InvalidInputError: an unknown or repeated name.
+        InvalidInputError: an unknown or repeated name, or no name when ``empty_means_all`` is False.
     """
     if not names:
+        if not empty_means_all:
+            raise InvalidInputError(f"no joint_names; name the joints commanded (this arm has "
+                                    f"{list(model_names)})", field="joint_names", value=[])
         return list(range(len(model_names)))
     index = {n: i for i, n in enumerate(model_names)}
     unknown = [n for n in names if n not in index]
@@ -229,6 +242,7 @@ class CanDriverNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
         self._frame_id = p["frame_id"]
         self._request_timeout_s = float(p["request_timeout_s"])
         self._duplicate_check_s = float(p["duplicate_check_s"])
+        self._command_limit_tolerance = float(p["command_limit_tolerance_rad"])
         cfg = LoopConfig(
             rate_hz=float(p["rate_hz"]), poll_hz=float(p["poll_hz"]),
             hold_on_stream_stop_s=float(p["hold_on_stream_stop_s"]),
@@ -282,7 +296,8 @@ class CanDriverNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
         self._start_lock = threading.Lock()
         self._created = time.monotonic()
         self._start_timer = self.create_timer(0.05, self._on_start_timer)
-        watch_duplicates(self)
+        # A twin found after the start-up window: the younger one stops itself (see _yield_to_elder).
+        watch_duplicates(self, yield_to_elder=self._duplicate_check_s > 0, on_yield=self._yield_to_elder)
         iface = can_kwargs.get("interface") or "$CAN_INTERFACE"
         chan = can_kwargs.get("channel") or "$CAN_CHANNEL"
         where = "its own process" if self.separate_process else "a thread"
@@ -317,6 +332,27 @@ class CanDriverNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
                 return
             self.loop.start()
             self.started = True
+
+    def _yield_to_elder(self, reason: str) -> None:
+        """A twin of this name that started earlier was found after the start-up window: stop this
+        driver's own command stream (it sends nothing more). The elder's arm motion is left alone,
+        unless this one was commanding the modules too (running: its FSTEPs reached the same modules,
+        so what they did was a mix of both): then every module is halted first. Then :attr:`refused`
+        is set and ``on_refused`` called (``main()`` ends the process with exit code 1)."""
+        with self._start_lock:
+            if self.refused is not None:
+                return
+            self.refused = reason
+            started = self.started
+        if started and self.loop.state is LoopState.RUNNING:
+            ok, message = self.loop.request("halt", 5.0)
+            self.get_logger().error(f"this driver was commanding the modules too: {message}" if ok
+                                    else f"halting the modules before stopping failed: {message}")
+        if started:
+            self.loop.stop()  # sends nothing more
+        self.get_logger().error("stopped this driver's CAN cycle; the elder driver keeps the bus")
+        if self.on_refused is not None:
+            self.on_refused(reason)
 
     def _on_start_timer(self) -> None:
         """The start timer: try to start; once started (or refused) the timer cancels itself. Only
@@ -380,12 +416,37 @@ class CanDriverNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
             self._warn_throttled("not-running", why)
         return ok
 
-    def _warn_beyond_limits(self, index: Sequence[int], q: np.ndarray) -> None:
+    def _check_limits(self, index: Sequence[int], q: np.ndarray) -> None:
+        """Refuse positions ``q`` (k, m) for joints ``index`` further than ``command_limit_tolerance_rad``
+        beyond a joint limit; warn (throttled) about those within it, which the loop clamps.
+
+        Raises:
+            InvalidInputError: a position beyond a limit by more than the tolerance.
+        """
         lo, hi = self.arm.lower[list(index)], self.arm.upper[list(index)]
-        bad = np.nonzero((q < lo) | (q > hi))
-        if bad[0].size:
-            j = [self.joint_names[index[k]] for k in sorted(set(bad[-1].tolist()))]
+        excess = np.maximum(lo - q, q - hi)  # > 0: beyond a limit by that much (rad)
+        worst = excess.max(axis=0)
+        far = np.flatnonzero(worst > self._command_limit_tolerance)
+        if far.size:
+            what = ", ".join(
+                f"{self.joint_names[index[k]]} by {worst[k]:.4f} rad (limits [{lo[k]:.4f}, {hi[k]:.4f}])"
+                for k in far.tolist())
+            raise InvalidInputError(
+                f"positions beyond the joint limits: {what}; more than command_limit_tolerance_rad "
+                f"({self._command_limit_tolerance:g} rad): holding position", field="positions")
+        near = np.flatnonzero(worst > 0.0)
+        if near.size:
+            j = [self.joint_names[index[k]] for k in near.tolist()]
             self._warn_throttled("limits", f"command beyond joint limits for {j}: clamped to the limits")
+
+    def _check_limits_or_hold(self, index: Sequence[int], q: np.ndarray) -> None:
+        """:meth:`_check_limits`; a command refused for its limits also stops the one being followed:
+        a wildly wrong target is a bug upstream, and whatever that sender commanded before is suspect."""
+        try:
+            self._check_limits(index, q)
+        except InvalidInputError:
+            self.loop.commands.clear(None)
+            raise
 
     def _on_trajectory(self, msg: JointTrajectory) -> None:
         if not self._accepting():
@@ -396,7 +457,7 @@ class CanDriverNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
             self.get_logger().info("empty trajectory: holding position")
             return
         try:
-            index = map_joint_names(list(msg.joint_names), self.joint_names)
+            index = map_joint_names(list(msg.joint_names), self.joint_names, empty_means_all=False)
             if any(len(pt.positions) != len(index) for pt in msg.points):
                 raise InvalidInputError(f"every point needs {len(index)} positions", field="points")
             points = np.array([pt.positions for pt in msg.points], dtype=float)
@@ -410,11 +471,12 @@ class CanDriverNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
                 if ahead > FUTURE_STAMP_WARN_S:
                     self._warn_throttled("future-stamp", f"trajectory stamped {ahead:.1f} s ahead of this "
                                          "node's clock: it starts then (clocks not synchronised?)")
+            if not np.all(np.isfinite(points)):
+                raise InvalidInputError("trajectory contains NaN or inf", field="points")
+            self._check_limits_or_hold(index, points)
             self.loop.commands.set_trajectory(index, times, points, start)
         except InvalidInputError as exc:
             self._warn_throttled("bad-trajectory", f"trajectory refused: {exc}", 0.5)
-            return
-        self._warn_beyond_limits(index, points)
 
     def _on_joint_state_command(self, msg: JointState) -> None:
         if not self._accepting():
@@ -424,11 +486,12 @@ class CanDriverNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
             q = np.array(msg.position, dtype=float)
             if q.size != len(index):
                 raise InvalidInputError(f"{q.size} positions for {len(index)} joints", field="position")
+            if not np.all(np.isfinite(q)):
+                raise InvalidInputError("target contains NaN or inf", field="position")
+            self._check_limits_or_hold(index, q[None, :])
             self.loop.commands.set_stream_target(index, q, time.monotonic())
         except InvalidInputError as exc:
             self._warn_throttled("bad-joint-state", f"joint state command refused: {exc}", 0.5)
-            return
-        self._warn_beyond_limits(index, q[None, :])
 
     # -- services ---------------------------------------------------------------------------------------
     def _trigger(self, action: str) -> Any:
@@ -573,8 +636,10 @@ def module_info(snap: LoopSnapshot, j: int, module_id: int) -> dict[str, Any]:
         info["implausible"] = s.implausible
         if s.silent and level != DiagnosticStatus.ERROR:
             level, message = DiagnosticStatus.ERROR, "not answering"
-        elif s.implausible and level == DiagnosticStatus.OK:
-            level, message = DiagnosticStatus.WARN, f"{s.implausible} implausible positions refused"
+        elif s.implausible and s.implausible_age_s < IMPLAUSIBLE_WARN_S and level == DiagnosticStatus.OK:
+            # a warning while it lasts, not for ever: the count stays in `implausible`
+            level, message = DiagnosticStatus.WARN, (
+                f"{s.implausible} implausible positions refused (the last {s.implausible_age_s:.0f} s ago)")
     if snap.state is LoopState.HALTED and snap.fault is not None and snap.fault.involves(module_id):
         level, message = DiagnosticStatus.ERROR, snap.fault.message
     info["_level"], info["_message"] = level, message

@@ -30,7 +30,11 @@ deceleration ``acc`` (exact in discrete time).
   arrives late continues smoothly from wherever the reference is. So arrival jitter does not reach the
   reference. When the stream stops, the joint brakes onto the last target; a stream that stops faster
   than ``acc`` allows is overshot by up to ``v^2 / 2 acc``, as an acceleration-limited joint must (but
-  never beyond a position limit).
+  never beyond a position limit). Nor beyond where the host's stream can stop at the earliest (its
+  newest target plus the braking distance of its newest step): a stream that arrives late, in bursts,
+  lets the joint overtake the reference while the buffer is dry, and a host that brakes for a margin
+  of its own (the CAN driver keeps 1 mrad from each limit) would otherwise see the joint pass it; the
+  speed is bounded for that point and the integration clamped to it.
 
 Acceleration is limited everywhere, velocity is capped everywhere, and the setpoint never leaves
 ``[lower, upper]``. Units: rad, rad/s, rad/s^2, s.
@@ -118,6 +122,7 @@ class JointRamp:
         self._tau = self._s = 0.0
         self._knot = self._knot_vel = self._knot_dur = 0.0
         self._pending: deque[tuple[float, float]] = deque()  # (target, duration) waiting to play
+        self._host = (self.pos, 0.0, 0.0)  # newest streamed target (rad), its step's velocity and duration
         self._streaming = False
         self._stream_until = -math.inf  # an FSTEP before this time continues the stream
         self._single_end = 0.0  # when the last single FSTEP move was due to arrive
@@ -227,6 +232,8 @@ class JointRamp:
     # -- stream playback ---------------------------------------------------------------------------
     def _queue_step(self, target: float, dur: float) -> None:
         """Take one streamed step: queue it behind a playing piece, or start playing it now."""
+        prev = self._pending[-1][0] if self._pending else self._knot
+        self._host = (target, (target - prev) / dur, dur)  # the host's newest position, velocity, step
         if self._piece is _Piece.HERMITE:
             if len(self._pending) >= STREAM_BUFFER:
                 self._pending.popleft()
@@ -256,6 +263,16 @@ class JointRamp:
         self._tau, self._s = max(tau, 1e-9), 0.0
         self._piece = _Piece.HERMITE
         self._knot, self._knot_vel, self._knot_dur = target, u, dur
+
+    def _stream_fence(self, a: float) -> tuple[float, float]:
+        """(lower, upper) bound (rad) of the setpoint while streaming: the hull of the reference and of
+        where the host's stream can stop at the earliest, i.e. its newest target widened in the
+        direction of that step's velocity ``u`` by the distance a host braking at ``a`` from there
+        covers (its next step is at least ``|u| - a h`` fast; its steps last ``h``)."""
+        q, u, h = self._host
+        d = _braking_distance(abs(u) - a * h, a, h)
+        lo, hi = (q - d if u < 0.0 else q), (q + d if u > 0.0 else q)
+        return min(lo, self.ref), max(hi, self.ref)
 
     def _advance_reference(self, dt: float) -> float:
         """Move the stream reference on by ``dt`` (s) through its pieces; returns its mean velocity."""
@@ -312,6 +329,16 @@ class JointRamp:
                     v_des = min(v_des, braking_speed_scalar(err + d_ref, a, dt))
                 else:
                     v_des = max(v_des, -braking_speed_scalar(d_ref - err, a, dt))
+            if self._streaming:
+                # The host's stream stops at the earliest on its last target plus the braking distance
+                # of that step's velocity (a host braking for a limit of its own, e.g. the CAN driver's
+                # margin, stops there): never faster than allows stopping on that point, and never
+                # past it (below). A joint that overtook a late stream (the buffer ran dry, the
+                # reference stopped, the joint ran on) otherwise stayed ahead of it and passed the
+                # host's stop: 0.5-0.9 mrad past the driver's 1 mrad margin.
+                fence_lo, fence_hi = self._stream_fence(a)
+                v_des = min(v_des, braking_speed_scalar(fence_hi - self.pos, a, dt))
+                v_des = max(v_des, -braking_speed_scalar(self.pos - fence_lo, a, dt))
             v_des = max(-vcap, min(vcap, v_des))
         elif mode is RampMode.VELOCITY:
             v_des = self.target_vel
@@ -330,6 +357,16 @@ class JointRamp:
                 self.pos, self.mode = self.target, RampMode.IDLE
                 self._streaming = False
                 return self.pos
+        if mode is RampMode.POSITION and self._streaming:
+            # Clamp the integration too, not only the speed: a step never carries the setpoint past the
+            # host's stop point (it binds only after a late stream let the joint overtake it).
+            fence_lo, fence_hi = self._stream_fence(a)
+            if p_new > fence_hi and v_new > 0.0:
+                p_new = max(self.pos, fence_hi)
+                v_new = (p_new - self.pos) / dt
+            elif p_new < fence_lo and v_new < 0.0:
+                p_new = min(self.pos, fence_lo)
+                v_new = (p_new - self.pos) / dt
         if p_new >= self.upper or p_new <= self.lower:
             # Only reached when the joint already moved too fast towards a limit (it started outside
             # the braking envelope, e.g. after set_limits): stop on the limit rather than pass it.
