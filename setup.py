@@ -103,6 +103,8 @@ setup(
     ),
     license="Apache-2.0",
     tests_require=["pytest"],
+    # the placement study on a cluster (redarm-placement --engine dask); the default runs without it
+    extras_require={"cluster": ["dask[distributed]>=2024.1"]},
     entry_points={
         "console_scripts": [
             # ROS nodes (ros2 run redarm_ros <name>)
@@ -117,6 +119,7 @@ setup(
             "redarm-canbus = redarm_ros.can.bus_server:main",
             "redarm-bringup = redarm_ros.bringup:main",
             "redarm-demo = redarm_ros.demo:main",
+            "redarm-placement = redarm_ros.placement.cli:main",
             # ROS nodes with their own command line: the browser view and the MCAP recorder
             "redarm-view = redarm_ros.nodes.view:main",
             "redarm-record = redarm_ros.nodes.record:main",

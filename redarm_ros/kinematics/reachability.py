@@ -35,7 +35,9 @@ from redarm_ros.kinematics.loader import load_arm
 from redarm_ros.kinematics.protocols import has_swivel
 from redarm_ros.kinematics.swivel import SwivelArm
 
-__all__ = ["CapabilityMap", "orientation_set", "capability_map", "save_map", "main"]
+__all__ = [
+    "CapabilityMap", "orientation_set", "feasible_measure_poses", "capability_map", "save_map", "main"
+]
 
 _log = logging.getLogger(__name__)
 
@@ -75,6 +77,25 @@ def orientation_set(k: int) -> np.ndarray:
     return np.stack([bx, by, a], axis=2)
 
 
+def feasible_measure_poses(arm: SwivelArm, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For (k, 4, 4) poses (base frame, m): the measure (rad, 0..2 pi) of each pose's feasible swivel
+    set, union over the 8 flip patterns, and whether it has any in-limit solution (k,) bool.
+
+    Exact (the closed-form interval ends of :mod:`.feasible`), batched; a pose out of reach has
+    measure 0 and no solution. No input checks: the caller passes finite homogeneous poses.
+    """
+    Pn = [[T[:, i, j] for j in range(4)] for i in range(3)]
+    Kc, t4, dsh, dwr, ok = arm._functions_np(Pn)  # noqa: SLF001
+    width = np.zeros(len(T))
+    anyok = np.zeros(len(T), bool)
+    r = np.nonzero(ok)[0]
+    if len(r):
+        tab = arm._interval_tables  # noqa: SLF001 - the arm's limit tables (those of feasible_swivels)
+        with np.errstate(invalid="ignore"):
+            width[r], anyok[r] = feasible_measure_batch(Kc[r], t4[r], dsh[r], dwr[r], tab)
+    return width, anyok
+
+
 def capability_map(
     arm: SwivelArm, step: float = 0.1, orientations: int = 32, chunk: int = 4096
 ) -> CapabilityMap:
@@ -99,22 +120,13 @@ def capability_map(
     pts = np.nonzero(inside)[0]
     K = len(Rs)
     per = max(1, chunk // K)
-    tab = arm._interval_tables  # noqa: SLF001 - the arm's limit tables (those of feasible_swivels)
     for k0 in range(0, len(pts), per):
         idx = pts[k0 : k0 + per]
         T = np.zeros((len(idx), K, 4, 4))
         T[:, :, :3, :3] = Rs[None]
         T[:, :, :3, 3] = (P[idx] + (0.0, 0.0, L1))[:, None, :]
         T[:, :, 3, 3] = 1.0
-        T = T.reshape(-1, 4, 4)
-        Pn = [[T[:, i, j] for j in range(4)] for i in range(3)]
-        Kc, t4, dsh, dwr, ok = arm._functions_np(Pn)  # noqa: SLF001
-        width = np.zeros(len(T))
-        anyok = np.zeros(len(T), bool)
-        r = np.nonzero(ok)[0]
-        if len(r):
-            with np.errstate(invalid="ignore"):
-                width[r], anyok[r] = feasible_measure_batch(Kc[r], t4[r], dsh[r], dwr[r], tab)
+        width, anyok = feasible_measure_poses(arm, T.reshape(-1, 4, 4))
         width = width.reshape(len(idx), K)
         anyok = anyok.reshape(len(idx), K)
         frac[idx] = anyok.mean(axis=1)
