@@ -246,3 +246,14 @@ def test_base_height_and_yaw_move_the_tasks_into_the_base_frame():
     i = int(res.ranking()[0])
     for T in problem.tasks:
         assert len(arm.ik(np.linalg.inv(B[i]) @ T)) > 0
+
+
+def test_capability_map_is_the_same_on_worker_processes():
+    from redarm_ros.kinematics.reachability import capability_map
+
+    arm = load_arm("pa10")
+    one = capability_map(arm, step=0.25, orientations=8, chunk=256)
+    two = capability_map(arm, step=0.25, orientations=8, chunk=256, workers=2)
+    assert one.fraction.tobytes() == two.fraction.tobytes()
+    assert one.width.tobytes() == two.width.tobytes()
+    assert one.fraction.max() > 0.5

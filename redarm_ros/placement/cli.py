@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from redarm_ros.errors import InvalidInputError
-from redarm_ros.placement.engine import ENGINES
+from redarm_ros.parallel import ENGINES
 from redarm_ros.placement.problem import load_problem
 from redarm_ros.placement.study import PlacementResult, place
 

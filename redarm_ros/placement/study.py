@@ -1,8 +1,8 @@
 """The placement study: every base pose of the grid scored for the task set, and the ranking.
 
 ``place(problem)`` splits the grid into chunks of ``CHUNK`` base poses (a fixed size, so results do not
-depend on the engine or the worker count), evaluates them on the chosen engine (:mod:`.engine`) and
-assembles a :class:`PlacementResult`.
+depend on the engine or the worker count), evaluates them on the chosen engine
+(:mod:`redarm_ros.parallel`) and assembles a :class:`PlacementResult`.
 
 Ranking: only **valid** base poses take part: footprint clear, every task reachable in the limits with
 a collision-free solution. They are ordered by robustness (the narrowest feasible swivel set over the
@@ -18,7 +18,7 @@ from typing import TextIO
 
 import numpy as np
 
-from redarm_ros.placement.engine import map_chunks
+from redarm_ros.parallel import map_chunks
 from redarm_ros.placement.evaluate import ChunkResult, evaluate_rows
 from redarm_ros.placement.problem import PlacementProblem
 
@@ -94,8 +94,9 @@ def place(problem: PlacementProblem, *, engine: str = "local", workers: int | No
           chunk: int = CHUNK) -> PlacementResult:
     """Score every base pose of ``problem.grid`` for the task set (module doc).
 
-    ``engine``/``workers``/``address``: see :func:`~.engine.map_chunks`; ``prune=False`` checks every
-    pair exactly (no inverse reachability); ``progress``: a stream for the progress bar (None: quiet).
+    ``engine``/``workers``/``address``: see :func:`redarm_ros.parallel.map_chunks`; ``prune=False``
+    checks every pair exactly (no inverse reachability); ``progress``: a stream for the progress bar
+    (None: quiet).
     """
     N = problem.grid.size
     chunks = [np.arange(a, min(a + chunk, N)) for a in range(0, N, chunk)]

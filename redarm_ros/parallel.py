@@ -1,6 +1,9 @@
 """Run independent chunks of work: in this process, in local worker processes, or on a Dask cluster.
 
-The placement study is embarrassingly parallel over base poses. Every engine maps one function over the
+Used by the placement study and the capability map; it depends on nothing of the package but
+``errors.py``, so any layer may use it.
+
+Both are embarrassingly parallel (over base poses, over voxels). Every engine maps one function over the
 same list of chunks and returns the results in chunk order, so the outcome does not depend on the
 engine or the number of workers.
 
