@@ -7,8 +7,9 @@ Both are embarrassingly parallel (over base poses, over voxels). Every engine ma
 same list of chunks and returns the results in chunk order, so the outcome does not depend on the
 engine or the number of workers.
 
-* ``local`` (default): ``workers`` processes of this machine (``concurrent.futures`` with the spawn
-  start method: no state shared with the caller's threads); ``workers=1`` runs in this process.
+* ``local`` (default): ``workers`` processes of this machine (``concurrent.futures``); ``workers=1``
+  runs in this process. Workers are forked when the caller runs a single thread (they start in
+  milliseconds), and spawned otherwise (a fork of a threaded process can inherit a held lock).
 * ``dask``: a ``distributed`` scheduler at ``address`` (``tcp://host:port``), or, without an address,
   a local cluster of ``workers`` processes bound to 127.0.0.1. Dask is an optional extra
   (``pip install redarm_ros[cluster]``, i.e. ``dask[distributed]``); without it only ``local`` exists.
@@ -23,6 +24,7 @@ import concurrent.futures as cf
 import multiprocessing
 import os
 import sys
+import threading
 import time
 from collections.abc import Callable, Sequence
 from typing import Any, TextIO
@@ -96,7 +98,7 @@ def map_chunks(fn: Callable[..., Any], chunks: Sequence[Any], *, args: tuple[Any
             bar.step()
         return out
     if engine == "local":
-        ctx = multiprocessing.get_context("spawn")
+        ctx = multiprocessing.get_context("fork" if threading.active_count() == 1 else "spawn")
         with cf.ProcessPoolExecutor(max_workers=min(n, len(chunks)), mp_context=ctx) as pool:
             futs = {pool.submit(fn, *args, c): i for i, c in enumerate(chunks)}
             for f in cf.as_completed(futs):

@@ -105,7 +105,7 @@ def _brute_force(problem):
             Q = [q for rows in sols for q in rows]
             best = math.nan
             for q in Q:
-                mg = float(np.minimum(q - arm.lower, arm.upper - q).min())
+                mg = float(np.minimum(q - arm.lower, arm.upper - q)[arm.upper > arm.lower].min())
                 if not math.isnan(best) and mg <= best:
                     continue
                 if self_collision(arm, q, model=md).min_distance < 0:
@@ -257,3 +257,26 @@ def test_capability_map_is_the_same_on_worker_processes():
     assert one.fraction.tobytes() == two.fraction.tobytes()
     assert one.width.tobytes() == two.width.tobytes()
     assert one.fraction.max() > 0.5
+
+
+def test_placement_benchmark_smoke(monkeypatch, capsys):
+    """benchmarks/placement_bench.py in quick mode on the powercube6 task set: every section is there and
+    pruning changes nothing."""
+    import importlib.util
+    import sys
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "placement_bench.py"
+    monkeypatch.syspath_prepend(str(path.parent))
+    spec = importlib.util.spec_from_file_location("placement_bench", path)
+    mod = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, "placement_bench", mod)
+    spec.loader.exec_module(mod)
+    monkeypatch.setattr(mod, "TASK_SETS", ("table_powercube6",))
+    assert mod.main(["--quick", "--no-write"]) == 0
+    out = capsys.readouterr().out
+    for title in ("pruning and agreement", "throughput per core", "workers", "cost model and plan",
+                  "Capability map through the engine"):
+        assert title in out
+    assert "every array is identical: **True**; rankings equal: **True**" in out
+    assert "| 64 | 1024 |" in out

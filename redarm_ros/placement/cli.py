@@ -136,8 +136,9 @@ def main(argv: Sequence[str] | None = None) -> int:
               100 * res.pruned_share, len(rank))
     for k, i in enumerate(rank[: args.top], 1):
         x, y, w = res.poses[i]
-        _log.info("  %2d. x %+.3f m, y %+.3f m, yaw %6.1f deg: robustness %.3f rad, margin %.3f rad",
-                  k, x, y, math.degrees(w), res.robustness[i], res.worst_margin[i])
+        rob = "" if math.isnan(res.robustness[i]) else f"robustness {res.robustness[i]:.3f} rad, "
+        _log.info("  %2d. x %+.3f m, y %+.3f m, yaw %6.1f deg: %smargin %.3f rad",
+                  k, x, y, math.degrees(w), rob, res.worst_margin[i])
     _log.info("wrote %s", ", ".join(str(p) for p in paths))
     return 0 if len(rank) else 1
 

@@ -51,7 +51,7 @@ class ChunkResult:
     ``footprint_ok`` (n,): the base footprint is clear of the scene; ``checked`` (n,): the collision
     stage ran (footprint clear and every task reachable); ``free`` (n, m): a collision-free in-limit
     solution was found (only where checked); ``margin`` (n, m): that solution's smallest distance to a
-    joint limit (rad; NaN where not checked or none found).
+    limit of a joint that can move (rad; NaN where not checked or none found).
     """
 
     rows: np.ndarray
@@ -135,7 +135,8 @@ def _free_margins(arm: Any, Tb: np.ndarray, Bk: np.ndarray, scene: Scene | None,
         return out
     Q = np.concatenate(cands)
     owner = np.repeat(np.arange(len(Tb)), counts)
-    margin = np.minimum(Q - arm.lower, arm.upper - Q).min(axis=1)
+    moving = arm.upper > arm.lower  # a locked joint (powercube6's joint 3) has no margin to keep
+    margin = np.minimum(Q - arm.lower, arm.upper - Q)[:, moving].min(axis=1)
     if model is not None:
         clear = self_collision_batch(arm, Q, model=model).min_distance >= 0.0
     else:
