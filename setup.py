@@ -90,6 +90,7 @@ setup(
         (f"share/{PACKAGE}/config", glob("config/*.yaml") + glob("config/*.rviz")),
         (f"share/{PACKAGE}/config/arms", glob("config/arms/*.yaml")),
         (f"share/{PACKAGE}/config/scenes", glob("config/scenes/*.yaml")),
+        (f"share/{PACKAGE}/config/placement", glob("config/placement/*.yaml")),
         (f"share/{PACKAGE}/launch", glob("launch/*.launch.py")),
     ],
     cmdclass={"build_py": BuildPyWithURDF, "develop": DevelopWithURDF},
@@ -103,6 +104,8 @@ setup(
     ),
     license="Apache-2.0",
     tests_require=["pytest"],
+    # the placement study on a cluster (redarm-placement --engine dask); the default runs without it
+    extras_require={"cluster": ["dask[distributed]>=2024.1"]},
     entry_points={
         "console_scripts": [
             # ROS nodes (ros2 run redarm_ros <name>)
@@ -117,6 +120,7 @@ setup(
             "redarm-canbus = redarm_ros.can.bus_server:main",
             "redarm-bringup = redarm_ros.bringup:main",
             "redarm-demo = redarm_ros.demo:main",
+            "redarm-placement = redarm_ros.placement.cli:main",
             # ROS nodes with their own command line: the browser view and the MCAP recorder
             "redarm-view = redarm_ros.nodes.view:main",
             "redarm-record = redarm_ros.nodes.record:main",

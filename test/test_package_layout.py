@@ -61,6 +61,7 @@ PIP_ONLY = {
     "mcap": "mcap: MCAP recordings (redarm-record); pip only",
     "mcap_ros2": "mcap-ros2-support: ROS 2 schemas for MCAP recordings; pip only",
     "websocket": "websocket-client: the browser test's DevTools client; pip only",
+    "distributed": "dask distributed: redarm-placement's optional cluster engine (extra 'cluster'); pip only",
 }
 
 

@@ -26,6 +26,7 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TextIO
 
 import numpy as np
 
@@ -34,8 +35,11 @@ from redarm_ros.kinematics.feasible import feasible_measure_batch
 from redarm_ros.kinematics.loader import load_arm
 from redarm_ros.kinematics.protocols import has_swivel
 from redarm_ros.kinematics.swivel import SwivelArm
+from redarm_ros.parallel import ENGINES, map_chunks
 
-__all__ = ["CapabilityMap", "orientation_set", "capability_map", "save_map", "main"]
+__all__ = [
+    "CapabilityMap", "orientation_set", "feasible_measure_poses", "capability_map", "save_map", "main"
+]
 
 _log = logging.getLogger(__name__)
 
@@ -75,10 +79,48 @@ def orientation_set(k: int) -> np.ndarray:
     return np.stack([bx, by, a], axis=2)
 
 
+def feasible_measure_poses(arm: SwivelArm, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For (k, 4, 4) poses (base frame, m): the measure (rad, 0..2 pi) of each pose's feasible swivel
+    set, union over the 8 flip patterns, and whether it has any in-limit solution (k,) bool.
+
+    Exact (the closed-form interval ends of :mod:`.feasible`), batched; a pose out of reach has
+    measure 0 and no solution. No input checks: the caller passes finite homogeneous poses.
+    """
+    Pn = [[T[:, i, j] for j in range(4)] for i in range(3)]
+    Kc, t4, dsh, dwr, ok = arm._functions_np(Pn)  # noqa: SLF001
+    width = np.zeros(len(T))
+    anyok = np.zeros(len(T), bool)
+    r = np.nonzero(ok)[0]
+    if len(r):
+        tab = arm._interval_tables  # noqa: SLF001 - the arm's limit tables (those of feasible_swivels)
+        with np.errstate(invalid="ignore"):
+            width[r], anyok[r] = feasible_measure_batch(Kc[r], t4[r], dsh[r], dwr[r], tab)
+    return width, anyok
+
+
+def _voxel_chunk(arm: SwivelArm, Rs: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(fraction, summed width) of the voxel centres P (k, 3) (base frame, m) over the orientations Rs:
+    one unit of work (module-level, so worker processes import it by name)."""
+    K = len(Rs)
+    T = np.zeros((len(P), K, 4, 4))
+    T[:, :, :3, :3] = Rs[None]
+    T[:, :, :3, 3] = P[:, None, :]
+    T[:, :, 3, 3] = 1.0
+    width, anyok = feasible_measure_poses(arm, T.reshape(-1, 4, 4))
+    return anyok.reshape(len(P), K).mean(axis=1), width.reshape(len(P), K).sum(axis=1)
+
+
 def capability_map(
-    arm: SwivelArm, step: float = 0.1, orientations: int = 32, chunk: int = 4096
+    arm: SwivelArm, step: float = 0.1, orientations: int = 32, chunk: int = 4096, *,
+    engine: str = "local", workers: int | None = 1, address: str | None = None,
+    progress: TextIO | None = None,
 ) -> CapabilityMap:
-    """The capability map of ``arm`` on a grid of ``step`` m around the shoulder (see the module doc)."""
+    """The capability map of ``arm`` on a grid of ``step`` m around the shoulder (see the module doc).
+
+    ``chunk`` poses (voxels x orientations) make one unit of work; ``engine``, ``workers``, ``address``
+    choose where the units run (:func:`redarm_ros.parallel.map_chunks`: in this process by default, in
+    local worker processes, or on a Dask cluster); the map is the same bit for bit on every engine.
+    """
     if not has_swivel(arm):
         raise InvalidInputError(
             f"arm {arm.name!r} has no swivel parameterisation", field="arm", value=arm.name
@@ -97,29 +139,13 @@ def capability_map(
     frac = np.zeros(P.shape[0])
     wsum = np.zeros(P.shape[0])
     pts = np.nonzero(inside)[0]
-    K = len(Rs)
-    per = max(1, chunk // K)
-    tab = arm._interval_tables  # noqa: SLF001 - the arm's limit tables (those of feasible_swivels)
-    for k0 in range(0, len(pts), per):
-        idx = pts[k0 : k0 + per]
-        T = np.zeros((len(idx), K, 4, 4))
-        T[:, :, :3, :3] = Rs[None]
-        T[:, :, :3, 3] = (P[idx] + (0.0, 0.0, L1))[:, None, :]
-        T[:, :, 3, 3] = 1.0
-        T = T.reshape(-1, 4, 4)
-        Pn = [[T[:, i, j] for j in range(4)] for i in range(3)]
-        Kc, t4, dsh, dwr, ok = arm._functions_np(Pn)  # noqa: SLF001
-        width = np.zeros(len(T))
-        anyok = np.zeros(len(T), bool)
-        r = np.nonzero(ok)[0]
-        if len(r):
-            with np.errstate(invalid="ignore"):
-                width[r], anyok[r] = feasible_measure_batch(Kc[r], t4[r], dsh[r], dwr[r], tab)
-        width = width.reshape(len(idx), K)
-        anyok = anyok.reshape(len(idx), K)
-        frac[idx] = anyok.mean(axis=1)
-        wsum[idx] = width.sum(axis=1)
-    cnt = frac * K
+    per = max(1, chunk // len(Rs))
+    parts = [pts[k0 : k0 + per] for k0 in range(0, len(pts), per)]
+    done = map_chunks(_voxel_chunk, [P[idx] + (0.0, 0.0, L1) for idx in parts], args=(arm, Rs),
+                      engine=engine, workers=workers, address=address, progress=progress, label="voxels")
+    for idx, (f, w) in zip(parts, done, strict=True):
+        frac[idx], wsum[idx] = f, w
+    cnt = frac * len(Rs)
     mean_w = np.where(cnt > 0, wsum / np.maximum(cnt, 1), 0.0)
     shape = (len(x), len(y), len(z))
     return CapabilityMap(arm.name, step, x, y, z, frac.reshape(shape), mean_w.reshape(shape), Rs)
@@ -177,12 +203,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--step", type=float, default=0.1, help="voxel size in m (default 0.1)")
     ap.add_argument("--orientations", type=int, default=32, help="tool orientations per voxel (default 32)")
     ap.add_argument("--out", type=Path, default=Path("reachability_output"), help="output directory")
+    ap.add_argument("--engine", choices=ENGINES, default="local", help="where the work runs (default local)")
+    ap.add_argument("--workers", type=int, default=1, help="local worker processes (default 1: this process)")
+    ap.add_argument("--address", default=None, help="Dask scheduler address, tcp://host:port")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     try:
         arm = load_arm(args.arm)
         t0 = time.perf_counter()
-        cmap = capability_map(arm, args.step, args.orientations)
+        cmap = capability_map(arm, args.step, args.orientations, engine=args.engine, workers=args.workers,
+                              address=args.address, progress=sys.stderr if sys.stderr.isatty() else None)
     except InvalidInputError as exc:
         _log.error("reachability: %s", exc)
         return 2
