@@ -151,6 +151,7 @@ def test_viewer_draws_the_map_and_explains_it(tmp_path: Path) -> None:
         v = ArmViewer(srv, model_for_arm("pa10"))
         f = placement_floor(_data())
         v.set_placement(f, "run/placements.npz")
+        np.testing.assert_allclose(srv.scene._handle_from_node_name["/ground"].position, (0.4, 0.0, -H))
         names = sorted(n.name for n in v._placement_nodes)
         assert names == ["/placement/best", "/placement/extent", "/placement/share_0", "/placement/share_1",
                          "/placement/tasks", "/placement/valid"]

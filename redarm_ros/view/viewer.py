@@ -13,7 +13,8 @@ it works offline):
   gizmo's position (m) and orientation (quaternion x, y, z, w) in the arm's base frame; the
   "Reach (action)" button hands the same pose to ``on_reach``;
 * a status panel (:meth:`ArmViewer.set_status`): phase, swivel, clearance, driver state, loop rates;
-* optionally a base-placement heat map on the floor under the arm (:meth:`ArmViewer.set_placement`).
+* optionally a base-placement heat map on the floor under the arm (:meth:`ArmViewer.set_placement`;
+  the ground grid then moves down to that floor).
 
 The node :mod:`redarm_ros.nodes.view` feeds it from ROS topics. Units: m, rad.
 """
@@ -188,8 +189,7 @@ class ArmViewer:
 
         scene = server.scene
         scene.set_up_direction("+z")
-        scene.add_grid("/ground", width=2.0, height=2.0, cell_size=0.1, section_size=0.5,
-                       plane="xy", position=(0.4, 0.0, 0.0))
+        self._add_ground(0.0)
         cam = server.initial_camera
         cam.position = (1.45, -1.25, 1.0)
         cam.look_at = (0.3, 0.0, 0.4)
@@ -220,6 +220,11 @@ class ArmViewer:
                 hint="send the gizmo pose as a Reach action goal (/controller/reach)" if on_reach is not None
                 else "no Reach action client")
             self.reach_button.on_click(lambda _evt: self._reach())
+
+    def _add_ground(self, z: float) -> None:
+        # Same name: a second call moves the grid (to the placement map's floor).
+        self.server.scene.add_grid("/ground", width=2.0, height=2.0, cell_size=0.1, section_size=0.5,
+                                   plane="xy", position=(0.4, 0.0, z))
 
     # -- robot -----------------------------------------------------------------------------------------
     def _build_robot(self, model: UrdfModel) -> None:
@@ -398,9 +403,11 @@ class ArmViewer:
     # -- placement map ---------------------------------------------------------------------------------
     def set_placement(self, floor: PlacementFloor, source: str = "") -> None:
         """Draw a placement heat map on the floor (:mod:`redarm_ros.view.placement_floor`: the arm stands
-        at the best placement) and explain it in a "Placement" panel; a second call replaces it."""
+        at the best placement; the ground grid moves down to that floor) and explain it in a "Placement"
+        panel; a second call replaces it."""
         scene = self.server.scene
         with self._lock:
+            self._add_ground(-floor.base_height)
             for node in self._placement_nodes:
                 node.remove()
             nodes = [scene.add_mesh_simple(f"/placement/share_{k}", verts, faces, color=rgb, side="double",
