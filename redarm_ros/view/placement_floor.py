@@ -67,7 +67,7 @@ class PlacementFloor:
         src = f"`{Path(source).name}`, " if source else ""
         return (f"{src}{self.arm}: {self.n_valid} of {self.n_poses} base poses valid.\n\n{head}\n\n"
                 "Floor squares: share of the tasks reachable with the base there (best yaw; yellow = all). "
-                "White outline: some yaw is valid there. Red cross and line: the best placement and its "
+                "Black outline: some yaw is valid there. Red cross and line: the best placement and its "
                 "heading. Red dots: the tasks.")
 
 

@@ -413,7 +413,7 @@ class ArmViewer:
             nodes = [scene.add_mesh_simple(f"/placement/share_{k}", verts, faces, color=rgb, side="double",
                                            cast_shadow=False, receive_shadow=False)
                      for k, (rgb, verts, faces) in enumerate(floor_meshes(floor))]
-            for name, segs, rgb, width in (("valid", floor.outline, (255, 255, 255), 0.008),
+            for name, segs, rgb, width in (("valid", floor.outline, (20, 20, 20), 0.008),
                                            ("extent", floor.extent, (150, 150, 150), 0.004),
                                            ("best", floor.best_mark, (230, 30, 30), 0.012)):
                 if len(segs):
