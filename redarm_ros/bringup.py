@@ -8,7 +8,8 @@ Starts, in order, each waiting for its readiness line:
 4. ``ik_service``     - the SolveIK service node;
 5. ``controller``     - the attractor-dynamics reaching controller (``/goal_pose``);
 6. ``description``    - the arm's URDF on ``/robot_description`` (transient local).
-7. ``view``           - with ``--view``: the browser view (``redarm-view``, http://127.0.0.1:8080/).
+7. ``view``           - with ``--view``: the browser view (``redarm-view``, http://127.0.0.1:8080/);
+   ``--view-placement NPZ`` has it draw a ``redarm-placement`` heat map on the floor.
 
 Every child gets the workplace DDS rules (``FASTDDS_BUILTIN_TRANSPORTS=SHM``, its own
 ``ROS_DOMAIN_ID``: the caller's if set, else a random one in 1..200), its output is forwarded line by
@@ -111,6 +112,7 @@ class StackConfig:
     view: bool = False  # also start the browser view (redarm-view) on 127.0.0.1:view_port
     view_port: int = 8080
     namespace: str | None = None  # ROS namespace of every node (e.g. /left: /left/joint_states, ...)
+    view_placement: str = ""  # placements.npz of redarm-placement drawn by the view ('' = none)
     extra_args: dict[str, list[str]] = field(default_factory=dict)  # per child: appended arguments
 
 
@@ -247,6 +249,8 @@ class Stack:
                 params = {"arm": cfg.arm, "port": str(int(cfg.view_port))}
                 if cfg.scene and not cfg.controller:  # the controller's markers already show its scene
                     params["scene"] = cfg.scene
+                if cfg.view_placement:
+                    params["placement"] = cfg.view_placement
                 self._start_node("view", params)
         except BaseException:
             self.stop()
@@ -373,6 +377,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--view-port", type=int, default=8080, help="port of the browser view (default 8080)")
     ap.add_argument("--namespace", help="ROS namespace of every node (e.g. /left: topics /left/joint_states, "
                     "/left/goal_pose, services /left/can_driver/init, ...); default none")
+    ap.add_argument("--view-placement", default="", metavar="NPZ",
+                    help="placements.npz of redarm-placement: the view draws its heat map on the floor")
     ap.add_argument("--gui", action="store_true", help="open the pybullet GUI (needs a display)")
     ap.add_argument("--status-file", type=Path, help="where the simulator writes its JSON status")
     ap.add_argument("--snapshot-dir", type=Path, help="where the simulator writes PNG snapshots")
@@ -420,6 +426,7 @@ def config_from_args(ns: argparse.Namespace) -> StackConfig:
         view=ns.view,
         view_port=ns.view_port,
         namespace=ns.namespace,
+        view_placement=ns.view_placement,
     )
 
 

@@ -19,6 +19,9 @@ ROS client:
    recording's topic counts) and the PNGs in ``<output>/snapshots``; the children's output goes to
    ``<output>/stack.log``.
 
+With ``--placement`` it first runs the base-placement study (:mod:`redarm_ros.placement`) for its goal
+set: prints the best base pose and whether the current one is valid, writes ``<output>/placement/``.
+
 Exit code 0 only if every reachable goal was reached within 1 mm / 0.01 rad on the simulated tool,
 the out-of-reach goal was reported as such and the recording (and GIF, unless ``--gif-fps 0``) was
 written; 1 otherwise; 2 if the stack could not start.
@@ -168,6 +171,51 @@ DEMOS = {
     "powercube7": ArmDemo("powercube7", READY_Q, POWERCUBE7_SCENE, POWERCUBE7_GOALS),
     "powercube6": ArmDemo("powercube6", (0.0, 1.0, 0.0, -1.7, -0.9, 0.0), POWERCUBE6_SCENE, POWERCUBE6_GOALS),
 }
+
+#: ``--placement``: the grid of base poses around the current base (world = the base frame at (0, 0, 0)).
+PLACEMENT_GRID: dict[str, Any] = {"x": [-1.0, 1.0], "y": [-1.0, 1.0], "step": 0.1, "yaw_step_deg": 45.0}
+
+
+def demo_placement_problem(demo: ArmDemo, grid: dict[str, Any] | None = None) -> Any:
+    """The demo's goal set as a placement task set: the goals it expects to reach (the out-of-reach one
+    is there to be rejected), in the arm's base frame as the world, base height 0, the demo's scene, and
+    ``grid`` (task-file form; default :data:`PLACEMENT_GRID`)."""
+    from redarm_ros.kinematics.quaternion import matrix_to_quat, to_xyzw
+    from redarm_ros.placement import problem_from_dict
+
+    tasks = []
+    for g in demo.goals:
+        if g.reachable:
+            T = g.matrix()
+            tasks.append({"name": g.name, "position": [float(v) for v in T[:3, 3]],
+                          "quaternion_xyzw": [float(v) for v in to_xyzw(matrix_to_quat(T[:3, :3]))]})
+    return problem_from_dict({"arm": demo.arm, "base_height": 0.0, "grid": grid or PLACEMENT_GRID,
+                              "scene": demo.scene, "tasks": tasks})
+
+
+def demo_placement(demo: ArmDemo, out_dir: Path, say: Callable[[str], None],
+                   grid: dict[str, Any] | None = None, plots: bool = True, workers: int | None = None) -> Any:
+    """Run the placement study for the demo's goals (:func:`demo_placement_problem`) on ``workers`` local
+    processes (None: all cores; 1: this process; the results are the same), write ``redarm-placement``'s
+    outputs (placements.npz, ranking.csv, heat maps) into ``out_dir``, say the best placement and whether
+    the current base pose (0, 0, 0) is valid; return the PlacementResult."""
+    from redarm_ros.placement import place
+    from redarm_ros.placement.cli import write_outputs
+
+    res = place(demo_placement_problem(demo, grid), workers=workers)
+    write_outputs(res, out_dir, plots=plots)
+    summary = res.summary(top=1)
+    here = res.index_of(0.0, 0.0, 0.0)
+    here_text = "not on the grid" if here is None else ("valid" if res.valid[here] else "NOT valid")
+    if summary["best"]:
+        b = summary["best"][0]
+        best_text = f"best x {b['x']:+.2f} m, y {b['y']:+.2f} m, yaw {b['yaw_deg']:.0f} deg"
+    else:
+        best_text = "no valid placement"
+    say(f"placement for the {len(res.problem.tasks)} reachable goals: {summary['valid']} of "
+        f"{summary['base_poses']} base poses valid; {best_text}; the current base (0, 0, 0) is {here_text} "
+        f"(heat maps in {out_dir})")
+    return res
 
 
 @dataclass
@@ -345,6 +393,8 @@ class Demo:
         self.snap_dir.mkdir(parents=True, exist_ok=True)
         for old in [*self.snap_dir.glob("*.png"), self.mcap_path, self.gif_path]:
             old.unlink(missing_ok=True)
+        if self.args.placement:
+            demo_placement(self.demo, self.output / "placement", self.say)
         scene_path = self.output / "scene.yaml"
         scene_path.write_text(yaml.safe_dump(self.demo.scene, sort_keys=False), encoding="utf-8")
         log_path = self.output / "stack.log"
@@ -736,6 +786,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="size of the PNG snapshots and the GIF, WIDTHxHEIGHT (default 640x480)")
     ap.add_argument("--gif-fps", type=float, default=10.0,
                     help="frame rate of <output>/demo.gif (recording time; 0 = no GIF)")
+    ap.add_argument("--placement", action="store_true",
+                    help="first compute where the base could stand for the demo's goals (+-1 m, yaw every "
+                    "45 deg): prints the best placement, writes heat maps to <output>/placement")
     ap.add_argument("--log-level", default="info", choices=("debug", "info", "warn", "error"),
                     help="log level of the ROS nodes (their output goes to <output>/stack.log)")
     return ap

@@ -402,6 +402,72 @@ def test_nearest_exhaustive_parameter_reaches_the_solver(ctx: Any) -> None:
         exhaustive.destroy_node()
 
 
+PLACEMENT_TASKS = """\
+arm: pa10
+base_height: 0.3
+grid: {x: [-0.6, 0.6], y: [-0.6, 0.6], step: 0.3, yaw_deg: [0, 90, 180, 270]}
+tasks:
+  - {position: [0.3, 0.2, 0.7], rpy_deg: [180, 0, 0]}
+  - {position: [0.2, -0.3, 0.6], rpy_deg: [180, 0, 30]}
+"""
+
+
+def test_placement_tasks_ranked_at_start_up_published_latched_and_base_move_unchanged(
+        ctx: Any, tmp_path: Any) -> None:
+    """placement_tasks: the study runs once at start-up; a late subscriber gets the YAML summary (the
+    study's own best poses); ~/solve_ik answers meanwhile, its base-move suggestion as without it."""
+    import yaml
+    from rclpy.qos import DurabilityPolicy, QoSProfile
+    from std_msgs.msg import String
+
+    from redarm_ros.placement import load_problem, place
+
+    tasks = tmp_path / "tasks.yaml"
+    tasks.write_text(PLACEMENT_TASKS)
+    node = IKServiceNode(context=ctx, node_name="ik_placement", parameter_overrides=[
+        Parameter("arms", value=["pa10"]), Parameter("duplicate_check_s", value=0.0),
+        Parameter("placement_tasks", value=str(tasks))])
+    executor = SingleThreadedExecutor(context=ctx)
+    executor.add_node(node)
+    caller = Caller(ctx, executor, "/ik_placement/solve_ik")
+    got: list[str] = []
+    try:
+        caller.wait_ready()
+        T = np.eye(4)
+        T[:3, 3] = (3.0, 0.0, 0.5)
+        resp = caller(make_request(T, "pa10"))
+        assert resp.status == R.OUT_OF_REACH and resp.base_offset_valid and resp.base_offset.x > 1.5
+        assert node.placement_done.wait(120.0), "placement study did not finish"
+        latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        caller.node.create_subscription(String, "/ik_placement/placement", lambda m: got.append(m.data),
+                                        latched)
+        deadline = time.monotonic() + 10.0
+        while not got and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.05)
+        assert got, "no summary on ~/placement"
+        summary = yaml.safe_load(got[0])
+        ref = place(load_problem(tasks), workers=1)
+        assert summary["tasks_file"] == str(tasks) and summary["valid"] == int(ref.valid.sum()) > 0
+        assert summary["base_poses"] == 100 and summary["tasks"] == 2 and summary["arm"] == "pa10"
+        assert len(summary["best"]) == 5
+        for b, i in zip(summary["best"], ref.ranking(), strict=False):
+            x, y, w = ref.poses[i]
+            assert (b["x"], b["y"], b["yaw_deg"]) == (round(x, 6), round(y, 6), round(math.degrees(w), 6))
+    finally:
+        executor.shutdown()
+        caller.node.destroy_node()
+        node.destroy_node()
+
+
+def test_bad_placement_tasks_refuse_to_start(ctx: Any, tmp_path: Any) -> None:
+    bad = tmp_path / "tasks.yaml"
+    bad.write_text("arm: pa10\ntasks: []\n")
+    with pytest.raises(ValueError, match="placement_tasks: .*tasks must be a non-empty list"):
+        IKServiceNode(context=ctx, node_name="ik_bad_placement", parameter_overrides=[
+            Parameter("arms", value=["pa10"]), Parameter("duplicate_check_s", value=0.0),
+            Parameter("placement_tasks", value=str(bad))])
+
+
 # ---------------------------------------------------------------------------------------------
 # Across processes
 # ---------------------------------------------------------------------------------------------

@@ -225,6 +225,7 @@ def test_command_line_writes_ranking_npz_and_heat_maps(tmp_path, capsys):
     res = place(problem)
     assert np.array_equal(data["ranking"], res.ranking())
     assert data["valid"].shape == (problem.grid.size,)
+    assert float(data["base_height"]) == 0.3  # the view needs it to put the map on the floor
     maps = sorted(p.name for p in out.glob("heatmap_yaw*.png"))
     assert maps == ["heatmap_yaw000.png", "heatmap_yaw090.png"]
     lines = (out / "ranking.csv").read_text().splitlines()
@@ -236,6 +237,22 @@ def test_command_line_writes_ranking_npz_and_heat_maps(tmp_path, capsys):
     assert placement_main([str(f), "--out", str(out), "--workers", "1", "--no-plots"]) == 1
     f.write_text("tasks: 3\n")
     assert placement_main([str(f), "--out", str(out)]) == 2
+
+
+def test_summary_and_index_of_a_base_pose():
+    res = place(_pc6_problem())
+    s = res.summary(top=3)
+    assert (s["arm"], s["base_height"], s["tasks"]) == ("powercube6", 0.3, 2)
+    assert s["base_poses"] == res.poses.shape[0]
+    assert s["valid"] == int(res.valid.sum()) > 3 and len(s["best"]) == 3
+    for b, i in zip(s["best"], res.ranking(), strict=False):
+        x, y, w = res.poses[i]
+        assert (b["x"], b["y"], b["yaw_deg"]) == (round(x, 6), round(y, 6), round(math.degrees(w), 6))
+        assert b["worst_margin_rad"] == round(float(res.worst_margin[i]), 6)
+        assert b["robustness_rad"] is None  # a 6-DOF arm has no swivel
+        assert res.index_of(x, y, w + 2 * math.pi) == i and res.index_of(x, y, w - 2 * math.pi) == i
+    assert res.index_of(0.05, 0.0, 0.0) is None and res.index_of(0.0, 0.0, math.radians(45)) is None
+    assert res.index_of(0.0, 0.0, 0.0) is not None
 
 
 def test_base_height_and_yaw_move_the_tasks_into_the_base_frame():

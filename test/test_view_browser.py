@@ -173,3 +173,38 @@ def test_page_draws_the_arm_follows_joint_states_and_gizmo_publishes_goals(
         assert np.linalg.norm(p - tool_a) > 0.01, (p, tool_a)
     finally:
         ros.close()
+
+
+def yellow_mask(img: np.ndarray) -> np.ndarray:
+    """Pixels of the placement map's full-share squares (viridis yellow, about (245, 240, 174) once lit),
+    in the 3D part of the page; neither the grey floor nor the pale green of lower shares."""
+    h, w, _ = img.shape
+    r, g, b = img[..., 0], img[..., 1], img[..., 2]
+    yellow = (r > 200) & (g > 200) & (b < 0.8 * g) & (r - b > 50)
+    roi = np.zeros_like(yellow)
+    roi[int(0.08 * h): int(0.97 * h), int(0.2 * w): int(0.66 * w)] = True
+    return yellow & roi
+
+
+def test_page_draws_the_placement_map_on_the_floor(procs: Any, chromium: Chromium, tmp_path: Path) -> None:
+    """``redarm-view --placement placements.npz``: the squares where every task is reachable (yellow)
+    are on screen, around the arm standing at the best placement."""
+    from redarm_ros.demo import DEMOS, demo_placement
+
+    demo_placement(DEMOS["pa10"], tmp_path / "placement", lambda _line: None, plots=False, workers=1,
+                   grid={"x": [-0.4, 0.4], "y": [-0.4, 0.4], "step": 0.1, "yaw_deg": [0, 90]})
+    npz = tmp_path / "placement" / "placements.npz"
+    cmd = python_module_cmd("redarm_ros.nodes.view", "--port", "0", "--placement", str(npz))
+    view = procs.start("view", cmd, ready=r"view ready: (http://127\.0\.0\.1:\d+/)", ready_timeout=60)
+    chromium.navigate(view.ready_match.group(1))
+    n_shot = [0]
+
+    def shot() -> np.ndarray:
+        png = chromium.screenshot()
+        n_shot[0] += 1
+        (tmp_path / f"shot_{n_shot[0]:03d}.png").write_bytes(png)
+        return _decode(png)
+
+    # (the tool's small yellow tip alone is under 100 pixels)
+    drawn, _ = _poll(shot, lambda im: yellow_mask(im).sum() > 1500, TIMEOUT)
+    assert drawn, f"no placement map on the page (screenshots in {tmp_path})"

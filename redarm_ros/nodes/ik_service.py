@@ -13,6 +13,11 @@ A request with an empty ``seed`` is seeded with the latest ``joint_states`` (rel
 stack in this node's namespace) when that message names every joint of the requested arm, else with
 mid-range; the per-request debug line says which (``--log-level ik_service:=debug``).
 
+With ``placement_tasks`` (a ``redarm-placement`` task file) the node also ranks the base poses for that
+task set once at start-up (:mod:`redarm_ros.placement`, one process, in a thread of its own), logs the
+best ones and publishes a YAML summary (``best``: x, y, yaw_deg, robustness; ``valid``: how many) on the
+latched ``~/placement`` (std_msgs/String).
+
 Requests wait in the service's middleware queue (reliable, KEEP_LAST with depth
 ``request_queue_depth``, default 4096, for requests and responses alike), so a burst of that many
 outstanding calls is answered in order. Callers that keep many calls outstanding need a deep queue
@@ -28,12 +33,15 @@ converted to the kinematics core's (w, x, y, z) in :func:`pose_msg_to_matrix`.
 from __future__ import annotations
 
 import math
+import threading
 from collections.abc import Sequence
 from typing import Any
 
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+import yaml
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from redarm_interfaces.srv import SolveIK
 from sensor_msgs.msg import JointState
+from std_msgs.msg import String
 from trajectory_msgs.msg import JointTrajectoryPoint
 
 from redarm_ros.errors import InvalidInputError, RedarmError
@@ -139,6 +147,14 @@ PARAMS = [
         read_only=True,
     ),
     ParamSpec(
+        "placement_tasks",
+        "",
+        "Placement task file (redarm-placement's YAML): at start-up the node ranks the base poses for "
+        "that task set once (in a thread of its own, one process), logs the best ones and publishes a "
+        "YAML summary on the latched ~/placement ('' = off).",
+        read_only=True,
+    ),
+    ParamSpec(
         "request_queue_depth",
         4096,
         "Requests (and responses) the service's middleware queue holds (reliable, KEEP_LAST): a burst "
@@ -200,6 +216,11 @@ class IKServiceNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
         # The latest measured joint positions by name: the seed of a request that gives none.
         self.joint_positions: dict[str, float] = {}
         self.create_subscription(JointState, "joint_states", self._on_joint_states, 10)
+        self.placement: Any = None  # the PlacementResult of placement_tasks, once computed
+        self._placement_lock = threading.Lock()
+        self._closed = False
+        if p["placement_tasks"]:
+            self._start_placement(p["placement_tasks"])
         # The service is offered once the duplicate-name check has passed (a timer: no blocking here).
         self.name_check = UniqueNameCheck(self, p["duplicate_check_s"], on_passed=self._serve)
         watch_duplicates(self, yield_to_elder=p["duplicate_check_s"] > 0)
@@ -233,6 +254,49 @@ class IKServiceNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
         if names and all(n in self.joint_positions for n in names):
             return [self.joint_positions[n] for n in names], "joint_states"
         return [], "mid-range"
+
+    def _start_placement(self, path: str) -> None:
+        from redarm_ros.placement import load_problem
+
+        try:
+            problem = load_problem(path)  # a bad file refuses the start, like any bad parameter
+        except RedarmError as exc:
+            raise ValueError(f"parameter placement_tasks: {exc}") from exc
+        latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self.placement_pub = self.create_publisher(String, "~/placement", latched)
+        self.placement_done = threading.Event()
+        # A thread of its own: a large grid takes a while, and ~/solve_ik is served meanwhile.
+        threading.Thread(target=self._run_placement, args=(path, problem), name="placement",
+                         daemon=True).start()
+
+    def _run_placement(self, path: str, problem: Any) -> None:
+        from redarm_ros.placement import place
+
+        try:
+            res = place(problem, engine="local", workers=1)
+        except Exception as exc:  # noqa: BLE001 - the study is advice: the service keeps running
+            self.get_logger().error(f"placement study of {path} failed: {exc!r}")
+            self.placement_done.set()
+            return
+        summary = {"tasks_file": path, **res.summary(top=5)}
+        best = "; ".join(f"x {b['x']:+.2f} m, y {b['y']:+.2f} m, yaw {b['yaw_deg']:.0f} deg"
+                         for b in summary["best"][:3]) or "none"
+        msg = String(data=yaml.safe_dump(summary, sort_keys=False))
+        with self._placement_lock:
+            self.placement = res
+            if not self._closed:
+                self.get_logger().info(
+                    f"placement for {path} ({summary['arm']}, {summary['tasks']} tasks): "
+                    f"{summary['valid']} of {summary['base_poses']} base poses valid; best: {best}")
+                self.placement_pub.publish(msg)
+        self.placement_done.set()
+
+    def destroy_node(self) -> None:
+        lock = getattr(self, "_placement_lock", None)  # None: _setup refused the start before it
+        if lock is not None:
+            with lock:  # a placement study still running publishes nothing after this
+                self._closed = True
+        super().destroy_node()
 
     # Short callback: read parameters, delegate, convert.
     def _on_solve(self, req: SolveIK.Request, resp: SolveIK.Response) -> SolveIK.Response:

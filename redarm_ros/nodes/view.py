@@ -19,8 +19,11 @@ shows that stack (``/left/joint_states`` ...); ``/diagnostics`` is global by ROS
 * action client of ``controller/reach`` (redarm_interfaces/action/Reach): the "Reach (action)" button
   sends the gizmo pose as a Reach goal; its feedback and result show in the status panel.
 
-Command line: ``redarm-view [--host H] [--port P] [--arm NAME] [--scene NAME|PATH]`` (shorthands for
-the parameters) or ``--ros-args -p port:=8081 ...``. See docs/view.md.
+``placement`` (a ``placements.npz`` of ``redarm-placement``) draws its heat map on the floor, the arm
+standing at the best placement (:mod:`redarm_ros.view.placement_floor`).
+
+Command line: ``redarm-view [--host H] [--port P] [--arm NAME] [--scene NAME|PATH] [--placement NPZ]``
+(shorthands for the parameters) or ``--ros-args -p port:=8081 ...``. See docs/view.md.
 """
 
 from __future__ import annotations
@@ -45,6 +48,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from redarm_ros.errors import InvalidInputError, RedarmError
 from redarm_ros.nodes._common import ParamNode, ParamSpec, in_range, positive, run_node
+from redarm_ros.view.placement_floor import load_placements, placement_floor
 from redarm_ros.view.urdf_model import UrdfModel, model_for_arm
 from redarm_ros.view.viewer import ArmViewer, MarkerSpec, RateMeter, Status, scene_markers
 
@@ -65,6 +69,8 @@ PARAMS = [
               read_only=True),
     ParamSpec("scene", "", "Scene (config/scenes name or YAML path) drawn as markers; for runs without "
               "a controller, whose markers already show its scene ('' = none).", read_only=True),
+    ParamSpec("placement", "", "placements.npz of redarm-placement drawn on the floor, the arm standing at "
+              "the best placement ('' = none).", read_only=True),
     ParamSpec("base_frame", "base_link", "frame_id of the goals published on /goal_pose.", read_only=True),
     ParamSpec("update_rate_hz", 30.0, "How often the drawn arm follows /joint_states (Hz).",
               in_range(1.0, 120.0), read_only=True),
@@ -98,6 +104,7 @@ class ViewNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
         try:
             model = model_for_arm(p["arm"])
             scene = _load_scene(p["scene"]) if p["scene"] else None
+            floor = placement_floor(load_placements(p["placement"])) if p["placement"] else None
         except (RedarmError, OSError) as exc:
             raise ValueError(f"view configuration: {exc}") from exc
         self.base_frame = p["base_frame"]
@@ -110,6 +117,8 @@ class ViewNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
                                 goal_stream_hz=float(p["goal_stream_hz"]), base_frame=self.base_frame)
         if scene is not None:
             self.viewer.set_markers("scene", scene_markers(scene))
+        if floor is not None:
+            self.viewer.set_placement(floor, p["placement"])
         self.status = Status()
         self.rates = {"joint_states": RateMeter(), "controller": RateMeter()}
         self._joints: tuple[list[str], list[float]] | None = None
@@ -265,6 +274,7 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--port", type=int, help="TCP port (default 8080; 0 = any free port)")
     ap.add_argument("--arm", help="arm model drawn until /robot_description arrives (default pa10)")
     ap.add_argument("--scene", help="scene drawn as markers (config/scenes name or YAML path)")
+    ap.add_argument("--placement", help="placements.npz of redarm-placement: its heat map on the floor")
     return ap
 
 

@@ -3,7 +3,8 @@
 ``redarm-placement TASKS.yaml --out DIR`` scores every base pose of the task file's grid
 (:mod:`.problem` has the file format), prints the best placements and writes into DIR:
 
-* ``placements.npz``: the grid (``x``, ``y``, ``yaw``), per base pose ``valid``, ``fraction``,
+* ``placements.npz``: the grid (``x``, ``y``, ``yaw``), ``base_height`` (m), per base pose ``valid``,
+  ``fraction``,
   ``robustness`` (rad), ``worst_margin`` (rad), ``footprint_ok``, per (base pose, task) ``reach``,
   ``width`` (rad), ``margin`` (rad), and ``ranking`` (indices into the flattened grid, best first);
 * ``ranking.csv``: the valid placements, best first;
@@ -44,6 +45,7 @@ def write_outputs(res: PlacementResult, out: Path, *, plots: bool = True) -> lis
     npz = out / "placements.npz"
     np.savez_compressed(
         npz, x=g.x, y=g.y, yaw=g.yaw, shape=np.array(g.shape), arm=res.problem.arm,
+        base_height=np.float64(res.problem.base_height),
         task_names=np.array(res.problem.task_names), tasks=res.problem.tasks,
         valid=res.valid, fraction=res.fraction, robustness=res.robustness, worst_margin=res.worst_margin,
         footprint_ok=res.footprint_ok, reach=res.reach, width=res.width, margin=res.margin, ranking=rank,

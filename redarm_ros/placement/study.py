@@ -13,8 +13,9 @@ scores never reorders them.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
-from typing import TextIO
+from typing import Any, TextIO
 
 import numpy as np
 
@@ -78,6 +79,26 @@ class PlacementResult:
         mar = np.round(self.worst_margin[idx], RANK_DECIMALS)
         order = np.lexsort((idx, -mar, -rob))  # lexsort: last key is the primary one
         return idx[order]
+
+    def index_of(self, x: float, y: float, yaw: float, tol: float = 1e-6) -> int | None:
+        """Grid index of the base pose (x, y in m, yaw in rad, any turn), None if it is not on the grid."""
+        d_yaw = np.angle(np.exp(1j * (self.poses[:, 2] - yaw)))
+        hit = np.nonzero((np.abs(self.poses[:, 0] - x) <= tol) & (np.abs(self.poses[:, 1] - y) <= tol)
+                         & (np.abs(d_yaw) <= tol))[0]
+        return int(hit[0]) if len(hit) else None
+
+    def summary(self, top: int = 5) -> dict[str, Any]:
+        """Plain-data digest (YAML/JSON-ready): arm, counts and the ``top`` best placements (m, deg, rad)."""
+        best = []
+        for i in self.ranking()[:top]:
+            x, y, w = (float(v) for v in self.poses[i])
+            rob = float(self.robustness[i])
+            best.append({"x": round(x, 6), "y": round(y, 6), "yaw_deg": round(math.degrees(w), 6),
+                         "robustness_rad": None if math.isnan(rob) else round(rob, 6),
+                         "worst_margin_rad": round(float(self.worst_margin[i]), 6)})
+        return {"arm": self.problem.arm, "base_height": float(self.problem.base_height),
+                "base_poses": int(len(self.poses)), "tasks": int(len(self.problem.tasks)),
+                "valid": int(self.valid.sum()), "best": best}
 
 
 # Units of work: module-level functions, so worker processes can import them by name.

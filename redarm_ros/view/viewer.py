@@ -12,7 +12,9 @@ it works offline):
 * a draggable transform gizmo: every drag (or the "Send goal" button) calls ``on_goal`` with the
   gizmo's position (m) and orientation (quaternion x, y, z, w) in the arm's base frame; the
   "Reach (action)" button hands the same pose to ``on_reach``;
-* a status panel (:meth:`ArmViewer.set_status`): phase, swivel, clearance, driver state, loop rates.
+* a status panel (:meth:`ArmViewer.set_status`): phase, swivel, clearance, driver state, loop rates;
+* optionally a base-placement heat map on the floor under the arm (:meth:`ArmViewer.set_placement`;
+  the ground grid then moves down to that floor).
 
 The node :mod:`redarm_ros.nodes.view` feeds it from ROS topics. Units: m, rad.
 """
@@ -30,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from redarm_ros.view.placement_floor import PlacementFloor, floor_meshes
 from redarm_ros.view.urdf_model import UrdfModel, Visual, matrix_to_quat_xyzw
 
 _LOG = logging.getLogger(__name__)
@@ -179,13 +182,14 @@ class ArmViewer:
         self._positions: dict[str, float] = {}
         self._last_goal_sent = 0.0
         self._gizmo_placed = False
+        self._placement_nodes: list[Any] = []
+        self._placement_md: Any = None
         self.model = model
         self.goals_sent = 0
 
         scene = server.scene
         scene.set_up_direction("+z")
-        scene.add_grid("/ground", width=2.0, height=2.0, cell_size=0.1, section_size=0.5,
-                       plane="xy", position=(0.4, 0.0, 0.0))
+        self._add_ground(0.0)
         cam = server.initial_camera
         cam.position = (1.45, -1.25, 1.0)
         cam.look_at = (0.3, 0.0, 0.4)
@@ -216,6 +220,11 @@ class ArmViewer:
                 hint="send the gizmo pose as a Reach action goal (/controller/reach)" if on_reach is not None
                 else "no Reach action client")
             self.reach_button.on_click(lambda _evt: self._reach())
+
+    def _add_ground(self, z: float) -> None:
+        # Same name: a second call moves the grid (to the placement map's floor).
+        self.server.scene.add_grid("/ground", width=2.0, height=2.0, cell_size=0.1, section_size=0.5,
+                                   plane="xy", position=(0.4, 0.0, z))
 
     # -- robot -----------------------------------------------------------------------------------------
     def _build_robot(self, model: UrdfModel) -> None:
@@ -390,6 +399,36 @@ class ArmViewer:
         """(group, ns, id) of every drawn marker (of ``group`` if given)."""
         with self._lock:
             return sorted(k for k in self._markers if group is None or k[0] == group)
+
+    # -- placement map ---------------------------------------------------------------------------------
+    def set_placement(self, floor: PlacementFloor, source: str = "") -> None:
+        """Draw a placement heat map on the floor (:mod:`redarm_ros.view.placement_floor`: the arm stands
+        at the best placement; the ground grid moves down to that floor) and explain it in a "Placement"
+        panel; a second call replaces it."""
+        scene = self.server.scene
+        with self._lock:
+            self._add_ground(-floor.base_height)
+            for node in self._placement_nodes:
+                node.remove()
+            nodes = [scene.add_mesh_simple(f"/placement/share_{k}", verts, faces, color=rgb, side="double",
+                                           cast_shadow=False, receive_shadow=False)
+                     for k, (rgb, verts, faces) in enumerate(floor_meshes(floor))]
+            for name, segs, rgb, width in (("valid", floor.outline, (20, 20, 20), 0.008),
+                                           ("extent", floor.extent, (150, 150, 150), 0.004),
+                                           ("best", floor.best_mark, (230, 30, 30), 0.012)):
+                if len(segs):
+                    nodes.append(scene.add_line_segments(f"/placement/{name}", points=segs, colors=rgb,
+                                                         thickness=width))
+            if len(floor.tasks):
+                nodes.append(scene.add_point_cloud("/placement/tasks", points=floor.tasks.astype(np.float32),
+                                                   colors=(230, 30, 30), point_size=0.02,
+                                                   point_shape="circle"))
+            self._placement_nodes = nodes
+            if self._placement_md is None:
+                with self.server.gui.add_folder("Placement"):
+                    self._placement_md = self.server.gui.add_markdown(floor.markdown(source))
+            else:
+                self._placement_md.content = floor.markdown(source)
 
     # -- status ----------------------------------------------------------------------------------------
     def set_status(self, status: Status) -> None:
