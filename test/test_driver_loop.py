@@ -663,3 +663,28 @@ def test_halt_runs_even_when_its_caller_stopped_waiting(rig) -> None:
     assert wait_until(lambda: loop.state is LoopState.HALTED, timeout=3), loop.snapshot().reason
     assert wait_until(lambda: _at_rest(arm), timeout=3)
     assert arm.positions()[0] < 1.0
+
+
+def test_a_command_dropped_mid_motion_brakes_to_a_stop_and_never_comes_back() -> None:
+    """clear(None) while the reference moves at speed (a refused command): the hold is where the
+    reference comes to rest, so it brakes monotonically instead of returning to the measured position
+    it had passed."""
+    dt = 0.01
+    shaper = make_shaper(dt)
+    src = JointCommandSource(2)
+    src.set_trajectory([0, 1], [2.0], np.array([[1.2, 1.8]]), start=0.0)
+    q_meas = np.zeros(2)
+    ref = shaper.step(src.sample(0.0, np.zeros(2), q_meas, shaper.stopping_point()))
+    for k in range(1, 60):  # accelerate for 0.6 s
+        ref = shaper.step(src.sample(k * dt, ref, q_meas, shaper.stopping_point()))
+    assert np.all(shaper.v > 0.3)
+    q_meas = ref - 0.05  # the measured position lags behind the reference
+    src.clear(None)
+    shaper.hold_still()  # as the loop does when the command turns into a hold
+    path = [ref]
+    for k in range(60, 400):
+        path.append(shaper.step(src.sample(k * dt, path[-1], q_meas, shaper.stopping_point())))
+    P = np.array(path)
+    assert np.all(np.diff(P, axis=0) >= -1e-12), "the reference came back"
+    np.testing.assert_allclose(P[-1], P[-2], atol=1e-12)  # at rest
+    assert np.all(P[-1] > path[0])  # it stopped beyond where the command was dropped

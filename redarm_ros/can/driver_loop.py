@@ -58,7 +58,7 @@ from redarm_ros.can.driver_core import (
     ModuleStatsView,
 )
 from redarm_ros.errors import BusError, BusTimeoutError, InvalidInputError, RedarmError, RequestRefusedError
-from redarm_ros.motion import JointLimits, LimitsView, braking_speed
+from redarm_ros.motion import JointLimits, LimitsView, braking_distance, braking_speed
 from redarm_ros.motion.sync_move import synchronized_move
 
 _LOG = logging.getLogger(__name__)
@@ -282,12 +282,16 @@ class JointCommandSource:
             self._queued = []
             self.generation += 1
 
-    def sample(self, now: float, q_ref: np.ndarray, q_measured: np.ndarray) -> np.ndarray:
+    def sample(self, now: float, q_ref: np.ndarray, q_measured: np.ndarray,
+               q_stop: np.ndarray | None = None) -> np.ndarray:
         """The joint target (n,) rad for the cycle at ``now``.
 
         ``q_ref`` is the target sent in the previous cycle (continuity for new
         commands), ``q_measured`` the latest measured position (used when a
-        stream stops, or when HOLD has no position yet).
+        stream stops), ``q_stop`` where the reference comes to rest if it brakes now
+        (:meth:`ReferenceShaper.stopping_point`): a HOLD with no position yet (a command
+        dropped mid-motion) holds there, so the arm brakes to a stop and does not come
+        back to where it was measured (``q_measured`` when not given).
         """
         with self._lock:
             self._last_sample = max(self._last_sample, now)
@@ -315,7 +319,7 @@ class JointCommandSource:
                 q[self._stream_index] = self._stream_q
                 return q
             if self._hold is None:
-                self._hold = np.array(q_measured, dtype=float)
+                self._hold = np.array(q_measured if q_stop is None else q_stop, dtype=float)
             return self._hold.copy()
 
 
@@ -377,6 +381,22 @@ class ReferenceShaper(LimitsView):  # lower/upper: the joint limits inset by the
         self.r = self.limits.clip(q)
         self.v = np.zeros_like(self.r)
         self._g_prev = None
+
+    def hold_still(self) -> None:
+        """The target stops here: the next step feeds no target velocity forward (the jump from a
+        moving command to a fixed hold point is not a velocity), it only brakes onto the target."""
+        self._g_prev = None
+
+    def stopping_point(self) -> np.ndarray | None:
+        """Where the reference comes to rest (rad, inside the inset limits) if it brakes at max_acc
+        from its velocity now; None before the first step."""
+        if self.r is None:
+            return None
+        a = self.limits.max_acc
+        # the discrete law's own distance from the next step's speed (|v| braked by a dt): the
+        # braking step then lands on this point exactly, with no overshoot to come back from
+        d = braking_distance(np.maximum(np.abs(self.v) - a * self.dt, 0.0), a, self.dt)
+        return self.limits.clip(self.r + np.sign(self.v) * d)
 
     def step(self, target: np.ndarray, elapsed: float | None = None) -> np.ndarray:
         """Advance one cycle toward ``target`` (n,) rad (clamped into the inset limits); returns the
@@ -1192,6 +1212,7 @@ class DriverLoop:
         gap = False
         first = True  # the first cycle after a pause (init, halt, reconnect) has no period
         prev_now: float | None = None  # when the previous cycle sampled its target
+        seen_generation = self.commands.generation
         k = 0
         while not self._stop.is_set() and self._requests.empty():
             now = time.monotonic()
@@ -1200,7 +1221,11 @@ class DriverLoop:
                 now = time.monotonic()
             self.stats.start(now, after_overrun=gap, after_pause=first)
             gap = first = False
-            target = self.commands.sample(now, q_ref, q_meas)
+            target = self.commands.sample(now, q_ref, q_meas, shaper.stopping_point())
+            if self.commands.generation != seen_generation:
+                seen_generation = self.commands.generation
+                if self.commands.mode is CommandMode.HOLD:
+                    shaper.hold_still()  # the jump to a hold point is no target velocity to feed forward
             clipped = np.clip(target, lo, hi)
             outside = clipped != target
             beyond = tuple(int(j) for j in np.flatnonzero(outside)) if outside.any() else ()
