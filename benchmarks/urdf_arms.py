@@ -1,4 +1,5 @@
-"""Test arms written as URDF text from published facts (no third-party URDF file is copied).
+"""Arms written as URDF text from published facts (no third-party URDF file is copied), for
+benchmarks/urdf_ik_bench.py and the tests (test/test_kin_urdf.py loads this file by path).
 
 * :func:`iiwa14_urdf`: a KUKA LBR iiwa 14-like arm: axes z, y, z, -y, z, y, z (the real robot's
   alternating pitch directions), shoulder 0.36 m above the base, upper arm 0.42 m, forearm 0.40 m,
@@ -22,8 +23,9 @@ from redarm_ros.sim.urdf import matrix_to_rpy
 
 IIWA_LIMITS_DEG = (170, 120, 170, 120, 170, 120, 175)
 IIWA_VEL_DEG = (85, 85, 100, 75, 130, 135, 135)
-# (joint origin z above the previous joint, axis) of the iiwa 14's joints; the flange 0.126 m past joint 7's
-# frame... as published: 0.1575 + 0.2025 = 0.36, 0.2045 + 0.2155 = 0.42, 0.1845 + 0.2155 = 0.40, 0.081 + 0.045
+# each joint's origin height above the previous joint (m), as published for the iiwa 14: shoulder
+# 0.1575 + 0.2025 = 0.36, upper arm 0.2045 + 0.2155 = 0.42, forearm 0.1845 + 0.2155 = 0.40,
+# flange 0.081 + 0.045 = 0.126
 IIWA_Z = (0.1575, 0.2025, 0.2045, 0.2155, 0.1845, 0.2155, 0.081)
 IIWA_FLANGE = 0.045
 IIWA_AXES = ((0, 0, 1), (0, 1, 0), (0, 0, 1), (0, -1, 0), (0, 0, 1), (0, 1, 0), (0, 0, 1))
