@@ -178,7 +178,7 @@ def test_iiwa_key_points_are_its_joint_centres() -> None:
 
 def test_franka_like_chain_gets_the_numeric_solver_and_the_reason() -> None:
     arm = load_arm(franka_like_urdf(), base_link="base_link", tip_link="tool0")
-    assert not has_swivel(arm) and type(arm).__name__ == "Arm"
+    assert not has_swivel(arm) and arm.kind == "chain"
     why = arm.config["closed_form_refused"]
     assert "axes 3 and 4 do not meet (elbow offset) by 0.0825 m" in why
     assert "wrist" in why and "\n" not in why
@@ -264,3 +264,26 @@ def test_urdf_needs_both_links_and_a_readable_file(tmp_path: Path) -> None:
         load_arm(tmp_path / "missing.urdf", base_link="a", tip_link="b")
     with pytest.raises(ConfigError, match="unknown override"):
         load_arm(iiwa14_urdf(), base_link="base_link", tip_link="tool0", link_lengths=[1, 2, 3, 4])
+
+
+def test_batched_fk_jacobian_matches_the_scalar_one() -> None:
+    from redarm_ros.kinematics.numeric import fk_jacobian_batch
+
+    for text in (franka_like_urdf(), iiwa14_urdf(reframed=True)):
+        arm = load_arm(text, base_link="base_link", tip_link="tool0")
+        Q = np.random.default_rng(8).uniform(arm.lower, arm.upper, (20, 7))
+        R, p, J = fk_jacobian_batch(arm, Q)
+        for i, q in enumerate(Q):
+            R1, p1, J1 = arm.fk_jacobian(q)
+            assert np.abs(R[i] - R1).max() <= 1e-12 and np.abs(p[i] - p1).max() <= 1e-12
+            assert np.abs(J[i] - J1).max() <= 1e-12
+
+
+def test_numeric_chain_answers_bad_input_and_unreachable_poses() -> None:
+    arm = load_arm(franka_like_urdf(), base_link="base_link", tip_link="tool0")
+    q, info = arm.ik_nearest(np.full((4, 4), np.nan), np.zeros(7))
+    assert q is None and info.status is IKStatus.INVALID_INPUT
+    T = np.eye(4)
+    T[0, 3] = 3.0  # beyond the reach
+    q, info = arm.ik_nearest(T, np.zeros(7), timeout_s=None, max_iter=50)
+    assert q is None and info.status is IKStatus.TIMEOUT and "max_iter" in info.message

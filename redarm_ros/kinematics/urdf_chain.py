@@ -39,6 +39,7 @@ import yaml
 
 from redarm_ros.errors import ConfigError, InvalidInputError
 from redarm_ros.kinematics.model import ANGLE_RANGE, Arm, Joint, check_finite_array, transform_from_xyz_rpy
+from redarm_ros.kinematics.numeric import solve_dls_multistart
 from redarm_ros.kinematics.quaternion import rotation_error
 from redarm_ros.kinematics.result import IKBatchResult, IKInfo, IKStatus
 from redarm_ros.kinematics.swivel import SwivelArm, swivel_chain
@@ -48,6 +49,7 @@ __all__ = [
     "CONTINUOUS_RANGE",
     "STRUCTURE_TOL",
     "MappedSwivelArm",
+    "NumericChainArm",
     "SwivelMap",
     "UrdfJoint",
     "chain_between",
@@ -435,6 +437,35 @@ def _canonical(
     return SwivelArm(name, chain, tool, (1, 3, 5), cfg)
 
 
+# ------------------------------------------------------------------ the numeric chain
+class NumericChainArm(Arm):
+    """A URDF chain without a closed form: :meth:`ik_nearest` is :func:`.numeric.solve_dls_multistart`
+    (the seed and 15 random starts descending together, TRAC-IK style), within the time budget."""
+
+    def ik_nearest(
+        self,
+        T: np.ndarray,
+        q_seed: Sequence[float],
+        *,
+        timeout_s: float | None = 5e-3,
+        tol: float = 1e-5,
+        max_iter: int = 1000,
+        rng_seed: int = 0,
+    ) -> tuple[np.ndarray | None, IKInfo]:
+        """Damped least squares from the seed and random starts at once; the first within ``tol``
+        (m, rad), the nearest the seed of those converging together. TIMEOUT when ``timeout_s`` (s)
+        runs out."""
+        try:
+            self.check_pose(T)
+            seed = self.check_q(q_seed, "q_seed")
+        except InvalidInputError as exc:
+            return None, IKInfo(IKStatus.INVALID_INPUT, str(exc))
+        return solve_dls_multistart(
+            self, np.asarray(T, dtype=float), seed, tol=tol, timeout_s=timeout_s, max_iter=max_iter,
+            rng_seed=rng_seed,
+        )
+
+
 # ------------------------------------------------------------------ the mapped swivel arm
 class MappedSwivelArm(Arm):
     """A 7-DOF spherical-shoulder / spherical-wrist arm in its own (URDF) frames and joint values, solved
@@ -612,7 +643,7 @@ def load_urdf_arm(
             raise ConfigError("park is outside the joint limits", field="park", value=park.tolist())
         cfg["park"] = park.tolist()
     n = len(joints)
-    generic = Arm(
+    generic = NumericChainArm(
         arm_name, joints, tool, [min(1, n - 1), min(n // 2, n - 1), max(n - 2, 0)], dict(cfg, kind="chain")
     )
     smap = (
