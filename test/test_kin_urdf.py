@@ -287,3 +287,26 @@ def test_numeric_chain_answers_bad_input_and_unreachable_poses() -> None:
     T[0, 3] = 3.0  # beyond the reach
     q, info = arm.ik_nearest(T, np.zeros(7), timeout_s=None, max_iter=50)
     assert q is None and info.status is IKStatus.TIMEOUT and "max_iter" in info.message
+
+
+def test_ik_front_end_serves_urdf_arms_with_the_collision_filter() -> None:
+    from redarm_ros.kinematics.solve import IKFrontEnd
+
+    iiwa = load_arm(iiwa14_urdf(reframed=True), base_link="base_link", tip_link="tool0")
+    panda = load_arm(franka_like_urdf(), base_link="base_link", tip_link="tool0")
+    fe = IKFrontEnd({"iiwa": iiwa, "panda": panda}, "iiwa")
+    rng = np.random.default_rng(17)
+    for name, arm in (("iiwa", iiwa), ("panda", panda)):
+        for _ in range(8):
+            T = arm.fk(rng.uniform(arm.lower, arm.upper))
+            ans = fe.solve(T, name, swivel=None, seed=[], all_solutions=True, timeout_s=1.0)
+            assert ans.status in (IKStatus.SUCCESS, IKStatus.ALL_SOLUTIONS_COLLIDE), ans.message
+            assert ans.solver == describe_solver(arm)
+            if ans.status is IKStatus.SUCCESS:
+                assert _strict(arm, ans.q, T) and ans.clearance >= 0.0
+    T = iiwa.fk(np.full(7, 0.3))
+    ans = fe.solve(T, "iiwa", swivel=0.2, seed=[], all_solutions=True, timeout_s=1.0)
+    assert ans.status is IKStatus.SUCCESS and all(_strict(iiwa, r, T) for r in ans.solutions)
+    T[2, 3] += 5.0
+    ans = fe.solve(T, "iiwa", swivel=None, seed=[], all_solutions=False, timeout_s=1.0)
+    assert ans.status is IKStatus.OUT_OF_REACH and "no base placement model" in ans.message
