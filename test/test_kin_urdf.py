@@ -310,3 +310,19 @@ def test_ik_front_end_serves_urdf_arms_with_the_collision_filter() -> None:
     T[2, 3] += 5.0
     ans = fe.solve(T, "iiwa", swivel=None, seed=[], all_solutions=False, timeout_s=1.0)
     assert ans.status is IKStatus.OUT_OF_REACH and "no base placement model" in ans.message
+
+
+def test_controller_runs_a_urdf_of_the_model_and_refuses_other_chains_with_the_reason() -> None:
+    from redarm_ros.control.reach_controller import ReachController
+
+    _, pa10 = _urdf_arm("pa10")
+    ctl = ReachController(pa10)
+    ctl.reset(np.array([0.0, -0.5, 0.0, 2.0, 0.0, 1.2, 0.0]))
+    assert ctl.step(0.01).q.shape == (7,)
+    iiwa = load_arm(iiwa14_urdf(), base_link="base_link", tip_link="tool0")
+    with pytest.raises(ConfigError, match="joint signs or offsets") as e1:
+        ReachController(iiwa)
+    panda = load_arm(franka_like_urdf(), base_link="base_link", tip_link="tool0")
+    with pytest.raises(ConfigError, match="elbow offset") as e2:
+        ReachController(panda)
+    assert "\n" not in str(e1.value) + str(e2.value)

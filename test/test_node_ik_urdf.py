@@ -73,8 +73,9 @@ def test_urdf_file_serves_the_closed_form_and_says_so(ctx: Any, tmp_path: Path) 
     f = tmp_path / "iiwa.urdf"
     f.write_text(iiwa14_urdf(), encoding="utf-8")
     arm = load_arm(f, base_link="base_link", tip_link="tool0")
-    node, caller, ex = _start(ctx, "ik_urdf_file", urdf=str(f), base_link="base_link", tip_link="tool0",
-                              base_frame="pa10_base")
+    node, caller, ex = _start(
+        ctx, "ik_urdf_file", urdf=str(f), base_link="base_link", tip_link="tool0", base_frame="pa10_base"
+    )
     try:
         caller.wait_ready()
         assert node.front.default_arm == "iiwa14_like"  # default_arm empty: the URDF arm
@@ -103,8 +104,14 @@ def test_urdf_file_serves_the_closed_form_and_says_so(ctx: Any, tmp_path: Path) 
 
 def test_robot_description_text_of_a_non_spherical_arm_gets_the_numeric_solver(ctx: Any) -> None:
     arm = load_arm(franka_like_urdf(), base_link="base_link", tip_link="tool0")
-    node, caller, ex = _start(ctx, "ik_urdf_text", robot_description=franka_like_urdf(),
-                              base_link="base_link", tip_link="tool0", urdf_arm_name="panda")
+    node, caller, ex = _start(
+        ctx,
+        "ik_urdf_text",
+        robot_description=franka_like_urdf(),
+        base_link="base_link",
+        tip_link="tool0",
+        urdf_arm_name="panda",
+    )
     try:
         caller.wait_ready()
         _check_solves(arm, caller, "numeric IK (damped least squares): not closed form because", "panda")
@@ -116,8 +123,13 @@ def test_robot_description_text_of_a_non_spherical_arm_gets_the_numeric_solver(c
 def test_robot_description_topic(ctx: Any) -> None:
     pub_node = rclpy.create_node("urdf_publisher", context=ctx)
     pub = pub_node.create_publisher(String, "/test_robot_description", DESCRIPTION_QOS)
-    node, caller, ex = _start(ctx, "ik_urdf_topic", robot_description_topic="/test_robot_description",
-                              base_link="base_link", tip_link="tool0")
+    node, caller, ex = _start(
+        ctx,
+        "ik_urdf_topic",
+        robot_description_topic="/test_robot_description",
+        base_link="base_link",
+        tip_link="tool0",
+    )
     ex.add_node(pub_node)
     try:
         t_end = time.monotonic() + 1.0
@@ -145,3 +157,40 @@ def test_robot_description_topic(ctx: Any) -> None:
 def test_bad_urdf_parameters_refuse_the_start(ctx: Any, params: dict[str, Any], match: str) -> None:
     with pytest.raises(ValueError, match=match):
         _start(ctx, "ik_urdf_bad", **params)
+
+
+def test_controller_node_takes_a_urdf_and_refuses_a_chain_it_cannot_run(ctx: Any, tmp_path: Path) -> None:
+    from redarm_ros.nodes.controller import ControllerNode
+    from redarm_ros.sim.urdf import build_urdf
+
+    good = tmp_path / "pa10.urdf"
+    good.write_text(build_urdf(load_arm("pa10")), encoding="utf-8")
+    node = ControllerNode(
+        context=ctx,
+        node_name="ctl_urdf",
+        parameter_overrides=[
+            Parameter("urdf", value=str(good)),
+            Parameter("base_link", value="pa10_base_link"),
+            Parameter("tip_link", value="pa10_tool"),
+            Parameter("duplicate_check_s", value=0.0),
+        ],
+    )
+    try:
+        assert node.arm.joint_names == load_arm("pa10").joint_names
+    finally:
+        node.destroy_node()
+    bad = tmp_path / "panda.urdf"
+    bad.write_text(franka_like_urdf(), encoding="utf-8")
+    with pytest.raises(
+        ValueError, match="not a spherical-shoulder / elbow / spherical-wrist chain: axes 3 and 4"
+    ):
+        ControllerNode(
+            context=ctx,
+            node_name="ctl_urdf_bad",
+            parameter_overrides=[
+                Parameter("urdf", value=str(bad)),
+                Parameter("base_link", value="base_link"),
+                Parameter("tip_link", value="tool0"),
+                Parameter("duplicate_check_s", value=0.0),
+            ],
+        )

@@ -88,6 +88,7 @@ __all__ = [
     "StepResult",
     "StreamParams",
     "has_swivel",
+    "controller_refusal",
 ]
 
 
@@ -103,6 +104,23 @@ def has_swivel(arm: Any) -> bool:
     except (NotImplementedError, AttributeError, TypeError):
         return False
     return True
+
+
+def controller_refusal(arm: Any) -> str | None:
+    """One line saying why the controller cannot run ``arm`` (a URDF model), or None.
+
+    A URDF chain without the closed form carries its reason; a URDF chain that maps onto the swivel model
+    only through a base transform, joint signs or offsets (kind ``swivel7_urdf``) is refused too: the
+    controller's geometry is the model's own frames (an arm whose URDF is the model itself runs).
+    """
+    name = getattr(arm, "name", arm)
+    why = (getattr(arm, "config", None) or {}).get("closed_form_refused")
+    if why:
+        return f"arm {name!r} is not a spherical-shoulder / elbow / spherical-wrist chain: {why}"
+    if getattr(arm, "kind", "") == "swivel7_urdf":
+        return (f"arm {name!r} maps onto the swivel model only through a base transform, joint signs or "
+                "offsets; the controller runs arms whose URDF is the model's own frames")
+    return None
 
 
 class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
@@ -138,6 +156,9 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
         return super().__new__(cls)
 
     def __init__(self, arm: Any, scene: Scene | None = None, params: ControllerParams | None = None) -> None:
+        refused = controller_refusal(arm)
+        if refused:
+            raise ConfigError(refused, field="arm")
         if not has_swivel(arm) and not is_6dof(arm):
             raise ConfigError(f"ReachController needs a 7-DOF swivel arm or the 6-DOF PowerCube arm, got "
                               f"{getattr(arm, 'name', arm)!r}", field="arm")

@@ -108,6 +108,13 @@ def _one_of(*choices: str) -> Any:
 PARAMS = [
     ParamSpec("arm", "pa10", "Arm model (config/arms/<name>.yaml or a path); a 7-DOF swivel arm or "
               "powercube6.", read_only=True),
+    ParamSpec("urdf", "", "Run the arm of this URDF file instead of `arm` (the chain from `base_link` to "
+              "`tip_link`); a chain the controller cannot run is refused with the reason.",
+              lambda v: None if isinstance(v, str) else "must be a string", read_only=True),
+    ParamSpec("base_link", "", "The URDF arm's base link.",
+              lambda v: None if isinstance(v, str) else "must be a string", read_only=True),
+    ParamSpec("tip_link", "", "The URDF arm's tip link.",
+              lambda v: None if isinstance(v, str) else "must be a string", read_only=True),
     PROCESS_RT_PARAM,
     NICE_PARAM,
     ParamSpec("rate_hz", 100.0, "Control rate (Hz): one step and one /joint_command point per period.",
@@ -275,7 +282,11 @@ class ControllerNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
 
     def _setup(self, p: dict[str, Any]) -> None:
         try:
-            self.arm = load_arm(p["arm"])
+            if p["urdf"]:
+                links = {"base_link": p["base_link"] or None, "tip_link": p["tip_link"] or None}
+                self.arm = load_arm(p["urdf"], **links)
+            else:
+                self.arm = load_arm(p["arm"])
             self.base_scene = load_scene(p["scene"]) if p["scene"] else Scene()
             self.ctl = ReachController(self.arm, self.base_scene, controller_params(p))
         except (RedarmError, OSError) as exc:
