@@ -312,16 +312,38 @@ def test_ik_front_end_serves_urdf_arms_with_the_collision_filter() -> None:
     assert ans.status is IKStatus.OUT_OF_REACH and "no base placement model" in ans.message
 
 
-def test_controller_runs_a_urdf_of_the_model_and_refuses_other_chains_with_the_reason() -> None:
-    from redarm_ros.control.reach_controller import ReachController
+def test_controller_runs_urdf_arms_in_the_model_frames_and_refuses_other_chains_with_the_reason() -> None:
+    from redarm_ros.control.reach_controller import JointMappedController, ReachController
+    from redarm_ros.control.types import Phase
 
     _, pa10 = _urdf_arm("pa10")
     ctl = ReachController(pa10)
     ctl.reset(np.array([0.0, -0.5, 0.0, 2.0, 0.0, 1.2, 0.0]))
     assert ctl.step(0.01).q.shape == (7,)
+    # the iiwa: joint 4 turns about -y; the controller runs the model with joint values mapped
     iiwa = load_arm(iiwa14_urdf(), base_link="base_link", tip_link="tool0")
-    with pytest.raises(ConfigError, match="joint signs or offsets") as e1:
-        ReachController(iiwa)
+    ctl = ReachController(iiwa)
+    assert isinstance(ctl, JointMappedController)
+    q0 = np.radians([10.0, 30.0, 0.0, -60.0, 0.0, 60.0, 0.0])
+    ctl.reset(q0)
+    np.testing.assert_allclose(ctl.q, q0, atol=1e-12)
+    goal_q = np.radians([40.0, 45.0, 10.0, -80.0, 20.0, 40.0, 30.0])
+    goal = iiwa.fk(goal_q)
+    check = ctl.set_goal(goal)
+    assert check.accepted, check.message
+    q = q0
+    for _ in range(3000):
+        r = ctl.step(0.01)
+        assert np.all(r.q >= iiwa.lower) and np.all(r.q <= iiwa.upper)
+        assert np.abs(r.q - q).max() <= iiwa.max_vel.max() * 0.01 + 1e-9  # rate-limited in its own joints
+        q = r.q
+        if r.phase is Phase.REACHED:
+            break
+    assert r.phase is Phase.REACHED, r.message
+    assert max(pose_error(iiwa.fk(r.q), goal)) <= 2e-3
+    reframed = load_arm(iiwa14_urdf(reframed=True), base_link="base_link", tip_link="tool0")
+    with pytest.raises(ConfigError, match="base or tool transform") as e1:
+        ReachController(reframed)
     panda = load_arm(franka_like_urdf(), base_link="base_link", tip_link="tool0")
     with pytest.raises(ConfigError, match="elbow offset") as e2:
         ReachController(panda)

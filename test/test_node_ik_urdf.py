@@ -159,38 +159,44 @@ def test_bad_urdf_parameters_refuse_the_start(ctx: Any, params: dict[str, Any], 
         _start(ctx, "ik_urdf_bad", **params)
 
 
-def test_controller_node_takes_a_urdf_and_refuses_a_chain_it_cannot_run(ctx: Any, tmp_path: Path) -> None:
+def _controller(ctx: Any, name: str, urdf: Path, base: str, tip: str) -> Any:
     from redarm_ros.nodes.controller import ControllerNode
-    from redarm_ros.sim.urdf import build_urdf
 
-    good = tmp_path / "pa10.urdf"
-    good.write_text(build_urdf(load_arm("pa10")), encoding="utf-8")
-    node = ControllerNode(
+    return ControllerNode(
         context=ctx,
-        node_name="ctl_urdf",
+        node_name=name,
         parameter_overrides=[
-            Parameter("urdf", value=str(good)),
-            Parameter("base_link", value="pa10_base_link"),
-            Parameter("tip_link", value="pa10_tool"),
+            Parameter("urdf", value=str(urdf)),
+            Parameter("base_link", value=base),
+            Parameter("tip_link", value=tip),
             Parameter("duplicate_check_s", value=0.0),
         ],
     )
-    try:
-        assert node.arm.joint_names == load_arm("pa10").joint_names
-    finally:
-        node.destroy_node()
-    bad = tmp_path / "panda.urdf"
-    bad.write_text(franka_like_urdf(), encoding="utf-8")
-    with pytest.raises(
-        ValueError, match="not a spherical-shoulder / elbow / spherical-wrist chain: axes 3 and 4"
+
+
+def test_controller_node_takes_a_urdf_and_refuses_a_chain_it_cannot_run(ctx: Any, tmp_path: Path) -> None:
+    from redarm_ros.sim.urdf import build_urdf
+
+    for name, text, base, tip, joints in (
+        ("pa10", build_urdf(load_arm("pa10")), "pa10_base_link", "pa10_tool", load_arm("pa10").joint_names),
+        ("iiwa", iiwa14_urdf(), "base_link", "tool0", [f"iiwa_joint_{i}" for i in range(1, 8)]),
     ):
-        ControllerNode(
-            context=ctx,
-            node_name="ctl_urdf_bad",
-            parameter_overrides=[
-                Parameter("urdf", value=str(bad)),
-                Parameter("base_link", value="base_link"),
-                Parameter("tip_link", value="tool0"),
-                Parameter("duplicate_check_s", value=0.0),
-            ],
-        )
+        f = tmp_path / f"{name}.urdf"
+        f.write_text(text, encoding="utf-8")
+        node = _controller(ctx, f"ctl_urdf_{name}", f, base, tip)
+        try:
+            assert node.arm.joint_names == joints
+        finally:
+            node.destroy_node()
+    for name, text, match in (
+        (
+            "panda",
+            franka_like_urdf(),
+            "not a spherical-shoulder / elbow / spherical-wrist chain: axes 3 and 4",
+        ),
+        ("moved", iiwa14_urdf(reframed=True), "only through a base or tool transform"),
+    ):
+        f = tmp_path / f"{name}.urdf"
+        f.write_text(text, encoding="utf-8")
+        with pytest.raises(ValueError, match=match):
+            _controller(ctx, f"ctl_urdf_{name}", f, "base_link", "tool0")

@@ -508,6 +508,20 @@ class MappedSwivelArm(Arm):
     def _qc(self, q: np.ndarray) -> np.ndarray:
         return (q - self._offset) * self._sign
 
+    def to_canonical_q(self, q: Any) -> np.ndarray:
+        """The canonical model's joint values (rad) of this arm's q ((n,) or (k, n)): sign * (q - offset)."""
+        return self._qc(np.asarray(q, dtype=float))
+
+    def from_canonical_q(self, q_c: Any) -> np.ndarray:
+        """This arm's joint values (rad) of canonical ones, clipped onto the limits against round-off."""
+        return self._q(np.asarray(q_c, dtype=float))
+
+    @property
+    def frames_are_canonical(self) -> bool:
+        """True where base and tool frames are the model's own (only joint signs and offsets differ)."""
+        eye = np.eye(4)
+        return bool(np.abs(self._B - eye).max() <= _IDENT_TOL and np.abs(self._E - eye).max() <= _IDENT_TOL)
+
     @property
     def shoulder(self) -> np.ndarray:
         """Shoulder point (m, this arm's base frame)."""
