@@ -17,7 +17,13 @@ An arm from a URDF: ``load_arm("robot.urdf", base_link="base_link", tip_link="to
 of ``/robot_description``); :func:`describe_solver` says which IK it gets and why.
 """
 
-from redarm_ros.kinematics.loader import arm_config_dirs, available_arms, build_arm, load_arm
+from redarm_ros.kinematics.loader import (
+    arm_config_dirs,
+    available_arms,
+    build_arm,
+    load_arm,
+    load_arm_or_urdf,
+)
 from redarm_ros.kinematics.model import Arm, Joint, pose_error
 from redarm_ros.kinematics.powercube6 import PowerCube6Arm
 from redarm_ros.kinematics.protocols import AnalyticIK, SwivelKinematics, has_analytic_ik, has_swivel
@@ -40,6 +46,7 @@ __all__ = [
     "IKInfo",
     "IKStatus",
     "load_arm",
+    "load_arm_or_urdf",
     "build_arm",
     "available_arms",
     "arm_config_dirs",

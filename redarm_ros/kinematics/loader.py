@@ -26,7 +26,7 @@ from redarm_ros.kinematics.powercube6 import PowerCube6Arm
 from redarm_ros.kinematics.swivel import SwivelArm, swivel_chain
 from redarm_ros.kinematics.urdf_chain import load_urdf_arm
 
-__all__ = ["load_arm", "build_arm", "arm_config_dirs", "available_arms", "is_urdf_source"]
+__all__ = ["load_arm", "load_arm_or_urdf", "build_arm", "arm_config_dirs", "available_arms", "is_urdf_source"]
 
 
 def arm_config_dirs() -> list[Path]:
@@ -140,6 +140,14 @@ def load_arm(
     cfg = dict(cfg)
     cfg["_path"] = str(path)
     return build_arm(cfg, **overrides)
+
+
+def load_arm_or_urdf(arm: str, urdf: str = "", base_link: str = "", tip_link: str = "") -> Arm:
+    """The nodes' and processes' arm: the chain ``base_link`` -> ``tip_link`` of the URDF file ``urdf``
+    if one is given, else :func:`load_arm` of ``arm`` (a bundled name or a YAML path)."""
+    if urdf:
+        return load_arm(urdf, base_link=base_link or None, tip_link=tip_link or None)
+    return load_arm(arm)
 
 
 def _joint_specs(cfg: dict[str, Any], overrides: dict[str, Any]) -> list[dict[str, Any]]:
