@@ -42,6 +42,7 @@ from redarm_ros.nodes._common import (
     ParamNode,
     ParamSpec,
     UniqueNameCheck,
+    any_string,
     in_range,
     non_empty_string,
     non_negative,
@@ -69,10 +70,6 @@ _STATUS_CODE = {
 STATUS_NAMES = {code: st.name for st, code in _STATUS_CODE.items()}
 
 
-def _string(value: Any) -> str | None:
-    return None if isinstance(value, str) else "must be a string"
-
-
 def _non_empty_string_list(value: Any) -> str | None:
     if not isinstance(value, (list, tuple)) or not value or not all(isinstance(v, str) and v for v in value):
         return "must be a non-empty list of arm names"
@@ -92,7 +89,7 @@ PARAMS = [
         "",
         "Arm used when a request leaves `arm` empty; must be served. Empty: the URDF arm if one is given, "
         "else the first of `arms`.",
-        _string,
+        any_string,
         read_only=True,
     ),
     ParamSpec(
@@ -100,14 +97,14 @@ PARAMS = [
         "",
         "Also serve the arm of this URDF file (the chain from `base_link` to `tip_link`): closed-form "
         "swivel IK for a spherical-shoulder / elbow / spherical-wrist 7R chain, numeric IK otherwise.",
-        _string,
+        any_string,
         read_only=True,
     ),
     ParamSpec(
         "robot_description",
         "",
         "Also serve the arm of this URDF text (as ros2_control and MoveIt take it as a parameter).",
-        _string,
+        any_string,
         read_only=True,
     ),
     ParamSpec(
@@ -115,15 +112,15 @@ PARAMS = [
         "",
         "Also serve the arm of the URDF published on this topic (std_msgs/String, transient local, e.g. "
         "/robot_description); the service is offered once it has arrived. Empty: no topic.",
-        _string,
+        any_string,
         read_only=True,
     ),
     ParamSpec("base_link", "", "The URDF arm's base link (the chain's root; targets are in its frame).",
-              _string, read_only=True),
-    ParamSpec("tip_link", "", "The URDF arm's tip link (the tool frame the targets give).", _string,
+              any_string, read_only=True),
+    ParamSpec("tip_link", "", "The URDF arm's tip link (the tool frame the targets give).", any_string,
               read_only=True),
     ParamSpec("urdf_arm_name", "", "Name the URDF arm is served under (requests' `arm`); empty: the URDF's "
-              "robot name.", _string, read_only=True),
+              "robot name.", any_string, read_only=True),
     ParamSpec(
         "base_frame",
         "base_link",
