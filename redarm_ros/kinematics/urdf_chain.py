@@ -343,15 +343,16 @@ def swivel_map(
     g12, S = _line_gap(P[0], A[0], P[1], A[1])
     g34, E = _line_gap(P[2], A[2], P[3], A[3])
     g56, W = _line_gap(P[4], A[4], P[5], A[5])
-    for gap, what in (
-        (g12, "axes 1 and 2 do not meet (shoulder)"),
-        (_off_line(S, P[2], A[2]), "axis 3 misses the shoulder point of axes 1-2"),
-        (g34, "axes 3 and 4 do not meet (elbow offset)"),
-        (g56, "axes 5 and 6 do not meet (wrist)"),
-        (_off_line(W, P[6], A[6]), "axis 7 misses the wrist point of axes 5-6 (wrist offset)"),
-        (_off_line(E, P[4], A[4]), "axis 5 misses the elbow point of axes 3-4 (forearm offset)"),
+    # a point's test only where the point exists (its two axes meet): the line names causes, not echoes
+    for gap, what, needs in (
+        (g12, "axes 1 and 2 do not meet (shoulder)", 0.0),
+        (_off_line(S, P[2], A[2]), "axis 3 misses the shoulder point of axes 1-2", g12),
+        (g34, "axes 3 and 4 do not meet (elbow offset)", 0.0),
+        (g56, "axes 5 and 6 do not meet (wrist)", 0.0),
+        (_off_line(W, P[6], A[6]), "axis 7 misses the wrist point of axes 5-6 (wrist offset)", g56),
+        (_off_line(E, P[4], A[4]), "axis 5 misses the elbow point of axes 3-4 (forearm offset)", g34),
     ):
-        if gap > tol:
+        if gap > tol and needs <= tol:
             problems.append(f"{what} by {gap:.4g} m")
     L2, L3 = float(np.linalg.norm(E - S)), float(np.linalg.norm(W - E))
     if not problems and min(L2, L3) <= tol:
