@@ -91,6 +91,9 @@ class StackConfig:
     """
 
     arm: str = "pa10"
+    urdf: str | None = None  # an arm of its own: this URDF file's chain base_link -> tip_link (docs/urdf.md)
+    base_link: str | None = None
+    tip_link: str | None = None
     hardware: str = "sim"
     ik_service: bool = True
     controller: bool = True
@@ -170,6 +173,13 @@ class Stack:
         return self._start(node, python_module_cmd(f"redarm_ros.nodes.{node}", *self._ros_args(node, params)),
                            READY[node])
 
+    def _urdf_params(self) -> dict[str, str]:
+        """The URDF arm's node parameters (urdf, base_link, tip_link), or {} for a bundled arm."""
+        cfg = self.cfg
+        if not cfg.urdf:
+            return {}
+        return {"urdf": cfg.urdf, "base_link": cfg.base_link or "", "tip_link": cfg.tip_link or ""}
+
     def _ros_args(self, node: str, params: dict[str, str]) -> list[str]:
         args = ["--ros-args", "--log-level", self.cfg.log_level, *_params_file(node)]
         if self.cfg.namespace:
@@ -195,6 +205,8 @@ class Stack:
             raise ValueError(f"hardware must be sim, real or none, got {cfg.hardware!r}")
         if cfg.namespace and not cfg.namespace.startswith("/"):
             raise ValueError(f"namespace must start with '/', got {cfg.namespace!r}")
+        if cfg.urdf and not (cfg.base_link and cfg.tip_link):
+            raise ValueError("--urdf needs --base-link and --tip-link (the chain's ends)")
         try:
             if cfg.hardware == "sim":
                 bus = self._start(
@@ -209,6 +221,9 @@ class Stack:
                     "--can-interface", self.can_interface, "--can-channel", self.can_channel,
                     "--status-file", str(self.status_file), "--control-file", str(self.control_file),
                 )
+                if cfg.urdf:
+                    sim_cmd += ["--urdf", cfg.urdf, "--base-link", cfg.base_link or "",
+                                "--tip-link", cfg.tip_link or ""]
                 if cfg.gui:
                     sim_cmd.append("--gui")
                 if cfg.scene:
@@ -225,6 +240,7 @@ class Stack:
                     raise ValueError("--hardware real needs --can-interface (and usually --can-channel)")
                 params = {
                     "arm": cfg.arm,
+                    **self._urdf_params(),
                     "rate_hz": f"{cfg.driver_rate_hz:g}",
                     # Homing moves the arm: automatic only on the simulator, a real arm waits for ~/init
                     # (or --auto-init).
@@ -237,14 +253,16 @@ class Stack:
                     params["park_after_init"] = "true"  # homing runs to 0 rad; come back to park
                 self._start_node("can_driver", params)
             if cfg.ik_service:
-                self._start_node("ik_service", {"default_arm": cfg.arm})
+                self._start_node("ik_service", self._urdf_params() or {"default_arm": cfg.arm})
             if cfg.controller:
-                params = {"arm": cfg.arm, "rate_hz": f"{cfg.control_rate_hz:g}"}
+                params = {"arm": cfg.arm, **self._urdf_params(), "rate_hz": f"{cfg.control_rate_hz:g}"}
+                if cfg.urdf:  # goals, twists and obstacles in the URDF arm's base link frame
+                    params["base_frame"] = cfg.base_link or ""
                 if cfg.scene:
                     params["scene"] = cfg.scene
                 self._start_node("controller", params)
             if cfg.description:
-                self._start_node("description", {"arm": cfg.arm})
+                self._start_node("description", {"urdf_file": cfg.urdf} if cfg.urdf else {"arm": cfg.arm})
             if cfg.view:
                 params = {"arm": cfg.arm, "port": str(int(cfg.view_port))}
                 if cfg.scene and not cfg.controller:  # the controller's markers already show its scene
@@ -355,6 +373,10 @@ def build_parser() -> argparse.ArgumentParser:
         "controller, description) as supervised processes; Ctrl-C stops them all.",
     )
     ap.add_argument("--arm", default="pa10", help="arm model (config/arms/<name>.yaml), default pa10")
+    ap.add_argument("--urdf", help="an arm of your own: this URDF file (with --base-link, --tip-link; "
+                    "docs/urdf.md); replaces --arm")
+    ap.add_argument("--base-link", help="the URDF arm's base link")
+    ap.add_argument("--tip-link", help="the URDF arm's tip link")
     ap.add_argument(
         "--hardware",
         choices=("sim", "real", "none"),
@@ -405,6 +427,9 @@ def config_from_args(ns: argparse.Namespace) -> StackConfig:
     """A :class:`StackConfig` from parsed ``redarm-bringup`` arguments."""
     return StackConfig(
         arm=ns.arm,
+        urdf=str(Path(ns.urdf).resolve()) if ns.urdf else None,
+        base_link=ns.base_link,
+        tip_link=ns.tip_link,
         hardware=ns.hardware,
         ik_service=not ns.no_ik_service,
         controller=not ns.no_controller,

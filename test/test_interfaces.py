@@ -60,6 +60,7 @@ def test_solve_ik_response_fields_and_status_codes() -> None:
         "base_offset": "geometry_msgs/Vector3",
         "base_offset_yaw": "double",
         "base_offset_valid": "boolean",
+        "solver": "string",
     }
     codes = {
         name: getattr(SolveIK.Response, name)

@@ -25,6 +25,7 @@ controller node converts messages to these calls.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from typing import Any
@@ -88,6 +89,7 @@ __all__ = [
     "StepResult",
     "StreamParams",
     "has_swivel",
+    "controller_refusal",
 ]
 
 
@@ -103,6 +105,54 @@ def has_swivel(arm: Any) -> bool:
     except (NotImplementedError, AttributeError, TypeError):
         return False
     return True
+
+
+def controller_refusal(arm: Any) -> str | None:
+    """One line saying why the controller cannot run ``arm`` (a URDF model), or None.
+
+    A URDF chain without the closed form carries its reason; a URDF chain that maps onto the swivel model
+    only through a base transform, joint signs or offsets (kind ``swivel7_urdf``) is refused too: the
+    controller's geometry is the model's own frames (an arm whose URDF is the model itself runs).
+    """
+    name = getattr(arm, "name", arm)
+    why = (getattr(arm, "config", None) or {}).get("closed_form_refused")
+    if why:
+        return f"arm {name!r} is not a spherical-shoulder / elbow / spherical-wrist chain: {why}"
+    if getattr(arm, "kind", "") == "swivel7_urdf" and not arm.frames_are_canonical:
+        return (f"arm {name!r} maps onto the swivel model only through a base or tool transform; the "
+                "controller runs arms whose base and tool frames are the model's (joint signs and offsets "
+                "are fine)")
+    return None
+
+
+class JointMappedController:
+    """The controller of a URDF arm that is the swivel model up to joint signs and zero offsets (its base
+    and tool frames the model's, as the iiwa's): a :class:`ReachController` on ``arm.canonical`` with the
+    joint values mapped at the boundary, ``q_c = sign (q - offset)``. Poses, twists, the scene and every
+    distance are the same in both; limits, rates and accelerations keep their sizes. Everything else is
+    the inner controller's. Built by ``ReachController(arm, ...)`` for such an arm."""
+
+    def __init__(self, arm: Any, scene: Scene | None = None, params: ControllerParams | None = None) -> None:
+        self.arm = arm
+        self.inner = ReachController(arm.canonical, scene, params)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.inner, name)
+
+    @property
+    def q(self) -> np.ndarray | None:
+        """Last commanded joint positions (rad, the arm's own), None before :meth:`reset`."""
+        qc = self.inner.q
+        return None if qc is None else self.arm.from_canonical_q(qc)
+
+    def reset(self, q: Any, now: float | None = None) -> None:
+        """:meth:`ReachController.reset` from the arm's measured joint positions."""
+        self.inner.reset(self.arm.to_canonical_q(self.arm.check_q(q)), now)
+
+    def step(self, *args: Any, **kwargs: Any) -> StepResult:
+        """:meth:`ReachController.step`; the result's q in the arm's joint values."""
+        res = self.inner.step(*args, **kwargs)
+        return dataclasses.replace(res, q=self.arm.from_canonical_q(res.q))
 
 
 class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
@@ -131,6 +181,9 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
     BASE_MOVE_BUDGET_S = 0.1
 
     def __new__(cls, arm: Any, *args: Any, **kwargs: Any) -> ReachController:
+        mapped = getattr(arm, "kind", "") == "swivel7_urdf"
+        if cls is ReachController and mapped and not controller_refusal(arm):
+            return JointMappedController(arm, *args, **kwargs)  # type: ignore[return-value]
         if cls is ReachController and is_6dof(arm):
             from redarm_ros.control.reach6 import ReachController6
 
@@ -138,6 +191,9 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
         return super().__new__(cls)
 
     def __init__(self, arm: Any, scene: Scene | None = None, params: ControllerParams | None = None) -> None:
+        refused = controller_refusal(arm)
+        if refused:
+            raise ConfigError(refused, field="arm")
         if not has_swivel(arm) and not is_6dof(arm):
             raise ConfigError(f"ReachController needs a 7-DOF swivel arm or the 6-DOF PowerCube arm, got "
                               f"{getattr(arm, 'name', arm)!r}", field="arm")

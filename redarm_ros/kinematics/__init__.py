@@ -10,20 +10,34 @@ Quaternions inside this package are (w, x, y, z) unless a name says otherwise (`
     q, info = arm.ik_nearest(T, q_seed)
 
 Module layering (no import cycle): ``errors``, ``result``, ``quaternion``, ``protocols`` <- ``numeric``
-<- ``model`` <- ``feasible`` <- ``swivel``, ``powercube6`` <- ``loader`` <- ``solve``, ``reachability``.
+<- ``model`` <- ``feasible`` <- ``swivel``, ``powercube6`` <- ``urdf_chain`` <- ``loader`` <- ``solve``,
+``reachability``.
+
+An arm from a URDF: ``load_arm("robot.urdf", base_link="base_link", tip_link="tool0")`` (or the XML text
+of ``/robot_description``); :func:`describe_solver` says which IK it gets and why.
 """
 
-from redarm_ros.kinematics.loader import arm_config_dirs, available_arms, build_arm, load_arm
+from redarm_ros.kinematics.loader import (
+    arm_config_dirs,
+    available_arms,
+    build_arm,
+    load_arm,
+    load_arm_or_urdf,
+)
 from redarm_ros.kinematics.model import Arm, Joint, pose_error
 from redarm_ros.kinematics.powercube6 import PowerCube6Arm
 from redarm_ros.kinematics.protocols import AnalyticIK, SwivelKinematics, has_analytic_ik, has_swivel
 from redarm_ros.kinematics.result import IKInfo, IKStatus
 from redarm_ros.kinematics.swivel import SwivelArm
+from redarm_ros.kinematics.urdf_chain import MappedSwivelArm, describe_solver, load_urdf_arm
 
 __all__ = [
     "Arm",
     "Joint",
     "SwivelArm",
+    "MappedSwivelArm",
+    "load_urdf_arm",
+    "describe_solver",
     "PowerCube6Arm",
     "AnalyticIK",
     "SwivelKinematics",
@@ -32,6 +46,7 @@ __all__ = [
     "IKInfo",
     "IKStatus",
     "load_arm",
+    "load_arm_or_urdf",
     "build_arm",
     "available_arms",
     "arm_config_dirs",

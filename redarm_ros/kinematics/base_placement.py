@@ -96,6 +96,9 @@ def wrist_point(arm: Any, T: np.ndarray) -> np.ndarray | None:
     ``p - L56 x_tool``. The hand capsule (wrist to tool) is then fixed by the pose alone.
     """
     T = np.asarray(T, dtype=float)
+    own = getattr(arm, "wrist_point", None)
+    if callable(own):  # a URDF arm mapped onto the swivel model: its own frames
+        return own(T)
     if has_swivel(arm):
         return T[:3, 3] - arm.link_lengths[3] * T[:3, 2]
     if getattr(arm, "kind", "") == "powercube6":
@@ -254,7 +257,7 @@ def suggest_base_move(
                 message=f"the hand would be {-g:.3f} m below the ground plane at this pose (a planar base "
                 "move keeps every height)",
             )
-    if has_swivel(arm):
+    if has_swivel(arm) and not callable(getattr(arm, "wrist_point", None)):  # (not a URDF arm's frames)
         return _suggest_swivel(arm, Tl, seed, md, allow_yaw, t_end, step)
     if getattr(arm, "kind", "") == "powercube6":
         return _suggest_powercube6(arm, Tl, seed, md, allow_yaw, t_end, step)

@@ -23,9 +23,10 @@ import yaml
 from redarm_ros.errors import ConfigError
 from redarm_ros.kinematics.model import Arm, Joint, transform_from_xyz_rpy
 from redarm_ros.kinematics.powercube6 import PowerCube6Arm
-from redarm_ros.kinematics.swivel import SwivelArm
+from redarm_ros.kinematics.swivel import SwivelArm, swivel_chain
+from redarm_ros.kinematics.urdf_chain import load_urdf_arm
 
-__all__ = ["load_arm", "build_arm", "arm_config_dirs", "available_arms"]
+__all__ = ["load_arm", "load_arm_or_urdf", "build_arm", "arm_config_dirs", "available_arms", "is_urdf_source"]
 
 
 def arm_config_dirs() -> list[Path]:
@@ -89,14 +90,37 @@ _OVERRIDE_KEYS = {
 }
 
 
-def load_arm(name: str | os.PathLike[str] = "pa10", **overrides: Any) -> Arm:
-    """Load an arm model by name (``config/arms/<name>.yaml``) or from a YAML path.
+def is_urdf_source(name: str | os.PathLike[str]) -> bool:
+    """True if ``name`` is URDF text (starts with '<') or a path ending in .urdf."""
+    s = str(name)
+    return s.lstrip().startswith("<") or s.endswith(".urdf")
+
+
+def load_arm(
+    name: str | os.PathLike[str] = "pa10",
+    *,
+    base_link: str | None = None,
+    tip_link: str | None = None,
+    **overrides: Any,
+) -> Arm:
+    """Load an arm model by name (``config/arms/<name>.yaml``), from a YAML path, or from a URDF.
 
     Keyword overrides replace YAML values: ``link_lengths`` (m), ``lower``/``upper`` (rad, (n,)),
     ``max_vel`` (rad/s), ``max_acc`` (rad/s^2), ``joint_names``, ``name``, ``roll_fractions``
     (powercube6), ``park`` (rad, (n,): the park posture, ``arm.park``).
+    URDF: ``name`` is a ``.urdf`` file or the XML text (as on ``/robot_description``) and ``base_link`` /
+    ``tip_link`` name the chain's ends; the model is built by :func:`.urdf_chain.load_urdf_arm` (further
+    keywords: ``limits_yaml``, ``tol``, ``closed_form``, ``arm_name`` (the model's name; default the
+    URDF robot's), and ``lower``, ``upper``, ``max_vel``,
+    ``max_acc``, ``park`` overrides).
     Raises :class:`ConfigError` for an unknown name, a broken file or a bad override.
     """
+    if base_link is not None or tip_link is not None or is_urdf_source(name):
+        if not base_link or not tip_link:
+            raise ConfigError("a URDF arm needs both base_link and tip_link", field="base_link")
+        if "arm_name" in overrides:
+            overrides["name"] = str(overrides.pop("arm_name"))
+        return load_urdf_arm(name, base_link, tip_link, **overrides)
     path = _find_config(name)
     try:
         with open(path, encoding="utf-8") as fh:
@@ -116,6 +140,14 @@ def load_arm(name: str | os.PathLike[str] = "pa10", **overrides: Any) -> Arm:
     cfg = dict(cfg)
     cfg["_path"] = str(path)
     return build_arm(cfg, **overrides)
+
+
+def load_arm_or_urdf(arm: str, urdf: str = "", base_link: str = "", tip_link: str = "") -> Arm:
+    """The nodes' and processes' arm: the chain ``base_link`` -> ``tip_link`` of the URDF file ``urdf``
+    if one is given, else :func:`load_arm` of ``arm`` (a bundled name or a YAML path)."""
+    if urdf:
+        return load_arm(urdf, base_link=base_link or None, tip_link=tip_link or None)
+    return load_arm(arm)
 
 
 def _joint_specs(cfg: dict[str, Any], overrides: dict[str, Any]) -> list[dict[str, Any]]:
@@ -268,16 +300,13 @@ def build_arm(cfg: dict[str, Any], **overrides: Any) -> Arm:
             raise ConfigError(f"arm {name!r}: kind swivel7 needs exactly 7 joints", field="joints")
         L1, L2, L3, L4 = _link_lengths(cfg, overrides, 4)
         cfg["link_lengths"] = [L1, L2, L3, L4]
-        offsets = [0.0, L1, 0.0, L2, 0.0, L3, 0.0]
         axes = "zyzyzyz"
-        chain = []
         for i, s in enumerate(specs):
             if s["axis"] is not None and _axis(s["axis"], name).tolist() != _axis(axes[i], name).tolist():
                 raise ConfigError(f"arm {name!r}: swivel7 joint {i + 1} axis must be {axes[i]}", field="axis")
-            o = np.eye(4)
-            o[2, 3] = offsets[i]
-            chain.append(mk(s, o, _axis(axes[i], name)))
-        T[2, 3] = L4
+        chain, T = swivel_chain(
+            [L1, L2, L3, L4], [(s["name"], s["lower"], s["upper"], s["max_vel"], s["max_acc"]) for s in specs]
+        )
         return SwivelArm(name, chain, T, (1, 3, 5), cfg)
     if kind == "powercube6":
         if len(specs) != 6:

@@ -166,6 +166,16 @@ def _rot_axis_batch(axis: np.ndarray, angles: np.ndarray) -> np.ndarray:
     return R
 
 
+def _mul3(R: Sequence[Sequence[float]], A: Sequence[Sequence[float]]) -> list[list[float]]:
+    """R @ A for 3x3 nested lists, written out (the scalar FK of a URDF chain does one per joint: 3x
+    faster than sum() over generators)."""
+    (a00, a01, a02), (a10, a11, a12), (a20, a21, a22) = A
+    return [
+        [r0 * a00 + r1 * a10 + r2 * a20, r0 * a01 + r1 * a11 + r2 * a21, r0 * a02 + r1 * a12 + r2 * a22]
+        for r0, r1, r2 in R
+    ]
+
+
 def pose_error(T_actual: np.ndarray, T_desired: np.ndarray) -> tuple[float, float]:
     """(position error in m, orientation error in rad) between two 4x4 poses."""
     dp = float(np.linalg.norm(np.asarray(T_actual)[:3, 3] - np.asarray(T_desired)[:3, 3]))
@@ -405,7 +415,7 @@ class Arm:
             if po is not None:
                 p = [p[i] + R[i][0] * po[0] + R[i][1] * po[1] + R[i][2] * po[2] for i in range(3)]
             if Ro is not None:
-                R = [[sum(R[i][k] * Ro[k][j] for k in range(3)) for j in range(3)] for i in range(3)]
+                R = _mul3(R, Ro)
             if record is not None:
                 if code >= 0:
                     z = [R[0][code], R[1][code], R[2][code]]
@@ -419,14 +429,17 @@ class Arm:
                 R = [[r[0] * c - r[2] * s, r[1], r[0] * s + r[2] * c] for r in R]
             elif code == 0:
                 R = [[r[0], r[1] * c + r[2] * s, r[2] * c - r[1] * s] for r in R]
-            else:
-                Rq = rot_axis(np.array(ax), qi).tolist()
-                R = [[sum(R[i][k] * Rq[k][j] for k in range(3)) for j in range(3)] for i in range(3)]
+            else:  # R @ rot_axis(ax, qi), Rodrigues written out
+                x, y, z = ax
+                C = 1.0 - c
+                a00, a01, a02 = c + x * x * C, x * y * C - z * s, x * z * C + y * s
+                a10, a11, a12 = y * x * C + z * s, c + y * y * C, y * z * C - x * s
+                a20, a21, a22 = z * x * C - y * s, z * y * C + x * s, c + z * z * C
+                R = _mul3(R, ((a00, a01, a02), (a10, a11, a12), (a20, a21, a22)))
         tp = self._tool_p
         p = [p[i] + R[i][0] * tp[0] + R[i][1] * tp[1] + R[i][2] * tp[2] for i in range(3)]
         if self._tool_R is not None:
-            Rt = self._tool_R
-            R = [[sum(R[i][k] * Rt[k][j] for k in range(3)) for j in range(3)] for i in range(3)]
+            R = _mul3(R, self._tool_R)
         return R, p
 
     def fk(self, q: Sequence[float]) -> np.ndarray:

@@ -45,6 +45,7 @@ from redarm_ros.kinematics.collision_ik import FreeSolution, collision_free_rows
 from redarm_ros.kinematics.model import ANGLE_RANGE, Arm, check_finite_array
 from redarm_ros.kinematics.protocols import has_analytic_ik, has_swivel
 from redarm_ros.kinematics.result import IKStatus
+from redarm_ros.kinematics.urdf_chain import describe_solver
 
 __all__ = ["IKAnswer", "IKFrontEnd", "FreeSolution", "nearest_collision_free", "collision_free_rows"]
 
@@ -74,6 +75,8 @@ class IKAnswer:
     clearance: float = math.nan
     #: the base-move suggestion (on failures that a base move can fix), else None
     base_offset: BasePlacement | None = None
+    #: which IK solver serves the arm (:func:`.urdf_chain.describe_solver`); empty for an unknown arm
+    solver: str = ""
 
 
 # statuses after which a base move may help (the pose has no usable solution at any swivel)
@@ -190,6 +193,7 @@ class IKFrontEnd:
                 )
                 whole_pose = True
             ans.joint_names = list(arm.joint_names)
+            ans.solver = describe_solver(arm)
             if ans.q is not None and not math.isfinite(ans.position_error):
                 ans.position_error, ans.orientation_error = arm.pose_error(ans.q, T)
             if self.suggest_base_move and whole_pose and ans.status in _BASE_MOVE_STATUSES:

@@ -63,6 +63,7 @@ from redarm_ros.kinematics.model import (
     ANGLE_RANGE,
     LIMIT_TOL,
     Arm,
+    Joint,
     check_finite_array,
     check_scalar,
 )
@@ -75,7 +76,7 @@ from redarm_ros.kinematics.result import (
     IKStatus,
 )
 
-__all__ = ["SwivelArm", "FLIP_PATTERNS"]
+__all__ = ["SwivelArm", "FLIP_PATTERNS", "swivel_chain"]
 
 PI = math.pi
 TWO_PI = 2.0 * math.pi
@@ -98,6 +99,27 @@ _ALT_SIGN_L = [[float(_ALT_SIGN[j, k]) for j, k in enumerate(row)] for row in _A
 _ALT_SHIFT_L = [[float(_ALT_SHIFT[j, k]) for j, k in enumerate(row)] for row in _ALT_INDEX.tolist()]
 # per flip pattern: its row out of the 14 alternatives [t1, t1 + pi, t2, -t2, ...] (one C-level gather)
 _PATTERN_GET = [operator.itemgetter(*[2 * j + k for j, k in enumerate(row)]) for row in _ALT_INDEX_L]
+
+
+def swivel_chain(
+    link_lengths: Sequence[float], limits: Sequence[tuple[str, float, float, float, float]]
+) -> tuple[list[Joint], np.ndarray]:
+    """The z,y,z,y,z,y,z chain of the swivel model and its tool transform (zero pose straight up +z).
+
+    ``link_lengths``: L1..L4 (m); ``limits``: per joint (name, lower, upper, max_vel, max_acc) in rad,
+    rad/s, rad/s^2. Joints 2, 4, 6 sit at L1, L2, L3 above the previous joint, the tool L4 above joint 7.
+    """
+    L1, L2, L3, L4 = (float(v) for v in link_lengths)
+    offsets = (0.0, L1, 0.0, L2, 0.0, L3, 0.0)
+    chain = []
+    for i, (name, lo, up, vel, acc) in enumerate(limits):
+        o = np.eye(4)
+        o[2, 3] = offsets[i]
+        axis = np.array([0.0, 1.0, 0.0]) if i % 2 else np.array([0.0, 0.0, 1.0])
+        chain.append(Joint(name, o, axis, lo, up, vel, acc))
+    tool = np.eye(4)
+    tool[2, 3] = L4
+    return chain, tool
 
 
 def _wrap(x: float) -> float:

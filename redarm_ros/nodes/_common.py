@@ -176,6 +176,23 @@ def non_empty_string(value: Any) -> str | None:
     return None if isinstance(value, str) and value else "must be a non-empty string"
 
 
+def any_string(value: Any) -> str | None:
+    """Validator: a string (empty allowed: "not given")."""
+    return None if isinstance(value, str) else "must be a string"
+
+
+def urdf_arm_params(use: str) -> list[ParamSpec]:
+    """The ``urdf``, ``base_link``, ``tip_link`` parameters of a node that takes its arm from a URDF file
+    instead of ``arm`` (:func:`redarm_ros.kinematics.load_arm_or_urdf`); ``use``: what the node does with
+    it (e.g. "Run")."""
+    return [
+        ParamSpec("urdf", "", f"{use} the arm of this URDF file instead of `arm` (the chain from "
+                  "`base_link` to `tip_link`; docs/urdf.md).", any_string, read_only=True),
+        ParamSpec("base_link", "", "The URDF arm's base link.", any_string, read_only=True),
+        ParamSpec("tip_link", "", "The URDF arm's tip link.", any_string, read_only=True),
+    ]
+
+
 def in_range(lo: float, hi: float) -> Validator:
     """Validator factory: a number in [lo, hi]."""
 

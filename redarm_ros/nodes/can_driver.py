@@ -62,7 +62,7 @@ from redarm_ros.can.driver_loop import (
 )
 from redarm_ros.can.driver_process import DriverProcess, DriverSpec, build_loop
 from redarm_ros.errors import ConfigError, InvalidInputError, RedarmError
-from redarm_ros.kinematics import load_arm
+from redarm_ros.kinematics import load_arm_or_urdf
 from redarm_ros.nodes._common import (
     NICE_PARAM,
     ParamNode,
@@ -70,6 +70,7 @@ from redarm_ros.nodes._common import (
     non_empty_string,
     positive,
     run_node,
+    urdf_arm_params,
     watch_duplicates,
 )
 
@@ -107,6 +108,7 @@ class DuplicateNodeError(RuntimeError):
 PARAMS = [
     ParamSpec("arm", "pa10", "Arm model (config/arms/<name>.yaml or a path): joint names, limits.",
               non_empty_string, read_only=True),
+    *urdf_arm_params("Drive"),
     ParamSpec("module_ids", Parameter.Type.INTEGER_ARRAY,
               "CAN module id of each joint, in joint order (unset or empty: 1..n).", _module_ids,
               read_only=True),
@@ -225,9 +227,9 @@ class CanDriverNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
 
     def _setup(self, p: dict[str, Any]) -> None:
         try:
-            self.arm = load_arm(p["arm"])
+            self.arm = load_arm_or_urdf(p["arm"], p["urdf"], p["base_link"], p["tip_link"])
         except (RedarmError, OSError) as exc:
-            raise ValueError(f"arm {p['arm']!r}: {exc}") from exc
+            raise ValueError(f"arm {p['urdf'] or p['arm']!r}: {exc}") from exc
         n = self.arm.n
         ids = list(p["module_ids"] or range(1, n + 1))
         if len(ids) != n:

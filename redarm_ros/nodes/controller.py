@@ -65,7 +65,7 @@ from redarm_ros.control.param_table import table
 from redarm_ros.control.reach_controller import ControllerParams, GoalStatus, Phase, ReachController
 from redarm_ros.control.types import GoalKind
 from redarm_ros.errors import InvalidInputError, RedarmError
-from redarm_ros.kinematics import load_arm
+from redarm_ros.kinematics import load_arm_or_urdf
 from redarm_ros.kinematics.quaternion import matrix_to_quat, quat_to_matrix
 from redarm_ros.nodes._common import (
     NICE_PARAM,
@@ -79,6 +79,7 @@ from redarm_ros.nodes._common import (
     pose_msg_to_matrix,
     positive,
     run_node,
+    urdf_arm_params,
     watch_duplicates,
 )
 from redarm_ros.nodes.command_timing import CommandClock
@@ -108,6 +109,7 @@ def _one_of(*choices: str) -> Any:
 PARAMS = [
     ParamSpec("arm", "pa10", "Arm model (config/arms/<name>.yaml or a path); a 7-DOF swivel arm or "
               "powercube6.", read_only=True),
+    *urdf_arm_params("Run"),
     PROCESS_RT_PARAM,
     NICE_PARAM,
     ParamSpec("rate_hz", 100.0, "Control rate (Hz): one step and one /joint_command point per period.",
@@ -275,7 +277,7 @@ class ControllerNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
 
     def _setup(self, p: dict[str, Any]) -> None:
         try:
-            self.arm = load_arm(p["arm"])
+            self.arm = load_arm_or_urdf(p["arm"], p["urdf"], p["base_link"], p["tip_link"])
             self.base_scene = load_scene(p["scene"]) if p["scene"] else Scene()
             self.ctl = ReachController(self.arm, self.base_scene, controller_params(p))
         except (RedarmError, OSError) as exc:

@@ -28,6 +28,7 @@ from redarm_ros.nodes._common import (
     ParamNode,
     ParamSpec,
     UniqueNameCheck,
+    any_string,
     non_empty_string,
     non_negative,
     run_node,
@@ -48,17 +49,13 @@ DESCRIPTION_QOS = QoSProfile(
 )
 
 
-def _string(value: Any) -> str | None:
-    return None if isinstance(value, str) else "must be a string"
-
-
 PARAMS = [
     ParamSpec("arm", "pa10", "Arm model: name of config/arms/<name>.yaml, or a YAML path.",
               non_empty_string, read_only=True),
     ParamSpec("prefix", "", "Put in front of every link name and of the tool joint (e.g. 'left_'); "
-              "joint names stay the model's.", _string, read_only=True),
+              "joint names stay the model's.", any_string, read_only=True),
     ParamSpec("urdf_file", "", "Publish this URDF file instead of generating one from `arm`.",
-              _string, read_only=True),
+              any_string, read_only=True),
     ParamSpec("duplicate_check_s", 1.0, "At start-up, watch the ROS graph this long (s) for another "
               "node of the same name and refuse to start if there is one (0 = no check).",
               non_negative, read_only=True),

@@ -23,7 +23,9 @@ Requests wait in the service's middleware queue (reliable, KEEP_LAST with depth
 outstanding calls is answered in order. Callers that keep many calls outstanding need a deep queue
 on their side too (their client's QoS depth), or their own responses are dropped there.
 
-Run: ``ros2 run redarm_ros ik_service --ros-args -p arms:="[pa10, powercube7]"``
+Run: ``ros2 run redarm_ros ik_service --ros-args -p arms:="[pa10, powercube7]"``; an arm of your own
+from its URDF: ``-p urdf:=robot.urdf -p base_link:=base_link -p tip_link:=tool0`` (or
+``-p robot_description_topic:=/robot_description``): the response's ``solver`` names the IK that ran
 (or ``python -m redarm_ros.nodes.ik_service``). Parameters, service and examples: docs/nodes.md.
 
 Conventions: SI units (m, rad, s); quaternions in messages are (x, y, z, w) as in geometry_msgs and
@@ -45,13 +47,14 @@ from std_msgs.msg import String
 from trajectory_msgs.msg import JointTrajectoryPoint
 
 from redarm_ros.errors import InvalidInputError, RedarmError
-from redarm_ros.kinematics import load_arm
+from redarm_ros.kinematics import describe_solver, load_arm
 from redarm_ros.kinematics.result import IKStatus
 from redarm_ros.kinematics.solve import IKAnswer, IKFrontEnd
 from redarm_ros.nodes._common import (
     ParamNode,
     ParamSpec,
     UniqueNameCheck,
+    any_string,
     in_range,
     non_empty_string,
     non_negative,
@@ -60,6 +63,7 @@ from redarm_ros.nodes._common import (
     run_node,
     watch_duplicates,
 )
+from redarm_ros.nodes.description import DESCRIPTION_QOS
 
 __all__ = ["IKServiceNode", "IKFrontEnd", "IKAnswer", "main"]  # IKFrontEnd / IKAnswer: re-exported
 
@@ -94,15 +98,46 @@ PARAMS = [
     ),
     ParamSpec(
         "default_arm",
-        "pa10",
-        "Arm used when a request leaves `arm` empty; must be in `arms`.",
-        non_empty_string,
+        "",
+        "Arm used when a request leaves `arm` empty; must be served. Empty: the URDF arm if one is given, "
+        "else the first of `arms`.",
+        any_string,
         read_only=True,
     ),
     ParamSpec(
+        "urdf",
+        "",
+        "Also serve the arm of this URDF file (the chain from `base_link` to `tip_link`): closed-form "
+        "swivel IK for a spherical-shoulder / elbow / spherical-wrist 7R chain, numeric IK otherwise.",
+        any_string,
+        read_only=True,
+    ),
+    ParamSpec(
+        "robot_description",
+        "",
+        "Also serve the arm of this URDF text (as ros2_control and MoveIt take it as a parameter).",
+        any_string,
+        read_only=True,
+    ),
+    ParamSpec(
+        "robot_description_topic",
+        "",
+        "Also serve the arm of the URDF published on this topic (std_msgs/String, transient local, e.g. "
+        "/robot_description); the service is offered once it has arrived. Empty: no topic.",
+        any_string,
+        read_only=True,
+    ),
+    ParamSpec("base_link", "", "The URDF arm's base link (the chain's root; targets are in its frame).",
+              any_string, read_only=True),
+    ParamSpec("tip_link", "", "The URDF arm's tip link (the tool frame the targets give).", any_string,
+              read_only=True),
+    ParamSpec("urdf_arm_name", "", "Name the URDF arm is served under (requests' `arm`); empty: the URDF's "
+              "robot name.", any_string, read_only=True),
+    ParamSpec(
         "base_frame",
         "base_link",
-        "Frame the targets must be given in (an empty frame_id means this frame).",
+        "Frame the targets must be given in (an empty frame_id means this frame); the URDF arm's targets "
+        "are in its `base_link` frame.",
         non_empty_string,
     ),
     ParamSpec(
@@ -193,25 +228,20 @@ class IKServiceNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
             arms[name] = arm
             if arm.name != name:  # a path was given: also answer to the model's own name
                 arms.setdefault(arm.name, arm)
-        try:
-            self.front = IKFrontEnd(
-                arms,
-                p["default_arm"],
-                suggest_base_move=p["suggest_base_move"],
-                base_move_yaw=p["base_move_yaw"],
-                base_move_timeout_s=float(p["base_move_timeout"]),
-                exhaustive_nearest=p["nearest_exhaustive"],
-            )
-        except InvalidInputError as exc:
-            raise ValueError(str(exc)) from exc
+        self._p = p
+        self._arms = arms
+        self.front: IKFrontEnd | None = None
+        self.urdf_arm: Any = None
+        sources = [k for k in ("urdf", "robot_description", "robot_description_topic") if p[k]]
+        if len(sources) > 1:
+            raise ValueError(f"parameters {', '.join(sources)}: give one URDF source, not {len(sources)}")
+        if sources and not (p["base_link"] and p["tip_link"]):
+            raise ValueError(f"parameter {sources[0]}: a URDF arm needs the base_link and tip_link "
+                             "parameters")
         self.requests = 0
         self.failures = 0
-        self.last_seed_source = ""  # request, joint_states or mid-range (see seed_of)
         self.srv = None
-        self._serving_note = (
-            f"serving {self.get_fully_qualified_name()}/solve_ik for arms {', '.join(sorted(arms))} "
-            f"(default {p['default_arm']}, targets in frame '{p['base_frame']}')"
-        )
+        self.last_seed_source = ""  # request, joint_states or mid-range (see seed_of)
         self._queue_depth = int(p["request_queue_depth"])
         # The latest measured joint positions by name: the seed of a request that gives none.
         self.joint_positions: dict[str, float] = {}
@@ -221,11 +251,69 @@ class IKServiceNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
         self._closed = False
         if p["placement_tasks"]:
             self._start_placement(p["placement_tasks"])
+        if sources and sources[0] != "robot_description_topic":
+            self._add_urdf_arm(p[sources[0]], sources[0])
+        self.description_sub = None
+        if p["robot_description_topic"]:
+            self.description_sub = self.create_subscription(
+                String, p["robot_description_topic"], self._on_description, DESCRIPTION_QOS
+            )
+            self.get_logger().info(f"waiting for the URDF on {p['robot_description_topic']}")
+        else:
+            self._build_front()
         # The service is offered once the duplicate-name check has passed (a timer: no blocking here).
         self.name_check = UniqueNameCheck(self, p["duplicate_check_s"], on_passed=self._serve)
         watch_duplicates(self, yield_to_elder=p["duplicate_check_s"] > 0)
 
+    def _add_urdf_arm(self, source: str, param: str) -> None:
+        p = self._p
+        try:
+            arm = load_arm(source, base_link=p["base_link"], tip_link=p["tip_link"],
+                           **({"arm_name": p["urdf_arm_name"]} if p["urdf_arm_name"] else {}))
+        except RedarmError as exc:
+            raise ValueError(f"parameter {param}: cannot load the URDF arm: {exc}") from exc
+        self.urdf_arm = arm
+        self._arms[arm.name] = arm
+        self.get_logger().info(
+            f"URDF arm {arm.name!r} ({p['base_link']} -> {p['tip_link']}, {arm.n} joints): "
+            f"{describe_solver(arm)}"
+        )
+
+    def _on_description(self, msg: String) -> None:
+        if self.front is not None:
+            return  # the arm is served; a later description does not swap it under running requests
+        try:
+            self._add_urdf_arm(msg.data, "robot_description_topic")
+            self._build_front()
+        except ValueError as exc:
+            self.get_logger().error(f"{exc}; waiting for another description")
+            return
+        if self.name_check.done:
+            self._serve()
+
+    def _build_front(self) -> None:
+        p = self._p
+        default = p["default_arm"] or (self.urdf_arm.name if self.urdf_arm is not None else p["arms"][0])
+        try:
+            self.front = IKFrontEnd(
+                self._arms,
+                default,
+                suggest_base_move=p["suggest_base_move"],
+                base_move_yaw=p["base_move_yaw"],
+                base_move_timeout_s=float(p["base_move_timeout"]),
+                exhaustive_nearest=p["nearest_exhaustive"],
+            )
+        except InvalidInputError as exc:
+            raise ValueError(str(exc)) from exc
+        self._serving_note = (
+            f"serving {self.get_fully_qualified_name()}/solve_ik for arms {', '.join(sorted(self._arms))} "
+            f"(default {default}, targets in frame '{p['base_frame']}'"
+            + (f"; {self.urdf_arm.name}: '{p['base_link']}')" if self.urdf_arm is not None else ")")
+        )
+
     def _serve(self) -> None:
+        if self.front is None or self.srv is not None:  # (a URDF still to come on its topic, or served)
+            return
         qos = QoSProfile(
             history=HistoryPolicy.KEEP_LAST,
             depth=self._queue_depth,
@@ -302,8 +390,13 @@ class IKServiceNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
     def _on_solve(self, req: SolveIK.Request, resp: SolveIK.Response) -> SolveIK.Response:
         self.requests += 1
         base_frame = self.get_parameter("base_frame").value
+        if self.urdf_arm is not None and (req.arm or self.front.default_arm) == self.urdf_arm.name:
+            base_frame = self._p["base_link"]  # a URDF arm's targets are in its base link's frame
         try:
             ans = self._answer(req, base_frame)
+            if not ans.solver and ans.status is IKStatus.INVALID_INPUT:
+                arm = self.front.arms.get(req.arm or self.front.default_arm)
+                ans.solver = describe_solver(arm) if arm is not None else ""
         except InvalidInputError as exc:
             ans = IKAnswer(IKStatus.INVALID_INPUT, str(exc))
         except Exception as exc:  # noqa: BLE001 - a bug here must not take the service down
@@ -357,6 +450,7 @@ class IKServiceNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
         resp.position_error = float(ans.position_error)
         resp.orientation_error = float(ans.orientation_error)
         resp.clearance = float(ans.clearance)
+        resp.solver = ans.solver
         bp = ans.base_offset
         if bp is not None and bp.valid:
             resp.base_offset.x, resp.base_offset.y, resp.base_offset.z = float(bp.x), float(bp.y), 0.0

@@ -593,6 +593,10 @@ def build_parser() -> argparse.ArgumentParser:
         description="pybullet arm answering as PowerCube modules on the CAN bus (no ROS).",
     )
     ap.add_argument("--arm", default=env(ENV_PREFIX + "ARM", "pa10"), help="arm model name or YAML path")
+    ap.add_argument("--urdf", default="", help="simulate the arm of this URDF file instead of --arm (the "
+                    "chain --base-link -> --tip-link; its links drawn as generated cylinders and spheres)")
+    ap.add_argument("--base-link", default="", help="the URDF arm's base link")
+    ap.add_argument("--tip-link", default="", help="the URDF arm's tip link")
     ap.add_argument("--gui", action="store_true", help="pybullet GUI (needs a display)")
     ap.add_argument("--rate", type=float, default=1000.0, help="physics rate in Hz (default 1000)")
     ap.add_argument("--initial-q", nargs="+", default=None, help="initial joint positions (rad)")
@@ -710,10 +714,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         _LOG.error("bad arguments: %s", exc)
         return EXIT_BAD_ARGS
 
-    from redarm_ros.kinematics import load_arm
+    from redarm_ros.kinematics import load_arm_or_urdf
 
     try:
-        arm = load_arm(args.arm)
+        arm = load_arm_or_urdf(args.arm, args.urdf, args.base_link, args.tip_link)
         if args.start == "park":
             if arm.park is None:
                 _LOG.error("--start park: arm %s has no park posture (park: in its YAML)", arm.name)
