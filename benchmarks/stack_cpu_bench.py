@@ -121,6 +121,7 @@ class Client:
         from geometry_msgs.msg import PoseStamped
         from rclpy.executors import SingleThreadedExecutor
         from redarm_interfaces.msg import ControllerState
+        from sensor_msgs.msg import JointState
         from trajectory_msgs.msg import JointTrajectory
 
         from redarm_ros.nodes.controller import pose_to_msg  # imported now, not in a measured window
@@ -139,12 +140,18 @@ class Client:
         self.diag: dict[str, dict[str, str]] = {}
         self.node.create_subscription(ControllerState, "/controller/state", self._on_state, 50)
         self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag, 20)
+        self.counts = {"joint_states": 0, "state": 0}  # messages received (rates of what is published)
+        self.node.create_subscription(JointState, "/joint_states", self._on_js, 50)
         self.ex = SingleThreadedExecutor(context=self.ctx)
         self.ex.add_node(self.node)
         self.stop_event, self.thread = bench_common.spin_in_background(self.ex)
 
+    def _on_js(self, _msg: Any) -> None:
+        self.counts["joint_states"] += 1
+
     def _on_state(self, msg: Any) -> None:
         with self.lock:
+            self.counts["state"] += 1
             self.states.append(msg)
             del self.states[:-200]
 
@@ -205,11 +212,13 @@ def measure(name: str, stack: Stack, client: Client, body: Callable[[], str]) ->
     rows = process_rows(stack)
     load0 = os.getloadavg()
     d0 = client.driver_figures()
+    n0 = dict(client.counts)
     c0 = cpu_sample(rows)
     t0 = time.monotonic()
     note = body()
     t1 = time.monotonic()
     c1 = cpu_sample(rows)
+    n1 = dict(client.counts)
     time.sleep(1.2)  # one more diagnostics message (1 Hz) carries the window's last counters
     d1 = client.driver_figures()
     cpu = {row: sum(c - c0[row].get(p, 0.0) for p, c in c1[row].items()) for row in rows}
@@ -219,6 +228,8 @@ def measure(name: str, stack: Stack, client: Client, body: Callable[[], str]) ->
             driver[k] = d1[k]
     if "cycles" in driver:
         driver["cycle_rate_hz"] = driver["cycles"] / (t1 - t0 + 1.2)
+    for k in n1:
+        driver[f"{k}_hz"] = (n1[k] - n0[k]) / (t1 - t0)
     stack.check()
     return CaseResult(name, t1 - t0, cpu, load0, os.getloadavg(), driver, note)
 
@@ -333,6 +344,8 @@ def table(results: list[CaseResult]) -> list[str]:
         f"{drv(r, 'cycle_rate_hz', '.1f')} ({drv(r, 'rate_hz_achieved', '.1f')})" for r in results) + " |")
     out.append("| driver overruns, missed replies | " + " | ".join(
         f"{drv(r, 'overruns', '.0f')}, {drv(r, 'lost', '.0f')}" for r in results) + " |")
+    out.append("| /joint_states, /controller/state received Hz | " + " | ".join(
+        f"{drv(r, 'joint_states_hz', '.1f')}, {drv(r, 'state_hz', '.1f')}" for r in results) + " |")
     out.append("| controller steps/s | " + " | ".join(
         f"{r.driver['controller_steps'] / (r.wall_s + 1.2):.1f}" if "controller_steps" in r.driver else "-"
         for r in results) + " |")
