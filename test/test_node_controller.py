@@ -403,7 +403,7 @@ def test_commands_stamped_to_end_the_delay_after_their_step(ctx: Any, offset: fl
 
 
 def test_parameters(ctx: Any) -> None:
-    h = Harness(ctx, preferred_swivel=0.2, rate_hz=50.0)
+    h = Harness(ctx, preferred_swivel=0.2, rate_hz=50.0, idle_after_s=0.0)  # markers timed: never rests
     try:
         node = h.ctl
         assert node.ctl.params.preferred_swivel == pytest.approx(0.2)
@@ -614,9 +614,10 @@ def test_a_controller_with_nothing_to_move_rests_and_wakes_on_an_input(h: Harnes
         st.message for st in arr.status if st.name == "controller: loop"), 10)
     assert h.spin_until(lambda: h.ctl.idle, 5.0)
     h.spin_until(lambda: False, 0.2)  # what was published before it rested arrives
-    steps, n_cmd, n_state = h.ctl.steps, len(h.arm.commands), len(h.states)
+    steps, n_cmd, n_state, n_markers = h.ctl.steps, len(h.arm.commands), len(h.states), len(h.markers)
     h.spin_until(lambda: False, 1.5)
     assert h.ctl.steps == steps and len(h.arm.commands) == n_cmd
+    assert len(h.markers) - n_markers <= 1  # drawn once at rest, not at markers_rate_hz
     assert 1 <= len(h.states) - n_state <= 3  # the heartbeat, not 100 Hz
     assert any(m.startswith("idle") for m in diags)
     n = len(h.states)

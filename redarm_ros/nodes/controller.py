@@ -332,6 +332,7 @@ class ControllerNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
         self.create_timer(DIAGNOSTICS_PERIOD_S, self._publish_diagnostics)
         self.idle = False  # the loop rests (see idle_after_s); any input wakes it
         self._idle_after_s = float(p["idle_after_s"])
+        self._idle_markers_sent = False  # the markers went out since the loop rested
         self._quiet_since: float | None = None
         self._idle_q_meas: np.ndarray | None = None
         self._markers_timer = None
@@ -380,6 +381,7 @@ class ControllerNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
     def wake(self) -> None:
         """Resume stepping (an input arrived: a goal, a twist, obstacles, a parameter, the arm moved)."""
         self._quiet_since = None
+        self._idle_markers_sent = False
         if self.idle:
             self.idle = False
             self.loop_stats.pause()  # the rest is no missed tick
@@ -749,12 +751,18 @@ class ControllerNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
         # Nobody listening: build nothing. Turning a thousand obstacles into messages took a
         # 100 Hz controller down to about 50 Hz on two cores; a new listener gets them all at once.
         listeners = self.marker_pub.get_subscription_count()
-        if listeners == 0 or listeners > self._marker_listeners:
+        joined = listeners > self._marker_listeners
+        if listeners == 0 or joined:
             self._obstacles_published = -math.inf
             self._last_marker_ids = set()
         self._marker_listeners = listeners
         if listeners == 0:
             return
+        # At rest nothing drawn changes: the markers (kept by RViz) go out once, then again only for a
+        # new listener or a new scene.
+        if self.idle and self._idle_markers_sent and not joined and not self._scene_changed:
+            return
+        self._idle_markers_sent = self.idle
         frame = self.get_parameter("base_frame").value
         stamp = self.get_clock().now().to_msg()
         out: list[Marker] = []
