@@ -255,7 +255,10 @@ def run(args: argparse.Namespace) -> list[CaseResult]:
             stack.start()
             stack.children["can_driver"].wait_for_line(r"init done", timeout=60.0, from_start=True)
             client = Client(stack.domain_id)
-            wait_for(lambda: bool(client.states) and bool(client.diag), 30.0)
+            # A message published before discovery matched its subscriber is lost: wait for both.
+            wait_for(lambda: bool(client.states) and bool(client.diag)
+                     and client.cmd_pub.get_subscription_count() > 0
+                     and client.goal_pub.get_subscription_count() > 0, 30.0)
 
             def at_ready() -> bool:
                 st = stack.sim_status() or {}
