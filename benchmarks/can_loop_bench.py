@@ -193,7 +193,7 @@ def run_node(group: ProcessGroup, can_kwargs: dict[str, Any], rate: float, secon
 
     arm = load_arm(ARM_NAME)
     params = {"arm": ARM_NAME, "can.interface": can_kwargs["interface"], "can.channel": can_kwargs["channel"],
-              "rate_hz": f"{rate:.1f}"}
+              "rate_hz": f"{rate:.1f}", "joint_states_rate_hz": "0"}  # every cycle: its stamps are measured
     ros_args = ["--ros-args"] + [a for k, v in params.items() for a in ("-p", f"{k}:={v}")]
     cmd = python_module_cmd("redarm_ros.nodes.can_driver", *ros_args)
     node_proc = group.start(f"can_driver_{rate:g}", cmd, ready=r"CAN bus connected", ready_timeout=30)

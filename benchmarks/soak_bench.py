@@ -99,7 +99,7 @@ def start_chain(group: ProcessGroup, tmp: Path, prio: int) -> tuple[str, Path]:
 
 def start_driver(group: ProcessGroup, channel: str, prio: int) -> ManagedProcess:
     params = {"arm": ARM_NAME, "can.interface": "remote", "can.channel": channel, "rate_hz": "250.0",
-              "realtime_priority": str(prio)}
+              "realtime_priority": str(prio), "joint_states_rate_hz": "0"}  # every cycle: stamps measured
     ros_args = ["--ros-args"] + [a for k, v in params.items() for a in ("-p", f"{k}:={v}")]
     drv = group.start("can_driver", python_module_cmd("redarm_ros.nodes.can_driver", *ros_args),
                       ready=r"can_driver ready", ready_timeout=60)

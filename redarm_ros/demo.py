@@ -46,6 +46,7 @@ import numpy as np
 import yaml
 
 from redarm_ros.bringup import Stack, StackConfig
+from redarm_ros.can.driver_process import DEFAULT_SAMPLE_RATE_HZ
 from redarm_ros.procs import python_module_cmd, random_domain_id, stream_sink
 
 POS_TOL_M = 1e-3
@@ -627,7 +628,8 @@ class Demo:
         sim.extra = {k: counters.get(k) for k in keys}
         return {
             "controller_state": asdict(RateStats.from_times(ctl_times, self.args.control_rate)),
-            "driver_joint_states": asdict(RateStats.from_times(client.joint_times, self.args.driver_rate)),
+            "driver_joint_states": asdict(RateStats.from_times(
+                client.joint_times, min(self.args.driver_rate, DEFAULT_SAMPLE_RATE_HZ))),
             "simulator_physics": asdict(sim),
         }
 

@@ -178,8 +178,9 @@ def test_frames_keep_their_sender_stamp_and_unstamped_ones_get_the_server_time()
 
 def test_a_flood_leaves_no_unbounded_backlog_for_a_slow_reader() -> None:
     # A reader that does not read during a flood afterwards finds a bounded backlog that ends with
-    # the newest frames, not the whole flood queued behind its next reply.
-    n = 20000
+    # the newest frames, not the whole flood queued behind its next reply. (What waits is the relay's
+    # queue plus what the kernel buffers of the connection hold, ~10k frames: the flood is larger.)
+    n = 40000
     with LoopbackBusServer() as server:
         with open_bus(**server.client_config()) as flood, open_bus(**server.client_config()) as slow:
             for k in range(n):
@@ -212,3 +213,37 @@ def test_a_vanished_client_leaves_no_thread_exception(monkeypatch: pytest.Monkey
         a.send(_msg(0x0E1))
         assert 0x0E1 in _drain_ids(b)
     assert errors == []
+
+
+def test_a_json_client_gets_binary_clients_frames_as_json() -> None:
+    """The relay forwards raw frames to binary clients and builds the JSON form once for JSON ones."""
+    with LoopbackBusServer() as srv, open_bus(**srv.client_config()) as a:
+        ws = _json_client(srv.channel)
+        try:
+            sent = can.Message(arbitration_id=0x1234567, data=b"\x01\x02\x03", is_extended_id=True)
+            sent.timestamp = time.time() - 0.1
+            a.send(sent)
+            assert ws.wait(5.0)
+            event = json.loads(ws.read())
+            assert event["type"] == "message"
+            got = event["payload"]
+            assert (got["arbitration_id"], got["is_extended_id"], got["dlc"], got["data"]) == (
+                0x1234567, True, 3, [1, 2, 3])
+            assert got["timestamp"] == pytest.approx(sent.timestamp, abs=1e-6)
+        finally:
+            ws.close()
+
+
+def test_periodic_task_of_a_client_is_sent_by_the_server_until_stopped() -> None:
+    with LoopbackBusServer() as srv, open_bus(**srv.client_config()) as rx:
+        sender = can.Bus(ignore_config=True, **srv.client_config())
+        try:
+            task = sender.send_periodic(_msg(0x321, b"\x07"), 0.02)
+            time.sleep(0.5)
+            task.stop()
+            time.sleep(0.2)
+            ids = _drain_ids(rx, 0.3)
+            assert 10 <= len(ids) <= 40 and set(ids) == {0x321}
+            assert _drain_ids(rx, 0.3) == []  # stopped
+        finally:
+            sender.shutdown()

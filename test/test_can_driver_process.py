@@ -16,7 +16,7 @@ import pytest
 from redarm_ros.can.bus import open_bus
 from redarm_ros.can.bus_server import LoopbackBusServer
 from redarm_ros.can.driver_loop import LoopConfig, LoopState
-from redarm_ros.can.driver_process import DriverProcess, DriverSpec
+from redarm_ros.can.driver_process import DriverProcess, DriverSpec, SampleThrottle
 from redarm_ros.can.module_emulator import EmulatedArm, EmulatorRunner
 from redarm_ros.errors import InvalidInputError
 
@@ -137,3 +137,16 @@ def test_a_sigterm_to_the_process_group_leaves_the_stop_to_the_parent(rig: dict[
     assert proc.state is LoopState.STOPPED and not proc.alive
     errors = [m for lvl, m in rig["logs"] if lvl >= logging.ERROR]
     assert not errors, errors
+
+
+def test_samples_are_handed_on_at_their_rate_on_average() -> None:
+    """100 Hz from a 250 Hz cycle: 8 and 12 ms apart in turn, 100 per second; after a gap (a stalled
+    cycle) the next sample goes at once and the schedule restarts from it."""
+    th = SampleThrottle(100.0, 250.0)
+    stamps = [1000.0 + 0.004 * k for k in range(500)]  # 2 s of cycles
+    kept = [t for t in stamps if th.due(t)]
+    assert len(kept) == 200
+    gaps = {round(g * 1e3) for g in np.diff(kept)}
+    assert gaps <= {8, 12}
+    assert th.due(kept[-1] + 0.5)  # after a 0.5 s gap: at once
+    assert not th.due(kept[-1] + 0.504) and th.due(kept[-1] + 0.512)

@@ -65,3 +65,14 @@ def test_a_loop_that_stopped_stepping_shows_its_rate_falling_to_zero() -> None:
 def test_a_bad_period_is_refused(period: float) -> None:
     with pytest.raises(ValueError, match="period"):
         LoopStats(period)
+
+
+def test_a_rest_taken_on_purpose_is_no_missed_tick() -> None:
+    ls = LoopStats(0.01, window=1.0)
+    for k in range(10):
+        ls.step(0.01 * k, 0.001)
+    ls.pause()  # nothing to do: the loop rests for 5 s
+    for k in range(10):
+        ls.step(5.0 + 0.01 * k, 0.001)
+    ls.step(5.2, 0.001)  # a gap after the rest is a miss again
+    assert ls.summary(5.2).missed == 10 and ls.steps == 21

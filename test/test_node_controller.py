@@ -164,6 +164,15 @@ def h(ctx: Any) -> Iterator[Harness]:
     harness.close()
 
 
+@pytest.fixture
+def h_busy(ctx: Any) -> Iterator[Harness]:
+    """A controller whose loop never rests (idle_after_s 0): it steps at its rate, goal or not."""
+    harness = Harness(ctx, idle_after_s=0.0)
+    harness.wait_connected()
+    yield harness
+    harness.close()
+
+
 def goal_from(q0: np.ndarray, dp: tuple[float, float, float], rot: np.ndarray | None = None) -> np.ndarray:
     T = ARM.fk(q0).copy()
     T[:3, 3] += dp
@@ -296,9 +305,10 @@ def test_obstacle_appearing_on_goal_drops_it(h: Harness) -> None:
     assert_within_joint_speeds(h.arm)
 
 
-def test_diagnostics_count_the_loops_steps_and_the_obstacles_kept(h: Harness) -> None:
+def test_diagnostics_count_the_loops_steps_and_the_obstacles_kept(h_busy: Harness) -> None:
     """/diagnostics carries the loop's own step count (cumulative, with its clock: a reader takes the
     rate between two messages however many it missed) and how many obstacles the broad phase keeps."""
+    h = h_busy
     diags: list[dict[str, str]] = []
 
     def on_diag(arr: DiagnosticArray) -> None:
@@ -393,7 +403,7 @@ def test_commands_stamped_to_end_the_delay_after_their_step(ctx: Any, offset: fl
 
 
 def test_parameters(ctx: Any) -> None:
-    h = Harness(ctx, preferred_swivel=0.2, rate_hz=50.0)
+    h = Harness(ctx, preferred_swivel=0.2, rate_hz=50.0, idle_after_s=0.0)  # markers timed: never rests
     try:
         node = h.ctl
         assert node.ctl.params.preferred_swivel == pytest.approx(0.2)
@@ -593,3 +603,32 @@ def test_target_twist_moves_the_hand(h: Harness) -> None:
     p1 = ARM.fk(h.arm.q)[:3, 3]
     assert 0.015 < p1[1] - p0[1] < 0.045 and abs(p1[0] - p0[0]) < 0.003 and abs(p1[2] - p0[2]) < 0.003
     assert_within_joint_speeds(h.arm)
+
+
+def test_a_controller_with_nothing_to_move_rests_and_wakes_on_an_input(h: Harness) -> None:
+    """No goal, or a goal reached and held: the loop stops stepping and commanding (the driver holds the
+    arm), ~/state comes once a second and /diagnostics says it is idle; a goal or a move of the measured
+    arm wakes it at once."""
+    diags: list[str] = []
+    h.probe.create_subscription(DiagnosticArray, "/diagnostics", lambda arr: diags.extend(
+        st.message for st in arr.status if st.name == "controller: loop"), 10)
+    assert h.spin_until(lambda: h.ctl.idle, 5.0)
+    h.spin_until(lambda: False, 0.2)  # what was published before it rested arrives
+    steps, n_cmd, n_state, n_markers = h.ctl.steps, len(h.arm.commands), len(h.states), len(h.markers)
+    h.spin_until(lambda: False, 1.5)
+    assert h.ctl.steps == steps and len(h.arm.commands) == n_cmd
+    assert len(h.markers) - n_markers <= 1  # drawn once at rest, not at markers_rate_hz
+    assert 1 <= len(h.states) - n_state <= 3  # the heartbeat, not 100 Hz
+    assert any(m.startswith("idle") for m in diags)
+    n = len(h.states)
+    h.send_goal(goal_from(Q0, (0.0, 0.1, 0.0)))
+    assert h.spin_until(lambda: not h.ctl.idle and h.ctl.steps > steps, 1.0)
+    assert h.wait_reached(10.0, after=n)
+    assert h.spin_until(lambda: h.ctl.idle, 30.0)  # reached, the elbow settled and held: resting again
+    h.spin_until(lambda: False, 0.2)  # the last commands sent arrive
+    q_held, n_cmd = h.arm.q.copy(), len(h.arm.commands)
+    h.spin_until(lambda: False, 0.5)
+    assert np.array_equal(h.arm.q, q_held) and len(h.arm.commands) == n_cmd and h.ctl.idle
+    steps = h.ctl.steps
+    h.arm.q = h.arm.q + np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.01])  # another client moved the arm
+    assert h.spin_until(lambda: not h.ctl.idle and h.ctl.steps > steps, 1.0)

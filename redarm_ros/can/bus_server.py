@@ -1,9 +1,11 @@
-"""``redarm-canbus``: a cross-process CAN bus on loopback (python-can-remote over a virtual bus).
+"""``redarm-canbus``: a cross-process CAN bus on loopback (a relay speaking python-can-remote's protocol).
 
-The kernels here have no SocketCAN, so processes share a bus through a python-can-remote 0.3.0
-server: every client connection gets its own python-can ``virtual`` bus on one channel name,
-and the virtual buses deliver each frame to all the others. The server binds **127.0.0.1
-only** (any other address is refused) on an ephemeral port by default, and announces it::
+The kernels here have no SocketCAN, so processes share a bus through this server: every client
+connects with python-can-remote 0.3.0 (python-can's ``remote`` interface, unchanged), and the server,
+a single-threaded relay, forwards every frame a client sends to every other client, as raw bytes
+(no per-frame python-can objects, queues or threads). A sender does not get its own frames back. The
+server binds **127.0.0.1 only** (any other address is refused) on an ephemeral port by default, and
+announces it::
 
     REDARM_CANBUS_PORT=<port>
     REDARM_CANBUS_CHANNEL=ws://127.0.0.1:<port>/
@@ -25,7 +27,12 @@ behind, during which the modules' replies would wait in line):
   controller loses arbitration; skipped frames are counted;
 * each receiving client has a bounded queue (:data:`EGRESS_QUEUE` frames; the oldest is dropped
   when it is full, counted) and a small socket send buffer, so a slow reader sees the latest
-  traffic rather than a growing backlog.
+  traffic rather than a growing backlog;
+* a malformed frame (id out of range, DLC not matching the data, too long) is dropped on entry and
+  counted, as a CAN controller would refuse to transmit it.
+
+Clients speaking python-can-remote's JSON protocol (``can.json.v1``) and its periodic tasks are
+served too; a plain HTTP GET gets python-can-remote's trace page.
 
 The server process asks for real-time scheduling (``--realtime-priority``, SCHED_FIFO, default
 50, with a fallback and one log line when not permitted): it is the wire between the driver and
@@ -39,13 +46,19 @@ until it is ready.
 from __future__ import annotations
 
 import argparse
+import base64
+import collections
 import contextlib
 import fcntl
+import hashlib
 import ipaddress
+import json
 import logging
+import math
+import mimetypes
 import os
-import queue
 import re
+import selectors
 import signal
 import socket
 import struct
@@ -59,8 +72,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from can_remote.server import ClientRequestHandler, RemoteServer, RemoteServerProtocol
-from can_remote.websocket import WebSocket, get_accept_key
+import can
 
 from redarm_ros.can import realtime
 from redarm_ros.can.bus import check_message
@@ -73,8 +85,11 @@ logger = logging.getLogger(__name__)
 INGRESS_BACKLOG_BYTES = 16 * 1024
 #: Frames a receiving client's queue holds; when full the oldest is dropped.
 EGRESS_QUEUE = 512
-#: Kernel socket buffers of each client connection (bytes): small, so no backlog hides in them.
+#: Kernel receive buffer of each client connection (bytes): what a sender may have in flight.
 SOCKET_BUFFER_BYTES = 64 * 1024
+#: Kernel send buffer of each client connection (bytes): small, so no backlog hides in it (the
+#: relay's own queue of :data:`EGRESS_QUEUE` frames is where a slow reader's frames wait).
+SEND_BUFFER_BYTES = 4 * 1024
 #: A sender stamp may be this old (s) and still be taken as the time the frame went on the bus.
 MAX_STAMP_AGE_S = 1.0
 DEFAULT_REALTIME_PRIORITY = 50
@@ -119,12 +134,51 @@ def check_loopback(host: str) -> str:
 
 
 # --------------------------------------------------------------------------------------------------
-# Hardening: python-can-remote 0.3.0 re-packs every frame for every other client in a per-client
-# sender thread. A frame it cannot pack (e.g. dlc 1000, sent by a JSON client) kills those threads
-# silently: the other clients stay connected but never receive again (measured). So every frame a
-# client sends is checked on entry and dropped (and counted) if malformed, as a CAN controller
-# would refuse to transmit it.
+# The relay: one thread, one selector, raw frames.
+#
+# python-can-remote's own server costs, per frame, three blocking recv calls, a can.Message built on
+# entry, a virtual bus that copies it into a queue per receiver, and a sender thread per receiver that
+# re-packs it: most of the stack's bus cost. The relay speaks the same protocol to its clients
+# (WebSocket handshake, the bus_request / bus_response exchange, binary ``can.binary+json.v1`` or
+# JSON ``can.json.v1`` frames, periodic_start / periodic_stop) but forwards each frame as bytes: a
+# binary frame is checked and, if its stamp is implausible, re-stamped in place, then the same bytes
+# go to every other binary client (a JSON client gets the JSON form, built once per frame).
+#
+# Hardening kept from the python-can-remote era: every frame a client sends is checked on entry and
+# dropped (and counted) if malformed, as a CAN controller would refuse to transmit it (a frame with
+# dlc 1000 used to kill delivery to everyone else).
 # --------------------------------------------------------------------------------------------------
+
+_WS_GUID = b"258EAFA5-E914-47DA-95CA-C5AB0DC85B11"
+_OP_TEXT, _OP_BINARY, _OP_CLOSE, _OP_PING, _OP_PONG = 0x1, 0x2, 0x8, 0x9, 0xA
+_BINARY_MSG = struct.Struct(">dIBB")  # timestamp, arbitration id, dlc, flags (after a type byte of 1)
+_BINARY_TYPE = 1
+_F_EXT, _F_RTR, _F_ERR, _F_FD, _F_BRS, _F_ESI = 0x1, 0x2, 0x4, 0x8, 0x10, 0x20
+_MAX_REQUEST_BYTES = 16 * 1024  # an HTTP upgrade request larger than this is refused
+_MAX_WS_PAYLOAD = 64 * 1024  # a WebSocket message larger than this ends the connection
+_RECV_BYTES = 64 * 1024
+_WEB_DIR = "web"  # python-can-remote's trace page, served to a browser as its server did
+
+
+def _ws_header(opcode: int, length: int) -> bytes:
+    """Header of an unmasked (server to client) final WebSocket frame."""
+    if length <= 125:
+        return bytes((0x80 | opcode, length))
+    if length <= 0xFFFF:
+        return bytes((0x80 | opcode, 126)) + length.to_bytes(2, "big")
+    return bytes((0x80 | opcode, 127)) + length.to_bytes(8, "big")
+
+
+def _ws_frame(opcode: int, payload: bytes) -> bytes:
+    return _ws_header(opcode, len(payload)) + payload
+
+
+def _unmask(data: bytes, mask: bytes) -> bytes:
+    n = len(data)
+    if n == 0:
+        return b""
+    key = (mask * (n // 4 + 1))[:n]
+    return (int.from_bytes(data, "big") ^ int.from_bytes(key, "big")).to_bytes(n, "big")
 
 
 def _pending_bytes(sock: socket.socket) -> int:
@@ -135,167 +189,485 @@ def _pending_bytes(sock: socket.socket) -> int:
         return 0
 
 
-class _DropOldestQueue(queue.Queue):  # type: ignore[type-arg]
-    """A receiving client's frame queue: never blocks the sender; when full, the oldest frame goes."""
-
-    def __init__(self, maxsize: int, server: _CheckedRemoteServer) -> None:
-        super().__init__(maxsize)
-        self._server = server
-
-    def put(self, item: object, block: bool = True, timeout: float | None = None) -> None:
-        with self.mutex:
-            if 0 < self.maxsize <= self._qsize():
-                self._get()
-                self._server.note_overflow()
-            self._put(item)
-            self.unfinished_tasks += 1
-            self.not_empty.notify()
+def _binary_ok(payload: bytes) -> bool:
+    """A binary frame message that :func:`check_message` would accept (same rules, on the bytes)."""
+    if len(payload) < 1 + _BINARY_MSG.size or payload[0] != _BINARY_TYPE:
+        return False
+    _, arb_id, dlc, flags = _BINARY_MSG.unpack_from(payload, 1)
+    n = len(payload) - 1 - _BINARY_MSG.size
+    is_fd = bool(flags & _F_FD)
+    return (
+        arb_id <= (0x1FFFFFFF if flags & _F_EXT else 0x7FF)
+        and dlc == n
+        and n <= (64 if is_fd else 8)
+        and not (flags & _F_RTR and is_fd)
+    )
 
 
-class _CheckedBus:
-    """Proxy for one client's server-side bus: ``send`` drops frames failing :func:`check_message`,
-    skips frames while the client's unread backlog is too large, and stamps unstamped frames."""
-
-    def __init__(self, bus: Any, server: _CheckedRemoteServer, sock: socket.socket | None = None) -> None:
-        self._bus = bus
-        self._server = server
-        self._sock = sock
-
-    def send(self, msg: Any, timeout: float | None = None) -> None:
-        try:
-            check_message(msg)
-        except (InvalidInputError, AttributeError, TypeError) as exc:
-            self._server.note_dropped(exc)
-            return
-        if self._sock is not None and _pending_bytes(self._sock) > INGRESS_BACKLOG_BYTES:
-            self._server.note_skipped()
-            return
-        now = time.time()
-        if not (now - MAX_STAMP_AGE_S <= msg.timestamp <= now + 0.001):
-            msg.timestamp = now  # unstamped (or not a wall-clock stamp): on the bus now
-        self._bus.send(msg, timeout)
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self._bus, name)
+def _json_from_binary(payload: bytes) -> bytes:
+    """The ``can.json.v1`` form of a checked binary frame message."""
+    ts, arb_id, dlc, flags = _BINARY_MSG.unpack_from(payload, 1)
+    msg: dict[str, Any] = {
+        "timestamp": ts, "arbitration_id": arb_id, "is_extended_id": bool(flags & _F_EXT),
+        "is_remote_frame": bool(flags & _F_RTR), "is_error_frame": bool(flags & _F_ERR), "dlc": dlc,
+        "data": list(payload[1 + _BINARY_MSG.size:]),
+    }
+    if flags & _F_FD:
+        msg.update(is_fd=True, bitrate_switch=bool(flags & _F_BRS),
+                   error_state_indicator=bool(flags & _F_ESI))
+    return json.dumps({"type": "message", "payload": msg}).encode()
 
 
-class _CheckedProtocol(RemoteServerProtocol):
-    def __init__(
-        self, config: dict[str, Any], websocket: WebSocket, server: _CheckedRemoteServer, sock: socket.socket
-    ) -> None:
-        self._checked_server = server  # before the library's __init__, which answers the client
-        super().__init__(config, websocket)
-        self.bus = _CheckedBus(self.bus, server, sock)
+def _binary_from_message(msg: Any) -> bytes:
+    flags = ((_F_EXT if msg.is_extended_id else 0) | (_F_RTR if msg.is_remote_frame else 0)
+             | (_F_ERR if msg.is_error_frame else 0) | (_F_FD if msg.is_fd else 0)
+             | (_F_BRS if msg.bitrate_switch else 0) | (_F_ESI if msg.error_state_indicator else 0))
+    head = _BINARY_MSG.pack(float(msg.timestamp), msg.arbitration_id, msg.dlc, flags)
+    return bytes((_BINARY_TYPE,)) + head + bytes(msg.data)
+
+
+class _Client:
+    """One connection: its socket, read buffer, state (``http`` until upgraded, ``ws`` until its
+    bus_request, then ``bus``), output queue and periodic tasks."""
+
+    __slots__ = ("binary", "closing", "out", "partial", "peer", "periodic", "rbuf", "sock", "state",
+                 "writing")
+
+    def __init__(self, sock: socket.socket, peer: str) -> None:
         self.sock = sock
+        self.peer = peer
+        self.rbuf = bytearray()
+        self.state = "http"
+        self.binary = False
+        self.out: collections.deque[bytes] = collections.deque()
+        self.partial: memoryview | None = None
+        self.writing = False
+        self.periodic: dict[int, list[Any]] = {}  # arbitration id -> [payload, period, next, end]
+        self.closing = False
 
-    # A client that went away (killed, crashed) breaks the pipe under the library's send thread: end
-    # this connection quietly (its receive side sees the close and cleans up) instead of leaving an
-    # unhandled exception in that thread.
-    def send_msg(self, msg: Any) -> None:
+
+class _Relay:
+    """The single-threaded relay; :class:`LoopbackBusServer` drives it."""
+
+    def __init__(self, host: str, port: int, channel: str) -> None:
+        self.channel = channel
+        self.listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        self.listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
-            super().send_msg(msg)
-        except OSError as exc:
-            self._client_gone(exc)
-
-    def send(self, event_type: str, payload: Any) -> None:
-        try:
-            super().send(event_type, payload)
-        except OSError as exc:
-            self._client_gone(exc)
-
-    def _client_gone(self, exc: OSError) -> None:
-        if getattr(self, "running", False):
-            logger.info("client connection lost while sending (%s); closing it", exc)
-        self.running = False
-
-    def send_bus_response(self, channel_info: str) -> None:
-        # The client may send as soon as it has this answer: bound our queue first.
-        self._bound_queue(self.bus, self._checked_server)
-        super().send_bus_response(channel_info)
-
-    @staticmethod
-    def _bound_queue(bus: Any, server: _CheckedRemoteServer) -> None:
-        # python-can's virtual bus delivers into one unbounded, blocking queue per bus (listed in its
-        # channel): swap in a bounded one that drops the oldest frame instead of growing or blocking.
-        try:
-            from can.interfaces.virtual import channels_lock
-
-            with channels_lock:
-                i = next(k for k, q in enumerate(bus.channel) if q is bus.queue)
-                bounded = _DropOldestQueue(EGRESS_QUEUE, server)
-                while not bus.queue.empty():  # nothing already delivered is lost
-                    bounded.put(bus.queue.get_nowait())
-                bus.channel[i] = bounded
-                bus.queue = bounded
-        except (ImportError, AttributeError, StopIteration) as exc:  # another python-can layout
-            logger.warning("could not bound the client queue (%r): a slow client may build a backlog", exc)
-
-
-class _CheckedHandler(ClientRequestHandler):
-    """The library's handler with the checked protocol (same WebSocket handshake)."""
-
-    def start_websocket(self) -> None:
-        self.send_response(101)
-        self.send_header("Upgrade", "WebSocket")
-        self.send_header("Connection", "Upgrade")
-        self.send_header("Sec-WebSocket-Accept", get_accept_key(self.headers["Sec-WebSocket-Key"]))
-        offered = [p.strip() for p in self.headers.get("Sec-WebSocket-Protocol", "can.json.v1").split(",")]
-        chosen = "can.binary+json.v1" if "can.binary+json.v1" in offered else "can.json.v1"
-        self.send_header("Sec-WebSocket-Protocol", chosen)
-        self.end_headers()
-        for opt in (socket.SO_SNDBUF, socket.SO_RCVBUF):
-            with contextlib.suppress(OSError):
-                self.request.setsockopt(socket.SOL_SOCKET, opt, SOCKET_BUFFER_BYTES)
-        server: _CheckedRemoteServer = self.server  # type: ignore[assignment]
-        protocol = _CheckedProtocol(
-            server.config, WebSocket(None, chosen, sock=self.request), server, self.request
-        )
-        server.clients.append(protocol)
-        try:
-            protocol.run()
-        finally:
-            server.clients.remove(protocol)
-
-
-class _CheckedRemoteServer(RemoteServer):
-    def __init__(self, host: str, port: int, **config: Any) -> None:
-        super().__init__(host, port, **config)
-        self.RequestHandlerClass = _CheckedHandler
+            self.listener.bind((host, port))
+            self.listener.listen(16)
+        except OSError:
+            self.listener.close()
+            raise
+        self.listener.setblocking(False)
+        self.port: int = self.listener.getsockname()[1]
+        self.sel = selectors.DefaultSelector()
+        self.sel.register(self.listener, selectors.EVENT_READ, None)
+        self._wake_r, self._wake_w = socket.socketpair()
+        self._wake_r.setblocking(False)
+        self._wake_w.setblocking(False)
+        self.sel.register(self._wake_r, selectors.EVENT_READ, "wake")
+        self.clients: list[_Client] = []  # every connection
+        self.on_bus: list[_Client] = []  # connections that made their bus_request
         self.dropped = 0
         self.skipped = 0
         self.overflowed = 0
-        self._drop_lock = threading.Lock()
+        self._stop = False
+        self._close_all = threading.Event()
+        self._closed_all = threading.Event()
 
-    def _count(self, counter: str, log_every: int) -> int | None:
-        """Add one to the counter attribute ``counter``; its new value when it is the first or a
-        multiple of ``log_every`` (time to log it), else None."""
-        with self._drop_lock:
-            n = getattr(self, counter) + 1
-            setattr(self, counter, n)
-        return n if n == 1 or n % log_every == 0 else None
+    # -- counters ------------------------------------------------------------------------------
+    @staticmethod
+    def _due(n: int, every: int) -> bool:
+        return n == 1 or n % every == 0
 
-    def note_dropped(self, exc: BaseException) -> None:
-        if (n := self._count("dropped", 100)) is not None:
-            logger.warning("dropped malformed CAN frame from a client (%d so far): %s", n, exc)
+    def _note_dropped(self, why: str) -> None:
+        self.dropped += 1
+        if self._due(self.dropped, 100):
+            logger.warning("dropped malformed CAN frame from a client (%d so far): %s", self.dropped, why)
 
-    def note_skipped(self) -> None:
-        if (n := self._count("skipped", 10000)) is not None:
+    def _note_skipped(self) -> None:
+        self.skipped += 1
+        if self._due(self.skipped, 10000):
             logger.warning("a client sends faster than the bus forwards: skipping its backlog "
-                           "(%d frames so far)", n)
+                           "(%d frames so far)", self.skipped)
 
-    def note_overflow(self) -> None:
-        if (n := self._count("overflowed", 10000)) is not None:
+    def _note_overflow(self, n: int) -> None:
+        before = self.overflowed
+        self.overflowed += n
+        if before == 0 or before // 10000 != self.overflowed // 10000:
             logger.warning("a client reads slower than the bus delivers: dropping its oldest frames "
-                           "(%d so far)", n)
+                           "(%d so far)", self.overflowed)
+
+    # -- loop ----------------------------------------------------------------------------------
+    def wake(self) -> None:
+        with contextlib.suppress(OSError):
+            self._wake_w.send(b"\0")
+
+    def request_stop(self) -> None:
+        self._stop = True
+        self.wake()
+
+    def serve(self) -> None:
+        """Run until :meth:`request_stop`; then close every connection."""
+        try:
+            while not self._stop:
+                timeout = self._run_periodic()
+                for key, events in self.sel.select(timeout):
+                    if key.data is None:
+                        self._accept()
+                    elif key.data == "wake":
+                        with contextlib.suppress(OSError):
+                            self._wake_r.recv(4096)
+                    else:
+                        client: _Client = key.data
+                        if events & selectors.EVENT_WRITE and not client.closing:
+                            self._flush(client)
+                        if events & selectors.EVENT_READ and not client.closing:
+                            self._read(client)
+                if self._close_all.is_set():
+                    self._close_all.clear()
+                    self.close_every_client()
+                    self._closed_all.set()
+        finally:
+            self.close_every_client()
+            self._closed_all.set()
+
+    def close_every_client(self) -> None:
+        """Send every connection a CLOSE frame and close it (loop thread, or with the loop stopped)."""
+        for c in list(self.clients):
+            if c.state != "http":
+                with contextlib.suppress(OSError):
+                    c.sock.setblocking(False)
+                    c.sock.send(_ws_frame(_OP_CLOSE, struct.pack(">H", 1001) + b"server stopping"))
+            self._drop_client(c)
+
+    def close(self) -> None:
+        self.close_every_client()
+        for s in (self.listener, self._wake_r, self._wake_w):
+            with contextlib.suppress(OSError, KeyError, ValueError):
+                self.sel.unregister(s)
+            s.close()
+        self.sel.close()
+
+    # -- connections ---------------------------------------------------------------------------
+    def _accept(self) -> None:
+        while True:
+            try:
+                sock, addr = self.listener.accept()
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError as exc:
+                logger.warning("accept failed: %s", exc)
+                return
+            sock.setblocking(False)
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            for opt, size in ((socket.SO_SNDBUF, SEND_BUFFER_BYTES), (socket.SO_RCVBUF, SOCKET_BUFFER_BYTES)):
+                with contextlib.suppress(OSError):
+                    sock.setsockopt(socket.SOL_SOCKET, opt, size)
+            c = _Client(sock, f"{addr[0]}:{addr[1]}")
+            self.clients.append(c)
+            self.sel.register(sock, selectors.EVENT_READ, c)
+
+    def _drop_client(self, c: _Client) -> None:
+        if c.closing:
+            return
+        c.closing = True
+        with contextlib.suppress(KeyError, ValueError, OSError):
+            self.sel.unregister(c.sock)
+        with contextlib.suppress(OSError):
+            c.sock.close()
+        if c in self.clients:
+            self.clients.remove(c)
+        if c in self.on_bus:
+            self.on_bus.remove(c)
+        c.out.clear()
+        c.periodic.clear()
+
+    def _read(self, c: _Client) -> None:
+        try:
+            chunk = c.sock.recv(_RECV_BYTES)
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError as exc:
+            logger.info("client %s: connection lost (%s)", c.peer, exc)
+            self._drop_client(c)
+            return
+        if not chunk:
+            self._drop_client(c)
+            return
+        c.rbuf += chunk
+        if c.state == "http":
+            self._handshake(c)
+            if c.state == "http" or c.closing:
+                return
+        # What is still unread (in our buffer and in the kernel): a client that sends faster than the
+        # bus forwards has frames skipped while this is above the limit, as arbitration would lose them.
+        backlog = len(c.rbuf) + _pending_bytes(c.sock)
+        binary_frames: list[bytes] = []
+        now = time.time()
+        buf = c.rbuf
+        pos = 0
+        while not c.closing:
+            n = len(buf) - pos
+            if n < 2:
+                break
+            b1, b2 = buf[pos], buf[pos + 1]
+            length = b2 & 0x7F
+            head = 2
+            if length == 126:
+                if n < 4:
+                    break
+                length = int.from_bytes(buf[pos + 2:pos + 4], "big")
+                head = 4
+            elif length == 127:
+                if n < 10:
+                    break
+                length = int.from_bytes(buf[pos + 2:pos + 10], "big")
+                head = 10
+            masked = b2 & 0x80
+            if length > _MAX_WS_PAYLOAD:
+                logger.warning("client %s sent a %d-byte message: closing it", c.peer, length)
+                self._drop_client(c)
+                return
+            total = head + (4 if masked else 0) + length
+            if n < total:
+                break
+            if masked:
+                mask = bytes(buf[pos + head:pos + head + 4])
+                payload = _unmask(bytes(buf[pos + head + 4:pos + total]), mask)
+            else:
+                payload = bytes(buf[pos + head:pos + total])
+            pos += total
+            backlog -= total
+            opcode = b1 & 0x0F
+            if opcode == _OP_BINARY and c.state == "bus":
+                if not _binary_ok(payload):
+                    self._note_dropped("binary frame failing the frame check")
+                elif backlog > INGRESS_BACKLOG_BYTES:
+                    self._note_skipped()
+                else:
+                    binary_frames.append(self._stamped(payload, now))
+            elif opcode == _OP_TEXT:
+                self._text(c, payload, binary_frames, now, backlog)
+            elif opcode == _OP_PING:
+                self._queue(c, [_ws_frame(_OP_PONG, payload)], drop=False)
+            elif opcode == _OP_CLOSE:
+                with contextlib.suppress(OSError):
+                    c.sock.send(_ws_frame(_OP_CLOSE, payload[:2]))
+                self._drop_client(c)
+        if not c.closing:
+            del buf[:pos]
+        if binary_frames:
+            self._deliver(c, binary_frames)
+
+    @staticmethod
+    def _stamped(payload: bytes, now: float) -> bytes:
+        # Every frame keeps the time its sender put it on the bus; an unstamped or implausible one is
+        # on the bus now.
+        ts = _BINARY_MSG.unpack_from(payload, 1)[0]
+        if now - MAX_STAMP_AGE_S <= ts <= now + 0.001:
+            return payload
+        return payload[:1] + struct.pack(">d", now) + payload[9:]
+
+    def _text(self, c: _Client, payload: bytes, frames: list[bytes], now: float, backlog: int) -> None:
+        try:
+            event = json.loads(payload)
+            kind = event["type"]
+        except (ValueError, TypeError, KeyError):
+            error = {"type": "error", "payload": "message must be a JSON object with a 'type'"}
+            self._queue(c, [_ws_frame(_OP_TEXT, json.dumps(error).encode())], drop=False)
+            return
+        if kind == "bus_request" and c.state == "ws":
+            info = json.dumps({"type": "bus_response",
+                               "payload": {"channel_info": f"Virtual bus channel {self.channel}"}})
+            self._queue(c, [_ws_frame(_OP_TEXT, info.encode())], drop=False)
+            c.state = "bus"
+            self.on_bus.append(c)
+            return
+        if c.state != "bus":
+            return
+        if kind == "message":
+            frame = self._frame_from_json(event.get("payload"), now)
+            if frame is None:
+                return
+            if backlog > INGRESS_BACKLOG_BYTES:
+                self._note_skipped()
+            else:
+                frames.append(frame)
+        elif kind == "periodic_start":
+            try:
+                body = event["payload"]
+                frame = self._frame_from_json(body["msg"], now)
+                period = float(body["period"])
+                duration = body.get("duration")
+            except (KeyError, TypeError, ValueError):
+                return
+            if frame is None or not period > 0.0:
+                return
+            arb_id = _BINARY_MSG.unpack_from(frame, 1)[1]
+            t = time.monotonic()
+            c.periodic[arb_id] = [frame, period, t, t + float(duration) if duration else math.inf]
+            self.wake()
+        elif kind == "periodic_stop":
+            c.periodic.pop(event.get("payload"), None)
+
+    def _frame_from_json(self, fields: Any, now: float) -> bytes | None:
+        """A checked binary frame message from a JSON client's message fields (None: dropped)."""
+        try:
+            fields = dict(fields)
+            if not isinstance(fields.get("timestamp", 0.0), (int, float)):
+                del fields["timestamp"]  # not a time: stamped on receipt
+            msg = can.Message(**fields)
+            check_message(msg)
+        except (InvalidInputError, TypeError, ValueError, AttributeError, OverflowError) as exc:
+            self._note_dropped(str(exc))
+            return None
+        return self._stamped(_binary_from_message(msg), now)
+
+    def _run_periodic(self) -> float | None:
+        """Send the periodic frames that are due; the time (s) until the next one (None: no task)."""
+        nxt = math.inf
+        now = time.monotonic()
+        for c in self.on_bus:
+            for arb_id, task in list(c.periodic.items()):
+                frame, period, due, end = task
+                if now >= end:
+                    del c.periodic[arb_id]
+                    continue
+                if now >= due:
+                    unstamped = frame[:1] + struct.pack(">d", 0.0) + frame[9:]  # on the bus now
+                    self._deliver(c, [self._stamped(unstamped, time.time())])
+                    task[2] = due = max(due + period, now)
+                nxt = min(nxt, due - now)
+        return None if nxt == math.inf else max(nxt, 0.0)
+
+    # -- out -----------------------------------------------------------------------------------
+    def _deliver(self, sender: _Client, frames: list[bytes]) -> None:
+        """Queue ``frames`` (binary frame messages) to every client on the bus but ``sender``."""
+        bin_out: list[bytes] | None = None
+        json_out: list[bytes] | None = None
+        for c in self.on_bus:
+            if c is sender or c.closing:
+                continue
+            if c.binary:
+                if bin_out is None:
+                    bin_out = [_ws_frame(_OP_BINARY, f) for f in frames]
+                self._queue(c, bin_out)
+            else:
+                if json_out is None:
+                    json_out = [_ws_frame(_OP_TEXT, _json_from_binary(f)) for f in frames]
+                self._queue(c, json_out)
+
+    def _queue(self, c: _Client, data: list[bytes], drop: bool = True) -> None:
+        c.out.extend(data)
+        excess = len(c.out) - EGRESS_QUEUE
+        if drop and excess > 0:
+            for _ in range(excess):
+                c.out.popleft()
+            self._note_overflow(excess)
+        if not c.writing:
+            self._flush(c)
+
+    def _flush(self, c: _Client) -> None:
+        while c.partial is not None or c.out:
+            if c.partial is not None:
+                data = c.partial
+            else:
+                data = memoryview(b"".join(c.out))
+                c.out.clear()
+            try:
+                sent = c.sock.send(data)
+            except (BlockingIOError, InterruptedError):
+                sent = 0
+            except OSError as exc:
+                logger.info("client %s: connection lost while sending (%s); closing it", c.peer, exc)
+                self._drop_client(c)
+                return
+            if sent < len(data):
+                c.partial = data[sent:]
+                if not c.writing:
+                    c.writing = True
+                    self.sel.modify(c.sock, selectors.EVENT_READ | selectors.EVENT_WRITE, c)
+                return
+            c.partial = None
+        if c.writing:
+            c.writing = False
+            self.sel.modify(c.sock, selectors.EVENT_READ, c)
+
+    # -- handshake -----------------------------------------------------------------------------
+    def _handshake(self, c: _Client) -> None:
+        end = c.rbuf.find(b"\r\n\r\n")
+        if end < 0:
+            if len(c.rbuf) > _MAX_REQUEST_BYTES:
+                self._drop_client(c)
+            return
+        head = bytes(c.rbuf[:end]).decode("latin-1")
+        del c.rbuf[:end + 4]
+        lines = head.split("\r\n")
+        parts = lines[0].split()
+        headers = {}
+        for line in lines[1:]:
+            k, _, v = line.partition(":")
+            headers[k.strip().lower()] = v.strip()
+        if len(parts) < 2 or parts[0] != "GET":
+            self._http_reply(c, "405 Method Not Allowed", b"", "text/plain")
+            return
+        if headers.get("upgrade", "").lower() != "websocket" or "sec-websocket-key" not in headers:
+            self._serve_page(c, parts[1])
+            return
+        key = headers["sec-websocket-key"].encode()
+        accept = base64.b64encode(hashlib.sha1(key + _WS_GUID).digest()).decode()
+        offered = [p.strip() for p in headers.get("sec-websocket-protocol", "can.json.v1").split(",")]
+        chosen = "can.binary+json.v1" if "can.binary+json.v1" in offered else "can.json.v1"
+        c.binary = chosen == "can.binary+json.v1"
+        reply = ("HTTP/1.1 101 Switching Protocols\r\nUpgrade: WebSocket\r\nConnection: Upgrade\r\n"
+                 f"Sec-WebSocket-Accept: {accept}\r\nSec-WebSocket-Protocol: {chosen}\r\n\r\n")
+        c.state = "ws"
+        self._queue(c, [reply.encode("latin-1")], drop=False)
+
+    def _serve_page(self, c: _Client, path: str) -> None:
+        """python-can-remote's trace page (a browser client of the JSON protocol), as its server served it."""
+        import can_remote  # noqa: PLC0415 - only for a browser
+
+        root = Path(can_remote.__file__).resolve().parent / _WEB_DIR
+        rel = path.split("?", 1)[0].lstrip("/") or "index.html"
+        if rel.endswith("/"):
+            rel += "index.html"
+        target = (root / rel).resolve()
+        gz = target.with_name(target.name + ".gz")
+        body, encoding = None, None
+        if root in target.parents:
+            for f, enc in ((gz, "gzip"), (target, None)):
+                if f.is_file():
+                    body, encoding = f.read_bytes(), enc
+                    break
+        if body is None:
+            self._http_reply(c, "404 Not Found", b"not found\n", "text/plain")
+        else:
+            ctype = mimetypes.guess_type(str(target), strict=False)[0] or "application/octet-stream"
+            self._http_reply(c, "200 OK", body, ctype, encoding)
+
+    def _http_reply(self, c: _Client, status: str, body: bytes, ctype: str,
+                    encoding: str | None = None) -> None:
+        head = (f"HTTP/1.1 {status}\r\nContent-Type: {ctype}\r\nContent-Length: {len(body)}\r\n"
+                "Connection: close\r\n")
+        if encoding:
+            head += f"Content-Encoding: {encoding}\r\n"
+        with contextlib.suppress(OSError):
+            c.sock.setblocking(True)
+            c.sock.settimeout(2.0)
+            c.sock.sendall(head.encode("latin-1") + b"\r\n" + body)
+        self._drop_client(c)
 
 
 class LoopbackBusServer:
-    """A python-can-remote server on loopback, served from a background thread of this process.
+    """The loopback bus relay, served from a background thread of this process.
 
     Args:
         host: loopback address to bind (anything else is refused).
         port: TCP port, 0 for an ephemeral one (read :attr:`port` after construction).
-        channel: virtual bus channel name; unique by default so two servers never share a bus.
+        channel: the bus's name (reported to clients as their channel info); unique by default.
 
     Raises:
         InvalidInputError: non-loopback ``host``.
@@ -306,13 +678,12 @@ class LoopbackBusServer:
         self.host = check_loopback(host)
         self.virtual_channel = channel or f"redarm-canbus-{os.getpid()}-{uuid.uuid4().hex[:8]}"
         try:
-            self._server = _CheckedRemoteServer(
-                self.host, port, interface="virtual", channel=self.virtual_channel, preserve_timestamps=True
-            )
+            self._relay = _Relay(self.host, port, self.virtual_channel)
         except OSError as exc:
             raise BusError(f"cannot bind CAN bus server to {self.host}:{port}: {exc}") from exc
-        self.port: int = self._server.server_port
+        self.port: int = self._relay.port
         self._thread: threading.Thread | None = None
+        self._closed = False
 
     @property
     def channel(self) -> str:
@@ -326,58 +697,51 @@ class LoopbackBusServer:
     @property
     def dropped_frames(self) -> int:
         """Malformed frames from clients that were dropped instead of reaching the bus."""
-        return self._server.dropped
+        return self._relay.dropped
 
     @property
     def skipped_frames(self) -> int:
         """Frames skipped because their sender's unread backlog was too large."""
-        return self._server.skipped
+        return self._relay.skipped
 
     @property
     def overflowed_frames(self) -> int:
         """Frames dropped from full receive queues (slow readers)."""
-        return self._server.overflowed
+        return self._relay.overflowed
 
     @property
     def client_count(self) -> int:
-        """Number of connected clients."""
-        return len(self._server.clients)
+        """Number of connected clients (that made their bus request)."""
+        return len(self._relay.on_bus)
 
     def start(self) -> LoopbackBusServer:
         """Serve in a daemon thread; returns self."""
-        if self._thread is None:
-            self._thread = threading.Thread(
-                target=self._server.serve_forever,
-                kwargs={"poll_interval": 0.1},
-                name="redarm-canbus",
-                daemon=True,
-            )
+        if self._thread is None and not self._closed:
+            self._relay._stop = False
+            self._thread = threading.Thread(target=self._relay.serve, name="redarm-canbus", daemon=True)
             self._thread.start()
         return self
 
     def close_clients(self, wait_s: float = 5.0) -> None:
-        """Close every client connection (clients see ``WebsocketClosed``) and wait until each
-        connection's server-side bus is shut down (at most ``wait_s``); keep listening."""
-        for proto in list(self._server.clients):
-            proto.running = False
-            with contextlib.suppress(OSError):
-                proto.close()  # a CLOSE frame, so a reading client learns why
-            with contextlib.suppress(OSError):
-                # Unblocks the handler even if the client never answers the CLOSE.
-                proto.sock.shutdown(socket.SHUT_RDWR)
-        deadline = time.monotonic() + wait_s
-        while self._server.clients and time.monotonic() < deadline:
-            time.sleep(0.01)
+        """Close every client connection (clients see ``WebsocketClosed``); keep listening."""
+        relay = self._relay
+        if self._thread is None:
+            relay.close_every_client()
+            return
+        relay._closed_all.clear()
+        relay._close_all.set()
+        relay.wake()
+        relay._closed_all.wait(wait_s)
 
     def stop(self) -> None:
         """Stop serving, close all client connections and the listening socket (idempotent)."""
         if self._thread is not None:
-            self._server.shutdown()
+            self._relay.request_stop()
             self._thread.join(5.0)
             self._thread = None
-        self.close_clients()
-        with contextlib.suppress(OSError):
-            self._server.server_close()
+        if not self._closed:
+            self._closed = True
+            self._relay.close()
 
     def __enter__(self) -> LoopbackBusServer:
         return self.start()
@@ -399,12 +763,12 @@ def build_parser() -> argparse.ArgumentParser:
     """Command-line interface of ``redarm-canbus``."""
     ap = argparse.ArgumentParser(
         prog="redarm-canbus",
-        description="Loopback CAN bus server (python-can-remote over a python-can virtual bus).",
+        description="Loopback CAN bus server (a relay for python-can-remote clients).",
     )
     ap.add_argument("--host", default="127.0.0.1", help="loopback address to bind (only 127.0.0.0/8)")
     ap.add_argument("--port", type=int, default=0, help="TCP port, 0 = ephemeral (default)")
     ap.add_argument("--port-file", type=Path, help="write the chosen port to this file")
-    ap.add_argument("--channel", help="virtual bus channel name (default: unique per process)")
+    ap.add_argument("--channel", help="bus name reported to clients (default: unique per process)")
     ap.add_argument("--realtime-priority", type=int, default=DEFAULT_REALTIME_PRIORITY, metavar="N",
                     help="SCHED_FIFO priority (1..98, 0 = normal scheduling; default "
                     f"{DEFAULT_REALTIME_PRIORITY}); falls back to a raised nice level when not permitted")
@@ -445,7 +809,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         _write_port_file(args.port_file, server.port)
     sys.stdout.write(f"{PORT_LINE}={server.port}\n{CHANNEL_LINE}={server.channel}\n")
     sys.stdout.flush()
-    logger.info("CAN bus server on %s (virtual channel %s)", server.channel, server.virtual_channel)
+    logger.info("CAN bus server on %s (bus %s)", server.channel, server.virtual_channel)
     try:
         while not stop.wait(0.5):
             pass

@@ -7,8 +7,9 @@ This module declares parameters, converts messages, and publishes.
 
 Interface (docs/can_driver.md has the details):
 
-* publishes ``/joint_states`` (sensor_msgs/JointState, every cycle; at ``poll_hz`` while not
-  running) and ``/diagnostics`` (diagnostic_msgs/DiagnosticArray, ~2 Hz);
+* publishes ``/joint_states`` (sensor_msgs/JointState, at ``joint_states_rate_hz``, default 100 Hz,
+  0 = every cycle; at ``poll_hz`` while not running) and ``/diagnostics``
+  (diagnostic_msgs/DiagnosticArray, ~2 Hz);
 * subscribes ``/joint_command`` (trajectory_msgs/JointTrajectory: one or more points,
   ``time_from_start`` honoured by interpolation per cycle) and ``/joint_command_state``
   (sensor_msgs/JointState: streamed position targets; one topic cannot carry two types);
@@ -60,7 +61,7 @@ from redarm_ros.can.driver_loop import (
     LoopSnapshot,
     LoopState,
 )
-from redarm_ros.can.driver_process import DriverProcess, DriverSpec, build_loop
+from redarm_ros.can.driver_process import DEFAULT_SAMPLE_RATE_HZ, DriverProcess, DriverSpec, build_loop
 from redarm_ros.errors import ConfigError, InvalidInputError, RedarmError
 from redarm_ros.kinematics import load_arm_or_urdf
 from redarm_ros.nodes._common import (
@@ -113,6 +114,8 @@ PARAMS = [
               "CAN module id of each joint, in joint order (unset or empty: 1..n).", _module_ids,
               read_only=True),
     ParamSpec("rate_hz", 250.0, "Cycle rate of the FSTEP stream (Hz).", read_only=True, range=(1.0, 1000.0)),
+    ParamSpec("joint_states_rate_hz", DEFAULT_SAMPLE_RATE_HZ, "Rate of /joint_states while the cycle runs "
+              "(Hz, at most the cycle rate; 0 = every cycle).", read_only=True, range=(0.0, 1000.0)),
     ParamSpec("poll_hz", 10.0, "State polling rate while not running (idle/halted), Hz.", read_only=True,
               range=(0.5, 100.0)),
     ParamSpec("can.interface", "", "python-can interface (empty: CAN_INTERFACE / config files).",
@@ -261,6 +264,7 @@ class CanDriverNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
             loop=cfg, reply_timeout_s=float(p["reply_timeout_s"]), max_missed=int(p["max_missed_replies"]),
             watchdog=bool(p["watchdog"]), plausibility_margin_rad=float(p["plausibility_margin_rad"]),
             realtime_priority=int(p["realtime_priority"]),
+            sample_rate_hz=float(p["joint_states_rate_hz"]),
         )
         # Wiring: publishers, subscriptions, services, timers. Nothing runs until the start timer.
         self._js_pub = self.create_publisher(JointState, "joint_states", QoSProfile(depth=10))

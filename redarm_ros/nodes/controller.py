@@ -92,6 +92,15 @@ STILL_TOLERANCE = 1e-3  # rad: largest joint motion within that window of an arm
 OBSTACLE_MARKERS_S = 2.0  # s between re-sends of unchanged obstacle markers
 DIAGNOSTICS_PERIOD_S = 1.0  # s between /diagnostics messages
 IDLE_PERIODS = 10  # periods without a step after which /diagnostics says the loop is not stepping
+# Idle: once nothing moves (no goal, or a goal reached and held) the loop stops stepping until an input
+# arrives; a step would only repeat the last command. "Nothing moves": every commanded joint slower
+# than IDLE_RATE_RAD_S (the last of an elbow's self-motion towards its preferred swivel is left undone:
+# it stops within about a second's worth of that rate) for the parameter idle_after_s. The measured
+# joints moving by more than IDLE_WAKE_RAD from where they stood (a halt, another client's
+# /joint_command) wake it too.
+IDLE_RATE_RAD_S = 1e-4
+IDLE_WAKE_RAD = 1e-4
+IDLE_PHASES = (Phase.IDLE, Phase.REACHED, Phase.REJECTED)
 
 
 def _choices(name: str) -> tuple[str, ...]:
@@ -157,6 +166,10 @@ PARAMS = [
               positive, read_only=True),
     ParamSpec("tool_frame", "tool", "Frame name of twists given in the tool frame (others: base_frame).",
               None, read_only=True),
+    ParamSpec("idle_after_s", 0.5, "Once nothing has moved for this long (s; no goal, or the goal reached "
+              "and held) the loop rests: no steps, no commands (the driver holds the arm), ~/state once a "
+              "second, until a goal, twist, obstacle, parameter or a move of the arm wakes it (0 = never "
+              "rest).", non_negative, read_only=True),
     ParamSpec("replan", True, "Re-plan in joint space when the route to a goal is a dead end (false: hold "
               "there).", None, read_only=True),
 ]
@@ -317,8 +330,13 @@ class ControllerNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
         self.create_subscription(TwistStamped, "~/target_twist", self._on_twist, 10)
         self.create_subscription(MarkerArray, "obstacles", self._on_obstacles, 10)
         self.create_subscription(JointState, "joint_states", self._on_joint_states, 10)
-        self.create_timer(self.period, self._on_timer)
+        self._step_timer = self.create_timer(self.period, self._on_timer)
         self.create_timer(DIAGNOSTICS_PERIOD_S, self._publish_diagnostics)
+        self.idle = False  # the loop rests (see idle_after_s); any input wakes it
+        self._idle_after_s = float(p["idle_after_s"])
+        self._idle_markers_sent = False  # the markers went out since the loop rested
+        self._quiet_since: float | None = None
+        self._idle_q_meas: np.ndarray | None = None
         self._markers_timer = None
         self._set_markers_rate(p["markers_rate_hz"])
         self.add_post_set_parameters_callback(self._on_params_set)
@@ -359,6 +377,35 @@ class ControllerNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
             elif prm.name == "markers_rate_hz":
                 self._set_markers_rate(float(prm.value))
                 self.get_logger().info(f"markers now at {float(prm.value):g} Hz")
+        self.wake()
+
+    # -- idle -------------------------------------------------------------------------------------
+    def wake(self) -> None:
+        """Resume stepping (an input arrived: a goal, a twist, obstacles, a parameter, the arm moved)."""
+        self._quiet_since = None
+        self._idle_markers_sent = False
+        if self.idle:
+            self.idle = False
+            self.loop_stats.pause()  # the rest is no missed tick
+            # The core's clock stood still with the loop: bring it to now without moving (dt 0), so
+            # what comes next (a goal's timing, its progress watch) does not count the rest.
+            self.ctl.step(0.0, self._now())
+            self._step_timer.reset()
+
+    def _rest_if_quiet(self, res: Any, q_before: np.ndarray | None, now: float) -> None:
+        """After a step: stop the loop once nothing has moved for idle_after_s."""
+        still = (q_before is not None and res.phase in IDLE_PHASES
+                 and self.ctl.goal_kind is not GoalKind.TWIST
+                 and float(np.max(np.abs(res.q - q_before))) < IDLE_RATE_RAD_S * self._last_dt)
+        if not still:
+            self._quiet_since = None
+            return
+        if self._quiet_since is None:
+            self._quiet_since = now
+        elif 0.0 < self._idle_after_s <= now - self._quiet_since and self._q_meas is not None:
+            self.idle = True
+            self._idle_q_meas = self._q_meas.copy()
+            self._step_timer.cancel()
 
     # -- inputs -----------------------------------------------------------------------------------
     def _on_joint_states(self, msg: JointState) -> None:
@@ -379,12 +426,16 @@ class ControllerNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
         self._meas_hist.append((self._t_meas, q))
         while self._meas_hist and self._t_meas - self._meas_hist[0][0] > STILL_WINDOW_S:
             self._meas_hist.pop(0)
+        if self.idle and self._idle_q_meas is not None and \
+                float(np.max(np.abs(q - self._idle_q_meas))) > IDLE_WAKE_RAD:
+            self.wake()
 
     def _now(self) -> float:
         """ROS time (s): the clock of header stamps, given to the core with every goal and step."""
         return self.get_clock().now().nanoseconds * 1e-9
 
     def _on_goal(self, msg: PoseStamped) -> None:
+        self.wake()
         if not self._frame_ok(msg.header.frame_id):
             self._reject_message(f"goal in frame {msg.header.frame_id!r} refused: give goals in "
                                  f"{self.get_parameter('base_frame').value!r} (this node has no tf)")
@@ -431,6 +482,7 @@ class ControllerNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
                                       f"[{check.status.name}]: {check.message}; holding")
 
     def _on_twist(self, msg: TwistStamped) -> None:
+        self.wake()
         frame = msg.header.frame_id.lstrip("/")
         lin = np.array([msg.twist.linear.x, msg.twist.linear.y, msg.twist.linear.z], float)
         ang = np.array([msg.twist.angular.x, msg.twist.angular.y, msg.twist.angular.z], float)
@@ -496,6 +548,7 @@ class ControllerNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
                                      f"{m.action} is none of ADD/MODIFY (0), DELETE (2), DELETEALL (3)")
         if not changed:
             return
+        self.wake()
         scene = self.base_scene.with_obstacles(self._markers.values())
         check = self.ctl.set_scene(scene)
         self._scene_changed = True
@@ -526,6 +579,7 @@ class ControllerNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
             self._last_step = now
             return
         self._resync_if_needed()
+        q_before = None if self._last_result is None else self._last_result.q
         dt = min(max(now - self._last_step, 0.0), 2.0 * self.period)
         self._last_step = now
         t_step = self._now()
@@ -556,6 +610,7 @@ class ControllerNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
             self._publish_command(res.q, t_step)
         self.state_pub.publish(self._state_msg(res))
         self.loop_stats.step(now, time.monotonic() - now)
+        self._rest_if_quiet(res, q_before, now)
 
     def _publish_diagnostics(self) -> None:
         """``controller: loop`` on ``/diagnostics``: the steps the loop took (counted here, exact even
@@ -564,8 +619,12 @@ class ControllerNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
         s = self.loop_stats.summary(time.monotonic())
         nominal = 1.0 / self.period
         st = DiagnosticStatus(name=f"{NODE_NAME}: loop", hardware_id=self.arm.name)
+        stale = time.monotonic() - self._t_meas > self.get_parameter("joint_states_timeout_s").value
         if s.steps < 2:
             st.level, st.message = DiagnosticStatus.OK, "not stepping yet (waiting for joint_states)"
+        elif self.idle and not stale:
+            # At rest the loop does not step (nothing would move); ~/state repeats at this timer's rate.
+            st.level, st.message = DiagnosticStatus.OK, "idle: nothing to move (stepping resumes on an input)"
         elif s.idle_s > IDLE_PERIODS * self.period:
             # The loop holds without stepping while joint_states are stale: not a rate problem.
             st.level = DiagnosticStatus.WARN
@@ -588,12 +647,15 @@ class ControllerNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
             "obstacles": str(len(scene.obstacles)),
             "obstacles_within_reach": str(len(scene.obstacles) - self.ctl.culled_obstacles),
             "scheduling": scheduling_now(),
+            "idle": str(self.idle).lower(),
         }
         st.values = [KeyValue(key=k, value=v) for k, v in values.items()]
         arr = DiagnosticArray()
         arr.header.stamp = self.get_clock().now().to_msg()
         arr.status = [st]
         self.diag_pub.publish(arr)
+        if self.idle:
+            self.state_pub.publish(self._state_msg(self._last_result))
 
     def _resync_if_needed(self) -> None:
         """Restart from the measured joints when the arm is not where we commanded it (halt, homing)."""
@@ -691,12 +753,18 @@ class ControllerNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
         # Nobody listening: build nothing. Turning a thousand obstacles into messages took a
         # 100 Hz controller down to about 50 Hz on two cores; a new listener gets them all at once.
         listeners = self.marker_pub.get_subscription_count()
-        if listeners == 0 or listeners > self._marker_listeners:
+        joined = listeners > self._marker_listeners
+        if listeners == 0 or joined:
             self._obstacles_published = -math.inf
             self._last_marker_ids = set()
         self._marker_listeners = listeners
         if listeners == 0:
             return
+        # At rest nothing drawn changes: the markers (kept by RViz) go out once, then again only for a
+        # new listener or a new scene.
+        if self.idle and self._idle_markers_sent and not joined and not self._scene_changed:
+            return
+        self._idle_markers_sent = self.idle
         frame = self.get_parameter("base_frame").value
         stamp = self.get_clock().now().to_msg()
         out: list[Marker] = []

@@ -43,19 +43,25 @@ class LoopStats:
         self.steps = 0
         self.missed = 0
         self._last: float | None = None
+        self._paused = False
         self._recent: deque[tuple[float, float]] = deque()  # (time, duration) of the window's steps
 
     def step(self, t: float, busy: float) -> None:
         """Record a step that started at ``t`` (monotonic s) and took ``busy`` s."""
-        if self._last is not None:
+        if self._last is not None and not self._paused:
             gap = t - self._last
             if gap > 1.5 * self.period:
                 self.missed += int(round(gap / self.period)) - 1
         self._last = t
+        self._paused = False
         self.steps += 1
         self._recent.append((t, busy))
         while self._recent and t - self._recent[0][0] > self.window:
             self._recent.popleft()
+
+    def pause(self) -> None:
+        """The loop rested on purpose (nothing to do): the gap before its next step is no missed tick."""
+        self._paused = True
 
     def summary(self, now: float) -> LoopSummary:
         """The loop's figures at ``now`` (monotonic s, the clock of :meth:`step`): the window ends at

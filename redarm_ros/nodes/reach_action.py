@@ -196,6 +196,7 @@ class ReachActionServer:
         if g.applied or not node._started:
             return
         g.applied = True
+        node.wake()
         if g.swivel is not None:
             node.ctl.set_preferred_swivel(g.swivel)
         check = node.ctl.set_goal(g.T)
@@ -268,6 +269,7 @@ class ReachActionServer:
         """Drop the goal in the core: the command decelerates within the joint limits, then holds."""
         self.node.ctl.stop()
         self.node._goal_T = None
+        self.node.wake()
         g.stop = (status, message)
         g.q_seen = self.node.ctl.q
         g.steps_seen = self.node.steps
@@ -319,6 +321,7 @@ class ReachActionServer:
         result = Reach.Result(status=status, message=message, position_error=pe, orientation_error=re)
         if g.swivel is not None and g.applied:
             self.node.ctl.set_preferred_swivel(float(self.node.get_parameter("preferred_swivel").value))
+            self.node.wake()
         if self._active is g:
             self._active = None
         g.done.set_result((event, result))

@@ -43,6 +43,7 @@ from pathlib import Path
 from typing import Any
 
 import can
+import numpy as np
 
 from redarm_ros.can import protocol as pc
 from redarm_ros.can import realtime
@@ -54,6 +55,12 @@ _LOG = logging.getLogger("redarm_ros.sim.hardware")
 
 READY_LINE = "REDARM_SIM_READY"
 MAX_BURST = 50  # steps caught up at once; a larger backlog is dropped (resync)
+# While the arm rests (no setpoint moving, every joint slower than REST_SPEED_RAD_S) the
+# physics loop wakes every REST_BATCH steps and steps them at once instead of waking every step: a
+# still arm is the same arm a few ms later, and each wake-up costs more than a step. A command that
+# starts a motion takes effect within those steps; then the loop steps one at a time again.
+REST_BATCH = 10
+REST_SPEED_RAD_S = 1e-4
 CONTROL_POLL_S = 0.05
 SWITCH_INTERVAL_S = 5e-4
 OVERRUN_REPORT_S = 5.0  # log late steps at most this often
@@ -176,6 +183,7 @@ class HardwareSim:
         self.snapshots: list[str] = []
         self._rng = random.Random(self.faults.seed)
         self._stop = threading.Event()
+        self._last_setpoint: np.ndarray | None = None  # physics thread: see _resting
         self._snapshot_requests: list[str | None] = []
         # faults and snapshot requests between threads; reentrant because signal handlers (which run
         # in the main thread, possibly inside a locked block) take it too
@@ -472,6 +480,14 @@ class HardwareSim:
             self.request_stop()
         _LOG.info("control applied: %s", data)
 
+    def _resting(self) -> bool:
+        """Nothing moves: no setpoint moved since the last call and every joint is (nearly) still. (A
+        driver holding the arm keeps the setpoint generators active with the same target each cycle.)"""
+        sp = self.plant.q_setpoint
+        held = self._last_setpoint is not None and np.array_equal(sp, self._last_setpoint)
+        self._last_setpoint = sp
+        return held and float(np.max(np.abs(self.plant.dq))) < REST_SPEED_RAD_S
+
     def run(self, on_ready: Callable[[], None] | None = None) -> None:
         """Serve the bus and step physics in real time until :meth:`request_stop`."""
         period = 1.0 / self.rate_hz
@@ -489,12 +505,13 @@ class HardwareSim:
         next_status = t0
         next_control = t0
         next_report, reported = t0 + OVERRUN_REPORT_S, 0
+        batch = 1  # steps per wake-up: REST_BATCH while the arm rests (planned, not late)
         try:
             while not self._stop.is_set():
                 now = time.monotonic()
                 due = int((now - t0) / period) - k
                 if due > 0:
-                    lag = (now - (t0 + (k + 1) * period)) * 1e3
+                    lag = (now - (t0 + (k + batch) * period)) * 1e3
                     if lag > c.max_lag_ms:
                         c.max_lag_ms = lag
                     if due > MAX_BURST:
@@ -502,10 +519,11 @@ class HardwareSim:
                         c.overruns += 1
                         t0 += (due - 1) * period  # forget the backlog: simulated time lags wall time
                         due = 1
-                    elif due > 1:
+                    elif due > batch:
                         c.overruns += 1
                     self.plant.step(due)
                     k += due
+                    batch = REST_BATCH if self._resting() else 1
                 if self.die_after_s is not None and now - self._start >= self.die_after_s:
                     _LOG.warning("--die-after %.3f s reached: crashing on purpose", self.die_after_s)
                     os.kill(os.getpid(), signal.SIGKILL)
@@ -530,7 +548,7 @@ class HardwareSim:
                             c.overruns - reported, OVERRUN_REPORT_S, c.max_lag_ms, c.resyncs,
                         )  # fmt: skip
                         reported = c.overruns
-                delay = t0 + (k + 1) * period - time.monotonic()
+                delay = t0 + (k + batch) * period - time.monotonic()
                 if delay > 0:
                     time.sleep(delay)
                     last_sleep = time.monotonic()
