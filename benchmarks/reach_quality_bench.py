@@ -28,15 +28,15 @@ Methods, interleaved per move, every one from the configuration the controller s
 
 Per move (scored from the commanded joints: FK, capsules): reached (tool within the controller's
 tolerances within 10 s), re-planned (the controller went through REPLANNING, i.e. a joint-space move;
-its first reason is kept), path ratio (tool path length / straight distance), speed peaks (maxima of
-the hand speed that rise and fall by at least max(10 % of the move's peak speed, 5 mm/s): a hysteresis
-that ignores ripple), minimum-jerk deviation (RMS difference between the hand speed and the
-minimum-jerk speed profile of the same path length and duration, Flash & Hogan 1985, over the time the
-speed is above 2 % of its peak, divided by the peak speed), time to reach, limit violations (position,
+its first reason is kept), path ratio (tool path length / straight distance), speed peaks (maxima of the
+hand speed that rise and fall by at least max(10 % of the move's peak speed, 5 mm/s): a hysteresis that
+ignores ripple), minimum-jerk deviation (RMS difference between the hand speed and the minimum-jerk
+speed profile of the same path length and duration, Flash & Hogan 1985, both over the time their speed
+is above 2 % of its peak, divided by the peak speed), time to reach, limit violations (position,
 velocity or acceleration over a limit), collisions (capsules against the scene, and self-collision), and
-whether the route oracle (benchmarks/route_oracle.py) finds a straight route: the line and slerp
-sampled 40 times, the swivel 180 times, every in-limit solution on the start's flip pattern, links of at
-most 0.35 rad; "margin" also keeps 3 deg from the shoulder, elbow and wrist singularities. A move goes
+whether the route oracle (benchmarks/route_oracle.py) finds a straight route: the line and slerp sampled
+40 times, the swivel 180 times, every in-limit solution on the start's flip pattern, links of at most
+0.35 rad; "margin" also keeps 3 deg from the shoulder, elbow and wrist singularities. A move goes
 *straight* when it is reached with a path ratio of at most 1.05 and no joint-space move.
 
     .venv/bin/python benchmarks/reach_quality_bench.py            # writes results/reach_quality_bench.md
@@ -324,17 +324,22 @@ def speed_peaks(v: np.ndarray) -> int:
 
 
 def min_jerk_deviation(v: np.ndarray) -> float:
-    """RMS of (v - minimum-jerk speed of the same path length and duration) / peak speed, over the
-    time the speed is above ONSET of its peak."""
+    """RMS of (v - the minimum-jerk speed profile of the same path length and duration) / peak speed.
+
+    The movement is where the speed is above ONSET of its peak; the minimum-jerk profile is compared
+    over its own part above ONSET of its peak (its first and last 3.7 % of the time for 2 %), so that a
+    movement with a minimum-jerk profile scores 0."""
     if len(v) < 3 or float(np.max(v)) <= 0.0:
         return math.nan
     vp = float(np.max(v))
     idx = np.flatnonzero(v >= ONSET * vp)
     w = v[idx[0]:idx[-1] + 1]
     n = len(w)
-    dur = n * DT
-    length = float(np.sum(w)) * DT
-    tau = (np.arange(n) + 0.5) / n
+    tau0 = 0.5 - math.sqrt(0.25 - math.sqrt(ONSET / 16.0))  # v_mj / v_peak = 16 tau^2 (1 - tau)^2
+    dur = n * DT / (1.0 - 2.0 * tau0)
+    share = float(_min_jerk(np.array([1.0 - tau0]))[0] - _min_jerk(np.array([tau0]))[0])
+    length = float(np.sum(w)) * DT / share
+    tau = tau0 + (np.arange(n) + 0.5) / n * (1.0 - 2.0 * tau0)
     v_mj = length / dur * 30.0 * tau**2 * (1.0 - tau) ** 2
     return float(np.sqrt(np.mean((w - v_mj) ** 2))) / vp
 
