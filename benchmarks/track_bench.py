@@ -469,9 +469,9 @@ class LapPath:
 
 
 def lap_circle(name: str, center: Any, v: float, R: np.ndarray, laps: int = LAPS,
-               r: float = LAP_R) -> LapPath:
+               r: float = LAP_R, scene: Scene | None = None) -> LapPath:
     """A circle of radius ``r`` about ``center`` (horizontal), tool orientation ``R`` fixed, ``laps``
-    turns at ``v`` m/s with the smooth 0.5 s ramps of every path."""
+    turns at ``v`` m/s with the smooth 0.5 s ramps of every path; ``scene`` default: the table at 0."""
     c = np.asarray(center, float)
     lap_len = 2.0 * math.pi * r
     s_of, total = bench_common.ramp_arc(laps * lap_len, v)
@@ -483,7 +483,8 @@ def lap_circle(name: str, center: Any, v: float, R: np.ndarray, laps: int = LAPS
         T[:3, 3] = c + r * np.array([math.cos(a), math.sin(a), 0.0])
         return T
 
-    return LapPath(PathDef(name, pose, total), lambda t: s_of(t) / lap_len, v, laps)
+    path = PathDef(name, pose, total) if scene is None else PathDef(name, pose, total, scene)
+    return LapPath(path, lambda t: s_of(t) / lap_len, v, laps)
 
 
 def shoulder_center(arm, R: np.ndarray = R_DOWN, r: float = LAP_R) -> tuple[np.ndarray, float]:
@@ -605,10 +606,11 @@ def lap_cases(quick: bool, notes: list[str]) -> list[tuple[str, LapPath, list[fl
         notes.append(f"powercube6 circles: centre (0.50, 0.00, 0.45) m, and ({c6[0]:.2f}, {c6[1]:.2f}, "
                      f"{c6[2]:.2f}) m where |q5| comes down to {q5:.4f} rad.")
         for v, rate in ((0.157, 50.0), (0.314, 100.0)):
-            cases.append(("powercube6", lap_circle(f"pc6-circle-{v:.3f}", (0.5, 0.0, 0.45), v, R_UP6), [rate],
-                          Q_HINT6))
-            cases.append(("powercube6", lap_circle(f"pc6-wrist-circle-{v:.3f}", c6, v, R_UP6), [rate],
-                          Q_HINT6))
+            # (on a pedestal: no table, its shoulder turns the upper arm below the base plane)
+            cases.append(("powercube6", lap_circle(f"pc6-circle-{v:.3f}", (0.5, 0.0, 0.45), v, R_UP6,
+                                                   scene=Scene()), [rate], Q_HINT6))
+            cases.append(("powercube6", lap_circle(f"pc6-wrist-circle-{v:.3f}", c6, v, R_UP6, scene=Scene()),
+                          [rate], Q_HINT6))
     return cases
 
 
@@ -645,7 +647,7 @@ def lap_section(args: argparse.Namespace) -> list[str]:
         f"A horizontal circle (r {LAP_R} m, tool orientation fixed) streamed as `/goal_pose` feeds it "
         f"(clean stream), {LAPS} laps with the smooth start and stop ramps. PA10: the circle is placed where "
         "the elbow, at the swivel the controller settles in at the start, passes nearest the vertical above "
-        "the shoulder (q2 near 0). powercube6 (no swivel; the approach axis kept vertical): a circle in "
+        "the shoulder (q2 near 0). powercube6 (no swivel, no table; the approach axis vertical): a circle in "
         "front and one placed where the wrist comes nearest its singularity (q5 near 0). Per lap: p95 and "
         f"largest position error, stall time (hand below {STALL_SHARE:.0%} of the cruise speed while the "
         f"target moves above {MOVING_SHARE:.0%} of it), the least |q2| (powercube6: |q5|), and the largest "
