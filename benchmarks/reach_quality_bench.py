@@ -499,8 +499,10 @@ def _git() -> str:
             return ""
 
     head = run("rev-parse", "--short=10", "HEAD") or "unknown"
+    code = run("log", "-1", "--format=%h", "--abbrev=10", "--", "redarm_ros")
     dirty = run("status", "--porcelain", "--", "redarm_ros")
-    return head + (" (with uncommitted changes in redarm_ros/)" if dirty else "")
+    return (head + (f" (redarm_ros/ last changed at {code})" if code and code != head else "")
+            + (" with uncommitted changes in redarm_ros/" if dirty else ""))
 
 
 def report(runs: dict[tuple[str, str], CaseRun], params_note: str) -> list[str]:
