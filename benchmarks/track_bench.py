@@ -615,8 +615,8 @@ def lap_cases(quick: bool, notes: list[str]) -> list[tuple[str, LapPath, list[fl
 
 
 def wrist_center6(arm, r: float = LAP_R) -> tuple[np.ndarray, float]:
-    """powercube6: the centre of a horizontal circle (approach axis vertical) that passes nearest its
-    wrist singularity (|q5| smallest), every point solvable; and that least |q5|."""
+    """powercube6: the centre of a horizontal circle (approach axis vertical) on which |q5| (the
+    wrist pitch) comes nearest 0, every point solvable; and that least |q5|."""
     best: tuple[float, np.ndarray] | None = None
     for x in np.arange(0.2, 0.651, 0.05):
         for z in np.arange(0.2, 0.751, 0.05):
@@ -648,7 +648,7 @@ def lap_section(args: argparse.Namespace) -> list[str]:
         f"(clean stream), {LAPS} laps with the smooth start and stop ramps. PA10: the circle is placed where "
         "the elbow, at the swivel the controller settles in at the start, passes nearest the vertical above "
         "the shoulder (q2 near 0). powercube6 (no swivel, no table; the approach axis vertical): a circle in "
-        "front and one placed where the wrist comes nearest its singularity (q5 near 0). Per lap: p95 and "
+        "front and one placed, by a search, where |q5| comes nearest 0 on the circle. Per lap: p95 and "
         f"largest position error, stall time (hand below {STALL_SHARE:.0%} of the cruise speed while the "
         f"target moves above {MOVING_SHARE:.0%} of it), the least |q2| (powercube6: |q5|), and the largest "
         f"joint difference to the previous lap at the same path point ({LAP_PHASES} points per lap).",
