@@ -594,7 +594,7 @@ def main(argv: list[str] | None = None) -> int:
     header = bench_common.doc_header("# Reach-quality benchmark (`benchmarks/reach_quality_bench.py`)",
                                      __doc__)
     title = (f"## In-process: {', '.join(arms)}; {', '.join(cases)}; {args.moves} moves per arm and case, "
-             f"seeds from {args.seed}")
+             f"seeds from {args.seed}" + (f"; parameters {args.params}" if args.params else ""))
     if args.quick:
         title += " -- quick"
     body = ["", *report(runs, params_note), "", bench_common.load_line(load0, t0), ""]
