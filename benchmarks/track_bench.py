@@ -239,12 +239,12 @@ class DLSServo:
         self.amax = np.asarray(arm.max_acc, float)
         self.lower = np.asarray(arm.lower, float)
         self.upper = np.asarray(arm.upper, float)
-        self.q = np.zeros(7)
-        self.qd = np.zeros(7)
+        self.q = np.zeros(arm.n)
+        self.qd = np.zeros(arm.n)
 
     def reset(self, q: np.ndarray) -> None:
         self.q = q.copy()
-        self.qd = np.zeros(7)
+        self.qd = np.zeros(self.arm.n)
 
     def message(self, T: np.ndarray, stamp: float, now: float) -> None:
         p = (float(T[0, 3]), float(T[1, 3]), float(T[2, 3]))
@@ -290,12 +290,13 @@ class Run:
     step_s: list[float]
     phases: set[str]
     messages: set[str]
+    step_messages: list[str] = field(default_factory=list)  # the controller's message at each step
 
 
-def settle_start(arm, path: PathDef) -> np.ndarray:
+def settle_start(arm, path: PathDef, hint: np.ndarray = Q_HINT) -> np.ndarray:
     """The posture our controller settles in at the path start (used by every method)."""
     ctl = ReachController(arm, path.scene)
-    q0, _ = arm.ik_nearest(path.pose(0.0), Q_HINT)
+    q0, _ = arm.ik_nearest(path.pose(0.0), hint)
     ctl.reset(q0, now=0.0)
     ctl.set_goal(path.pose(0.0))
     for k in range(int(SETTLE_S / DT)):
@@ -313,6 +314,7 @@ def run_method(method: str, arm, path: PathDef, msgs: list[Message], q0: np.ndar
     steps: list[float] = []
     phases: set[str] = set()
     notes: set[str] = set()
+    step_msgs: list[str] = []
     deliver: Callable[[np.ndarray, float, float], None]
     step: Callable[[float], Any]
     record: Callable[[Any], None]
@@ -331,6 +333,7 @@ def run_method(method: str, arm, path: PathDef, msgs: list[Message], q0: np.ndar
         def record(r: Any) -> None:
             rows.append(r.q)
             phases.add(r.phase.value)
+            step_msgs.append(r.message)
             if r.message:
                 notes.add(r.message.split(":")[0])
 
@@ -347,7 +350,7 @@ def run_method(method: str, arm, path: PathDef, msgs: list[Message], q0: np.ndar
         steps.append(time.perf_counter() - t0)
         record(r)
         times.append(t)
-    return Run(np.array(rows), np.array(times), steps, phases, notes)
+    return Run(np.array(rows), np.array(times), steps, phases, notes, step_msgs)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -441,6 +444,248 @@ def elbow_obstacle_path(arm) -> PathDef:
 
 
 # ------------------------------------------------------------------------------------------------
+# Closed paths followed lap after lap: over the shoulder, and the 6-DOF arm
+# ------------------------------------------------------------------------------------------------
+LAPS = 3
+LAP_R = 0.1  # m, circle radius
+STALL_SHARE = 0.1  # the hand "stands" below this share of the cruise speed ...
+MOVING_SHARE = 0.5  # ... while the target moves above this share of it
+LAP_PHASES = 200  # path points per lap at which consecutive laps' joints are compared
+R_UP6 = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])  # powercube6: approach axis up
+Q_HINT6 = np.array([0.0, 0.3, 0.0, 1.0, 0.27, 0.0])
+LAP_TARGETS = ("p95 <= 5 mm on every lap at 0.157 m/s (50 Hz); no stall at 0.314 m/s (100 Hz); joints at "
+               "the same path point within 0.02 rad of the previous lap's after the first lap")
+
+
+@dataclass
+class LapPath:
+    """A horizontal circle followed ``laps`` times: the path, the lap coordinate of a path time (lap
+    index + share of the lap) and the cruise speed (m/s)."""
+
+    path: PathDef
+    lap_of: Callable[[float], float]
+    cruise: float
+    laps: int
+
+
+def lap_circle(name: str, center: Any, v: float, R: np.ndarray, laps: int = LAPS,
+               r: float = LAP_R, scene: Scene | None = None) -> LapPath:
+    """A circle of radius ``r`` about ``center`` (horizontal), tool orientation ``R`` fixed, ``laps``
+    turns at ``v`` m/s with the smooth 0.5 s ramps of every path; ``scene`` default: the table at 0."""
+    c = np.asarray(center, float)
+    lap_len = 2.0 * math.pi * r
+    s_of, total = bench_common.ramp_arc(laps * lap_len, v)
+
+    def pose(t: float) -> np.ndarray:
+        a = s_of(t) / r
+        T = np.eye(4)
+        T[:3, :3] = R
+        T[:3, 3] = c + r * np.array([math.cos(a), math.sin(a), 0.0])
+        return T
+
+    path = PathDef(name, pose, total) if scene is None else PathDef(name, pose, total, scene)
+    return LapPath(path, lambda t: s_of(t) / lap_len, v, laps)
+
+
+def shoulder_center(arm, R: np.ndarray = R_DOWN, r: float = LAP_R) -> tuple[np.ndarray, float]:
+    """The centre of a horizontal circle (tool orientation ``R``) on which the elbow, at the swivel of
+    the circle's start posture held all the way, passes nearest the vertical above the shoulder (|q2|
+    smallest), while the start itself is clear of it (|q2| >= 0.25 rad) and the wrist stays clear of
+    its singularity (|q6| >= 0.3 rad) and every point is solvable at that swivel; and that least |q2|."""
+    def at(c: np.ndarray, k: int) -> np.ndarray:
+        T = np.eye(4)
+        T[:3, :3] = R
+        a = 2.0 * math.pi * k / 72
+        T[:3, 3] = c + r * np.array([math.cos(a), math.sin(a), 0.0])
+        return T
+
+    best: tuple[float, np.ndarray] | None = None
+    for x in np.arange(0.15, 0.601, 0.05):
+        for z in np.arange(0.15, 0.701, 0.05):
+            c = np.array([x, 0.0, z])
+            q, _ = arm.ik_nearest(at(c, 0), Q_HINT)
+            if q is None or abs(float(q[1])) < 0.25:
+                continue
+            s = arm.swivel(q)
+            worst = math.inf
+            for k in range(72):
+                sols = arm.ik(at(c, k), s)
+                if len(sols) == 0:
+                    worst = -1.0
+                    break
+                q = sols[int(np.argmin(np.max(np.abs(sols - q), axis=1)))]
+                if abs(float(q[5])) < 0.3:
+                    worst = -1.0
+                    break
+                worst = min(worst, abs(float(q[1])))
+            if worst >= 0.0 and (best is None or worst < best[0]):
+                best = (worst, c)
+    assert best is not None, "no circle over the shoulder"
+    return best[1], best[0]
+
+
+@dataclass
+class LapScore:
+    p95: list[float]  # mm per lap
+    peak: list[float]  # mm per lap
+    stall: list[float]  # s per lap
+    min_q2: list[float]  # rad per lap (7-DOF: |q2|; 6-DOF: |q5|, the wrist)
+    joint_diff: list[float]  # rad, lap k against lap k - 1 (nan for the first)
+    stalls: list[str]  # where and why the hand stood
+
+
+def lap_scores(arm, lp: LapPath, run: Run) -> LapScore:
+    path = lp.path
+    live = run.t <= path.duration + 1e-9
+    t = run.t[live]
+    Q = run.q[live]
+    tool = arm.fk_batch(Q)[:, :3, 3]
+    ref = np.array([path.pose(x)[:3, 3] for x in t])
+    err = np.linalg.norm(tool - ref, axis=1) * 1e3
+    lapc = np.array([lp.lap_of(x) for x in t])
+    lap = np.minimum(np.floor(lapc).astype(int), lp.laps - 1)
+    v_hand = np.r_[0.0, np.linalg.norm(np.diff(tool, axis=0), axis=1) / DT]
+    v_ref = np.r_[0.0, np.linalg.norm(np.diff(ref, axis=0), axis=1) / DT]
+    stalled = (v_hand < STALL_SHARE * lp.cruise) & (v_ref > MOVING_SHARE * lp.cruise)
+    sing = 1 if arm.n == 7 else 4  # q2 (shoulder) for 7-DOF, q5 (wrist) for the 6-DOF arm
+    out = LapScore([], [], [], [], [], [])
+    for k in range(lp.laps):
+        m = lap == k
+        out.p95.append(float(np.percentile(err[m], 95)))
+        out.peak.append(float(np.max(err[m])))
+        out.stall.append(float(np.sum(stalled[m])) * DT)
+        out.min_q2.append(float(np.min(np.abs(Q[m, sing]))))
+        if k == 0:
+            out.joint_diff.append(math.nan)
+            continue
+        ph = np.arange(LAP_PHASES) / LAP_PHASES
+        a = np.stack([np.interp(k - 1 + ph, lapc, Q[:, j]) for j in range(arm.n)], 1)
+        b = np.stack([np.interp(k + ph, lapc, Q[:, j]) for j in range(arm.n)], 1)
+        out.joint_diff.append(float(np.max(np.abs(b - a))))
+    # Each stall (a run of stalled steps of 0.05 s or more): where on the path, the joints, and the
+    # controller's message at its start.
+    i = 0
+    msgs = run.step_messages
+    while i < len(stalled):
+        if not stalled[i]:
+            i += 1
+            continue
+        j = i
+        while j < len(stalled) and stalled[j]:
+            j += 1
+        if (j - i) * DT >= 0.05:
+            q = Q[i]
+            lo, up = np.asarray(arm.lower), np.asarray(arm.upper)
+            margin = np.minimum(q - lo, up - q)
+            near = int(np.argmin(margin))
+            why = msgs[i - 1] if 0 < i <= len(msgs) and msgs[i - 1] else "(no message)"
+            out.stalls.append(
+                f"lap {lap[i] + 1}, {360.0 * (lapc[i] % 1.0):.0f} deg round, {(j - i) * DT:.2f} s, error up "
+                f"to {np.max(err[i:j]):.0f} mm; q = {np.array2string(q, precision=2, separator=', ')}, "
+                + (f"|q2| {abs(q[1]):.3f}, |q4| {abs(q[3]):.3f}, |q6| {abs(q[5]):.3f}, " if arm.n == 7 else
+                   f"|q2| {abs(q[1]):.3f}, |q4| {abs(q[3]):.3f}, |q5| {abs(q[4]):.3f}, ")
+                + f"joint {near + 1} "
+                f"{margin[near]:.3f} rad from its limit; controller: {why[:140]}"
+            )
+        i = j
+    return out
+
+
+def lap_cases(quick: bool, notes: list[str]) -> list[tuple[str, LapPath, list[float], np.ndarray]]:
+    """(arm, lap path, rates Hz, start hint) of the lap-by-lap section; where the circles are goes to
+    ``notes``."""
+    pa10 = load_arm("pa10")
+    c, q2 = shoulder_center(pa10)
+    notes.append(f"PA10 circle centre ({c[0]:.2f}, {c[1]:.2f}, {c[2]:.2f}) m, tool pointing down; |q2| down "
+                 f"to {q2:.4f} rad at the start's swivel held.")
+    cases = [("pa10", lap_circle("shoulder-circle-0.157", c, 0.157, R_DOWN), [50.0], Q_HINT)]
+    if not quick:
+        cases.append(("pa10", lap_circle("shoulder-circle-0.314", c, 0.314, R_DOWN), [100.0], Q_HINT))
+        pc6 = load_arm("powercube6")
+        c6, q5 = wrist_center6(pc6)
+        notes.append(f"powercube6 circles: centre (0.50, 0.00, 0.45) m, and ({c6[0]:.2f}, {c6[1]:.2f}, "
+                     f"{c6[2]:.2f}) m where |q5| comes down to {q5:.4f} rad.")
+        for v, rate in ((0.157, 50.0), (0.314, 100.0)):
+            # (on a pedestal: no table, its shoulder turns the upper arm below the base plane)
+            cases.append(("powercube6", lap_circle(f"pc6-circle-{v:.3f}", (0.5, 0.0, 0.45), v, R_UP6,
+                                                   scene=Scene()), [rate], Q_HINT6))
+            cases.append(("powercube6", lap_circle(f"pc6-wrist-circle-{v:.3f}", c6, v, R_UP6, scene=Scene()),
+                          [rate], Q_HINT6))
+    return cases
+
+
+def wrist_center6(arm, r: float = LAP_R) -> tuple[np.ndarray, float]:
+    """powercube6: the centre of a horizontal circle (approach axis vertical) on which |q5| (the
+    wrist pitch) comes nearest 0, every point solvable; and that least |q5|."""
+    best: tuple[float, np.ndarray] | None = None
+    for x in np.arange(0.2, 0.651, 0.05):
+        for z in np.arange(0.2, 0.751, 0.05):
+            c = np.array([x, 0.0, z])
+            q = Q_HINT6
+            worst = math.inf
+            for k in range(72):
+                T = np.eye(4)
+                T[:3, :3] = R_UP6
+                a = 2.0 * math.pi * k / 72
+                T[:3, 3] = c + r * np.array([math.cos(a), math.sin(a), 0.0])
+                qn, _ = arm.ik_nearest(T, q)
+                if qn is None:
+                    worst = -1.0
+                    break
+                q = qn
+                worst = min(worst, abs(float(q[4])))
+            if worst >= 0.0 and (best is None or worst < best[0]):
+                best = (worst, c)
+    assert best is not None, "no powercube6 circle"
+    return best[1], best[0]
+
+
+def lap_section(args: argparse.Namespace) -> list[str]:
+    """Circles followed lap after lap: over the PA10's shoulder (slow and fast) and the powercube6's."""
+    lines = [
+        "",
+        f"A horizontal circle (r {LAP_R} m, tool orientation fixed) streamed as `/goal_pose` feeds it "
+        f"(clean stream), {LAPS} laps with the smooth start and stop ramps. PA10: the circle is placed where "
+        "the elbow, at the swivel the controller settles in at the start, passes nearest the vertical above "
+        "the shoulder (q2 near 0). powercube6 (no swivel, no table; the approach axis vertical): a circle in "
+        "front and one placed, by a search, where |q5| comes nearest 0 on the circle. Per lap: p95 and "
+        f"largest position error, stall time (hand below {STALL_SHARE:.0%} of the cruise speed while the "
+        f"target moves above {MOVING_SHARE:.0%} of it), the least |q2| (powercube6: |q5|), and the largest "
+        f"joint difference to the previous lap at the same path point ({LAP_PHASES} points per lap).",
+        "",
+        "| arm | path | Hz | method | lap | p95 mm | max mm | stall s | least abs(q2) (pc6: q5) rad | "
+        "joint difference to the previous lap rad |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    stall_notes: list[str] = []
+    where: list[str] = []
+    for arm_name, lp, rates, hint in lap_cases(args.quick, where):
+        arm = load_arm(arm_name)
+        q0 = settle_start(arm, lp.path, hint)
+        for rate in rates:
+            msgs = make_stream(lp.path.duration, rate, "clean", seed=int(rate))
+            for method in ("servo", "dls"):
+                run = run_method(method, arm, lp.path, msgs, q0)
+                sc = lap_scores(arm, lp, run)
+                for k in range(lp.laps):
+                    jd = "-" if k == 0 else f"{sc.joint_diff[k]:.3f}"
+                    lines.append(
+                        f"| {arm_name} | {lp.path.name} | {rate:g} | {method} | {k + 1} | {sc.p95[k]:.1f} | "
+                        f"{sc.peak[k]:.1f} | {sc.stall[k]:.2f} | {sc.min_q2[k]:.3f} | {jd} |"
+                    )
+                if method == "servo" and sc.stalls:
+                    stall_notes.append(f"- {arm_name} {lp.path.name} {rate:g} Hz, {len(sc.stalls)} stall(s): "
+                                       + " / ".join(sc.stalls[:3]))
+                if args.verbose:
+                    print(*lines[-lp.laps:], sep="\n", flush=True)
+    lines += ["", " ".join(where), "", f"Targets (issue 32, PA10 over the shoulder): {LAP_TARGETS}.", ""]
+    if stall_notes:
+        lines += ["Where the controller's hand stood while the target moved (first three per run):", "",
+                  *stall_notes, ""]
+    return lines
+
+
+# ------------------------------------------------------------------------------------------------
 # Report
 # ------------------------------------------------------------------------------------------------
 def _row(name: str, rate: float, variant: str, method: str, s: Score) -> str:
@@ -520,6 +765,8 @@ def main(argv: list[str] | None = None) -> int:
         help="stack runs with the commands of before (unstamped, no lead) and the defaults, alternating",
     )
     ap.add_argument("--stack-repeats", type=int, default=1, help="stack runs per command timing (default 1)")
+    ap.add_argument("--laps-only", action="store_true",
+                    help="only the closed paths followed lap after lap (over the shoulder, powercube6)")
     ap.add_argument("--verbose", action="store_true")
     bench_common.add_plot_dir(ap)
     args = ap.parse_args(argv)
@@ -529,7 +776,13 @@ def main(argv: list[str] | None = None) -> int:
         load0, t0 = os.getloadavg(), time.time()
         title, body = chain_section()
         sections[title] = [*body, bench_common.load_line(load0, t0), ""]
-    elif not args.stack_only:
+    if not args.stack_only and not args.chain:
+        load0, t0 = os.getloadavg(), time.time()
+        title = "## In-process, lap by lap: circles over the shoulder and on the 6-DOF arm"
+        if args.quick:
+            title += " -- quick"
+        sections[title] = [*lap_section(args), bench_common.load_line(load0, t0), ""]
+    if not args.stack_only and not args.chain and not args.laps_only:
         load0, t0 = os.getloadavg(), time.time()
         traces: dict[tuple[str, str], tuple[np.ndarray, np.ndarray]] = {}
         lines, steps = in_process(args, traces)
