@@ -11,12 +11,12 @@ from unittest import mock
 
 import can
 import pytest
-from support.can_buses import OpenBusTracker
 
 from redarm_ros.can import bus as busmod
 from redarm_ros.can.bus import ReconnectingBus, open_bus, resolve_config, safe_shutdown
 from redarm_ros.can.bus_server import LoopbackBusServer
 from redarm_ros.errors import BusError, InvalidInputError
+from redarm_ros.testing.leaks import OpenBusTracker
 
 CAN_ENV = ("CAN_INTERFACE", "CAN_CHANNEL", "CAN_BITRATE", "CAN_CONFIG")
 
