@@ -4,9 +4,11 @@ it, the waits' messages, and the plugin's import cost."""
 
 from __future__ import annotations
 
+import socket
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,7 +17,7 @@ from support.pc_host import Host
 from redarm_ros.can import protocol as pc
 from redarm_ros.can.protocol import ActState, Param
 from redarm_ros.kinematics import load_arm
-from redarm_ros.testing import SimControlError, SimulatedArm, WaitTimeoutError, wait_until
+from redarm_ros.testing import SimArmConfig, SimControlError, SimulatedArm, WaitTimeoutError, wait_until
 
 pytestmark = [pytest.mark.hil, pytest.mark.usefixtures("no_open_buses")]
 
@@ -149,3 +151,30 @@ def test_plugin_and_api_import_no_ros_or_pybullet() -> None:
             "set(sys.modules); assert not heavy, heavy; import redarm_ros.testing; "
             "heavy = {'rclpy', 'pybullet'} & set(sys.modules); assert not heavy, heavy")
     subprocess.run([sys.executable, "-c", code], check=True, timeout=60)
+
+
+def test_a_bus_of_your_own_replaces_the_bus_server() -> None:
+    cfg = SimArmConfig(bus={"interface": "socketcan", "channel": "vcan0"}, driver=True,
+                       driver_params={"max_missed_replies": 3}).stack_config()
+    assert (cfg.can_interface, cfg.can_channel, cfg.sim_control) == ("socketcan", "vcan0", True)
+    assert cfg.extra_args["can_driver"] == ["-p", "max_missed_replies:=3"]
+    with pytest.raises(ValueError, match="interface and channel only"):
+        SimArmConfig(bus={"interface": "socketcan", "bitrate": 500000}).stack_config()
+
+
+def test_socketcan_vcan_where_the_kernel_has_it(redarm_arm_factory) -> None:
+    try:
+        socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW).close()
+    except (OSError, AttributeError) as exc:
+        pytest.skip(f"no SocketCAN in this kernel: {exc}")
+    if not Path("/sys/class/net/vcan0").exists():
+        pytest.skip("no vcan0 (sudo ip link add vcan0 type vcan && sudo ip link set vcan0 up)")
+    arm = redarm_arm_factory(bus={"interface": "socketcan", "channel": "vcan0"})
+    assert "canbus" not in arm.children
+    h = Host(arm.can_kwargs)
+    try:
+        assert h.ask(pc.get_param(1, Param.DEF_VERSION)) is not None
+    finally:
+        h.close()
+    with pytest.raises(RuntimeError, match="no bus server"):
+        arm.restart_bus_server()
