@@ -37,7 +37,9 @@ class SimArmConfig:
     (``"zero"``/``"park"``) is the posture the arm powers on in. ``driver_params``: ROS parameters of
     ``can_driver`` on top of the bring-up's (``{"max_missed_replies": 8}``); the driver homes the arm
     by itself unless ``driver_params`` sets ``auto_init`` false. ``wait_initialised``: with the driver,
-    the arm is returned once the driver reports its modules initialised.
+    the arm is returned once the driver reports its modules initialised. ``sim_args``: more
+    ``redarm-sim`` arguments; ``node_args``: more arguments per ROS node, after its own
+    (``{"controller": ["-p", "max_speed:=0.15"]}``).
     """
 
     arm: str = "pa10"
@@ -55,6 +57,7 @@ class SimArmConfig:
     log_level: str = "warn"
     ready_timeout_s: float = 60.0
     sim_args: Sequence[str] = ()
+    node_args: Mapping[str, Sequence[str]] = field(default_factory=dict)
 
     def stack_config(self) -> StackConfig:
         """The bring-up configuration for this arm."""
@@ -63,10 +66,10 @@ class SimArmConfig:
         channel = bus.pop("channel", None)
         if bus:
             raise ValueError(f"bus takes interface and channel only (python-can config), got {sorted(bus)}")
-        extra: dict[str, list[str]] = {"sim": ["--log-level", "WARNING", *self.sim_args]}
-        if self.driver_params:
-            extra["can_driver"] = [a for k, v in self.driver_params.items()
-                                   for a in ("-p", f"{k}:={_ros_value(v)}")]
+        extra: dict[str, list[str]] = {name: list(args) for name, args in self.node_args.items()}
+        extra["sim"] = ["--log-level", "WARNING", *self.sim_args]
+        extra["can_driver"] = extra.get("can_driver", []) + [
+            a for k, v in self.driver_params.items() for a in ("-p", f"{k}:={_ros_value(v)}")]
         return StackConfig(
             arm=self.arm, hardware="sim", driver=self.driver, ik_service=self.ik_service,
             controller=self.controller, description=self.description, scene=self.scene,
@@ -75,6 +78,16 @@ class SimArmConfig:
             can_channel=channel, log_level=self.log_level, ready_timeout_s=self.ready_timeout_s,
             sim_control=True, extra_args=extra,
         )
+
+
+def _still(seen: list[tuple[float, np.ndarray]], st: SimStatus, window_s: float, tol: float) -> bool:
+    """Add ``st`` to ``seen`` (kept to one sample at least ``window_s`` old); True if the joints
+    spanned less than ``tol`` rad over a full window."""
+    seen.append((st.uptime_s, st.q))
+    while len(seen) > 1 and seen[1][0] <= st.uptime_s - window_s:
+        seen.pop(0)
+    span = np.ptp(np.array([q for _, q in seen]), axis=0)
+    return st.uptime_s - seen[0][0] >= window_s and float(np.max(span)) < tol
 
 
 def _ros_value(v: Any) -> str:
@@ -222,18 +235,21 @@ class SimulatedArm:
         return self.wait_for(lambda st: float(np.max(np.abs(st.q - target))) < tol, timeout,
                              what=f"arm at {np.round(target, 4).tolist()} (tol {tol:g} rad)")
 
+    def still(self, window_s: float = 0.3, tol: float = 1e-4) -> Callable[[], bool]:
+        """A polling condition: True once no joint has moved more than ``tol`` rad over the last
+        ``window_s`` s of the simulator's clock (for callers that poll while spinning something)."""
+        seen: list[tuple[float, np.ndarray]] = []
+
+        def still() -> bool:
+            return _still(seen, self.status(), window_s, tol)
+
+        return still
+
     def wait_still(self, window_s: float = 0.3, tol: float = 1e-4, timeout: float = 10.0) -> SimStatus:
         """Wait until no joint has moved more than ``tol`` rad over the last ``window_s`` s."""
         seen: list[tuple[float, np.ndarray]] = []
-
-        def still(st: SimStatus) -> bool:
-            seen.append((st.uptime_s, st.q))
-            while len(seen) > 1 and seen[1][0] <= st.uptime_s - window_s:
-                seen.pop(0)
-            span = np.ptp(np.array([q for _, q in seen]), axis=0)
-            return st.uptime_s - seen[0][0] >= window_s and float(np.max(span)) < tol
-
-        return self.wait_for(still, timeout, what=f"arm still for {window_s:g} s")
+        return self.wait_for(lambda st: _still(seen, st, window_s, tol), timeout,
+                             what=f"arm still for {window_s:g} s")
 
     def wait_modules(self, bits: ActState, ids: Sequence[int] | None = None, timeout: float = 5.0
                      ) -> SimStatus:
