@@ -157,7 +157,7 @@ def test_a_bus_of_your_own_replaces_the_bus_server() -> None:
     cfg = SimArmConfig(bus={"interface": "socketcan", "channel": "vcan0"}, driver=True,
                        driver_params={"max_missed_replies": 3}).stack_config()
     assert (cfg.can_interface, cfg.can_channel, cfg.sim_control) == ("socketcan", "vcan0", True)
-    assert cfg.extra_args["can_driver"] == ["-p", "max_missed_replies:=3"]
+    assert cfg.extra_args["can_driver"] == ["-p", "duplicate_check_s:=0.0", "-p", "max_missed_replies:=3"]
     with pytest.raises(ValueError, match="interface and channel only"):
         SimArmConfig(bus={"interface": "socketcan", "bitrate": 500000}).stack_config()
 
