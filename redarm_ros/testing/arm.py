@@ -14,7 +14,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields, replace
 from typing import IO, Any
 
 import numpy as np
@@ -109,11 +109,10 @@ class SimulatedArm:
 
     def __init__(self, config: SimArmConfig | None = None, *, domain_id: int | None = None,
                  sink: Callable[[str], None] | IO[str] | None = None, **overrides: Any) -> None:
-        cfg = config or SimArmConfig()
-        for k, v in overrides.items():
-            if not hasattr(cfg, k):
-                raise TypeError(f"SimulatedArm got an unknown setting {k!r}")
-            setattr(cfg, k, v)
+        unknown = set(overrides) - {f.name for f in fields(SimArmConfig)}
+        if unknown:
+            raise TypeError(f"SimulatedArm got unknown settings {sorted(unknown)}")
+        cfg = replace(config or SimArmConfig(), **overrides)
         self.config = cfg
         self.stack = Stack(cfg.stack_config(), sink=sink, domain_id=domain_id)
         self._sim_control: SimControl | None = None
