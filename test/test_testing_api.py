@@ -178,3 +178,16 @@ def test_socketcan_vcan_where_the_kernel_has_it(redarm_arm_factory) -> None:
         h.close()
     with pytest.raises(RuntimeError, match="no bus server"):
         arm.restart_bus_server()
+
+
+@pytest.mark.redarm_arm(driver=True)
+def test_ros_context_calls_the_driver_and_the_arm_shows_it(redarm_arm: SimulatedArm, redarm_ros) -> None:
+    from std_srvs.srv import Trigger
+
+    halt = redarm_ros.node.create_client(Trigger, "/can_driver/halt")
+    answer = redarm_ros.call(halt, Trigger.Request(), timeout=30.0)
+    assert answer.success, answer.message
+    redarm_arm.wait_modules(ActState.HALTED, timeout=5.0)
+    missing = redarm_ros.node.create_client(Trigger, "/no_such/service")
+    with pytest.raises(WaitTimeoutError, match="service /no_such/service available"):
+        redarm_ros.call(missing, Trigger.Request(), timeout=0.3)
