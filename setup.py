@@ -125,5 +125,7 @@ setup(
             "redarm-view = redarm_ros.nodes.view:main",
             "redarm-record = redarm_ros.nodes.record:main",
         ],
+        # the testing fixtures (docs/testing.md); loaded by pytest, inert until a test uses one
+        "pytest11": ["redarm = redarm_ros.testing.pytest_plugin"],
     },
 )

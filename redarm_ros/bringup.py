@@ -86,7 +86,11 @@ class StackConfig:
     """What to start and how. Units: Hz, s, rad.
 
     ``hardware``: ``sim`` (bus server + simulator + driver), ``real`` (driver on ``can_interface`` /
-    ``can_channel``), ``none`` (no driver). ``scene`` is a scene name or YAML path shared by the
+    ``can_channel``), ``none`` (no driver). With ``sim`` and a ``can_interface`` given (e.g.
+    ``socketcan`` on ``vcan0``), the simulator and the driver share that bus and no bus server is
+    started. ``driver`` False leaves the driver out (the simulator alone answers on the bus).
+    ``sim_control``: the simulator serves its control channel (``--control-port 0``,
+    :mod:`redarm_ros.sim.control_channel`). ``scene`` is a scene name or YAML path shared by the
     simulator (objects drawn and collidable) and the controller (obstacles to avoid).
     """
 
@@ -95,6 +99,7 @@ class StackConfig:
     base_link: str | None = None
     tip_link: str | None = None
     hardware: str = "sim"
+    driver: bool = True
     ik_service: bool = True
     controller: bool = True
     description: bool = True
@@ -111,6 +116,7 @@ class StackConfig:
     can_channel: str | None = None
     log_level: str = "info"
     ready_timeout_s: float = 60.0
+    sim_control: bool = False  # the simulator serves its control channel on 127.0.0.1
     auto_init: bool = False  # real hardware: let can_driver reset + home by itself (the sim always does)
     view: bool = False  # also start the browser view (redarm-view) on 127.0.0.1:view_port
     view_port: int = 8080
@@ -209,33 +215,10 @@ class Stack:
             raise ValueError("--urdf needs --base-link and --tip-link (the chain's ends)")
         try:
             if cfg.hardware == "sim":
-                bus = self._start(
-                    "canbus",
-                    python_module_cmd("redarm_ros.can.bus_server", "--host", "127.0.0.1", "--port", "0"),
-                    READY["canbus"],
-                )
-                port = int(bus.ready_match.group(1))  # type: ignore[attr-defined]
-                self.can_interface, self.can_channel = "remote", f"ws://127.0.0.1:{port}/"
-                sim_cmd = python_module_cmd(
-                    "redarm_ros.sim.hardware", "--arm", cfg.arm,
-                    "--can-interface", self.can_interface, "--can-channel", self.can_channel,
-                    "--status-file", str(self.status_file), "--control-file", str(self.control_file),
-                )
-                if cfg.urdf:
-                    sim_cmd += ["--urdf", cfg.urdf, "--base-link", cfg.base_link or "",
-                                "--tip-link", cfg.tip_link or ""]
-                if cfg.gui:
-                    sim_cmd.append("--gui")
-                if cfg.scene:
-                    sim_cmd += ["--scene", cfg.scene]
-                if cfg.snapshot_dir:
-                    sim_cmd += ["--snapshot-dir", str(cfg.snapshot_dir)]
-                if cfg.initial_q:
-                    sim_cmd += ["--initial-q", *(f"{v:.9g}" for v in cfg.initial_q)]
-                if cfg.start:
-                    sim_cmd += ["--start", cfg.start]
-                self._start("sim", sim_cmd, READY["sim"])
-            if cfg.hardware in ("sim", "real"):
+                if not cfg.can_interface:
+                    self.start_canbus()
+                self.start_sim()
+            if cfg.hardware == "real" or (cfg.hardware == "sim" and cfg.driver):
                 if not self.can_interface:
                     raise ValueError("--hardware real needs --can-interface (and usually --can-channel)")
                 params = {
@@ -274,6 +257,49 @@ class Stack:
             self.stop()
             raise
         return self
+
+    def start_canbus(self, name: str = "canbus", port: int = 0) -> ManagedProcess:
+        """Start the loopback bus server (``port`` 0: ephemeral; a previous port: the same bus again)
+        and point the stack's CAN settings at it."""
+        bus = self._start(
+            name,
+            python_module_cmd("redarm_ros.can.bus_server", "--host", "127.0.0.1", "--port", str(int(port))),
+            READY["canbus"],
+        )
+        port = int(bus.ready_match.group(1))  # type: ignore[attr-defined]
+        self.can_interface, self.can_channel = "remote", f"ws://127.0.0.1:{port}/"
+        return bus
+
+    def start_sim(self, name: str = "sim", initial_q: Sequence[float] | None = None) -> ManagedProcess:
+        """Start the simulator on the stack's bus (``initial_q``: power on there instead of the
+        configured posture) and wait for its ready line."""
+        cfg = self.cfg
+        if not self.can_interface:
+            raise ValueError("the simulator needs a bus: start_canbus() first or give can_interface")
+        sim_cmd = python_module_cmd(
+            "redarm_ros.sim.hardware", "--arm", cfg.arm, "--can-interface", self.can_interface,
+            "--status-file", str(self.status_file), "--control-file", str(self.control_file),
+        )
+        if self.can_channel:
+            sim_cmd += ["--can-channel", self.can_channel]
+        if cfg.urdf:
+            sim_cmd += ["--urdf", cfg.urdf, "--base-link", cfg.base_link or "",
+                        "--tip-link", cfg.tip_link or ""]
+        if cfg.gui:
+            sim_cmd.append("--gui")
+        if cfg.scene:
+            sim_cmd += ["--scene", cfg.scene]
+        if cfg.snapshot_dir:
+            sim_cmd += ["--snapshot-dir", str(cfg.snapshot_dir)]
+        q0 = initial_q if initial_q is not None else cfg.initial_q
+        if q0 is not None and len(q0):
+            # One "=" argument: a leading negative value would otherwise read as an option.
+            sim_cmd.append("--initial-q=" + ",".join(f"{float(v):.9g}" for v in q0))
+        elif cfg.start:
+            sim_cmd += ["--start", cfg.start]
+        if cfg.sim_control:
+            sim_cmd += ["--control-port", "0"]
+        return self._start(name, sim_cmd, READY["sim"])
 
     # -- talk to the simulator ------------------------------------------------------------------
     def sim_status(self) -> dict[str, Any] | None:

@@ -1,7 +1,7 @@
 """Keep an MCAP recording of every failing hardware-in-the-loop run (pytest plugin, via conftest.py).
 
-Every test marked ``hil`` that talks ROS (it uses the ``rclpy_context`` fixture) gets a recorder
-process (``redarm-record --all``) recording every topic of the test's ROS domain (``/joint_states``,
+Every test marked ``hil`` that talks ROS (it uses the ``rclpy_context`` or ``redarm_ros`` fixture) gets a
+recorder process (``redarm-record --all``) recording every topic of the test's ROS domain (``/joint_states``,
 ``/joint_command``, ``/diagnostics``, ``/rosout``, ...) plus ``/tf`` computed from the joint states,
 into ``<tmp_path>/run.mcap``. When the test fails, the recording is closed at once and copied to the
 failure output directory, ``$REDARM_TEST_FAILURE_DIR`` or ``.build/test_failures/``, as
@@ -100,8 +100,9 @@ def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]) ->
 
 @pytest.fixture(autouse=True)
 def _hil_recording(request: pytest.FixtureRequest) -> Iterator[None]:
-    """Record HIL tests that use ROS (marked ``hil``, using ``rclpy_context``)."""
-    if request.node.get_closest_marker("hil") is None or "rclpy_context" not in request.fixturenames:
+    """Record HIL tests that use ROS (marked ``hil``, using ``rclpy_context`` or ``redarm_ros``)."""
+    uses_ros = {"rclpy_context", "redarm_ros", "redarm_rclpy_context"} & set(request.fixturenames)
+    if request.node.get_closest_marker("hil") is None or not uses_ros:
         yield
         return
     env = request.getfixturevalue("ros_env")

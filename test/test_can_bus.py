@@ -11,7 +11,6 @@ from unittest import mock
 
 import can
 import pytest
-from support.can_buses import OpenBusTracker
 
 from redarm_ros.can import bus as busmod
 from redarm_ros.can.bus import (
@@ -24,6 +23,7 @@ from redarm_ros.can.bus import (
 )
 from redarm_ros.can.bus_server import LoopbackBusServer
 from redarm_ros.errors import BusConfigError, BusError, InvalidInputError
+from redarm_ros.testing.leaks import OpenBusTracker
 
 CAN_ENV = ("CAN_INTERFACE", "CAN_CHANNEL", "CAN_BITRATE", "CAN_CONFIG")
 

@@ -194,6 +194,35 @@ def test_fault_emits_one_state_frame(clock: FakeClock) -> None:
     assert decoded(arm.tick()) == [p.StateFrame(1, S.ERROR | S.TOW_ERROR | S.HOME_OK)]
 
 
+def test_bank_injects_a_fault_by_id(clock: FakeClock) -> None:
+    arm = make_arm(clock)
+    arm.inject_fault(3, S.BEYOND_SOFT)
+    assert decoded(arm.tick()) == [p.StateFrame(3, S.ERROR | S.BEYOND_SOFT | S.HOME_OK)]
+    with pytest.raises(InvalidInputError, match="no module with id 9"):
+        arm.inject_fault(9, S.ERROR)
+
+
+def test_power_cycle_brings_a_module_back_with_factory_settings(clock: FakeClock) -> None:
+    arm = make_arm(clock, homed=False)
+    arm.handle(p.home(2))
+    clock.advance(3.0)
+    arm.handle(p.set_param(2, Param.ACT_FMAXPOS, 1.0))
+    arm.handle(p.framp(2, 0.8))
+    clock.advance(0.2)
+    arm.handle(p.set_param(2, Param.ACT_CONFIG, int(ActConfig.WATCHDOG_ENABLE)))
+    assert state_of(arm, 2) & S.HOME_OK
+    arm.power_cycle(2)
+    at = arm.positions()[1]
+    clock.advance(2.0)
+    assert arm.positions()[1] - at < 0.1  # braked and held, the move not finished
+    assert not state_of(arm, 2) & S.HOME_OK  # homing lost
+    (cfg,) = decoded(arm.handle(p.get_param(2, Param.ACT_CONFIG)))
+    (upper,) = decoded(arm.handle(p.get_param(2, Param.ACT_FMAXPOS)))
+    assert cfg.value == 0 and upper.value == pytest.approx(2.0)  # factory settings: no watchdog
+    clock.advance(1.0)
+    assert decoded(arm.tick()) == []  # and so no watchdog to expire
+
+
 def test_halt_sets_halted_and_refuses_motion_until_reset(clock: FakeClock) -> None:
     arm = make_arm(clock)
     arm.handle(p.framp(1, 1.0))

@@ -32,8 +32,8 @@ from support.stack_client import (  # noqa: E402
 )
 from support.stack_client import pose_down as pose  # noqa: E402
 
-from redarm_ros.bringup import Stack  # noqa: E402
 from redarm_ros.nodes.controller import pose_to_msg  # noqa: E402
+from redarm_ros.testing import SimulatedArm  # noqa: E402
 
 pytestmark = [pytest.mark.hil, pytest.mark.slow]
 
@@ -43,7 +43,7 @@ POS_TOL, ROT_TOL = 1e-3, 0.01
 # A slow hand (0.15 m/s): the second goal is still under way when the cancel arrives, also on a
 # starved machine.
 stack = stack_fixture(arm="pa10", ready_timeout_s=60.0, ik_service=False,
-                      extra_args={"controller": ["-p", "max_speed:=0.15"]})
+                      node_args={"controller": ["-p", "max_speed:=0.15"]})
 
 
 class Client(StackClient):
@@ -75,13 +75,14 @@ class Client(StackClient):
 
 
 @pytest.fixture(scope="module")
-def client(stack: Stack, ros_env: Any) -> Iterator[Client]:
+def client(stack: SimulatedArm, ros_env: Any) -> Iterator[Client]:
     with client_in_context(ros_env.domain_id, Client) as c:
         assert c.spin_until(c.reach.server_is_ready, 30.0), "no /controller/reach server"
         yield c
 
 
-def test_reach_goal_succeeds_then_a_cancel_stops_the_simulated_arm(stack: Stack, client: Client) -> None:
+def test_reach_goal_succeeds_then_a_cancel_stops_the_simulated_arm(stack: SimulatedArm,
+                                                                   client: Client) -> None:
     T = pose((0.6, -0.1, 0.3))
     # From the homed pose (arm straight up) the controller first moves in joint space, then reaches.
     for attempt in range(3):
@@ -126,8 +127,8 @@ def test_reach_goal_succeeds_then_a_cancel_stops_the_simulated_arm(stack: Stack,
     # The simulated arm comes to rest short of the goal and stays there (a busy machine brakes later:
     # the rest is waited for, not timed).
     assert sim_arm_still(client, stack, timeout=10.0), "the arm did not come to rest after the cancel"
-    q0 = np.array(stack.sim_status()["q"])
+    q0 = stack.q
     client.spin_until(lambda: False, 1.0)
-    assert float(np.max(np.abs(np.array(stack.sim_status()["q"]) - q0))) < 1e-3
+    assert float(np.max(np.abs(stack.q - q0))) < 1e-3
     assert pose_err(sim_tool(stack), T2)[0] > 0.01
     stack.check()

@@ -19,9 +19,9 @@ from redarm_interfaces.srv import SolveIK  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
 from support import stack_client as sc  # noqa: E402
 
-from redarm_ros.bringup import Stack  # noqa: E402
 from redarm_ros.kinematics import load_arm  # noqa: E402
 from redarm_ros.nodes.controller import pose_to_msg  # noqa: E402
+from redarm_ros.testing import SimulatedArm  # noqa: E402
 
 pytestmark = [pytest.mark.hil, pytest.mark.slow]
 
@@ -61,7 +61,7 @@ client = sc.ready_client_fixture(Client, ARM.joint_names, READY_Q, start_s=30.0,
                                  reach_s=15.0, recover_s=15.0)
 
 
-def test_ik_then_goal_reached_by_the_simulated_arm(stack: Stack, client: Client) -> None:
+def test_ik_then_goal_reached_by_the_simulated_arm(stack: SimulatedArm, client: Client) -> None:
     q_target = np.array([0.4, 0.7, -0.3, 1.0, 0.2, 0.9, 0.3])
     T = ARM.fk(q_target)
     resp = client.solve(T, READY_Q)
@@ -89,11 +89,11 @@ def test_ik_then_goal_reached_by_the_simulated_arm(stack: Stack, client: Client)
     stack.check()
 
 
-def test_out_of_reach_goal_rejected_and_arm_holds(stack: Stack, client: Client) -> None:
+def test_out_of_reach_goal_rejected_and_arm_holds(stack: SimulatedArm, client: Client) -> None:
     # From a still arm: after a reached goal the elbow may still settle about its swivel for a while
     # (CI, a busy machine: 23 mrad after the hand was within 1 mm), which is not the hold judged here.
     assert sc.sim_arm_still(client, stack, timeout=20.0), "the arm never came to rest"
-    q_before = np.array(stack.sim_status()["q"])
+    q_before = stack.q
     T = np.eye(4)
     T[:3, 3] = (1.5, 0.0, 0.5)
     n = client.send(T)
@@ -103,5 +103,5 @@ def test_out_of_reach_goal_rejected_and_arm_holds(stack: Stack, client: Client) 
     assert client.solve(T, READY_Q).status == SolveIK.Response.OUT_OF_REACH
     client.spin_until(lambda: False, 1.0)
     # Holding: the arm stays where it was (the elbow may not drift either).
-    assert np.max(np.abs(np.array(stack.sim_status()["q"]) - q_before)) < 0.02
+    assert np.max(np.abs(stack.q - q_before)) < 0.02
     stack.check()

@@ -19,9 +19,9 @@ from sensor_msgs.msg import JointState  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 from support import stack_client as sc  # noqa: E402
 
-from redarm_ros.bringup import Stack  # noqa: E402
 from redarm_ros.demo import DEMOS  # noqa: E402
 from redarm_ros.kinematics import load_arm  # noqa: E402
+from redarm_ros.testing import SimulatedArm  # noqa: E402
 
 pytestmark = [pytest.mark.hil, pytest.mark.slow]
 
@@ -39,12 +39,12 @@ class Client(sc.GoalClient):
         self.names.append(list(msg.name))
 
 
-stack = sc.stack_fixture(init_timeout=60.0, arm="powercube6", ready_timeout_s=90.0)
+stack = sc.stack_fixture(arm="powercube6", ready_timeout_s=90.0)
 client = sc.ready_client_fixture(Client, ARM.joint_names, READY_Q, start_s=60.0, ik_s=20.0,
                                  reach_s=25.0, recover_s=20.0)
 
 
-def test_six_joints_and_a_goal_reached_by_the_simulated_arm(stack: Stack, client: Client) -> None:
+def test_six_joints_and_a_goal_reached_by_the_simulated_arm(stack: SimulatedArm, client: Client) -> None:
     assert client.names[-1] == list(ARM.joint_names)
     goal = next(g for g in DEMO.goals if g.name == "front")
     T = goal.matrix()
@@ -73,7 +73,7 @@ def test_six_joints_and_a_goal_reached_by_the_simulated_arm(stack: Stack, client
     stack.check()
 
 
-def test_out_of_reach_goal_rejected_with_the_base_move(stack: Stack, client: Client) -> None:
+def test_out_of_reach_goal_rejected_with_the_base_move(stack: SimulatedArm, client: Client) -> None:
     goal = next(g for g in DEMO.goals if g.name == "out_of_reach")
     n = client.send(goal.matrix())
 

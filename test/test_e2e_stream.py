@@ -25,9 +25,9 @@ from support.stack_client import StackClient, client_in_context, stack_fixture  
 from support.stack_client import pose_down as pose  # noqa: E402
 from trajectory_msgs.msg import JointTrajectory  # noqa: E402
 
-from redarm_ros.bringup import Stack  # noqa: E402
 from redarm_ros.kinematics import load_arm  # noqa: E402
 from redarm_ros.nodes.controller import pose_to_msg  # noqa: E402
+from redarm_ros.testing import SimulatedArm  # noqa: E402
 
 pytestmark = [pytest.mark.hil, pytest.mark.slow]
 
@@ -42,7 +42,7 @@ def line_path(t: float, duration: float = 2.0, length: float = 0.12) -> np.ndarr
 
 
 stack = stack_fixture(arm="pa10", ready_timeout_s=60.0, ik_service=False,
-                      extra_args={"sim": ["--status-rate", "50"]})
+                      sim_args=["--status-rate", "50"])
 
 
 class Client(StackClient):
@@ -68,19 +68,18 @@ class Client(StackClient):
 
 
 @pytest.fixture(scope="module")
-def client(stack: Stack, ros_env: Any) -> Iterator[Client]:
+def client(stack: SimulatedArm, ros_env: Any) -> Iterator[Client]:
     with client_in_context(ros_env.domain_id, Client) as c:
         assert c.spin_until(lambda: len(c.states) > 0, 30.0), "no controller state"
         yield c
 
 
-def sim_tool(stack: Stack) -> tuple[float, np.ndarray]:
-    st = stack.sim_status()
-    assert st is not None, "no simulator status"
-    return float(st["wall_time"]), np.asarray(st["tool"]["position"], float)
+def sim_tool(stack: SimulatedArm) -> tuple[float, np.ndarray]:
+    st = stack.status()
+    return float(st.raw["wall_time"]), st.tool[:3, 3].copy()
 
 
-def test_stream_followed_by_the_simulated_tool(stack: Stack, client: Client) -> None:
+def test_stream_followed_by_the_simulated_tool(stack: SimulatedArm, client: Client) -> None:
     start = line_path(0.0)
 
     def reached() -> bool:

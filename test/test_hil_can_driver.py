@@ -1,15 +1,15 @@
 """Hardware-in-the-loop: bus server + ``redarm-sim --arm pa10`` + ``can_driver`` as separate processes.
 
-Every test starts its own stack over the loopback remote CAN bus (127.0.0.1, ephemeral port). The
-test process is an rclpy client in its own context: it calls ``/can_driver/init``, publishes
-``/joint_command``, reads ``/joint_states`` and ``/diagnostics``, and checks what the simulated arm
-really did through the simulator's JSON status file (pybullet joint positions, setpoints, tool pose,
-module states). Fault scenarios use the simulator's control file and a CAN client of the test's own.
+Every test starts its own simulated arm (the public ``redarm_arm_factory`` fixture: loopback remote
+CAN bus on 127.0.0.1, the simulator, the driver). The test process is an rclpy client on the
+``redarm_ros`` test context: it calls ``/can_driver/init``, publishes ``/joint_command``, reads
+``/joint_states`` and ``/diagnostics``, and checks what the simulated arm really did through the
+simulator's control channel (pybullet joint positions, setpoints, tool pose, module states). Faults are
+injected through the same channel (:class:`redarm_ros.testing.SimulatedArm`).
 """
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import signal
@@ -17,9 +17,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
-from contextlib import closing
-from pathlib import Path
+from collections.abc import Callable
 from typing import Any
 
 import can
@@ -30,19 +28,21 @@ rclpy = pytest.importorskip("rclpy")
 
 from builtin_interfaces.msg import Duration  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
-from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint  # noqa: E402
 
 from redarm_ros.kinematics import load_arm  # noqa: E402
 from redarm_ros.nodes._common import call_resending  # noqa: E402
-from redarm_ros.procs import ManagedProcess, ProcessGroup, python_module_cmd  # noqa: E402
+from redarm_ros.procs import python_module_cmd  # noqa: E402
+from redarm_ros.testing import SimulatedArm  # noqa: E402
+from redarm_ros.testing.ros import RosTestContext  # noqa: E402
 
 pytestmark = pytest.mark.hil
 
 ARM = load_arm("pa10")
 N = ARM.n
+Factory = Callable[..., SimulatedArm]  # the redarm_arm_factory fixture
 
 
 def wait_for(pred: Callable[[], Any], timeout: float, step: float = 0.02) -> Any:
@@ -55,10 +55,11 @@ def wait_for(pred: Callable[[], Any], timeout: float, step: float = 0.02) -> Any
 
 
 class Client:
-    """The test's rclpy side: services, command publisher, joint state and diagnostics subscribers."""
+    """The test's rclpy side on the test's ROS context: services, command publisher, joint state and
+    diagnostics subscribers (callbacks on the context's executor thread)."""
 
-    def __init__(self, ctx: Any) -> None:
-        self.node = rclpy.create_node("hil_client", context=ctx)
+    def __init__(self, ros: RosTestContext) -> None:
+        self.node = ros.node
         self.lock = threading.Lock()
         self.joint_states: list[JointState] = []  # the last 200
         self.watch: Callable[[JointState], None] | None = None  # sees every one (under the lock)
@@ -68,16 +69,6 @@ class Client:
         self.traj_pub = self.node.create_publisher(JointTrajectory, "/joint_command", 10)
         self.clients = {a: self.node.create_client(Trigger, f"/can_driver/{a}")
                         for a in ("init", "halt", "recover", "park")}
-        self.executor = SingleThreadedExecutor(context=ctx)
-        self.executor.add_node(self.node)
-        self._thread = threading.Thread(target=self._spin, daemon=True)
-        self._stop = threading.Event()
-        self._thread.start()
-
-    def _spin(self) -> None:
-        # spin_once in a loop: spin_until_future_complete adds tens of ms per call.
-        while not self._stop.is_set():
-            self.executor.spin_once(timeout_sec=0.05)
 
     def _on_js(self, msg: JointState) -> None:
         with self.lock:
@@ -129,14 +120,6 @@ class Client:
     def now_ns(self) -> int:
         return self.node.get_clock().now().nanoseconds
 
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(10.0)  # spin_once returns within 50 ms plus a callback
-        assert not self._thread.is_alive(), "client spin thread did not stop"
-        self.executor.remove_node(self.node)  # nothing may still dispatch to the node we destroy
-        self.executor.shutdown(timeout_sec=1.0)
-        self.node.destroy_node()
-
 
 def _level(level: Any) -> int:
     return level[0] if isinstance(level, (bytes, bytearray)) else int(level)
@@ -146,75 +129,21 @@ ERROR = _level(DiagnosticStatus.ERROR)
 OK = _level(DiagnosticStatus.OK)
 
 
-class Stack:
-    """Bus server, simulator and driver node in a ProcessGroup; helpers to read the sim's status."""
-
-    def __init__(self, procs: ProcessGroup, canbus: Any, tmp: Path) -> None:
-        self.procs = procs
-        self.canbus = canbus
-        self.tmp = tmp
-        self.status_file = tmp / "sim_status.json"
-        self.control_file = tmp / "sim_control.json"
-        self.sim: ManagedProcess | None = None
-        self.driver: ManagedProcess | None = None
-
-    def start_sim(self, *extra: str, name: str = "sim", initial_q: np.ndarray | None = None
-                  ) -> ManagedProcess:
-        args = ["--arm", "pa10", *self.canbus.cli_args(), "--status-file", str(self.status_file),
-                "--status-rate", "50", "--control-file", str(self.control_file), "--log-level", "WARNING",
-                *extra]
-        if initial_q is not None:
-            # One "=" argument: a leading negative value would otherwise read as an option.
-            args.append("--initial-q=" + ",".join(f"{v:.9g}" for v in initial_q))
-        self.sim = self.procs.start(name, python_module_cmd("redarm_ros.sim.hardware", *args),
-                                    ready=r"REDARM_SIM_READY", ready_timeout=30)
-        return self.sim
-
-    def start_driver(self, **params: Any) -> ManagedProcess:
-        # The node's defaults (reply_timeout_s 0.02, max_missed_replies 5) unless a test says otherwise.
-        p = {"arm": "pa10", "can.interface": "remote", "can.channel": self.canbus.channel, "rate_hz": 250.0,
-             "reconnect_max_s": 0.5, **params}
-        ros_args = ["--ros-args", "--log-level", "can_driver:=info"]
-        for k, v in p.items():
-            val = str(v).lower() if isinstance(v, bool) else str(v)
-            ros_args += ["-p", f"{k}:={val}"]
-        cmd = python_module_cmd("redarm_ros.nodes.can_driver", *ros_args)
-        self.driver = self.procs.start("can_driver", cmd, ready=r"can_driver ready", ready_timeout=30)
-        self.driver.wait_for_line(r"CAN bus connected", 30, from_start=True)
-        return self.driver
-
-    def status(self) -> dict[str, Any]:
-        for _ in range(50):
-            try:
-                return json.loads(self.status_file.read_text())
-            except (FileNotFoundError, json.JSONDecodeError):
-                time.sleep(0.02)
-        raise AssertionError("simulator status file unreadable")
-
-    def sim_q(self) -> np.ndarray:
-        return np.array(self.status()["q"])
-
-    def control(self, **kv: Any) -> None:
-        tmp = self.control_file.with_suffix(".tmp")
-        tmp.write_text(json.dumps(kv))
-        tmp.replace(self.control_file)
-
-    def wait_sim_at(self, q: np.ndarray, tol: float, timeout: float) -> np.ndarray:
-        got = wait_for(lambda: np.max(np.abs(self.sim_q() - q)) < tol, timeout)
-        qs = self.sim_q()
-        assert got, f"simulated arm at {np.round(qs, 4).tolist()}, expected {np.round(q, 4).tolist()}"
-        return qs
-
-
 @pytest.fixture
-def client(rclpy_context: Any) -> Iterator[Client]:
-    with closing(Client(rclpy_context)) as c:
-        yield c
+def client(redarm_ros: RosTestContext) -> Client:
+    return Client(redarm_ros)
 
 
-@pytest.fixture
-def stack(procs: ProcessGroup, canbus_server: Any, tmp_path: Path) -> Stack:
-    return Stack(procs, canbus_server, tmp_path)
+def start_arm(factory: Factory, *, sim_args: tuple[str, ...] = (), start: str | None = None,
+              **driver_params: Any) -> SimulatedArm:
+    """The simulator and the driver (not initialised: the tests call ~/init; homing leaves it at 0 rad),
+    the driver connected.
+    The node's defaults (reply_timeout_s 0.02, max_missed_replies 5) unless a test says otherwise."""
+    arm = factory(driver=True, start=start, sim_args=list(sim_args),
+                  driver_params={"auto_init": False, "park_after_init": False, "reconnect_max_s": 0.5,
+                                 **driver_params})
+    arm.driver.wait_for_line(r"CAN bus connected", 30, from_start=True)
+    return arm
 
 
 def goal_pose() -> np.ndarray:
@@ -222,28 +151,27 @@ def goal_pose() -> np.ndarray:
     return np.array([0.3, -0.25, 0.2, 0.4, -0.3, 0.25, 0.2])
 
 
-def init_and_check(client: Client, stack: Stack) -> None:
+def init_and_check(client: Client, arm: SimulatedArm) -> None:
     r = client.call("init")
     assert r.success, r.message
-    stack.wait_sim_at(np.zeros(N), 2e-3, 10)  # homed
+    arm.wait_at(np.zeros(N), 2e-3, 10)  # homed
 
 
-def start_and_init(client: Client, stack: Stack) -> ManagedProcess:
-    """The simulator and the driver with their defaults, initialised and homed; the simulator."""
-    sim = stack.start_sim()
-    stack.start_driver()
-    init_and_check(client, stack)
-    return sim
+def start_and_init(client: Client, factory: Factory) -> SimulatedArm:
+    """The simulator and the driver with their defaults, initialised and homed."""
+    arm = start_arm(factory)
+    init_and_check(client, arm)
+    return arm
 
 
-def test_hil_nominal_trajectory_followed(stack: Stack, client: Client) -> None:
-    start_and_init(client, stack)
+def test_hil_nominal_trajectory_followed(redarm_arm_factory: Factory, client: Client) -> None:
+    arm = start_and_init(client, redarm_arm_factory)
     q1 = goal_pose()
     client.send_trajectory([q1 / 2, q1], [0.8, 1.6])
-    stack.wait_sim_at(q1, 2e-3, 10)
+    arm.wait_at(q1, 2e-3, 10)
     assert wait_for(lambda: client.last_q() is not None and np.allclose(client.last_q(), q1, atol=3e-3), 5)
     # The tool pose pybullet reports is the model's FK of where the joints went.
-    st = stack.status()
+    st = arm.status().raw
     np.testing.assert_allclose(st["tool"]["position"], ARM.fk(np.array(st["q"]))[:3, 3], atol=1e-4)
     np.testing.assert_allclose(st["tool"]["position"], ARM.fk(q1)[:3, 3], atol=3e-3)
     # Diagnostics: loop OK and running, every module present with no error bits.
@@ -258,44 +186,43 @@ def test_hil_nominal_trajectory_followed(stack: Stack, client: Client) -> None:
         assert lv == OK and v["errors"] == "-" and "HOME_OK" in v["state"], (j, m, v)
 
 
-def test_hil_dropped_replies_still_followed(stack: Stack, client: Client) -> None:
-    stack.start_sim("--seed", "7")
+def test_hil_dropped_replies_still_followed(redarm_arm_factory: Factory, client: Client) -> None:
     # A lossy bus: a module counts as silent only after 8 misses in a row (0.05**8 per cycle).
-    stack.start_driver(max_missed_replies=8)
-    init_and_check(client, stack)
+    arm = start_arm(redarm_arm_factory, sim_args=("--seed", "7"), max_missed_replies=8)
+    init_and_check(client, arm)
     # Drops start after init: the driver core's configuration requests are retried only once,
     # so init itself is not expected to survive a 5 % loss (see docs/can_driver.md).
-    stack.control(drop_replies=0.05)
-    assert wait_for(lambda: stack.status()["faults"]["drop_replies"] == 0.05, 5)
+    arm.drop_replies(0.05)
+    assert wait_for(lambda: arm.status().raw["faults"]["drop_replies"] == 0.05, 5)
     q1 = goal_pose()
     client.send_trajectory([q1], [1.5])
-    stack.wait_sim_at(q1, 2e-3, 10)
+    arm.wait_at(q1, 2e-3, 10)
     t0 = client.now_ns()
     assert wait_for(lambda: client.diag_since(t0), 5)
     d = client.diag_since(t0)[-1]
     assert d["can_driver: loop"][2]["state"] == "running"
     lost = sum(int(d[k][2]["lost"]) for k in d if k.startswith("can_driver: module"))
     assert lost > 0  # the drops were real and counted
-    assert stack.status()["counters"]["dropped_replies"] > 0
+    assert arm.status().raw["counters"]["dropped_replies"] > 0
 
 
-def test_hil_silent_module_halts_all_until_recover(stack: Stack, client: Client) -> None:
-    start_and_init(client, stack)
+def test_hil_silent_module_halts_all_until_recover(redarm_arm_factory: Factory, client: Client) -> None:
+    arm = start_and_init(client, redarm_arm_factory)
     far = np.array([1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
     client.send_trajectory([far], [3.0])  # 1/3 rad/s on joint 1
-    assert wait_for(lambda: stack.sim_q()[0] > 0.1, 5)
+    assert wait_for(lambda: arm.q[0] > 0.1, 5)
     t0 = client.now_ns()
-    stack.control(silence=[3])
-    assert wait_for(lambda: stack.status()["faults"]["silenced"] == [3], 5)
-    stack.driver.wait_for_line(r"HALTED: module 3 stopped answering: module 3 missed 5 consecutive", 5)
+    arm.silence(3)
+    assert wait_for(lambda: arm.status().raw["faults"]["silenced"] == [3], 5)
+    arm.driver.wait_for_line(r"HALTED: module 3 stopped answering: module 3 missed 5 consecutive", 5)
 
     # Everything stops (braking), well short of the goal, and stays stopped.
     time.sleep(0.5)
-    q_stop = stack.sim_q()
+    q_stop = arm.q
     time.sleep(0.5)
-    np.testing.assert_allclose(stack.sim_q(), q_stop, atol=1e-4)
+    np.testing.assert_allclose(arm.q, q_stop, atol=1e-4)
     assert q_stop[0] < 0.9
-    mods = {m["id"]: m for m in stack.status()["modules"]}
+    mods = {m["id"]: m for m in arm.status().raw["modules"]}
     assert all("HALTED" in mods[i]["flags"] for i in (1, 2, 4, 5, 6, 7))
     # Reported on /diagnostics: loop ERROR (halted), module 3 ERROR.
     assert wait_for(lambda: any(d["can_driver: loop"][0] == ERROR for d in client.diag_since(t0)), 5)
@@ -305,55 +232,54 @@ def test_hil_silent_module_halts_all_until_recover(stack: Stack, client: Client)
     # A command while halted is ignored.
     client.send_trajectory([np.zeros(N)], [0.5])
     time.sleep(0.5)
-    np.testing.assert_allclose(stack.sim_q(), q_stop, atol=1e-4)
+    np.testing.assert_allclose(arm.q, q_stop, atol=1e-4)
     # Recover only after the module speaks again.
-    stack.control(silence=[])
-    assert wait_for(lambda: stack.status()["faults"]["silenced"] == [], 5)
+    arm.unsilence()
+    assert wait_for(lambda: arm.status().raw["faults"]["silenced"] == [], 5)
     r = client.call("recover")
     assert r.success, r.message
     time.sleep(0.5)
-    np.testing.assert_allclose(stack.sim_q(), q_stop, atol=1e-3)  # holds, old goal not resumed
+    np.testing.assert_allclose(arm.q, q_stop, atol=1e-3)  # holds, old goal not resumed
     q2 = q_stop.copy()
     q2[1] = -0.2
     client.send_trajectory([q2], [1.0])
-    stack.wait_sim_at(q2, 2e-3, 8)
+    arm.wait_at(q2, 2e-3, 8)
 
 
-def test_hil_simulator_killed_and_restarted(stack: Stack, client: Client) -> None:
-    sim = start_and_init(client, stack)
+def test_hil_simulator_killed_and_restarted(redarm_arm_factory: Factory, client: Client) -> None:
+    arm = start_and_init(client, redarm_arm_factory)
     target = np.array([0.0, 0.0, 0.0, 1.2, 0.0, 0.0, 0.0])
     client.send_trajectory([target], [2.5])
-    assert wait_for(lambda: stack.sim_q()[3] > 0.3, 5)
-    sim.kill()  # a crash: SIGKILL, no clean-up
-    q_crash = np.array(stack.status()["q"])  # last status written before the crash
-    stack.driver.wait_for_line(r"HALTED: module \d+ stopped answering", 5)
+    assert wait_for(lambda: arm.q[3] > 0.3, 5)
+    q_crash = arm.kill_sim().q  # a crash: SIGKILL, no clean-up (the status read just before)
+    arm.driver.wait_for_line(r"HALTED: module \d+ stopped answering", 5)
 
     # Power back on where the arm stood (modules fresh: not homed, default config). A module without
     # HOME_OK has lost its position: recover refuses, and only init (re-homing) brings the arm back.
-    stack.start_sim(name="sim_restarted", initial_q=q_crash)
+    arm.restart_sim(initial_q=q_crash, kill=False)
     r = client.call("recover")
     assert not r.success and "HOME_OK" in r.message and "~/init" in r.message, r.message
     # No stale command: the arm does not continue toward the old target.
     time.sleep(1.0)
-    st = stack.status()
+    st = arm.status().raw
     np.testing.assert_allclose(st["q"], q_crash, atol=1e-3)
     assert max(abs(np.array(st["q_setpoint"]) - q_crash)) < 1e-3
     r = client.call("init")
     assert r.success, r.message
-    q_after = stack.sim_q()
+    q_after = arm.q
     np.testing.assert_allclose(q_after, np.zeros(N), atol=2e-3)  # homed
     # And it drives again.
     q2 = q_after.copy()
     q2[3] = 0.2
     client.send_trajectory([q2], [1.5])
-    stack.wait_sim_at(q2, 2e-3, 8)
+    arm.wait_at(q2, 2e-3, 8)
 
 
-def test_hil_malformed_frames_ignored_and_counted(stack: Stack, client: Client) -> None:
-    start_and_init(client, stack)
+def test_hil_malformed_frames_ignored_and_counted(redarm_arm_factory: Factory, client: Client) -> None:
+    arm = start_and_init(client, redarm_arm_factory)
     q1 = goal_pose()
     client.send_trajectory([q1], [1.5])
-    stack.wait_sim_at(q1, 2e-3, 10)
+    arm.wait_at(q1, 2e-3, 10)
     nan = bytes([0x00, 0x00, 0xC0, 0x7F])  # float32 NaN, little-endian
     garbage = [
         # Host-bound "replies" the driver must refuse: truncated ext ack, NaN position, unknown mode.
@@ -365,7 +291,7 @@ def test_hil_malformed_frames_ignored_and_counted(stack: Stack, client: Client) 
         can.Message(arbitration_id=0x0E2, data=[0x0B, 0x10, *nan, 0x04, 0x00], is_extended_id=False),
         can.Message(arbitration_id=0x0E5, data=[0x08, 0x3C], is_extended_id=False),
     ]
-    bus = can.Bus(**stack.canbus.kwargs)
+    bus = can.Bus(**arm.can_kwargs)
     try:
         for _ in range(20):
             for m in garbage:
@@ -375,7 +301,7 @@ def test_hil_malformed_frames_ignored_and_counted(stack: Stack, client: Client) 
         bus.shutdown()
     time.sleep(0.5)
     # Nothing moved wrongly: still holding the goal, driver still running.
-    np.testing.assert_allclose(stack.sim_q(), q1, atol=2e-3)
+    np.testing.assert_allclose(arm.q, q1, atol=2e-3)
     t0 = client.now_ns()
     assert wait_for(lambda: client.diag_since(t0), 5)
     d = client.diag_since(t0)[-1]
@@ -383,14 +309,14 @@ def test_hil_malformed_frames_ignored_and_counted(stack: Stack, client: Client) 
     malformed = {int(k.split()[2]): int(v[2]["malformed"])
                  for k, v in d.items() if k.startswith("can_driver: module")}
     assert malformed[2] > 0 and malformed[3] > 0 and malformed[4] > 0, malformed
-    assert stack.status()["counters"]["malformed"] > 0
+    assert arm.status().raw["counters"]["malformed"] > 0
     # And it still follows commands.
     client.send_trajectory([np.zeros(N)], [1.5])
-    stack.wait_sim_at(np.zeros(N), 2e-3, 10)
+    arm.wait_at(np.zeros(N), 2e-3, 10)
 
 
-def test_hil_command_beyond_joint_limit_clamped(stack: Stack, client: Client) -> None:
-    start_and_init(client, stack)
+def test_hil_command_beyond_joint_limit_clamped(redarm_arm_factory: Factory, client: Client) -> None:
+    arm = start_and_init(client, redarm_arm_factory)
     j = 1  # +-91 deg
     beyond = np.zeros(N)
     # within command_limit_tolerance_rad (5 mrad) of the limit: clamped (further beyond: refused)
@@ -400,12 +326,12 @@ def test_hil_command_beyond_joint_limit_clamped(stack: Stack, client: Client) ->
     end = time.monotonic() + 30.0
     settled = 0
     while time.monotonic() < end and settled < 25:  # until it has rested at the limit for 0.5 s
-        st = stack.status()
+        st = arm.status().raw
         worst_setpoint = max(worst_setpoint, st["q_setpoint"][j])
         worst_q = max(worst_q, st["q"][j])
         settled = settled + 1 if abs(st["q"][j] - (ARM.upper[j] - 1e-3)) < 1e-4 else 0
         time.sleep(0.02)
-    st = stack.status()
+    st = arm.status().raw
     # Went to the limit and rests there short of it by the driver's 1 mrad margin ...
     assert st["q"][j] == pytest.approx(ARM.upper[j] - 1e-3, abs=1e-4)
     # ... the module's profile never ran past the limit (a stream that pauses while the joint moves,
@@ -414,54 +340,52 @@ def test_hil_command_beyond_joint_limit_clamped(stack: Stack, client: Client) ->
     assert worst_q <= ARM.upper[j] + 5e-5  # ... nor did the joint (BEYOND_SOFT trips at +1e-4)
     mod = next(m for m in st["modules"] if m["id"] == j + 1)
     assert "ERROR" not in mod["flags"] and "BEYOND_SOFT" not in mod["flags"]
-    stack.driver.wait_for_line(r"clamped", 2, from_start=True)
+    arm.driver.wait_for_line(r"clamped", 2, from_start=True)
     t0 = client.now_ns()
     assert wait_for(lambda: client.diag_since(t0), 5)
     values = client.diag_since(t0)[-1]["can_driver: loop"][2]
     assert int(values["clamped_cycles"]) > 0 and values["state"] == "running"
 
 
-def test_hil_bus_server_lost_and_back(stack: Stack, client: Client) -> None:
-    from conftest import start_canbus_server
-
-    start_and_init(client, stack)
+def test_hil_bus_server_lost_and_back(redarm_arm_factory: Factory, client: Client) -> None:
+    arm = start_and_init(client, redarm_arm_factory)
     target = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.5])
     client.send_trajectory([target], [3.0])
-    assert wait_for(lambda: stack.sim_q()[6] > 0.2, 5)
-    port = stack.canbus.port
-    stack.canbus.process.kill()  # the bus is gone for every client
-    stack.driver.wait_for_line(r"CAN bus lost", 5)
+    assert wait_for(lambda: arm.q[6] > 0.2, 5)
+    channel = arm.can_kwargs["channel"]
+    arm.children["canbus"].kill()  # the bus is gone for every client
+    arm.driver.wait_for_line(r"CAN bus lost", 5)
     time.sleep(0.5)  # several reconnect attempts fail meanwhile
-    q_gap = stack.sim_q()
-    restarted = start_canbus_server(stack.procs, "canbus_restarted", port=port)
-    assert restarted.port == port
+    q_gap = arm.q
+    arm.restart_bus_server(down_s=0.0)  # the same port
+    assert arm.can_kwargs["channel"] == channel
     # The driver reconnects by itself (backoff), the simulator too; nothing old is replayed.
-    stack.driver.wait_for_line(r"CAN bus connected", 15)
+    arm.driver.wait_for_line(r"CAN bus connected", 15)
     time.sleep(1.0)
-    np.testing.assert_allclose(stack.sim_q(), q_gap, atol=2e-3)
+    np.testing.assert_allclose(arm.q, q_gap, atol=2e-3)
     # The modules' watchdog (100 ms) expired during the outage: the driver reports and stays
     # halted until ~/recover; after that it holds and then follows new commands.
-    stack.driver.wait_for_line(r"HALTED: module \d: ERROR", 5)
+    arm.driver.wait_for_line(r"HALTED: module \d: ERROR", 5)
     t0 = client.now_ns()
     assert wait_for(lambda: any(d["can_driver: loop"][2]["state"] == "halted"
                                 for d in client.diag_since(t0)), 5)
-    mods = {m["id"]: m for m in stack.status()["modules"]}
+    mods = {m["id"]: m for m in arm.status().raw["modules"]}
     assert all("COMM_ERROR" in m["flags"] for m in mods.values())  # the watchdog's mark
     r = client.call("recover")
     assert r.success, r.message
     time.sleep(0.3)
-    np.testing.assert_allclose(stack.sim_q(), q_gap, atol=2e-3)
+    np.testing.assert_allclose(arm.q, q_gap, atol=2e-3)
     q2 = q_gap.copy()
     q2[6] = 0.5
     client.send_trajectory([q2], [1.5])
-    stack.wait_sim_at(q2, 2e-3, 8)
+    arm.wait_at(q2, 2e-3, 8)
 
 
-def _module_config(canbus: Any, module_id: int) -> int:
+def _module_config(arm: SimulatedArm, module_id: int) -> int:
     """ACT_CONFIG of a module, read with a CAN client of the test's own."""
     from redarm_ros.can import protocol as pc
 
-    with can.Bus(**canbus.kwargs) as bus:
+    with arm.bus() as bus:
         for _ in range(5):
             bus.send(pc.get_param(module_id, pc.Param.ACT_CONFIG))
             end = time.monotonic() + 1.0
@@ -475,44 +399,45 @@ def _module_config(canbus: Any, module_id: int) -> int:
     raise AssertionError(f"module {module_id} did not answer GETPARAM ACT_CONFIG")
 
 
-def test_hil_power_cycle_refuses_recover_and_init_rearms_the_watchdog(stack: Stack, client: Client) -> None:
+def test_hil_power_cycle_refuses_recover_and_init_rearms_the_watchdog(redarm_arm_factory: Factory,
+                                                                      client: Client) -> None:
     from redarm_ros.can.protocol import ActConfig
 
-    sim = start_and_init(client, stack)
+    arm = start_and_init(client, redarm_arm_factory)
     q1 = goal_pose()
     client.send_trajectory([q1], [1.0])
-    stack.wait_sim_at(q1, 2e-3, 10)
-    sim.kill()  # power lost: the restarted modules have factory settings (no watchdog, no sync)
-    stack.driver.wait_for_line(r"HALTED: module \d+ stopped answering", 10)
-    stack.start_sim(name="sim_restarted", initial_q=q1)
+    arm.wait_at(q1, 2e-3, 10)
+    arm.kill_sim()  # power lost: the restarted modules have factory settings (no watchdog, no sync)
+    arm.driver.wait_for_line(r"HALTED: module \d+ stopped answering", 10)
+    arm.restart_sim(initial_q=q1, kill=False)
     r = client.call("recover")  # not homed any more: only init may make the arm movable again
     assert not r.success and "HOME_OK" in r.message, r.message
     r = client.call("init")
     assert r.success, r.message
     for mid in range(1, N + 1):
-        cfg = _module_config(stack.canbus, mid)
+        cfg = _module_config(arm, mid)
         assert cfg & ActConfig.WATCHDOG_ENABLE and cfg & ActConfig.SYNC_MOTION, (mid, hex(cfg))
     # The driver dies now: the modules must halt by themselves (their watchdog, 100 ms).
-    stack.driver.kill()
+    arm.driver.kill()
 
     def all_halted() -> bool:
-        mods = stack.status()["modules"]
+        mods = arm.status().raw["modules"]
         return all("HALTED" in m["flags"] and "COMM_ERROR" in m["flags"] for m in mods)
 
-    assert wait_for(all_halted, 10), stack.status()["modules"]
-    q_stop = stack.sim_q()
+    assert wait_for(all_halted, 10), arm.status().raw["modules"]
+    q_stop = arm.q
     time.sleep(0.3)
-    np.testing.assert_allclose(stack.sim_q(), q_stop, atol=1e-4)
+    np.testing.assert_allclose(arm.q, q_stop, atol=1e-4)
 
 
-def test_hil_forged_reply_is_never_published(stack: Stack, client: Client) -> None:
+def test_hil_forged_reply_is_never_published(redarm_arm_factory: Factory, client: Client) -> None:
     from redarm_ros.can import protocol as pc
 
-    start_and_init(client, stack)
+    arm = start_and_init(client, redarm_arm_factory)
     q1 = goal_pose()
     q1[2] = 0.2
     client.send_trajectory([q1], [1.0])
-    stack.wait_sim_at(q1, 2e-3, 10)
+    arm.wait_at(q1, 2e-3, 10)
     # Another node answers for module 3 with a well-formed acknowledgement claiming 3.0 rad.
     forged = pc.set_move_ext_ack(3, pc.MoveMode.FSTEP_EXT, 3.0, 0x20, 0)
     # Judged by the time each state was measured (its stamp): a starved test process may still take
@@ -527,7 +452,7 @@ def test_hil_forged_reply_is_never_published(stack: Stack, client: Client) -> No
     with client.lock:
         client.watch = watch
     try:
-        with can.Bus(**stack.canbus.kwargs) as bus:
+        with can.Bus(**arm.can_kwargs) as bus:
             end = time.monotonic() + 1.0
             while time.monotonic() < end:
                 bus.send(forged)
@@ -541,7 +466,7 @@ def test_hil_forged_reply_is_never_published(stack: Stack, client: Client) -> No
     # fresh-clone run received 34 in the 1.3 s)
     assert len(seen) >= 10, len(seen)
     assert max(seen) < 0.01  # never the forged 3.0 rad
-    np.testing.assert_allclose(stack.sim_q(), q1, atol=2e-3)
+    np.testing.assert_allclose(arm.q, q1, atol=2e-3)
     t0 = client.now_ns()
     assert wait_for(lambda: client.diag_since(t0), 5)
     d = client.diag_since(t0)[-1]
@@ -568,11 +493,11 @@ print(f"FLOODED {sent}", flush=True)
 """
 
 
-def test_hil_recover_after_a_flood(stack: Stack, client: Client) -> None:
-    start_and_init(client, stack)
+def test_hil_recover_after_a_flood(redarm_arm_factory: Factory, client: Client) -> None:
+    arm = start_and_init(client, redarm_arm_factory)
     # 5 s of foreign frames at up to 20k frames/s from a node of its own (a process, so the rate is
     # not limited by this test's interpreter); it prints how many it sent.
-    out = subprocess.run([sys.executable, "-c", FLOODER, stack.canbus.channel], capture_output=True,
+    out = subprocess.run([sys.executable, "-c", FLOODER, arm.can_kwargs["channel"]], capture_output=True,
                          text=True, timeout=120, check=True).stdout
     sent = int(out.split()[-1])
     t_end = time.monotonic()
@@ -588,28 +513,28 @@ def test_hil_recover_after_a_flood(stack: Stack, client: Client) -> None:
     print(f"flood: {sent} frames in 5 s ({sent / 5:.0f}/s); ~/recover succeeded after {took:.2f} s "
           f"({attempts} call(s))")
     assert r.success, r.message
-    q2 = stack.sim_q()
+    q2 = arm.q
     q2[0] += 0.2
     client.send_trajectory([q2], [1.0])
-    stack.wait_sim_at(q2, 2e-3, 8)
+    arm.wait_at(q2, 2e-3, 8)
 
 
-def test_hil_park_reaches_the_posture_within_limits(stack: Stack, client: Client) -> None:
-    start_and_init(client, stack)
+def test_hil_park_reaches_the_posture_within_limits(redarm_arm_factory: Factory, client: Client) -> None:
+    arm = start_and_init(client, redarm_arm_factory)
     client.send_trajectory([goal_pose()], [1.0])  # start the park from somewhere else than home
-    stack.wait_sim_at(goal_pose(), 2e-3, 10)
+    arm.wait_at(goal_pose(), 2e-3, 10)
     answer: list[Trigger.Response] = []
     caller = threading.Thread(target=lambda: answer.append(client.call("park", timeout=60)))
     caller.start()
     samples = []
     while caller.is_alive():  # the simulated arm during the move (status at 50 Hz)
-        samples.append(stack.status())
+        samples.append(arm.status().raw)
         time.sleep(0.02)
     caller.join()
     assert answer and answer[0].success, answer
     assert "parked" in answer[0].message
     # It answered once the arm was there (the driver's tolerance is 2 mrad) ...
-    np.testing.assert_allclose(stack.sim_q(), ARM.park, atol=2.5e-3)
+    np.testing.assert_allclose(arm.q, ARM.park, atol=2.5e-3)
     # ... and the move kept the velocity and position limits (pybullet's measured joint velocity). A
     # busy machine polls less often (17 samples seen beside a CPU hog): distinct status writes only.
     samples = list({s["wall_time"]: s for s in samples}.values())
@@ -623,36 +548,35 @@ def test_hil_park_reaches_the_posture_within_limits(stack: Stack, client: Client
     mid = q[int(np.argmin(np.abs(t - 0.5 * (t[0] + t[-1]))))]
     moving = np.abs(ARM.park - goal_pose()) > 0.1
     assert np.all(np.abs(mid - ARM.park)[moving] > 0.01)
-    mods = stack.status()["modules"]
+    mods = arm.status().raw["modules"]
     assert all("ERROR" not in m["flags"] for m in mods)
 
 
-def test_hil_park_refused_while_halted_and_sim_starts_in_park(stack: Stack, client: Client) -> None:
-    stack.start_sim("--start", "park")
-    np.testing.assert_allclose(stack.sim_q(), ARM.park, atol=1e-3)  # powered on in the park posture
-    stack.start_driver()
+def test_hil_park_refused_while_halted_and_sim_starts_in_park(redarm_arm_factory: Factory,
+                                                              client: Client) -> None:
+    arm = start_arm(redarm_arm_factory, start="park")
+    np.testing.assert_allclose(arm.q, ARM.park, atol=1e-3)  # powered on in the park posture
     r = client.call("park")
     assert not r.success and "not initialised" in r.message, r.message
-    init_and_check(client, stack)  # homing runs to 0 rad
+    init_and_check(client, arm)  # homing runs to 0 rad
     r = client.call("halt")
     assert r.success, r.message
     r = client.call("park")
     assert not r.success and "halted" in r.message, r.message
     time.sleep(0.3)
-    np.testing.assert_allclose(stack.sim_q(), np.zeros(N), atol=2e-3)  # nothing moved
+    np.testing.assert_allclose(arm.q, np.zeros(N), atol=2e-3)  # nothing moved
     r = client.call("recover")
     assert r.success, r.message
     r = client.call("park", timeout=60)
     assert r.success, r.message
-    np.testing.assert_allclose(stack.sim_q(), ARM.park, atol=2.5e-3)
+    np.testing.assert_allclose(arm.q, ARM.park, atol=2.5e-3)
 
 
-def test_hil_sigterm_stops_the_driver_cleanly(stack: Stack, client: Client) -> None:
+def test_hil_sigterm_stops_the_driver_cleanly(redarm_arm_factory: Factory, client: Client) -> None:
     """docker stop and systemd send SIGTERM (systemd to the whole process group, so the cycle process
     gets it too): the driver takes the same clean path as on Ctrl-C."""
-    start_and_init(client, stack)
-    driver = stack.driver
-    assert driver is not None
+    arm = start_and_init(client, redarm_arm_factory)
+    driver = arm.driver
     driver.expect_exit()
     os.killpg(driver.pid, signal.SIGTERM)
     assert driver.popen.wait(30) == 0, driver.tail(30)
@@ -661,22 +585,23 @@ def test_hil_sigterm_stops_the_driver_cleanly(stack: Stack, client: Client) -> N
         assert bad not in out, (bad, driver.tail(30))
 
 
-def test_hil_a_second_driver_in_another_namespace_is_seen_on_the_bus(stack: Stack, client: Client) -> None:
+def test_hil_a_second_driver_in_another_namespace_is_seen_on_the_bus(redarm_arm_factory: Factory,
+                                                                     client: Client) -> None:
     """Two drivers on one bus, under different namespaces (the ROS graph check cannot see it): the
     replies each did not ask for give the other away, and the modules are halted."""
-    start_and_init(client, stack)
-    q1 = goal_pose()
-    client.send_trajectory([q1], [2.0])
+    arm = start_and_init(client, redarm_arm_factory)
+    client.send_trajectory([goal_pose()], [2.0])
+    bus = arm.can_kwargs
     cmd = python_module_cmd("redarm_ros.nodes.can_driver", "--ros-args", "-r", "__ns:=/other",
-                            "-p", "arm:=pa10", "-p", "can.interface:=remote",
-                            "-p", f"can.channel:={stack.canbus.channel}")
+                            "-p", "arm:=pa10", "-p", f"can.interface:={bus['interface']}",
+                            "-p", f"can.channel:={bus['channel']}")
     # (a third ROS process on a loaded machine: give its start-up time)
-    second = stack.procs.start("can_driver_other", cmd, ready=r"can_driver ready", ready_timeout=90)
-    stack.driver.wait_for_line(r"another host is driving these modules", 30)
+    second = arm.stack.group.start("can_driver_other", cmd, ready=r"can_driver ready", ready_timeout=90)
+    arm.driver.wait_for_line(r"another host is driving these modules", 30)
     t0 = client.now_ns()
     assert wait_for(lambda: any(d["can_driver: loop"][2]["state"] == "halted"
                                 and d["can_driver: loop"][2]["fault"] == "foreign_host"
                                 for d in client.diag_since(t0)), 10)
-    mods = stack.status()["modules"]
+    mods = arm.status().raw["modules"]
     assert all("HALTED" in m["flags"] for m in mods), mods
     second.stop()

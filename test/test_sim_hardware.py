@@ -157,6 +157,42 @@ def test_toggle_silence_controls_and_status(rig):
     assert st["modules"][3]["flags"] == ["RAMP_END"]
 
 
+def test_control_channel_answers_and_refuses(rig):
+    from redarm_ros.errors import InvalidInputError
+    from redarm_ros.sim.control_channel import ControlChannel
+    from redarm_ros.testing import SimControl, SimControlError
+
+    sim, host, _ = rig
+    with pytest.raises(InvalidInputError):
+        ControlChannel(sim, host="0.0.0.0")  # loopback only
+    channel = ControlChannel(sim).start()
+    client = SimControl(channel.host, channel.port)
+    try:
+        assert client.request("ping") == "pong"
+        st = client.status()  # taken on the physics thread
+        assert sorted(st.modules) == list(range(1, 8)) and st.q.shape == (7,)
+        assert client.set_faults(silence=[2], delay_replies_ms=3)["silenced"] == [2]
+        assert sim.faults.silenced == {2} and sim.faults.delay_replies_ms == 3
+        client.power_cycle([2])  # back on: speaks again
+        assert sim.faults.silenced == set()
+        client.inject(6, ActState.TOW_ERROR)
+        host.send(pc.get_param(6, Param.ACT_STATE))
+        (reply,) = _collect(host, 1)
+        want = ActState.ERROR | ActState.TOW_ERROR
+        assert ActState(reply.value) & want == want
+        refused = [({"op": "nope"}, "unknown request"),
+                   ({"op": "inject", "module": 6, "bits": ["NOPE"]}, "unknown ACT_STATE flag"),
+                   ({"op": "faults", "drop_replies": 2}, "drop fraction")]
+        for bad, why in refused:
+            with pytest.raises(SimControlError, match=why):
+                client.request(**bad)
+        assert channel.answer(b"{not json")["ok"] is False
+        assert client.request("ping") == "pong"  # still serving
+    finally:
+        client.close()
+        channel.close()
+
+
 def test_command_line_helpers(monkeypatch):
     assert strip_ros_args(["--arm", "pa10", "--ros-args", "-r", "__node:=sim", "--", "--gui"]) == [
         "--arm",

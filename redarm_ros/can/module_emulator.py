@@ -821,6 +821,37 @@ class ModuleBank:
                     out += frames
             return out
 
+    def power_cycle(self, module_id: int) -> None:
+        """Switch module ``module_id`` off and on: its joint brakes and holds where it is, and the
+        module comes back with its factory settings (the ``ModuleConfig``: no HOME_OK unless
+        ``homed``, the configured ACT_CONFIG, factory limits), as a real module after a power loss.
+
+        Raises:
+            InvalidInputError: no module has this id.
+        """
+        with self.lock:
+            old = self._module(module_id)
+            old.plant.halt()
+            old.plant.set_travel_limits(old.cfg.lower, old.cfg.upper)
+            self.modules[module_id] = PowerCubeModule(module_id, old.plant, old.cfg, clock=old.clock)
+
+    def inject_fault(self, module_id: int, bits: ActState) -> None:
+        """Raise a fault on module ``module_id`` as its hardware would (ERROR plus ``bits``, the joint
+        halted, a state frame at the next :meth:`tick`); RESET clears it.
+
+        Raises:
+            InvalidInputError: no module has this id.
+        """
+        with self.lock:
+            self._module(module_id).inject_fault(bits)
+
+    def _module(self, module_id: int) -> PowerCubeModule:
+        module = self.modules.get(module_id)
+        if module is None:
+            raise InvalidInputError(f"no module with id {module_id} (have {sorted(self.modules)})",
+                                    field="module_id", value=module_id)
+        return module
+
     def positions(self) -> list[float]:
         """Plant positions (rad) in module-id order."""
         with self.lock:

@@ -112,6 +112,14 @@ class PlantModules:
         ``PowerCubeModule.tick``); unsolicited frames of speaking modules."""
         return self.bank.tick(behind_s, silenced)
 
+    def power_cycle(self, module_id: int) -> None:
+        """Module ``module_id`` off and on: factory settings, no HOME_OK, its joint held where it is."""
+        self.bank.power_cycle(module_id)
+
+    def inject_fault(self, module_id: int, bits: ActState) -> None:
+        """ERROR plus ``bits`` on module ``module_id``, as its hardware would raise them."""
+        self.bank.inject_fault(module_id, bits)
+
     def describe(self) -> list[dict[str, Any]]:
         """Per module: id, ACT_STATE (int and flag names), homed, position (rad). No side effects."""
         out = []

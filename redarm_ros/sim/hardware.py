@@ -17,7 +17,9 @@ No ROS here: to the rest of the system this process *is* the hardware. It
 * offers fault injection for tests: ``--drop-replies FRACTION`` (seeded by ``--seed``),
   ``--delay-replies MS``, ``--silence-module ID`` (repeatable; silent modules ignore every frame),
   ``--die-after S`` (SIGKILLs itself: a crash, no clean-up), and at run time ``SIGUSR1`` (toggle
-  the silence of the ``--silence-module`` set), ``SIGUSR2`` (snapshot) and ``--control-file``.
+  the silence of the ``--silence-module`` set), ``SIGUSR2`` (snapshot) and ``--control-file``,
+* with ``--control-port``, answers a test's requests (state now, faults in force, a module
+  power-cycled or in ERROR) on 127.0.0.1 (:mod:`redarm_ros.sim.control_channel`).
 
 See ``docs/sim.md`` for the status schema and the control file format. Exit codes: 0 clean stop
 (SIGINT/SIGTERM), 2 bad arguments, 3 bus could not be opened (at once for a configuration that can
@@ -27,6 +29,7 @@ never work, else after ``--bus-wait`` seconds of retries), -9 (killed) after ``-
 from __future__ import annotations
 
 import argparse
+import collections
 import heapq
 import json
 import logging
@@ -38,6 +41,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Sequence
+from concurrent.futures import Future
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -185,6 +189,8 @@ class HardwareSim:
         self._stop = threading.Event()
         self._last_setpoint: np.ndarray | None = None  # physics thread: see _resting
         self._snapshot_requests: list[str | None] = []
+        # work for the physics thread from other threads (the control channel's status reads)
+        self._physics_calls: collections.deque[tuple[Callable[[], Any], Future[Any]]] = collections.deque()
         # faults and snapshot requests between threads; reentrant because signal handlers (which run
         # in the main thread, possibly inside a locked block) take it too
         self._lock = threading.RLock()
@@ -211,6 +217,37 @@ class HardwareSim:
         """Ask the physics thread to write a snapshot (``name``.png, or a numbered one)."""
         with self._lock:
             self._snapshot_requests.append(name)
+
+    def call_in_physics(self, fn: Callable[[], Any]) -> Future[Any]:
+        """Run ``fn`` on the physics thread between two steps (every pybullet call belongs to that
+        thread); the future holds its result. Cancelled if the simulator stops first."""
+        fut: Future[Any] = Future()
+        self._physics_calls.append((fn, fut))
+        if self._stop.is_set():
+            self._run_physics_calls(cancel=True)
+        return fut
+
+    def _run_physics_calls(self, cancel: bool = False) -> None:
+        while self._physics_calls:
+            fn, fut = self._physics_calls.popleft()
+            if cancel:
+                fut.cancel()
+            elif fut.set_running_or_notify_cancel():
+                try:
+                    fut.set_result(fn())
+                except Exception as exc:  # noqa: BLE001 - handed to the caller
+                    fut.set_exception(exc)
+
+    def fault_settings(self) -> dict[str, Any]:
+        """The fault injection in force: ``drop_replies``, ``delay_replies_ms``, ``silenced``,
+        ``toggle_set`` (the status's ``faults``)."""
+        with self._lock:
+            return {
+                "drop_replies": self.faults.drop_replies,
+                "delay_replies_ms": self.faults.delay_replies_ms,
+                "silenced": sorted(self.faults.silenced),
+                "toggle_set": sorted(self.faults.toggle_set),
+            }
 
     def toggle_silence(self) -> None:
         """Silence the ``toggle_set`` modules if any of them speaks, else let them all speak again."""
@@ -357,13 +394,7 @@ class HardwareSim:
         """The machine-readable status (see docs/sim.md); call from the physics thread."""
         p = self.plant
         pos, quat = p.tool_pose()
-        with self._lock:
-            faults = {
-                "drop_replies": self.faults.drop_replies,
-                "delay_replies_ms": self.faults.delay_replies_ms,
-                "silenced": sorted(self.faults.silenced),
-                "toggle_set": sorted(self.faults.toggle_set),
-            }
+        faults = self.fault_settings()
         counters = asdict(self.counters)
         n_rep = max(1, counters["replies_tx"])
         counters["reply_latency_mean_ms"] = counters.pop("reply_latency_sum_ms") / n_rep
@@ -524,6 +555,8 @@ class HardwareSim:
                     self.plant.step(due)
                     k += due
                     batch = REST_BATCH if self._resting() else 1
+                if self._physics_calls:
+                    self._run_physics_calls()
                 if self.die_after_s is not None and now - self._start >= self.die_after_s:
                     _LOG.warning("--die-after %.3f s reached: crashing on purpose", self.die_after_s)
                     os.kill(os.getpid(), signal.SIGKILL)
@@ -560,6 +593,7 @@ class HardwareSim:
                                  self.rate_hz)
         finally:
             self._stop.set()
+            self._run_physics_calls(cancel=True)
             self._bus_thread.join(timeout=2.0)
             with self._status_cond:
                 self._status_cond.notify()
@@ -628,6 +662,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--snapshot-dir", default=env(ENV_PREFIX + "SNAPSHOT_DIR"), help="PNG directory")
     ap.add_argument("--snapshot-size", default="640x480", help="snapshot WIDTHxHEIGHT")
     ap.add_argument("--control-file", default=env(ENV_PREFIX + "CONTROL_FILE"), help="JSON control file")
+    ap.add_argument("--control-port", type=int, default=None, metavar="PORT",
+                    help="serve the control channel (redarm_ros.sim.control_channel) on 127.0.0.1:PORT "
+                    "(0: an ephemeral port, named in the ready line as control=127.0.0.1:PORT)")
     g = ap.add_argument_group("CAN bus (python-can configuration, passed through)")
     g.add_argument("--can-interface", default=None, help="python-can interface (else CAN_INTERFACE)")
     g.add_argument("--can-channel", default=None, help="python-can channel (else CAN_CHANNEL)")
@@ -788,6 +825,17 @@ def main(argv: Sequence[str] | None = None) -> int:
         die_after_s=args.die_after,
     )
     sim.realtime = prio.realtime
+    channel = None
+    if args.control_port is not None:
+        from redarm_ros.sim.control_channel import ControlChannel
+
+        try:
+            channel = ControlChannel(sim, port=args.control_port).start()
+        except OSError as exc:
+            _LOG.error("control channel on 127.0.0.1:%d: %s", args.control_port, exc)
+            bus.shutdown()
+            plant.close()
+            return EXIT_BAD_ARGS
 
     def _stop(signum: int, _frame: object) -> None:
         _LOG.info("signal %d: stopping", signum)
@@ -799,14 +847,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     signal.signal(signal.SIGUSR2, lambda *_: sim.request_snapshot(None))
 
     def _ready() -> None:
+        control = f" control={channel.host}:{channel.port}" if channel is not None else ""
         sys.stdout.write(
-            f"{READY_LINE} arm={arm.name} modules={ids[0]}-{ids[-1]} rate={args.rate:g} pid={os.getpid()}\n"
+            f"{READY_LINE} arm={arm.name} modules={ids[0]}-{ids[-1]} rate={args.rate:g} pid={os.getpid()}"
+            f"{control}\n"
         )
         sys.stdout.flush()
 
     try:
         sim.run(on_ready=_ready)
     finally:
+        if channel is not None:
+            channel.close()
         try:
             bus.shutdown()
         except Exception:  # noqa: BLE001 - shutting down a dead transport must not mask the exit

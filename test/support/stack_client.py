@@ -1,6 +1,7 @@
-"""Pieces the end-to-end stack tests share: the stack as a module fixture body, an rclpy client
-base (own context, executor, ``spin_until``), the move to a ready pose with ``~/recover`` on a
-starved machine, and the simulated tool's pose. Import after ``pytest.importorskip("rclpy")``."""
+"""Pieces the end-to-end stack tests share: the simulated arm with the ROS nodes as a module fixture
+(:class:`redarm_ros.testing.SimulatedArm`), an rclpy client base (own context, executor,
+``spin_until``), the move to a ready pose with ``~/recover`` on a starved machine, and the simulated
+tool's pose. Import after ``pytest.importorskip("rclpy")``."""
 
 from __future__ import annotations
 
@@ -22,23 +23,13 @@ from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
-from redarm_ros.bringup import Stack, StackConfig
-from redarm_ros.kinematics.quaternion import from_xyzw, quat_to_matrix
 from redarm_ros.nodes._common import call_resending
 from redarm_ros.nodes.controller import pose_to_msg
-from redarm_ros.procs import group_members
+from redarm_ros.testing import SimulatedArm
 from support.waits import spin_until as spin_executor_until
 
 # Tool pointing down (z of the tool along -z of the base).
 R_DOWN = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])
-
-
-def stderr_sink(line: str) -> None:
-    """Stack output to stderr (pytest may have closed it at teardown)."""
-    try:
-        sys.stderr.write(line + "\n")
-    except (ValueError, OSError):
-        pass
 
 
 def pose_down(p: tuple[float, float, float] | np.ndarray) -> np.ndarray:
@@ -49,14 +40,9 @@ def pose_down(p: tuple[float, float, float] | np.ndarray) -> np.ndarray:
     return T
 
 
-def sim_tool(stack: Stack) -> np.ndarray:
-    """4x4 tool pose of the simulated arm (pybullet link state, from the sim's status file)."""
-    st = stack.sim_status()
-    assert st is not None, "no simulator status"
-    T = np.eye(4)
-    T[:3, :3] = quat_to_matrix(from_xyzw(st["tool"]["quaternion_xyzw"]))
-    T[:3, 3] = st["tool"]["position"]
-    return T
+def sim_tool(arm: SimulatedArm) -> np.ndarray:
+    """4x4 tool pose of the simulated arm (pybullet link state, read from the simulator now)."""
+    return arm.status().tool
 
 
 def pose_err(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
@@ -66,30 +52,27 @@ def pose_err(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
     return pe, float(math.acos(max(-1.0, min(1.0, c))))
 
 
-def stack_fixture(init_timeout: float = 30.0, **cfg: Any) -> Any:
-    """A module-scoped ``stack`` fixture: ``StackConfig(log_level="warn", **cfg)`` in ``running_stack``
-    on the test's ROS domain. Assign it to a module global named ``stack``."""
+def stack_fixture(node_args: dict[str, list[str]] | None = None, **cfg: Any) -> Any:
+    """A module-scoped ``stack`` fixture: a :class:`SimulatedArm` with the driver (homed), the
+    controller, the IK service and the description node (``cfg`` overrides, keywords of
+    ``SimArmConfig``) on the test's ROS domain. Assign it to a module global named ``stack``."""
 
     @pytest.fixture(scope="module")
-    def stack(ros_env: Any) -> Iterator[Stack]:
-        with running_stack(StackConfig(log_level="warn", **cfg), ros_env.domain_id, init_timeout) as st:
-            yield st
+    def stack(ros_env: Any) -> Iterator[SimulatedArm]:
+        settings = {"driver": True, "controller": True, "ik_service": True, "description": True, **cfg}
+        with SimulatedArm(domain_id=ros_env.domain_id, sink=_stderr_sink, node_args=node_args or {},
+                          **settings) as arm:
+            yield arm
 
     return stack
 
 
-@contextmanager
-def running_stack(cfg: StackConfig, domain_id: int, init_timeout: float) -> Iterator[Stack]:
-    """The stack started, the driver's modules initialised; on exit closed and checked gone."""
-    st = Stack(cfg, sink=stderr_sink, domain_id=domain_id)
+def _stderr_sink(line: str) -> None:
+    """Stack output to stderr (pytest may have closed it at teardown)."""
     try:
-        st.start()
-        st.children["can_driver"].wait_for_line(r"init done", timeout=init_timeout, from_start=True)
-        yield st
-    finally:
-        pids = [c.pid for c in st.children.values()]
-        st.close()
-        assert not [p for p in pids if group_members(p)], "a stack process outlived Stack.close()"
+        sys.stderr.write(line + "\n")
+    except (ValueError, OSError):
+        pass
 
 
 class StackClient:
@@ -171,7 +154,7 @@ def ready_client_fixture(make: Callable[[Any], GoalClient], joint_names: list[st
     (``move_to_ready``)."""
 
     @pytest.fixture(scope="module")
-    def client(stack: Stack, ros_env: Any) -> Iterator[GoalClient]:
+    def client(stack: SimulatedArm, ros_env: Any) -> Iterator[GoalClient]:
         with client_in_context(ros_env.domain_id, make) as c:
             assert c.spin_until(lambda: c.joint_states > 5 and len(c.states) > 0, start_s), \
                 "no joint_states / controller state"
@@ -182,7 +165,7 @@ def ready_client_fixture(make: Callable[[Any], GoalClient], joint_names: list[st
     return client
 
 
-def sim_tool_reaches(c: StackClient, stack: Stack, T: np.ndarray, pos_tol: float, rot_tol: float,
+def sim_tool_reaches(c: StackClient, stack: SimulatedArm, T: np.ndarray, pos_tol: float, rot_tol: float,
                      timeout: float) -> bool:
     """Spin until the simulated tool is within ``pos_tol`` m and ``rot_tol`` rad of ``T``."""
     def there() -> bool:
@@ -192,15 +175,15 @@ def sim_tool_reaches(c: StackClient, stack: Stack, T: np.ndarray, pos_tol: float
     return c.spin_until(there, timeout)
 
 
-def sim_arm_still(c: StackClient, stack: Stack, window_s: float = 0.5, tol: float = 1e-4,
+def sim_arm_still(c: StackClient, stack: SimulatedArm, window_s: float = 0.5, tol: float = 1e-4,
                   timeout: float = 15.0) -> bool:
     """Spin until the simulated joints have moved less than ``tol`` rad over the last ``window_s``
-    seconds (``Stack.sim_still``). False after ``timeout`` s."""
-    return c.spin_until(stack.sim_still(window_s, tol), timeout)
+    seconds (``SimulatedArm.still``). False after ``timeout`` s."""
+    return c.spin_until(stack.still(window_s, tol), timeout)
 
 
-def move_to_ready(c: StackClient, cmd_pub: Any, stack: Stack, joint_names: list[str], ready_q: np.ndarray,
-                  reach_s: float, recover_s: float) -> None:
+def move_to_ready(c: StackClient, cmd_pub: Any, stack: SimulatedArm, joint_names: list[str],
+                  ready_q: np.ndarray, reach_s: float, recover_s: float) -> None:
     """Move the arm to ``ready_q`` through ``cmd_pub`` (/joint_command, made early so it is matched;
     a 3 s trajectory) and let the controller
     resync. On a starved 2-core machine the modules' 100 ms watchdog can halt the arm while the stack
@@ -210,14 +193,14 @@ def move_to_ready(c: StackClient, cmd_pub: Any, stack: Stack, joint_names: list[
                                         time_from_start=Duration(sec=3))]
 
     def at_ready() -> bool:
-        return float(np.max(np.abs(np.array(stack.sim_status()["q"]) - ready_q))) < 1e-3
+        return float(np.max(np.abs(stack.q - ready_q))) < 1e-3
 
     recover = c.node.create_client(Trigger, "can_driver/recover")
     for attempt in range(3):
         cmd_pub.publish(traj)
         if c.spin_until(at_ready, reach_s):
             break
-        assert attempt < 2, f"arm not at the ready pose: {stack.sim_status()['q']}"
+        assert attempt < 2, f"arm not at the ready pose: {stack.q}"
         assert c.spin_until(recover.service_is_ready, 5.0)
         resp = c.call(recover, Trigger.Request(), recover_s)
         assert resp is not None and resp.success, f"~/recover failed: {resp}"
