@@ -111,6 +111,10 @@ def _node_params(module: Path) -> list[tuple[str, object]]:
         if isinstance(node, ast.Assign) and any(getattr(t, "id", "") == "PARAMS" for t in node.targets):
             out = []
             for item in node.value.elts:  # type: ignore[attr-defined]
+                if isinstance(item, ast.Starred):  # *urdf_arm_params(...): the URDF arm's three strings
+                    assert getattr(item.value.func, "id", "") == "urdf_arm_params", ast.dump(item)
+                    out += [("urdf", ""), ("base_link", ""), ("tip_link", "")]
+                    continue
                 if isinstance(item, ast.Name):
                     out.append(shared[item.id])
                     continue

@@ -405,7 +405,7 @@ class ReferenceShaper(LimitsView):  # lower/upper: the joint limits inset by the
         that time. Taken per nominal period instead, every skipped tick doubled or tripled the
         velocity fed forward, and the reference overshot the end of a trajectory (134 / 340 mrad
         with 20 % / 50 % of the cycles 1-3 ticks late, replayed offline on the PA10's limits; now 0,
-        see docs/can_driver.md, "Lost cycles")."""
+        see docs/can_driver.md, "One cycle")."""
         if self.r is None:
             self.reset(target)
             return self.r.copy()  # type: ignore[union-attr]
