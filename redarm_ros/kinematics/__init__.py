@@ -8,11 +8,14 @@ Quaternions inside this package are (w, x, y, z) unless a name says otherwise (`
     sols = arm.ik(T, swivel=0.3)     # (k, 7), every in-limit solution at that swivel
     ivs = arm.feasible_swivels(T)    # per flip pattern, the in-limit swivel intervals (closed form)
     q, info = arm.ik_nearest(T, q_seed)
+    cor = arm.swivel_corridor(T0, T1, q0)  # the straight route's swivel corridor and a schedule
 
 Module layering (no import cycle): ``errors``, ``result``, ``quaternion``, ``protocols`` <- ``numeric``
-<- ``model`` <- ``feasible`` <- ``swivel``, ``powercube6`` <- ``loader`` <- ``solve``, ``reachability``.
+<- ``model`` <- ``feasible`` <- ``corridor`` <- ``swivel``, ``powercube6`` <- ``loader`` <- ``solve``,
+``reachability``.
 """
 
+from redarm_ros.kinematics.corridor import SwivelCorridor, route_pose, swivel_corridor
 from redarm_ros.kinematics.loader import arm_config_dirs, available_arms, build_arm, load_arm
 from redarm_ros.kinematics.model import Arm, Joint, pose_error
 from redarm_ros.kinematics.powercube6 import PowerCube6Arm
@@ -36,4 +39,7 @@ __all__ = [
     "available_arms",
     "arm_config_dirs",
     "pose_error",
+    "SwivelCorridor",
+    "swivel_corridor",
+    "route_pose",
 ]
