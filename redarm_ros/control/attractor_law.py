@@ -132,6 +132,14 @@ class AttractorMixin(ControllerBase):
                                 self._max_vel, self._max_acc, rp.corridor_share)
         if route is None:
             return why
+        q_near, _ = self.arm.ik_nearest(T, st.ref.q)
+        if q_near is not None:
+            t_joint = move_time(np.asarray(q_near, float) - st.ref.q, self._max_vel, self._max_acc)
+            if route.duration > max(2.0 * rp.slow_route * t_joint, t_joint + 4.0):
+                # (a schedule that must keep near a singularity margin turns joints 1 and 3 fast, and the
+                # hand crawls; a straight route is worth twice the patience of the attractor's)
+                return (f"its route needs {route.duration:.1f} s of joint motion, a joint-space move "
+                        f"{t_joint:.1f} s")
         st.route = route
         st.progress.due = st.time + p.replan.overdue_factor * route.duration + p.replan.overdue_slack
         st.att.v, st.att.a, st.att.turn, st.att.v_cap = 0.0, 0.0, (0.0, 0.0), None
@@ -149,6 +157,9 @@ class AttractorMixin(ControllerBase):
             st.route = None
             self._enter_attractor()
             return
+        if route.t == 0.0:
+            route.t_moved = st.time
+        t_before = route.t
         route.t = min(route.t + dt, route.duration)
         u = min_jerk(route.t / route.duration)
         new_pos, new_rot = route.pose(u)
@@ -171,6 +182,15 @@ class AttractorMixin(ControllerBase):
             # profile's clock goes back to the progress reached
             u_now = route.progress_of(out.pos, out.rot)
             route.t = route.duration * min_jerk_inverse(u_now)
+        if route.t > t_before + 1e-9 or route.t >= route.duration:
+            route.t_moved = st.time
+        elif st.time - route.t_moved >= self.params.replan.hold_time:
+            # the IK step keeps shortening the step or moving the swivel off the schedule: leave the route
+            st.route = None
+            done = 100.0 * route.progress_of(ref.pos, ref.rot)
+            st.message = f"the corridor route stalled at {done:.0f} %: attractor dynamics"
+            self._enter_attractor()
+            return
         v_before = ref.v_tool
         if not self._commit(out, dt, attractor=False):
             st.route = None  # the guard refused: the attractor dynamics and the re-planner as before

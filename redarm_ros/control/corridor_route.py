@@ -73,6 +73,7 @@ class CorridorRoute:
     corridor: SwivelCorridor
     duration: float
     t: float = 0.0
+    t_moved: float = 0.0  # controller time (s) when the route's clock last advanced
 
     def pose(self, u: float) -> tuple[tuple[float, float, float], tuple[float, float, float, float]]:
         """Position and orientation at progress u."""

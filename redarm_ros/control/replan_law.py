@@ -156,7 +156,8 @@ class ReplanMixin(ControllerBase):
         d = math.dist(st.cmd.pos, goal.pos)
         a = quat_angle(st.cmd.rot, goal.rot)
         err = d + 0.1 * a
-        if st.route is not None or (d <= self.params.pos_tolerance and a <= self.params.ori_tolerance) \
+        moving_on = st.route is not None and st.time - st.route.t_moved < rp.hold_time
+        if moving_on or (d <= self.params.pos_tolerance and a <= self.params.ori_tolerance) \
                 or err < pr.best - rp.progress:
             # (a corridor route's clock runs only as the hand moves along it: it is progress)
             pr.best = err
