@@ -135,9 +135,9 @@ class AttractorMixin(ControllerBase):
         q_near, _ = self.arm.ik_nearest(T, st.ref.q)
         if q_near is not None:
             t_joint = move_time(np.asarray(q_near, float) - st.ref.q, self._max_vel, self._max_acc)
-            if route.duration > max(2.0 * rp.slow_route * t_joint, t_joint + 4.0):
+            if route.duration > max(2.0 * rp.slow_route * t_joint, t_joint + 8.0):
                 # (a schedule that must keep near a singularity margin turns joints 1 and 3 fast, and the
-                # hand crawls; a straight route is worth twice the patience of the attractor's)
+                # hand crawls; a straight route is worth more patience than the attractor's route)
                 return (f"its route needs {route.duration:.1f} s of joint motion, a joint-space move "
                         f"{t_joint:.1f} s")
         st.route = route
