@@ -18,12 +18,12 @@ schedule's joint derivatives along u times the profile's peak rate 1.875 / T and
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
 
-from redarm_ros.kinematics.corridor import SwivelCorridor
+from redarm_ros.kinematics.corridor import SwivelCorridor, route_pose
 from redarm_ros.kinematics.quaternion import (
     quat_from_matrix,
     quat_from_rotvec,
@@ -118,6 +118,34 @@ def route_duration(corridor: SwivelCorridor, length: float, angle: float, v_max:
     return max(T, math.sqrt(float(np.max(need))))
 
 
+def smoothed(arm: Any, T0: np.ndarray, T1: np.ndarray, cor: SwivelCorridor, m_limit: float, m_sing: float,
+             m_elbow: float, window: float = 0.08) -> SwivelCorridor:
+    """The schedule averaged over +-``window`` of progress (triangular weights; the start kept), if every
+    sample's joints at the averaged swivel keep half the margins and stay continuous (each joint within
+    0.15 rad of the sample before); else the schedule as it is. The backward pass leaves corners where
+    the rate bound starts or ends; the command cannot follow a corner within the joints' acceleration
+    limits without the hand leaving the line."""
+    u, S = cor.u, cor.swivel
+    if len(u) < 3:
+        return cor
+    W = np.maximum(0.0, 1.0 - np.abs(u[:, None] - u[None, :]) / window)
+    W *= np.gradient(u)[None, :]  # (uneven samples: weights per unit progress)
+    S_new = (W @ S) / W.sum(axis=1)
+    S_new[0] = S[0]
+    lo = np.asarray(arm.lower) + 0.5 * m_limit
+    up = np.asarray(arm.upper) - 0.5 * m_limit
+    Q = np.empty_like(cor.q)
+    Q[0] = cor.q[0]
+    for i in range(1, len(u)):
+        row = arm.ik(route_pose(T0, T1, float(u[i])), float(S_new[i]), limits=False)[cor.pattern]
+        q = row + 2.0 * math.pi * np.round((Q[i - 1] - row) / (2.0 * math.pi))
+        if np.any(q < lo) or np.any(q > up) or float(np.max(np.abs(q - Q[i - 1]))) > 0.15 \
+                or min(abs(math.sin(q[1])), abs(math.sin(q[5]))) < 0.5 * m_sing or abs(q[3]) < 0.5 * m_elbow:
+            return cor
+        Q[i] = q
+    return replace(cor, swivel=S_new, q=Q, max_joint_step=float(np.max(np.abs(np.diff(Q, axis=0)))))
+
+
 def plan_route(arm: Any, T0: np.ndarray, T1: np.ndarray, q0: np.ndarray, preferred: Any, margin_sing: float,
                margin_limit: float, v_max: float, w_max: float, s_rate: float, max_vel: np.ndarray,
                max_acc: np.ndarray, share: float) -> tuple[CorridorRoute | None, str]:
@@ -140,6 +168,7 @@ def plan_route(arm: Any, T0: np.ndarray, T1: np.ndarray, q0: np.ndarray, preferr
             break
     if not cor.found:
         return None, cor.reason
+    cor = smoothed(arm, T0, T1, cor, m_limit, min(m_sh, m_wr), m_el)
     p0 = (float(T0[0, 3]), float(T0[1, 3]), float(T0[2, 3]))
     p1 = (float(T1[0, 3]), float(T1[1, 3]), float(T1[2, 3]))
     r0, r1 = quat_from_matrix(T0[:3, :3]), quat_from_matrix(T1[:3, :3])

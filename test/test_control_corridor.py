@@ -1,0 +1,77 @@
+"""Point goals through the swivel corridor (control/corridor_route.py): straight hand paths at a
+minimum-jerk pace where a corridor exists, the joint-space re-planner with the reason where none does."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from redarm_ros.control.corridor_route import CorridorRoute, min_jerk, min_jerk_inverse
+from redarm_ros.control.reach_controller import Phase, ReachController
+from redarm_ros.kinematics import load_arm
+
+
+def test_min_jerk_profile_and_its_inverse():
+    assert min_jerk(0.0) == 0.0 and min_jerk(1.0) == 1.0 and abs(min_jerk(0.5) - 0.5) < 1e-12
+    for u in (0.01, 0.3, 0.77):
+        assert abs(min_jerk(min_jerk_inverse(u)) - u) < 1e-9
+
+
+def run_to_rest(ctl, T, steps=3000):
+    pos, phases, messages = [np.asarray(ctl.arm.fk(ctl.q))[:3, 3]], set(), set()
+    for _ in range(steps):
+        r = ctl.step(0.01)
+        pos.append(np.asarray(r.position))
+        phases.add(r.phase)
+        messages.add(r.message)
+        if r.phase is Phase.REACHED:
+            break
+    return np.array(pos), phases, messages, r
+
+
+def test_a_goal_with_a_corridor_goes_straight_on_a_single_speed_peak():
+    """PA10 from its park posture to a goal with the tool turned by 30 deg: the hand follows the line
+    (path ratio <= 1.01), never re-plans, one speed peak, and the state says so while it moves."""
+    arm = load_arm("pa10")
+    ctl = ReachController(arm)
+    q0 = np.array(arm.park, float)
+    ctl.reset(q0)
+    T = arm.fk(q0 + np.array([0.5, 0.3, -0.2, -0.4, 0.3, 0.2, 0.4]))
+    assert ctl.set_goal(T).accepted
+    assert ctl._st.route is not None  # noqa: SLF001 (planned once, at the goal)
+    P, phases, messages, r = run_to_rest(ctl, T)
+    assert r.phase is Phase.REACHED and Phase.REPLANNING not in phases
+    assert "straight through the swivel corridor" in messages
+    d = np.linalg.norm(P[-1] - P[0])
+    assert np.sum(np.linalg.norm(np.diff(P, axis=0), axis=1)) / d <= 1.01
+    v = np.linalg.norm(np.diff(P, axis=0), axis=1) / 0.01
+    i = int(np.argmax(v))
+    tol = 0.03 * v[i]
+    assert np.all(np.diff(v[: i + 1]) >= -tol) and np.all(np.diff(v[i:]) <= tol)
+    assert np.all(ctl.q >= arm.lower) and np.all(ctl.q <= arm.upper)
+
+
+def test_a_goal_without_a_corridor_is_replanned_and_says_why():
+    """PowerCube 7: a route that would fold the elbow beyond joint 4's limit at every swivel. The
+    joint-space re-planner takes it, and the state names the closing corridor."""
+    arm = load_arm("powercube7")
+    ctl = ReachController(arm)
+    T0 = np.eye(4)
+    T0[:3, 3] = [0.45, -0.25, 0.3]
+    q0, _ = arm.ik_nearest(T0, np.array(arm.park, float))
+    ctl.reset(q0)
+    T1 = T0.copy()
+    T1[:3, 3] = [-0.1, 0.3, 0.3]
+    assert ctl.set_goal(T1).accepted
+    assert ctl._st.route is None  # noqa: SLF001
+    reason = ctl._st.plan_reason  # noqa: SLF001
+    assert "no swivel corridor" in reason and "joint 4" in reason, reason
+    P, phases, messages, r = run_to_rest(ctl, T1)
+    assert r.phase is Phase.REACHED
+
+
+def test_route_progress_of_a_pose():
+    route = CorridorRoute((0.0, 0.0, 0.0), (1.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.5), None, 1.0)
+    pos, rot = route.pose(0.25)
+    assert math.isclose(route.progress_of(pos, rot), 0.25)
