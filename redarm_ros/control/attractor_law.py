@@ -13,7 +13,8 @@ import numpy as np
 
 from redarm_ros.control.attractor import direction, heading_angles
 from redarm_ros.control.base import SMALL_SCENE, ControllerBase
-from redarm_ros.control.elbow import ElbowCircle
+from redarm_ros.control.corridor_route import min_jerk, min_jerk_inverse, plan_route
+from redarm_ros.control.elbow import ElbowCircle, elbow_circle
 from redarm_ros.control.ik_step import DeadEnd, pose_matrix
 from redarm_ros.control.joint_limits import braking_speed
 from redarm_ros.control.paper_redundancy import MODE as PAPER_MODE
@@ -22,6 +23,7 @@ from redarm_ros.control.slide import obstacle_slide, workspace_slide
 from redarm_ros.control.state import REST_SPEED_SHARE, Mode
 from redarm_ros.control.swivel_dynamics import wrap_angle
 from redarm_ros.control.types import Phase, Quat, Vec3
+from redarm_ros.errors import UnreachableError
 from redarm_ros.kinematics.quaternion import (
     quat_between_vectors,
     quat_from_rotvec,
@@ -104,8 +106,109 @@ class AttractorMixin(ControllerBase):
                     f"{t_joint:.1f} s")
         return ""
 
+    def _plan_corridor(self, T: np.ndarray) -> str:
+        """Plan the straight route to the point goal ``T`` through the swivel corridor (once per goal):
+        sets ``st.route`` if there is one. Only with the hand at rest, in free space (the elbow's obstacle
+        avoidance then keeps the attractor dynamics) and with the swivel dynamics in charge of the elbow.
+        Returns why there is no corridor ('' if there is one, or if it was not asked for)."""
+        st = self._state()
+        p = self.params
+        scene = self._index.reach_scene.scene
+        if not p.replan.corridor or p.swivel_mode in ("fixed", PAPER_MODE) or len(scene.obstacles) \
+                or scene.table_height is not None or st.ref.v_tool > 0.01 or st.att.v > 0.01 \
+                or not hasattr(self.arm, "swivel_corridor"):
+            return ""
+        T0 = pose_matrix(st.ref.pos, st.ref.rot)
+
+        def preferred(_u: float, Tu: np.ndarray) -> float:
+            try:
+                return self._desired_swivel(elbow_circle(self.geom, Tu))
+            except UnreachableError:
+                return st.ref.s_des
+
+        rp = p.replan
+        route, why = plan_route(self.arm, T0, T, st.ref.q, None, rp.corridor_sing_margin,
+                                rp.corridor_limit_margin, p.speed.v_max, p.max_ori_rate, p.swivel.max_rate,
+                                self._max_vel, self._max_acc, rp.corridor_share)
+        if route is None:
+            return why
+        q_near, _ = self.arm.ik_nearest(T, st.ref.q)
+        if q_near is not None:
+            t_joint = move_time(np.asarray(q_near, float) - st.ref.q, self._max_vel, self._max_acc)
+            if route.duration > max(2.0 * rp.slow_route * t_joint, t_joint + 8.0):
+                # (a schedule that must keep near a singularity margin turns joints 1 and 3 fast, and the
+                # hand crawls; a straight route is worth more patience than the attractor's route)
+                return (f"its route needs {route.duration:.1f} s of joint motion, a joint-space move "
+                        f"{t_joint:.1f} s")
+        st.route = route
+        st.progress.due = st.time + p.replan.overdue_factor * route.duration + p.replan.overdue_slack
+        st.att.v, st.att.a, st.att.turn, st.att.v_cap = 0.0, 0.0, (0.0, 0.0), None
+        return ""
+
+    def _route_step(self, dt: float) -> None:
+        """The hand one step along the corridor route (minimum-jerk pace), the swivel on its schedule at
+        the hand's progress. The route ends (the attractor dynamics takes over for the settling) at its
+        end, when the goal is dropped, or when the IK step or the guard cannot follow it."""
+        st = self._state()
+        route = st.route
+        assert route is not None
+        ref = st.ref
+        if st.goal is None:
+            st.route = None
+            self._enter_attractor()
+            return
+        if route.t == 0.0:
+            route.t_moved = st.time
+        t_before = route.t
+        route.t = min(route.t + dt, route.duration)
+        u = min_jerk(route.t / route.duration)
+        new_pos, new_rot = route.pose(u)
+        s_goal = wrap_angle(route.corridor.swivel_at(u))
+
+        def swivel(_circle: ElbowCircle, _T: np.ndarray, s0: float) -> tuple[float, float, bool]:
+            ref.sdot_want = wrap_angle(s_goal - s0) / dt
+            ref.want_over_since = math.inf
+            ref.s_des = s_goal
+            return s_goal, s_goal, False
+
+        out = self.stepper.advance(ref.pos, ref.rot, ref.s, ref.q, new_pos, new_rot, dt, swivel)
+        if isinstance(out, DeadEnd):
+            st.route = None
+            self._hold(f"the corridor route cannot be followed here ({out.reason}): attractor dynamics")
+            self._track(dt)
+            return
+        if out.speed_scale < 1.0 - 1e-9 or abs(wrap_angle(out.s - s_goal)) > 1e-6:
+            # the step was shortened (a joint limit of speed) or the swivel moved off the schedule: the
+            # profile's clock goes back to the progress reached
+            u_now = route.progress_of(out.pos, out.rot)
+            route.t = route.duration * min_jerk_inverse(u_now)
+        if route.t > t_before + 1e-9 or route.t >= route.duration:
+            route.t_moved = st.time
+        elif st.time - route.t_moved >= self.params.replan.hold_time:
+            # the IK step keeps shortening the step or moving the swivel off the schedule: leave the route
+            st.route = None
+            done = 100.0 * route.progress_of(ref.pos, ref.rot)
+            st.message = f"the corridor route stalled at {done:.0f} %: attractor dynamics"
+            self._enter_attractor()
+            return
+        v_before = ref.v_tool
+        if not self._commit(out, dt, attractor=False):
+            st.route = None  # the guard refused: the attractor dynamics and the re-planner as before
+            return
+        st.att.v = ref.v_tool
+        st.att.a = (ref.v_tool - v_before) / dt
+        if route.t >= route.duration:
+            st.route = None
+            st.att.v, st.att.a = 0.0, 0.0
+            st.att.phi, st.att.theta = self._heading_to_goal()
+            if st.message == "straight through the swivel corridor":
+                st.message = ""
+
     def _attractor_step(self, dt: float) -> None:
         st = self._state()
+        if st.route is not None:
+            self._route_step(dt)
+            return
         p = self.params
         ref, att = st.ref, st.att
         pos, rot = ref.pos, ref.rot

@@ -488,12 +488,18 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
         st.path = None
         if was_moving:
             self._resync_reference(keep_velocity=True)
+        st.route = None
         if st.ref.circle is None:
             self._start_plan("the arm is stretched (no elbow circle)")
             return
+        no_corridor = self._plan_corridor(T)
+        if st.route is not None:
+            st.mode = Mode.ATTRACTOR
+            st.message = "straight through the swivel corridor"
+            return
         reason = self._route_dead_end(T) if self.params.replan.enabled else ""
         if reason:
-            self._start_plan(reason)
+            self._start_plan(f"{reason} (no swivel corridor: {no_corridor})" if no_corridor else reason)
             return
         if st.mode is not Mode.ATTRACTOR:
             st.mode = Mode.ATTRACTOR

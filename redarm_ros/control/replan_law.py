@@ -29,6 +29,7 @@ class ReplanMixin(ControllerBase):
 
     def _start_plan(self, reason: str) -> None:
         st = self._state()
+        st.route = None  # (a corridor route is left for good)
         if not self.params.replan.enabled:
             self._hold(reason)
             return
@@ -155,7 +156,10 @@ class ReplanMixin(ControllerBase):
         d = math.dist(st.cmd.pos, goal.pos)
         a = quat_angle(st.cmd.rot, goal.rot)
         err = d + 0.1 * a
-        if (d <= self.params.pos_tolerance and a <= self.params.ori_tolerance) or err < pr.best - rp.progress:
+        moving_on = st.route is not None and st.time - st.route.t_moved < rp.hold_time
+        if moving_on or (d <= self.params.pos_tolerance and a <= self.params.ori_tolerance) \
+                or err < pr.best - rp.progress:
+            # (a corridor route's clock runs only as the hand moves along it: it is progress)
             pr.best = err
             pr.t_best = st.time
             pr.travel = 0.0

@@ -32,6 +32,7 @@ class ServoMixin(ControllerBase):
     def _enter_servo(self) -> None:
         """Servo state continuous with the reference's motion."""
         st = self._state()
+        st.route = None  # (a point goal's corridor route ends where a stream or twist begins)
         self._end_joint_motion(st)  # from a joint-space move: drop its plan (ReplanMixin)
         if st.mode is Mode.ATTRACTOR:
             e = direction(st.att.phi, st.att.theta)

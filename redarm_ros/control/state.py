@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from redarm_ros.control.corridor_route import CorridorRoute
 from redarm_ros.control.elbow import ElbowCircle
 from redarm_ros.control.obstacles import Clearance
 from redarm_ros.control.replan import JointPath, JointPlanner
@@ -163,4 +164,5 @@ class CoreState:
     history: deque[tuple[np.ndarray, float]] = field(default_factory=lambda: deque(maxlen=1500))
     """The last commands (joints, clearance m), oldest first: where the re-planner may retreat to."""
     stream_note: str = ""
+    route: CorridorRoute | None = None  # the point goal's straight route through the swivel corridor
     time: float = 0.0  # controller clock (s): advanced by step(), or the caller's ``now``

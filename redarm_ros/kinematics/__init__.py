@@ -8,15 +8,17 @@ Quaternions inside this package are (w, x, y, z) unless a name says otherwise (`
     sols = arm.ik(T, swivel=0.3)     # (k, 7), every in-limit solution at that swivel
     ivs = arm.feasible_swivels(T)    # per flip pattern, the in-limit swivel intervals (closed form)
     q, info = arm.ik_nearest(T, q_seed)
+    cor = arm.swivel_corridor(T0, T1, q0)  # the straight route's swivel corridor and a schedule
 
 Module layering (no import cycle): ``errors``, ``result``, ``quaternion``, ``protocols`` <- ``numeric``
-<- ``model`` <- ``feasible`` <- ``swivel``, ``powercube6`` <- ``urdf_chain`` <- ``loader`` <- ``solve``,
-``reachability``.
+<- ``model`` <- ``feasible`` <- ``corridor`` <- ``swivel``, ``powercube6`` <- ``urdf_chain`` <- ``loader``
+<- ``solve``, ``reachability``.
 
 An arm from a URDF: ``load_arm("robot.urdf", base_link="base_link", tip_link="tool0")`` (or the XML text
 of ``/robot_description``); :func:`describe_solver` says which IK it gets and why.
 """
 
+from redarm_ros.kinematics.corridor import SwivelCorridor, route_pose, swivel_corridor
 from redarm_ros.kinematics.loader import (
     arm_config_dirs,
     available_arms,
@@ -51,4 +53,7 @@ __all__ = [
     "available_arms",
     "arm_config_dirs",
     "pose_error",
+    "SwivelCorridor",
+    "swivel_corridor",
+    "route_pose",
 ]

@@ -49,6 +49,7 @@ from typing import Any
 import numpy as np
 
 from redarm_ros.errors import InvalidInputError, UnreachableError
+from redarm_ros.kinematics.corridor import SwivelCorridor, swivel_corridor
 from redarm_ros.kinematics.feasible import (
     INTERVAL_ROOT_TOL,
     LimitTables,
@@ -783,6 +784,13 @@ class SwivelArm(Arm):
         """
         fn = self.swivel_functions(T)
         return feasible_intervals(fn, self._interval_tables)
+
+    def swivel_corridor(self, T_start: np.ndarray, T_goal: np.ndarray, q_start: Sequence[float],
+                        **options: Any) -> SwivelCorridor:
+        """The swivel corridor of the straight route from ``T_start`` (the pose of ``q_start``) to
+        ``T_goal`` and a continuous schedule through it: :func:`.corridor.swivel_corridor` (the options
+        and the result are documented there)."""
+        return swivel_corridor(self, T_start, T_goal, q_start, **options)
 
     def swivel_interval(self, q: Sequence[float]) -> tuple[float, float] | None:
         """How far the elbow of configuration ``q`` can swivel, the hand held, before a joint meets its

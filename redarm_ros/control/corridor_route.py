@@ -1,0 +1,178 @@
+"""The straight route of a point goal through the swivel corridor: the hand on the line at a minimum-jerk
+pace, the elbow on the corridor's swivel schedule.
+
+When a point goal is set with the hand at rest in free space, :func:`plan_route` asks the kinematics for
+the swivel corridor of the straight route (:func:`redarm_ros.kinematics.swivel_corridor`: every swivel at
+which the arm can follow the line within the joint limits and away from the shoulder, elbow and wrist
+singularities, and a continuous schedule nearest the preferred swivel), once per goal. If there is one,
+the hand moves along the line (orientation by slerp) with the progress
+
+    u(t) = 10 x^3 - 15 x^4 + 6 x^5,  x = t / T        (Flash & Hogan's minimum-jerk profile)
+
+and the swivel follows the schedule at the hand's progress. The duration T is the least that keeps the
+hand speed, the orientation rate, the swivel rate and every joint's velocity and acceleration (the
+schedule's joint derivatives along u times the profile's peak rate 1.875 / T and acceleration
+5.77 / T^2) within ``share`` of their limits. Units: m, rad, s.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+
+from redarm_ros.kinematics.corridor import SwivelCorridor, route_pose
+from redarm_ros.kinematics.quaternion import (
+    quat_from_matrix,
+    quat_from_rotvec,
+    quat_mul,
+    quat_normalize,
+    rotvec_between,
+)
+
+#: peak of du/dx and |d2u/dx2| of the minimum-jerk profile
+PEAK_RATE = 1.875
+PEAK_ACC = 5.7735
+#: shortest route (s)
+MIN_DURATION = 0.3
+
+
+def min_jerk(x: float) -> float:
+    """Progress (0..1) of the minimum-jerk profile at the time share x (clamped to [0, 1])."""
+    x = min(max(x, 0.0), 1.0)
+    return x * x * x * (10.0 - 15.0 * x + 6.0 * x * x)
+
+
+def min_jerk_inverse(u: float) -> float:
+    """The time share x with min_jerk(x) = u (bisection; the profile is increasing)."""
+    lo, hi = 0.0, 1.0
+    for _ in range(50):
+        mid = 0.5 * (lo + hi)
+        if min_jerk(mid) < u:
+            lo = mid
+        else:
+            hi = mid
+    return 0.5 * (lo + hi)
+
+
+@dataclass
+class CorridorRoute:
+    """A point goal's straight route through the swivel corridor, and how far along it the reference is.
+
+    ``p0``, ``p1`` (m) the ends of the line, ``rot0`` the start orientation (w, x, y, z) and ``turn`` the
+    rotation vector (rad) to the goal's, ``corridor`` the schedule, ``duration`` (s), ``t`` (s) the
+    time along the profile.
+    """
+
+    p0: tuple[float, float, float]
+    p1: tuple[float, float, float]
+    rot0: tuple[float, float, float, float]
+    turn: tuple[float, float, float]
+    corridor: SwivelCorridor
+    duration: float
+    t: float = 0.0
+    t_moved: float = 0.0  # controller time (s) when the route's clock last advanced
+
+    def pose(self, u: float) -> tuple[tuple[float, float, float], tuple[float, float, float, float]]:
+        """Position and orientation at progress u."""
+        p0, p1, w = self.p0, self.p1, self.turn
+        pos = (p0[0] + u * (p1[0] - p0[0]), p0[1] + u * (p1[1] - p0[1]), p0[2] + u * (p1[2] - p0[2]))
+        rot = quat_normalize(quat_mul(quat_from_rotvec((u * w[0], u * w[1], u * w[2])), self.rot0))
+        return pos, rot
+
+    def progress_of(self, pos: tuple[float, float, float], rot: tuple[float, float, float, float]) -> float:
+        """The progress of a pose on the route: by position on the line, or by the orientation's turn
+        when the route is (nearly) a pure rotation."""
+        d = np.subtract(self.p1, self.p0)
+        L2 = float(d @ d)
+        if L2 > 1e-8:
+            return min(max(float(np.subtract(pos, self.p0) @ d) / L2, 0.0), 1.0)
+        ang = math.sqrt(sum(c * c for c in self.turn))
+        if ang < 1e-9:
+            return 1.0
+        w = rotvec_between(self.rot0, rot)
+        return min(max(sum(a * b for a, b in zip(w, self.turn, strict=True)) / (ang * ang), 0.0), 1.0)
+
+
+def route_duration(corridor: SwivelCorridor, length: float, angle: float, v_max: float, w_max: float,
+                   s_rate: float, max_vel: np.ndarray, max_acc: np.ndarray, share: float) -> float:
+    """The least duration (s) of the minimum-jerk route within the limits (see the module docstring)."""
+    T = max(MIN_DURATION, PEAK_RATE * length / v_max, PEAK_RATE * angle / w_max)
+    u = corridor.u
+    if len(u) < 2:
+        return T
+    grid = np.linspace(0.0, 1.0, 41)
+    Q = np.stack([np.interp(grid, u, corridor.q[:, j]) for j in range(corridor.q.shape[1])], axis=1)
+    S = np.interp(grid, u, corridor.swivel)
+    dq = np.abs(np.gradient(Q, grid, axis=0))
+    ddq = np.abs(np.gradient(np.gradient(Q, grid, axis=0), grid, axis=0))
+    ds = float(np.max(np.abs(np.gradient(S, grid))))
+    T = max(T, PEAK_RATE * ds / s_rate)
+    T = max(T, PEAK_RATE * float(np.max(dq.max(axis=0) / (share * max_vel))))
+    # acceleration: q' u'' + q'' u'^2. The q'' of the schedule is taken at its 90th percentile: the
+    # rate bound's corners give a few samples a large second difference (the IK step and the command's
+    # acceleration limit absorb those; the route's clock then waits for the hand)
+    need = (PEAK_ACC * dq.max(axis=0) + PEAK_RATE ** 2 * np.percentile(ddq, 90, axis=0)) / (share * max_acc)
+    return max(T, math.sqrt(float(np.max(need))))
+
+
+def smoothed(arm: Any, T0: np.ndarray, T1: np.ndarray, cor: SwivelCorridor, m_limit: float, m_sing: float,
+             m_elbow: float, window: float = 0.08) -> SwivelCorridor:
+    """The schedule averaged over +-``window`` of progress (triangular weights; the start kept), if every
+    sample's joints at the averaged swivel keep half the margins and stay continuous (each joint within
+    0.15 rad of the sample before); else the schedule as it is. The backward pass leaves corners where
+    the rate bound starts or ends; the command cannot follow a corner within the joints' acceleration
+    limits without the hand leaving the line."""
+    u, S = cor.u, cor.swivel
+    if len(u) < 3:
+        return cor
+    W = np.maximum(0.0, 1.0 - np.abs(u[:, None] - u[None, :]) / window)
+    W *= np.gradient(u)[None, :]  # (uneven samples: weights per unit progress)
+    S_new = (W @ S) / W.sum(axis=1)
+    S_new[0] = S[0]
+    lo = np.asarray(arm.lower) + 0.5 * m_limit
+    up = np.asarray(arm.upper) - 0.5 * m_limit
+    Q = np.empty_like(cor.q)
+    Q[0] = cor.q[0]
+    for i in range(1, len(u)):
+        row = arm.ik(route_pose(T0, T1, float(u[i])), float(S_new[i]), limits=False)[cor.pattern]
+        q = row + 2.0 * math.pi * np.round((Q[i - 1] - row) / (2.0 * math.pi))
+        if np.any(q < lo) or np.any(q > up) or float(np.max(np.abs(q - Q[i - 1]))) > 0.15 \
+                or min(abs(math.sin(q[1])), abs(math.sin(q[5]))) < 0.5 * m_sing or abs(q[3]) < 0.5 * m_elbow:
+            return cor
+        Q[i] = q
+    return replace(cor, swivel=S_new, q=Q, max_joint_step=float(np.max(np.abs(np.diff(Q, axis=0)))))
+
+
+def plan_route(arm: Any, T0: np.ndarray, T1: np.ndarray, q0: np.ndarray, preferred: Any, margin_sing: float,
+               margin_limit: float, v_max: float, w_max: float, s_rate: float, max_vel: np.ndarray,
+               max_acc: np.ndarray, share: float) -> tuple[CorridorRoute | None, str]:
+    """The corridor route from the reference (pose T0, joints q0) to T1, or (None, why there is none).
+    Each margin is at most 0.9 of what the start configuration keeps."""
+    # the margins shrink to what the start keeps (an elbow resting near the shoulder axis may start).
+    # First with three times the singularity margin: near a singularity margin joints 1 and 3 (5 and 7)
+    # turn up to 1 / margin times faster than the swivel, and the route's timing slows down with them
+    slack = float(np.min(np.minimum(q0 - np.asarray(arm.lower), np.asarray(arm.upper) - q0)))
+    m_limit = min(margin_limit, 0.9 * max(slack, 0.0))
+    # and with a low swivel rate bound (a slow swivel keeps the joints slow), raised if that closes it
+    for sing, rate in ((min(3.0 * margin_sing, 0.5), 1.0), (margin_sing, 1.0), (margin_sing, 4.0)):
+        m_sh = max(min(sing, 0.9 * abs(math.sin(q0[1]))), 1e-3)
+        m_wr = max(min(sing, 0.9 * abs(math.sin(q0[5]))), 1e-3)
+        m_el = min(sing, 0.9 * abs(q0[3]))
+        cor = arm.swivel_corridor(T0, T1, q0, limit_margin=m_limit, shoulder_margin=m_sh,
+                                  wrist_margin=m_wr, elbow_margin=m_el, max_rate=rate,
+                                  preferred=preferred, samples=12, max_joint_step=0.1)
+        if cor.found:
+            break
+    if not cor.found:
+        return None, cor.reason
+    cor = smoothed(arm, T0, T1, cor, m_limit, min(m_sh, m_wr), m_el)
+    p0 = (float(T0[0, 3]), float(T0[1, 3]), float(T0[2, 3]))
+    p1 = (float(T1[0, 3]), float(T1[1, 3]), float(T1[2, 3]))
+    r0, r1 = quat_from_matrix(T0[:3, :3]), quat_from_matrix(T1[:3, :3])
+    turn = rotvec_between(r0, r1)
+    angle = math.sqrt(sum(c * c for c in turn))
+    T = route_duration(cor, math.dist(p0, p1), angle, v_max, w_max, s_rate, max_vel, max_acc, share)
+    return CorridorRoute(p0, p1, r0, turn, cor, T), ""

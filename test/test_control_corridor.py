@@ -1,0 +1,71 @@
+"""Point goals through the swivel corridor (control/corridor_route.py): straight hand paths at a
+minimum-jerk pace where a corridor exists, the joint-space re-planner with the reason where none does."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from redarm_ros.control.corridor_route import CorridorRoute, min_jerk, min_jerk_inverse, plan_route
+from redarm_ros.control.params import ControllerParams
+from redarm_ros.control.reach_controller import Phase, ReachController
+from redarm_ros.kinematics import load_arm
+
+
+def test_min_jerk_profile_and_its_inverse():
+    assert min_jerk(0.0) == 0.0 and min_jerk(1.0) == 1.0 and abs(min_jerk(0.5) - 0.5) < 1e-12
+    for u in (0.01, 0.3, 0.77):
+        assert abs(min_jerk(min_jerk_inverse(u)) - u) < 1e-9
+
+
+def run_to_rest(ctl, T, steps=3000):
+    pos, phases, messages = [np.asarray(ctl.arm.fk(ctl.q))[:3, 3]], set(), set()
+    for _ in range(steps):
+        r = ctl.step(0.01)
+        pos.append(np.asarray(r.position))
+        phases.add(r.phase)
+        messages.add(r.message)
+        if r.phase is Phase.REACHED:
+            break
+    return np.array(pos), phases, messages, r
+
+
+def test_a_goal_with_a_corridor_goes_straight():
+    """PA10 from its park posture to a goal the heading dynamics reaches on a curve (path ratio 1.09
+    without the corridor): the hand follows the line (path ratio <= 1.02), never re-plans, and the
+    state says so while it moves."""
+    arm = load_arm("pa10")
+    ctl = ReachController(arm, params=ControllerParams.from_dict({"replan": {"corridor": True}}))
+    q0 = np.array(arm.park, float)
+    ctl.reset(q0)
+    T = arm.fk(q0 + np.array([0.5, 0.3, -0.2, -0.4, 0.3, 0.2, 0.4]))
+    assert ctl.set_goal(T).accepted
+    assert ctl._st.route is not None  # noqa: SLF001 (planned once, at the goal)
+    P, phases, messages, r = run_to_rest(ctl, T)
+    assert r.phase is Phase.REACHED and Phase.REPLANNING not in phases
+    assert "straight through the swivel corridor" in messages
+    d = np.linalg.norm(P[-1] - P[0])
+    assert np.sum(np.linalg.norm(np.diff(P, axis=0), axis=1)) / d <= 1.02
+    assert np.all(ctl.q >= arm.lower) and np.all(ctl.q <= arm.upper)
+
+
+def test_a_route_without_a_corridor_says_why():
+    """PowerCube 7: a route that would fold the elbow beyond joint 4's limit at every swivel has no
+    corridor route, and the reason names the closing corridor and the joint."""
+    arm = load_arm("powercube7")
+    T0 = np.eye(4)
+    T0[:3, 3] = [0.45, -0.25, 0.3]
+    q0, _ = arm.ik_nearest(T0, np.array(arm.park, float))
+    T1 = T0.copy()
+    T1[:3, 3] = [-0.1, 0.3, 0.3]
+    route, why = plan_route(arm, T0, T1, q0, None, 0.15, 0.05, 0.4, 1.5, 1.0, np.asarray(arm.max_vel),
+                            np.asarray(arm.max_acc), 0.7)
+    assert route is None
+    assert "corridor closes" in why and "joint 4" in why, why
+
+
+def test_route_progress_of_a_pose():
+    route = CorridorRoute((0.0, 0.0, 0.0), (1.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.5), None, 1.0)
+    pos, rot = route.pose(0.25)
+    assert math.isclose(route.progress_of(pos, rot), 0.25)
