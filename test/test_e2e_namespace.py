@@ -16,8 +16,8 @@ require_ros(stack=True)
 from redarm_interfaces.msg import ControllerState  # noqa: E402
 from support import stack_client as sc  # noqa: E402
 
-from redarm_ros.bringup import Stack  # noqa: E402
 from redarm_ros.kinematics import load_arm  # noqa: E402
+from redarm_ros.testing import SimulatedArm  # noqa: E402
 
 pytestmark = [pytest.mark.hil, pytest.mark.slow]
 
@@ -37,7 +37,7 @@ client = sc.ready_client_fixture(Client, ARM.joint_names, READY_Q, start_s=30.0,
                                  reach_s=15.0, recover_s=15.0)
 
 
-def test_the_stack_under_a_namespace_reaches_a_goal(stack: Stack, client: Client) -> None:
+def test_the_stack_under_a_namespace_reaches_a_goal(stack: SimulatedArm, client: Client) -> None:
     T = ARM.fk(np.array([0.4, 0.7, -0.3, 1.0, 0.2, 0.9, 0.3]))
     n = client.send(T)
 
@@ -50,7 +50,7 @@ def test_the_stack_under_a_namespace_reaches_a_goal(stack: Stack, client: Client
     stack.check()
 
 
-def test_nothing_of_the_stack_is_in_the_root_namespace(stack: Stack, client: Client) -> None:
+def test_nothing_of_the_stack_is_in_the_root_namespace(stack: SimulatedArm, client: Client) -> None:
     node = client.node
     topics = {name for name, _ in node.get_topic_names_and_types()}
     assert {f"{NS}/joint_states", f"{NS}/joint_command", f"{NS}/goal_pose", f"{NS}/controller/state",

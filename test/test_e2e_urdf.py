@@ -19,9 +19,9 @@ from redarm_interfaces.srv import SolveIK  # noqa: E402
 from support import stack_client as sc  # noqa: E402
 from support.benches import load_bench  # noqa: E402
 
-from redarm_ros.bringup import Stack, StackConfig  # noqa: E402
 from redarm_ros.kinematics import load_arm  # noqa: E402
 from redarm_ros.nodes.controller import pose_to_msg  # noqa: E402
+from redarm_ros.testing import SimulatedArm  # noqa: E402
 
 pytestmark = [pytest.mark.hil, pytest.mark.slow]
 
@@ -32,13 +32,13 @@ POS_TOL, ROT_TOL = 1e-3, 0.01
 
 
 @pytest.fixture(scope="module")
-def stack(ros_env: Any, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Stack]:
+def stack(ros_env: Any, tmp_path_factory: pytest.TempPathFactory) -> Iterator[SimulatedArm]:
     f = tmp_path_factory.mktemp("urdf") / "iiwa14_like.urdf"
     f.write_text(URDF_TEXT, encoding="utf-8")
-    cfg = StackConfig(urdf=str(f), base_link="base_link", tip_link="tool0", log_level="warn",
-                      ready_timeout_s=60.0)
-    with sc.running_stack(cfg, ros_env.domain_id, 30.0) as st:
-        yield st
+    with SimulatedArm(domain_id=ros_env.domain_id, sink=sc.stderr_sink, driver=True, controller=True,
+                      ik_service=True, description=True, urdf=str(f), base_link="base_link",
+                      tip_link="tool0", ready_timeout_s=60.0) as arm:
+        yield arm
 
 
 class Client(sc.GoalClient):
@@ -50,7 +50,7 @@ client = sc.ready_client_fixture(Client, ARM.joint_names, READY_Q, start_s=30.0,
                                  reach_s=15.0, recover_s=15.0)
 
 
-def test_urdf_arm_through_the_whole_stack(stack: Stack, client: Client) -> None:
+def test_urdf_arm_through_the_whole_stack(stack: SimulatedArm, client: Client) -> None:
     q_target = np.array([0.4, 0.7, -0.3, -1.0, 0.2, 0.9, 0.3])
     T = ARM.fk(q_target)
     req = SolveIK.Request()

@@ -39,7 +39,9 @@ class SimArmConfig:
     by itself unless ``driver_params`` sets ``auto_init`` false. ``wait_initialised``: with the driver,
     the arm is returned once the driver reports its modules initialised. ``sim_args``: more
     ``redarm-sim`` arguments; ``node_args``: more arguments per ROS node, after its own
-    (``{"controller": ["-p", "max_speed:=0.15"]}``).
+    (``{"controller": ["-p", "max_speed:=0.15"]}``). ``namespace`` (every node under it), ``urdf`` with
+    ``base_link``/``tip_link`` (an arm of its own, docs/urdf.md), ``view``/``view_port`` (the browser
+    view): as :class:`~redarm_ros.bringup.StackConfig`.
     """
 
     arm: str = "pa10"
@@ -58,6 +60,12 @@ class SimArmConfig:
     ready_timeout_s: float = 60.0
     sim_args: Sequence[str] = ()
     node_args: Mapping[str, Sequence[str]] = field(default_factory=dict)
+    namespace: str | None = None
+    urdf: str | None = None
+    base_link: str | None = None
+    tip_link: str | None = None
+    view: bool = False
+    view_port: int = 8080
 
     def stack_config(self) -> StackConfig:
         """The bring-up configuration for this arm."""
@@ -78,7 +86,8 @@ class SimArmConfig:
             initial_q=None if self.initial_q is None else [float(v) for v in self.initial_q],
             start=self.start, driver_rate_hz=self.driver_rate_hz, can_interface=interface,
             can_channel=channel, log_level=self.log_level, ready_timeout_s=self.ready_timeout_s,
-            sim_control=True, extra_args=extra,
+            sim_control=True, extra_args=extra, namespace=self.namespace, urdf=self.urdf,
+            base_link=self.base_link, tip_link=self.tip_link, view=self.view, view_port=self.view_port,
         )
 
 

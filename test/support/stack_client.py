@@ -60,14 +60,14 @@ def stack_fixture(node_args: dict[str, list[str]] | None = None, **cfg: Any) -> 
     @pytest.fixture(scope="module")
     def stack(ros_env: Any) -> Iterator[SimulatedArm]:
         settings = {"driver": True, "controller": True, "ik_service": True, "description": True, **cfg}
-        with SimulatedArm(domain_id=ros_env.domain_id, sink=_stderr_sink, node_args=node_args or {},
+        with SimulatedArm(domain_id=ros_env.domain_id, sink=stderr_sink, node_args=node_args or {},
                           **settings) as arm:
             yield arm
 
     return stack
 
 
-def _stderr_sink(line: str) -> None:
+def stderr_sink(line: str) -> None:
     """Stack output to stderr (pytest may have closed it at teardown)."""
     try:
         sys.stderr.write(line + "\n")
