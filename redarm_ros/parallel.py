@@ -98,7 +98,7 @@ def map_chunks(fn: Callable[..., Any], chunks: Sequence[Any], *, args: tuple[Any
             bar.step()
         return out
     if engine == "local":
-        ctx = multiprocessing.get_context("fork" if threading.active_count() == 1 else "spawn")
+        ctx = multiprocessing.get_context("fork" if threading.active_count() == 1 else "forkserver")
         with cf.ProcessPoolExecutor(max_workers=min(n, len(chunks)), mp_context=ctx) as pool:
             futs = {pool.submit(fn, *args, c): i for i, c in enumerate(chunks)}
             for f in cf.as_completed(futs):
