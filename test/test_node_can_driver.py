@@ -344,6 +344,8 @@ def test_a_twin_found_late_stops_the_younger_driver_safely(rclpy_context: Any, c
         _announce_an_elder_twin(rig)
         assert wait_for(lambda: bool(refusals), 10), "the younger driver did not stop"
         assert "already running" in refusals[0]
+        # the driver's own advice, as at start-up: never two drivers on one bus (not "rename it")
+        assert "never run two on the same bus" in refusals[0] and "second one)" not in refusals[0]
         assert rig.node.loop.state is LoopState.STOPPED  # its command stream ended
         halted = [bool(rig.arm[i].state() & 0x4) for i in range(1, ARM.n + 1)]
         # The elder's arm is halted only if this one was commanding the modules too.

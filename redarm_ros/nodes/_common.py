@@ -629,7 +629,9 @@ INSTANCE_TOPIC = "~/_instance"  # hidden (leading underscore); the same topic fo
 
 
 def watch_duplicates(node: Node, period_s: float = 2.0, *, yield_to_elder: bool = False,
-                     on_yield: Callable[[str], None] | None = None) -> None:
+                     on_yield: Callable[[str], None] | None = None,
+                     remedy: str = "remap the name with --ros-args -r __node:=<name> to run a second one",
+                     ) -> None:
     """Keep looking for a node of the same name that the start-up check could not see yet (discovery
     under load can take longer than ``duplicate_check_s``) or that started later.
 
@@ -639,6 +641,7 @@ def watch_duplicates(node: Node, period_s: float = 2.0, *, yield_to_elder: bool 
     (:class:`DuplicateNodeError` out of the executor's spin: exit code 1 through :func:`run_node`), so
     the node already in service keeps running however late discovery was; ``on_yield(reason)``, if
     given, is called instead of raising (once), for a node that must stop its own work safely first.
+    ``remedy`` ends the younger twin's message: what the user should do instead.
     A twin that will not stop
     (one started with the checks off, or another program under this name) is logged once per
     appearance, from the announcement or from the graph.
@@ -669,8 +672,7 @@ def watch_duplicates(node: Node, period_s: float = 2.0, *, yield_to_elder: bool 
             reason = (
                 f"another node named {fqn} is already running in ROS_DOMAIN_ID "
                 f"{node.context.get_domain_id()} (pid {pid}, started before this one; discovery found it "
-                "only now); stopping this one (remap the name with --ros-args -r __node:=<name> to run a "
-                "second one)"
+                f"only now); stopping this one ({remedy})"
             )
             node.get_logger().error(reason)
             if on_yield is None:

@@ -76,6 +76,11 @@ from redarm_ros.nodes._common import (
 )
 
 NODE_NAME = "can_driver"
+# What to do instead of a second driver of the same name: the start-up refusal and a late twin say it.
+TWIN_DRIVER_REMEDY = (
+    "two drivers on one CAN bus fight over the modules, whatever their names. A driver for another bus "
+    "needs a name or namespace of its own (--ros-args -r __ns:=/<arm>); never run two on the same bus"
+)
 DIAGNOSTICS_PERIOD_S = 0.5
 #: A module's status is WARN for this long (s) after it last sent an implausible position.
 IMPLAUSIBLE_WARN_S = 10.0
@@ -303,7 +308,8 @@ class CanDriverNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
         self._created = time.monotonic()
         self._start_timer = self.create_timer(0.05, self._on_start_timer)
         # A twin found after the start-up window: the younger one stops itself (see _yield_to_elder).
-        watch_duplicates(self, yield_to_elder=self._duplicate_check_s > 0, on_yield=self._yield_to_elder)
+        watch_duplicates(self, yield_to_elder=self._duplicate_check_s > 0, on_yield=self._yield_to_elder,
+                         remedy=TWIN_DRIVER_REMEDY)
         iface = can_kwargs.get("interface") or "$CAN_INTERFACE"
         chan = can_kwargs.get("channel") or "$CAN_CHANNEL"
         where = "its own process" if self.separate_process else "a thread"
@@ -326,10 +332,8 @@ class CanDriverNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
             if twins > 0:
                 self.refused = (
                     f"another node named {self.get_fully_qualified_name()} is already running in "
-                    f"ROS_DOMAIN_ID {self.context.get_domain_id()}; refusing to start a second one: two "
-                    "drivers on one CAN bus fight over the modules, whatever their names. A driver for "
-                    "another bus needs a name or namespace of its own (--ros-args -r __ns:=/<arm>); never "
-                    "run two on the same bus")
+                    f"ROS_DOMAIN_ID {self.context.get_domain_id()}; refusing to start a second one: "
+                    f"{TWIN_DRIVER_REMEDY}")
                 self.get_logger().error(self.refused)
                 if self.on_refused is not None:
                     self.on_refused(self.refused)
