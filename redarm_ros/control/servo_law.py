@@ -112,10 +112,7 @@ class ServoMixin(ControllerBase):
             self._track(dt)
             return
         limited = "joint velocity limits" if out.speed_scale < 1.0 else ""
-        # (the pose law leaves the joints' acceleration to the command, which lags and catches up on its
-        # own: blending the hand's motion towards coasting cut across the circle over the shoulder and
-        # fell 150 mm behind at 0.3 m/s, the command's lag alone 26 mm; track_bench)
-        shaped = None if self._pose_law() else self._joint_acceleration_fit(out, dt)
+        shaped = self._joint_acceleration_fit(out, dt)
         if shaped is not None:
             out = shaped
             limited = "joint acceleration limits"

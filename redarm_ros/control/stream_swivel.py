@@ -96,4 +96,3 @@ def closing_acc(offset: float, within: float, least: float, most: float) -> floa
 def wrap_offset(s: float, s_pref: float) -> float:
     """The offset (rad) of swivel ``s`` from the preferred ``s_pref``, in (-pi, pi]."""
     return wrap_angle(s - s_pref)
-
