@@ -21,6 +21,8 @@ Methods (same arm limits, same start posture, same messages):
 
   servo   ReachController: a stream is told apart from new goals and tracked by the servo with
           the stream's velocity (estimated from the stamps) fed forward (phase TRACKING)
+  servo-pose  the same with servo.swivel_law pose: the elbow at the pose's preferred swivel plus an
+          offset that returns to 0 (the same joints every lap; over the shoulder in the wrist's plane)
   point   the behaviour before goal streams: every message is a new point goal, reached by the
           attractor dynamics (it retargets smoothly)
   dls     a damped-least-squares differential-IK servo (MoveIt Servo's method): pose error times
@@ -328,6 +330,8 @@ def run_method(method: str, arm, path: PathDef, msgs: list[Message], q0: np.ndar
         params = ControllerParams()
         if method == "point":  # every message a new point goal (no stream)
             params = params.with_(stream=StreamParams(gap=1e-6))
+        elif method == "servo-pose":  # the elbow at the pose's preferred swivel plus a closing offset
+            params = ControllerParams.from_dict({"servo": {"swivel_law": "pose"}})
         ctl = ReachController(arm, path.scene, params)
         ctl.reset(q0, now=0.0)
 
@@ -454,6 +458,7 @@ MOVING_SHARE = 0.5  # ... while the target moves above this share of it
 LAP_PHASES = 200  # path points per lap at which consecutive laps' joints are compared
 R_UP6 = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])  # powercube6: approach axis up
 Q_HINT6 = np.array([0.0, 0.3, 0.0, 1.0, 0.27, 0.0])
+LAP_METHODS = ("servo", "servo-pose", "dls")
 LAP_TARGETS = ("p95 <= 5 mm on every lap at 0.157 m/s (50 Hz); no stall at 0.314 m/s (100 Hz); joints at "
                "the same path point within 0.02 rad of the previous lap's after the first lap")
 
@@ -780,7 +785,7 @@ def lap_section(args: argparse.Namespace) -> list[str]:
     ]
     stall_notes: list[str] = []
     where: list[str] = []
-    step_s: list[float] = []
+    step_s: dict[str, list[float]] = {}
     for arm_name, lp, rates, hint in lap_cases(args.quick, where):
         arm = load_arm(arm_name)
         q0 = settle_start(arm, lp.path, hint)
@@ -789,10 +794,12 @@ def lap_section(args: argparse.Namespace) -> list[str]:
         least_txt = "-" if least is None else f"{1e3 * least[0]:.1f} - {1e3 * least[1]:.1f}"
         for rate in rates:
             msgs = make_stream(lp.path.duration, rate, "clean", seed=int(rate))
-            for method in ("servo", "dls"):
+            for method in LAP_METHODS:
+                if arm.n != 7 and method == "servo-pose":
+                    continue  # (no swivel: the same as servo)
                 run = run_method(method, arm, lp.path, msgs, q0)
-                if method == "servo":
-                    step_s += run.step_s
+                if method.startswith("servo"):
+                    step_s.setdefault(method, []).extend(run.step_s)
                 sc = lap_scores(arm, lp, run)
                 for k in range(lp.laps):
                     jd = "-" if k == 0 else f"{sc.joint_diff[k]:.3f}"
@@ -800,15 +807,15 @@ def lap_section(args: argparse.Namespace) -> list[str]:
                         f"| {arm_name} | {lp.path.name} | {rate:g} | {method} | {k + 1} | {sc.p95[k]:.1f} | "
                         f"{sc.peak[k]:.1f} | {sc.stall[k]:.2f} | {sc.min_q2[k]:.3f} | {jd} | {least_txt} |"
                     )
-                if method == "servo" and sc.stalls:
-                    stall_notes.append(f"- {arm_name} {lp.path.name} {rate:g} Hz, {len(sc.stalls)} stall(s): "
-                                       + " / ".join(sc.stalls[:3]))
+                if method.startswith("servo") and sc.stalls:
+                    stall_notes.append(f"- {arm_name} {lp.path.name} {rate:g} Hz {method}, "
+                                       f"{len(sc.stalls)} stall(s): " + " / ".join(sc.stalls[:3]))
                 if args.verbose:
                     print(*lines[-lp.laps:], sep="\n", flush=True)
-    steps_us = 1e6 * np.asarray(step_s)
     lines += ["", " ".join(where), "", f"Targets (issue 32, PA10 over the shoulder): {LAP_TARGETS}.", "",
-              f"Controller step time (servo, wall clock, these runs): median {np.median(steps_us):.0f} us / "
-              f"p99 {np.percentile(steps_us, 99):.0f} us.", ""]
+              "Controller step time (wall clock, these runs): " + ", ".join(
+                  f"{m} median {1e6 * np.median(v):.0f} us / p99 {1e6 * np.percentile(v, 99):.0f} us"
+                  for m, v in step_s.items()) + ".", ""]
     if stall_notes:
         lines += ["Where the controller's hand stood while the target moved (first three per run):", "",
                   *stall_notes, ""]
@@ -846,7 +853,7 @@ def in_process(
     arm = load_arm("pa10")
     if args.quick:
         cases = [(circle(0.16), [50.0], ["clean", "jitter"]), (circle(0.30), [50.0], ["clean"])]
-        methods = ["servo", "point", "dls"]
+        methods = ["servo", "servo-pose", "point", "dls"]
     else:
         cases = [
             (circle(0.08), [10.0, 50.0, 100.0], ["clean", "jitter"]),
@@ -858,7 +865,7 @@ def in_process(
             (abrupt(circle(0.16), 2.0), [50.0, 100.0], ["clean"]),
             (abrupt(circle(0.30), 1.5), [50.0, 100.0], ["clean"]),
         ]
-        methods = ["servo", "point", "dls"]
+        methods = ["servo", "servo-pose", "point", "dls"]
     cases.append((elbow_obstacle_path(arm), [50.0], ["clean"]))
     lines = [HEADER]
     steps: dict[str, list[float]] = {m: [] for m in methods}

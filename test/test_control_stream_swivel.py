@@ -14,7 +14,6 @@ import pytest
 from support.benches import load_bench
 
 from redarm_ros.control.params import ControllerParams
-from redarm_ros.control.reach_controller import ReachController
 from redarm_ros.control.stream_swivel import closing_acc, offset_rate
 from redarm_ros.kinematics import load_arm
 
@@ -45,29 +44,19 @@ def test_closing_acc_meets_the_deadline_within_its_bounds() -> None:
     assert closing_acc(0.1, 0.0, 1.0, 50.0) == 50.0
 
 
-def _laps(v: float, rate: float, laps: int, params: ControllerParams | None = None):
+def _laps(v: float, rate: float, laps: int, method: str):
+    """Laps of the over-the-shoulder circle with track_bench's ``method`` (servo: the defaults, servo-pose:
+    servo.swivel_law pose), from where the controller settles at the start (0.1 rad off the preferred
+    swivel: the rest swivel of a point goal is one of 64 samples)."""
     lp = track.lap_circle("over-the-shoulder", SHOULDER_CENTRE, v, track.R_DOWN, laps=laps)
-    q0 = track.settle_start(PA10, lp.path, track.Q_HINT)  # off the preferred swivel by 0.1 rad
+    q0 = track.settle_start(PA10, lp.path, track.Q_HINT)
     msgs = track.make_stream(lp.path.duration, rate, "clean", seed=int(rate))
-    if params is None:
-        run = track.run_method("servo", PA10, lp.path, msgs, q0)
-    else:  # the same loop with other parameters
-        ctl = ReachController(PA10, lp.path.scene, params)
-        ctl.reset(q0, now=0.0)
-        rows, times, mi = [q0], [0.0], 0
-        for k in range(1, int(round((lp.path.duration + track.AFTER_S) / track.DT)) + 1):
-            t = k * track.DT
-            while mi < len(msgs) and msgs[mi].arrive <= t + 1e-9:
-                ctl.goal_message(lp.path.pose(msgs[mi].t), msgs[mi].stamp, msgs[mi].arrive)
-                mi += 1
-            rows.append(ctl.step(track.DT, t).q)
-            times.append(t)
-        run = track.Run(np.array(rows), np.array(times), [], set(), set(), [""] * len(rows))
+    run = track.run_method(method, PA10, lp.path, msgs, q0)
     return track.lap_scores(PA10, lp, run), run
 
 
 def test_a_circle_over_the_shoulder_is_followed_exactly_and_the_same_way_every_lap() -> None:
-    sc, run = _laps(0.157, 50.0, 3)
+    sc, run = _laps(0.157, 50.0, 3, "servo-pose")
     assert max(sc.stall) == 0.0 and not sc.stalls
     assert max(sc.p95) <= 5.0, sc.p95
     assert min(sc.min_q2) < 0.01  # it does pass over the shoulder
@@ -76,7 +65,7 @@ def test_a_circle_over_the_shoulder_is_followed_exactly_and_the_same_way_every_l
     assert float(np.max(np.abs(run.q[len(run.q) // 3:, 2]))) < 1e-3
 
 
-def test_the_swivel_dynamics_law_stays_selectable() -> None:
-    params = ControllerParams.from_dict({"servo": {"swivel_law": "dynamics"}})
-    sc, _ = _laps(0.157, 50.0, 1, params)
+def test_the_swivel_dynamics_law_is_the_default() -> None:
+    assert ControllerParams().servo.swivel_law == "dynamics"
+    sc, _ = _laps(0.157, 50.0, 1, "servo")
     assert len(sc.p95) == 1  # (it runs; over the shoulder it stalls: benchmarks/results/track_bench.md)
