@@ -13,8 +13,9 @@ import numpy as np
 import pytest
 from support.benches import load_bench
 
+from redarm_ros.control.elbow import ArmGeometry, elbow_circle
 from redarm_ros.control.params import ControllerParams
-from redarm_ros.control.stream_swivel import closing_acc, offset_rate
+from redarm_ros.control.stream_swivel import closing_acc, offset_rate, shoulder_sine, time_to_axis
 from redarm_ros.kinematics import load_arm
 
 track = load_bench("track_bench")
@@ -69,3 +70,25 @@ def test_the_swivel_dynamics_law_is_the_default() -> None:
     assert ControllerParams().servo.swivel_law == "dynamics"
     sc, _ = _laps(0.157, 50.0, 1, "servo")
     assert len(sc.p95) == 1  # (it runs; over the shoulder it stalls: benchmarks/results/track_bench.md)
+
+
+def test_shoulder_sine_is_that_of_joint_2_and_the_look_ahead_finds_the_axis() -> None:
+    geom = ArmGeometry.from_arm(PA10)
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        q = rng.uniform(PA10.lower, PA10.upper) * 0.8
+        T = PA10.fk(q)
+        c = elbow_circle(geom, T)
+        assert shoulder_sine(c, PA10.swivel(q)) == pytest.approx(abs(math.sin(q[1])), abs=1e-9)
+    # along the over-the-shoulder circle the highest elbow comes within 0.01 of the axis: found at the
+    # first predicted pose below the margin, and never with a margin no elbow gets below
+
+    def high(c) -> float:
+        return math.atan2(-c.b[2], -c.a[2]) + math.pi
+
+    lp = track.lap_circle("over-the-shoulder", SHOULDER_CENTRE, 0.157, track.R_DOWN, laps=1)
+    poses = [(float(t), lp.path.pose(float(t))) for t in np.linspace(0.0, lp.path.duration, 200)]
+    sines = [shoulder_sine(elbow_circle(geom, T), high(elbow_circle(geom, T))) for _, T in poses]
+    first = next(i for i, x in enumerate(sines) if x < 0.05)
+    assert time_to_axis(geom, poses, 0.0, high, 0.05) == poses[first][0]
+    assert time_to_axis(geom, poses, 0.0, high, 1e-6) is None

@@ -128,16 +128,18 @@ class ServoMixin(ControllerBase):
 
     def _onto_preferred_swivel(self) -> None:
         """After a resync: the reference's swivel back on the pose's preferred one (joints nearest the
-        command's, on their branch) where that is continuous, so the lagging command keeps the elbow in
-        place instead of carrying a twist of joints 1 and 3 near the shoulder axis into the offset."""
+        command's, on their branch) where that is continuous, so the lagging command's twist of joints 1
+        and 3 near the shoulder axis does not become the offset (a circle over the shoulder at 0.25 m/s:
+        lap 1 within 9 mm instead of 29 mm)."""
         st = self._state()
         ref = st.ref
         if ref.circle is None:
             return
         s_pref = self._preferred_swivel(ref.circle)
         T = pose_matrix(ref.pos, ref.rot)
-        pick = self.stepper.solve(T, s_pref, ref.q, 1.0)
-        if pick is None or pick[1] > self.params.flip_ratio * 0.01:
+        p = self.params
+        pick = self.stepper.solve(T, s_pref, ref.q, p.dt)
+        if pick is None or pick[1] > p.flip_ratio:  # (another branch: the offset closes on its own)
             return
         ref.q, ref.s = pick[0], s_pref
 

@@ -1,4 +1,5 @@
-"""The elbow while the servo tracks a stream or a twist: the swivel as a function of the hand's pose.
+"""The elbow while the servo tracks a stream or a twist: the swivel as a function of the hand's pose
+(``servo.swivel_law`` pose; the default, ``dynamics``, is eq. 31 with the preferred swivel fed forward).
 
 The swivel is the preferred swivel of the present pose plus an offset, ``s = s_pref(T) + e``:
 
