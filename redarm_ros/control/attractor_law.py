@@ -420,7 +420,9 @@ class AttractorMixin(ControllerBase):
 
     def _desired_swivel(self, circle: ElbowCircle) -> float:
         """The preferred swivel at ``circle``, moved where the elbow can rest once the hand is at a point
-        goal (:meth:`_feasible_at_goal`)."""
+        goal (:meth:`_feasible_at_goal`); where the circle is horizontal, the last desired swivel."""
+        if self.params.swivel_reference != "absolute" and _swivel_low(circle) is None:
+            return self._state().ref.s_des
         return self._feasible_at_goal(self._preferred_swivel(circle))
 
     def _preferred_swivel(self, circle: ElbowCircle) -> float:
