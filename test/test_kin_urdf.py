@@ -187,12 +187,17 @@ def test_franka_like_chain_gets_the_numeric_solver_and_the_reason() -> None:
     rng = np.random.default_rng(21)
     seed = (arm.lower + arm.upper) / 2
     ok = 0
+    iterations = []
     Q = rng.uniform(arm.lower, arm.upper, (60, 7))
     for q in Q:
         T = arm.fk(q)
         qs, info = arm.ik_nearest(T, seed, timeout_s=None, max_iter=3000)
         ok += info.status is IKStatus.SUCCESS and _strict(arm, qs, T)
-    assert ok >= 59  # the rate at the 5 ms budget is the benchmark's (benchmarks/urdf_ik_bench.py)
+        iterations.append(info.iterations)
+    assert ok == 60  # the rate at the 5 ms budget is the benchmark's (benchmarks/urdf_ik_bench.py)
+    # the work, machine-independent: batched iterations (one FK + Jacobian of all starts each); the
+    # 5 ms rate rests on the slowest poses needing few of them
+    assert max(iterations) <= 12
 
 
 def test_structure_tolerance_is_stated_and_applies() -> None:

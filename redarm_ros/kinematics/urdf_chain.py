@@ -441,7 +441,7 @@ def _canonical(
 # ------------------------------------------------------------------ the numeric chain
 class NumericChainArm(Arm):
     """A URDF chain without a closed form: :meth:`ik_nearest` is :func:`.numeric.solve_dls_multistart`
-    (the seed and 15 random starts descending together, TRAC-IK style), within the time budget."""
+    (the seed and 31 random starts descending together, TRAC-IK style), within the time budget."""
 
     def ik_nearest(
         self,
