@@ -126,6 +126,9 @@ def test_iiwa_strict_success_on_uniform_and_hard_poses(iiwa: MappedSwivelArm) ->
         qs, info = iiwa.ik_nearest(T, seed, timeout_s=None)
         if not (info.status is IKStatus.SUCCESS and _strict(iiwa, qs, T)):
             fails.append((k, info.status, info.message))
+        else:  # the info's errors are this arm's, whether taken from the model or recomputed
+            pe, re = pose_error(iiwa.fk(qs), T)
+            assert abs(info.pos_err - pe) <= 1e-12 and abs(info.rot_err - re) <= 1e-12, k
         rows = iiwa.ik(T, iiwa.swivel(q))
         assert len(rows) >= 1, k
         assert min(float(np.abs(r - q).max()) for r in iiwa.nearest_copies(rows, q)) <= 1e-6, k

@@ -487,6 +487,15 @@ class MappedSwivelArm(Arm):
         self._sign, self._offset = smap.sign.copy(), smap.offset.copy()
         self._B, self._E = smap.base.copy(), smap.tool.copy()
         self._Binv, self._Einv = np.linalg.inv(smap.base), np.linalg.inv(smap.tool)
+        eye = np.eye(4)
+        # folded once here so that ik_nearest does no mapping it can skip: frames that are the model's
+        # (the pose goes through as it is), zero offsets (sign * q_c is exact: no clip onto the limits),
+        # a tool map without translation (a rigid map of the pose: the model's errors are this arm's)
+        self._frames_identity = bool(
+            np.abs(smap.base - eye).max() <= _IDENT_TOL and np.abs(smap.tool - eye).max() <= _IDENT_TOL
+        )
+        self._offset_zero = not np.any(smap.offset)
+        self._errors_kept = bool(np.abs(smap.tool[:3, 3]).max() <= _IDENT_TOL)
         lims = []
         for j, s, o in zip(chain, self._sign, self._offset, strict=True):
             a, b = s * (j.lower - o), s * (j.upper - o)
@@ -564,16 +573,22 @@ class MappedSwivelArm(Arm):
     def ik_nearest(
         self, T: np.ndarray, q_seed: Sequence[float], **kwargs: Any
     ) -> tuple[np.ndarray | None, IKInfo]:
-        """:meth:`SwivelArm.ik_nearest` (same options); the errors in the info are against this arm's FK."""
+        """:meth:`SwivelArm.ik_nearest` (same options). The errors in the info are the canonical model's
+        where the tool map has no translation (the map is rigid: the same errors, to ``map.deviation``),
+        else against this arm's FK."""
         try:
-            Tc = self.to_canonical(T)
+            Tl = self.check_pose(T)
             seed = self.check_q(q_seed, "q_seed")
         except InvalidInputError as exc:
             return None, IKInfo(IKStatus.INVALID_INPUT, str(exc))
+        Ta = np.array(Tl)  # (the model checks an array much faster than nested lists)
+        Tc = Ta if self._frames_identity else self._Binv @ Ta @ self._Einv
         qc, info = self.canonical.ik_nearest(Tc, self._qc(seed), **kwargs)
         if qc is None:
             return None, info
-        q = self._q(np.asarray(qc))
+        q = self._q(qc, clip=not self._offset_zero)
+        if self._errors_kept:
+            return q, info
         pe, re = self.pose_error(q, T)
         return q, dataclasses.replace(info, pos_err=pe, rot_err=re)
 
