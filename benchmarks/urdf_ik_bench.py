@@ -1,6 +1,6 @@
 """URDF IK benchmark: arms loaded from their URDF, our IK against TRAC-IK (pytracik) on the same URDF.
 
-Arms (benchmarks/urdf_arms.py, written from published facts): the iiwa14-like arm, which maps onto the
+Arms (redarm_ros/sim/urdf_arms.py, written from published facts): the iiwa14-like arm, which maps onto the
 closed-form swivel model, and the Franka-like 7R chain (elbow and wrist offsets), which gets our numeric
 solver (damped least squares with random restarts).
 
@@ -38,10 +38,10 @@ import numpy as np
 
 from redarm_ros.kinematics import describe_solver, load_arm, pose_error
 from redarm_ros.kinematics.quaternion import matrix_to_quat
+from redarm_ros.sim import urdf_arms
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench_common, urdf_arms
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench_common
 import bench_common  # noqa: E402
-import urdf_arms  # noqa: E402
 
 TOL = 1e-5
 TIMEOUT_S = 5e-3

@@ -9,7 +9,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from support.benches import load_bench
 
 from redarm_ros.errors import ConfigError
 from redarm_ros.kinematics import has_swivel, load_arm
@@ -17,10 +16,8 @@ from redarm_ros.kinematics.model import pose_error
 from redarm_ros.kinematics.result import IKStatus
 from redarm_ros.kinematics.urdf_chain import MappedSwivelArm, describe_solver, swivel_map
 from redarm_ros.sim.urdf import build_urdf
+from redarm_ros.sim.urdf_arms import IIWA_LIMITS_DEG, franka_like_urdf, iiwa14_urdf  # from published facts
 
-_ARMS = load_bench("urdf_arms")  # the test arms, written from published facts
-IIWA_LIMITS_DEG = _ARMS.IIWA_LIMITS_DEG
-franka_like_urdf, iiwa14_urdf = _ARMS.franka_like_urdf, _ARMS.iiwa14_urdf
 STRICT = 1e-5  # m and rad: TRAC-IK's tolerance
 
 
