@@ -353,3 +353,38 @@ def test_controller_runs_urdf_arms_in_the_model_frames_and_refuses_other_chains_
     with pytest.raises(ConfigError, match="elbow offset") as e2:
         ReachController(panda)
     assert "\n" not in str(e1.value) + str(e2.value)
+
+
+def test_controller_capsules_come_from_the_urdf_collision_geometry(tmp_path: Path) -> None:
+    import dataclasses
+    import struct
+
+    from redarm_ros.control.obstacles import ArmCapsules, Scene
+    from redarm_ros.control.params import ControllerParams
+    from redarm_ros.control.reach_controller import ReachController
+
+    tri = np.array([[0.11, 0.0, 0.1], [0.0, 0.05, 0.2], [0.0, 0.0, 0.3]], np.float32)  # binary STL
+    stl = b"\0" * 80 + struct.pack("<I", 1) + np.zeros(3, np.float32).tobytes() + tri.tobytes() + b"\0\0"
+    (tmp_path / "forearm.stl").write_bytes(stl)
+    text = (
+        iiwa14_urdf()
+        .replace('<link name="link_2"/>', '<link name="link_2"><collision><origin xyz="0 0 0.21"/><geometry>'
+                 '<cylinder radius="0.09" length="0.3"/></geometry></collision></link>')
+        .replace('<link name="link_4"/>', '<link name="link_4"><collision><geometry>'
+                 '<mesh filename="forearm.stl"/></geometry></collision></link>')
+        .replace('<link name="link_6"/>', '<link name="link_6"><collision><geometry>'
+                 '<mesh filename="hand.dae"/></geometry></collision></link>')
+    )
+    (tmp_path / "arm.urdf").write_text(text)
+    arm = load_arm(tmp_path / "arm.urdf", base_link="base_link", tip_link="tool0")
+    ctl = ReachController(arm, Scene())
+    radii = ctl.inner.params.capsules.radii
+    default = ArmCapsules().radii
+    # upper arm: the cylinder on its axis; forearm: the mesh vertex 0.11 m off its axis; the base (no
+    # geometry) and the hand (a mesh format not read) keep the defaults
+    assert radii == pytest.approx((default[0], 0.09, 0.11, default[3]), abs=1e-7)
+    mine = ArmCapsules(radii=(0.2, 0.2, 0.2, 0.2))  # capsules set by the user are kept
+    ctl = ReachController(arm, Scene(), dataclasses.replace(ControllerParams(), capsules=mine))
+    assert ctl.inner.params.capsules == mine
+    plain = load_arm(iiwa14_urdf(), base_link="base_link", tip_link="tool0")  # URDF text, no geometry
+    assert ReachController(plain, Scene()).inner.params.capsules == ArmCapsules()

@@ -278,21 +278,15 @@ def urdf_visuals(source: str | os.PathLike[str], base_link: str, tip_link: str) 
     gets its URDF visuals only where every mesh file it names is found; otherwise it keeps the generated
     shapes. ``source``: a URDF file or its text (then only absolute and ``package://`` meshes are found)."""
     from redarm_ros.kinematics.model import transform_from_xyz_rpy
-    from redarm_ros.kinematics.urdf_chain import chain_between, parse_urdf, read_urdf_text
+    from redarm_ros.kinematics.urdf_chain import chain_between, chain_links, parse_urdf, read_urdf_text
 
     text, path = read_urdf_text(source)
     _, by_child = parse_urdf(text)
-    chain = chain_between(by_child, base_link, tip_link)
     links = {el.get("name"): el for el in ET.fromstring(text).findall("link")}
     base_dir = None if path is None else path.resolve().parent
-    placed = [(base_link, 0, np.eye(4))]  # (URDF link, model link index, model link frame -> URDF link)
-    k, T = 0, np.eye(4)
-    for j in chain:
-        k, T = (k, T @ j.origin) if j.type == "fixed" else (k + 1, np.eye(4))
-        placed.append((j.child, k, T))
     out: dict[int, list[str]] = {}
     missing: set[int] = set()
-    for name, k, T in placed:
+    for name, k, T in chain_links(chain_between(by_child, base_link, tip_link), base_link):
         el = links.get(name)
         for vis in [] if el is None else el.findall("visual"):
             geom = vis.find("geometry")
