@@ -202,14 +202,16 @@ def fk_jacobian_batch(arm: Arm, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray, 
 
 
 _YZX, _ZXY = [1, 2, 0], [2, 0, 1]  # index orders of the written-out cross product
+_VEE_PLUS, _VEE_MINUS = [7, 2, 3], [5, 6, 1]  # (2,1) (0,2) (1,0) and (1,2) (2,0) (0,1) of a flat 3x3
 
 
 def _errors_batch(R: np.ndarray, p: np.ndarray, Td: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(E (m, 6), squared position error (m,), squared rotation angle (m,)) of m tool poses: E holds the
     position error and the rotation vector taking R onto the target's."""
-    Re = Td[:3, :3] @ R.transpose(0, 2, 1)
-    v = Re[:, _ZXY, _YZX] - Re[:, _YZX, _ZXY]  # the axis times 2 sin(angle)
-    c = np.clip((Re[:, 0, 0] + Re[:, 1, 1] + Re[:, 2, 2] - 1.0) * 0.5, -1.0, 1.0)
+    Re = (Td[:3, :3] @ R.transpose(0, 2, 1)).reshape(-1, 9)  # rows of Rd R^T
+    v = Re[:, _VEE_PLUS] - Re[:, _VEE_MINUS]  # the axis times 2 sin(angle)
+    # (ufuncs, not np.clip: its wrapper costs more than the arithmetic at these sizes)
+    c = np.minimum(np.maximum((Re[:, 0] + Re[:, 4] + Re[:, 8] - 1.0) * 0.5, -1.0), 1.0)
     sn = 0.5 * np.sqrt(np.einsum("ij,ij->i", v, v))
     ang = np.arctan2(sn, c)
     # angle / (2 sin): 1/2 at small angles; near pi the rotation vector's length is right and its axis
@@ -287,7 +289,7 @@ def solve_dls_multistart(
         np.copyto(J, Jc, where=good[:, None, None])
         np.copyto(E, Ec, where=good[:, None])
         np.copyto(cost, cc, where=good)
-        lam = np.clip(np.where(good, lam * (1.0 / 3.0), lam * 4.0), 1e-7, 1e3)
+        lam = np.minimum(np.maximum(np.where(good, lam * (1.0 / 3.0), lam * 4.0), 1e-7), 1e3)
         since += 1
         since[cost < best * 0.95] = 0
         np.minimum(best, cost, out=best)
@@ -307,7 +309,7 @@ def solve_dls_multistart(
         # at most max_step rad per joint: a full Gauss-Newton step from far away mostly overshoots
         big = np.abs(dq).max(axis=1)
         dq *= (max_step / np.maximum(big, max_step))[:, None]
-        Qc = np.clip(Q + dq, lo, up)
+        Qc = np.minimum(np.maximum(Q + dq, lo), up)
         stale = np.flatnonzero(since[1:] >= stall_iters) + 1  # the seed's row keeps descending
         if len(stale):  # fresh starts for the stalled ones, evaluated with the steps
             Qc[stale] = rng.uniform(lo, up, (len(stale), n))
