@@ -633,8 +633,7 @@ class MappedSwivelArm(Arm):
     @property
     def frames_are_canonical(self) -> bool:
         """True where base and tool frames are the model's own (only joint signs and offsets differ)."""
-        eye = np.eye(4)
-        return bool(np.abs(self._B - eye).max() <= _IDENT_TOL and np.abs(self._E - eye).max() <= _IDENT_TOL)
+        return self._frames_identity
 
     @property
     def shoulder(self) -> np.ndarray:
