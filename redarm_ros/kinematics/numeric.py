@@ -160,24 +160,40 @@ def solve_dls(
 
 def _batch_tables(arm: Arm) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Per joint i the parent -> child transform as ``G_i(t) = A_i + cos t B_i + sin t C_i`` (4x4 each,
-    (n, 4, 4) stacked: origin @ Rot(axis, t) with Rot = P + cos t (I - P) + sin t K) and the axes (n, 3, 1);
-    built once per model (cached on it)."""
-    tables = arm.__dict__.get("_fk_batch_G")
+    (n, 4, 4) stacked: origin @ Rot(axis, t) with Rot = P + cos t (I - P) + sin t K) and the tool transform;
+    built once per model (cached on it). Each child frame is turned by a fixed P_i that takes z onto the
+    joint's axis (G_i -> P_{i-1}^T G_i P_i, tool -> P_n^T tool): the chain's products are unchanged, and
+    every axis in the base frame is then the z column of its frame."""
+    tables = arm.__dict__.get("_fk_batch_Gz")
     if tables is None:
         n = arm.n
         A, B, C = np.zeros((n, 4, 4)), np.zeros((n, 4, 4)), np.zeros((n, 4, 4))
-        axes = np.zeros((n, 3, 1))
+        P_prev = np.eye(4)
         for i, j in enumerate(arm.chain):
             a = np.asarray(j.axis, dtype=float)
             P = np.outer(a, a)
             K = np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
             Ro = j.origin[:3, :3]
-            A[i, :3, :3], A[i, :3, 3], A[i, 3, 3] = Ro @ P, j.origin[:3, 3], 1.0
-            B[i, :3, :3], C[i, :3, :3] = Ro @ (np.eye(3) - P), Ro @ K
-            axes[i, :, 0] = a
-        tables = (A, B, C, axes)
-        arm.__dict__["_fk_batch_G"] = tables
+            Ai, Bi, Ci = np.zeros((4, 4)), np.zeros((4, 4)), np.zeros((4, 4))
+            Ai[:3, :3], Ai[:3, 3], Ai[3, 3] = Ro @ P, j.origin[:3, 3], 1.0
+            Bi[:3, :3], Ci[:3, :3] = Ro @ (np.eye(3) - P), Ro @ K
+            Pz = np.eye(4)
+            Pz[:3, :3] = _z_onto(a)
+            A[i], B[i], C[i] = (P_prev.T @ M @ Pz for M in (Ai, Bi, Ci))
+            P_prev = Pz
+        tables = (A, B, C, P_prev.T @ arm.tool)
+        arm.__dict__["_fk_batch_Gz"] = tables
     return tables
+
+
+def _z_onto(a: np.ndarray) -> np.ndarray:
+    """A rotation taking z onto the unit vector a."""
+    v = np.array([-a[1], a[0], 0.0])  # z x a
+    s, c = float(np.linalg.norm(v)), float(a[2])
+    if s < 1e-12:
+        return np.eye(3) if c > 0 else np.diag([1.0, -1.0, -1.0])
+    K = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]]) / s
+    return np.eye(3) + s * K + (1.0 - c) * (K @ K)
 
 
 def fk_jacobian_batch(arm: Arm, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -185,15 +201,15 @@ def fk_jacobian_batch(arm: Arm, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray, 
 
     All joint transforms come from one expression and the chain is one 4x4 product per joint: the numpy
     call count, not the arithmetic, is the cost at these sizes."""
-    A, B, C, axes = _batch_tables(arm)
+    A, B, C, tool = _batch_tables(arm)
     m, n = Q.shape
     G = A + np.cos(Q)[:, :, None, None] * B + np.sin(Q)[:, :, None, None] * C  # (m, n, 4, 4)
-    F = np.empty((m, n, 4, 4))  # base -> joint i's frame after its rotation
+    F = np.empty((m, n, 4, 4))  # base -> joint i's (turned) frame after its rotation
     F[:, 0] = Tc = G[:, 0]
     for i in range(1, n):
         F[:, i] = Tc = Tc @ G[:, i]
-    Tt = Tc @ arm.tool
-    Z = (F[:, :, :3, :3] @ axes)[..., 0]  # (m, n, 3): the axes in the base frame
+    Tt = Tc @ tool
+    Z = F[:, :, :3, 2]  # (m, n, 3): the axes in the base frame
     D = Tt[:, None, :3, 3] - F[:, :, :3, 3]  # joint origin -> tool
     J = np.empty((m, 6, n))
     J[:, :3, :] = (Z[..., _YZX] * D[..., _ZXY] - Z[..., _ZXY] * D[..., _YZX]).transpose(0, 2, 1)
