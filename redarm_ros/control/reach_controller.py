@@ -43,7 +43,7 @@ from redarm_ros.control.goal_hint import BaseMoveHints
 from redarm_ros.control.guard import CollisionGuard
 from redarm_ros.control.ik_step import IKStepper, pose_matrix
 from redarm_ros.control.ik_step6 import is_6dof
-from redarm_ros.control.obstacles import Clearance, Scene
+from redarm_ros.control.obstacles import ArmCapsules, Clearance, Scene, capsules_from_urdf
 from redarm_ros.control.paper_redundancy import PaperSwivel, TangentHand
 from redarm_ros.control.params import ControllerParams, ReplanParams, ServoParams, StreamParams
 from redarm_ros.control.replan_law import ReplanMixin
@@ -125,6 +125,16 @@ def controller_refusal(arm: Any) -> str | None:
     return None
 
 
+def urdf_capsules(arm: Any, params: ControllerParams | None) -> ControllerParams:
+    """``params`` (default: the defaults), with the capsule radii of the arm's URDF collision geometry
+    (:func:`~redarm_ros.control.obstacles.capsules_from_urdf`) where the capsules are left at the defaults."""
+    p = params or ControllerParams()
+    if p.capsules != ArmCapsules():
+        return p
+    caps = capsules_from_urdf(arm, p.capsules)
+    return p if caps == p.capsules else dataclasses.replace(p, capsules=caps)
+
+
 class JointMappedController:
     """The controller of a URDF arm that is the swivel model up to joint signs and zero offsets (its base
     and tool frames the model's, as the iiwa's): a :class:`ReachController` on ``arm.canonical`` with the
@@ -134,7 +144,7 @@ class JointMappedController:
 
     def __init__(self, arm: Any, scene: Scene | None = None, params: ControllerParams | None = None) -> None:
         self.arm = arm
-        self.inner = ReachController(arm.canonical, scene, params)
+        self.inner = ReachController(arm.canonical, scene, urdf_capsules(arm, params))
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self.inner, name)
@@ -198,7 +208,7 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
             raise ConfigError(f"ReachController needs a 7-DOF swivel arm or the 6-DOF PowerCube arm, got "
                               f"{getattr(arm, 'name', arm)!r}", field="arm")
         self.arm = arm
-        self.params = params or ControllerParams()
+        self.params = urdf_capsules(arm, params)
         p = self.params
         self.geom = ArmGeometry.from_arm(arm)
         self.swivel_dyn = SwivelDynamics(p.swivel)
