@@ -1,4 +1,4 @@
-"""The controller's parameter table (control/parameters.yaml) and the classes built from it: defaults
+"""The controller's parameter table (redarm_ros/parameters.yaml) and the classes built from it: defaults
 construct, every bound refuses bad values with the section's error naming the field (parametrised from
 the table, so a new parameter is covered without a new test), table and classes agree, from_dict
 refuses unknown keys at every depth, and the table ships as package data."""
@@ -15,15 +15,15 @@ import pytest
 from support.setup_py import package_data
 
 import redarm_ros.control.params  # noqa: F401  (builds every class of the table)
-from redarm_ros.control.param_table import (
+from redarm_ros.control.params import ControllerParams
+from redarm_ros.errors import ConfigError, InvalidInputError
+from redarm_ros.param_table import (
     BOUND_WORDS,
     TABLE_FILE,
     group_class,
     load_table,
     table,
 )
-from redarm_ros.control.params import ControllerParams
-from redarm_ros.errors import ConfigError, InvalidInputError
 
 #: Where each class of the table has always been imported from.
 HOMES = {
@@ -222,9 +222,9 @@ def test_malformed_tables_are_refused(text: str, complaint: str) -> None:
 
 
 def test_table_is_installed_as_package_data() -> None:
-    assert TABLE_FILE in package_data().get("redarm_ros.control", []), \
+    assert TABLE_FILE in package_data().get("redarm_ros", []), \
         "setup.py's package_data must list the table, or an installed (non-editable) package lacks it"
-    assert resources.files("redarm_ros.control").joinpath(TABLE_FILE).is_file()
+    assert resources.files("redarm_ros").joinpath(TABLE_FILE).is_file()
 
 
 def test_controller_node_defaults_and_choices_are_the_tables() -> None:

@@ -26,8 +26,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
 from redarm_ros.control.obstacles import Obstacle
-from redarm_ros.control.param_table import declared
 from redarm_ros.control.swivel_dynamics import wrap_angle
+from redarm_ros.param_table import declared
 
 Vec3 = tuple[float, float, float]
 

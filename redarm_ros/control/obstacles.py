@@ -29,8 +29,8 @@ from typing import Any
 import numpy as np
 
 from redarm_ros.control.elbow import ElbowCircle
-from redarm_ros.control.param_table import declared
 from redarm_ros.errors import ConfigError, InvalidInputError
+from redarm_ros.param_table import declared
 
 Vec3 = tuple[float, float, float]
 

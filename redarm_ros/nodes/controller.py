@@ -61,7 +61,6 @@ from redarm_ros.control.obstacles import (
     load_scene,
     obstacle_from_marker,
 )
-from redarm_ros.control.param_table import table
 from redarm_ros.control.reach_controller import ControllerParams, GoalStatus, Phase, ReachController
 from redarm_ros.control.types import GoalKind
 from redarm_ros.errors import InvalidInputError, RedarmError
@@ -85,6 +84,7 @@ from redarm_ros.nodes._common import (
 from redarm_ros.nodes.command_timing import CommandClock
 from redarm_ros.nodes.loop_stats import LoopStats
 from redarm_ros.nodes.reach_action import ReachActionServer
+from redarm_ros.param_table import table
 
 NODE_NAME = "controller"
 STILL_WINDOW_S = 0.25  # s of joint_states looked at to decide that the arm stands still

@@ -1,16 +1,18 @@
-"""The controller's parameters, declared once as data (``parameters.yaml``), and the classes built from it.
+"""The cores' parameters, declared once as data (``parameters.yaml``), and the classes built from it.
 
-Every parameter of the reaching controller has one entry in ``redarm_ros/control/parameters.yaml``:
-its default, unit, bound and one-line meaning, in a section per parameter class. :func:`declared` turns a
+Every parameter of the reaching controller and of the arm's capsule model has one entry in
+``redarm_ros/parameters.yaml``: its default, unit, bound and one-line meaning, in a section per
+parameter class. :func:`declared` turns a
 class that holds only an explanation (its docstring) and methods into a frozen dataclass with the
 table's fields and defaults; its ``__post_init__`` checks every field against its bound (then runs the
 class's own ``__post_init__``, for checks that are not a bound), and its docstring lists the fields.
 Nested groups (``ControllerParams.heading`` ...) are fields too, so :func:`from_mapping` reads the
 YAML form of any class without a hand-kept list of them.
 
-``python -m redarm_ros.control.param_table`` prints the table as Markdown.
+``python -m redarm_ros.param_table`` prints the table as Markdown.
 
-numpy-free and ROS-free: PyYAML and the standard library only.
+numpy-free and ROS-free: PyYAML, the standard library and :mod:`redarm_ros.errors` only, so every
+core may build its parameter classes from the table.
 """
 
 from __future__ import annotations
@@ -301,7 +303,7 @@ def _field_line(p: Param) -> str:
 def docstring(header: str | None, group: Group) -> str:
     """A class docstring: ``header`` followed by one line per field (name [unit] = default (bound): doc)."""
     lines = [inspect.cleandoc(header or group.class_name), "",
-             f"Fields (declared in ``redarm_ros/control/{TABLE_FILE}``, section ``{group.section}``):", ""]
+             f"Fields (declared in ``redarm_ros/{TABLE_FILE}``, section ``{group.section}``):", ""]
     lines += [textwrap.fill(f"- {_field_line(p)}", width=100, subsequent_indent="  ") for p in group.params]
     return "\n".join(lines) + "\n"
 
@@ -410,9 +412,7 @@ def markdown() -> str:
 
 
 def main() -> int:
-    """Print the table as Markdown (``python -m redarm_ros.control.param_table``)."""
-    import redarm_ros.control.params  # noqa: F401  (builds every class of the table)
-
+    """Print the table as Markdown (``python -m redarm_ros.param_table``)."""
     sys.stdout.write(markdown())
     return 0
 
