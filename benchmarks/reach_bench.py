@@ -36,10 +36,10 @@ from pathlib import Path
 
 import numpy as np
 
-from redarm_ros.control import obstacles as ob
-from redarm_ros.control.obstacles import ArmCapsules, Scene, links_clearance, min_distance
 from redarm_ros.control.reach_controller import ControllerParams, ReachController
 from redarm_ros.control.simulate import ReachMetrics, evaluate, run_controller
+from redarm_ros.geometry import obstacles as ob
+from redarm_ros.geometry.obstacles import ArmCapsules, Scene, links_clearance, min_distance
 from redarm_ros.kinematics import load_arm
 from redarm_ros.kinematics.quaternion import quat_from_matrix, quat_from_rotvec, quat_mul, rotvec_between
 

@@ -61,10 +61,10 @@ from typing import Any
 
 import numpy as np
 
-from redarm_ros.control.obstacles import ArmCapsules, Scene, load_scene, min_distance
 from redarm_ros.control.params import ControllerParams
 from redarm_ros.control.reach_controller import Phase, ReachController
-from redarm_ros.control.self_collision import self_collision_batch
+from redarm_ros.geometry.obstacles import ArmCapsules, Scene, load_scene, min_distance
+from redarm_ros.geometry.self_collision import self_collision_batch
 from redarm_ros.kinematics import load_arm
 from redarm_ros.kinematics.quaternion import (
     quat_from_matrix,

@@ -38,8 +38,8 @@ from pathlib import Path
 
 import numpy as np
 
-from redarm_ros.control.obstacles import ArmCapsules, Box, Cylinder, Scene, Sphere, load_scene, min_distance
 from redarm_ros.control.reach_controller import Phase, ReachController
+from redarm_ros.geometry.obstacles import ArmCapsules, Box, Cylinder, Scene, Sphere, load_scene, min_distance
 from redarm_ros.kinematics import load_arm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench_common, also when loaded by path

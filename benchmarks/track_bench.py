@@ -54,10 +54,10 @@ from typing import Any
 
 import numpy as np
 
-from redarm_ros.control.obstacles import ArmCapsules, Scene, Sphere, min_distance
 from redarm_ros.control.params import ControllerParams, StreamParams
 from redarm_ros.control.reach_controller import ReachController
 from redarm_ros.control.stream import StreamEstimator
+from redarm_ros.geometry.obstacles import ArmCapsules, Scene, Sphere, min_distance
 from redarm_ros.kinematics import load_arm
 from redarm_ros.kinematics.quaternion import (
     quat_from_matrix,

@@ -7,10 +7,10 @@ import math
 import numpy as np
 import pytest
 
-from redarm_ros.control.broadphase import LEFT_OUT, SceneIndex, bounding_sphere, segment_point_distances
 from redarm_ros.control.guard import CollisionGuard, levers
-from redarm_ros.control.obstacles import ArmCapsules, Box, Cylinder, Scene, Sphere, min_distance
 from redarm_ros.control.reach_controller import ReachController
+from redarm_ros.geometry.broadphase import LEFT_OUT, SceneIndex, bounding_sphere, segment_point_distances
+from redarm_ros.geometry.obstacles import ArmCapsules, Box, Cylinder, Scene, Sphere, min_distance
 from redarm_ros.kinematics import load_arm
 
 ARM = load_arm("pa10")

@@ -10,11 +10,11 @@ import pytest
 from support.control_scenes import elbow_obstacle_hold, pose
 
 from redarm_ros.control.elbow import ArmGeometry, elbow_circle
-from redarm_ros.control.obstacles import ArmCapsules, load_scene
 from redarm_ros.control.paper_redundancy import PaperSwivel, PaperSwivelParams, sectors
 from redarm_ros.control.reach_controller import ControllerParams, Phase, ReachController
 from redarm_ros.control.simulate import evaluate, run_controller
 from redarm_ros.errors import ConfigError, InvalidInputError
+from redarm_ros.geometry.obstacles import ArmCapsules, load_scene
 from redarm_ros.kinematics import load_arm
 
 DT = 0.01

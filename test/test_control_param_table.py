@@ -31,7 +31,7 @@ HOMES = {
     "speed": ("redarm_ros.control.attractor", "SpeedParams"),
     "swivel": ("redarm_ros.control.swivel_dynamics", "SwivelParams"),
     "paper_swivel": ("redarm_ros.control.paper_redundancy", "PaperSwivelParams"),
-    "capsules": ("redarm_ros.control.obstacles", "ArmCapsules"),
+    "capsules": ("redarm_ros.geometry.obstacles", "ArmCapsules"),
     "stream": ("redarm_ros.control.params", "StreamParams"),
     "servo": ("redarm_ros.control.params", "ServoParams"),
     "replan": ("redarm_ros.control.params", "ReplanParams"),

@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 from support.control_scenes import elbow_obstacle_hold, pose
 
-from redarm_ros.control.obstacles import ArmCapsules, Cylinder, Scene, Sphere, load_scene, min_distance
 from redarm_ros.control.reach_controller import (
     ControllerParams,
     GoalStatus,
@@ -19,6 +18,7 @@ from redarm_ros.control.reach_controller import (
 from redarm_ros.control.simulate import evaluate, run_controller
 from redarm_ros.control.swivel_dynamics import wrap_angle
 from redarm_ros.errors import ConfigError, InvalidInputError
+from redarm_ros.geometry.obstacles import ArmCapsules, Cylinder, Scene, Sphere, load_scene, min_distance
 from redarm_ros.kinematics import load_arm
 
 DT = 0.01

@@ -11,10 +11,10 @@ import pytest
 from redarm_ros.control.guard import GROUND_PLANE, CollisionGuard, is_self
 from redarm_ros.control.ik_step import IKStep, pose_matrix
 from redarm_ros.control.ik_step6 import IKStepper6, branch, fixed_circle
-from redarm_ros.control.obstacles import ArmCapsules, Scene
 from redarm_ros.control.reach6 import ReachController6
 from redarm_ros.control.reach_controller import GoalStatus, Phase, ReachController
-from redarm_ros.control.self_collision import self_collision
+from redarm_ros.geometry.obstacles import ArmCapsules, Scene
+from redarm_ros.geometry.self_collision import self_collision
 from redarm_ros.kinematics import load_arm
 
 DT = 0.01
@@ -180,8 +180,8 @@ def test_rejection_message_carries_the_base_move(name: str, position: tuple[floa
 def test_obstacle_avoided_through_the_heading_alone() -> None:
     # A ball in the way of the gripper's straight route (its capsule would pass through it): the heading
     # dynamics steer around it, no joint-space move, clearance positive all the way.
-    from redarm_ros.control.obstacles import Sphere, links_clearance
     from redarm_ros.demo import Goal
+    from redarm_ros.geometry.obstacles import Sphere, links_clearance
 
     ball = Sphere((0.42, 0.18, 0.0), 0.05, "ball")
     scene = Scene((ball,), None)

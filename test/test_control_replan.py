@@ -11,7 +11,6 @@ import pytest
 from redarm_ros.control.elbow import ArmGeometry
 from redarm_ros.control.guard import CollisionGuard
 from redarm_ros.control.ik_step import DeadEnd, IKStepper, pose_matrix
-from redarm_ros.control.obstacles import ArmCapsules, Scene, Sphere, load_scene, min_distance
 from redarm_ros.control.params import ControllerParams, ReplanParams
 from redarm_ros.control.reach_controller import Phase, ReachController
 from redarm_ros.control.replan import (
@@ -22,6 +21,7 @@ from redarm_ros.control.replan import (
     goal_candidates,
     move_time,
 )
+from redarm_ros.geometry.obstacles import ArmCapsules, Scene, Sphere, load_scene, min_distance
 from redarm_ros.kinematics import load_arm
 
 ARM = load_arm("pa10")

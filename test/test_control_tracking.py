@@ -12,8 +12,8 @@ import pytest
 from support.benches import load_bench
 from support.control_scenes import pose
 
-from redarm_ros.control.obstacles import ArmCapsules, Scene, Sphere, min_distance
 from redarm_ros.control.reach_controller import GoalKind, Phase, ReachController
+from redarm_ros.geometry.obstacles import ArmCapsules, Scene, Sphere, min_distance
 from redarm_ros.kinematics import load_arm
 
 ramp_arc = load_bench("bench_common").ramp_arc

@@ -12,17 +12,17 @@ from typing import Any
 import numpy as np
 
 from redarm_ros.control.attractor import HeadingDynamics, SpeedProfile
-from redarm_ros.control.broadphase import LocalScene, SceneIndex
 from redarm_ros.control.elbow import ArmGeometry
 from redarm_ros.control.guard import CollisionGuard
 from redarm_ros.control.ik_step import IKStepper
-from redarm_ros.control.obstacles import Scene
 from redarm_ros.control.paper_redundancy import PaperSwivel, TangentHand
 from redarm_ros.control.params import ControllerParams
 from redarm_ros.control.state import CoreState
 from redarm_ros.control.swivel_dynamics import SwivelDynamics
 from redarm_ros.control.types import Quat, Vec3
 from redarm_ros.errors import InvalidInputError
+from redarm_ros.geometry.broadphase import LocalScene, SceneIndex
+from redarm_ros.geometry.obstacles import Scene
 from redarm_ros.kinematics.quaternion import quat_from_matrix
 
 SMALL_SCENE = 4  # obstacles within reach up to which every step uses them all (no per-step culling)

@@ -16,10 +16,10 @@ from dataclasses import replace
 from typing import Any
 
 from redarm_ros.control.attractor import HeadingParams, SpeedParams
-from redarm_ros.control.obstacles import ArmCapsules
 from redarm_ros.control.paper_redundancy import PaperSwivelParams
 from redarm_ros.control.swivel_dynamics import SwivelParams
 from redarm_ros.errors import ConfigError
+from redarm_ros.geometry.obstacles import ArmCapsules
 from redarm_ros.param_table import declared, from_mapping, table
 
 __all__ = ["ArmCapsules", "ControllerParams", "HeadingParams", "PaperSwivelParams", "ReplanParams",

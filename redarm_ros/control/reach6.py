@@ -36,12 +36,10 @@ from typing import Any
 import numpy as np
 
 from redarm_ros.control.base import pose_of
-from redarm_ros.control.broadphase import SceneIndex
 from redarm_ros.control.elbow import ArmGeometry, ElbowCircle
 from redarm_ros.control.guard import CollisionGuard, describe
 from redarm_ros.control.ik_step import pose_matrix
 from redarm_ros.control.ik_step6 import IKStepper6, branch, check_route6, fixed_circle
-from redarm_ros.control.obstacles import Scene
 from redarm_ros.control.params import ControllerParams
 from redarm_ros.control.reach_controller import ReachController
 from redarm_ros.control.replan import move_time
@@ -49,6 +47,8 @@ from redarm_ros.control.state import ZERO3, Command, CoreState, Reference
 from redarm_ros.control.stream import StreamEstimator
 from redarm_ros.control.types import GoalCheck, GoalStatus
 from redarm_ros.errors import InvalidInputError
+from redarm_ros.geometry.broadphase import SceneIndex
+from redarm_ros.geometry.obstacles import Scene
 from redarm_ros.kinematics.result import IKStatus
 
 LOG = logging.getLogger(__name__)

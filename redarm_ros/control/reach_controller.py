@@ -17,7 +17,7 @@ limits and singularities in every mode. Each step the reference goes through the
 fallback cascade (:mod:`~redarm_ros.control.ik_step`); the *command* follows the reference within
 the joint velocity, acceleration and position limits (:mod:`~redarm_ros.control.joint_limits`) and
 passes the collision guard (:mod:`~redarm_ros.control.guard`). Distances use only the obstacles the
-broad phase keeps (:mod:`~redarm_ros.control.broadphase`).
+broad phase keeps (:mod:`~redarm_ros.geometry.broadphase`).
 
 Units: m, rad, s. Quaternions are (w, x, y, z). The core is pure Python/numpy (no ROS); the
 controller node converts messages to these calls.
@@ -35,7 +35,6 @@ import numpy as np
 from redarm_ros.control.attractor import HeadingDynamics, SpeedProfile, direction
 from redarm_ros.control.attractor_law import AttractorMixin
 from redarm_ros.control.base import pose_of
-from redarm_ros.control.broadphase import LEFT_OUT, SceneIndex
 from redarm_ros.control.command import CommandMixin
 from redarm_ros.control.elbow import ArmGeometry, ElbowCircle, elbow_circle
 from redarm_ros.control.goal_check import check_goal, stream_feasibility
@@ -43,7 +42,6 @@ from redarm_ros.control.goal_hint import BaseMoveHints
 from redarm_ros.control.guard import CollisionGuard
 from redarm_ros.control.ik_step import IKStepper, pose_matrix
 from redarm_ros.control.ik_step6 import is_6dof
-from redarm_ros.control.obstacles import Clearance, Scene
 from redarm_ros.control.paper_redundancy import PaperSwivel, TangentHand
 from redarm_ros.control.params import ControllerParams, ReplanParams, ServoParams, StreamParams
 from redarm_ros.control.replan_law import ReplanMixin
@@ -64,6 +62,8 @@ from redarm_ros.control.stream import StreamEstimator
 from redarm_ros.control.swivel_dynamics import SwivelDynamics, SwivelForces
 from redarm_ros.control.types import GoalCheck, GoalKind, GoalStatus, Phase, Quat, StepResult, Vec3
 from redarm_ros.errors import ConfigError, InvalidInputError, UnreachableError
+from redarm_ros.geometry.broadphase import LEFT_OUT, SceneIndex
+from redarm_ros.geometry.obstacles import Clearance, Scene
 from redarm_ros.kinematics.quaternion import (
     quat_angle,
 )

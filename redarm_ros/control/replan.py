@@ -38,10 +38,10 @@ import numpy as np
 from redarm_ros.control.elbow import ElbowCircle, elbow_circle
 from redarm_ros.control.guard import CollisionGuard
 from redarm_ros.control.ik_step import IKStepper, blend, pose_matrix
-from redarm_ros.control.obstacles import Scene
 from redarm_ros.control.params import ReplanParams
 from redarm_ros.control.swivel_dynamics import wrap_angle
 from redarm_ros.errors import UnreachableError
+from redarm_ros.geometry.obstacles import Scene
 from redarm_ros.kinematics.quaternion import quat_angle, quat_from_matrix
 
 TWO_PI = 2.0 * math.pi

@@ -40,10 +40,10 @@ from typing import Any
 import numpy as np
 
 from redarm_ros.control.elbow import ArmGeometry, elbow_circle
-from redarm_ros.control.obstacles import ArmCapsules, Cylinder, Scene, Sphere, links_clearance, load_scene
 from redarm_ros.control.reach_controller import ControllerParams, ReachController
 from redarm_ros.control.simulate import Trajectory, evaluate, peak_jerk, run_controller
 from redarm_ros.control.swivel_dynamics import SwivelDynamics, SwivelParams, wrap_angle
+from redarm_ros.geometry.obstacles import ArmCapsules, Cylinder, Scene, Sphere, links_clearance, load_scene
 
 LOG = logging.getLogger(__name__)
 DT = 0.01

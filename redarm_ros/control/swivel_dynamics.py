@@ -25,7 +25,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 from redarm_ros.control.elbow import ElbowCircle
-from redarm_ros.control.obstacles import ELBOW_LINKS, ArmCapsules, Scene, links_clearance
+from redarm_ros.geometry.obstacles import ELBOW_LINKS, ArmCapsules, Scene, links_clearance
 from redarm_ros.param_table import declared
 
 Saturation = Callable[[float], float]

@@ -50,7 +50,10 @@ from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 from visualization_msgs.msg import Marker, MarkerArray
 
 from redarm_ros.can.realtime import scheduling_now
-from redarm_ros.control.obstacles import (
+from redarm_ros.control.reach_controller import ControllerParams, GoalStatus, Phase, ReachController
+from redarm_ros.control.types import GoalKind
+from redarm_ros.errors import InvalidInputError, RedarmError
+from redarm_ros.geometry.obstacles import (
     MARKER_CUBE,
     MARKER_CYLINDER,
     MARKER_SPHERE,
@@ -61,9 +64,6 @@ from redarm_ros.control.obstacles import (
     load_scene,
     obstacle_from_marker,
 )
-from redarm_ros.control.reach_controller import ControllerParams, GoalStatus, Phase, ReachController
-from redarm_ros.control.types import GoalKind
-from redarm_ros.errors import InvalidInputError, RedarmError
 from redarm_ros.kinematics import load_arm_or_urdf
 from redarm_ros.kinematics.quaternion import matrix_to_quat, quat_to_matrix
 from redarm_ros.nodes._common import (
@@ -197,7 +197,7 @@ def _quat_xyzw_from_yaw(yaw: float) -> tuple[float, float, float, float]:
 def marker_to_obstacle(m: Marker) -> tuple[Sphere | Cylinder | Box | None, str]:
     """One RViz marker as an obstacle shape (base frame, m) and a note ('' or why it was changed).
 
-    The conversion is the core's :func:`~redarm_ros.control.obstacles.obstacle_from_marker` (SPHERE,
+    The conversion is the core's :func:`~redarm_ros.geometry.obstacles.obstacle_from_marker` (SPHERE,
     upright CYLINDER, CUBE with a yaw). A tilted cylinder or cube, which the core refuses, is kept as
     its bounding sphere rather than dropped: an obstacle the controller ignores could be hit. Other
     marker types give (None, reason).

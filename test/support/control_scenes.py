@@ -6,8 +6,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from redarm_ros.control.obstacles import Cylinder, Scene, min_distance
 from redarm_ros.control.reach_controller import ControllerParams, ReachController, StepResult
+from redarm_ros.geometry.obstacles import Cylinder, Scene, min_distance
 from support.benches import load_bench
 
 DT = 0.01

@@ -1,8 +1,8 @@
-"""Self-collision and ground check of an arm posture with the capsule model of the controller.
+"""Self-collision and ground check of an arm posture, with the capsule model of the arm.
 
-The arm is the controller's capsule model (:class:`~redarm_ros.control.obstacles.ArmCapsules`): one
-capsule per link between consecutive key points base - shoulder - elbow - wrist - tool, i.e. the links
-``base`` (0), ``upper_arm`` (1), ``forearm`` (2), ``hand`` (3), with the controller's radii. For the
+The arm is modelled by :class:`~redarm_ros.geometry.obstacles.ArmCapsules`: one capsule per link
+between consecutive key points base - shoulder - elbow - wrist - tool, i.e. the links ``base`` (0),
+``upper_arm`` (1), ``forearm`` (2), ``hand`` (3), with the radii of :class:`ArmCapsules`. For the
 6-DOF PowerCube arm these are the paper's links L1, L23, L4 and L56 (Duguleana, mobile-base paper).
 
 Two checks, both signed distances in m (negative = penetration depth):
@@ -31,8 +31,8 @@ from typing import Any, Literal
 
 import numpy as np
 
-from redarm_ros.control.obstacles import LINK_NAMES, ArmCapsules
 from redarm_ros.errors import ConfigError, InvalidInputError
+from redarm_ros.geometry.obstacles import LINK_NAMES, ArmCapsules
 
 __all__ = [
     "GROUND",
@@ -117,9 +117,9 @@ def parse_pairs(raw: Any, where: str = "self_collision.pairs") -> tuple[tuple[in
 def collision_model(
     arm: Any, capsules: ArmCapsules | None = None, ground_z: ArmGround = "arm"
 ) -> CollisionModel:
-    """The collision model of ``arm``: its YAML ``self_collision`` entry with the controller's radii.
+    """The collision model of ``arm``: its YAML ``self_collision`` entry with the radii of ``capsules``.
 
-    ``capsules`` (default: the controller's :class:`ArmCapsules`); ``ground_z``: "arm" = the arm's
+    ``capsules`` (default: :class:`ArmCapsules` at the table's defaults); ``ground_z``: "arm" = the arm's
     configured plane (``self_collision: ground_z``, none if absent), a number (m) = that plane, None = no
     ground check. Raises :class:`ConfigError` for a malformed ``self_collision`` entry.
     """
@@ -286,7 +286,7 @@ def self_collision(
 ) -> SelfCollision:
     """Self-collision and ground clearance of ``arm`` at joint angles ``q`` (rad, (n,)).
 
-    ``capsules``: radii (m; default the controller's); ``ground_z``: "arm" (the arm's configured plane),
+    ``capsules``: radii (m; default :class:`ArmCapsules`); ``ground_z``: "arm" (the arm's configured plane),
     a z in m (base frame), or None (no ground); ``model`` (from :func:`collision_model`) overrides both
     and saves re-reading the configuration in a loop. Raises :class:`InvalidInputError` for a malformed q.
     """

@@ -1,4 +1,4 @@
-"""control/self_collision: segment distances, key points in batch, known colliding and free postures for
+"""geometry/self_collision: segment distances, key points in batch, known colliding and free postures for
 every bundled arm, the ground plane, the configured pair lists against their derivation, and the park
 postures."""
 
@@ -9,8 +9,9 @@ import math
 import numpy as np
 import pytest
 
-from redarm_ros.control.obstacles import ArmCapsules
-from redarm_ros.control.self_collision import (
+from redarm_ros.errors import ConfigError, InvalidInputError
+from redarm_ros.geometry.obstacles import ArmCapsules
+from redarm_ros.geometry.self_collision import (
     GROUND,
     NON_ADJACENT_PAIRS,
     CollisionModel,
@@ -23,7 +24,6 @@ from redarm_ros.control.self_collision import (
     self_collision,
     self_collision_batch,
 )
-from redarm_ros.errors import ConfigError, InvalidInputError
 from redarm_ros.kinematics import load_arm
 
 ARMS = ["pa10", "pa10_7c", "powercube6", "powercube7"]
