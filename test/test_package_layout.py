@@ -346,3 +346,14 @@ def test_low_cores_import_only_what_lies_below_them(core: str) -> None:
              for p in paths}
     wrong = {p: mods for p, mods in wrong.items() if mods}
     assert not wrong, f"{core} imports from above it: {wrong}"
+
+
+@pytest.mark.parametrize("module", ["obstacles", "self_collision"])
+def test_documented_old_geometry_paths_still_import(module: str) -> None:
+    """redarm_ros.control.obstacles and .self_collision, once documented, are the geometry modules."""
+    old = importlib.import_module(f"{PACKAGE}.control.{module}")
+    assert old is importlib.import_module(f"{PACKAGE}.geometry.{module}")
+    # the package itself uses the new home only
+    users = [str(p.relative_to(REPO)) for p in (REPO / PACKAGE).rglob("*.py")
+             if f"{PACKAGE}.control.{module}" in p.read_text(encoding="utf-8")]
+    assert users == [f"{PACKAGE}/control/{module}.py"], users
