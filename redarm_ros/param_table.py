@@ -152,8 +152,9 @@ _FIXED: dict[str, tuple[str, Check, Any]] = {
     "links": (f"a sequence of link indices 0..{LINK_COUNT - 1}", _links, tuple[int, ...]),
 }
 
-#: Every word a bound may use; ``int_at_least``, ``choice`` and ``group`` take an argument.
-BOUND_WORDS = (*_FIXED, "int_at_least", "choice", "group")
+#: Every word a bound may use; ``int_at_least``, ``range`` (two floats, a closed interval), ``choice``
+#: and ``group`` take an argument.
+BOUND_WORDS = (*_FIXED, "int_at_least", "range", "choice", "group")
 
 
 def make_bound(spec: Any) -> Bound:
@@ -172,6 +173,11 @@ def make_bound(spec: Any) -> Bound:
         if word == "choice" and isinstance(arg, list) and arg and all(isinstance(c, str) for c in arg):
             choices = tuple(arg)
             return Bound(word, choices, f"one of {choices}", _plain(lambda v: v in choices), str)
+        if word == "range" and isinstance(arg, list) and len(arg) == 2 and all(
+                isinstance(x, float) and math.isfinite(x) for x in arg) and arg[0] < arg[1]:
+            lo, hi = arg
+            return Bound(word, (lo, hi), f"in [{lo:g}, {hi:g}]",
+                         _plain(lambda v: _number(v) and lo <= v <= hi), float)
         if word == "group" and isinstance(arg, str):
             return Bound(word, arg, "a parameter group", lambda v: (True, v), Any)
     raise ConfigError(f"unknown bound {spec!r}; known: {list(BOUND_WORDS)}", value=spec)

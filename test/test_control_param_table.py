@@ -71,6 +71,9 @@ def _bad_values(bound) -> list:
         return [bound.arg - 1, float(bound.arg), True, None]
     if bound.word == "choice":
         return ["not-" + bound.arg[0], bound.arg[0].upper(), None]
+    if bound.word == "range":
+        lo, hi = bound.arg
+        return [lo - 1e-9, hi + 1e-9, NAN, 1e300, "0", None]
     return BAD[bound.word]
 
 
@@ -79,6 +82,8 @@ def _good_values(bound) -> list:
         return [bound.arg, bound.arg + 1]
     if bound.word == "choice":
         return list(bound.arg)
+    if bound.word == "range":
+        return [bound.arg[0], bound.arg[1], 0.5 * (bound.arg[0] + bound.arg[1])]
     return GOOD[bound.word]
 
 
@@ -98,7 +103,7 @@ def _valid(section: str, name: str, value) -> dict:
 def test_every_bound_word_used_has_test_values() -> None:
     used = {p.bound.word for g in table().values() for p in g.params}
     assert used <= set(BOUND_WORDS)
-    missing = used - set(BAD) - {"int_at_least", "choice", "group"}
+    missing = used - set(BAD) - {"int_at_least", "range", "choice", "group"}
     assert not missing, f"add bad and good values for bound(s) {missing} to this test"
 
 
@@ -238,3 +243,22 @@ def test_controller_node_defaults_and_choices_are_the_tables() -> None:
         if row.bound.word == "choice":
             assert all(spec.validate(c) is None for c in row.bound.arg), node_name
             assert spec.validate("not-" + row.bound.arg[0]) is not None, node_name
+
+
+def test_controller_node_declares_its_core_parameters_from_the_table() -> None:
+    """One place per parameter: a node parameter of NODE_TO_TABLE takes its default, type, bound (as the
+    validator and the descriptor's range) and description from the table row; the node's source writes
+    none of them."""
+    pytest.importorskip("rclpy")
+    node = pytest.importorskip("redarm_ros.nodes.controller")
+    specs = {s.name: s for s in node.PARAMS}
+    with open(node.__file__, encoding="utf-8") as f:
+        text = f.read()
+    for ros_name, (section, name) in node.NODE_TO_TABLE.items():
+        row = table()[section].param(name)
+        spec = specs[ros_name]
+        assert f'ParamSpec("{ros_name}"' not in text, ros_name
+        assert " ".join(row.doc.split())[1:] in spec.description, ros_name
+        assert spec.range == (row.bound.arg if row.bound.word == "range" else None), ros_name
+        assert all(spec.validate(v) is not None for v in _bad_values(row.bound)), ros_name
+        assert all(spec.validate(v) is None for v in _good_values(row.bound)), ros_name
