@@ -217,8 +217,9 @@ def test_params_and_arm_validation(arm) -> None:
     ctl.reset(np.zeros(7) + 0.2)
     with pytest.raises(InvalidInputError):
         ctl.step(-1.0)
-    with pytest.raises(InvalidInputError):
-        ctl.set_preferred_swivel(math.inf)
+    for bad in (math.inf, 7.0, "up"):  # the table's bound: +/- 2 pi
+        with pytest.raises(InvalidInputError):
+            ctl.set_preferred_swivel(bad)
     r = ctl.step(DT)  # no goal: holds
     assert r.phase is Phase.IDLE and math.isinf(r.distance_to_goal)
 

@@ -349,10 +349,16 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
         return None
 
     def set_preferred_swivel(self, value: float) -> None:
-        """Change the preferred swivel (rad, same reference as ``params.swivel_reference``)."""
-        v = float(value)
-        if not math.isfinite(v):
-            raise InvalidInputError("preferred swivel must be finite", field="preferred_swivel", value=value)
+        """Change the preferred swivel (rad, same reference as ``params.swivel_reference``).
+
+        Raises:
+            InvalidInputError: not a number within the table's bound (+/- 2 pi).
+        """
+        try:
+            v = float(value)
+        except (TypeError, ValueError) as exc:
+            raise InvalidInputError("preferred swivel must be a number", field="preferred_swivel",
+                                    value=value) from exc
         self.params = self.params.with_(preferred_swivel=v)
 
     # ------------------------------------------------------------------ goals
