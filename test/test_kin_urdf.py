@@ -313,16 +313,17 @@ def test_ik_front_end_serves_urdf_arms_with_the_collision_filter() -> None:
 
 
 def test_controller_runs_urdf_arms_in_the_model_frames_and_refuses_other_chains_with_the_reason() -> None:
-    from redarm_ros.control.reach_controller import JointMappedController, ReachController
+    from redarm_ros.control.make import make_controller
+    from redarm_ros.control.reach_controller import JointMappedController
     from redarm_ros.control.types import Phase
 
     _, pa10 = _urdf_arm("pa10")
-    ctl = ReachController(pa10)
+    ctl = make_controller(pa10)
     ctl.reset(np.array([0.0, -0.5, 0.0, 2.0, 0.0, 1.2, 0.0]))
     assert ctl.step(0.01).q.shape == (7,)
     # the iiwa: joint 4 turns about -y; the controller runs the model with joint values mapped
     iiwa = load_arm(iiwa14_urdf(), base_link="base_link", tip_link="tool0")
-    ctl = ReachController(iiwa)
+    ctl = make_controller(iiwa)
     assert isinstance(ctl, JointMappedController)
     q0 = np.radians([10.0, 30.0, 0.0, -60.0, 0.0, 60.0, 0.0])
     ctl.reset(q0)
@@ -343,8 +344,8 @@ def test_controller_runs_urdf_arms_in_the_model_frames_and_refuses_other_chains_
     assert max(pose_error(iiwa.fk(r.q), goal)) <= 2e-3
     reframed = load_arm(iiwa14_urdf(reframed=True), base_link="base_link", tip_link="tool0")
     with pytest.raises(ConfigError, match="base or tool transform") as e1:
-        ReachController(reframed)
+        make_controller(reframed)
     panda = load_arm(franka_like_urdf(), base_link="base_link", tip_link="tool0")
     with pytest.raises(ConfigError, match="elbow offset") as e2:
-        ReachController(panda)
+        make_controller(panda)
     assert "\n" not in str(e1.value) + str(e2.value)

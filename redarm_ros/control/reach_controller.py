@@ -64,6 +64,7 @@ from redarm_ros.control.types import GoalCheck, GoalKind, GoalStatus, Phase, Qua
 from redarm_ros.errors import ConfigError, InvalidInputError, UnreachableError
 from redarm_ros.geometry.broadphase import LEFT_OUT, SceneIndex
 from redarm_ros.geometry.obstacles import Clearance, Scene
+from redarm_ros.kinematics.protocols import ControlledArm
 from redarm_ros.kinematics.quaternion import (
     quat_angle,
 )
@@ -107,7 +108,7 @@ def has_swivel(arm: Any) -> bool:
     return True
 
 
-def controller_refusal(arm: Any) -> str | None:
+def controller_refusal(arm: object) -> str | None:
     """One line saying why the controller cannot run ``arm`` (a URDF model), or None.
 
     A URDF chain without the closed form carries its reason; a URDF chain that maps onto the swivel model
@@ -130,9 +131,12 @@ class JointMappedController:
     and tool frames the model's, as the iiwa's): a :class:`ReachController` on ``arm.canonical`` with the
     joint values mapped at the boundary, ``q_c = sign (q - offset)``. Poses, twists, the scene and every
     distance are the same in both; limits, rates and accelerations keep their sizes. Everything else is
-    the inner controller's. Built by ``ReachController(arm, ...)`` for such an arm."""
+    the inner controller's. Built by :func:`~redarm_ros.control.make.make_controller` for such an arm."""
 
     def __init__(self, arm: Any, scene: Scene | None = None, params: ControllerParams | None = None) -> None:
+        if getattr(arm, "kind", "") != "swivel7_urdf":
+            raise ConfigError(f"JointMappedController maps a URDF swivel arm onto its model; "
+                              f"{getattr(arm, 'name', arm)!r} is not one", field="arm")
         self.arm = arm
         self.inner = ReachController(arm.canonical, scene, params)
 
@@ -168,35 +172,23 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
             r = ctl.step(0.01)                # StepResult; command r.q
             if r.phase is Phase.REACHED: ...
 
-    For the 6-DOF PowerCube arm the constructor returns a
-    :class:`~redarm_ros.control.reach6.ReachController6` (the same dynamics without the swivel).
+    :func:`~redarm_ros.control.make.make_controller` builds the controller of any arm: this class for a
+    7-DOF swivel arm, :class:`~redarm_ros.control.reach6.ReachController6` (the same dynamics without
+    the swivel) for the 6-DOF PowerCube arm.
 
     Raises:
-        ConfigError: the arm is neither a 7-DOF swivel arm (spherical shoulder and wrist) nor the 6-DOF
-            PowerCube arm.
+        ConfigError: the arm is not one this class runs (the message names the one that does).
     """
 
     #: Time budget (s) of the base-move suggestion in the rejection of a goal out of reach (one search
     #: per rejected goal, in the control step's thread).
     BASE_MOVE_BUDGET_S = 0.1
 
-    def __new__(cls, arm: Any, *args: Any, **kwargs: Any) -> ReachController:
-        mapped = getattr(arm, "kind", "") == "swivel7_urdf"
-        if cls is ReachController and mapped and not controller_refusal(arm):
-            return JointMappedController(arm, *args, **kwargs)  # type: ignore[return-value]
-        if cls is ReachController and is_6dof(arm):
-            from redarm_ros.control.reach6 import ReachController6
-
-            return super().__new__(ReachController6)
-        return super().__new__(cls)
-
-    def __init__(self, arm: Any, scene: Scene | None = None, params: ControllerParams | None = None) -> None:
-        refused = controller_refusal(arm)
+    def __init__(self, arm: ControlledArm, scene: Scene | None = None,
+                 params: ControllerParams | None = None) -> None:
+        refused = controller_refusal(arm) or self.refusal(arm)
         if refused:
             raise ConfigError(refused, field="arm")
-        if not has_swivel(arm) and not is_6dof(arm):
-            raise ConfigError(f"ReachController needs a 7-DOF swivel arm or the 6-DOF PowerCube arm, got "
-                              f"{getattr(arm, 'name', arm)!r}", field="arm")
         self.arm = arm
         self.params = params or ControllerParams()
         p = self.params
@@ -221,6 +213,22 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
         self._index = SceneIndex(self.scene, self.geom.shoulder, 1.0, 0.0)
         self._local = self._index.reach_scene
         self._install_scene(scene if scene is not None else Scene())
+
+    @classmethod
+    def refusal(cls, arm: object) -> str | None:
+        """Why this class cannot run ``arm`` (None if it can): it runs 7-DOF swivel arms in the model's
+        frames."""
+        name = getattr(arm, "name", arm)
+        if getattr(arm, "kind", "") == "swivel7_urdf":
+            return (f"arm {name!r} is a URDF chain: make_controller(arm, scene, params) builds its "
+                    "controller (the joint values mapped onto the model)")
+        if is_6dof(arm):
+            return (f"arm {name!r} has no swivel: make_controller(arm, scene, params) builds its controller "
+                    "(ReachController6)")
+        if not has_swivel(arm):
+            return (f"ReachController needs a 7-DOF swivel arm or the 6-DOF PowerCube arm (through "
+                    f"make_controller), got {name!r}")
+        return None
 
     # ------------------------------------------------------------------ properties
     @property

@@ -31,7 +31,7 @@ from __future__ import annotations
 import math
 from collections.abc import Generator
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -45,6 +45,17 @@ from redarm_ros.geometry.obstacles import Scene
 from redarm_ros.kinematics.quaternion import quat_angle, quat_from_matrix
 
 TWO_PI = 2.0 * math.pi
+
+
+class PathSearch(Protocol):
+    """What the re-plan law drives (:class:`JointPlanner`, the 6-DOF arm's ``Planner6``): :meth:`work`
+    once per control step until it returns True; then ``path`` holds the waypoints (rad, start first) or
+    is None with ``reason`` saying why."""
+
+    path: list[np.ndarray] | None
+    reason: str
+
+    def work(self) -> bool: ...
 
 
 # ----------------------------------------------------------------------------------------------

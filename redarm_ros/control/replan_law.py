@@ -15,7 +15,7 @@ from redarm_ros.control.base import ControllerBase
 from redarm_ros.control.elbow import ElbowCircle, elbow_circle
 from redarm_ros.control.ik_step import pose_matrix
 from redarm_ros.control.params import ReplanParams
-from redarm_ros.control.replan import JointPath, JointPlanner
+from redarm_ros.control.replan import JointPath, JointPlanner, PathSearch
 from redarm_ros.control.state import CoreState, Mode
 from redarm_ros.control.types import GoalKind, Phase
 from redarm_ros.errors import UnreachableError
@@ -96,7 +96,7 @@ class ReplanMixin(ControllerBase):
         st.mode = Mode.JOINT
         st.message = self._plan_message(planner)
 
-    def _new_planner(self, T: np.ndarray) -> JointPlanner:
+    def _new_planner(self, T: np.ndarray) -> PathSearch:
         """The resumable joint-space search towards tool pose ``T`` (the 6-DOF arm has its own)."""
         st = self._state()
         s_pref = None
@@ -111,7 +111,7 @@ class ReplanMixin(ControllerBase):
         return JointPlanner(self.stepper, self.guard, self._index.reach_scene.scene, st.cmd.q.copy(),
                             T, self.params.replan, self.params.unfold_pitch, retreat, s_pref)
 
-    def _plan_message(self, planner: JointPlanner) -> str:
+    def _plan_message(self, planner: PathSearch) -> str:
         """What ``~/state`` says once the joint path starts."""
         st = self._state()
         assert st.path is not None

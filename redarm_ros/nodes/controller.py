@@ -50,7 +50,8 @@ from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 from visualization_msgs.msg import Marker, MarkerArray
 
 from redarm_ros.can.realtime import scheduling_now
-from redarm_ros.control.reach_controller import ControllerParams, GoalStatus, Phase, ReachController
+from redarm_ros.control.make import make_controller
+from redarm_ros.control.reach_controller import ControllerParams, GoalStatus, Phase
 from redarm_ros.control.types import GoalKind
 from redarm_ros.errors import InvalidInputError, RedarmError
 from redarm_ros.geometry.obstacles import (
@@ -280,7 +281,7 @@ class ControllerNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
         try:
             self.arm = load_arm_or_urdf(p["arm"], p["urdf"], p["base_link"], p["tip_link"])
             self.base_scene = load_scene(p["scene"]) if p["scene"] else Scene()
-            self.ctl = ReachController(self.arm, self.base_scene, controller_params(p))
+            self.ctl = make_controller(self.arm, self.base_scene, controller_params(p))
         except (RedarmError, OSError) as exc:
             raise ValueError(f"controller configuration: {exc}") from exc
         self.name_check = UniqueNameCheck(self, p["duplicate_check_s"])  # a timer: no blocking here
