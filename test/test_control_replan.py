@@ -381,3 +381,25 @@ def test_a_trapped_arm_says_why_and_holds() -> None:
     for _ in range(50):
         again = ctl.step(DT)
     assert again.phase is Phase.BLOCKED and np.max(np.abs(again.q - r_.q)) < 1e-3
+
+
+def test_stall_reason_is_a_function_of_the_state_and_the_parameters() -> None:
+    """The stall detector reads the controller state and the parameters it is given, nothing else: an
+    overdue point goal is a reason to re-plan, unless re-planning is off; other modes are never stalled."""
+    from redarm_ros.control.replan_law import stall_reason
+    from redarm_ros.control.state import Mode
+
+    ctl = make_controller(ARM)
+    q0 = np.array([0.0, 0.5, 0.0, 1.2, 0.0, 0.8, 0.0])
+    ctl.reset(q0, now=0.0)
+    T = ARM.fk(q0 + np.array([0.6, 0.3, 0.0, -0.4, 0.0, 0.2, 0.0]))
+    assert ctl.set_goal(T).accepted
+    st = ctl._st
+    assert st is not None and st.mode is Mode.ATTRACTOR
+    st.time = st.progress.due + 1.0
+    assert stall_reason(st, ctl.params).startswith("overdue:")
+    assert st.progress.t_last == st.time  # the progress was tracked
+    off = ctl.params.with_(replan=ReplanParams(enabled=False))
+    assert stall_reason(st, off) == ""
+    st.mode = Mode.SERVO
+    assert stall_reason(st, ctl.params) == ""
