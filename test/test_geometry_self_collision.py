@@ -278,3 +278,12 @@ def test_park_loader_validation() -> None:
     # other limits than the YAML's: the YAML posture no longer fits, so the model has none
     assert load_arm("pa10", lower=[-0.1] * 7, upper=[0.1] * 7).park is None
     assert load_arm("pa10", lower=[-0.1] * 7, upper=[0.1] * 7, park=[0.05] * 7).park is not None
+
+
+@pytest.mark.parametrize("name", ARMS)
+def test_every_bundled_arm_enters_the_geometry_through_its_protocols(name: str) -> None:
+    from redarm_ros.geometry.arm import ChainArm, KeyPointArm
+
+    arm = load_arm(name)
+    assert isinstance(arm, ChainArm) and isinstance(arm, KeyPointArm)
+    assert all(hasattr(j, "origin") and hasattr(j, "axis") for j in arm.chain)

@@ -3,8 +3,8 @@ self-collision and the obstacle broad phase (numpy, no ROS).
 
 Used by the IK front end (``kinematics/solve.py``, ``collision_ik.py``, ``base_placement.py``) and by
 the controller, and imports neither: an arm enters as its five key points (base, shoulder, elbow,
-wrist, tool; m) or as an object that gives them (``key_points(q)``, and for the batched and scalar
-self-collision ``fk_axes``, ``chain``, ``key_joints``, ``tool``, ``n``; any kinematics model does).
+wrist, tool; m) or as an object that gives them, described by the protocols of
+:mod:`~redarm_ros.geometry.arm` (any kinematics model is one).
 Modules: :mod:`~redarm_ros.geometry.obstacles` (shapes, scenes, capsules, clearance),
 :mod:`~redarm_ros.geometry.self_collision`, :mod:`~redarm_ros.geometry.broadphase`.
 """

@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from redarm_ros.errors import ConfigError, InvalidInputError
+from redarm_ros.geometry.arm import KeyPointArm
 from redarm_ros.param_table import declared
 
 Vec3 = tuple[float, float, float]
@@ -725,7 +726,7 @@ def links_clearance(points: Sequence[Sequence[float]], scene: Scene, capsules: A
     return Clearance(best, best_link, best_obs)
 
 
-def min_distance(arm: Any, q: Any, scene: Scene, capsules: ArmCapsules | None = None) -> Clearance:
+def min_distance(arm: KeyPointArm, q: Any, scene: Scene, capsules: ArmCapsules | None = None) -> Clearance:
     """Minimum signed clearance between the arm at joint angles ``q`` (rad) and ``scene``.
 
     Uses ``arm.key_points(q)`` (base, shoulder, elbow, wrist, tool, in m) and one capsule per link.

@@ -32,6 +32,7 @@ from typing import Any, Literal
 import numpy as np
 
 from redarm_ros.errors import ConfigError, InvalidInputError
+from redarm_ros.geometry.arm import ChainArm
 from redarm_ros.geometry.obstacles import LINK_NAMES, ArmCapsules
 
 __all__ = [
@@ -115,7 +116,7 @@ def parse_pairs(raw: Any, where: str = "self_collision.pairs") -> tuple[tuple[in
 
 
 def collision_model(
-    arm: Any, capsules: ArmCapsules | None = None, ground_z: ArmGround = "arm"
+    arm: ChainArm, capsules: ArmCapsules | None = None, ground_z: ArmGround = "arm"
 ) -> CollisionModel:
     """The collision model of ``arm``: its YAML ``self_collision`` entry with the radii of ``capsules``.
 
@@ -269,7 +270,7 @@ class SelfCollision:
         return f"{self.pair[0]}-{self.pair[1]} capsules overlap by {-self.min_distance:.3f} m"
 
 
-def _key_points(arm: Any, q: Any) -> list[list[float]]:
+def _key_points(arm: ChainArm, q: Any) -> list[list[float]]:
     """The 5 key points (base, shoulder, elbow, wrist, tool) as lists (m), from the scalar FK path."""
     p, origins, _ = arm.fk_axes(q)
     k1, k2, k3 = arm.key_joints
@@ -277,7 +278,7 @@ def _key_points(arm: Any, q: Any) -> list[list[float]]:
 
 
 def self_collision(
-    arm: Any,
+    arm: ChainArm,
     q: Sequence[float],
     capsules: ArmCapsules | None = None,
     ground_z: ArmGround = "arm",
@@ -335,7 +336,7 @@ def _rot_batch(axis: np.ndarray, angles: np.ndarray) -> np.ndarray:
     return R
 
 
-def key_points_batch(arm: Any, Q: Any) -> np.ndarray:
+def key_points_batch(arm: ChainArm, Q: Any) -> np.ndarray:
     """(m, 5, 3) key points (m) base, shoulder, elbow, wrist, tool for joint vectors Q (m, n) in rad.
 
     The chain of ``arm.chain`` (joint origins and axes) evaluated for all rows at once; equal to
@@ -393,7 +394,7 @@ class SelfCollisionBatch:
 
 
 def self_collision_batch(
-    arm: Any,
+    arm: ChainArm,
     Q: Any,
     capsules: ArmCapsules | None = None,
     ground_z: ArmGround = "arm",
@@ -431,7 +432,7 @@ def self_collision_batch(
 # Which pairs can touch (the derivation behind the YAML lists)
 # ----------------------------------------------------------------------------------------------
 def pair_minima(
-    arm: Any,
+    arm: ChainArm,
     capsules: ArmCapsules | None = None,
     pairs: Iterable[tuple[int, int]] = NON_ADJACENT_PAIRS,
     *,
