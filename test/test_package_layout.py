@@ -348,11 +348,14 @@ def test_low_cores_import_only_what_lies_below_them(core: str) -> None:
     assert not wrong, f"{core} imports from above it: {wrong}"
 
 
-@pytest.mark.parametrize("module", ["obstacles", "self_collision"])
-def test_documented_old_geometry_paths_still_import(module: str) -> None:
-    """redarm_ros.control.obstacles and .self_collision, once documented, are the geometry modules."""
+@pytest.mark.parametrize("module, home", [("obstacles", "geometry.obstacles"),
+                                          ("self_collision", "geometry.self_collision"),
+                                          ("param_table", "param_table")])
+def test_documented_old_paths_still_import(module: str, home: str) -> None:
+    """redarm_ros.control.obstacles, .self_collision and .param_table, once documented, are the modules
+    of their new homes."""
     old = importlib.import_module(f"{PACKAGE}.control.{module}")
-    assert old is importlib.import_module(f"{PACKAGE}.geometry.{module}")
+    assert old is importlib.import_module(f"{PACKAGE}.{home}")
     # the package itself uses the new home only
     users = [str(p.relative_to(REPO)) for p in (REPO / PACKAGE).rglob("*.py")
              if f"{PACKAGE}.control.{module}" in p.read_text(encoding="utf-8")]
