@@ -61,10 +61,11 @@ from typing import Any
 
 import numpy as np
 
-from redarm_ros.control.obstacles import ArmCapsules, Scene, load_scene, min_distance
+from redarm_ros.control.make import make_controller
 from redarm_ros.control.params import ControllerParams
 from redarm_ros.control.reach_controller import Phase, ReachController
-from redarm_ros.control.self_collision import self_collision_batch
+from redarm_ros.geometry.obstacles import ArmCapsules, Scene, load_scene, min_distance
+from redarm_ros.geometry.self_collision import self_collision_batch
 from redarm_ros.kinematics import load_arm
 from redarm_ros.kinematics.quaternion import (
     quat_from_matrix,
@@ -404,7 +405,7 @@ def run_case(arm, case: str, moves: int, seed: int, params: ControllerParams, ve
         per = 10
         for i in range(max(1, math.ceil(moves / per))):
             scene = load_scene("table_empty") if i % 2 == 0 else sequence_bench.random_scene(rng)
-            probe = ReachController(arm, scene, params)
+            probe = make_controller(arm, scene, params)
             goals = sequence_bench.sample_goals(arm, scene, probe, rng, min(per, moves - i * per),
                                                 sequence_bench.SceneStats())
             plan.append((scene, goals))
@@ -413,9 +414,9 @@ def run_case(arm, case: str, moves: int, seed: int, params: ControllerParams, ve
         plan.append((scene, None))
     k = 0
     for scene, goals in plan:
-        ctl = ReachController(arm, scene, params)
+        ctl = make_controller(arm, scene, params)
         ctl.reset(_start(arm), now=0.0)
-        probe = ReachController(arm, scene, params)
+        probe = make_controller(arm, scene, params)
         oracle_scene = scene if (scene.obstacles or scene.table_height is not None) else None
         n = len(goals) if goals is not None else moves
         for i in range(n):

@@ -318,16 +318,17 @@ def test_ik_front_end_serves_urdf_arms_with_the_collision_filter() -> None:
 
 
 def test_controller_runs_urdf_arms_in_the_model_frames_and_refuses_other_chains_with_the_reason() -> None:
-    from redarm_ros.control.reach_controller import JointMappedController, ReachController
+    from redarm_ros.control.make import make_controller
+    from redarm_ros.control.reach_controller import JointMappedController
     from redarm_ros.control.types import Phase
 
     _, pa10 = _urdf_arm("pa10")
-    ctl = ReachController(pa10)
+    ctl = make_controller(pa10)
     ctl.reset(np.array([0.0, -0.5, 0.0, 2.0, 0.0, 1.2, 0.0]))
     assert ctl.step(0.01).q.shape == (7,)
     # the iiwa: joint 4 turns about -y; the controller runs the model with joint values mapped
     iiwa = load_arm(iiwa14_urdf(), base_link="base_link", tip_link="tool0")
-    ctl = ReachController(iiwa)
+    ctl = make_controller(iiwa)
     assert isinstance(ctl, JointMappedController)
     q0 = np.radians([10.0, 30.0, 0.0, -60.0, 0.0, 60.0, 0.0])
     ctl.reset(q0)
@@ -348,10 +349,10 @@ def test_controller_runs_urdf_arms_in_the_model_frames_and_refuses_other_chains_
     assert max(pose_error(iiwa.fk(r.q), goal)) <= 2e-3
     reframed = load_arm(iiwa14_urdf(reframed=True), base_link="base_link", tip_link="tool0")
     with pytest.raises(ConfigError, match="base or tool transform") as e1:
-        ReachController(reframed)
+        make_controller(reframed)
     panda = load_arm(franka_like_urdf(), base_link="base_link", tip_link="tool0")
     with pytest.raises(ConfigError, match="elbow offset") as e2:
-        ReachController(panda)
+        make_controller(panda)
     assert "\n" not in str(e1.value) + str(e2.value)
 
 
@@ -359,9 +360,9 @@ def test_controller_capsules_come_from_the_urdf_collision_geometry(tmp_path: Pat
     import dataclasses
     import struct
 
-    from redarm_ros.control.obstacles import ArmCapsules, Scene
+    from redarm_ros.control.make import make_controller
     from redarm_ros.control.params import ControllerParams
-    from redarm_ros.control.reach_controller import ReachController
+    from redarm_ros.geometry.obstacles import ArmCapsules, Scene
 
     tri = np.array([[0.11, 0.0, 0.1], [0.0, 0.05, 0.2], [0.0, 0.0, 0.3]], np.float32)  # binary STL
     stl = b"\0" * 80 + struct.pack("<I", 1) + np.zeros(3, np.float32).tobytes() + tri.tobytes() + b"\0\0"
@@ -377,14 +378,14 @@ def test_controller_capsules_come_from_the_urdf_collision_geometry(tmp_path: Pat
     )
     (tmp_path / "arm.urdf").write_text(text)
     arm = load_arm(tmp_path / "arm.urdf", base_link="base_link", tip_link="tool0")
-    ctl = ReachController(arm, Scene())
+    ctl = make_controller(arm, Scene())
     radii = ctl.inner.params.capsules.radii
     default = ArmCapsules().radii
     # upper arm: the cylinder on its axis; forearm: the mesh vertex 0.11 m off its axis; the base (no
     # geometry) and the hand (a mesh format not read) keep the defaults
     assert radii == pytest.approx((default[0], 0.09, 0.11, default[3]), abs=1e-7)
     mine = ArmCapsules(radii=(0.2, 0.2, 0.2, 0.2))  # capsules set by the user are kept
-    ctl = ReachController(arm, Scene(), dataclasses.replace(ControllerParams(), capsules=mine))
+    ctl = make_controller(arm, Scene(), dataclasses.replace(ControllerParams(), capsules=mine))
     assert ctl.inner.params.capsules == mine
     plain = load_arm(iiwa14_urdf(), base_link="base_link", tip_link="tool0")  # URDF text, no geometry
-    assert ReachController(plain, Scene()).inner.params.capsules == ArmCapsules()
+    assert make_controller(plain, Scene()).inner.params.capsules == ArmCapsules()

@@ -38,6 +38,7 @@ import numpy as np
 import yaml
 
 from redarm_ros.errors import ConfigError, InvalidInputError
+from redarm_ros.geometry.obstacles import ArmCapsules
 from redarm_ros.kinematics.model import ANGLE_RANGE, Arm, Joint, check_finite_array, transform_from_xyz_rpy
 from redarm_ros.kinematics.numeric import solve_dls_multistart
 from redarm_ros.kinematics.quaternion import rotation_error
@@ -815,3 +816,48 @@ def describe_solver(arm: Any) -> str:
     if getattr(arm, "kind", "") == "powercube6":
         return "closed-form PowerCube 6-DOF IK"
     return SOLVER_NUMERIC
+
+
+#: The model links each capsule is rigid with on a 7-joint swivel arm: the base and joint 1's link carry
+#: the base capsule (joint 1 turns about it), links 2-3 the upper arm, 4-5 the forearm, 6-7 the hand.
+CAPSULE_MODEL_LINKS = ((0, 1), (2, 3), (4, 5), (6, 7))
+
+
+def capsules_from_urdf(arm: Any, capsules: ArmCapsules) -> ArmCapsules:
+    """``capsules`` with the radii taken from the collision geometry of the URDF file a 7-joint swivel arm
+    was loaded from (``arm.config["urdf"]``): the radius of a capsule is the largest distance of its links'
+    geometry (:func:`urdf_collision_points`) from its segment between
+    two key points. A capsule whose links have no collision geometry, or geometry that cannot be read,
+    keeps its radius; so does every capsule of a bundled arm or an arm from URDF text."""
+    cfg = getattr(arm, "config", None) or {}
+    path = cfg.get("urdf")
+    if getattr(arm, "n", 0) != 7 or not hasattr(arm, "key_points"):
+        return capsules
+    if not path or not Path(str(path)).is_file():
+        return capsules
+    try:
+        geo = urdf_collision_points(str(path), str(cfg["base_link"]), str(cfg["tip_link"]))
+    except (ConfigError, InvalidInputError, KeyError, ValueError):
+        return capsules
+    if not geo:
+        return capsules
+    q = (np.asarray(arm.lower, dtype=float) + np.asarray(arm.upper, dtype=float)) / 2.0  # any posture
+    kp = np.asarray(arm.key_points(q))
+    frames = arm.fk_frames(q)  # frames[i - 1]: model link i
+    radii = list(capsules.radii)
+    for c, group in enumerate(CAPSULE_MODEL_LINKS):
+        found = [k for k in group if k in geo]
+        if not found or any(geo[k] is None for k in found):
+            continue
+        a, d = kp[c], kp[c + 1] - kp[c]
+        r = 0.0
+        for k in found:
+            pts, pads = geo[k]  # type: ignore[misc]
+            F = np.eye(4) if k == 0 else frames[k - 1]
+            P = pts @ F[:3, :3].T + F[:3, 3] - a
+            t = np.clip(P @ d / max(float(d @ d), 1e-300), 0.0, 1.0)
+            r = max(r, float((np.linalg.norm(P - t[:, None] * d, axis=1) + pads).max()))
+        if r > 0.0:
+            radii[c] = r
+    return ArmCapsules(radii=tuple(radii), table_links=capsules.table_links,
+                       obstacle_links=capsules.obstacle_links)

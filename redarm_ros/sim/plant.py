@@ -447,7 +447,7 @@ class PybulletPlant:
         )
 
     def add_object(self, spec: Mapping[str, Any]) -> int:
-        """Add one object from a mapping: the scene schema of ``redarm_ros.control.obstacles``.
+        """Add one object from a mapping: the scene schema of ``redarm_ros.geometry.obstacles``.
 
         Keys: ``type`` (sphere | cylinder | box | cube | table), ``center`` (or ``position``) [x, y, z] m;
         sphere ``radius``; cylinder ``radius``, ``height`` (vertical unless ``orientation`` x,y,z,w);
@@ -495,7 +495,7 @@ class PybulletPlant:
 
     def add_scene(self, scene: Mapping[str, Any]) -> list[int]:
         """Add a whole scene: ``{"table_height": z or None, "obstacles": [object, ...]}`` (the schema of
-        ``redarm_ros.control.obstacles.Scene.to_dict``). A table top is added below ``table_height``
+        ``redarm_ros.geometry.obstacles.Scene.to_dict``). A table top is added below ``table_height``
         in front of the arm. Returns the new body ids."""
         ids = []
         th = scene.get("table_height")
