@@ -82,7 +82,7 @@ setup(
     packages=find_packages(include=[PACKAGE, f"{PACKAGE}.*"]),
     package_data={
         f"{PACKAGE}.can": ["setup_vcan.sh"],  # creates vcan0 on a real host
-        f"{PACKAGE}.control": ["parameters.yaml"],  # the controller's parameter table
+        f"{PACKAGE}": ["parameters.yaml"],  # the cores' parameter table
     },
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),

@@ -51,7 +51,7 @@ def mixed_collision_poses(
 ) -> Iterator[tuple[np.ndarray, np.ndarray, Any]]:
     """Endless poses (T, every in-limit solution on a 0.1 deg swivel sweep, their self-collision
     result) of random postures above 0.3 m whose solutions are partly colliding, partly free."""
-    from redarm_ros.control.self_collision import self_collision_batch  # noqa: PLC0415
+    from redarm_ros.geometry.self_collision import self_collision_batch  # noqa: PLC0415
 
     S = np.linspace(-math.pi, math.pi, 3600, endpoint=False)
     while True:
@@ -69,7 +69,7 @@ def mixed_collision_poses(
 def shifted_poses(arm: Any, rng: np.random.Generator) -> Iterator[np.ndarray]:
     """Endless tool poses of collision-free postures (within 80 % of the limits) moved sideways by
     0.4-1.2 m: mostly out of the arm's reach from where it stands (the caller keeps those)."""
-    from redarm_ros.control.self_collision import self_collision  # noqa: PLC0415
+    from redarm_ros.geometry.self_collision import self_collision  # noqa: PLC0415
 
     while True:
         q = rng.uniform(0.8 * arm.lower, 0.8 * arm.upper)

@@ -36,7 +36,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench_common
 import bench_common  # noqa: E402
 
-from redarm_ros.control.self_collision import self_collision, self_collision_batch
+from redarm_ros.geometry.self_collision import self_collision, self_collision_batch
 from redarm_ros.kinematics import IKStatus, load_arm
 from redarm_ros.kinematics.base_placement import suggest_base_move
 from redarm_ros.kinematics.collision_ik import nearest_collision_free

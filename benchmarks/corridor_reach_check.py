@@ -22,8 +22,9 @@ from collections import Counter
 
 import numpy as np
 
+from redarm_ros.control.make import make_controller
 from redarm_ros.control.params import ControllerParams
-from redarm_ros.control.reach_controller import Phase, ReachController
+from redarm_ros.control.reach_controller import Phase
 from redarm_ros.kinematics import load_arm
 from redarm_ros.kinematics.quaternion import quat_angle, quat_from_matrix
 
@@ -49,7 +50,7 @@ def run(name: str, moves: int, corridor: bool, seed: int = 11) -> tuple[list[dic
     arm = load_arm(name)
     p = ControllerParams()
     p = p.with_(replan=dataclasses.replace(p.replan, corridor=corridor))
-    ctl = ReachController(arm, None, p)
+    ctl = make_controller(arm, None, p)
     ctl.reset(np.array(arm.park, float))
     rng = np.random.default_rng(seed)
     lo, up = np.asarray(arm.lower), np.asarray(arm.upper)

@@ -36,10 +36,11 @@ from pathlib import Path
 
 import numpy as np
 
-from redarm_ros.control import obstacles as ob
-from redarm_ros.control.obstacles import ArmCapsules, Scene, links_clearance, min_distance
-from redarm_ros.control.reach_controller import ControllerParams, ReachController
+from redarm_ros.control.make import make_controller
+from redarm_ros.control.reach_controller import ControllerParams
 from redarm_ros.control.simulate import ReachMetrics, evaluate, run_controller
+from redarm_ros.geometry import obstacles as ob
+from redarm_ros.geometry.obstacles import ArmCapsules, Scene, links_clearance, min_distance
 from redarm_ros.kinematics import load_arm
 from redarm_ros.kinematics.quaternion import quat_from_matrix, quat_from_rotvec, quat_mul, rotvec_between
 
@@ -87,7 +88,7 @@ def _start_q(arm, T: np.ndarray, rng: np.random.Generator, scene: Scene,
 def make_case(arm, seed: int, caps: ArmCapsules) -> Case:
     """Random reachable start/target with 1-3 obstacles between them (rejection sampling)."""
     rng = np.random.default_rng(seed)
-    probe = ReachController(arm, Scene((), 0.0))
+    probe = make_controller(arm, Scene((), 0.0))
     for _ in range(500):
         ps = np.array([rng.uniform(0.25, 0.6), rng.uniform(-0.4, 0.4), rng.uniform(0.15, 0.4)])
         pg = np.array([rng.uniform(0.35, 0.75), rng.uniform(-0.45, 0.45), rng.uniform(0.06, 0.16)])
@@ -123,7 +124,7 @@ def make_case(arm, seed: int, caps: ArmCapsules) -> Case:
         # Keep scenes where the start is free and the goal acceptable.
         if min_distance(arm, q0, scene, caps).distance < 0.02:
             continue
-        ctl = ReachController(arm, scene)
+        ctl = make_controller(arm, scene)
         if not ctl.check_goal(Tg).accepted:
             continue
         # Targets right next to an obstacle are fine, but not under an overhang of the hand.
@@ -217,7 +218,7 @@ def run_method(method: str, arm, case: Case, scene: Scene, caps: ArmCapsules) ->
     params = ControllerParams(capsules=caps)
     if method in ("fixed", "attractor_paper"):
         params = params.with_(swivel_mode=method)
-    ctl = ReachController(arm, scene, params)
+    ctl = make_controller(arm, scene, params)
     ctl.reset(case.q_start)
     traj = run_controller(ctl, case.T_goal, DURATION, DT)
     return evaluate(arm, scene, traj.q, case.T_goal, DT, traj.step_s, traj.reached_at, caps)

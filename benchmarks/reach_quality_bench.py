@@ -61,10 +61,11 @@ from typing import Any
 
 import numpy as np
 
-from redarm_ros.control.obstacles import ArmCapsules, Scene, load_scene, min_distance
+from redarm_ros.control.make import make_controller
 from redarm_ros.control.params import ControllerParams
 from redarm_ros.control.reach_controller import Phase, ReachController
-from redarm_ros.control.self_collision import self_collision_batch
+from redarm_ros.geometry.obstacles import ArmCapsules, Scene, load_scene, min_distance
+from redarm_ros.geometry.self_collision import self_collision_batch
 from redarm_ros.kinematics import load_arm
 from redarm_ros.kinematics.quaternion import (
     quat_from_matrix,
@@ -73,6 +74,7 @@ from redarm_ros.kinematics.quaternion import (
     quat_to_matrix,
     rotvec_between,
 )
+from redarm_ros.sim.urdf_arms import SHIPPED, load_shipped
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench_common, also when loaded by path
 import bench_common  # noqa: E402
@@ -380,7 +382,14 @@ class CaseRun:
 
 
 def _start(arm) -> np.ndarray:
+    if hasattr(arm, "from_canonical_q"):  # a URDF arm mapped onto the swivel model: the same posture
+        return arm.from_canonical_q(READY7)
     return (READY7 if arm.n == 7 else READY6).copy()
+
+
+def _load(name: str):  # noqa: ANN202
+    """A bundled arm, or a URDF arm written in redarm_ros/sim/urdf_arms.py (iiwa14)."""
+    return load_shipped(name) if name in SHIPPED else load_arm(name)
 
 
 def run_case(arm, case: str, moves: int, seed: int, params: ControllerParams, verbose: bool) -> CaseRun:
@@ -396,7 +405,7 @@ def run_case(arm, case: str, moves: int, seed: int, params: ControllerParams, ve
         per = 10
         for i in range(max(1, math.ceil(moves / per))):
             scene = load_scene("table_empty") if i % 2 == 0 else sequence_bench.random_scene(rng)
-            probe = ReachController(arm, scene, params)
+            probe = make_controller(arm, scene, params)
             goals = sequence_bench.sample_goals(arm, scene, probe, rng, min(per, moves - i * per),
                                                 sequence_bench.SceneStats())
             plan.append((scene, goals))
@@ -405,9 +414,9 @@ def run_case(arm, case: str, moves: int, seed: int, params: ControllerParams, ve
         plan.append((scene, None))
     k = 0
     for scene, goals in plan:
-        ctl = ReachController(arm, scene, params)
+        ctl = make_controller(arm, scene, params)
         ctl.reset(_start(arm), now=0.0)
-        probe = ReachController(arm, scene, params)
+        probe = make_controller(arm, scene, params)
         oracle_scene = scene if (scene.obstacles or scene.table_height is not None) else None
         n = len(goals) if goals is not None else moves
         for i in range(n):
@@ -563,7 +572,8 @@ model; timings are wall clock on a shared machine, the quality figures are deter
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--moves", type=int, default=80, help="moves per arm and case (default 80)")
-    ap.add_argument("--arms", default="pa10,powercube7", help="arms (powercube6: free45 only)")
+    ap.add_argument("--arms", default="pa10,powercube7",
+                    help="arms (powercube6: free45 only; iiwa14: the URDF arm in redarm_ros/sim/urdf_arms)")
     ap.add_argument("--cases", default=",".join(CASES))
     ap.add_argument("--seed", type=int, default=3200)
     ap.add_argument("--params", default="",
@@ -585,7 +595,7 @@ def main(argv: list[str] | None = None) -> int:
     load0, t0 = os.getloadavg(), time.time()
     runs: dict[tuple[str, str], CaseRun] = {}
     for arm_name in arms:
-        arm = load_arm(arm_name)
+        arm = _load(arm_name)
         for ci, case in enumerate(cases):
             if case not in ARM_CASES.get(arm_name, CASES):
                 continue

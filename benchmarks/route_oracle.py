@@ -10,7 +10,7 @@ a chain of links leads from the start configuration (the only node at u = 0) to 
 
 ``margin`` (rad) also drops every solution within that angle of the shoulder, elbow or wrist
 singularity (|q2|, |q4| or |q6| below it; the start configuration itself is kept: the arm is where it
-is). A ``scene`` (the capsule model of redarm_ros.control.obstacles) drops colliding solutions too.
+is). A ``scene`` (the capsule model of redarm_ros.geometry.obstacles) drops colliding solutions too.
 
 The oracle uses only the arm's closed-form ``ik_batch`` (every flip pattern at one swivel) and ``fk``;
 it shares nothing with the controller or a corridor planner, so it can score both. It is a sampled
@@ -93,9 +93,9 @@ def _pattern(q: np.ndarray) -> tuple[bool, ...]:
 
 
 def _free(arm: Any, Q: np.ndarray, scene: Any) -> np.ndarray:
-    """Collision-free rows of Q against ``scene`` (capsules of redarm_ros.control.obstacles)."""
-    from redarm_ros.control.obstacles import ArmCapsules, links_clearance  # noqa: PLC0415
-    from redarm_ros.control.self_collision import key_points_batch  # noqa: PLC0415
+    """Collision-free rows of Q against ``scene`` (capsules of redarm_ros.geometry.obstacles)."""
+    from redarm_ros.geometry.obstacles import ArmCapsules, links_clearance  # noqa: PLC0415
+    from redarm_ros.geometry.self_collision import key_points_batch  # noqa: PLC0415
 
     caps = ArmCapsules()
     kp = key_points_batch(arm, Q)

@@ -38,8 +38,9 @@ from pathlib import Path
 
 import numpy as np
 
-from redarm_ros.control.obstacles import ArmCapsules, Box, Cylinder, Scene, Sphere, load_scene, min_distance
+from redarm_ros.control.make import make_controller
 from redarm_ros.control.reach_controller import Phase, ReachController
+from redarm_ros.geometry.obstacles import ArmCapsules, Box, Cylinder, Scene, Sphere, load_scene, min_distance
 from redarm_ros.kinematics import load_arm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench_common, also when loaded by path
@@ -125,7 +126,7 @@ def sample_goals(
 
 def run_sequence(arm, scene: Scene, goals: list[np.ndarray], stats: SceneStats, label: str = "") -> None:
     """Reach ``goals`` one after the other from the ready pose; append the outcomes to ``stats``."""
-    ctl = ReachController(arm, scene)
+    ctl = make_controller(arm, scene)
     ctl.reset(READY, now=0.0)
     caps = ArmCapsules()
     vmax = np.asarray(arm.max_vel) * DT
@@ -210,7 +211,7 @@ def run_scene(
     for i in range(sequences):
         rng = np.random.default_rng(seed + 1000 * SCENES.index(name) + i)
         scene = random_scene(rng) if name == "random" else load_scene(name)
-        probe = ReachController(arm, scene)
+        probe = make_controller(arm, scene)
         goals = sample_goals(arm, scene, probe, rng, goals_per, stats)
         n0 = len(stats.outcomes)
         run_sequence(arm, scene, goals, stats, f"sequence {i}")
@@ -315,7 +316,7 @@ def scaling(arm, counts: tuple[int, ...]) -> list[str]:
     T = arm.fk(np.array([0.6, 0.9, -0.2, 1.2, 0.3, 0.8, 0.2]))
     for n in counts:
         scene = base.with_obstacles(tuple(base.obstacles) + tuple(far[:n]))
-        ctl = ReachController(arm, scene)
+        ctl = make_controller(arm, scene)
         ctl.reset(READY, now=0.0)
         ctl.set_goal(T)
         steps = []
@@ -451,7 +452,7 @@ def stack_sequence(goals_n: int = 5, seed: int = 77) -> tuple[str, list[str]]:
     arm = load_arm("pa10")
     scene = load_scene("table_empty")
     rng = np.random.default_rng(seed)
-    probe = ReachController(arm, scene)
+    probe = make_controller(arm, scene)
     goals = sample_goals(arm, scene, probe, rng, goals_n, SceneStats())
     title = "## Through the stack (bring-up: bus server, simulator, can_driver, controller)"
     out = [""]

@@ -57,10 +57,10 @@ from typing import Any
 import numpy as np
 
 from redarm_ros.control.elbow import ArmGeometry, elbow_circle
-from redarm_ros.control.obstacles import ArmCapsules, Scene, Sphere, min_distance
+from redarm_ros.control.make import make_controller
 from redarm_ros.control.params import ControllerParams, StreamParams
-from redarm_ros.control.reach_controller import ReachController
 from redarm_ros.control.stream import StreamEstimator
+from redarm_ros.geometry.obstacles import ArmCapsules, Scene, Sphere, min_distance
 from redarm_ros.kinematics import load_arm
 from redarm_ros.kinematics.quaternion import (
     quat_from_matrix,
@@ -298,7 +298,7 @@ class Run:
 
 def settle_start(arm, path: PathDef, hint: np.ndarray = Q_HINT) -> np.ndarray:
     """The posture our controller settles in at the path start (used by every method)."""
-    ctl = ReachController(arm, path.scene)
+    ctl = make_controller(arm, path.scene)
     q0, _ = arm.ik_nearest(path.pose(0.0), hint)
     ctl.reset(q0, now=0.0)
     ctl.set_goal(path.pose(0.0))
@@ -332,7 +332,7 @@ def run_method(method: str, arm, path: PathDef, msgs: list[Message], q0: np.ndar
             params = params.with_(stream=StreamParams(gap=1e-6))
         elif method == "servo-pose":  # the elbow at the pose's preferred swivel plus a closing offset
             params = ControllerParams.from_dict({"servo": {"swivel_law": "pose"}})
-        ctl = ReachController(arm, path.scene, params)
+        ctl = make_controller(arm, path.scene, params)
         ctl.reset(q0, now=0.0)
 
         def record(r: Any) -> None:

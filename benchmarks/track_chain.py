@@ -18,8 +18,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from redarm_ros.can.driver_loop import JointCommandSource, ReferenceShaper
+from redarm_ros.control.make import make_controller
 from redarm_ros.control.params import ControllerParams, StreamParams
-from redarm_ros.control.reach_controller import ReachController
 from redarm_ros.motion import JointLimits
 from redarm_ros.sim.ramp import JointRamp
 
@@ -55,7 +55,7 @@ def run_chain(arm, path, q0: np.ndarray, timing: Timing, cmds: Commands, seed: i
               after: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
     """Times (s, since the stream's start) and tool positions (m, FK of the modules' set-points)."""
     rng = np.random.default_rng(seed)
-    ctl = ReachController(arm, path.scene, ControllerParams().with_(stream=StreamParams(lead=cmds.lead)))
+    ctl = make_controller(arm, path.scene, ControllerParams().with_(stream=StreamParams(lead=cmds.lead)))
     ctl.reset(q0, now=-1.0)
     goals = [min(k * 0.02, path.duration) for k in range(int(path.duration / 0.02) + 2)]
     src = JointCommandSource(arm.n)

@@ -125,12 +125,21 @@ GOALS = (
 
 @dataclass(frozen=True)
 class ArmDemo:
-    """The demo of one arm: its ready pose (rad), scene and goals."""
+    """The demo of one arm: its ready pose (rad), scene and goals. ``urdf``: the arm is the URDF arm of
+    that name written in :mod:`redarm_ros.sim.urdf_arms`, run as a user's own arm (``--urdf``)."""
 
     arm: str
     ready_q: tuple[float, ...]
     scene: dict[str, Any]
     goals: tuple[Goal, ...]
+    urdf: bool = False
+
+    def load(self) -> Any:
+        """The arm's kinematic model."""
+        from redarm_ros.kinematics import load_arm
+        from redarm_ros.sim.urdf_arms import load_shipped
+
+        return load_shipped(self.arm) if self.urdf else load_arm(self.arm)
 
 
 # The 7-module PowerCube arm (shoulder 0.30 m up, 0.65 m from shoulder to wrist) on a table.
@@ -167,8 +176,25 @@ POWERCUBE6_GOALS = (
          "high up, gripper pointing up: only the elbow-down solution is within the limits, so the arm "
          "changes its elbow in joint space", approach="x", pitch=math.radians(84.0)),
 )
+# The iiwa14-like arm (shoulder 0.36 m up, 0.82 m from shoulder to wrist, its elbow within +-120 deg), on
+# a table, from its URDF. Its joint 4 turns about -y: the elbow bends forward at a negative angle.
+IIWA14_SCENE: dict[str, Any] = {
+    "name": "demo_table",
+    "description": "table top under the iiwa14-like arm (redarm-demo --arm iiwa14)",
+    "table_height": 0.0,
+    "obstacles": [],
+}
+IIWA14_GOALS = (
+    Goal("front", (0.55, 0.00, 0.25), 0.3, True, "in front, tool turned by 0.3 rad"),
+    Goal("right", (0.45, -0.35, 0.20), 0.0, True, "to the right"),
+    Goal("left", (0.30, 0.50, 0.30), -0.4, True, "to the left"),
+    Goal("out_of_reach", (1.50, 0.00, 0.40), 0.0, False, "1.5 m away: must be rejected"),
+    Goal("low_left", (0.50, 0.25, 0.12), 0.0, True, "low over the table"),
+    Goal("front_right", (0.70, -0.15, 0.20), 0.5, True, "far front right"),
+)
 DEMOS = {
     "pa10": ArmDemo("pa10", READY_Q, DEMO_SCENE, GOALS),
+    "iiwa14": ArmDemo("iiwa14", (0.0, 0.5, 0.0, -1.3, 0.0, 1.0, 0.0), IIWA14_SCENE, IIWA14_GOALS, urdf=True),
     "powercube7": ArmDemo("powercube7", READY_Q, POWERCUBE7_SCENE, POWERCUBE7_GOALS),
     "powercube6": ArmDemo("powercube6", (0.0, 1.0, 0.0, -1.7, -0.9, 0.0), POWERCUBE6_SCENE, POWERCUBE6_GOALS),
 }
@@ -395,6 +421,9 @@ class Demo:
         for old in [*self.snap_dir.glob("*.png"), self.mcap_path, self.gif_path]:
             old.unlink(missing_ok=True)
         if self.args.placement:
+            if self.demo.urdf:
+                self.say("--placement: the placement study takes the bundled arms only")
+                return 2
             demo_placement(self.demo, self.output / "placement", self.say)
         scene_path = self.output / "scene.yaml"
         scene_path.write_text(yaml.safe_dump(self.demo.scene, sort_keys=False), encoding="utf-8")
@@ -403,7 +432,18 @@ class Demo:
         # The simulator renders only start.png (before the driver connects) and final.png (after it is
         # gone): rendering holds its process for tens of ms, longer than the driver's reply limit. The
         # pictures in between are rendered here, from the simulated arm's measured joints.
-        cfg = StackConfig(arm=self.demo.arm, scene=str(scene_path), snapshot_dir=self.snap_dir,
+        urdf: dict[str, Any] = {}
+        record_arm = ["--arm", self.demo.arm]
+        if self.demo.urdf:  # the arm's URDF file, given to the stack as a user's own arm is
+            from redarm_ros.sim.urdf_arms import SHIPPED
+
+            text, base_link, tip_link = SHIPPED[self.demo.arm]
+            urdf_path = self.output / f"{self.demo.arm}.urdf"
+            urdf_path.write_text(text(), encoding="utf-8")
+            urdf = {"urdf": str(urdf_path), "base_link": base_link, "tip_link": tip_link}
+            record_arm = []  # /tf from the URDF the description node publishes
+        arm_args = urdf or {"arm": self.demo.arm}
+        cfg = StackConfig(**arm_args, scene=str(scene_path), snapshot_dir=self.snap_dir,
                           status_file=self.output / "sim_status.json", log_level=self.args.log_level,
                           control_rate_hz=self.args.control_rate, driver_rate_hz=self.args.driver_rate,
                           ready_timeout_s=60.0,
@@ -418,7 +458,7 @@ class Demo:
                 # The recorder, a child like the others: stopped first, so its file is complete.
                 stack.children["record"] = stack.group.start("record", python_module_cmd(
                     "redarm_ros.nodes.record", "-o", str(self.mcap_path), *RECORDED_TOPICS,
-                    "--tf-from-joint-states", "--arm", self.demo.arm), ready=r"record ready",
+                    "--tf-from-joint-states", *record_arm), ready=r"record ready",
                     ready_timeout=30.0)
             except Exception as exc:  # noqa: BLE001 - report, show the log tail, exit 2
                 self.say(f"the stack did not come up: {exc}")
@@ -445,9 +485,7 @@ class Demo:
             self.say(line)
 
     def _run_goals(self, stack: Stack, log_path: Path) -> int:
-        from redarm_ros.kinematics import load_arm
-
-        arm = load_arm(self.demo.arm)
+        arm = self.demo.load()
         ready_q = self.demo.ready_q
         client = DemoClient(stack.domain_id)
         CS = client.ControllerState
@@ -544,7 +582,7 @@ class Demo:
 
         T = goal.matrix()
         w, x, y, z = (float(v) for v in matrix_to_quat(T[:3, :3]))
-        ik = client.solve_ik(T, seed, self.demo.arm)
+        ik = client.solve_ik(T, seed, "" if self.demo.urdf else self.demo.arm)  # "": the URDF arm
         ik_status = "NO_ANSWER" if ik is None else _status_name(client.SolveIK, ik.status)
         n = len(client.states)
         prev = client.states[-1][1] if client.states else None
@@ -657,7 +695,6 @@ class Demo:
                 "schemas": {t: s.schema_name for t, s in sorted(topics.items()) if t != "*"}, "ok": ok}
 
     def _animation(self) -> dict[str, Any]:
-        from redarm_ros.kinematics import load_arm
         from redarm_ros.record.animate import (
             DEMO_CAMERA,
             SceneRenderer,
@@ -667,7 +704,7 @@ class Demo:
             write_gif,
         )
 
-        arm = load_arm(self.demo.arm)
+        arm = self.demo.load()
         goals = self.demo.goals
         t0 = time.monotonic()
         try:

@@ -25,9 +25,9 @@ from redarm_ros.control.attractor import (
     sector_forcelet,
     target_attractor,
 )
-from redarm_ros.control.obstacles import Box, Cylinder, Sphere
 from redarm_ros.control.swivel_dynamics import wrap_angle
 from redarm_ros.errors import InvalidInputError
+from redarm_ros.geometry.obstacles import Box, Cylinder, Sphere
 
 
 def _integrate(f, x0: float, dt: float = 0.01, n: int = 2000) -> float:

@@ -8,8 +8,9 @@ import math
 import numpy as np
 
 from redarm_ros.control.corridor_route import CorridorRoute, min_jerk, min_jerk_inverse, plan_route
+from redarm_ros.control.make import make_controller
 from redarm_ros.control.params import ControllerParams
-from redarm_ros.control.reach_controller import Phase, ReachController
+from redarm_ros.control.reach_controller import Phase
 from redarm_ros.kinematics import load_arm
 
 
@@ -36,7 +37,7 @@ def test_a_goal_with_a_corridor_goes_straight():
     without the corridor): the hand follows the line (path ratio <= 1.02), never re-plans, and the
     state says so while it moves."""
     arm = load_arm("pa10")
-    ctl = ReachController(arm, params=ControllerParams.from_dict({"replan": {"corridor": True}}))
+    ctl = make_controller(arm, params=ControllerParams.from_dict({"replan": {"corridor": True}}))
     q0 = np.array(arm.park, float)
     ctl.reset(q0)
     T = arm.fk(q0 + np.array([0.5, 0.3, -0.2, -0.4, 0.3, 0.2, 0.4]))

@@ -10,11 +10,11 @@ import pytest
 
 from redarm_ros.control.elbow import ArmGeometry
 from redarm_ros.control.goal_check import check_goal, stream_feasibility
-from redarm_ros.control.obstacles import ArmCapsules, Cylinder, Scene
 from redarm_ros.control.params import ControllerParams, ReplanParams, ServoParams, StreamParams
 from redarm_ros.control.reach_controller import has_swivel
 from redarm_ros.control.types import GoalStatus
 from redarm_ros.errors import ConfigError
+from redarm_ros.geometry.obstacles import ArmCapsules, Cylinder, Scene
 from redarm_ros.kinematics import load_arm
 
 ARM = load_arm("pa10")

@@ -7,10 +7,10 @@ import math
 import numpy as np
 import pytest
 
-from redarm_ros.control.broadphase import LEFT_OUT, SceneIndex, bounding_sphere, segment_point_distances
 from redarm_ros.control.guard import CollisionGuard, levers
-from redarm_ros.control.obstacles import ArmCapsules, Box, Cylinder, Scene, Sphere, min_distance
-from redarm_ros.control.reach_controller import ReachController
+from redarm_ros.control.make import make_controller
+from redarm_ros.geometry.broadphase import LEFT_OUT, SceneIndex, bounding_sphere, segment_point_distances
+from redarm_ros.geometry.obstacles import ArmCapsules, Box, Cylinder, Scene, Sphere, min_distance
 from redarm_ros.kinematics import load_arm
 
 ARM = load_arm("pa10")
@@ -214,7 +214,7 @@ def test_far_clutter_does_not_change_the_motion() -> None:
     base = Scene((Cylinder((0.5, 0.3, 0.1), 0.04, 0.2, "can"),), 0.0)
     runs = []
     for scene in (base, base.with_obstacles((*base.obstacles, *clutter(300)))):
-        ctl = ReachController(ARM, scene)
+        ctl = make_controller(ARM, scene)
         ctl.reset(np.array([0.0, 0.5, 0.0, 1.3, 0.0, 1.0, 0.0]))
         ctl.set_goal(T)
         runs.append([ctl.step(0.01) for _ in range(300)])

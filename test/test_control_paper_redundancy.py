@@ -10,11 +10,12 @@ import pytest
 from support.control_scenes import elbow_obstacle_hold, pose
 
 from redarm_ros.control.elbow import ArmGeometry, elbow_circle
-from redarm_ros.control.obstacles import ArmCapsules, load_scene
+from redarm_ros.control.make import make_controller
 from redarm_ros.control.paper_redundancy import PaperSwivel, PaperSwivelParams, sectors
-from redarm_ros.control.reach_controller import ControllerParams, Phase, ReachController
+from redarm_ros.control.reach_controller import ControllerParams, Phase
 from redarm_ros.control.simulate import evaluate, run_controller
 from redarm_ros.errors import ConfigError, InvalidInputError
+from redarm_ros.geometry.obstacles import ArmCapsules, load_scene
 from redarm_ros.kinematics import load_arm
 
 DT = 0.01
@@ -99,7 +100,7 @@ def test_attractor_paper_mode_reaches_goals_within_the_limits(arm) -> None:
     scene = load_scene("table_empty")
     q0, info = arm.ik_nearest(pose([0.3, 0.3, 0.15]), np.array([0.8, 0.6, 0.0, 1.6, 0.0, 1.0, 0.0]))
     assert info.ok
-    ctl = ReachController(arm, scene, PAPER)
+    ctl = make_controller(arm, scene, PAPER)
     ctl.reset(q0)
     for k, T in enumerate((pose([0.65, -0.15, 0.08], 0.3), pose([0.45, 0.25, 0.2], -0.4))):  # no reset
         tr = run_controller(ctl, T, 8.0, DT)
@@ -118,7 +119,7 @@ def test_attractor_paper_hand_trails_the_path_far_from_the_goal(arm) -> None:
     T = pose([0.45, -0.35, 0.2])
     tilt = {}
     for name, params in (("paper", PAPER), ("default", ControllerParams())):
-        ctl = ReachController(arm, scene, params)
+        ctl = make_controller(arm, scene, params)
         ctl.reset(q0)
         tr = run_controller(ctl, T, 8.0, DT)
         assert tr.phase[-1] == "REACHED", (name, tr.phase[-1])
@@ -146,7 +147,7 @@ def test_attractor_paper_mode_reaches_past_a_can_without_collision(arm) -> None:
     q0, info = arm.ik_nearest(pose([0.3, 0.3, 0.15]), np.array([0.8, 0.6, 0.0, 1.6, 0.0, 1.0, 0.0]))
     assert info.ok
     T = pose([0.65, -0.15, 0.08])
-    ctl = ReachController(arm, scene, PAPER)
+    ctl = make_controller(arm, scene, PAPER)
     ctl.reset(q0)
     # The hand trailing the path (eq. 20-21) turns the tool horizontal over the can; the attractor run
     # is overdue and the joint-space re-planner finishes it: more time than the default mode needs.

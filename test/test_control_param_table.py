@@ -1,4 +1,4 @@
-"""The controller's parameter table (control/parameters.yaml) and the classes built from it: defaults
+"""The controller's parameter table (redarm_ros/parameters.yaml) and the classes built from it: defaults
 construct, every bound refuses bad values with the section's error naming the field (parametrised from
 the table, so a new parameter is covered without a new test), table and classes agree, from_dict
 refuses unknown keys at every depth, and the table ships as package data."""
@@ -15,15 +15,15 @@ import pytest
 from support.setup_py import package_data
 
 import redarm_ros.control.params  # noqa: F401  (builds every class of the table)
-from redarm_ros.control.param_table import (
+from redarm_ros.control.params import ControllerParams
+from redarm_ros.errors import ConfigError, InvalidInputError
+from redarm_ros.param_table import (
     BOUND_WORDS,
     TABLE_FILE,
     group_class,
     load_table,
     table,
 )
-from redarm_ros.control.params import ControllerParams
-from redarm_ros.errors import ConfigError, InvalidInputError
 
 #: Where each class of the table has always been imported from.
 HOMES = {
@@ -31,7 +31,7 @@ HOMES = {
     "speed": ("redarm_ros.control.attractor", "SpeedParams"),
     "swivel": ("redarm_ros.control.swivel_dynamics", "SwivelParams"),
     "paper_swivel": ("redarm_ros.control.paper_redundancy", "PaperSwivelParams"),
-    "capsules": ("redarm_ros.control.obstacles", "ArmCapsules"),
+    "capsules": ("redarm_ros.geometry.obstacles", "ArmCapsules"),
     "stream": ("redarm_ros.control.params", "StreamParams"),
     "servo": ("redarm_ros.control.params", "ServoParams"),
     "replan": ("redarm_ros.control.params", "ReplanParams"),
@@ -71,6 +71,9 @@ def _bad_values(bound) -> list:
         return [bound.arg - 1, float(bound.arg), True, None]
     if bound.word == "choice":
         return ["not-" + bound.arg[0], bound.arg[0].upper(), None]
+    if bound.word == "range":
+        lo, hi = bound.arg
+        return [lo - 1e-9, hi + 1e-9, NAN, 1e300, "0", None]
     return BAD[bound.word]
 
 
@@ -79,6 +82,8 @@ def _good_values(bound) -> list:
         return [bound.arg, bound.arg + 1]
     if bound.word == "choice":
         return list(bound.arg)
+    if bound.word == "range":
+        return [bound.arg[0], bound.arg[1], 0.5 * (bound.arg[0] + bound.arg[1])]
     return GOOD[bound.word]
 
 
@@ -98,7 +103,7 @@ def _valid(section: str, name: str, value) -> dict:
 def test_every_bound_word_used_has_test_values() -> None:
     used = {p.bound.word for g in table().values() for p in g.params}
     assert used <= set(BOUND_WORDS)
-    missing = used - set(BAD) - {"int_at_least", "choice", "group"}
+    missing = used - set(BAD) - {"int_at_least", "range", "choice", "group"}
     assert not missing, f"add bad and good values for bound(s) {missing} to this test"
 
 
@@ -222,9 +227,9 @@ def test_malformed_tables_are_refused(text: str, complaint: str) -> None:
 
 
 def test_table_is_installed_as_package_data() -> None:
-    assert TABLE_FILE in package_data().get("redarm_ros.control", []), \
+    assert TABLE_FILE in package_data().get("redarm_ros", []), \
         "setup.py's package_data must list the table, or an installed (non-editable) package lacks it"
-    assert resources.files("redarm_ros.control").joinpath(TABLE_FILE).is_file()
+    assert resources.files("redarm_ros").joinpath(TABLE_FILE).is_file()
 
 
 def test_controller_node_defaults_and_choices_are_the_tables() -> None:
@@ -238,3 +243,22 @@ def test_controller_node_defaults_and_choices_are_the_tables() -> None:
         if row.bound.word == "choice":
             assert all(spec.validate(c) is None for c in row.bound.arg), node_name
             assert spec.validate("not-" + row.bound.arg[0]) is not None, node_name
+
+
+def test_controller_node_declares_its_core_parameters_from_the_table() -> None:
+    """One place per parameter: a node parameter of NODE_TO_TABLE takes its default, type, bound (as the
+    validator and the descriptor's range) and description from the table row; the node's source writes
+    none of them."""
+    pytest.importorskip("rclpy")
+    node = pytest.importorskip("redarm_ros.nodes.controller")
+    specs = {s.name: s for s in node.PARAMS}
+    with open(node.__file__, encoding="utf-8") as f:
+        text = f.read()
+    for ros_name, (section, name) in node.NODE_TO_TABLE.items():
+        row = table()[section].param(name)
+        spec = specs[ros_name]
+        assert f'ParamSpec("{ros_name}"' not in text, ros_name
+        assert " ".join(row.doc.split())[1:] in spec.description, ros_name
+        assert spec.range == (row.bound.arg if row.bound.word == "range" else None), ros_name
+        assert all(spec.validate(v) is not None for v in _bad_values(row.bound)), ros_name
+        assert all(spec.validate(v) is None for v in _good_values(row.bound)), ros_name

@@ -9,16 +9,16 @@ import numpy as np
 import pytest
 from support.control_scenes import elbow_obstacle_hold, pose
 
-from redarm_ros.control.obstacles import ArmCapsules, Cylinder, Scene, Sphere, load_scene, min_distance
+from redarm_ros.control.make import make_controller
 from redarm_ros.control.reach_controller import (
     ControllerParams,
     GoalStatus,
     Phase,
-    ReachController,
 )
 from redarm_ros.control.simulate import evaluate, run_controller
 from redarm_ros.control.swivel_dynamics import wrap_angle
 from redarm_ros.errors import ConfigError, InvalidInputError
+from redarm_ros.geometry.obstacles import ArmCapsules, Cylinder, Scene, Sphere, load_scene, min_distance
 from redarm_ros.kinematics import load_arm
 
 DT = 0.01
@@ -50,7 +50,7 @@ def check_trajectory(arm, q: np.ndarray, from_rest: bool = True) -> None:
 
 def test_reaches_goal_on_empty_table_with_straight_path(arm, q_start) -> None:
     scene = load_scene("table_empty")
-    ctl = ReachController(arm, scene)
+    ctl = make_controller(arm, scene)
     ctl.reset(q_start)
     assert ctl.phase is Phase.IDLE
     T = pose([0.65, -0.15, 0.08], 0.3)
@@ -73,7 +73,7 @@ def test_avoids_a_can_on_the_table(arm, q_start) -> None:
     p0 = arm.fk(q_start)[:3, 3]
     line = [p0 + t * (T[:3, 3] - p0) for t in np.linspace(0, 1, 200)]
     assert min(scene.obstacles[0].signed_distance(p) for p in line) < 0
-    ctl = ReachController(arm, scene)
+    ctl = make_controller(arm, scene)
     ctl.reset(q_start)
     tr = run_controller(ctl, T, 8.0, DT)
     m = evaluate(arm, scene, tr.q, T, DT)
@@ -89,7 +89,7 @@ def test_avoids_a_can_on_the_table(arm, q_start) -> None:
 
 def test_fixed_swivel_mode_keeps_the_elbow(arm, q_start) -> None:
     scene = load_scene("table_empty")
-    ctl = ReachController(arm, scene, ControllerParams(swivel_mode="fixed"))
+    ctl = make_controller(arm, scene, ControllerParams(swivel_mode="fixed"))
     ctl.reset(q_start)
     s0 = ctl.swivel
     T = pose([0.6, 0.0, 0.12])
@@ -109,7 +109,7 @@ def test_swivel_dynamics_moves_elbow_away_from_an_obstacle(arm) -> None:
 
 def test_goal_rejections(arm, q_start) -> None:
     scene = load_scene("table_cylinder")
-    ctl = ReachController(arm, scene)
+    ctl = make_controller(arm, scene)
     assert ctl.set_goal(pose([0.6, 0.0, 0.1])).status is GoalStatus.NOT_READY
     with pytest.raises(InvalidInputError):
         ctl.step(DT)
@@ -135,7 +135,7 @@ def test_goal_rejections(arm, q_start) -> None:
 
 
 def test_goal_outside_joint_limits_is_rejected(arm, q_start) -> None:
-    ctl = ReachController(arm, Scene())
+    ctl = make_controller(arm, Scene())
     ctl.reset(q_start)
     # Straight down right next to the base: the wrist would be inside the elbow-limit shell.
     check = ctl.check_goal(pose([0.05, 0.0, 0.45]))
@@ -145,7 +145,7 @@ def test_goal_outside_joint_limits_is_rejected(arm, q_start) -> None:
 
 def test_retargets_smoothly_mid_motion(arm, q_start) -> None:
     scene = Scene((), 0.0)
-    ctl = ReachController(arm, scene)
+    ctl = make_controller(arm, scene)
     ctl.reset(q_start)
     T1, T2 = pose([0.65, -0.2, 0.1]), pose([0.5, 0.1, 0.25], 0.5)
     tr = run_controller(ctl, T1, 8.0, DT, events=[(0.8, lambda c: c.set_goal(T2))])
@@ -160,7 +160,7 @@ def test_retargets_smoothly_mid_motion(arm, q_start) -> None:
 
 
 def test_rejected_goal_mid_motion_stops_smoothly(arm, q_start) -> None:
-    ctl = ReachController(arm, Scene((), 0.0))
+    ctl = make_controller(arm, Scene((), 0.0))
     ctl.reset(q_start)
     ctl.set_goal(pose([0.65, -0.2, 0.1]))
     for _ in range(60):
@@ -179,7 +179,7 @@ def test_rejected_goal_mid_motion_stops_smoothly(arm, q_start) -> None:
 
 
 def test_obstacle_appearing_mid_reach_invalidating_the_goal(arm, q_start) -> None:
-    ctl = ReachController(arm, Scene((), 0.0))
+    ctl = make_controller(arm, Scene((), 0.0))
     ctl.reset(q_start)
     ctl.set_goal(pose([0.65, -0.15, 0.08]))
     for _ in range(30):
@@ -196,7 +196,7 @@ def test_powercube7_reaches_too() -> None:
     T0 = arm.fk(q0)
     T = T0.copy()
     T[:3, 3] += np.array([0.05, -0.12, -0.06])
-    ctl = ReachController(arm, Scene())
+    ctl = make_controller(arm, Scene())
     ctl.reset(q0)
     tr = run_controller(ctl, T, 6.0, DT)
     m = evaluate(arm, Scene(), tr.q, T, DT, capsules=ArmCapsules())
@@ -210,15 +210,16 @@ def test_params_and_arm_validation(arm) -> None:
     with pytest.raises(ConfigError):
         ControllerParams(dt=0.0)
     with pytest.raises(ConfigError):  # neither a 7-DOF swivel arm nor the 6-DOF PowerCube arm
-        ReachController(SimpleNamespace(n=5, name="five_joints", kind="chain"))
-    ctl = ReachController(arm)
+        make_controller(SimpleNamespace(n=5, name="five_joints", kind="chain"))
+    ctl = make_controller(arm)
     with pytest.raises(InvalidInputError):
         ctl.reset([0.0] * 6)
     ctl.reset(np.zeros(7) + 0.2)
     with pytest.raises(InvalidInputError):
         ctl.step(-1.0)
-    with pytest.raises(InvalidInputError):
-        ctl.set_preferred_swivel(math.inf)
+    for bad in (math.inf, 7.0, "up"):  # the table's bound: +/- 2 pi
+        with pytest.raises(InvalidInputError):
+            ctl.set_preferred_swivel(bad)
     r = ctl.step(DT)  # no goal: holds
     assert r.phase is Phase.IDLE and math.isinf(r.distance_to_goal)
 
@@ -254,7 +255,7 @@ def run_sequence(arm, scene: Scene, q0: np.ndarray, goals, per_goal: float = 15.
                  params: ControllerParams | None = None):
     """Reach ``goals`` one after the other (each until REACHED or ``per_goal`` s); returns the
     commanded joint trajectory, the final phase of each goal and the messages seen."""
-    ctl = ReachController(arm, scene, params)
+    ctl = make_controller(arm, scene, params)
     ctl.reset(q0)
     qs = [ctl.q]
     phases = []
@@ -321,7 +322,7 @@ def test_goal_sequences_are_collision_free(arm, scene_name: str) -> None:
     whatever the dynamics do (the guard holds instead), and every joint limit holds."""
     scene = DEMO_BALL if scene_name == "demo_ball" else load_scene(scene_name)
     rng = np.random.default_rng(SEQUENCE_SCENES.index(scene_name) + 11)
-    probe = ReachController(arm, scene)
+    probe = make_controller(arm, scene)
     goals = []
     while len(goals) < 3:
         p = [rng.uniform(0.3, 0.7), rng.uniform(-0.45, 0.45), rng.uniform(0.08, 0.4)]
@@ -339,7 +340,7 @@ def test_goal_sequences_are_collision_free(arm, scene_name: str) -> None:
 def _ball_ahead_of_the_forearm(arm, q_start, gap: float):
     """Reach from q_start for 0.8 s, then a ball ``gap`` m ahead of the forearm capsule, in the
     direction the forearm moves; returns (controller, commands so far, scene with the ball)."""
-    ctl = ReachController(arm, Scene((), 0.0))
+    ctl = make_controller(arm, Scene((), 0.0))
     ctl.reset(q_start)
     ctl.set_goal(pose([0.65, -0.15, 0.08]))
     qs = [ctl.q]
@@ -390,7 +391,7 @@ def _reached_then_watched(arm, scene_name: str, goals: list, watch_s: float = 2.
     """Reach ``goals`` one after the other from the ready pose (each within ``budget_s``: the way there
     is not what most tests below are about) and watch each for ``watch_s`` after REACHED, as a user who
     acts on it: per goal, (the REACHED step's result, the results of the steps after it)."""
-    ctl = ReachController(arm, load_scene(scene_name))
+    ctl = make_controller(arm, load_scene(scene_name))
     ctl.reset(np.array([0.0, 0.5, 0.0, 1.3, 0.0, 1.0, 0.0]), now=0.0)
     out = []
     for T in goals:

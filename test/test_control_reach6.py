@@ -11,10 +11,12 @@ import pytest
 from redarm_ros.control.guard import GROUND_PLANE, CollisionGuard, is_self
 from redarm_ros.control.ik_step import IKStep, pose_matrix
 from redarm_ros.control.ik_step6 import IKStepper6, branch, fixed_circle
-from redarm_ros.control.obstacles import ArmCapsules, Scene
+from redarm_ros.control.make import make_controller
 from redarm_ros.control.reach6 import ReachController6
 from redarm_ros.control.reach_controller import GoalStatus, Phase, ReachController
-from redarm_ros.control.self_collision import self_collision
+from redarm_ros.errors import ConfigError
+from redarm_ros.geometry.obstacles import ArmCapsules, Scene
+from redarm_ros.geometry.self_collision import self_collision
 from redarm_ros.kinematics import load_arm
 
 DT = 0.01
@@ -34,15 +36,21 @@ def run(ctl: ReachController, max_steps: int = 3000) -> tuple[list, list[np.ndar
     return out, qs
 
 
-def test_constructor_dispatches_powercube6() -> None:
-    ctl = ReachController(ARM)
-    assert isinstance(ctl, ReachController6)
-    assert type(ReachController(load_arm("pa10"))) is ReachController
+def test_make_controller_picks_the_class_and_each_class_refuses_the_other_arm() -> None:
+    ctl = make_controller(ARM)
+    assert type(ctl) is ReachController6
+    pa10 = load_arm("pa10")
+    assert type(make_controller(pa10)) is ReachController
+    # no class is swapped for another behind the caller's back: a wrong arm is a clear error
+    with pytest.raises(ConfigError, match="make_controller"):
+        ReachController(ARM)
+    with pytest.raises(ConfigError, match="make_controller"):
+        ReachController6(pa10)
 
 
 def test_seeded_goals_reached_without_branch_flips_within_limits() -> None:
     rng = np.random.default_rng(6)
-    ctl = ReachController(ARM)
+    ctl = make_controller(ARM)
     ctl.reset(READY)
     reached = 0
     tried = 0
@@ -79,7 +87,7 @@ def test_goal_only_on_the_other_elbow_is_reached_by_a_joint_space_elbow_change()
     T = goal.matrix()
     sols = ARM.ik(T)
     assert len(sols) >= 1 and all(branch(ARM, q).elbow != branch(ARM, READY).elbow for q in sols)
-    ctl = ReachController(ARM)
+    ctl = make_controller(ARM)
     ctl.reset(READY)
     assert ctl.set_goal(T).accepted
     res, qs = run(ctl)
@@ -132,7 +140,7 @@ def test_guard_refuses_a_self_colliding_command_for_every_arm() -> None:
 def test_controller_stops_a_motion_into_the_arm_itself() -> None:
     # From the park posture (upper arm up, forearm forward, gripper down) a twist pulls the gripper back
     # towards the upper arm: the guard stops it before the capsules touch.
-    ctl = ReachController(ARM)
+    ctl = make_controller(ARM)
     q0 = ARM.park
     ctl.reset(q0)
     kp = ARM.key_points(q0)
@@ -158,7 +166,7 @@ def test_rejection_message_carries_the_base_move(name: str, position: tuple[floa
     from redarm_ros.demo import Goal
 
     arm = load_arm(name)
-    ctl = ReachController(arm)
+    ctl = make_controller(arm)
     ctl.reset(READY if name == "powercube6" else np.array([0.0, 0.5, 0.0, 1.3, 0.0, 1.0, 0.0]))
     T = Goal("far", position, approach="x" if name == "powercube6" else "z").matrix()
     check = ctl.set_goal(T)
@@ -180,8 +188,8 @@ def test_rejection_message_carries_the_base_move(name: str, position: tuple[floa
 def test_obstacle_avoided_through_the_heading_alone() -> None:
     # A ball in the way of the gripper's straight route (its capsule would pass through it): the heading
     # dynamics steer around it, no joint-space move, clearance positive all the way.
-    from redarm_ros.control.obstacles import Sphere, links_clearance
     from redarm_ros.demo import Goal
+    from redarm_ros.geometry.obstacles import Sphere, links_clearance
 
     ball = Sphere((0.42, 0.18, 0.0), 0.05, "ball")
     scene = Scene((ball,), None)
@@ -193,7 +201,7 @@ def test_obstacle_avoided_through_the_heading_alone() -> None:
                          (1 - t) * T0[:3, 3] + t * T[:3, 3]], scene, ArmCapsules(), (3,)).distance
         for t in np.linspace(0.0, 1.0, 101))
     assert straight < 0.0  # the hand moved straight would hit the ball
-    ctl = ReachController(ARM, scene)
+    ctl = make_controller(ARM, scene)
     ctl.reset(READY)
     assert ctl.set_goal(T).accepted
     b0 = branch(ARM, READY)
@@ -206,7 +214,7 @@ def test_obstacle_avoided_through_the_heading_alone() -> None:
 
 def test_goal_stream_tracked_by_the_servo() -> None:
     # A stream in the arm's plane (reachable orientations all along) is followed within a few mm.
-    ctl = ReachController(ARM)
+    ctl = make_controller(ARM)
     ctl.reset(READY)
     T0 = ARM.fk(READY)
     t, errs, qs = 0.0, [], []

@@ -11,9 +11,9 @@ import pytest
 from redarm_ros.control.elbow import ArmGeometry
 from redarm_ros.control.guard import CollisionGuard
 from redarm_ros.control.ik_step import DeadEnd, IKStepper, pose_matrix
-from redarm_ros.control.obstacles import ArmCapsules, Scene, Sphere, load_scene, min_distance
+from redarm_ros.control.make import make_controller
 from redarm_ros.control.params import ControllerParams, ReplanParams
-from redarm_ros.control.reach_controller import Phase, ReachController
+from redarm_ros.control.reach_controller import Phase
 from redarm_ros.control.replan import (
     JointPath,
     JointPlanner,
@@ -22,6 +22,7 @@ from redarm_ros.control.replan import (
     goal_candidates,
     move_time,
 )
+from redarm_ros.geometry.obstacles import ArmCapsules, Scene, Sphere, load_scene, min_distance
 from redarm_ros.kinematics import load_arm
 
 ARM = load_arm("pa10")
@@ -238,7 +239,7 @@ def test_fold_posture_keeps_yaw_and_rolls() -> None:
 # the controller: never stuck
 # ------------------------------------------------------------------------------------------------
 def random_goals(scene: Scene, rng: np.random.Generator, n: int) -> list[np.ndarray]:
-    probe = ReachController(ARM, scene)
+    probe = make_controller(ARM, scene)
     out = []
     while len(out) < n:
         q = rng.uniform(ARM.lower, ARM.upper)
@@ -259,7 +260,7 @@ def test_goal_sequences_from_random_postures_are_all_reached(scene_name: str) ->
     scene = load_scene(scene_name)
     rng = np.random.default_rng(31 if scene_name == "table_empty" else 32)
     goals = random_goals(scene, rng, 6)
-    ctl = ReachController(ARM, scene)
+    ctl = make_controller(ARM, scene)
     ctl.reset(READY)
     qs = [ctl.q]
     for T in goals:
@@ -285,7 +286,7 @@ def test_reached_means_the_arm_stays_at_the_goal(seed: int) -> None:
     REACHING in 40-70 % of such goals, and the commanded hand left the goal by up to 12 cm."""
     scene = load_scene("table_empty")
     goals = random_goals(scene, np.random.default_rng(seed), 5)
-    ctl = ReachController(ARM, scene)
+    ctl = make_controller(ARM, scene)
     ctl.reset(READY)
     vmax = np.asarray(ARM.max_vel)
     for i, T in enumerate(goals):
@@ -307,7 +308,7 @@ def test_reached_means_the_arm_stays_at_the_goal(seed: int) -> None:
 def test_a_dead_end_is_reported_at_once_and_left_by_a_joint_move() -> None:
     """The straight route folds the elbow onto its limit: the controller says so at the first step
     (REPLANNING, the reason in the message), moves in joint space and reaches the goal."""
-    ctl = ReachController(ARM, Scene())
+    ctl = make_controller(ARM, Scene())
     ctl.reset(Q_DEAD_0)
     T = ARM.fk(Q_DEAD_1)
     assert ctl.set_goal(T).accepted
@@ -331,7 +332,7 @@ def test_a_wound_up_base_joint_is_no_trap() -> None:
     q0[0] = math.radians(170)
     q_goal = READY.copy()
     q_goal[0] = math.radians(-170)
-    ctl = ReachController(ARM, Scene((), 0.0))
+    ctl = make_controller(ARM, Scene((), 0.0))
     ctl.reset(q0)
     ctl.set_goal(ARM.fk(q_goal))
     for _ in range(1000):
@@ -362,7 +363,7 @@ def test_a_trapped_arm_says_why_and_holds() -> None:
     )
     scene = Scene(balls, 0.0)
     assert min_distance(ARM, READY, scene).distance > 0.01
-    ctl = ReachController(ARM, scene, ControllerParams(replan=ReplanParams(vias=40)))
+    ctl = make_controller(ARM, scene, ControllerParams(replan=ReplanParams(vias=40)))
     ctl.reset(READY)
     assert ctl.set_goal(ARM.fk(np.array([1.2, 0.8, 0.0, 1.4, 0.0, 0.9, 0.0]))).accepted
     seen = []
@@ -380,3 +381,25 @@ def test_a_trapped_arm_says_why_and_holds() -> None:
     for _ in range(50):
         again = ctl.step(DT)
     assert again.phase is Phase.BLOCKED and np.max(np.abs(again.q - r_.q)) < 1e-3
+
+
+def test_stall_reason_is_a_function_of_the_state_and_the_parameters() -> None:
+    """The stall detector reads the controller state and the parameters it is given, nothing else: an
+    overdue point goal is a reason to re-plan, unless re-planning is off; other modes are never stalled."""
+    from redarm_ros.control.replan_law import stall_reason
+    from redarm_ros.control.state import Mode
+
+    ctl = make_controller(ARM)
+    q0 = np.array([0.0, 0.5, 0.0, 1.2, 0.0, 0.8, 0.0])
+    ctl.reset(q0, now=0.0)
+    T = ARM.fk(q0 + np.array([0.6, 0.3, 0.0, -0.4, 0.0, 0.2, 0.0]))
+    assert ctl.set_goal(T).accepted
+    st = ctl._st
+    assert st is not None and st.mode is Mode.ATTRACTOR
+    st.time = st.progress.due + 1.0
+    assert stall_reason(st, ctl.params).startswith("overdue:")
+    assert st.progress.t_last == st.time  # the progress was tracked
+    off = ctl.params.with_(replan=ReplanParams(enabled=False))
+    assert stall_reason(st, off) == ""
+    st.mode = Mode.SERVO
+    assert stall_reason(st, ctl.params) == ""

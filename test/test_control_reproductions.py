@@ -8,7 +8,6 @@ import math
 import numpy as np
 import pytest
 
-from redarm_ros.control.obstacles import Scene
 from redarm_ros.control.reproductions import (
     EXAMPLE2_CENTER,
     example2_ramp,
@@ -17,6 +16,7 @@ from redarm_ros.control.reproductions import (
     swivel_scene,
 )
 from redarm_ros.control.swivel_dynamics import SwivelParams
+from redarm_ros.geometry.obstacles import Scene
 from redarm_ros.kinematics import load_arm
 
 pytest.importorskip("matplotlib")

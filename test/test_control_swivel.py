@@ -7,13 +7,11 @@ import math
 import numpy as np
 import pytest
 
-from redarm_ros.control.elbow import ArmGeometry, elbow_circle
-from redarm_ros.control.obstacles import (
-    ArmCapsules,
-    Scene,
-    Sphere,
+from redarm_ros.control.elbow import (
+    ArmGeometry,
     clearance_at_swivel,
     clearance_at_u,
+    elbow_circle,
     swivel_gradient,
 )
 from redarm_ros.control.swivel_dynamics import (
@@ -24,6 +22,7 @@ from redarm_ros.control.swivel_dynamics import (
     wrap_angle,
 )
 from redarm_ros.errors import InvalidInputError, UnreachableError
+from redarm_ros.geometry.obstacles import ArmCapsules, Scene, Sphere
 from redarm_ros.kinematics import load_arm
 
 

@@ -12,8 +12,9 @@ import pytest
 from support.benches import load_bench
 from support.control_scenes import pose
 
-from redarm_ros.control.obstacles import ArmCapsules, Scene, Sphere, min_distance
+from redarm_ros.control.make import make_controller
 from redarm_ros.control.reach_controller import GoalKind, Phase, ReachController
+from redarm_ros.geometry.obstacles import ArmCapsules, Scene, Sphere, min_distance
 from redarm_ros.kinematics import load_arm
 
 ramp_arc = load_bench("bench_common").ramp_arc
@@ -37,7 +38,7 @@ def circle_path(v: float, center=(0.7, 0.0, 0.2), r: float = 0.1, ramp: float = 
 
 def settled(scene: Scene, T0: np.ndarray) -> ReachController:
     """A controller resting at T0 (the elbow settled)."""
-    ctl = ReachController(ARM, scene)
+    ctl = make_controller(ARM, scene)
     q0, _ = ARM.ik_nearest(T0, HINT)
     ctl.reset(q0, now=0.0)
     ctl.set_goal(T0)
@@ -221,7 +222,7 @@ def test_stream_beside_an_obstacle_at_the_elbow_stays_collision_free() -> None:
     c = kp[2] + 0.1 * (kp[3] - kp[2]) + side * (ArmCapsules().radii[2] + 0.05 - 0.02)
     scene = Scene((Sphere(tuple(c), 0.05, "ball"),), 0.0)
     assert min(min_distance(ARM, q, scene).distance for q in qs) < 0.0  # it was in the way
-    ctl = ReachController(ARM, scene)
+    ctl = make_controller(ARM, scene)
     ctl.reset(q0, now=0.0)
     times, qs, res = stream(ctl, path, duration, 50.0, 0.0)
     assert min(min_distance(ARM, q, scene).distance for q in qs) >= 0.0
@@ -270,7 +271,7 @@ def test_twist_into_the_table_is_stopped_by_the_slide_and_the_guard() -> None:
 
 
 def test_twist_validation() -> None:
-    ctl = ReachController(ARM)
+    ctl = make_controller(ARM)
     with pytest.raises(ValueError):
         ctl.set_twist((0.0, 0.0, 0.0), (0.0, 0.0, 0.0))  # before reset
     ctl.reset(HINT)
@@ -284,7 +285,7 @@ def test_a_stream_sent_to_a_stretched_arm_is_joined_after_a_joint_space_move() -
     """From the homed pose (straight up, no elbow circle) a stream starts: the controller moves in
     joint space first (REPLANNING, saying why), then tracks it (TRACKING) and settles on its end."""
     path, duration = circle_path(0.08)
-    ctl = ReachController(ARM, Scene((), 0.0))
+    ctl = make_controller(ARM, Scene((), 0.0))
     ctl.reset(np.zeros(7), now=0.0)
     times, qs, res = stream(ctl, lambda t: path(min(t, duration)), duration + 4.0, 50.0, 0.0)
     phases = [r.phase for r in res]

@@ -103,6 +103,20 @@ def test_readme_and_docs_stay_under_the_word_budget() -> None:
     assert words <= MAX_WORDS, f"README.md + docs/*.md hold {words} words (budget {MAX_WORDS})"
 
 
+def _table_params(tree: ast.Module, mapping: str) -> list[tuple[str, object]]:
+    """(name, default) of the node parameters built from the parameter table by ``table_params(mapping)``:
+    ``mapping`` is the module's dict of ROS name -> (table section, name there)."""
+    from redarm_ros.param_table import table
+
+    for node in tree.body:
+        if isinstance(node, ast.AnnAssign | ast.Assign):
+            targets = [node.target] if isinstance(node, ast.AnnAssign) else node.targets
+            if any(getattr(t, "id", "") == mapping for t in targets):
+                names = ast.literal_eval(node.value)  # type: ignore[arg-type]
+                return [(ros, table()[section].param(name).default) for ros, (section, name) in names.items()]
+    raise AssertionError(f"no {mapping} in the module")
+
+
 def _node_params(module: Path) -> list[tuple[str, object]]:
     """(name, default) of every ParamSpec in the module's PARAMS list, and of the shared specs."""
     shared = {"NICE_PARAM": ("nice", -10), "PROCESS_RT_PARAM": ("realtime_priority", 20)}
@@ -111,6 +125,9 @@ def _node_params(module: Path) -> list[tuple[str, object]]:
         if isinstance(node, ast.Assign) and any(getattr(t, "id", "") == "PARAMS" for t in node.targets):
             out = []
             for item in node.value.elts:  # type: ignore[attr-defined]
+                if isinstance(item, ast.Starred) and getattr(item.value.func, "id", "") == "table_params":
+                    out += _table_params(tree, getattr(item.value.args[0], "id", ""))
+                    continue
                 if isinstance(item, ast.Starred):  # *urdf_arm_params(...): the URDF arm's three strings
                     assert getattr(item.value.func, "id", "") == "urdf_arm_params", ast.dump(item)
                     out += [("urdf", ""), ("base_link", ""), ("tip_link", "")]

@@ -76,3 +76,28 @@ def test_demo_passes_and_reports(procs: Any, tmp_path: Path) -> None:
     encodings = {(s.schema_encoding, s.message_encoding) for t, s in topics.items() if t != "*"}
     assert encodings == {("ros2msg", "cdr")}
     assert topics["*"].monotonic
+
+
+def test_iiwa_demo_from_its_urdf_passes(procs: Any, tmp_path: Path) -> None:
+    # The iiwa14-like arm through the stack's URDF path (simulator, driver, IK service and controller
+    # all from the URDF file), its own goal set; no GIF (the recording and the GIF are tested above).
+    from redarm_ros.demo import DEMOS
+
+    out = tmp_path / "demo_iiwa"
+    cmd = python_module_cmd("redarm_ros.demo", "--arm", "iiwa14", "--output", str(out), "--log-level", "warn",
+                            "--gif-fps", "0")
+    demo = procs.start("demo_iiwa", cmd)
+    demo.expect_exit()
+    demo.wait_for_line(r"demo (PASSED|FAILED)", timeout=420.0)
+    rc = demo.popen.wait(timeout=60.0)
+    assert rc == 0, "\n".join(demo.output())[-4000:]
+    report = json.loads((out / "report.json").read_text(encoding="utf-8"))
+    assert report["success"] is True and report["arm"] == "iiwa14"
+    goals = DEMOS["iiwa14"].goals
+    assert [g["name"] for g in report["goals"]] == [g.name for g in goals]
+    for g, spec in zip(report["goals"], goals, strict=True):
+        if spec.reachable:
+            assert g["reached"] and g["pos_err_m"] < 1e-3 and g["rot_err_rad"] < 0.01, g
+        else:
+            assert g["rejected"] and g["ik_status"] == "OUT_OF_REACH", g
+    assert "iiwa_joint_1" in (out / "iiwa14.urdf").read_text(encoding="utf-8")

@@ -17,15 +17,15 @@ require_ros(stack=True)
 from redarm_interfaces.msg import ControllerState  # noqa: E402
 from redarm_interfaces.srv import SolveIK  # noqa: E402
 from support import stack_client as sc  # noqa: E402
-from support.benches import load_bench  # noqa: E402
 
 from redarm_ros.kinematics import load_arm  # noqa: E402
 from redarm_ros.nodes.controller import pose_to_msg  # noqa: E402
+from redarm_ros.sim.urdf_arms import iiwa14_urdf  # noqa: E402
 from redarm_ros.testing import SimulatedArm  # noqa: E402
 
 pytestmark = [pytest.mark.hil, pytest.mark.slow]
 
-URDF_TEXT = load_bench("urdf_arms").iiwa14_urdf()
+URDF_TEXT = iiwa14_urdf()
 ARM = load_arm(URDF_TEXT, base_link="base_link", tip_link="tool0")
 READY_Q = np.array([0.0, 0.5, 0.0, -1.3, 0.0, 1.0, 0.0])  # elbow bent (joint 4 turns about -y)
 POS_TOL, ROT_TOL = 1e-3, 0.01

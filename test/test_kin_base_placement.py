@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from support.benches import load_bench
 
-from redarm_ros.control.self_collision import self_collision
+from redarm_ros.geometry.self_collision import self_collision
 from redarm_ros.kinematics import IKStatus, load_arm
 from redarm_ros.kinematics.base_placement import (
     base_move_hint,

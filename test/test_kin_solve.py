@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from support.benches import load_bench
 
-from redarm_ros.control.self_collision import self_collision, self_collision_batch
 from redarm_ros.errors import InvalidInputError
+from redarm_ros.geometry.self_collision import self_collision, self_collision_batch
 from redarm_ros.kinematics import IKStatus, load_arm
 from redarm_ros.kinematics.solve import IKFrontEnd, nearest_collision_free
 

@@ -26,8 +26,8 @@ from sensor_msgs.msg import JointState  # noqa: E402
 from trajectory_msgs.msg import JointTrajectory  # noqa: E402
 from visualization_msgs.msg import Marker, MarkerArray  # noqa: E402
 
-from redarm_ros.control.obstacles import Box, Cylinder, Sphere  # noqa: E402
 from redarm_ros.errors import InvalidInputError  # noqa: E402
+from redarm_ros.geometry.obstacles import Box, Cylinder, Sphere  # noqa: E402
 from redarm_ros.kinematics import load_arm  # noqa: E402
 from redarm_ros.nodes._common import DuplicateNodeError  # noqa: E402
 from redarm_ros.nodes.controller import (  # noqa: E402

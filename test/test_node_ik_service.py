@@ -18,7 +18,7 @@ from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from redarm_interfaces.srv import SolveIK  # noqa: E402
 
-from redarm_ros.control.self_collision import self_collision, self_collision_batch  # noqa: E402
+from redarm_ros.geometry.self_collision import self_collision, self_collision_batch  # noqa: E402
 from redarm_ros.kinematics import load_arm  # noqa: E402
 from redarm_ros.kinematics.quaternion import matrix_to_quat  # noqa: E402
 from redarm_ros.nodes._common import call_resending, pose_msg_to_matrix, spin_until  # noqa: E402

@@ -19,17 +19,15 @@ from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from redarm_interfaces.srv import SolveIK  # noqa: E402
 from std_msgs.msg import String  # noqa: E402
-from support.benches import load_bench  # noqa: E402
 from test_node_ik_service import Caller, make_request  # noqa: E402
 
 from redarm_ros.kinematics import load_arm  # noqa: E402
 from redarm_ros.kinematics.model import pose_error  # noqa: E402
 from redarm_ros.nodes.description import DESCRIPTION_QOS  # noqa: E402
 from redarm_ros.nodes.ik_service import IKServiceNode  # noqa: E402
+from redarm_ros.sim.urdf_arms import franka_like_urdf, iiwa14_urdf  # noqa: E402
 
 R = SolveIK.Response
-franka_like_urdf = load_bench("urdf_arms").franka_like_urdf
-iiwa14_urdf = load_bench("urdf_arms").iiwa14_urdf
 
 
 @pytest.fixture(scope="module")

@@ -302,3 +302,61 @@ def test_config_file_lists_every_parameter_at_its_default(node: str) -> None:
         assert pname in listed, f"config/{node}.yaml lacks {pname} (default {default!r})"
         value = listed[pname]
         assert value == default and type(value) is type(default), (pname, value, default)
+
+
+# --- layering of the cores ---------------------------------------------------------------------------
+# Which parts of the package each low core may import (itself always). geometry/ sits below both the
+# IK front end and the controller: an arm enters it as key points or as an object that gives them.
+CORE_MAY_IMPORT: dict[str, set[str]] = {
+    "param_table": {"errors"},
+    "motion": {"errors"},
+    "geometry": {"errors", "param_table"},
+    "kinematics": {"errors", "param_table", "geometry", "parallel"},
+}
+
+
+def _package_imports(path: Path) -> set[str]:
+    """First parts below ``redarm_ros.`` of every import in ``path`` (also inside functions; not the
+    annotation-only ``if TYPE_CHECKING:`` blocks)."""
+    tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
+    skip: set[int] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.If) and getattr(node.test, "id", "") == "TYPE_CHECKING":
+            skip.update(id(n) for b in node.body for n in ast.walk(b))
+    found: set[str] = set()
+    for node in ast.walk(tree):
+        if id(node) in skip:
+            continue
+        names: list[str] = []
+        if isinstance(node, ast.Import):
+            names = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            names = [node.module] if node.module != PACKAGE else [f"{PACKAGE}.{a.name}" for a in node.names]
+        found |= {n.split(".")[1] for n in names if n.startswith(f"{PACKAGE}.")}
+    return found
+
+
+@pytest.mark.parametrize("core", sorted(CORE_MAY_IMPORT))
+def test_low_cores_import_only_what_lies_below_them(core: str) -> None:
+    """kinematics/ and geometry/ import nothing of control/; geometry/ nothing of kinematics/ either."""
+    folder = REPO / PACKAGE / core
+    paths = sorted(folder.rglob("*.py")) if folder.is_dir() else [folder.with_suffix(".py")]
+    assert paths and all(p.is_file() for p in paths), core
+    wrong = {str(p.relative_to(REPO)): sorted(_package_imports(p) - CORE_MAY_IMPORT[core] - {core})
+             for p in paths}
+    wrong = {p: mods for p, mods in wrong.items() if mods}
+    assert not wrong, f"{core} imports from above it: {wrong}"
+
+
+@pytest.mark.parametrize("module, home", [("obstacles", "geometry.obstacles"),
+                                          ("self_collision", "geometry.self_collision"),
+                                          ("param_table", "param_table")])
+def test_documented_old_paths_still_import(module: str, home: str) -> None:
+    """redarm_ros.control.obstacles, .self_collision and .param_table, once documented, are the modules
+    of their new homes."""
+    old = importlib.import_module(f"{PACKAGE}.control.{module}")
+    assert old is importlib.import_module(f"{PACKAGE}.{home}")
+    # the package itself uses the new home only
+    users = [str(p.relative_to(REPO)) for p in (REPO / PACKAGE).rglob("*.py")
+             if f"{PACKAGE}.control.{module}" in p.read_text(encoding="utf-8")]
+    assert users == [f"{PACKAGE}/control/{module}.py"], users

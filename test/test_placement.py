@@ -9,9 +9,9 @@ import math
 import numpy as np
 import pytest
 
-from redarm_ros.control.obstacles import ArmCapsules, Scene, links_clearance
-from redarm_ros.control.self_collision import collision_model, self_collision
 from redarm_ros.errors import ConfigError
+from redarm_ros.geometry.obstacles import ArmCapsules, Scene, links_clearance
+from redarm_ros.geometry.self_collision import collision_model, self_collision
 from redarm_ros.kinematics import load_arm
 from redarm_ros.placement import load_problem, place, problem_from_dict
 from redarm_ros.placement.cli import main as placement_main

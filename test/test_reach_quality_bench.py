@@ -157,3 +157,11 @@ def test_smoke_run_writes_every_move_and_the_summary(tmp_path: Path, capsys) -> 
     # the oracle's verdict is per move, the same for every method
     for case in ("free45", "table_cylinder"):
         assert len({m["oracle"] for m in moves if m["case"] == case}) == 1
+
+
+def test_smoke_run_on_the_urdf_arm(capsys) -> None:
+    # the iiwa14-like arm from its URDF (redarm_ros/sim/urdf_arms.py), from the model's ready posture
+    assert bench.main(["--moves", "1", "--arms", "iiwa14", "--cases", "free45", "--no-write"]) == 0
+    text = capsys.readouterr().out
+    for method in bench.METHODS:
+        assert f"| iiwa14_like | free45 | {method} | 1 |" in text

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from redarm_ros.control.obstacles import load_scene
 from redarm_ros.errors import InvalidInputError
+from redarm_ros.geometry.obstacles import load_scene
 from redarm_ros.kinematics import load_arm
 from redarm_ros.sim.plant import PybulletPlant
 

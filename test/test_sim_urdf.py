@@ -162,3 +162,38 @@ def test_bad_model_is_refused():
     arm.tool = np.full((4, 4), np.nan)
     with pytest.raises(InvalidInputError, match="tool"):
         build_urdf(arm)
+
+
+def test_urdf_arm_keeps_its_meshes_where_the_files_exist(tmp_path):
+    from redarm_ros.sim.plant import PybulletPlant
+    from redarm_ros.sim.urdf_arms import iiwa14_urdf
+
+    (tmp_path / "meshes").mkdir()
+    (tmp_path / "meshes" / "upper_arm.obj").write_text("v 0 0 0\nv 0.1 0 0\nv 0 0.1 0\nf 1 2 3\n")
+    text = iiwa14_urdf().replace(  # link_2 (after joint 2) with a mesh, link_3 with a missing one
+        '<link name="link_2"/>',
+        '<link name="link_2"><visual><origin xyz="0 0 0.1"/><geometry><mesh filename="meshes/upper_arm.obj"/>'
+        '</geometry><material name="m"><color rgba="1 0.5 0 1"/></material></visual></link>',
+    ).replace(
+        '<link name="link_3"/>',
+        '<link name="link_3"><visual><geometry><mesh filename="package://no_such_pkg/x.stl"/></geometry>'
+        "</visual></link>",
+    )
+    (tmp_path / "arm.urdf").write_text(text)
+    arm = load_arm(tmp_path / "arm.urdf", base_link="base_link", tip_link="tool0")
+    plant = PybulletPlant.create(arm)
+    try:
+        rows = plant.pb.getVisualShapeData(plant.body, physicsClientId=plant.cid)
+    finally:
+        plant.close()
+    by_link: dict[int, list] = {}
+    for row in rows:
+        by_link.setdefault(row[1], []).append(row)
+    # pybullet link 1 is the child of joint 2: the URDF's mesh replaces the generated shapes
+    assert [(r[2], r[4].decode()) for r in by_link[1]] == [
+        (pb.GEOM_MESH, str((tmp_path / "meshes" / "upper_arm.obj").resolve()))
+    ]
+    assert by_link[1][0][7][:3] == pytest.approx((1.0, 0.5, 0.0))
+    # the missing mesh (and the links without visuals) keep the generated sphere and cylinder
+    for link in (0, 2, 3):
+        assert {r[2] for r in by_link[link]} == {pb.GEOM_SPHERE, pb.GEOM_CYLINDER}, link

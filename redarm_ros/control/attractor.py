@@ -25,9 +25,9 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
-from redarm_ros.control.obstacles import Obstacle
-from redarm_ros.control.param_table import declared
 from redarm_ros.control.swivel_dynamics import wrap_angle
+from redarm_ros.geometry.obstacles import Obstacle
+from redarm_ros.param_table import declared
 
 Vec3 = tuple[float, float, float]
 

@@ -7,22 +7,22 @@ command). Units: m, rad, s; quaternions (w, x, y, z).
 
 from __future__ import annotations
 
-from typing import Any
-
 import numpy as np
 
 from redarm_ros.control.attractor import HeadingDynamics, SpeedProfile
-from redarm_ros.control.broadphase import LocalScene, SceneIndex
 from redarm_ros.control.elbow import ArmGeometry
 from redarm_ros.control.guard import CollisionGuard
 from redarm_ros.control.ik_step import IKStepper
-from redarm_ros.control.obstacles import Scene
+from redarm_ros.control.ik_step6 import IKStepper6
 from redarm_ros.control.paper_redundancy import PaperSwivel, TangentHand
 from redarm_ros.control.params import ControllerParams
 from redarm_ros.control.state import CoreState
 from redarm_ros.control.swivel_dynamics import SwivelDynamics
 from redarm_ros.control.types import Quat, Vec3
 from redarm_ros.errors import InvalidInputError
+from redarm_ros.geometry.broadphase import LocalScene, SceneIndex
+from redarm_ros.geometry.obstacles import Scene
+from redarm_ros.kinematics.protocols import ControlledArm
 from redarm_ros.kinematics.quaternion import quat_from_matrix
 
 SMALL_SCENE = 4  # obstacles within reach up to which every step uses them all (no per-step culling)
@@ -37,7 +37,7 @@ class ControllerBase:
     """What every part of the controller shares: the arm and its limits, the parameters, the dynamics,
     the IK stepper, the guard, the scene index and this step's local scene, and the state."""
 
-    arm: Any
+    arm: ControlledArm
     params: ControllerParams
     geom: ArmGeometry
     swivel_dyn: SwivelDynamics
@@ -45,7 +45,7 @@ class ControllerBase:
     tangent_hand: TangentHand
     heading_dyn: HeadingDynamics
     speed_profile: SpeedProfile
-    stepper: IKStepper
+    stepper: IKStepper | IKStepper6  # the swivel arm's or the 6-DOF arm's (ReachController6)
     guard: CollisionGuard
     scene: Scene
     _index: SceneIndex

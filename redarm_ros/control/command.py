@@ -14,12 +14,10 @@ import math
 import numpy as np
 
 from redarm_ros.control.base import SMALL_SCENE, ControllerBase, pose_of
-from redarm_ros.control.broadphase import LocalScene
 from redarm_ros.control.elbow import elbow_circle
 from redarm_ros.control.guard import describe
 from redarm_ros.control.ik_step import IKStep
 from redarm_ros.control.joint_limits import braking_speed, velocity_bounds
-from redarm_ros.control.obstacles import Clearance, Scene
 from redarm_ros.control.state import (
     ZERO3,
     Mode,
@@ -27,6 +25,8 @@ from redarm_ros.control.state import (
 from redarm_ros.control.swivel_dynamics import wrap_angle
 from redarm_ros.control.types import GoalKind, Phase
 from redarm_ros.errors import UnreachableError
+from redarm_ros.geometry.broadphase import LocalScene
+from redarm_ros.geometry.obstacles import Clearance, Scene
 from redarm_ros.kinematics.quaternion import quat_angle, rotvec_between
 
 LOG = logging.getLogger(__name__)

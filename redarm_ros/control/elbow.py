@@ -15,12 +15,14 @@ rotation matrix of ``qA``.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from redarm_ros.errors import InvalidInputError, UnreachableError
+from redarm_ros.geometry.obstacles import ELBOW_LINKS, ArmCapsules, Clearance, Scene, links_clearance
 from redarm_ros.kinematics.quaternion import shortest_rotation_basis
 
 Vec3 = tuple[float, float, float]
@@ -165,3 +167,39 @@ def elbow_circle(geom: ArmGeometry, T: Any) -> ElbowCircle:
     a, b = shortest_rotation_basis(n)
     tool = (float(T[0, 3]), float(T[1, 3]), float(T[2, 3]))
     return ElbowCircle(center, n, rho, a, b, geom.base, ps, pw, tool)
+
+
+# ----------------------------------------------------------------------------------------------
+# Clearance along the circle
+# ----------------------------------------------------------------------------------------------
+
+
+def clearance_at_swivel(circle: ElbowCircle, s: float, scene: Scene, capsules: ArmCapsules | None = None,
+                        links: Iterable[int] = (0, 1, 2, 3)) -> Clearance:
+    """Clearance (m) of the arm with the tool pose of ``circle`` and swivel angle ``s`` (rad).
+
+    No IK is needed: the key points follow from the elbow circle (see above).
+    """
+    return links_clearance(circle.key_points(s), scene, capsules or ArmCapsules(), links)
+
+
+def clearance_at_u(circle: ElbowCircle, ux: float, uy: float, scene: Scene,
+                   capsules: ArmCapsules | None = None, links: Iterable[int] = (0, 1, 2, 3)) -> Clearance:
+    """As :func:`clearance_at_swivel` for the swivel quaternion ``u = ux i + uy j`` (unit)."""
+    return links_clearance(circle.key_points_u(ux, uy), scene, capsules or ArmCapsules(), links)
+
+
+def swivel_gradient(circle: ElbowCircle, s: float, scene: Scene, capsules: ArmCapsules | None = None,
+                    eps: float = 1e-3) -> tuple[float, float]:
+    """Clearance of the swivel-dependent links (upper arm, forearm) and its derivative w.r.t. ``s``.
+
+    Returns ``(d, dd_ds)`` in m and m/rad, by the central difference over ``s +/- eps`` (rad) that the
+    swivel paper uses to find the direction of the obstacle force.
+    """
+    caps = capsules or ArmCapsules()
+    d0 = clearance_at_swivel(circle, s, scene, caps, ELBOW_LINKS).distance
+    dp = clearance_at_swivel(circle, s + eps, scene, caps, ELBOW_LINKS).distance
+    dm = clearance_at_swivel(circle, s - eps, scene, caps, ELBOW_LINKS).distance
+    if not math.isfinite(d0):
+        return d0, 0.0
+    return d0, (dp - dm) / (2.0 * eps)

@@ -22,9 +22,9 @@ from typing import Any
 import numpy as np
 
 from redarm_ros.control.elbow import ArmGeometry, elbow_circle
-from redarm_ros.control.obstacles import TABLE, ArmCapsules, Scene, links_clearance
 from redarm_ros.control.types import GoalCheck, GoalStatus
 from redarm_ros.errors import InvalidInputError, UnreachableError
+from redarm_ros.geometry.obstacles import TABLE, ArmCapsules, Scene, links_clearance
 
 
 def check_goal(arm: Any, geom: ArmGeometry, T: Any, scene: Scene, capsules: ArmCapsules,

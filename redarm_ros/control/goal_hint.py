@@ -19,9 +19,9 @@ from typing import Any
 
 import numpy as np
 
-from redarm_ros.control.self_collision import CollisionModel, collision_model
 from redarm_ros.control.types import GoalCheck, GoalStatus
 from redarm_ros.errors import InvalidInputError
+from redarm_ros.geometry.self_collision import CollisionModel, collision_model
 from redarm_ros.kinematics.base_placement import BasePlacement, suggest_base_move
 
 __all__ = ["HINTED", "BaseMoveHints", "hint_text"]

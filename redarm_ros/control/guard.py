@@ -6,7 +6,7 @@ A command ``q`` moving at ``qd`` passes when
 * its clearance is at least ``margin``, or no lower than the clearance of the previous command (an arm
   started in contact may still move out). The clearance is the smallest of: the capsules against the
   obstacles and the table; the arm's self-collision pairs and its ground plane
-  (:mod:`~redarm_ros.control.self_collision`, from the arm's ``self_collision`` entry); and
+  (:mod:`~redarm_ros.geometry.self_collision`, from the arm's ``self_collision`` entry); and
 * braking from it at the joints' acceleration limits would keep the same rule: the braking path is
   marched like sphere tracing (a sample with clearance ``c`` proves the next ``c`` of travel safe, each
   joint's travel weighted by its lever arm, :func:`levers`; where ``c`` is below ``step`` the samples
@@ -26,8 +26,8 @@ from typing import Any
 import numpy as np
 
 from redarm_ros.control.joint_limits import brake_step
-from redarm_ros.control.obstacles import TABLE, ArmCapsules, Clearance, Scene, links_clearance
-from redarm_ros.control.self_collision import collision_model, segment_distance
+from redarm_ros.geometry.obstacles import TABLE, ArmCapsules, Clearance, Scene, links_clearance
+from redarm_ros.geometry.self_collision import collision_model, segment_distance
 
 LINKS = ("base", "upper arm", "forearm", "hand")
 #: ``Clearance.obstacle`` of the arm's ground plane (the table is ``TABLE``, -1; -2 is the broad

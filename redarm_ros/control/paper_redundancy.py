@@ -46,10 +46,9 @@ import numpy as np
 
 from redarm_ros.control.attractor import direction, forcelet, heading_angles, target_attractor
 from redarm_ros.control.elbow import ElbowCircle
-from redarm_ros.control.obstacles import ELBOW_LINKS, ArmCapsules, Scene, links_clearance
-from redarm_ros.control.param_table import declared
 from redarm_ros.control.swivel_dynamics import wrap_angle
 from redarm_ros.control.types import Quat, Vec3
+from redarm_ros.geometry.obstacles import ELBOW_LINKS, ArmCapsules, Scene, links_clearance
 from redarm_ros.kinematics.quaternion import (
     quat_between_vectors,
     quat_mul,
@@ -57,6 +56,7 @@ from redarm_ros.kinematics.quaternion import (
     quat_rotate,
     slerp_vectors,
 )
+from redarm_ros.param_table import declared
 
 __all__ = ["PaperSwivel", "PaperSwivelParams", "PaperSwivelStep", "Sector", "TangentHand", "sectors"]
 

@@ -7,7 +7,7 @@ goal messages are told apart and how a stream's velocity is estimated), ``servo`
 form.
 
 Every parameter is declared once, with its default, unit, bound and meaning, in the table
-``redarm_ros/control/parameters.yaml``; :mod:`redarm_ros.control.param_table` builds the classes from it.
+``redarm_ros/parameters.yaml``; :mod:`redarm_ros.param_table` builds the classes from it.
 """
 
 from __future__ import annotations
@@ -16,11 +16,11 @@ from dataclasses import replace
 from typing import Any
 
 from redarm_ros.control.attractor import HeadingParams, SpeedParams
-from redarm_ros.control.obstacles import ArmCapsules
 from redarm_ros.control.paper_redundancy import PaperSwivelParams
-from redarm_ros.control.param_table import declared, from_mapping, table
 from redarm_ros.control.swivel_dynamics import SwivelParams
 from redarm_ros.errors import ConfigError
+from redarm_ros.geometry.obstacles import ArmCapsules
+from redarm_ros.param_table import declared, from_mapping, table
 
 __all__ = ["ArmCapsules", "ControllerParams", "HeadingParams", "PaperSwivelParams", "ReplanParams",
            "SWIVEL_MODES", "ServoParams", "SpeedParams", "StreamParams", "SwivelParams"]

@@ -1,7 +1,8 @@
 """The reaching controller for the 6-DOF PowerCube arm: the 7-DOF controller's heading, speed and
 orientation dynamics, no swivel.
 
-:class:`ReachController6` is what ``ReachController(arm)`` builds for a ``powercube6`` arm. Everything
+:class:`ReachController6` is what :func:`~redarm_ros.control.make.make_controller` builds for a
+``powercube6`` arm. Everything
 that moves the hand is the 7-DOF controller's (:mod:`~redarm_ros.control.attractor_law` for point goals,
 :mod:`~redarm_ros.control.servo_law` for streams and twists, :mod:`~redarm_ros.control.command` for the
 joint limits and the collision guard); what differs:
@@ -36,19 +37,20 @@ from typing import Any
 import numpy as np
 
 from redarm_ros.control.base import pose_of
-from redarm_ros.control.broadphase import SceneIndex
 from redarm_ros.control.elbow import ArmGeometry, ElbowCircle
 from redarm_ros.control.guard import CollisionGuard, describe
 from redarm_ros.control.ik_step import pose_matrix
-from redarm_ros.control.ik_step6 import IKStepper6, branch, check_route6, fixed_circle
-from redarm_ros.control.obstacles import Scene
+from redarm_ros.control.ik_step6 import IKStepper6, branch, check_route6, fixed_circle, is_6dof
 from redarm_ros.control.params import ControllerParams
 from redarm_ros.control.reach_controller import ReachController
-from redarm_ros.control.replan import move_time
+from redarm_ros.control.replan import PathSearch, move_time
 from redarm_ros.control.state import ZERO3, Command, CoreState, Reference
 from redarm_ros.control.stream import StreamEstimator
 from redarm_ros.control.types import GoalCheck, GoalStatus
 from redarm_ros.errors import InvalidInputError
+from redarm_ros.geometry.broadphase import SceneIndex
+from redarm_ros.geometry.obstacles import Scene
+from redarm_ros.kinematics.protocols import ControlledArm
 from redarm_ros.kinematics.result import IKStatus
 
 LOG = logging.getLogger(__name__)
@@ -191,14 +193,24 @@ class Planner6:
 
 class ReachController6(ReachController):
     """:class:`~redarm_ros.control.reach_controller.ReachController` for the 6-DOF PowerCube arm (see
-    the module docstring). Build it as ``ReachController(load_arm("powercube6"), scene)``."""
+    the module docstring). Build it as ``make_controller(load_arm("powercube6"), scene)`` or directly."""
 
-    def __init__(self, arm: Any, scene: Scene | None = None, params: ControllerParams | None = None) -> None:
+    def __init__(self, arm: ControlledArm, scene: Scene | None = None,
+                 params: ControllerParams | None = None) -> None:
         super().__init__(arm, scene, params)
         p = self.params
-        self.stepper = IKStepper6(arm, p.flip_ratio, p.swivel_search_step,  # type: ignore[assignment]
-                                  p.swivel_search_count)
+        # the laws drive it as they drive the swivel stepper; the 6-DOF route check needs it as it is
+        self.stepper6 = IKStepper6(arm, p.flip_ratio, p.swivel_search_step, p.swivel_search_count)
+        self.stepper = self.stepper6
         self.guard = CollisionGuard6(arm, p.capsules, p.collision_margin, p.guard_step)
+
+    @classmethod
+    def refusal(cls, arm: object) -> str | None:
+        """Why this class cannot run ``arm`` (None if it can): it runs the 6-DOF PowerCube arm."""
+        if is_6dof(arm):
+            return None
+        return (f"ReachController6 runs the 6-DOF PowerCube arm, not {getattr(arm, 'name', arm)!r}; "
+                "make_controller(arm, scene, params) builds the controller of any arm")
 
     @property
     def elbow_circle(self) -> None:
@@ -252,7 +264,7 @@ class ReachController6(ReachController):
         st = self._state()
         p = self.params
         T0 = pose_matrix(st.ref.pos, st.ref.rot)
-        route = check_route6(self.stepper, T0, st.ref.q, T, p.replan.route_steps, p.speed.v_max,  # type: ignore[arg-type]
+        route = check_route6(self.stepper6, T0, st.ref.q, T, p.replan.route_steps, p.speed.v_max,
                              p.max_ori_rate)
         st.progress.due = st.time + p.replan.overdue_factor * route.time + p.replan.overdue_slack
         return route.dead_end
@@ -299,13 +311,13 @@ class ReachController6(ReachController):
         st.att.a = 0.0
 
     # -- joint-space moves --------------------------------------------------------------------------
-    def _new_planner(self, T: np.ndarray) -> Planner6:  # type: ignore[override]
+    def _new_planner(self, T: np.ndarray) -> PathSearch:
         st = self._state()
         rp = self.params.replan
         return Planner6(self.arm, self.guard, self._index.reach_scene.scene, st.cmd.q.copy(), T,
                         rp.clearance, rp.work_per_step, rp.vias, rp.seed + st.progress.replans)
 
-    def _plan_message(self, planner: Planner6) -> str:  # type: ignore[override]
+    def _plan_message(self, planner: PathSearch) -> str:
         st = self._state()
         assert st.path is not None
         vias = len(planner.path) - 2

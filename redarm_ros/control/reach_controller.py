@@ -17,7 +17,7 @@ limits and singularities in every mode. Each step the reference goes through the
 fallback cascade (:mod:`~redarm_ros.control.ik_step`); the *command* follows the reference within
 the joint velocity, acceleration and position limits (:mod:`~redarm_ros.control.joint_limits`) and
 passes the collision guard (:mod:`~redarm_ros.control.guard`). Distances use only the obstacles the
-broad phase keeps (:mod:`~redarm_ros.control.broadphase`).
+broad phase keeps (:mod:`~redarm_ros.geometry.broadphase`).
 
 Units: m, rad, s. Quaternions are (w, x, y, z). The core is pure Python/numpy (no ROS); the
 controller node converts messages to these calls.
@@ -35,7 +35,6 @@ import numpy as np
 from redarm_ros.control.attractor import HeadingDynamics, SpeedProfile, direction
 from redarm_ros.control.attractor_law import AttractorMixin
 from redarm_ros.control.base import pose_of
-from redarm_ros.control.broadphase import LEFT_OUT, SceneIndex
 from redarm_ros.control.command import CommandMixin
 from redarm_ros.control.elbow import ArmGeometry, ElbowCircle, elbow_circle
 from redarm_ros.control.goal_check import check_goal, stream_feasibility
@@ -43,7 +42,6 @@ from redarm_ros.control.goal_hint import BaseMoveHints
 from redarm_ros.control.guard import CollisionGuard
 from redarm_ros.control.ik_step import IKStepper, pose_matrix
 from redarm_ros.control.ik_step6 import is_6dof
-from redarm_ros.control.obstacles import Clearance, Scene
 from redarm_ros.control.paper_redundancy import PaperSwivel, TangentHand
 from redarm_ros.control.params import ControllerParams, ReplanParams, ServoParams, StreamParams
 from redarm_ros.control.replan_law import ReplanMixin
@@ -64,9 +62,11 @@ from redarm_ros.control.stream import StreamEstimator
 from redarm_ros.control.swivel_dynamics import SwivelDynamics, SwivelForces
 from redarm_ros.control.types import GoalCheck, GoalKind, GoalStatus, Phase, Quat, StepResult, Vec3
 from redarm_ros.errors import ConfigError, InvalidInputError, UnreachableError
-from redarm_ros.kinematics.quaternion import (
-    quat_angle,
-)
+from redarm_ros.geometry.broadphase import LEFT_OUT, SceneIndex
+from redarm_ros.geometry.obstacles import ArmCapsules, Clearance, Scene
+from redarm_ros.kinematics.protocols import ControlledArm
+from redarm_ros.kinematics.quaternion import quat_angle
+from redarm_ros.kinematics.urdf_chain import capsules_from_urdf
 
 LOG = logging.getLogger(__name__)
 SETTLING = "at the goal; the elbow is settling on its preferred swivel"
@@ -107,7 +107,7 @@ def has_swivel(arm: Any) -> bool:
     return True
 
 
-def controller_refusal(arm: Any) -> str | None:
+def controller_refusal(arm: object) -> str | None:
     """One line saying why the controller cannot run ``arm`` (a URDF model), or None.
 
     A URDF chain without the closed form carries its reason; a URDF chain that maps onto the swivel model
@@ -125,16 +125,30 @@ def controller_refusal(arm: Any) -> str | None:
     return None
 
 
+def urdf_capsules(arm: Any, params: ControllerParams | None) -> ControllerParams:
+    """``params`` (default: the defaults), with the capsule radii of the arm's URDF collision geometry
+    (:func:`~redarm_ros.kinematics.urdf_chain.capsules_from_urdf`) where the capsules are left at the
+    defaults."""
+    p = params or ControllerParams()
+    if p.capsules != ArmCapsules():
+        return p
+    caps = capsules_from_urdf(arm, p.capsules)
+    return p if caps == p.capsules else dataclasses.replace(p, capsules=caps)
+
+
 class JointMappedController:
     """The controller of a URDF arm that is the swivel model up to joint signs and zero offsets (its base
     and tool frames the model's, as the iiwa's): a :class:`ReachController` on ``arm.canonical`` with the
     joint values mapped at the boundary, ``q_c = sign (q - offset)``. Poses, twists, the scene and every
     distance are the same in both; limits, rates and accelerations keep their sizes. Everything else is
-    the inner controller's. Built by ``ReachController(arm, ...)`` for such an arm."""
+    the inner controller's. Built by :func:`~redarm_ros.control.make.make_controller` for such an arm."""
 
     def __init__(self, arm: Any, scene: Scene | None = None, params: ControllerParams | None = None) -> None:
+        if getattr(arm, "kind", "") != "swivel7_urdf":
+            raise ConfigError(f"JointMappedController maps a URDF swivel arm onto its model; "
+                              f"{getattr(arm, 'name', arm)!r} is not one", field="arm")
         self.arm = arm
-        self.inner = ReachController(arm.canonical, scene, params)
+        self.inner = ReachController(arm.canonical, scene, urdf_capsules(arm, params))
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self.inner, name)
@@ -168,37 +182,25 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
             r = ctl.step(0.01)                # StepResult; command r.q
             if r.phase is Phase.REACHED: ...
 
-    For the 6-DOF PowerCube arm the constructor returns a
-    :class:`~redarm_ros.control.reach6.ReachController6` (the same dynamics without the swivel).
+    :func:`~redarm_ros.control.make.make_controller` builds the controller of any arm: this class for a
+    7-DOF swivel arm, :class:`~redarm_ros.control.reach6.ReachController6` (the same dynamics without
+    the swivel) for the 6-DOF PowerCube arm.
 
     Raises:
-        ConfigError: the arm is neither a 7-DOF swivel arm (spherical shoulder and wrist) nor the 6-DOF
-            PowerCube arm.
+        ConfigError: the arm is not one this class runs (the message names the one that does).
     """
 
     #: Time budget (s) of the base-move suggestion in the rejection of a goal out of reach (one search
     #: per rejected goal, in the control step's thread).
     BASE_MOVE_BUDGET_S = 0.1
 
-    def __new__(cls, arm: Any, *args: Any, **kwargs: Any) -> ReachController:
-        mapped = getattr(arm, "kind", "") == "swivel7_urdf"
-        if cls is ReachController and mapped and not controller_refusal(arm):
-            return JointMappedController(arm, *args, **kwargs)  # type: ignore[return-value]
-        if cls is ReachController and is_6dof(arm):
-            from redarm_ros.control.reach6 import ReachController6
-
-            return super().__new__(ReachController6)
-        return super().__new__(cls)
-
-    def __init__(self, arm: Any, scene: Scene | None = None, params: ControllerParams | None = None) -> None:
-        refused = controller_refusal(arm)
+    def __init__(self, arm: ControlledArm, scene: Scene | None = None,
+                 params: ControllerParams | None = None) -> None:
+        refused = controller_refusal(arm) or self.refusal(arm)
         if refused:
             raise ConfigError(refused, field="arm")
-        if not has_swivel(arm) and not is_6dof(arm):
-            raise ConfigError(f"ReachController needs a 7-DOF swivel arm or the 6-DOF PowerCube arm, got "
-                              f"{getattr(arm, 'name', arm)!r}", field="arm")
         self.arm = arm
-        self.params = params or ControllerParams()
+        self.params = urdf_capsules(arm, params)
         p = self.params
         self.geom = ArmGeometry.from_arm(arm)
         self.swivel_dyn = SwivelDynamics(p.swivel)
@@ -221,6 +223,22 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
         self._index = SceneIndex(self.scene, self.geom.shoulder, 1.0, 0.0)
         self._local = self._index.reach_scene
         self._install_scene(scene if scene is not None else Scene())
+
+    @classmethod
+    def refusal(cls, arm: object) -> str | None:
+        """Why this class cannot run ``arm`` (None if it can): it runs 7-DOF swivel arms in the model's
+        frames."""
+        name = getattr(arm, "name", arm)
+        if getattr(arm, "kind", "") == "swivel7_urdf":
+            return (f"arm {name!r} is a URDF chain: make_controller(arm, scene, params) builds its "
+                    "controller (the joint values mapped onto the model)")
+        if is_6dof(arm):
+            return (f"arm {name!r} has no swivel: make_controller(arm, scene, params) builds its controller "
+                    "(ReachController6)")
+        if not has_swivel(arm):
+            return (f"ReachController needs a 7-DOF swivel arm or the 6-DOF PowerCube arm (through "
+                    f"make_controller), got {name!r}")
+        return None
 
     # ------------------------------------------------------------------ properties
     @property
@@ -349,10 +367,16 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
         return None
 
     def set_preferred_swivel(self, value: float) -> None:
-        """Change the preferred swivel (rad, same reference as ``params.swivel_reference``)."""
-        v = float(value)
-        if not math.isfinite(v):
-            raise InvalidInputError("preferred swivel must be finite", field="preferred_swivel", value=value)
+        """Change the preferred swivel (rad, same reference as ``params.swivel_reference``).
+
+        Raises:
+            InvalidInputError: not a number within the table's bound (+/- 2 pi).
+        """
+        try:
+            v = float(value)
+        except (TypeError, ValueError) as exc:
+            raise InvalidInputError("preferred swivel must be a number", field="preferred_swivel",
+                                    value=value) from exc
         self.params = self.params.with_(preferred_swivel=v)
 
     # ------------------------------------------------------------------ goals

@@ -31,20 +31,31 @@ from __future__ import annotations
 import math
 from collections.abc import Generator
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
 from redarm_ros.control.elbow import ElbowCircle, elbow_circle
 from redarm_ros.control.guard import CollisionGuard
 from redarm_ros.control.ik_step import IKStepper, blend, pose_matrix
-from redarm_ros.control.obstacles import Scene
 from redarm_ros.control.params import ReplanParams
 from redarm_ros.control.swivel_dynamics import wrap_angle
 from redarm_ros.errors import UnreachableError
+from redarm_ros.geometry.obstacles import Scene
 from redarm_ros.kinematics.quaternion import quat_angle, quat_from_matrix
 
 TWO_PI = 2.0 * math.pi
+
+
+class PathSearch(Protocol):
+    """What the re-plan law drives (:class:`JointPlanner`, the 6-DOF arm's ``Planner6``): :meth:`work`
+    once per control step until it returns True; then ``path`` holds the waypoints (rad, start first) or
+    is None with ``reason`` saying why."""
+
+    path: list[np.ndarray] | None
+    reason: str
+
+    def work(self) -> bool: ...
 
 
 # ----------------------------------------------------------------------------------------------

@@ -14,8 +14,8 @@ import numpy as np
 from redarm_ros.control.base import ControllerBase
 from redarm_ros.control.elbow import ElbowCircle, elbow_circle
 from redarm_ros.control.ik_step import pose_matrix
-from redarm_ros.control.params import ReplanParams
-from redarm_ros.control.replan import JointPath, JointPlanner
+from redarm_ros.control.params import ControllerParams, ReplanParams
+from redarm_ros.control.replan import JointPath, JointPlanner, PathSearch
 from redarm_ros.control.state import CoreState, Mode
 from redarm_ros.control.types import GoalKind, Phase
 from redarm_ros.errors import UnreachableError
@@ -96,7 +96,7 @@ class ReplanMixin(ControllerBase):
         st.mode = Mode.JOINT
         st.message = self._plan_message(planner)
 
-    def _new_planner(self, T: np.ndarray) -> JointPlanner:
+    def _new_planner(self, T: np.ndarray) -> PathSearch:
         """The resumable joint-space search towards tool pose ``T`` (the 6-DOF arm has its own)."""
         st = self._state()
         s_pref = None
@@ -111,7 +111,7 @@ class ReplanMixin(ControllerBase):
         return JointPlanner(self.stepper, self.guard, self._index.reach_scene.scene, st.cmd.q.copy(),
                             T, self.params.replan, self.params.unfold_pitch, retreat, s_pref)
 
-    def _plan_message(self, planner: JointPlanner) -> str:
+    def _plan_message(self, planner: PathSearch) -> str:
         """What ``~/state`` says once the joint path starts."""
         st = self._state()
         assert st.path is not None
@@ -146,45 +146,55 @@ class ReplanMixin(ControllerBase):
                 self._enter_attractor()
 
     def _watch_progress(self) -> None:
-        """Stall detection of point goals (see :class:`~redarm_ros.control.params.ReplanParams`)."""
-        st = self._state()
-        rp: ReplanParams = self.params.replan
-        goal = st.goal
-        if goal is None or goal.kind is not GoalKind.POINT or st.mode is not Mode.ATTRACTOR:
-            return
-        pr = st.progress
-        d = math.dist(st.cmd.pos, goal.pos)
-        a = quat_angle(st.cmd.rot, goal.rot)
-        err = d + 0.1 * a
-        moving_on = st.route is not None and st.time - st.route.t_moved < rp.hold_time
-        if moving_on or (d <= self.params.pos_tolerance and a <= self.params.ori_tolerance) \
-                or err < pr.best - rp.progress:
-            # (a corridor route's clock runs only as the hand moves along it: it is progress)
-            pr.best = err
-            pr.t_best = st.time
-            pr.travel = 0.0
-        pr.travel += st.cmd.tool_speed * (st.time - pr.t_last) if pr.t_last else 0.0
-        pr.t_last = st.time
-        if st.phase is Phase.HOLDING:
-            pr.hold_since = st.time if pr.hold_since is None else pr.hold_since
-        else:
-            pr.hold_since = None
-        if not rp.enabled:
-            return
-        pr.guard_stops = [t for t in pr.guard_stops if st.time - t <= rp.stall_time * 2.0]
-        if pr.hold_since is not None and st.time - pr.hold_since >= rp.hold_time:
-            self._start_plan(f"held {rp.hold_time:.1f} s ({st.message})")
-        elif len(pr.guard_stops) >= rp.guard_stops:
-            pr.guard_stops = []
-            self._start_plan(f"the collision guard stopped the arm {rp.guard_stops} times in "
-                             f"{2.0 * rp.stall_time:.1f} s ({st.message or 'sliding along an obstacle'})")
-        elif st.time > pr.due and err > 0.01:
-            self._start_plan(f"overdue: {d * 1e3:.0f} mm, {a:.2f} rad from the goal after "
-                             f"{st.time - goal.since:.1f} s")
-        else:
-            since = st.time - pr.t_best
-            creeping = since >= rp.stall_time and pr.travel < rp.stall_travel
-            if creeping or since >= rp.detour_time:
-                why = f"; {st.message}" if st.message else ""
-                self._start_plan(f"no progress for {since:.1f} s ({d * 1e3:.0f} mm, {a:.2f} rad from the "
-                                 f"goal{why})")
+        """Stall detection of point goals: re-plan when :func:`stall_reason` gives a reason."""
+        reason = stall_reason(self._state(), self.params)
+        if reason:
+            self._start_plan(reason)
+
+
+def stall_reason(st: CoreState, params: ControllerParams) -> str:
+    """Track the progress of a point goal in ``st.progress`` and say why to re-plan ('' = go on).
+
+    Reasons (see :class:`~redarm_ros.control.params.ReplanParams`): held too long, stopped by the
+    collision guard too often, overdue, or no progress (creeping, or a detour lasting too long). Only in
+    ATTRACTOR mode towards a point goal; progress is tracked also while re-planning is off. ``st.time``
+    in s.
+    """
+    rp: ReplanParams = params.replan
+    goal = st.goal
+    if goal is None or goal.kind is not GoalKind.POINT or st.mode is not Mode.ATTRACTOR:
+        return ""
+    pr = st.progress
+    d = math.dist(st.cmd.pos, goal.pos)
+    a = quat_angle(st.cmd.rot, goal.rot)
+    err = d + 0.1 * a
+    moving_on = st.route is not None and st.time - st.route.t_moved < rp.hold_time
+    if moving_on or (d <= params.pos_tolerance and a <= params.ori_tolerance) \
+            or err < pr.best - rp.progress:
+        # (a corridor route's clock runs only as the hand moves along it: it is progress)
+        pr.best = err
+        pr.t_best = st.time
+        pr.travel = 0.0
+    pr.travel += st.cmd.tool_speed * (st.time - pr.t_last) if pr.t_last else 0.0
+    pr.t_last = st.time
+    if st.phase is Phase.HOLDING:
+        pr.hold_since = st.time if pr.hold_since is None else pr.hold_since
+    else:
+        pr.hold_since = None
+    if not rp.enabled:
+        return ""
+    pr.guard_stops = [t for t in pr.guard_stops if st.time - t <= rp.stall_time * 2.0]
+    if pr.hold_since is not None and st.time - pr.hold_since >= rp.hold_time:
+        return f"held {rp.hold_time:.1f} s ({st.message})"
+    if len(pr.guard_stops) >= rp.guard_stops:
+        pr.guard_stops = []
+        return (f"the collision guard stopped the arm {rp.guard_stops} times in "
+                f"{2.0 * rp.stall_time:.1f} s ({st.message or 'sliding along an obstacle'})")
+    if st.time > pr.due and err > 0.01:
+        return f"overdue: {d * 1e3:.0f} mm, {a:.2f} rad from the goal after {st.time - goal.since:.1f} s"
+    since = st.time - pr.t_best
+    creeping = since >= rp.stall_time and pr.travel < rp.stall_travel
+    if creeping or since >= rp.detour_time:
+        why = f"; {st.message}" if st.message else ""
+        return f"no progress for {since:.1f} s ({d * 1e3:.0f} mm, {a:.2f} rad from the goal{why})"
+    return ""

@@ -40,10 +40,11 @@ from typing import Any
 import numpy as np
 
 from redarm_ros.control.elbow import ArmGeometry, elbow_circle
-from redarm_ros.control.obstacles import ArmCapsules, Cylinder, Scene, Sphere, links_clearance, load_scene
-from redarm_ros.control.reach_controller import ControllerParams, ReachController
+from redarm_ros.control.make import make_controller
+from redarm_ros.control.reach_controller import ControllerParams
 from redarm_ros.control.simulate import Trajectory, evaluate, peak_jerk, run_controller
 from redarm_ros.control.swivel_dynamics import SwivelDynamics, SwivelParams, wrap_angle
+from redarm_ros.geometry.obstacles import ArmCapsules, Cylinder, Scene, Sphere, links_clearance, load_scene
 
 LOG = logging.getLogger(__name__)
 DT = 0.01
@@ -394,7 +395,7 @@ def reproduce_attractor(arm: Any, out: Path, quick: bool) -> list[ScenarioReport
     # 1. target surrounded by three obstacles
     scene = load_scene("narrow_passage")
     T = _pose(NARROW_TARGET, _down())
-    ctl = ReachController(arm, scene, params)
+    ctl = make_controller(arm, scene, params)
     ctl.reset(_start(arm, (0.38, 0.15, 0.3)))
     tr = run_controller(ctl, T, duration, DT)
     _reach_plot(arm, [(0.0, scene)], tr, [T], out / "attractor_narrow_passage.png",
@@ -404,7 +405,7 @@ def reproduce_attractor(arm: Any, out: Path, quick: bool) -> list[ScenarioReport
     scene = load_scene("table_empty")
     TA = _pose((0.6, -0.25, 0.1), _down())
     TB = _pose((0.55, 0.25, 0.12), _down(0.6))
-    ctl = ReachController(arm, scene, params)
+    ctl = make_controller(arm, scene, params)
     ctl.reset(_start(arm, (0.38, -0.15, 0.3)))
     tr = run_controller(ctl, TA, duration, DT, events=[(0.9, lambda c: c.set_goal(TB))])
     _reach_plot(arm, [(0.0, scene)], tr, [TA, TB], out / "attractor_moved_target.png",
@@ -415,7 +416,7 @@ def reproduce_attractor(arm: Any, out: Path, quick: bool) -> list[ScenarioReport
     can = Cylinder((0.56, 0.0, 0.1), 0.05, 0.2, "appearing can")
     with_can = Scene((can,), 0.0, "appeared")
     T = _pose((0.68, -0.12, 0.08), _down())
-    ctl = ReachController(arm, empty, params)
+    ctl = make_controller(arm, empty, params)
     ctl.reset(_start(arm, (0.36, 0.2, 0.2)))
     tr = run_controller(ctl, T, duration, DT, events=[(0.4, lambda c: c.set_scene(with_can))])
     _reach_plot(arm, [(0.4, with_can)], tr, [T], out / "attractor_appearing_obstacle.png",

@@ -15,8 +15,8 @@ from typing import Any
 
 import numpy as np
 
-from redarm_ros.control.obstacles import ArmCapsules, Scene, min_distance
 from redarm_ros.control.reach_controller import Phase, ReachController
+from redarm_ros.geometry.obstacles import ArmCapsules, Scene, min_distance
 
 
 @dataclass

@@ -19,8 +19,8 @@ import math
 from collections.abc import Sequence
 
 from redarm_ros.control.elbow import ArmGeometry, ElbowCircle
-from redarm_ros.control.obstacles import ArmCapsules, Scene, links_clearance
 from redarm_ros.control.types import Quat, Vec3
+from redarm_ros.geometry.obstacles import ArmCapsules, Scene, links_clearance
 from redarm_ros.kinematics.quaternion import quat_rotate
 
 

@@ -17,10 +17,10 @@ import numpy as np
 
 from redarm_ros.control.corridor_route import CorridorRoute
 from redarm_ros.control.elbow import ElbowCircle
-from redarm_ros.control.obstacles import Clearance
-from redarm_ros.control.replan import JointPath, JointPlanner
+from redarm_ros.control.replan import JointPath, PathSearch
 from redarm_ros.control.stream import StreamEstimator
 from redarm_ros.control.types import GoalKind, Phase, Quat, Vec3
+from redarm_ros.geometry.obstacles import Clearance
 
 ZERO3: Vec3 = (0.0, 0.0, 0.0)
 #: share of its velocity limit below which a joint counts as at rest for REACHED
@@ -156,7 +156,7 @@ class CoreState:
     goal: Goal | None = None
     progress: Progress = field(default_factory=Progress)
     twist: Twist | None = None
-    planner: JointPlanner | None = None
+    planner: PathSearch | None = None
     path: JointPath | None = None
     path_t: float = 0.0
     plan_reason: str = ""

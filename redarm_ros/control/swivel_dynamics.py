@@ -25,8 +25,8 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 from redarm_ros.control.elbow import ElbowCircle
-from redarm_ros.control.obstacles import ELBOW_LINKS, ArmCapsules, Scene, links_clearance
-from redarm_ros.control.param_table import declared
+from redarm_ros.geometry.obstacles import ELBOW_LINKS, ArmCapsules, Scene, links_clearance
+from redarm_ros.param_table import declared
 
 Saturation = Callable[[float], float]
 Vec3 = tuple[float, float, float]

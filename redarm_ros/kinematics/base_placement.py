@@ -46,9 +46,9 @@ from typing import Any
 
 import numpy as np
 
-from redarm_ros.control.obstacles import ArmCapsules
-from redarm_ros.control.self_collision import CollisionModel, collision_model, self_collision_batch
 from redarm_ros.errors import InvalidInputError
+from redarm_ros.geometry.obstacles import ArmCapsules
+from redarm_ros.geometry.self_collision import CollisionModel, collision_model, self_collision_batch
 from redarm_ros.kinematics.collision_ik import nearest_collision_free
 from redarm_ros.kinematics.protocols import has_swivel
 

@@ -1,7 +1,7 @@
 """Collision-free IK: the in-limit solution of a pose nearest a seed whose links do not collide.
 
 :func:`nearest_collision_free` searches the whole solution set of a pose for the nearest solution that
-passes the self-collision and ground check of :mod:`redarm_ros.control.self_collision` (swivel arms:
+passes the self-collision and ground check of :mod:`redarm_ros.geometry.self_collision` (swivel arms:
 every swivel and flip pattern; the 6-DOF PowerCube arm: its analytic solutions). The IK front end
 (:mod:`.solve`) calls it when the nearest solution collides, the base-move suggestion
 (:mod:`.base_placement`) when it verifies a base position. numpy only; units m, rad.
@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from redarm_ros.control.self_collision import CollisionModel, self_collision_batch
+from redarm_ros.geometry.self_collision import CollisionModel, self_collision_batch
 from redarm_ros.kinematics.protocols import has_analytic_ik, has_swivel
 
 __all__ = ["FreeSolution", "collision_free_rows", "nearest_collision_free"]

@@ -158,52 +158,85 @@ def solve_dls(
     )
 
 
-def fk_jacobian_batch(arm: Arm, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(R (m, 3, 3), p (m, 3), J (m, 6, n)): :meth:`Arm.fk_jacobian` for m joint vectors Q (m, n) at once."""
-    tables = arm.__dict__.get("_fk_batch_tables")
-    if tables is None:  # per joint: origin R, origin p, axis, and Rot(axis, t) = P + cos t C + sin t K
-        tables = []
-        for j in arm.chain:
+def _batch_tables(arm: Arm) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per joint i the parent -> child transform as ``G_i(t) = A_i + cos t B_i + sin t C_i`` (4x4 each,
+    (n, 4, 4) stacked: origin @ Rot(axis, t) with Rot = P + cos t (I - P) + sin t K) and the tool transform;
+    built once per model (cached on it). Each child frame is turned by a fixed P_i that takes z onto the
+    joint's axis (G_i -> P_{i-1}^T G_i P_i, tool -> P_n^T tool): the chain's products are unchanged, and
+    every axis in the base frame is then the z column of its frame."""
+    tables = arm.__dict__.get("_fk_batch_Gz")
+    if tables is None:
+        n = arm.n
+        A, B, C = np.zeros((n, 4, 4)), np.zeros((n, 4, 4)), np.zeros((n, 4, 4))
+        P_prev = np.eye(4)
+        for i, j in enumerate(arm.chain):
             a = np.asarray(j.axis, dtype=float)
             P = np.outer(a, a)
             K = np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
-            tables.append((j.origin[:3, :3].copy(), j.origin[:3, 3].copy(), a, P, np.eye(3) - P, K))
-        arm.__dict__["_fk_batch_tables"] = tables
-    m = len(Q)
-    R = np.broadcast_to(np.eye(3), (m, 3, 3))
-    p = np.zeros((m, 3))
-    org = np.empty((arm.n, m, 3))
-    Z = np.empty((arm.n, m, 3))
-    C, S = np.cos(Q).T[:, :, None, None], np.sin(Q).T[:, :, None, None]
-    for i, (Ro, po, a, P, Cm, K) in enumerate(tables):
-        p = p + R @ po
-        R = R @ Ro
-        org[i] = p
-        Z[i] = R @ a
-        R = R @ (P + C[i] * Cm + S[i] * K)
-    p = p + R @ arm.tool[:3, 3]
-    R = R @ arm.tool[:3, :3]
-    J = np.empty((m, 6, arm.n))
-    D = p[None, :, :] - org  # (n, m, 3); z x d written out (np.cross costs 10x more on these sizes)
-    J[:, 0, :] = (Z[:, :, 1] * D[:, :, 2] - Z[:, :, 2] * D[:, :, 1]).T
-    J[:, 1, :] = (Z[:, :, 2] * D[:, :, 0] - Z[:, :, 0] * D[:, :, 2]).T
-    J[:, 2, :] = (Z[:, :, 0] * D[:, :, 1] - Z[:, :, 1] * D[:, :, 0]).T
-    J[:, 3:, :] = Z.transpose(1, 2, 0)
-    return R, p, J
+            Ro = j.origin[:3, :3]
+            Ai, Bi, Ci = np.zeros((4, 4)), np.zeros((4, 4)), np.zeros((4, 4))
+            Ai[:3, :3], Ai[:3, 3], Ai[3, 3] = Ro @ P, j.origin[:3, 3], 1.0
+            Bi[:3, :3], Ci[:3, :3] = Ro @ (np.eye(3) - P), Ro @ K
+            Pz = np.eye(4)
+            Pz[:3, :3] = _z_onto(a)
+            A[i], B[i], C[i] = (P_prev.T @ M @ Pz for M in (Ai, Bi, Ci))
+            P_prev = Pz
+        tables = (A, B, C, P_prev.T @ arm.tool)
+        arm.__dict__["_fk_batch_Gz"] = tables
+    return tables
 
 
-def _errors_batch(R: np.ndarray, p: np.ndarray, Td: np.ndarray) -> np.ndarray:
-    """(m, 6) errors [position; rotation vector taking R onto the target's] of m tool poses."""
-    Re = Td[:3, :3] @ R.transpose(0, 2, 1)
-    v = np.stack([Re[:, 2, 1] - Re[:, 1, 2], Re[:, 0, 2] - Re[:, 2, 0], Re[:, 1, 0] - Re[:, 0, 1]], axis=1)
-    c = np.clip((np.trace(Re, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
-    sn = 0.5 * np.linalg.norm(v, axis=1)
+def _z_onto(a: np.ndarray) -> np.ndarray:
+    """A rotation taking z onto the unit vector a."""
+    v = np.array([-a[1], a[0], 0.0])  # z x a
+    s, c = float(np.linalg.norm(v)), float(a[2])
+    if s < 1e-12:
+        return np.eye(3) if c > 0 else np.diag([1.0, -1.0, -1.0])
+    K = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]]) / s
+    return np.eye(3) + s * K + (1.0 - c) * (K @ K)
+
+
+def fk_jacobian_batch(arm: Arm, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(R (m, 3, 3), p (m, 3), J (m, 6, n)): :meth:`Arm.fk_jacobian` for m joint vectors Q (m, n) at once.
+
+    All joint transforms come from one expression and the chain is one 4x4 product per joint: the numpy
+    call count, not the arithmetic, is the cost at these sizes."""
+    A, B, C, tool = _batch_tables(arm)
+    m, n = Q.shape
+    G = A + np.cos(Q)[:, :, None, None] * B + np.sin(Q)[:, :, None, None] * C  # (m, n, 4, 4)
+    F = np.empty((m, n, 4, 4))  # base -> joint i's (turned) frame after its rotation
+    F[:, 0] = Tc = G[:, 0]
+    for i in range(1, n):
+        F[:, i] = Tc = Tc @ G[:, i]
+    Tt = Tc @ tool
+    Z = F[:, :, :3, 2]  # (m, n, 3): the axes in the base frame
+    D = Tt[:, None, :3, 3] - F[:, :, :3, 3]  # joint origin -> tool
+    J = np.empty((m, 6, n))
+    J[:, :3, :] = (Z[..., _YZX] * D[..., _ZXY] - Z[..., _ZXY] * D[..., _YZX]).transpose(0, 2, 1)
+    J[:, 3:, :] = Z.transpose(0, 2, 1)
+    return Tt[:, :3, :3], Tt[:, :3, 3], J
+
+
+_YZX, _ZXY = [1, 2, 0], [2, 0, 1]  # index orders of the written-out cross product
+_VEE_PLUS, _VEE_MINUS = [7, 2, 3], [5, 6, 1]  # (2,1) (0,2) (1,0) and (1,2) (2,0) (0,1) of a flat 3x3
+
+
+def _errors_batch(R: np.ndarray, p: np.ndarray, Td: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(E (m, 6), squared position error (m,), squared rotation angle (m,)) of m tool poses: E holds the
+    position error and the rotation vector taking R onto the target's."""
+    Re = (Td[:3, :3] @ R.transpose(0, 2, 1)).reshape(-1, 9)  # rows of Rd R^T
+    v = Re[:, _VEE_PLUS] - Re[:, _VEE_MINUS]  # the axis times 2 sin(angle)
+    # (ufuncs, not np.clip: its wrapper costs more than the arithmetic at these sizes)
+    c = np.minimum(np.maximum((Re[:, 0] + Re[:, 4] + Re[:, 8] - 1.0) * 0.5, -1.0), 1.0)
+    sn = 0.5 * np.sqrt(np.einsum("ij,ij->i", v, v))
     ang = np.arctan2(sn, c)
     # angle / (2 sin): 1/2 at small angles; near pi the rotation vector's length is right and its axis
     # from v is poor, but the descent only needs a direction there
-    k = np.where(sn > 1e-7, ang / (2.0 * np.maximum(sn, 1e-300)), 0.5)
-    k = np.where((sn <= 1e-7) & (c < 0), np.pi, k)
-    return np.concatenate([Td[:3, 3] - p, v * k[:, None]], axis=1)
+    k = np.where(sn > 1e-7, ang / (2.0 * np.maximum(sn, 1e-300)), np.where(c < 0, np.pi, 0.5))
+    E = np.empty((len(p), 6))
+    E[:, :3] = Td[:3, 3] - p
+    E[:, 3:] = v * k[:, None]
+    return E, np.einsum("ij,ij->i", E[:, :3], E[:, :3]), ang * ang
 
 
 def solve_dls_multistart(
@@ -214,21 +247,25 @@ def solve_dls_multistart(
     tol: float = 1e-5,
     timeout_s: float | None = 5e-3,
     max_iter: int = 1000,
-    starts: int = 16,
+    starts: int = 32,
     stall_iters: int = 8,
     damping: float = 1e-3,
+    max_step: float = 1.0,
     rng_seed: int = 0,
 ) -> tuple[np.ndarray | None, IKInfo]:
     """Damped least squares from the seed and from ``starts - 1`` random starts at once (vectorised).
 
     The seed ``q0`` and random in-limit joint vectors (numpy generator seeded with ``rng_seed``) descend
-    together, each with its own damping and the active-set limit handling of :func:`solve_dls`; a random
-    start that makes no progress for ``stall_iters`` iterations is replaced by a fresh one. Of the starts
-    that converge in the same iteration, the one nearest the seed is returned. Ends at the first start
-    within ``tol`` (m and rad), after ``max_iter`` batched iterations or at ``timeout_s`` (s; None: no
-    timeout). Returns as :func:`solve_dls`. The TRAC-IK-style solver of the URDF chains without a closed
-    form (:mod:`.urdf_chain`): 16 starts find a solution of a random reachable pose within 5 ms where one
-    descent often stalls at a joint limit.
+    together, each with its own Levenberg-Marquardt damping (initial ``damping``; /3 after a good step,
+    x4 after a rejected one), steps of at most ``max_step`` rad per joint and the active-set limit
+    handling of :func:`solve_dls`; a random start that makes no progress for ``stall_iters`` iterations
+    is replaced by a fresh one. Of the starts that converge in the same iteration, the one nearest the
+    seed is returned. Ends at the first start within ``tol`` (m and rad), after ``max_iter`` batched
+    iterations or at ``timeout_s`` (s; None: no timeout). Returns as :func:`solve_dls` (on timeout the
+    errors of the best current point). The TRAC-IK-style solver of the URDF chains without a closed
+    form (:mod:`.urdf_chain`): one batched FK + Jacobian per iteration for all starts, fresh ones
+    included, so 32 starts cost little more than one descent and find a solution of a random reachable
+    pose where one descent often stalls at a joint limit.
     """
     t0 = time.perf_counter()
     try:
@@ -238,70 +275,71 @@ def solve_dls_multistart(
         return None, IKInfo(IKStatus.INVALID_INPUT, str(exc))
     Td = np.array(Tl)
     lo, up = arm.lower, arm.upper
-    free = (up - lo) > 0.0
+    locked = (up - lo) <= 0.0
     rng = np.random.default_rng(rng_seed)
-    m = max(1, int(starts))
-    Q = rng.uniform(lo, up, (m, arm.n))
-    Q[0] = np.clip(q_start, lo, up)  # row 0 descends from the seed (and is never replaced)
-    R, p, J = fk_jacobian_batch(arm, Q)
-    E = _errors_batch(R, p, Td)
-    cost = np.einsum("ij,ij->i", E, E)
+    m, n = max(1, int(starts)), arm.n
+    Qc = rng.uniform(lo, up, (m, n))  # the candidates evaluated next
+    Qc[0] = np.clip(q_start, lo, up)  # row 0 descends from the seed (and is never replaced)
+    Q = Qc.copy()  # each row's accepted point, its Jacobian, error and squared error
+    J = np.zeros((m, 6, n))
+    E = np.zeros((m, 6))
+    cost = np.full(m, np.inf)
+    best = np.full(m, np.inf)
     lam = np.full(m, damping)
-    best = cost.copy()
     since = np.zeros(m, dtype=int)
-    eye6 = np.eye(6)
+    diag = np.arange(6)
+    tol2 = tol * tol
     it = 0
     n_starts = m
-    best_any = (math.inf, math.inf)
-    while it < max_iter:
-        pe = np.linalg.norm(E[:, :3], axis=1)
-        re = np.linalg.norm(E[:, 3:], axis=1)
-        done = np.nonzero((pe < tol) & (re < tol))[0]
+    while True:
+        Rc, pc, Jc = fk_jacobian_batch(arm, Qc)
+        Ec, pe2, re2 = _errors_batch(Rc, pc, Td)
+        done = np.flatnonzero((pe2 < tol2) & (re2 < tol2))
         if len(done):  # the one nearest the seed of those converged now
-            i = int(done[np.argmin(((Q[done] - q_start) ** 2).sum(axis=1))])
-            return Q[i].copy(), IKInfo(IKStatus.SUCCESS, "ok", pos_err=float(pe[i]), rot_err=float(re[i]),
-                                       iterations=it, candidates=n_starts)
-        k = int(np.argmin(pe + re))
-        if pe[k] + re[k] < sum(best_any):
-            best_any = (float(pe[k]), float(re[k]))
-        if timeout_s is not None and time.perf_counter() - t0 > timeout_s:
+            i = int(done[np.argmin(((Qc[done] - q_start) ** 2).sum(axis=1))])
+            return Qc[i].copy(), IKInfo(IKStatus.SUCCESS, "ok", pos_err=math.sqrt(pe2[i]),
+                                        rot_err=math.sqrt(re2[i]), iterations=it, candidates=n_starts)
+        cc = pe2 + re2
+        good = cc < cost
+        np.copyto(Q, Qc, where=good[:, None])
+        np.copyto(J, Jc, where=good[:, None, None])
+        np.copyto(E, Ec, where=good[:, None])
+        np.copyto(cost, cc, where=good)
+        lam = np.minimum(np.maximum(np.where(good, lam * (1.0 / 3.0), lam * 4.0), 1e-7), 1e3)
+        since += 1
+        since[cost < best * 0.95] = 0
+        np.minimum(best, cost, out=best)
+        if it >= max_iter or (timeout_s is not None and time.perf_counter() - t0 > timeout_s):
             break
         it += 1
-        act = np.broadcast_to(free, Q.shape).copy()
+        Ja = J * ~locked if locked.any() else J  # locked joints (lower == upper) stay put
         for _ in range(2):  # active set, as solve_dls
-            Jm = J * act[:, None, :]
-            A = Jm @ Jm.transpose(0, 2, 1) + (lam * lam)[:, None, None] * eye6
-            dq = (Jm.transpose(0, 2, 1) @ np.linalg.solve(A, E[:, :, None]))[:, :, 0]
-            out = act & (((Q <= lo) & (dq < 0.0)) | ((Q >= up) & (dq > 0.0)))
+            Jt = Ja.transpose(0, 2, 1)
+            A = Ja @ Jt
+            A[:, diag, diag] += (lam * lam)[:, None]
+            dq = (Jt @ np.linalg.solve(A, E[:, :, None]))[:, :, 0]
+            out = ((Q <= lo) & (dq < 0.0)) | ((Q >= up) & (dq > 0.0))
             if not out.any():
                 break
-            act &= ~out
-        Qn = np.clip(Q + dq, lo, up)
-        Rn, pn, Jn = fk_jacobian_batch(arm, Qn)
-        En = _errors_batch(Rn, pn, Td)
-        cn = np.einsum("ij,ij->i", En, En)
-        good = cn < cost
-        Q[good], J[good], E[good], cost[good] = Qn[good], Jn[good], En[good], cn[good]
-        lam = np.where(good, np.maximum(lam / 3.0, 1e-7), np.minimum(lam * 4.0, 1e3))
-        progress = cost < best * 0.95
-        since = np.where(progress, 0, since + 1)
-        best = np.minimum(best, cost)
-        since[0] = 0 if since[0] < stall_iters else since[0]  # the seed's row keeps descending (or stays)
-        stale = np.nonzero(since >= stall_iters)[0]
-        stale = stale[stale > 0]
-        if len(stale):  # fresh starts for the stalled ones
-            Q[stale] = rng.uniform(lo, up, (len(stale), arm.n))
-            Rs, ps, Js = fk_jacobian_batch(arm, Q[stale])
-            E[stale], J[stale] = _errors_batch(Rs, ps, Td), Js
-            cost[stale] = np.einsum("ij,ij->i", E[stale], E[stale])
-            best[stale], since[stale], lam[stale] = cost[stale], 0, damping
+            Ja = Ja * ~out[:, None, :]
+        # at most max_step rad per joint: a full Gauss-Newton step from far away mostly overshoots
+        big = np.abs(dq).max(axis=1)
+        dq *= (max_step / np.maximum(big, max_step))[:, None]
+        Qc = np.minimum(np.maximum(Q + dq, lo), up)
+        stale = np.flatnonzero(since[1:] >= stall_iters) + 1  # the seed's row keeps descending
+        if len(stale):  # fresh starts for the stalled ones, evaluated with the steps
+            Qc[stale] = rng.uniform(lo, up, (len(stale), n))
+            cost[stale] = best[stale] = np.inf
+            since[stale], lam[stale] = 0, damping
             n_starts += len(stale)
+    k = int(np.argmin(cost))  # the best of the current points
     why = "timeout" if it < max_iter else "max_iter"
     return None, IKInfo(
         IKStatus.TIMEOUT,
         f"no convergence to tol {tol:g} ({why} after {it} batched iterations of {m} starts, "
         f"{n_starts} in all)",
-        pos_err=best_any[0], rot_err=best_any[1], iterations=it, candidates=n_starts,
+        pos_err=float(np.linalg.norm(E[k, :3])), rot_err=float(np.linalg.norm(E[k, 3:])), iterations=it,
+        candidates=n_starts,
     )
 
 

@@ -5,6 +5,9 @@
 * :class:`SwivelKinematics`: a 7-DOF arm whose self-motion is the elbow swivel: ``ik(T, swivel)``,
   ``ik_u``, ``swivel``, ``elbow_circle``, ``feasible_swivels`` and the batched nearest solve.
 
+* :class:`ControlledArm`: what the reaching controller uses of an arm (:class:`AnalyticIK` plus forward
+  kinematics, the Jacobian, the capsule model's key points, the velocity and acceleration limits).
+
 Ask with :func:`has_swivel` / :func:`has_analytic_ik` (``isinstance`` against the protocol); a generic
 serial chain has neither and is solved numerically. This module imports nothing from the models, so
 every kinematics module can depend on it.
@@ -17,7 +20,7 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
-__all__ = ["AnalyticIK", "SwivelKinematics", "has_swivel", "has_analytic_ik"]
+__all__ = ["AnalyticIK", "ControlledArm", "SwivelKinematics", "has_swivel", "has_analytic_ik"]
 
 
 @runtime_checkable
@@ -49,6 +52,27 @@ class SwivelKinematics(AnalyticIK, Protocol):
     def feasible_swivels(self, T: np.ndarray) -> list[np.ndarray]: ...
 
     def ik_nearest_batch(self, Ts: np.ndarray, q_seeds: np.ndarray, **kwargs: Any) -> Any: ...
+
+
+@runtime_checkable
+class ControlledArm(AnalyticIK, Protocol):
+    """An arm the reaching controller can run: closed-form IK, and (units m, rad, s) ``max_vel`` and
+    ``max_acc`` per joint, ``fk``, ``jacobian``, the five ``key_points`` of the capsule model (base,
+    shoulder, elbow, wrist, tool) and the checks of a joint vector and a pose. The swivel arms add
+    :class:`SwivelKinematics`."""
+
+    max_vel: np.ndarray
+    max_acc: np.ndarray
+
+    def fk(self, q: Sequence[float]) -> np.ndarray: ...
+
+    def jacobian(self, q: Sequence[float]) -> np.ndarray: ...
+
+    def key_points(self, q: Sequence[float]) -> np.ndarray: ...
+
+    def check_q(self, q: Any, field: str = "q") -> np.ndarray: ...
+
+    def check_pose(self, T: Any, field: str = "T") -> list[list[float]]: ...
 
 
 def has_swivel(arm: object) -> bool:

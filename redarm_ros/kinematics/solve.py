@@ -11,7 +11,7 @@
   the 6-DOF PowerCube arm; damped least squares for a generic chain) within the request's time budget.
 
 Collision filter (on unless a request turns it off): a solution whose capsules collide with each other
-or go below the arm's ground plane (:mod:`redarm_ros.control.self_collision`) is never returned. If the
+or go below the arm's ground plane (:mod:`redarm_ros.geometry.self_collision`) is never returned. If the
 nearest solution collides, :func:`nearest_collision_free` finds the nearest one that does not (swivel
 arms: every flip pattern over a grid of the closed-form feasible swivel set, refined where the cost is
 lowest; the 6-DOF arm: its up to 4 analytic solutions). If every in-limit solution collides the status
@@ -37,9 +37,9 @@ from typing import Any
 
 import numpy as np
 
-from redarm_ros.control.obstacles import ArmCapsules
-from redarm_ros.control.self_collision import CollisionModel, collision_model, self_collision
 from redarm_ros.errors import InvalidInputError, RedarmError, UnreachableError
+from redarm_ros.geometry.obstacles import ArmCapsules
+from redarm_ros.geometry.self_collision import CollisionModel, collision_model, self_collision
 from redarm_ros.kinematics.base_placement import BasePlacement, pose_ground_clearance, suggest_base_move
 from redarm_ros.kinematics.collision_ik import FreeSolution, collision_free_rows, nearest_collision_free
 from redarm_ros.kinematics.model import ANGLE_RANGE, Arm, check_finite_array

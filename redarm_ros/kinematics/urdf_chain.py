@@ -38,6 +38,7 @@ import numpy as np
 import yaml
 
 from redarm_ros.errors import ConfigError, InvalidInputError
+from redarm_ros.geometry.obstacles import ArmCapsules
 from redarm_ros.kinematics.model import ANGLE_RANGE, Arm, Joint, check_finite_array, transform_from_xyz_rpy
 from redarm_ros.kinematics.numeric import solve_dls_multistart
 from redarm_ros.kinematics.quaternion import rotation_error
@@ -53,11 +54,13 @@ __all__ = [
     "SwivelMap",
     "UrdfJoint",
     "chain_between",
+    "chain_links",
     "load_urdf_arm",
     "parse_urdf",
     "read_urdf_text",
     "describe_solver",
     "swivel_map",
+    "urdf_collision_points",
 ]
 
 STRUCTURE_TOL = 1e-6  # m and rad: how far axes may miss a common point / a right angle for the closed form
@@ -189,6 +192,108 @@ def chain_between(by_child: dict[str, UrdfJoint], base_link: str, tip_link: str)
         if len(out) > len(by_child):
             raise ConfigError("the URDF's joints form a loop", field="urdf")
     return out[::-1]
+
+
+def chain_links(chain: list[UrdfJoint], base_link: str) -> list[tuple[str, int, np.ndarray]]:
+    """The URDF links of a chain (:func:`chain_between`) with the model link each is rigid with: (link,
+    model link index, 4x4 transform from that model link's frame to the URDF link's). Model link 0 is the
+    base, i the child of the i-th moving joint; a link hanging from fixed joints belongs to the link it is
+    fixed to."""
+    out = [(base_link, 0, np.eye(4))]
+    k, T = 0, np.eye(4)
+    for j in chain:
+        k, T = (k, T @ j.origin) if j.type == "fixed" else (k + 1, np.eye(4))
+        out.append((j.child, k, T))
+    return out
+
+
+def _mesh_vertices(path: Path, scale: np.ndarray) -> np.ndarray | None:
+    """(k, 3) vertices of an OBJ or STL (ASCII or binary) mesh file, scaled; None for other formats or an
+    unreadable file."""
+    try:
+        data = path.read_bytes()
+    except OSError:
+        return None
+    suffix = path.suffix.lower()
+    pts: Any = None
+    if suffix == ".obj":
+        pts = [ln.split()[1:4] for ln in data.decode("utf-8", "replace").splitlines() if ln.startswith("v ")]
+    elif suffix == ".stl" and data[:5] == b"solid" and b"vertex" in data[:4096]:
+        pts = [ln.split()[1:4] for ln in data.decode("utf-8", "replace").splitlines()
+               if ln.strip().startswith("vertex")]
+    elif suffix == ".stl" and len(data) >= 84:
+        count = int(np.frombuffer(data, "<u4", 1, 80)[0])
+        if len(data) < 84 + 50 * count:
+            return None
+        rec = np.frombuffer(data, np.dtype([("n", "<f4", 3), ("v", "<f4", (3, 3)), ("a", "<u2")]), count, 84)
+        pts = rec["v"].reshape(-1, 3)
+    try:
+        V = np.asarray(pts, dtype=float).reshape(-1, 3)
+    except (TypeError, ValueError):
+        return None
+    return V * scale if len(V) and np.all(np.isfinite(V)) else None
+
+
+def urdf_collision_points(
+    source: str | os.PathLike[str], base_link: str, tip_link: str
+) -> dict[int, tuple[np.ndarray, np.ndarray] | None]:
+    """The collision geometry of a URDF chain by model link index (:func:`chain_links`): (points (k, 3) in
+    the model link's frame, pads (k,)), each geometry within ``pad`` of its points: a sphere its centre
+    (pad its radius), a cylinder its two end centres (pad its radius), a box its corners, a mesh (OBJ or
+    STL, relative to the URDF file, ``file://`` or absolute) its vertices. None for a link with geometry
+    that cannot be read (another mesh format, a missing file); links without collision geometry are
+    absent."""
+    text, path = read_urdf_text(source)
+    _, by_child = parse_urdf(text)
+    links = {el.get("name"): el for el in ET.fromstring(text).findall("link")}
+    base_dir = None if path is None else path.resolve().parent
+    out: dict[int, tuple[np.ndarray, np.ndarray] | None] = {}
+    for name, k, T in chain_links(chain_between(by_child, base_link, tip_link), base_link):
+        el = links.get(name)
+        for col in [] if el is None else el.findall("collision"):
+            shape = col.find("geometry/*")
+            if shape is None:
+                continue
+            org = col.find("origin")
+            where = f"URDF link {name!r} collision origin"
+            xyz = _floats(None if org is None else org.get("xyz"), 3, (0, 0, 0), where)
+            rpy = _floats(None if org is None else org.get("rpy"), 3, (0, 0, 0), where)
+            G = T @ transform_from_xyz_rpy(xyz, rpy)
+            local, pad = _geometry_points(shape, base_dir, f"URDF link {name!r} collision")
+            if local is None or k in out and out[k] is None:
+                out[k] = None
+                continue
+            pts = local @ G[:3, :3].T + G[:3, 3]
+            prev = out.get(k)
+            pads = np.full(len(pts), pad)
+            if prev is not None:
+                pts, pads = np.vstack([prev[0], pts]), np.concatenate([prev[1], pads])
+            out[k] = (pts, pads)
+    return out
+
+
+def _geometry_points(shape: ET.Element, base_dir: Path | None, where: str) -> tuple[np.ndarray | None, float]:
+    """(points (k, 3) in the geometry's frame, pad (m)) of one URDF geometry element (see
+    :func:`urdf_collision_points`); (None, 0) where it cannot be read."""
+    if shape.tag == "sphere":
+        return np.zeros((1, 3)), _opt_float(shape, "radius", where) or 0.0
+    if shape.tag == "cylinder":
+        half = 0.5 * (_opt_float(shape, "length", where) or 0.0)
+        return np.array([[0.0, 0.0, -half], [0.0, 0.0, half]]), _opt_float(shape, "radius", where) or 0.0
+    if shape.tag == "box":
+        size = np.array(_floats(shape.get("size"), 3, (0, 0, 0), f"{where} box size"))
+        corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=float)
+        return corners * size / 2.0, 0.0
+    if shape.tag == "mesh":
+        name = shape.get("filename", "")
+        f = Path(name[len("file://"):]) if name.startswith("file://") else Path(name)
+        if not f.is_absolute():
+            if base_dir is None or name.startswith("package://"):
+                return None, 0.0
+            f = base_dir / f
+        scale = np.array(_floats(shape.get("scale"), 3, (1, 1, 1), f"{where} mesh scale"))
+        return _mesh_vertices(f, scale), 0.0
+    return None, 0.0
 
 
 def _acc_limits(path: Path | None, limits_yaml: str | os.PathLike[str] | None) -> dict[str, dict[str, Any]]:
@@ -441,7 +546,7 @@ def _canonical(
 # ------------------------------------------------------------------ the numeric chain
 class NumericChainArm(Arm):
     """A URDF chain without a closed form: :meth:`ik_nearest` is :func:`.numeric.solve_dls_multistart`
-    (the seed and 15 random starts descending together, TRAC-IK style), within the time budget."""
+    (the seed and 31 random starts descending together, TRAC-IK style), within the time budget."""
 
     def ik_nearest(
         self,
@@ -487,6 +592,15 @@ class MappedSwivelArm(Arm):
         self._sign, self._offset = smap.sign.copy(), smap.offset.copy()
         self._B, self._E = smap.base.copy(), smap.tool.copy()
         self._Binv, self._Einv = np.linalg.inv(smap.base), np.linalg.inv(smap.tool)
+        eye = np.eye(4)
+        # folded once here so that ik_nearest does no mapping it can skip: frames that are the model's
+        # (the pose goes through as it is), zero offsets (sign * q_c is exact: no clip onto the limits),
+        # a tool map without translation (a rigid map of the pose: the model's errors are this arm's)
+        self._frames_identity = bool(
+            np.abs(smap.base - eye).max() <= _IDENT_TOL and np.abs(smap.tool - eye).max() <= _IDENT_TOL
+        )
+        self._offset_zero = not np.any(smap.offset)
+        self._errors_kept = bool(np.abs(smap.tool[:3, 3]).max() <= _IDENT_TOL)
         lims = []
         for j, s, o in zip(chain, self._sign, self._offset, strict=True):
             a, b = s * (j.lower - o), s * (j.upper - o)
@@ -520,8 +634,7 @@ class MappedSwivelArm(Arm):
     @property
     def frames_are_canonical(self) -> bool:
         """True where base and tool frames are the model's own (only joint signs and offsets differ)."""
-        eye = np.eye(4)
-        return bool(np.abs(self._B - eye).max() <= _IDENT_TOL and np.abs(self._E - eye).max() <= _IDENT_TOL)
+        return self._frames_identity
 
     @property
     def shoulder(self) -> np.ndarray:
@@ -564,16 +677,22 @@ class MappedSwivelArm(Arm):
     def ik_nearest(
         self, T: np.ndarray, q_seed: Sequence[float], **kwargs: Any
     ) -> tuple[np.ndarray | None, IKInfo]:
-        """:meth:`SwivelArm.ik_nearest` (same options); the errors in the info are against this arm's FK."""
+        """:meth:`SwivelArm.ik_nearest` (same options). The errors in the info are the canonical model's
+        where the tool map has no translation (the map is rigid: the same errors, to ``map.deviation``),
+        else against this arm's FK."""
         try:
-            Tc = self.to_canonical(T)
+            Tl = self.check_pose(T)
             seed = self.check_q(q_seed, "q_seed")
         except InvalidInputError as exc:
             return None, IKInfo(IKStatus.INVALID_INPUT, str(exc))
+        Ta = np.array(Tl)  # (the model checks an array much faster than nested lists)
+        Tc = Ta if self._frames_identity else self._Binv @ Ta @ self._Einv
         qc, info = self.canonical.ik_nearest(Tc, self._qc(seed), **kwargs)
         if qc is None:
             return None, info
-        q = self._q(np.asarray(qc))
+        q = self._q(qc, clip=not self._offset_zero)
+        if self._errors_kept:
+            return q, info
         pe, re = self.pose_error(q, T)
         return q, dataclasses.replace(info, pos_err=pe, rot_err=re)
 
@@ -697,3 +816,48 @@ def describe_solver(arm: Any) -> str:
     if getattr(arm, "kind", "") == "powercube6":
         return "closed-form PowerCube 6-DOF IK"
     return SOLVER_NUMERIC
+
+
+#: The model links each capsule is rigid with on a 7-joint swivel arm: the base and joint 1's link carry
+#: the base capsule (joint 1 turns about it), links 2-3 the upper arm, 4-5 the forearm, 6-7 the hand.
+CAPSULE_MODEL_LINKS = ((0, 1), (2, 3), (4, 5), (6, 7))
+
+
+def capsules_from_urdf(arm: Any, capsules: ArmCapsules) -> ArmCapsules:
+    """``capsules`` with the radii taken from the collision geometry of the URDF file a 7-joint swivel arm
+    was loaded from (``arm.config["urdf"]``): the radius of a capsule is the largest distance of its links'
+    geometry (:func:`urdf_collision_points`) from its segment between
+    two key points. A capsule whose links have no collision geometry, or geometry that cannot be read,
+    keeps its radius; so does every capsule of a bundled arm or an arm from URDF text."""
+    cfg = getattr(arm, "config", None) or {}
+    path = cfg.get("urdf")
+    if getattr(arm, "n", 0) != 7 or not hasattr(arm, "key_points"):
+        return capsules
+    if not path or not Path(str(path)).is_file():
+        return capsules
+    try:
+        geo = urdf_collision_points(str(path), str(cfg["base_link"]), str(cfg["tip_link"]))
+    except (ConfigError, InvalidInputError, KeyError, ValueError):
+        return capsules
+    if not geo:
+        return capsules
+    q = (np.asarray(arm.lower, dtype=float) + np.asarray(arm.upper, dtype=float)) / 2.0  # any posture
+    kp = np.asarray(arm.key_points(q))
+    frames = arm.fk_frames(q)  # frames[i - 1]: model link i
+    radii = list(capsules.radii)
+    for c, group in enumerate(CAPSULE_MODEL_LINKS):
+        found = [k for k in group if k in geo]
+        if not found or any(geo[k] is None for k in found):
+            continue
+        a, d = kp[c], kp[c + 1] - kp[c]
+        r = 0.0
+        for k in found:
+            pts, pads = geo[k]  # type: ignore[misc]
+            F = np.eye(4) if k == 0 else frames[k - 1]
+            P = pts @ F[:3, :3].T + F[:3, 3] - a
+            t = np.clip(P @ d / max(float(d @ d), 1e-300), 0.0, 1.0)
+            r = max(r, float((np.linalg.norm(P - t[:, None] * d, axis=1) + pads).max()))
+        if r > 0.0:
+            radii[c] = r
+    return ArmCapsules(radii=tuple(radii), table_links=capsules.table_links,
+                       obstacle_links=capsules.obstacle_links)

@@ -50,7 +50,11 @@ from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 from visualization_msgs.msg import Marker, MarkerArray
 
 from redarm_ros.can.realtime import scheduling_now
-from redarm_ros.control.obstacles import (
+from redarm_ros.control.make import make_controller
+from redarm_ros.control.reach_controller import ControllerParams, GoalStatus, Phase
+from redarm_ros.control.types import GoalKind
+from redarm_ros.errors import InvalidInputError, RedarmError
+from redarm_ros.geometry.obstacles import (
     MARKER_CUBE,
     MARKER_CYLINDER,
     MARKER_SPHERE,
@@ -61,10 +65,6 @@ from redarm_ros.control.obstacles import (
     load_scene,
     obstacle_from_marker,
 )
-from redarm_ros.control.param_table import table
-from redarm_ros.control.reach_controller import ControllerParams, GoalStatus, Phase, ReachController
-from redarm_ros.control.types import GoalKind
-from redarm_ros.errors import InvalidInputError, RedarmError
 from redarm_ros.kinematics import load_arm_or_urdf
 from redarm_ros.kinematics.quaternion import matrix_to_quat, quat_to_matrix
 from redarm_ros.nodes._common import (
@@ -85,6 +85,7 @@ from redarm_ros.nodes._common import (
 from redarm_ros.nodes.command_timing import CommandClock
 from redarm_ros.nodes.loop_stats import LoopStats
 from redarm_ros.nodes.reach_action import ReachActionServer
+from redarm_ros.param_table import table
 
 NODE_NAME = "controller"
 STILL_WINDOW_S = 0.25  # s of joint_states looked at to decide that the arm stands still
@@ -103,16 +104,41 @@ IDLE_WAKE_RAD = 1e-4
 IDLE_PHASES = (Phase.IDLE, Phase.REACHED, Phase.REJECTED)
 
 
-def _choices(name: str) -> tuple[str, ...]:
-    """The choices of a top-level controller parameter, from the parameter table."""
-    return table()["controller"].param(name).bound.arg
+#: Node parameters that set one controller parameter each: ROS name -> (section of the parameter table
+#: redarm_ros/parameters.yaml, name there; "controller" is the top level). Their type, default, bound and
+#: description are the table's (:func:`table_params`); only the ROS name is the node's.
+NODE_TO_TABLE: dict[str, tuple[str, str]] = {
+    "preferred_swivel": ("controller", "preferred_swivel"),
+    "swivel_reference": ("controller", "swivel_reference"),
+    "swivel_mode": ("controller", "swivel_mode"),
+    "max_speed": ("speed", "v_max"),
+    "pos_tolerance": ("controller", "pos_tolerance"),
+    "ori_tolerance": ("controller", "ori_tolerance"),
+    "stream_gap_s": ("stream", "gap"),
+    "stream_jump": ("stream", "jump"),
+    "twist_timeout_s": ("servo", "twist_timeout"),
+    "replan": ("replan", "enabled"),
+}
+#: Of those, the ones that may change at run time (the rest are set at start-up).
+SETTABLE = ("preferred_swivel",)
 
 
-def _one_of(*choices: str) -> Any:
-    def check(value: Any) -> str | None:
-        return None if value in choices else f"must be one of {', '.join(choices)}"
+def table_params(names: dict[str, tuple[str, str]]) -> list[ParamSpec]:
+    """The node parameters of ``names`` (ROS name -> table section, name), built from the table rows."""
+    specs = []
+    for ros_name, (section, name) in names.items():
+        row = table()[section].param(name)
+        bound = row.bound
 
-    return check
+        def check(value: Any, bound: Any = bound) -> str | None:
+            return None if bound.check(value)[0] else f"must be {bound.phrase}"
+
+        unit = f" [{row.unit}]" if row.unit else ""
+        doc = " ".join(row.doc.split())
+        specs.append(ParamSpec(ros_name, row.default, f"{doc[:1].upper()}{doc[1:]}{unit}.", check,
+                               read_only=ros_name not in SETTABLE,
+                               range=bound.arg if bound.word == "range" else None))
+    return specs
 
 
 PARAMS = [
@@ -125,20 +151,6 @@ PARAMS = [
               in_range(1.0, 1000.0), read_only=True),
     ParamSpec("scene", "", "Initial scene: name in config/scenes or a YAML path ('' = none). Its table "
               "stays when obstacles arrive on the obstacles topic.", read_only=True),
-    ParamSpec("preferred_swivel", 0.0, "Preferred elbow swivel (rad, -2 pi .. 2 pi), relative to "
-              "swivel_reference; may be changed at run time.", in_range(-2.0 * math.pi, 2.0 * math.pi)),
-    ParamSpec("swivel_reference", "high", "What preferred_swivel is measured from: 'high' (highest elbow), "
-              "'low' (lowest elbow) or 'absolute' (the swivel angle itself).",
-              _one_of(*_choices("swivel_reference")), read_only=True),
-    ParamSpec("swivel_mode", "dynamics", "'dynamics' (swivel attractor + obstacle/limit force-lets), "
-              "'fixed' (keep the start swivel) or 'attractor_paper' (the attractor paper's redundancy "
-              "dynamics with sector force-lets and path-tangent hand orientation).",
-              _one_of(*_choices("swivel_mode")), read_only=True),
-    ParamSpec("max_speed", 0.4, "Largest end-effector speed (m/s).", positive, read_only=True),
-    ParamSpec("pos_tolerance", 1e-3, "Phase 'reached' below this position error (m).", positive,
-              read_only=True),
-    ParamSpec("ori_tolerance", 0.01, "Phase 'reached' below this orientation error (rad).", positive,
-              read_only=True),
     ParamSpec("base_frame", "base_link", "Frame of goals and obstacles ('' frame_id means this one) and of "
               "the published markers.", non_empty_string),
     ParamSpec("markers_rate_hz", 10.0, "RViz marker rate (Hz, 0 = none, at most 100); may be changed at "
@@ -151,10 +163,6 @@ PARAMS = [
     ParamSpec("duplicate_check_s", 1.0, "At start-up, watch the graph this long (s) for another node of "
               "the same name and refuse to start if there is one (0 = no check).", non_negative,
               read_only=True),
-    ParamSpec("stream_gap_s", 0.5, "A goal arriving more than this (s) after the previous one is a new goal, "
-              "not a stream sample.", positive, read_only=True),
-    ParamSpec("stream_jump", 0.05, "A goal farther than this (m) from where the stream was predicted is a "
-              "new goal, not a stream sample.", positive, read_only=True),
     ParamSpec("command_delay_s", 0.05, "Each /joint_command segment is stamped to end this long (s) after "
               "its control step, so the driver plays it at a fixed delay whatever the message latency (0 = "
               "unstamped segments, started on receipt). Stamps only while the joint_states stamps show that "
@@ -162,16 +170,13 @@ PARAMS = [
     ParamSpec("stream_lead_s", 0.01, "The arm's own lag (s) behind the driver's command (driver cycle, "
               "module set-point generator): a goal stream is tracked command_delay_s + this far ahead of "
               "now.", in_range(0.0, 0.5), read_only=True),
-    ParamSpec("twist_timeout_s", 0.1, "A target_twist is held this long (s), then the hand decelerates.",
-              positive, read_only=True),
     ParamSpec("tool_frame", "tool", "Frame name of twists given in the tool frame (others: base_frame).",
               None, read_only=True),
     ParamSpec("idle_after_s", 0.5, "Once nothing has moved for this long (s; no goal, or the goal reached "
               "and held) the loop rests: no steps, no commands (the driver holds the arm), ~/state once a "
               "second, until a goal, twist, obstacle, parameter or a move of the arm wakes it (0 = never "
               "rest).", non_negative, read_only=True),
-    ParamSpec("replan", True, "Re-plan in joint space when the route to a goal is a dead end (false: hold "
-              "there).", None, read_only=True),
+    *table_params(NODE_TO_TABLE),
 ]
 
 # ControllerState.phase strings (lower case) from the core's Phase (upper case names).
@@ -197,7 +202,7 @@ def _quat_xyzw_from_yaw(yaw: float) -> tuple[float, float, float, float]:
 def marker_to_obstacle(m: Marker) -> tuple[Sphere | Cylinder | Box | None, str]:
     """One RViz marker as an obstacle shape (base frame, m) and a note ('' or why it was changed).
 
-    The conversion is the core's :func:`~redarm_ros.control.obstacles.obstacle_from_marker` (SPHERE,
+    The conversion is the core's :func:`~redarm_ros.geometry.obstacles.obstacle_from_marker` (SPHERE,
     upright CYLINDER, CUBE with a yaw). A tilted cylinder or cube, which the core refuses, is kept as
     its bounding sphere rather than dropped: an obstacle the controller ignores could be hit. Other
     marker types give (None, reason).
@@ -253,22 +258,6 @@ def _pt(v: Sequence[float]) -> Point:
     return Point(x=float(v[0]), y=float(v[1]), z=float(v[2]))
 
 
-#: Node parameters that set one controller parameter each: node name -> (section of the controller's
-#: parameter table, name there); "controller" is the top level.
-NODE_TO_TABLE: dict[str, tuple[str, str]] = {
-    "preferred_swivel": ("controller", "preferred_swivel"),
-    "swivel_reference": ("controller", "swivel_reference"),
-    "swivel_mode": ("controller", "swivel_mode"),
-    "max_speed": ("speed", "v_max"),
-    "pos_tolerance": ("controller", "pos_tolerance"),
-    "ori_tolerance": ("controller", "ori_tolerance"),
-    "stream_gap_s": ("stream", "gap"),
-    "stream_jump": ("stream", "jump"),
-    "twist_timeout_s": ("servo", "twist_timeout"),
-    "replan": ("replan", "enabled"),
-}
-
-
 def controller_params(p: dict[str, Any]) -> ControllerParams:
     """The controller's parameters from the node's: those of :data:`NODE_TO_TABLE`, the step from
     ``rate_hz`` and the stream's lead from ``command_delay_s + stream_lead_s``; the rest at their defaults."""
@@ -292,7 +281,7 @@ class ControllerNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
         try:
             self.arm = load_arm_or_urdf(p["arm"], p["urdf"], p["base_link"], p["tip_link"])
             self.base_scene = load_scene(p["scene"]) if p["scene"] else Scene()
-            self.ctl = ReachController(self.arm, self.base_scene, controller_params(p))
+            self.ctl = make_controller(self.arm, self.base_scene, controller_params(p))
         except (RedarmError, OSError) as exc:
             raise ValueError(f"controller configuration: {exc}") from exc
         self.name_check = UniqueNameCheck(self, p["duplicate_check_s"])  # a timer: no blocking here

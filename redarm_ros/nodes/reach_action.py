@@ -43,6 +43,7 @@ from redarm_interfaces.msg import ControllerState
 from redarm_ros.control.types import GoalKind, GoalStatus, Phase
 from redarm_ros.errors import InvalidInputError
 from redarm_ros.nodes._common import pose_msg_to_matrix
+from redarm_ros.param_table import table
 
 if TYPE_CHECKING:
     from redarm_ros.nodes.controller import ControllerNode
@@ -50,6 +51,7 @@ if TYPE_CHECKING:
 ACTION_NAME = "~/reach"
 FEEDBACK_PERIOD_S = 0.05  # s: feedback and outcome checks at 20 Hz (the action promises >= 10 Hz)
 REST_TOLERANCE = 1e-9  # rad: a command that moved less than this between two checks stands still
+SWIVEL_BOUND = table()["controller"].param("preferred_swivel").bound  # what a swivel_preference may be
 
 # Reach result codes of a failed goal check (the core's GoalStatus).
 _CHECK_CODE = {
@@ -108,8 +110,8 @@ class ReachActionServer:
         if not node._frame_ok(frame):
             reason = (f"frame {frame!r} refused: give goals in "
                       f"{node.get_parameter('base_frame').value!r} (this node has no tf)")
-        elif goal.use_swivel_preference and not math.isfinite(goal.swivel_preference):
-            reason = f"swivel_preference must be finite, got {goal.swivel_preference}"
+        elif goal.use_swivel_preference and not SWIVEL_BOUND.check(goal.swivel_preference)[0]:
+            reason = f"swivel_preference must be {SWIVEL_BOUND.phrase}, got {goal.swivel_preference}"
         elif not (math.isfinite(goal.timeout) and goal.timeout >= 0.0):
             reason = f"timeout must be finite and >= 0 (0 = none), got {goal.timeout}"
         else:

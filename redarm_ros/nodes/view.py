@@ -260,7 +260,7 @@ class ViewNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
 
 
 def _load_scene(name: str) -> dict[str, Any]:
-    from redarm_ros.control.obstacles import load_scene
+    from redarm_ros.geometry.obstacles import load_scene
 
     return load_scene(name).to_dict()
 

@@ -69,7 +69,7 @@ def _heatmaps(res: PlacementResult, out: Path) -> list[Path]:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from redarm_ros.control.obstacles import Box, Cylinder, Scene, Sphere
+    from redarm_ros.geometry.obstacles import Box, Cylinder, Scene, Sphere
 
     g = res.problem.grid
     nx, ny, nw = g.shape

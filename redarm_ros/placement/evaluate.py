@@ -29,8 +29,8 @@ from typing import Any
 
 import numpy as np
 
-from redarm_ros.control.obstacles import ArmCapsules, Scene, links_clearance
-from redarm_ros.control.self_collision import collision_model, key_points_batch, self_collision_batch
+from redarm_ros.geometry.obstacles import ArmCapsules, Scene, links_clearance
+from redarm_ros.geometry.self_collision import collision_model, key_points_batch, self_collision_batch
 from redarm_ros.kinematics.loader import load_arm
 from redarm_ros.kinematics.protocols import has_swivel
 from redarm_ros.kinematics.reachability import feasible_measure_poses

@@ -160,7 +160,7 @@ def _grid(g: Any) -> BaseGrid:
 
 
 def _scene(raw: Any, base: Path | None) -> dict[str, Any] | None:
-    from redarm_ros.control.obstacles import Scene, load_scene
+    from redarm_ros.geometry.obstacles import Scene, load_scene
 
     if raw is None:
         return None

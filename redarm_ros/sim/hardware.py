@@ -780,7 +780,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             initial_q = arm.park.tolist()
         plant = PybulletPlant.create(arm, gui=args.gui, time_step=1.0 / args.rate, initial_q=initial_q)
         if args.scene:
-            from redarm_ros.control.obstacles import load_scene
+            from redarm_ros.geometry.obstacles import load_scene
 
             plant.add_scene(load_scene(args.scene).to_dict())
     except RedarmError as exc:

@@ -32,10 +32,10 @@ from typing import Any
 
 import numpy as np
 
-from redarm_ros.errors import InvalidInputError
+from redarm_ros.errors import InvalidInputError, RedarmError
 from redarm_ros.record.animate import write_png
 from redarm_ros.sim.ramp import JointRamp
-from redarm_ros.sim.urdf import build_urdf, joint_efforts, link_bodies, link_names
+from redarm_ros.sim.urdf import build_urdf, joint_efforts, link_bodies, link_names, urdf_visuals
 
 _LOG = logging.getLogger(__name__)
 
@@ -164,6 +164,19 @@ class JointPlant:
         return active or abs(self.velocity()) > MOTION_EPS
 
 
+def own_visuals(arm: Any) -> dict[int, list[str]]:
+    """The visuals (meshes) of the URDF file an arm was loaded from (:func:`.urdf.urdf_visuals`), or {} for
+    a bundled arm, an arm from URDF text, or a file that no longer reads."""
+    cfg = getattr(arm, "config", None) or {}
+    path = cfg.get("urdf")
+    if not path or not os.path.isfile(str(path)) or not cfg.get("base_link") or not cfg.get("tip_link"):
+        return {}
+    try:
+        return urdf_visuals(str(path), str(cfg["base_link"]), str(cfg["tip_link"]))
+    except (RedarmError, ValueError):  # the arm loaded from it: only a file changed since then lands here
+        return {}
+
+
 class PybulletPlant:
     """A fixed-base arm in pybullet client ``client_id``, position-controlled through setpoint ramps.
 
@@ -206,7 +219,7 @@ class PybulletPlant:
         q0 = np.clip(q0, lower, upper)
 
         pb = self.pb
-        urdf = build_urdf(arm)
+        urdf = build_urdf(arm, visuals=own_visuals(arm))
         with tempfile.TemporaryDirectory(prefix="redarm_urdf_") as tmp:
             path = os.path.join(tmp, f"{arm.name}.urdf")
             with open(path, "w", encoding="utf-8") as fh:
@@ -434,7 +447,7 @@ class PybulletPlant:
         )
 
     def add_object(self, spec: Mapping[str, Any]) -> int:
-        """Add one object from a mapping: the scene schema of ``redarm_ros.control.obstacles``.
+        """Add one object from a mapping: the scene schema of ``redarm_ros.geometry.obstacles``.
 
         Keys: ``type`` (sphere | cylinder | box | cube | table), ``center`` (or ``position``) [x, y, z] m;
         sphere ``radius``; cylinder ``radius``, ``height`` (vertical unless ``orientation`` x,y,z,w);
@@ -482,7 +495,7 @@ class PybulletPlant:
 
     def add_scene(self, scene: Mapping[str, Any]) -> list[int]:
         """Add a whole scene: ``{"table_height": z or None, "obstacles": [object, ...]}`` (the schema of
-        ``redarm_ros.control.obstacles.Scene.to_dict``). A table top is added below ``table_height``
+        ``redarm_ros.geometry.obstacles.Scene.to_dict``). A table top is added below ``table_height``
         in front of the arm. Returns the new body ids."""
         ids = []
         th = scene.get("table_height")

@@ -14,7 +14,9 @@ Link and joint names (``prefix`` defaults to ``"<arm.name>_"``):
 
 Geometry is deliberately simple and standard-URDF only (cylinders and spheres, readable by
 robot_state_publisher/RViz as well as pybullet): each link carries a sphere "motor housing" at its joint
-and a cylinder from its joint to the next joint (or the tool point). Collision shapes equal the visuals.
+and a cylinder from its joint to the next joint (or the tool point). Collision shapes equal the visuals,
+except that ``visuals`` (:func:`urdf_visuals`: an arm's own URDF's visual elements, meshes included)
+replace the generated visuals of the links they are given for.
 Masses come from fixed nominal densities; inertias are the exact tensors of those solids about the link's
 centre of mass (plausible, not measured). Efforts are an upper bound of the static gravity torque times a
 safety factor, unless the model's joint carries an ``effort`` attribute (N m). Units: m, kg, kg m^2, rad,
@@ -24,8 +26,11 @@ rad/s, N m.
 from __future__ import annotations
 
 import math
+import os
+import xml.etree.ElementTree as ET
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Protocol
 from xml.sax.saxutils import escape
 
@@ -233,13 +238,78 @@ def _inertial(mass: float, com: Sequence[float], inertia: np.ndarray) -> str:
     )
 
 
-def _shapes(geoms: list[tuple[str, str]], material: str) -> list[str]:
-    """Visual + collision elements for (origin xml, geometry xml) pairs."""
+def _shapes(geoms: list[tuple[str, str]], material: str, visual: bool = True) -> list[str]:
+    """Visual (unless ``visual`` is False) + collision elements for (origin xml, geometry xml) pairs."""
     lines = []
     for origin, geom in geoms:
-        lines.append(f'    <visual>{origin}<geometry>{geom}</geometry><material name="{material}"/></visual>')
+        if visual:
+            mat = f'<material name="{material}"/>'
+            lines.append(f"    <visual>{origin}<geometry>{geom}</geometry>{mat}</visual>")
         lines.append(f"    <collision>{origin}<geometry>{geom}</geometry></collision>")
     return lines
+
+
+def _mesh_file(filename: str, base_dir: Path | None) -> Path | None:
+    """The mesh file a URDF names, if it exists: ``file://`` or absolute paths, paths relative to the URDF's
+    directory, and ``package://<pkg>/..`` through the ament index where ROS is installed."""
+    if filename.startswith("package://"):
+        pkg, _, rest = filename[len("package://"):].partition("/")
+        try:
+            from ament_index_python.packages import get_package_share_directory
+
+            cand = Path(get_package_share_directory(pkg)) / rest
+        except Exception:  # noqa: BLE001 - no ament index, or no such package: no mesh
+            return None
+    elif filename.startswith("file://"):
+        cand = Path(filename[len("file://"):])
+    else:
+        cand = Path(filename)
+        if not cand.is_absolute():
+            if base_dir is None:
+                return None
+            cand = base_dir / cand
+    return cand.resolve() if cand.is_file() else None
+
+
+def urdf_visuals(source: str | os.PathLike[str], base_link: str, tip_link: str) -> dict[int, list[str]]:
+    """The visual elements of a URDF's chain ``base_link`` -> ``tip_link`` for :func:`build_urdf`, by model
+    link index (0: the base, i: the child of the i-th moving joint; a link hanging from fixed joints goes to
+    the link it is fixed to, its origin moved into that link's frame). Mesh paths are made absolute. A link
+    gets its URDF visuals only where every mesh file it names is found; otherwise it keeps the generated
+    shapes. ``source``: a URDF file or its text (then only absolute and ``package://`` meshes are found)."""
+    from redarm_ros.kinematics.model import transform_from_xyz_rpy
+    from redarm_ros.kinematics.urdf_chain import chain_between, chain_links, parse_urdf, read_urdf_text
+
+    text, path = read_urdf_text(source)
+    _, by_child = parse_urdf(text)
+    links = {el.get("name"): el for el in ET.fromstring(text).findall("link")}
+    base_dir = None if path is None else path.resolve().parent
+    out: dict[int, list[str]] = {}
+    missing: set[int] = set()
+    for name, k, T in chain_links(chain_between(by_child, base_link, tip_link), base_link):
+        el = links.get(name)
+        for vis in [] if el is None else el.findall("visual"):
+            geom = vis.find("geometry")
+            shape = None if geom is None or len(geom) == 0 else geom[0]
+            if shape is None:
+                continue
+            if shape.tag == "mesh":
+                f = _mesh_file(shape.get("filename", ""), base_dir)
+                if f is None:
+                    missing.add(k)
+                    continue
+                shape = ET.Element("mesh", {"filename": str(f), "scale": shape.get("scale", "1 1 1")})
+            org = vis.find("origin")
+            xyz = [float(v) for v in (org.get("xyz", "0 0 0") if org is not None else "0 0 0").split()]
+            rpy = [float(v) for v in (org.get("rpy", "0 0 0") if org is not None else "0 0 0").split()]
+            Tv = T @ transform_from_xyz_rpy(xyz, rpy)
+            color = vis.find("material/color")
+            rgba = "" if color is None else escape(color.get("rgba", ""))
+            mat = (f'<material name="urdf_{k}_{len(out.get(k, []))}"><color rgba="{rgba}"/></material>'
+                   if rgba else '<material name="segment"/>')
+            out.setdefault(k, []).append(f"    <visual>{_origin(Tv[:3, 3], Tv[:3, :3])}<geometry>"
+                                         f"{ET.tostring(shape, encoding='unicode')}</geometry>{mat}</visual>")
+    return {k: v for k, v in out.items() if k not in missing}
 
 
 def _segment_geom(start: np.ndarray, end: np.ndarray, radius: float) -> tuple[str, str] | None:
@@ -252,8 +322,15 @@ def _segment_geom(start: np.ndarray, end: np.ndarray, radius: float) -> tuple[st
     ), f'<cylinder radius="{_f(radius)}" length="{_f(length)}"/>'
 
 
-def build_urdf(arm: ArmLike, *, prefix: str | None = None, robot_name: str | None = None) -> str:
-    """URDF text (str) of ``arm``: fixed base, n revolute joints, fixed tool link.
+def build_urdf(
+    arm: ArmLike,
+    *,
+    prefix: str | None = None,
+    robot_name: str | None = None,
+    visuals: dict[int, list[str]] | None = None,
+) -> str:
+    """URDF text (str) of ``arm``: fixed base, n revolute joints, fixed tool link. ``visuals``: visual
+    elements by link index (0 base, i the child of joint i) in place of the generated ones.
 
     Raises :class:`InvalidInputError` if a transform of the model is not a finite rigid transform or an
     axis is not a unit vector.
@@ -288,9 +365,11 @@ def build_urdf(arm: ArmLike, *, prefix: str | None = None, robot_name: str | Non
     post = _segment_geom(np.zeros(3), first, 0.065)
     if post is not None:
         base_geoms.append(post)
+    visuals = visuals or {}
     out.append(f'  <link name="{names[0]}">')
     out.append(_inertial(10.0, [0, 0, 0], np.diag([0.05, 0.05, 0.07])))
-    out.extend(_shapes(base_geoms, "base"))
+    out.extend(visuals.get(0, []))
+    out.extend(_shapes(base_geoms, "base", visual=0 not in visuals))
     out.append("  </link>")
 
     for i, (joint, body) in enumerate(zip(arm.chain, bodies, strict=True)):
@@ -310,9 +389,10 @@ def build_urdf(arm: ArmLike, *, prefix: str | None = None, robot_name: str | Non
         seg = _segment_geom(np.zeros(3), body.segment_end, body.segment_radius)
         out.append(f'  <link name="{child}">')
         out.append(_inertial(body.mass, body.com, body.inertia))
-        out.extend(_shapes(geoms, "housing"))
+        out.extend(visuals.get(i + 1, []))
+        out.extend(_shapes(geoms, "housing", visual=i + 1 not in visuals))
         if seg is not None:
-            out.extend(_shapes([seg], "segment"))
+            out.extend(_shapes([seg], "segment", visual=i + 1 not in visuals))
         out.append("  </link>")
 
     out.append(f'  <joint name="{p}tool_joint" type="fixed">')

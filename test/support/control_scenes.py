@@ -6,8 +6,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from redarm_ros.control.obstacles import Cylinder, Scene, min_distance
+from redarm_ros.control.make import make_controller
 from redarm_ros.control.reach_controller import ControllerParams, ReachController, StepResult
+from redarm_ros.geometry.obstacles import Cylinder, Scene, min_distance
 from support.benches import load_bench
 
 DT = 0.01
@@ -32,7 +33,7 @@ def elbow_obstacle_hold(arm, params: ControllerParams | None = None) -> ElbowRun
     """Hold the hand still at a fixed pose, settle 2 s, then put a cylinder at the elbow and run 3 s."""
     q0, info = arm.ik_nearest(pose([0.55, 0.0, 0.2]), np.array([0.0, 0.6, 0.0, 1.6, 0.0, 1.0, 0.0]))
     assert info.ok
-    ctl = ReachController(arm, Scene((), 0.0), *([] if params is None else [params]))
+    ctl = make_controller(arm, Scene((), 0.0), params)
     ctl.reset(q0)
     ctl.set_goal(arm.fk(q0))
     for _ in range(200):  # settle at the preferred swivel

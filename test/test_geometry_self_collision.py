@@ -1,4 +1,4 @@
-"""control/self_collision: segment distances, key points in batch, known colliding and free postures for
+"""geometry/self_collision: segment distances, key points in batch, known colliding and free postures for
 every bundled arm, the ground plane, the configured pair lists against their derivation, and the park
 postures."""
 
@@ -9,8 +9,9 @@ import math
 import numpy as np
 import pytest
 
-from redarm_ros.control.obstacles import ArmCapsules
-from redarm_ros.control.self_collision import (
+from redarm_ros.errors import ConfigError, InvalidInputError
+from redarm_ros.geometry.obstacles import ArmCapsules
+from redarm_ros.geometry.self_collision import (
     GROUND,
     NON_ADJACENT_PAIRS,
     CollisionModel,
@@ -23,7 +24,6 @@ from redarm_ros.control.self_collision import (
     self_collision,
     self_collision_batch,
 )
-from redarm_ros.errors import ConfigError, InvalidInputError
 from redarm_ros.kinematics import load_arm
 
 ARMS = ["pa10", "pa10_7c", "powercube6", "powercube7"]
@@ -278,3 +278,12 @@ def test_park_loader_validation() -> None:
     # other limits than the YAML's: the YAML posture no longer fits, so the model has none
     assert load_arm("pa10", lower=[-0.1] * 7, upper=[0.1] * 7).park is None
     assert load_arm("pa10", lower=[-0.1] * 7, upper=[0.1] * 7, park=[0.05] * 7).park is not None
+
+
+@pytest.mark.parametrize("name", ARMS)
+def test_every_bundled_arm_enters_the_geometry_through_its_protocols(name: str) -> None:
+    from redarm_ros.geometry.arm import ChainArm, KeyPointArm
+
+    arm = load_arm(name)
+    assert isinstance(arm, ChainArm) and isinstance(arm, KeyPointArm)
+    assert all(hasattr(j, "origin") and hasattr(j, "axis") for j in arm.chain)

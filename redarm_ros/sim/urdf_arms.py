@@ -1,5 +1,6 @@
-"""Arms written as URDF text from published facts (no third-party URDF file is copied), for
-benchmarks/urdf_ik_bench.py and the tests (test/test_kin_urdf.py loads this file by path).
+"""Arms written as URDF text from published facts (no third-party URDF file is copied): the demo's and the
+reach-quality benchmark's iiwa14-like arm (``redarm-demo --arm iiwa14``), and the test arms of the URDF
+IK benchmark (benchmarks/urdf_ik_bench.py) and the tests.
 
 * :func:`iiwa14_urdf`: a KUKA LBR iiwa 14-like arm: axes z, y, z, -y, z, y, z (the real robot's
   alternating pitch directions), shoulder 0.36 m above the base, upper arm 0.42 m, forearm 0.40 m,
@@ -9,6 +10,9 @@ benchmarks/urdf_ik_bench.py and the tests (test/test_kin_urdf.py loads this file
   pose bent (joint offsets): another URDF of one arm, to prove the mapping onto the swivel model general.
 * :func:`franka_like_urdf`: a 7R arm from Franka Emika Panda's published (modified) DH table: elbow
   offset a = 0.0825 m, wrist offset a = 0.088 m, so neither the elbow nor the wrist is spherical.
+
+:data:`SHIPPED` names them; :func:`load_shipped` builds the model of one (its chain ``base_link`` ->
+``tool0``).
 """
 
 from __future__ import annotations
@@ -18,7 +22,9 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from redarm_ros.kinematics.model import rot_axis, transform_from_xyz_rpy
+from redarm_ros.errors import ConfigError
+from redarm_ros.kinematics import load_arm
+from redarm_ros.kinematics.model import Arm, rot_axis, transform_from_xyz_rpy
 from redarm_ros.sim.urdf import matrix_to_rpy
 
 IIWA_LIMITS_DEG = (170, 120, 170, 120, 170, 120, 175)
@@ -152,3 +158,19 @@ def franka_like_urdf() -> str:
         lo, up = FRANKA_LIMITS[i]
         joints.append((f"panda_joint{i + 1}", T, (0.0, 0.0, 1.0), lo, up, FRANKA_VEL[i]))
     return chain_urdf("franka_like", joints, _tz(FRANKA_FLANGE))
+
+
+#: The arms written here, by name: (URDF text, base link, tip link).
+SHIPPED = {
+    "iiwa14": (iiwa14_urdf, "base_link", "tool0"),
+    "franka_like": (franka_like_urdf, "base_link", "tool0"),
+}
+
+
+def load_shipped(name: str) -> Arm:
+    """The model of the shipped URDF arm ``name`` (a key of :data:`SHIPPED`). Raises ConfigError otherwise."""
+    if name not in SHIPPED:
+        known = ", ".join(SHIPPED)
+        raise ConfigError(f"no shipped URDF arm {name!r} (known: {known})", field="arm", value=name)
+    text, base, tip = SHIPPED[name]
+    return load_arm(text(), base_link=base, tip_link=tip)

@@ -1,4 +1,4 @@
-"""Obstacle shapes, scenes and distances (redarm_ros.control.obstacles), checked against brute force."""
+"""Obstacle shapes, scenes and distances (redarm_ros.geometry.obstacles), checked against brute force."""
 
 from __future__ import annotations
 
@@ -7,7 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from redarm_ros.control.obstacles import (
+from redarm_ros.errors import ConfigError, InvalidInputError
+from redarm_ros.geometry.obstacles import (
     TABLE,
     ArmCapsules,
     Box,
@@ -19,7 +20,6 @@ from redarm_ros.control.obstacles import (
     obstacle_from_dict,
     obstacle_from_marker,
 )
-from redarm_ros.errors import ConfigError, InvalidInputError
 
 
 def sd_points(obstacle, pts: np.ndarray) -> np.ndarray:
@@ -172,7 +172,7 @@ def test_scene_from_dict_round_trip_and_errors(tmp_path) -> None:
 
 
 def test_bundled_scenes_load() -> None:
-    from redarm_ros.control.obstacles import scenes_dir
+    from redarm_ros.geometry.obstacles import scenes_dir
 
     files = sorted(scenes_dir().glob("*.yaml"))
     assert files, "config/scenes/*.yaml missing"

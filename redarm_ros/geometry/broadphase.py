@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from redarm_ros.control.obstacles import Box, Cylinder, Obstacle, Scene, Sphere
+from redarm_ros.geometry.obstacles import Box, Cylinder, Obstacle, Scene, Sphere
 
 #: ``Clearance.obstacle`` of a clearance that is only a lower bound from obstacles left out.
 LEFT_OUT = -2
