@@ -296,18 +296,7 @@ class AttractorMixin(ControllerBase):
         # (a lagging elbow costs the joints much more motion than the hand needs).
         feed = st.mode is Mode.SERVO and p.swivel_mode != "fixed" and st.ref.circle is not None
         s_des_prev = self._desired_swivel(st.ref.circle) if feed and st.ref.circle is not None else 0.0
-        s_acc_feed = p.max_swivel_acc
-        if feed:
-            # How much each joint turns per radian of swivel here: the swivel may change its rate only
-            # as fast as keeps every joint within joint_brake_share of its acceleration limit (the rest
-            # is the hand's, which has priority while tracking).
-            T_ref = pose_matrix(st.ref.pos, st.ref.rot)
-            pick = self.stepper.solve(T_ref, st.ref.s + 0.01, st.ref.q, 1.0)
-            if pick is not None:
-                dq_ds = np.abs(pick[0] - st.ref.q) / 0.01
-                with np.errstate(divide="ignore"):
-                    lim = np.where(dq_ds > 1e-9, p.joint_brake_share * self._max_acc / dq_ds, np.inf)
-                s_acc_feed = min(s_acc_feed, float(np.min(lim)))
+        s_acc_feed = self._swivel_acc_share() if feed else p.max_swivel_acc
 
         def swivel(circle: ElbowCircle, T: np.ndarray, s0: float) -> tuple[float, float, bool]:
             if p.swivel_mode == "fixed":
@@ -344,6 +333,22 @@ class AttractorMixin(ControllerBase):
             return wrap_angle(s0 + sd * dt), s_des, clearance < p.elbow_priority_clearance
 
         return swivel
+
+    def _swivel_acc_share(self) -> float:
+        """While tracking: the largest change of the swivel rate (rad/s^2) that keeps every joint within
+        ``joint_brake_share`` of its acceleration limit, from how much each joint turns per radian of
+        swivel at the reference (the rest is the hand's, which has priority); at most max_swivel_acc."""
+        st = self._state()
+        p = self.params
+        s_acc = p.max_swivel_acc
+        T_ref = pose_matrix(st.ref.pos, st.ref.rot)
+        pick = self.stepper.solve(T_ref, st.ref.s + 0.01, st.ref.q, 1.0)
+        if pick is not None:
+            dq_ds = np.abs(pick[0] - st.ref.q) / 0.01
+            with np.errstate(divide="ignore"):
+                lim = np.where(dq_ds > 1e-9, p.joint_brake_share * self._max_acc / dq_ds, np.inf)
+            s_acc = min(s_acc, float(np.min(lim)))
+        return s_acc
 
     def _settling_rate_cap(self, sd: float) -> float:
         """With the hand at the goal, the swivel rate ``sd`` (rad/s) capped so that no joint turns
@@ -414,14 +419,24 @@ class AttractorMixin(ControllerBase):
         return quat_normalize(quat_mul(quat_between_vectors(g, a), goal_q))
 
     def _desired_swivel(self, circle: ElbowCircle) -> float:
+        """The preferred swivel at ``circle``, moved where the elbow can rest once the hand is at a point
+        goal (:meth:`_feasible_at_goal`); where the circle is horizontal, the last desired swivel."""
+        if self.params.swivel_reference != "absolute" and _swivel_low(circle) is None:
+            return self._state().ref.s_des
+        return self._feasible_at_goal(self._preferred_swivel(circle))
+
+    def _preferred_swivel(self, circle: ElbowCircle) -> float:
+        """The preferred swivel (rad) at ``circle``: ``preferred_swivel`` from the highest or lowest elbow
+        (``swivel_reference``), or absolute; where the circle is horizontal (no highest elbow), the last
+        desired swivel."""
         p = self.params
         if p.swivel_reference == "absolute":
-            return self._feasible_at_goal(wrap_angle(p.preferred_swivel))
+            return wrap_angle(p.preferred_swivel)
         low = _swivel_low(circle)
         if low is None:
             return self._state().ref.s_des
         ref = low if p.swivel_reference == "low" else low + math.pi
-        return self._feasible_at_goal(wrap_angle(ref + p.preferred_swivel))
+        return wrap_angle(ref + p.preferred_swivel)
 
     def _feasible_at_goal(self, s_des: float) -> float:
         """With the hand at the goal (within twice ``pos_tolerance``), ``s_des`` moved to where the elbow

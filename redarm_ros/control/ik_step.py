@@ -175,9 +175,12 @@ class IKStepper(StepperBase):
 
     # -- the cascade ------------------------------------------------------------------------------
     def advance(self, pos0: Vec3, rot0: Quat, s0: float, q_prev: np.ndarray, new_pos: Vec3, new_rot: Quat,
-                dt: float, swivel: SwivelFn) -> IKStep | DeadEnd:
+                dt: float, swivel: SwivelFn, pose_swivel: bool = False) -> IKStep | DeadEnd:
         """The reference step from (``pos0``, ``rot0``, ``s0``, joints ``q_prev``) towards the proposed
-        pose, with the swivel from ``swivel`` (see :data:`SwivelFn`)."""
+        pose, with the swivel from ``swivel`` (see :data:`SwivelFn`). ``pose_swivel``: the swivel is a
+        function of the pose (the servo's pose law): a shortened step asks ``swivel`` again at its own
+        pose instead of shortening the swivel change in proportion, and the elbow does not yield alone
+        (either would leave the elbow off the preferred swivel of the pose it reaches)."""
         scale = 1.0
         for _attempt in range(4):
             T = pose_matrix(new_pos, new_rot)
@@ -194,7 +197,7 @@ class IKStepper(StepperBase):
                     new_pos, new_rot, T, circle, frac = shortened
                     scale *= frac
             pick = self.solve(T, s_new, q_prev, dt)
-            if (pick is None or pick[1] > 1.0 + 1e-9) and s_new != s0:
+            if (pick is None or pick[1] > 1.0 + 1e-9) and s_new != s0 and not pose_swivel:
                 # Too fast for a joint (or no solution there): the elbow yields first, the hand path
                 # has priority.
                 yielded = self._yield_swivel(T, s0, s_new, q_prev, dt, math.inf if pick is None else pick[1])
@@ -210,7 +213,8 @@ class IKStepper(StepperBase):
             q_new, ratio = pick
             if ratio > 1.0 + 1e-9:
                 # Too fast for a joint: shorten the whole step (pose and swivel).
-                scaled = self._scale_step(pos0, rot0, s0, new_pos, new_rot, s_new, q_prev, dt, ratio)
+                scaled = self._scale_step(pos0, rot0, s0, new_pos, new_rot, s_new, q_prev, dt, ratio,
+                                          swivel if pose_swivel else None)
                 if scaled is None:
                     new_pos, new_rot = blend(pos0, rot0, new_pos, new_rot, 0.5)
                     continue
@@ -298,12 +302,21 @@ class IKStepper(StepperBase):
         return pick, s_ok
 
     def _scale_step(self, pos0: Vec3, rot0: Quat, s0: float, pos1: Vec3, rot1: Quat, s1: float,
-                    q_prev: np.ndarray, dt: float, ratio: float
+                    q_prev: np.ndarray, dt: float, ratio: float, swivel: SwivelFn | None = None
                     ) -> tuple[Vec3, Quat, float, np.ndarray, ElbowCircle, float] | None:
+        """The step shortened until no joint is too fast: pose and swivel change in proportion, or, with
+        ``swivel``, the swivel it gives at the shortened pose."""
         frac = 1.0
         for _ in range(4):
             frac *= 0.98 / ratio  # shorten the (already shortened) step by the excess ratio
             s = wrap_angle(s0 + frac * wrap_angle(s1 - s0))
+            if swivel is not None:
+                pos, rot = blend(pos0, rot0, pos1, rot1, frac)
+                T = pose_matrix(pos, rot)
+                try:
+                    s = swivel(elbow_circle(self.geom, T), T, s0)[0]
+                except UnreachableError:
+                    return None
             tried = self._solve_blend(pos0, rot0, pos1, rot1, frac, s, q_prev, dt)
             if tried is None:
                 return None

@@ -214,9 +214,9 @@ class IKStepper6(StepperBase):
 
     # -- the cascade ------------------------------------------------------------------------------
     def advance(self, pos0: Vec3, rot0: Quat, s0: float, q_prev: np.ndarray, new_pos: Vec3, new_rot: Quat,
-                dt: float, swivel: Any = None) -> IKStep | DeadEnd:
+                dt: float, swivel: Any = None, pose_swivel: bool = False) -> IKStep | DeadEnd:
         """The reference step from (``pos0``, ``rot0``, joints ``q_prev``) towards the proposed pose
-        (``s0`` and ``swivel`` are accepted for the 7-DOF signature and ignored)."""
+        (``s0``, ``swivel`` and ``pose_swivel`` are accepted for the 7-DOF signature and ignored)."""
         scale = 1.0
         for _attempt in range(8):
             rot = self.project(new_pos, new_rot, q_prev)
