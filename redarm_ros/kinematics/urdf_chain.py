@@ -150,7 +150,7 @@ def parse_urdf(text: str) -> tuple[str, dict[str, UrdfJoint]]:
         nrm = float(np.linalg.norm(ax))
         jtype = el.get("type", "")
         if jtype in ("revolute", "continuous", "prismatic") and nrm < 1e-9:
-            raise ConfigError(f"{where}: axis is zero", field="urdf")
+            raise ConfigError(f"{where} has a zero axis", field="urdf")
         lim = el.find("limit")
         by_child[child.get("link", "")] = UrdfJoint(
             name,

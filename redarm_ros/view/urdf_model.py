@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from redarm_ros.errors import InvalidInputError
+from redarm_ros.kinematics.urdf_chain import UrdfJoint, parse_urdf
 
 MOVABLE = ("revolute", "continuous", "prismatic")
 DEFAULT_RGBA = (0.7, 0.7, 0.72, 1.0)
@@ -50,6 +51,14 @@ class Joint:  # test/urdf_chain.py keeps its own URDF reader on purpose: an inde
     axis: np.ndarray
     lower: float = -math.inf
     upper: float = math.inf
+
+    @classmethod
+    def from_urdf(cls, j: UrdfJoint) -> Joint:
+        """The joint the kinematics' URDF reader found; a continuous joint or an absent limit is unbounded."""
+        bounded = j.type != "continuous"
+        lower = j.lower if bounded and j.lower is not None else -math.inf
+        upper = j.upper if bounded and j.upper is not None else math.inf
+        return cls(j.name, j.type, j.parent, j.child, j.origin, j.axis, lower, upper)
 
     @property
     def movable(self) -> bool:
@@ -111,7 +120,7 @@ class UrdfModel:
         materials = {m.get("name", ""): _rgba(m) for m in robot.findall("material")}
         links = [ln.get("name", "") for ln in robot.findall("link")]
         visuals = {ln.get("name", ""): _visuals(ln, materials) for ln in robot.findall("link")}
-        joints = [_joint(j) for j in robot.findall("joint")]
+        joints = [Joint.from_urdf(j) for j in parse_urdf(text)[1].values()]
         children = {j.child for j in joints}
         roots = [ln for ln in links if ln not in children]
         if len(roots) != 1:
@@ -210,26 +219,6 @@ def _visuals(link: ET.Element, materials: dict[str, tuple[float, float, float, f
             continue
         out.append(Visual(shape.tag, size, origin, rgba))
     return out
-
-
-def _joint(el: ET.Element) -> Joint:
-    name = el.get("name", "")
-    parent = el.find("parent")
-    child = el.find("child")
-    if parent is None or child is None:
-        raise InvalidInputError(f"URDF joint {name!r} lacks <parent> or <child>", field="joint", value=name)
-    jtype = el.get("type", "fixed")
-    axis_el = el.find("axis")
-    axis = np.asarray(_floats(None if axis_el is None else axis_el.get("xyz"), 3, "axis", (1, 0, 0)))
-    norm = float(np.linalg.norm(axis))
-    if jtype in MOVABLE and norm < 1e-12:
-        raise InvalidInputError(f"URDF joint {name!r} has a zero axis", field="axis", value=axis)
-    axis = axis / norm if norm > 0 else axis
-    lim = el.find("limit")
-    lower = float(lim.get("lower", "-inf")) if lim is not None and jtype != "continuous" else -math.inf
-    upper = float(lim.get("upper", "inf")) if lim is not None and jtype != "continuous" else math.inf
-    return Joint(name, jtype, parent.get("link", ""), child.get("link", ""), _origin(el.find("origin")), axis,
-                 lower, upper)
 
 
 def model_for_arm(arm_name: str) -> UrdfModel:
