@@ -150,3 +150,24 @@ def test_samples_are_handed_on_at_their_rate_on_average() -> None:
     assert gaps <= {8, 12}
     assert th.due(kept[-1] + 0.5)  # after a 0.5 s gap: at once
     assert not th.due(kept[-1] + 0.504) and th.due(kept[-1] + 0.512)
+
+
+def test_a_still_arm_is_handed_on_at_the_heartbeat_rate_and_motion_at_the_full_rate_at_once() -> None:
+    """100 Hz from 250 Hz with a 10 Hz heartbeat: a still arm (same target, positions within the
+    epsilon) is handed on 10 times a second; the first cycle that moved, or a new target, goes on at
+    the full rate's schedule; polls (no target) are never slowed."""
+    th = SampleThrottle(100.0, 250.0, still_rate_hz=10.0)
+    q, target = np.zeros(7), np.full(7, 0.1)
+    stamps = [1000.0 + 0.004 * k for k in range(500)]  # 2 s of cycles
+    kept = [t for t in stamps if th.due(t, q + 1e-6 * ((t * 250) % 2), target)]
+    assert 20 <= len(kept) <= 21
+    assert {round(g * 1e3) for g in np.diff(kept)} <= {100, 104}
+    t = stamps[-1] + 0.004
+    assert th.due(t, q + 1e-3, target)  # moved: at once (the full rate's period had passed)
+    assert not th.due(t + 0.004, q + 2e-3, target)  # moving: the full rate's schedule
+    assert th.due(t + 0.012, q + 3e-3, target)
+    assert th.due(t + 0.024, q + 3e-3, target + 0.01)  # a new target, the arm not moved yet
+    assert not th.due(t + 0.036, q + 3e-3, target + 0.01)  # still again
+    assert th.due(t + 0.048, q + 3e-3, None) and th.due(t + 0.060, q + 3e-3, None)  # polls
+    full = SampleThrottle(100.0, 250.0)  # without a heartbeat rate: never slowed
+    assert sum(full.due(t, q, target) for t in stamps) == 200

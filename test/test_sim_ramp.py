@@ -254,3 +254,29 @@ def test_a_late_stream_never_carries_the_setpoint_past_the_hosts_stop(seed: int)
     # The host brakes for its 1 mrad margin; however late its steps come, the setpoint stops there
     # (it used to run on to the limit itself, 1 mrad further, and the joint 0.5-0.9 mrad past).
     assert _late_stream_to_the_margin(seed) <= 1e-9
+
+
+def test_a_stream_holding_still_keeps_the_setpoint_without_evaluating_the_law(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A host holding the arm streams the same step every cycle: the setpoint stays exactly there, and
+    (what a held simulated arm costs) the braking law is not evaluated for it; the next step that
+    moves is followed as before."""
+    import redarm_ros.sim.ramp as ramp_mod
+
+    r = JointRamp(0.3, -3, 3, max_vel=2.0, max_acc=8.0)
+    for _ in range(5):  # the stream reaches its target and settles there
+        r.command_position(0.3, duration_s=0.004)
+        _run(r, 4)
+    calls = []
+    monkeypatch.setattr(ramp_mod, "braking_speed_scalar",
+                        lambda *a: calls.append(a) or braking_speed(*a))
+    held = []
+    for _ in range(50):
+        r.command_position(0.3, duration_s=0.004)
+        held += _run(r, 4)
+    assert held == [0.3] * 200 and r.vel == 0.0 and r.streaming
+    assert not calls
+    for k in range(50):  # then a step that moves: the law runs again, the stream is followed
+        r.command_position(0.3 + 0.0004 * (k + 1), duration_s=0.004)
+        _run(r, 4)
+    assert calls and r.pos == pytest.approx(0.32, abs=2e-3)

@@ -38,7 +38,7 @@ import http.client
 import logging
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any, Protocol, runtime_checkable
 
 import can
@@ -176,6 +176,10 @@ def is_permanent_open_error(cfg: dict[str, Any], exc: BaseException) -> bool:
 
 def _open_raw(cfg: dict[str, Any]) -> can.BusABC:
     try:
+        if cfg.get("interface") == "remote":  # python-can-remote's protocol, our client (relay_client.py)
+            from redarm_ros.can.relay_client import RelayBus  # noqa: PLC0415 - only for a remote bus
+
+            return RelayBus(**{k: v for k, v in cfg.items() if k != "interface"})
         return can.Bus(ignore_config=True, **cfg)
     except BusError:
         raise
@@ -318,6 +322,29 @@ class ReconnectingBus(can.BusABC):
         bus = self._live("send")
         try:
             bus.send(msg, timeout)
+        except _LOST_ERRORS as exc:
+            raise self._mark_lost(exc, "send") from exc
+        except can.CanError as exc:
+            raise BusError(f"CAN send failed: {exc}") from exc
+
+    def send_many(self, msgs: Sequence[can.Message]) -> None:
+        """Send ``msgs`` in order, in one write where the transport allows (the loopback bus); all are
+        checked before any is sent.
+
+        Raises:
+            InvalidInputError: one of ``msgs`` is malformed (nothing is sent).
+            BusError: as :meth:`send`.
+        """
+        for msg in msgs:
+            check_message(msg)
+        bus = self._live("send")
+        batch = getattr(bus, "send_many", None)
+        try:
+            if batch is not None:
+                batch(msgs)
+            else:
+                for msg in msgs:
+                    bus.send(msg)
         except _LOST_ERRORS as exc:
             raise self._mark_lost(exc, "send") from exc
         except can.CanError as exc:

@@ -154,6 +154,7 @@ _OP_TEXT, _OP_BINARY, _OP_CLOSE, _OP_PING, _OP_PONG = 0x1, 0x2, 0x8, 0x9, 0xA
 _BINARY_MSG = struct.Struct(">dIBB")  # timestamp, arbitration id, dlc, flags (after a type byte of 1)
 _BINARY_TYPE = 1
 _F_EXT, _F_RTR, _F_ERR, _F_FD, _F_BRS, _F_ESI = 0x1, 0x2, 0x4, 0x8, 0x10, 0x20
+_ZERO_KEY = b"\0\0\0\0"
 _MAX_REQUEST_BYTES = 16 * 1024  # an HTTP upgrade request larger than this is refused
 _MAX_WS_PAYLOAD = 64 * 1024  # a WebSocket message larger than this ends the connection
 _RECV_BYTES = 64 * 1024
@@ -433,9 +434,11 @@ class _Relay:
             total = head + (4 if masked else 0) + length
             if n < total:
                 break
-            if masked:
+            if masked and buf[pos + head:pos + head + 4] != _ZERO_KEY:
                 mask = bytes(buf[pos + head:pos + head + 4])
                 payload = _unmask(bytes(buf[pos + head + 4:pos + total]), mask)
+            elif masked:  # the all-zero key (our own clients, see relay_client): nothing to undo
+                payload = bytes(buf[pos + head + 4:pos + total])
             else:
                 payload = bytes(buf[pos + head:pos + total])
             pos += total

@@ -392,6 +392,8 @@ class ReferenceShaper(LimitsView):  # lower/upper: the joint limits inset by the
         from its velocity now; None before the first step."""
         if self.r is None:
             return None
+        if not self.v.any():  # at rest (most cycles of a held arm): where it is, as the law below gives
+            return self.r.copy()
         a = self.limits.max_acc
         # the discrete law's own distance from the next step's speed (|v| braked by a dt): the
         # braking step then lands on this point exactly, with no overshoot to come back from
@@ -412,6 +414,12 @@ class ReferenceShaper(LimitsView):  # lower/upper: the joint limits inset by the
         lim, dt = self.limits, self.dt
         a, vmax = lim.max_acc, lim.max_vel
         g = lim.clip(target)
+        g_prev = self._g_prev
+        if not self.v.any() and np.array_equal(g, self.r) and (g_prev is None or np.array_equal(g, g_prev)):
+            # At rest on a target that stands still (a held arm, 250 times a second): the law below
+            # gives the same reference and zero velocity; skip its few dozen array operations.
+            self._g_prev = g
+            return self.r.copy()
         h = dt if elapsed is None else max(float(elapsed), 0.25 * dt)
         u = np.zeros_like(g) if self._g_prev is None else np.clip((g - self._g_prev) / h, -vmax, vmax)
         self._g_prev = g

@@ -64,13 +64,19 @@ from redarm_ros.procs import die_with_parent_preexec
 
 _LOG = logging.getLogger(__name__)
 
-__all__ = ["DEFAULT_SAMPLE_RATE_HZ", "DriverProcess", "DriverSpec", "SampleThrottle", "build_loop"]
+__all__ = ["DEFAULT_SAMPLE_RATE_HZ", "DEFAULT_STILL_SAMPLE_RATE_HZ", "DriverProcess", "DriverSpec",
+           "SampleThrottle", "build_loop"]
 
 #: Samples that may wait for the parent; beyond that new ones are dropped (counted).
 SAMPLE_QUEUE = 256
 #: Default rate (Hz) of the samples handed on (the node's /joint_states): every cycle is more than a
 #: controller at 100 Hz or a viewer needs, and each sample costs a message in every subscriber.
 DEFAULT_SAMPLE_RATE_HZ = 100.0
+#: Default rate (Hz) of the samples handed on while the arm stands still: a heartbeat that shows the
+#: driver alive (and fresh to a stale-state check) without costing every subscriber 100 messages/s.
+DEFAULT_STILL_SAMPLE_RATE_HZ = 10.0
+#: A joint that moved less than this (rad) since the last sample handed on stands still.
+STILL_EPSILON_RAD = 1e-5
 
 
 @dataclass(frozen=True)
@@ -94,6 +100,7 @@ class DriverSpec:
     plausibility_margin_rad: float = DEFAULT_PLAUSIBILITY_MARGIN
     realtime_priority: int = 0
     sample_rate_hz: float = 0.0  # samples handed on per second (0: every cycle)
+    still_sample_rate_hz: float = 0.0  # ... while the arm stands still (0: as sample_rate_hz)
 
     @property
     def n(self) -> int:
@@ -125,8 +132,9 @@ def build_loop(
         )
 
     opener = open_bus if open_bus is not None else (lambda: _open_bus(**spec.can_kwargs))
-    if on_sample is not None and spec.sample_rate_hz > 0.0:
-        on_sample = SampleThrottle(spec.sample_rate_hz, spec.loop.rate_hz).wrap(on_sample)
+    if on_sample is not None and (spec.sample_rate_hz > 0.0 or spec.still_sample_rate_hz > 0.0):
+        on_sample = SampleThrottle(spec.sample_rate_hz, spec.loop.rate_hz,
+                                   spec.still_sample_rate_hz).wrap(on_sample)
     kwargs: dict[str, Any] = {"on_sample": on_sample, "on_state": on_state}
     if log is not None:
         kwargs["log"] = log
@@ -134,29 +142,57 @@ def build_loop(
 
 
 class SampleThrottle:
-    """Hands on cycle samples at ``rate_hz`` on average (by their stamps), from a loop at ``cycle_hz``.
+    """Hands on cycle samples at ``rate_hz`` on average (by their stamps), from a loop at ``cycle_hz``;
+    while the cycle runs and the arm stands still, at ``still_rate_hz`` only (0: always at ``rate_hz``).
 
     A sample is due half a cycle before its time, so a rate that is no divisor of the cycle's is kept
     on average (100 Hz from 250 Hz: 8 and 12 ms apart in turn); after a gap the schedule restarts.
+    Standing still: no position moved by more than :data:`STILL_EPSILON_RAD` and the target did not
+    change since the last sample handed on. The first sample that moved goes on at the full rate's
+    schedule again, so a motion is seen within one full-rate period.
     """
 
-    def __init__(self, rate_hz: float, cycle_hz: float) -> None:
-        self.period = 1.0 / rate_hz
+    def __init__(self, rate_hz: float, cycle_hz: float, still_rate_hz: float = 0.0) -> None:
+        self.period = 1.0 / rate_hz if rate_hz > 0.0 else 0.0
+        self.still_period = 1.0 / still_rate_hz if still_rate_hz > 0.0 else 0.0
         self._slack = 0.5 / cycle_hz
         self._next: float | None = None
+        self._last_sent: float | None = None
+        self._last_q: np.ndarray | None = None
+        self._last_target: np.ndarray | None = None
 
-    def due(self, stamp: float) -> bool:
-        """True if the sample stamped ``stamp`` (s) is to be handed on."""
+    def _still(self, positions: np.ndarray | None, target: np.ndarray | None) -> bool:
+        q0, target0 = self._last_q, self._last_target
+        if positions is None or target is None or q0 is None or target0 is None:
+            return False  # polls (no target) keep their own rate
+        if q0.shape != positions.shape:
+            return False
+        if not np.array_equal(target, target0):
+            return False
+        return float(np.max(np.abs(positions - q0))) <= STILL_EPSILON_RAD
+
+    def due(self, stamp: float, positions: np.ndarray | None = None,
+            target: np.ndarray | None = None) -> bool:
+        """True if the sample stamped ``stamp`` (s), measuring ``positions`` (rad) while sending
+        ``target`` (rad; None when polling), is to be handed on (without positions: as moving)."""
         nxt = self._next
         if nxt is not None and stamp < nxt - self._slack:
             return False
+        last = self._last_sent
+        if self.still_period > self.period and last is not None and stamp - last < self.still_period \
+                - self._slack and self._still(positions, target):
+            return False
         self._next = stamp + self.period if nxt is None or stamp - nxt > self.period else nxt + self.period
+        self._last_sent = stamp
+        if positions is not None:
+            self._last_q = np.array(positions, dtype=float)
+            self._last_target = None if target is None else np.array(target, dtype=float)
         return True
 
     def wrap(self, on_sample: Callable[[CycleSample], None]) -> Callable[[CycleSample], None]:
         """``on_sample`` called only for the samples that are due."""
         def throttled(s: CycleSample) -> None:
-            if self.due(s.stamp):
+            if self.due(s.stamp, s.positions, s.target):
                 on_sample(s)
 
         return throttled

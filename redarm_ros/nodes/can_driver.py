@@ -61,7 +61,13 @@ from redarm_ros.can.driver_loop import (
     LoopSnapshot,
     LoopState,
 )
-from redarm_ros.can.driver_process import DEFAULT_SAMPLE_RATE_HZ, DriverProcess, DriverSpec, build_loop
+from redarm_ros.can.driver_process import (
+    DEFAULT_SAMPLE_RATE_HZ,
+    DEFAULT_STILL_SAMPLE_RATE_HZ,
+    DriverProcess,
+    DriverSpec,
+    build_loop,
+)
 from redarm_ros.errors import ConfigError, InvalidInputError, RedarmError
 from redarm_ros.kinematics import load_arm_or_urdf
 from redarm_ros.nodes._common import (
@@ -121,6 +127,9 @@ PARAMS = [
     ParamSpec("rate_hz", 250.0, "Cycle rate of the FSTEP stream (Hz).", read_only=True, range=(1.0, 1000.0)),
     ParamSpec("joint_states_rate_hz", DEFAULT_SAMPLE_RATE_HZ, "Rate of /joint_states while the cycle runs "
               "(Hz, at most the cycle rate; 0 = every cycle).", read_only=True, range=(0.0, 1000.0)),
+    ParamSpec("joint_states_still_rate_hz", DEFAULT_STILL_SAMPLE_RATE_HZ, "Rate of /joint_states while the "
+              "cycle runs and no joint moves (Hz; back to joint_states_rate_hz on motion; 0 = no slowing).",
+              read_only=True, range=(0.0, 1000.0)),
     ParamSpec("poll_hz", 10.0, "State polling rate while not running (idle/halted), Hz.", read_only=True,
               range=(0.5, 100.0)),
     ParamSpec("can.interface", "", "python-can interface (empty: CAN_INTERFACE / config files).",
@@ -270,6 +279,7 @@ class CanDriverNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
             watchdog=bool(p["watchdog"]), plausibility_margin_rad=float(p["plausibility_margin_rad"]),
             realtime_priority=int(p["realtime_priority"]),
             sample_rate_hz=float(p["joint_states_rate_hz"]),
+            still_sample_rate_hz=float(p["joint_states_still_rate_hz"]),
         )
         # Wiring: publishers, subscriptions, services, timers. Nothing runs until the start timer.
         self._js_pub = self.create_publisher(JointState, "joint_states", QoSProfile(depth=10))

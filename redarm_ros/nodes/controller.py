@@ -412,9 +412,12 @@ class ControllerNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
         self._t_meas = time.monotonic()
         self._cmd_clock.joint_state(msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9, self._now())
         # A short history tells a halted arm (not moving) from one that merely lags the command.
-        self._meas_hist.append((self._t_meas, q))
-        while self._meas_hist and self._t_meas - self._meas_hist[0][0] > STILL_WINDOW_S:
-            self._meas_hist.pop(0)
+        # The one sample at or before the window's start stays: at a still arm's low rate of joint_states
+        # (or the driver's polls) the history still spans the whole window.
+        hist = self._meas_hist
+        hist.append((self._t_meas, q))
+        while len(hist) > 1 and self._t_meas - hist[1][0] >= STILL_WINDOW_S:
+            hist.pop(0)
         if self.idle and self._idle_q_meas is not None and \
                 float(np.max(np.abs(q - self._idle_q_meas))) > IDLE_WAKE_RAD:
             self.wake()

@@ -34,6 +34,7 @@ converted to the kinematics core's (w, x, y, z) in :func:`pose_msg_to_matrix`.
 
 from __future__ import annotations
 
+import collections
 import math
 import threading
 from collections.abc import Sequence
@@ -41,6 +42,7 @@ from typing import Any
 
 import yaml
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.serialization import deserialize_message
 from redarm_interfaces.srv import SolveIK
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
@@ -68,6 +70,8 @@ from redarm_ros.nodes.description import DESCRIPTION_QOS
 __all__ = ["IKServiceNode", "IKFrontEnd", "IKAnswer", "main"]  # IKFrontEnd / IKAnswer: re-exported
 
 NODE_NAME = "ik_service"
+#: joint_states messages kept (serialized) for the seed: the newest of each of a few publishers.
+JOINT_STATES_KEPT = 4
 
 # IKStatus of the kinematics core -> SolveIK response code.
 _STATUS_CODE = {
@@ -243,9 +247,12 @@ class IKServiceNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
         self.srv = None
         self.last_seed_source = ""  # request, joint_states or mid-range (see seed_of)
         self._queue_depth = int(p["request_queue_depth"])
-        # The latest measured joint positions by name: the seed of a request that gives none.
-        self.joint_positions: dict[str, float] = {}
-        self.create_subscription(JointState, "joint_states", self._on_joint_states, 10)
+        # The latest measured joint positions by name: the seed of a request that gives none. The
+        # messages are kept serialized and read only when a seed is needed (joint_states come at up to
+        # 100 Hz; seeds are rare): the last few, so that joints published by several sources merge.
+        self._joint_positions: dict[str, float] = {}
+        self._js_raw: collections.deque[bytes] = collections.deque(maxlen=JOINT_STATES_KEPT)
+        self.create_subscription(JointState, "joint_states", self._on_joint_states, 10, raw=True)
         self.placement: Any = None  # the PlacementResult of placement_tasks, once computed
         self._placement_lock = threading.Lock()
         self._closed = False
@@ -322,12 +329,21 @@ class IKServiceNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
         self.srv = self.create_service(SolveIK, "~/solve_ik", self._on_solve, qos_profile=qos)
         self.get_logger().info(self._serving_note)
 
-    def _on_joint_states(self, msg: JointState) -> None:
-        if len(msg.position) != len(msg.name):
-            return  # not a measurement of positions
-        if not self.joint_positions:
+    def _on_joint_states(self, data: bytes) -> None:
+        first = not self._joint_positions
+        self._js_raw.append(data)
+        if first and self.joint_positions:
             self.get_logger().info("empty seeds now use the latest joint_states")
-        self.joint_positions.update(zip(msg.name, (float(v) for v in msg.position), strict=True))
+
+    @property
+    def joint_positions(self) -> dict[str, float]:
+        """The latest measured joint positions by name, from the joint_states received so far."""
+        pending = self._js_raw
+        while pending:  # oldest first: the newest wins
+            msg = deserialize_message(pending.popleft(), JointState)
+            if len(msg.position) == len(msg.name):  # else not a measurement of positions
+                self._joint_positions.update(zip(msg.name, (float(v) for v in msg.position), strict=True))
+        return self._joint_positions
 
     def seed_of(self, req: SolveIK.Request) -> tuple[list[float], str]:
         """The seed for ``req`` and where it came from: the request's own (``request``), the latest
@@ -339,8 +355,9 @@ class IKServiceNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
             names = self.front.arm_for(req.arm).joint_names
         except InvalidInputError:
             return [], "mid-range"  # the solve answers the unknown arm
-        if names and all(n in self.joint_positions for n in names):
-            return [self.joint_positions[n] for n in names], "joint_states"
+        positions = self.joint_positions
+        if names and all(n in positions for n in names):
+            return [positions[n] for n in names], "joint_states"
         return [], "mid-range"
 
     def _start_placement(self, path: str) -> None:

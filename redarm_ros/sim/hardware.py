@@ -66,6 +66,7 @@ MAX_BURST = 50  # steps caught up at once; a larger backlog is dropped (resync)
 REST_BATCH = 10
 REST_SPEED_RAD_S = 1e-4
 CONTROL_POLL_S = 0.05
+OUTBOX_MAX = 64  # replies queued while requests keep coming are sent once this many wait
 SWITCH_INTERVAL_S = 5e-4
 OVERRUN_REPORT_S = 5.0  # log late steps at most this often
 # With real-time priority the physics loop must never keep a core: if it has not slept for this
@@ -196,6 +197,7 @@ class HardwareSim:
         self._lock = threading.RLock()
         self._pending: list[tuple[float, int, can.Message, float]] = []  # delayed: (due, seq, msg, t_rx)
         self._seq = 0
+        self._outbox: list[tuple[can.Message, float]] = []  # replies not sent yet: (msg, t_rx)
         self._decoder = pc.FrameDecoder()
         self._last_wire: float | None = None
         self._last_empty = time.monotonic()  # the bus thread last found nothing to read
@@ -261,18 +263,38 @@ class HardwareSim:
 
     # -- bus side -------------------------------------------------------------------------------------
     def _send(self, msg: can.Message, t_rx: float) -> None:
-        try:
-            self.bus.send(msg)
-        except (BusError, can.CanError, OSError) as exc:
-            self.counters.send_errors += 1
-            _LOG.warning("reply not sent: %r", exc)
+        """Queue a reply; :meth:`_flush_out` sends the queue once no request waits to be read (a cycle's
+        requests come in one burst: their replies go out in one write)."""
+        self._outbox.append((msg, t_rx))
+        if len(self._outbox) >= OUTBOX_MAX:
+            self._flush_out()
+
+    def _flush_out(self) -> None:
+        out = self._outbox
+        if not out:
             return
+        msgs = [m for m, _ in out]
+        batch = getattr(self.bus, "send_many", None)
         c = self.counters
-        c.replies_tx += 1
-        lat = (time.monotonic() - t_rx) * 1e3
-        c.reply_latency_sum_ms += lat
-        if lat > c.reply_latency_max_ms:
-            c.reply_latency_max_ms = lat
+        try:
+            if batch is not None:
+                batch(msgs)
+            else:
+                for m in msgs:
+                    self.bus.send(m)
+        except (BusError, can.CanError, OSError) as exc:
+            c.send_errors += len(out)
+            out.clear()
+            _LOG.warning("replies not sent: %r", exc)
+            return
+        now = time.monotonic()
+        c.replies_tx += len(out)
+        for _, t_rx in out:
+            lat = (now - t_rx) * 1e3
+            c.reply_latency_sum_ms += lat
+            if lat > c.reply_latency_max_ms:
+                c.reply_latency_max_ms = lat
+        out.clear()
 
     def _flush_pending(self, now: float) -> None:
         while self._pending and self._pending[0][0] <= now:
@@ -356,6 +378,7 @@ class HardwareSim:
                 # Tick only once the queue is drained: after this thread waited for the CPU, frames
                 # that already arrived must refresh the modules' watchdogs before they are checked.
                 self._tick(now)
+                self._flush_out()
             timeout = 0.0 if backlog else 0.01
             if self._pending:
                 timeout = max(0.0, min(timeout, self._pending[0][0] - now))
@@ -378,6 +401,7 @@ class HardwareSim:
         self.counters.bus_lost += 1
         _LOG.warning("CAN bus error: %r; reopening in %.2f s", exc, delay)
         self._pending.clear()  # replies to a dead connection are stale
+        self._outbox.clear()
         if self._stop.wait(delay):
             return
         reopen = getattr(self.bus, "reopen", None)

@@ -319,6 +319,13 @@ class JointRamp:
             if settled and abs(self.target - self.pos) <= SNAP_POS and abs(v) <= dv:
                 self.pos = self.target
                 return self._idle()
+            if ff == 0.0 and v == 0.0 and self._streaming and self.ref == self.pos \
+                    and self._host[0] == self.pos and self._host[1] == 0.0:
+                # A stream that holds still (a host holding the arm sends the same step every cycle):
+                # reference, error, fence and every speed below are zero, so the setpoint stays where
+                # it is; skip the law's evaluation (7 joints at 1 kHz are most of a held arm's cost).
+                self.vel = 0.0
+                return self.pos
             v_des = ff + math.copysign(braking_speed_scalar(abs(err), a, dt), err)
             if ff != 0.0:
                 # Never overtake the reference: stay slow enough to stop where the reference could
