@@ -185,13 +185,9 @@ class Client:
         return msg
 
     def move_joints(self, names: list[str], q: tuple[float, ...], duration_s: float) -> None:
-        from builtin_interfaces.msg import Duration
-        from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+        from redarm_ros.nodes._common import joint_trajectory
 
-        sec = int(duration_s)
-        pt = JointTrajectoryPoint(positions=[float(v) for v in q],
-                                  time_from_start=Duration(sec=sec, nanosec=int((duration_s - sec) * 1e9)))
-        self.cmd_pub.publish(JointTrajectory(joint_names=names, points=[pt]))
+        self.cmd_pub.publish(joint_trajectory(names, q, duration_s))
 
     def close(self) -> None:
         self.stop_event.set()

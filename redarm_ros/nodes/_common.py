@@ -464,6 +464,17 @@ def run_node(
     return code
 
 
+def joint_trajectory(names: Sequence[str], q: Sequence[float], duration_s: float) -> Any:
+    """A one-point ``trajectory_msgs/JointTrajectory``: ``names`` to ``q`` (rad) in ``duration_s`` (s)."""
+    from builtin_interfaces.msg import Duration
+    from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+
+    sec = int(duration_s)
+    pt = JointTrajectoryPoint(positions=[float(v) for v in q],
+                              time_from_start=Duration(sec=sec, nanosec=int((duration_s - sec) * 1e9)))
+    return JointTrajectory(joint_names=list(names), points=[pt])
+
+
 def pose_msg_to_matrix(pose: Pose, quaternion_tolerance: float) -> np.ndarray:
     """4x4 base->tool transform from a geometry_msgs/Pose (quaternion x, y, z, w).
 
