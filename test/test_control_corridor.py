@@ -7,11 +7,19 @@ import math
 
 import numpy as np
 
-from redarm_ros.control.corridor_route import CorridorRoute, min_jerk, min_jerk_inverse, plan_route
+from redarm_ros.control.corridor_route import (
+    CorridorRoute,
+    min_jerk,
+    min_jerk_inverse,
+    plan_route,
+    route_duration,
+    route_pace,
+)
 from redarm_ros.control.make import make_controller
 from redarm_ros.control.params import ControllerParams
 from redarm_ros.control.reach_controller import Phase
 from redarm_ros.kinematics import load_arm
+from redarm_ros.kinematics.corridor import SwivelCorridor
 
 
 def test_min_jerk_profile_and_its_inverse():
@@ -45,6 +53,7 @@ def test_a_goal_with_a_corridor_goes_straight():
     assert ctl._st.route is not None  # noqa: SLF001 (planned once, at the goal)
     P, phases, messages, r = run_to_rest(ctl, T)
     assert r.phase is Phase.REACHED and Phase.REPLANNING not in phases
+    assert ctl._st.route is None  # noqa: SLF001 (REACHED only once the route's tail has run out)
     assert "straight through the swivel corridor" in messages
     d = np.linalg.norm(P[-1] - P[0])
     assert np.sum(np.linalg.norm(np.diff(P, axis=0), axis=1)) / d <= 1.02
@@ -70,3 +79,36 @@ def test_route_progress_of_a_pose():
     route = CorridorRoute((0.0, 0.0, 0.0), (1.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.5), None, 1.0)
     pos, rot = route.pose(0.25)
     assert math.isclose(route.progress_of(pos, rot), 0.25)
+
+
+def _swinging_corridor() -> SwivelCorridor:
+    """A schedule whose joint 1 swings 2 rad within u 0.45..0.55 (as where the line passes near the
+    shoulder singularity) and stands elsewhere; the other joints stand."""
+    u = np.linspace(0.0, 1.0, 101)
+    q = np.zeros((101, 7))
+    q[:, 0] = 2.0 * np.clip((u - 0.45) / 0.1, 0.0, 1.0)
+    return SwivelCorridor(True, u, np.zeros(101), q, 0, 1.0, 0.5, None, "", 0.2)
+
+
+def test_the_pace_slows_the_hand_only_where_the_joints_swing():
+    """Joint 1 swinging fast over a tenth of the route: the paced route takes at most half the time of
+    the route paced by u (every stretch as slow as the swing), and its progress moves slowly through
+    the swing and fast elsewhere."""
+    cor = _swinging_corridor()
+    vel, acc = np.ones(7), np.full(7, 2.0)
+    args = (cor, 0.5, 0.0, 0.4, 1.5, 1.0, vel)
+    pace_u = route_pace(*args)
+    assert pace_u[0] == 0.0 and pace_u[-1] == 1.0 and np.all(np.diff(pace_u) > 0.0)
+    paced = route_duration(*args, acc, 0.7, pace_u)
+    by_u = route_duration(*args, acc, 0.7)
+    assert paced <= 0.5 * by_u, (paced, by_u)
+    route = CorridorRoute((0.0, 0.0, 0.0), (0.5, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0), cor, paced,
+                          pace_u=pace_u)
+    t_swing = route.time_at(0.55) - route.time_at(0.45)
+    assert t_swing > 0.3 * paced  # a tenth of the line, a third of the time or more
+    for t in (0.1, 0.4, 0.8):
+        assert math.isclose(route.time_at(route.progress_at(t * paced)), t * paced, abs_tol=1e-6)
+    # joint 1 within (about) its share of the velocity limit along the paced profile, stepped at 10 ms
+    ts = np.arange(0.0, paced + 1e-9, 0.01)
+    q1 = np.interp([route.progress_at(t) for t in ts], cor.u, cor.q[:, 0])
+    assert np.max(np.abs(np.diff(q1))) / 0.01 <= 0.75  # share 0.7, checked on PACE_SAMPLES samples

@@ -13,7 +13,7 @@ import numpy as np
 
 from redarm_ros.control.attractor import direction, heading_angles
 from redarm_ros.control.base import SMALL_SCENE, ControllerBase
-from redarm_ros.control.corridor_route import min_jerk, min_jerk_inverse, plan_route
+from redarm_ros.control.corridor_route import plan_route
 from redarm_ros.control.elbow import ElbowCircle, elbow_circle
 from redarm_ros.control.ik_step import DeadEnd, pose_matrix
 from redarm_ros.control.joint_limits import braking_speed
@@ -127,19 +127,21 @@ class AttractorMixin(ControllerBase):
                 return st.ref.s_des
 
         rp = p.replan
-        route, why = plan_route(self.arm, T0, T, st.ref.q, None, rp.corridor_sing_margin,
-                                rp.corridor_limit_margin, p.speed.v_max, p.max_ori_rate, p.swivel.max_rate,
-                                self._max_vel, self._max_acc, rp.corridor_share)
-        if route is None:
-            return why
+        # the longest route taken: a straight route is worth more patience than the attractor's route.
+        # A route slower than that in u is paced (it slows where joints 1 and 3 swing near a singularity)
         q_near, _ = self.arm.ik_nearest(T, st.ref.q)
+        t_most = math.inf
         if q_near is not None:
             t_joint = move_time(np.asarray(q_near, float) - st.ref.q, self._max_vel, self._max_acc)
-            if route.duration > max(2.0 * rp.slow_route * t_joint, t_joint + 8.0):
-                # (a schedule that must keep near a singularity margin turns joints 1 and 3 fast, and the
-                # hand crawls; a straight route is worth more patience than the attractor's route)
-                return (f"its route needs {route.duration:.1f} s of joint motion, a joint-space move "
-                        f"{t_joint:.1f} s")
+            t_most = max(2.0 * rp.slow_route * t_joint, t_joint + 8.0)
+        route, why = plan_route(self.arm, T0, T, st.ref.q, None, rp.corridor_sing_margin,
+                                rp.corridor_limit_margin, p.speed.v_max, p.max_ori_rate, p.swivel.max_rate,
+                                self._max_vel, self._max_acc, rp.corridor_share, pace_after=t_most)
+        if route is None:
+            return why
+        if route.duration > t_most:
+            return (f"its route needs {route.duration:.1f} s of joint motion, a joint-space move "
+                    f"{t_joint:.1f} s")
         st.route = route
         st.progress.due = st.time + p.replan.overdue_factor * route.duration + p.replan.overdue_slack
         st.att.v, st.att.a, st.att.turn, st.att.v_cap = 0.0, 0.0, (0.0, 0.0), None
@@ -161,7 +163,7 @@ class AttractorMixin(ControllerBase):
             route.t_moved = st.time
         t_before = route.t
         route.t = min(route.t + dt, route.duration)
-        u = min_jerk(route.t / route.duration)
+        u = route.progress_at(route.t)
         new_pos, new_rot = route.pose(u)
         s_goal = wrap_angle(route.corridor.swivel_at(u))
 
@@ -181,7 +183,7 @@ class AttractorMixin(ControllerBase):
             # the step was shortened (a joint limit of speed) or the swivel moved off the schedule: the
             # profile's clock goes back to the progress reached
             u_now = route.progress_of(out.pos, out.rot)
-            route.t = route.duration * min_jerk_inverse(u_now)
+            route.t = route.time_at(u_now)
         if route.t > t_before + 1e-9 or route.t >= route.duration:
             route.t_moved = st.time
         elif st.time - route.t_moved >= self.params.replan.hold_time:

@@ -642,13 +642,16 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
         :data:`SETTLE_DWELL_S` anyway (held by the joint limits). So REACHED neither flickers while the
         command catches up nor comes while the elbow still has to swing to its swivel (after a
         joint-space move the joints stop first, then the swivel dynamics turns the elbow). The elbow's
-        last slow approach (below that rate; a self-motion: the tool stands) may go on after REACHED.
+        last slow approach (below that rate; a self-motion: the tool stands) may go on after REACHED; a
+        corridor route's tail may not (it moves the hand).
         ``slack`` scales the rate thresholds; with ``slack`` > 1 (REACHED) the wanted rate counts only
         once it has lasted :data:`WANT_HOLD_S`."""
         st = self._state()
         p = self.params
         goal = st.goal
         assert goal is not None
+        if st.route is not None:  # the corridor route's tail (within the tolerance) still moves the hand
+            return False
         if math.dist(st.ref.pos, goal.pos) > p.pos_tolerance or \
                 quat_angle(st.ref.rot, goal.rot) > p.ori_tolerance:
             return False
