@@ -60,6 +60,23 @@ def test_a_goal_with_a_corridor_goes_straight():
     assert np.all(ctl.q >= arm.lower) and np.all(ctl.q <= arm.upper)
 
 
+def test_a_goal_whose_corridor_is_refused_says_which_route_and_why():
+    """The corridor route timed at 1 % of the joint limits is far slower than a joint-space move: the
+    goal goes to the attractor dynamics (its straight-route check passes), and the state says so and
+    why while the arm moves."""
+    arm = load_arm("pa10")
+    params = ControllerParams.from_dict({"replan": {"corridor": True, "corridor_share": 0.01}})
+    ctl = make_controller(arm, params=params)
+    q0 = np.array(arm.park, float)
+    ctl.reset(q0)
+    assert ctl.set_goal(arm.fk(q0 + np.array([0.5, 0.3, -0.2, -0.4, 0.3, 0.2, 0.4]))).accepted
+    assert ctl._st.route is None  # noqa: SLF001
+    r = ctl.step(0.01)
+    assert r.phase is Phase.REACHING
+    assert r.message.startswith("attractor dynamics, no swivel corridor: its route needs"), r.message
+    assert "a joint-space move" in r.message
+
+
 def test_a_route_without_a_corridor_says_why():
     """PowerCube 7: a route that would fold the elbow beyond joint 4's limit at every swivel has no
     corridor route, and the reason names the closing corridor and the joint."""

@@ -70,6 +70,8 @@ from redarm_ros.kinematics.urdf_chain import capsules_from_urdf
 
 LOG = logging.getLogger(__name__)
 SETTLING = "at the goal; the elbow is settling on its preferred swivel"
+#: the message of a point goal without a swivel corridor whose straight route the attractor takes
+NO_CORRIDOR = "attractor dynamics, no swivel corridor"
 #: s a swivel must stand (below settle_swivel_rate) while its dynamics asks to move, to count as settled
 SETTLE_DWELL_S = 0.3
 #: s the elbow's wanted rate must stay above REACHED's threshold to make REACHED leave: near a joint
@@ -525,6 +527,8 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
         if reason:
             self._start_plan(f"{reason} (no swivel corridor: {no_corridor})" if no_corridor else reason)
             return
+        if no_corridor:
+            st.message = f"{NO_CORRIDOR}: {no_corridor}"
         if st.mode is not Mode.ATTRACTOR:
             st.mode = Mode.ATTRACTOR
             self._enter_attractor()
@@ -631,7 +635,7 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
                 st.message = ""
         else:
             st.phase = Phase.REACHING
-            if at_goal and not st.message:
+            if at_goal and (not st.message or st.message.startswith(NO_CORRIDOR)):
                 st.message = SETTLING
 
     def _settled(self, slack: float = 1.0) -> bool:
