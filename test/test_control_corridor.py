@@ -4,6 +4,7 @@ minimum-jerk pace where a corridor exists, the joint-space re-planner with the r
 from __future__ import annotations
 
 import math
+import threading
 
 import numpy as np
 
@@ -28,6 +29,15 @@ def test_min_jerk_profile_and_its_inverse():
         assert abs(min_jerk(min_jerk_inverse(u)) - u) < 1e-9
 
 
+def wait_for_plan(ctl):
+    """Wait for the worker thread's corridor plan (no wall-clock race in the tests), then step once:
+    that step takes the route or the fallback. Returns its result."""
+    plan = ctl._st.corridor_plan  # noqa: SLF001
+    assert plan is not None
+    plan.result(timeout=120)
+    return ctl.step(0.01)
+
+
 def run_to_rest(ctl, T, steps=3000):
     pos, phases, messages = [np.asarray(ctl.arm.fk(ctl.q))[:3, 3]], set(), set()
     for _ in range(steps):
@@ -50,7 +60,9 @@ def test_a_goal_with_a_corridor_goes_straight():
     ctl.reset(q0)
     T = arm.fk(q0 + np.array([0.5, 0.3, -0.2, -0.4, 0.3, 0.2, 0.4]))
     assert ctl.set_goal(T).accepted
-    assert ctl._st.route is not None  # noqa: SLF001 (planned once, at the goal)
+    assert ctl._st.message == "planning the straight route through the swivel corridor"  # noqa: SLF001
+    wait_for_plan(ctl)
+    assert ctl._st.route is not None  # noqa: SLF001 (planned once, for the goal)
     P, phases, messages, r = run_to_rest(ctl, T)
     assert r.phase is Phase.REACHED and Phase.REPLANNING not in phases
     assert ctl._st.route is None  # noqa: SLF001 (REACHED only once the route's tail has run out)
@@ -70,8 +82,8 @@ def test_a_goal_whose_corridor_is_refused_says_which_route_and_why():
     q0 = np.array(arm.park, float)
     ctl.reset(q0)
     assert ctl.set_goal(arm.fk(q0 + np.array([0.5, 0.3, -0.2, -0.4, 0.3, 0.2, 0.4]))).accepted
+    r = wait_for_plan(ctl)
     assert ctl._st.route is None  # noqa: SLF001
-    r = ctl.step(0.01)
     assert r.phase is Phase.REACHING
     assert r.message.startswith("attractor dynamics, no swivel corridor: its route needs"), r.message
     assert "a joint-space move" in r.message
@@ -129,3 +141,30 @@ def test_the_pace_slows_the_hand_only_where_the_joints_swing():
     ts = np.arange(0.0, paced + 1e-9, 0.01)
     q1 = np.interp([route.progress_at(t) for t in ts], cor.u, cor.q[:, 0])
     assert np.max(np.abs(np.diff(q1))) / 0.01 <= 0.75  # share 0.7, checked on PACE_SAMPLES samples
+
+
+def test_the_arm_holds_while_the_corridor_is_planned():
+    """The route is planned in a worker thread: the step returns at once, the arm holding at rest and the
+    goal REACHING (the progress watch waits), until the plan is there; a stop drops it."""
+    arm = load_arm("pa10")
+    ctl = make_controller(arm, params=ControllerParams.from_dict({"replan": {"corridor": True}}))
+    q0 = np.array(arm.park, float)
+    ctl.reset(q0)
+    gate = threading.Event()
+    job = ctl._corridor_job  # noqa: SLF001
+
+    def held_job(T):
+        run = job(T)
+        return lambda: (gate.wait(60), run())[1]
+
+    ctl._corridor_job = held_job  # noqa: SLF001 (the plan finishes only when the test says so)
+    assert ctl.set_goal(arm.fk(q0 + np.array([0.5, 0.3, -0.2, -0.4, 0.3, 0.2, 0.4]))).accepted
+    for _ in range(150):  # 1.5 s: longer than the progress watch's stall time
+        r = ctl.step(0.01)
+        assert r.phase is Phase.REACHING and np.array_equal(r.q, q0), r.message
+    assert r.message == "planning the straight route through the swivel corridor"
+    gate.set()
+    wait_for_plan(ctl)
+    assert ctl._st.route is not None and ctl.step(0.01).phase is Phase.REACHING  # noqa: SLF001
+    ctl.stop()
+    assert ctl._st.corridor_plan is None  # noqa: SLF001
