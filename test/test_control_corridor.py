@@ -168,3 +168,27 @@ def test_the_arm_holds_while_the_corridor_is_planned():
     assert ctl._st.route is not None and ctl.step(0.01).phase is Phase.REACHING  # noqa: SLF001
     ctl.stop()
     assert ctl._st.corridor_plan is None  # noqa: SLF001
+
+
+def test_a_goal_sent_to_the_re_planner_after_the_corridor_plan_keeps_the_command_continuous():
+    """The worker thread finds no corridor worth taking (too slow) and the straight route passes the
+    shoulder singularity: the step that takes the plan hands the goal to the re-planner and commands
+    the arm in that same step (braking it), so joints still moving (an elbow settling after the last
+    goal) do not stop within one step."""
+    arm = load_arm("pa10")
+    ctl = make_controller(arm, params=ControllerParams.from_dict({"replan": {"corridor": True}}))
+    q0 = np.array([0.8620380935781569, -0.8963437758270911, -2.6761380381656896, 0.37568770912873944,
+                   0.3606396759147724, 1.7980185737534031, -0.9225085188112081])
+    T = np.eye(4)
+    T[:3] = [[-0.7864026088844408, 0.15554465084379385, 0.597810001868175, -0.14455671723072971],
+             [0.2676521119540557, 0.9580134846094501, 0.10282271282645966, 0.675608354418444],
+             [-0.5567165200587088, 0.24086515916657866, -0.7950161579448431, 0.7900308303521776]]
+    ctl.reset(q0)
+    qd0 = np.zeros(7)
+    qd0[0] = 0.05  # rad/s, more than joint 1 may lose in one step (2 rad/s^2 * 0.01 s)
+    ctl._st.cmd.qd = qd0.copy()  # noqa: SLF001
+    assert ctl.set_goal(T).accepted
+    r = wait_for_plan(ctl)
+    assert r.phase is Phase.REPLANNING and "no swivel corridor" in r.message, r.message
+    qd1 = (r.q - q0) / 0.01
+    assert np.all(np.abs(qd1 - qd0) <= np.asarray(arm.max_acc) * 0.01 + 1e-9), qd1

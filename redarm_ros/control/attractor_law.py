@@ -225,7 +225,13 @@ class AttractorMixin(ControllerBase):
             st.corridor_plan = None
             assert st.goal is not None
             self._point_goal_route(pose_matrix(st.goal.pos, st.goal.rot), route, why)
+            # this step's command: the planner's (it brakes the arm), or braking onto the reference
+            if st.mode is Mode.PLAN:
+                self._plan_step(dt)
+                return
             if st.mode is not Mode.ATTRACTOR:
+                st.ref.qd = np.zeros_like(st.ref.q)
+                self._track(dt)
                 return
         if st.route is not None:
             self._route_step(dt)
