@@ -19,6 +19,7 @@ from redarm_ros.control.corridor_route import (
 from redarm_ros.control.make import make_controller
 from redarm_ros.control.params import ControllerParams
 from redarm_ros.control.reach_controller import Phase
+from redarm_ros.geometry.obstacles import Scene, Sphere
 from redarm_ros.kinematics import load_arm
 from redarm_ros.kinematics.corridor import SwivelCorridor
 
@@ -192,3 +193,27 @@ def test_a_goal_sent_to_the_re_planner_after_the_corridor_plan_keeps_the_command
     assert r.phase is Phase.REPLANNING and "no swivel corridor" in r.message, r.message
     qd1 = (r.q - q0) / 0.01
     assert np.all(np.abs(qd1 - qd0) <= np.asarray(arm.max_acc) * 0.01 + 1e-9), qd1
+
+
+def test_a_corridor_planned_while_obstacles_came_is_dropped():
+    """Obstacles set while the worker thread plans: the route (planned in free space) is not taken, and
+    the state says why."""
+    arm = load_arm("pa10")
+    ctl = make_controller(arm, params=ControllerParams.from_dict({"replan": {"corridor": True}}))
+    q0 = np.array(arm.park, float)
+    ctl.reset(q0)
+    gate = threading.Event()
+    job = ctl._corridor_job  # noqa: SLF001
+
+    def held_job(T):
+        run = job(T)
+        return lambda: (gate.wait(60), run())[1]
+
+    ctl._corridor_job = held_job  # noqa: SLF001
+    assert ctl.set_goal(arm.fk(q0 + np.array([0.5, 0.3, -0.2, -0.4, 0.3, 0.2, 0.4]))).accepted
+    ctl.step(0.01)
+    ctl.set_scene(Scene(obstacles=(Sphere((-0.6, -0.6, 0.3), 0.05),)))
+    gate.set()
+    r = wait_for_plan(ctl)
+    assert ctl._st.route is None  # noqa: SLF001
+    assert "the scene changed while it was planned" in r.message, r.message

@@ -223,6 +223,8 @@ class AttractorMixin(ControllerBase):
                 return
             route, why = st.corridor_plan.result()
             st.corridor_plan = None
+            if route is not None and not self._corridor_asked():  # obstacles came while it was planned
+                route, why = None, "the scene changed while it was planned"
             assert st.goal is not None
             self._point_goal_route(pose_matrix(st.goal.pos, st.goal.rot), route, why)
             # this step's command: the planner's (it brakes the arm), or braking onto the reference
