@@ -179,3 +179,17 @@ def spin_in_background(ex: Any) -> tuple[threading.Event, threading.Thread]:
     th = threading.Thread(target=spin, daemon=True)
     th.start()
     return stop, th
+
+
+def wait_for_corridor_plan(ctl: Any) -> float:
+    """Wait for the controller's corridor plan of the goal just set (its worker thread; the node's arm
+    holds meanwhile) and return the wall time waited (s). In process the steps run faster than real
+    time, so the benches wait instead of stepping through the hold: the move's time counts from the
+    plan, and the planning time is reported on its own."""
+    st = getattr(ctl, "_st", None)
+    plan = getattr(st, "corridor_plan", None)
+    if plan is None:
+        return 0.0
+    t0 = time.perf_counter()
+    plan.result()
+    return time.perf_counter() - t0

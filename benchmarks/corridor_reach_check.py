@@ -28,6 +28,9 @@ from redarm_ros.control.reach_controller import Phase
 from redarm_ros.kinematics import load_arm
 from redarm_ros.kinematics.quaternion import quat_angle, quat_from_matrix
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # bench_common
+import bench_common  # noqa: E402
+
 
 def speed_shape(P: np.ndarray, dt: float) -> tuple[bool, float]:
     """(single-peaked, minimum-jerk deviation / peak) of the tool positions P (k, 3) sampled every dt."""
@@ -46,7 +49,7 @@ def speed_shape(P: np.ndarray, dt: float) -> tuple[bool, float]:
     return single, float(np.sqrt(np.mean((v[a:b] - v_mj) ** 2)) / peak)
 
 
-def run(name: str, moves: int, corridor: bool, seed: int = 11) -> tuple[list[dict], list[float]]:
+def run(name: str, moves: int, corridor: bool, seed: int = 11) -> tuple[list[dict], list[float], list[float]]:
     arm = load_arm(name)
     p = ControllerParams()
     p = p.with_(replan=dataclasses.replace(p.replan, corridor=corridor))
@@ -56,6 +59,7 @@ def run(name: str, moves: int, corridor: bool, seed: int = 11) -> tuple[list[dic
     lo, up = np.asarray(arm.lower), np.asarray(arm.upper)
     rows: list[dict] = []
     step_times: list[float] = []
+    plan_times: list[float] = []
     for _ in range(moves):
         T0 = arm.fk(ctl.q)
         for _try in range(1000):
@@ -65,6 +69,7 @@ def run(name: str, moves: int, corridor: bool, seed: int = 11) -> tuple[list[dic
             if turn <= math.radians(45) and Tg[2, 3] >= 0.15 and far and ctl.check_goal(Tg).accepted:
                 break
         ctl.set_goal(Tg)
+        plan_times.append(bench_common.wait_for_corridor_plan(ctl))
         replanned, why, reached = False, "", False
         pos = [np.asarray(arm.fk(ctl.q))[:3, 3]]
         steps = 0
@@ -84,7 +89,7 @@ def run(name: str, moves: int, corridor: bool, seed: int = 11) -> tuple[list[dic
         single, dev = speed_shape(P, 0.01)
         rows.append({"replanned": replanned, "ratio": ratio, "single": single, "dev": dev, "reached": reached,
                      "why": why, "time": steps * 0.01})
-    return rows, step_times
+    return rows, step_times, [t for t in plan_times if t > 0.0]
 
 
 def summary(rows: list[dict], step_times: list[float]) -> dict[str, float]:
@@ -106,9 +111,12 @@ def summary(rows: list[dict], step_times: list[float]) -> dict[str, float]:
 def main() -> None:
     name, moves, corridor = sys.argv[1], int(sys.argv[2]), sys.argv[3] == "1"
     print("load average", os.getloadavg())
-    rows, step_times = run(name, moves, corridor)
+    rows, step_times, plan_times = run(name, moves, corridor)
     print(name, "corridor" if corridor else "without corridor",
           {k: round(v, 3) for k, v in summary(rows, step_times).items()})
+    if plan_times:
+        print(f"corridor plans (worker thread, not in the step): {len(plan_times)}, median "
+              f"{np.median(plan_times):.2f} s, p90 {np.percentile(plan_times, 90):.2f} s")
     print(Counter(r["why"][:200] for r in rows if r["replanned"]).most_common(8))
 
 

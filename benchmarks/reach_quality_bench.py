@@ -55,7 +55,7 @@ import subprocess
 import sys
 import time
 from collections import Counter
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -187,6 +187,7 @@ class Traj:
     replanned: bool = False
     reason: str = ""
     step_us: tuple[float, ...] = ()
+    plan_s: float = 0.0  # wall time the controller's corridor plan took (its worker thread), 0 if none
 
 
 def run_controller(ctl: ReachController, T: np.ndarray) -> Traj:
@@ -199,6 +200,7 @@ def run_controller(ctl: ReachController, T: np.ndarray) -> Traj:
     replanned, reason = False, ""
     if not check.accepted:
         return Traj(np.array(rows), False, math.nan, False, f"rejected: {check.message}")
+    plan_s = bench_common.wait_for_corridor_plan(ctl)
     reached = False
     for _ in range(int(round(GOAL_TIMEOUT / DT))):
         t0 = time.perf_counter()
@@ -213,7 +215,7 @@ def run_controller(ctl: ReachController, T: np.ndarray) -> Traj:
     if not reached and not reason:
         reason = f"not reached: {r.phase.value} {r.message}"
     return Traj(np.array(rows), reached, (len(rows) - 1) * DT if reached else math.nan, replanned, reason,
-                tuple(steps))
+                tuple(steps), plan_s)
 
 
 def _min_jerk(x: np.ndarray) -> np.ndarray:
@@ -379,6 +381,7 @@ class CaseRun:
     moves: list[Move]
     step_us: list[float]
     reasons: Counter
+    plan_s: list[float] = field(default_factory=list)  # the corridor plans' wall times (s)
 
 
 def _start(arm) -> np.ndarray:
@@ -440,6 +443,8 @@ def run_case(arm, case: str, moves: int, seed: int, params: ControllerParams, ve
                 if method == "controller":
                     tr = run_controller(ctl, T)
                     out.step_us += list(tr.step_us)
+                    if tr.plan_s:
+                        out.plan_s.append(tr.plan_s)
                     if tr.replanned:
                         out.reasons[reason_key(tr.reason)] += 1
                 elif method == "cartesian":
@@ -558,6 +563,10 @@ def report(runs: dict[tuple[str, str], CaseRun], params_note: str) -> list[str]:
         f"{np.median(steps):.0f} us, "
         f"p99 {np.percentile(steps, 99):.0f} us (target: median <= 1 ms; noisy on a shared machine).",
     ]
+    plans = [v for r in runs.values() for v in r.plan_s]
+    if plans:
+        lines[-1] += (" Corridor plans (worker thread, the arm holding; not in the step or the move's time): "
+                      f"{len(plans)}, median {np.median(plans):.2f} s, p90 {np.percentile(plans, 90):.2f} s.")
     return lines
 
 

@@ -4,20 +4,39 @@ minimum-jerk pace where a corridor exists, the joint-space re-planner with the r
 from __future__ import annotations
 
 import math
+import threading
 
 import numpy as np
 
-from redarm_ros.control.corridor_route import CorridorRoute, min_jerk, min_jerk_inverse, plan_route
+from redarm_ros.control.corridor_route import (
+    CorridorRoute,
+    min_jerk,
+    min_jerk_inverse,
+    plan_route,
+    route_duration,
+    route_pace,
+)
 from redarm_ros.control.make import make_controller
 from redarm_ros.control.params import ControllerParams
 from redarm_ros.control.reach_controller import Phase
+from redarm_ros.geometry.obstacles import Scene, Sphere
 from redarm_ros.kinematics import load_arm
+from redarm_ros.kinematics.corridor import SwivelCorridor
 
 
 def test_min_jerk_profile_and_its_inverse():
     assert min_jerk(0.0) == 0.0 and min_jerk(1.0) == 1.0 and abs(min_jerk(0.5) - 0.5) < 1e-12
     for u in (0.01, 0.3, 0.77):
         assert abs(min_jerk(min_jerk_inverse(u)) - u) < 1e-9
+
+
+def wait_for_plan(ctl):
+    """Wait for the worker thread's corridor plan (no wall-clock race in the tests), then step once:
+    that step takes the route or the fallback. Returns its result."""
+    plan = ctl._st.corridor_plan  # noqa: SLF001
+    assert plan is not None
+    plan.result(timeout=120)
+    return ctl.step(0.01)
 
 
 def run_to_rest(ctl, T, steps=3000):
@@ -42,13 +61,33 @@ def test_a_goal_with_a_corridor_goes_straight():
     ctl.reset(q0)
     T = arm.fk(q0 + np.array([0.5, 0.3, -0.2, -0.4, 0.3, 0.2, 0.4]))
     assert ctl.set_goal(T).accepted
-    assert ctl._st.route is not None  # noqa: SLF001 (planned once, at the goal)
+    assert ctl._st.message == "planning the straight route through the swivel corridor"  # noqa: SLF001
+    wait_for_plan(ctl)
+    assert ctl._st.route is not None  # noqa: SLF001 (planned once, for the goal)
     P, phases, messages, r = run_to_rest(ctl, T)
     assert r.phase is Phase.REACHED and Phase.REPLANNING not in phases
+    assert ctl._st.route is None  # noqa: SLF001 (REACHED only once the route's tail has run out)
     assert "straight through the swivel corridor" in messages
     d = np.linalg.norm(P[-1] - P[0])
     assert np.sum(np.linalg.norm(np.diff(P, axis=0), axis=1)) / d <= 1.02
     assert np.all(ctl.q >= arm.lower) and np.all(ctl.q <= arm.upper)
+
+
+def test_a_goal_whose_corridor_is_refused_says_which_route_and_why():
+    """The corridor route timed at 1 % of the joint limits is far slower than a joint-space move: the
+    goal goes to the attractor dynamics (its straight-route check passes), and the state says so and
+    why while the arm moves."""
+    arm = load_arm("pa10")
+    params = ControllerParams.from_dict({"replan": {"corridor": True, "corridor_share": 0.01}})
+    ctl = make_controller(arm, params=params)
+    q0 = np.array(arm.park, float)
+    ctl.reset(q0)
+    assert ctl.set_goal(arm.fk(q0 + np.array([0.5, 0.3, -0.2, -0.4, 0.3, 0.2, 0.4]))).accepted
+    r = wait_for_plan(ctl)
+    assert ctl._st.route is None  # noqa: SLF001
+    assert r.phase is Phase.REACHING
+    assert r.message.startswith("attractor dynamics, no swivel corridor: its route needs"), r.message
+    assert "a joint-space move" in r.message
 
 
 def test_a_route_without_a_corridor_says_why():
@@ -70,3 +109,111 @@ def test_route_progress_of_a_pose():
     route = CorridorRoute((0.0, 0.0, 0.0), (1.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.5), None, 1.0)
     pos, rot = route.pose(0.25)
     assert math.isclose(route.progress_of(pos, rot), 0.25)
+
+
+def _swinging_corridor() -> SwivelCorridor:
+    """A schedule whose joint 1 swings 2 rad within u 0.45..0.55 (as where the line passes near the
+    shoulder singularity) and stands elsewhere; the other joints stand."""
+    u = np.linspace(0.0, 1.0, 101)
+    q = np.zeros((101, 7))
+    q[:, 0] = 2.0 * np.clip((u - 0.45) / 0.1, 0.0, 1.0)
+    return SwivelCorridor(True, u, np.zeros(101), q, 0, 1.0, 0.5, None, "", 0.2)
+
+
+def test_the_pace_slows_the_hand_only_where_the_joints_swing():
+    """Joint 1 swinging fast over a tenth of the route: the paced route takes at most half the time of
+    the route paced by u (every stretch as slow as the swing), and its progress moves slowly through
+    the swing and fast elsewhere."""
+    cor = _swinging_corridor()
+    vel, acc = np.ones(7), np.full(7, 2.0)
+    args = (cor, 0.5, 0.0, 0.4, 1.5, 1.0, vel)
+    pace_u = route_pace(*args)
+    assert pace_u[0] == 0.0 and pace_u[-1] == 1.0 and np.all(np.diff(pace_u) > 0.0)
+    paced = route_duration(*args, acc, 0.7, pace_u)
+    by_u = route_duration(*args, acc, 0.7)
+    assert paced <= 0.5 * by_u, (paced, by_u)
+    route = CorridorRoute((0.0, 0.0, 0.0), (0.5, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0), cor, paced,
+                          pace_u=pace_u)
+    t_swing = route.time_at(0.55) - route.time_at(0.45)
+    assert t_swing > 0.3 * paced  # a tenth of the line, a third of the time or more
+    for t in (0.1, 0.4, 0.8):
+        assert math.isclose(route.time_at(route.progress_at(t * paced)), t * paced, abs_tol=1e-6)
+    # joint 1 within (about) its share of the velocity limit along the paced profile, stepped at 10 ms
+    ts = np.arange(0.0, paced + 1e-9, 0.01)
+    q1 = np.interp([route.progress_at(t) for t in ts], cor.u, cor.q[:, 0])
+    assert np.max(np.abs(np.diff(q1))) / 0.01 <= 0.75  # share 0.7, checked on PACE_SAMPLES samples
+
+
+def test_the_arm_holds_while_the_corridor_is_planned():
+    """The route is planned in a worker thread: the step returns at once, the arm holding at rest and the
+    goal REACHING (the progress watch waits), until the plan is there; a stop drops it."""
+    arm = load_arm("pa10")
+    ctl = make_controller(arm, params=ControllerParams.from_dict({"replan": {"corridor": True}}))
+    q0 = np.array(arm.park, float)
+    ctl.reset(q0)
+    gate = threading.Event()
+    job = ctl._corridor_job  # noqa: SLF001
+
+    def held_job(T):
+        run = job(T)
+        return lambda: (gate.wait(60), run())[1]
+
+    ctl._corridor_job = held_job  # noqa: SLF001 (the plan finishes only when the test says so)
+    assert ctl.set_goal(arm.fk(q0 + np.array([0.5, 0.3, -0.2, -0.4, 0.3, 0.2, 0.4]))).accepted
+    for _ in range(150):  # 1.5 s: longer than the progress watch's stall time
+        r = ctl.step(0.01)
+        assert r.phase is Phase.REACHING and np.array_equal(r.q, q0), r.message
+    assert r.message == "planning the straight route through the swivel corridor"
+    gate.set()
+    wait_for_plan(ctl)
+    assert ctl._st.route is not None and ctl.step(0.01).phase is Phase.REACHING  # noqa: SLF001
+    ctl.stop()
+    assert ctl._st.corridor_plan is None  # noqa: SLF001
+
+
+def test_a_goal_sent_to_the_re_planner_after_the_corridor_plan_keeps_the_command_continuous():
+    """The worker thread finds no corridor worth taking (too slow) and the straight route passes the
+    shoulder singularity: the step that takes the plan hands the goal to the re-planner and commands
+    the arm in that same step (braking it), so joints still moving (an elbow settling after the last
+    goal) do not stop within one step."""
+    arm = load_arm("pa10")
+    ctl = make_controller(arm, params=ControllerParams.from_dict({"replan": {"corridor": True}}))
+    q0 = np.array([0.8620380935781569, -0.8963437758270911, -2.6761380381656896, 0.37568770912873944,
+                   0.3606396759147724, 1.7980185737534031, -0.9225085188112081])
+    T = np.eye(4)
+    T[:3] = [[-0.7864026088844408, 0.15554465084379385, 0.597810001868175, -0.14455671723072971],
+             [0.2676521119540557, 0.9580134846094501, 0.10282271282645966, 0.675608354418444],
+             [-0.5567165200587088, 0.24086515916657866, -0.7950161579448431, 0.7900308303521776]]
+    ctl.reset(q0)
+    qd0 = np.zeros(7)
+    qd0[0] = 0.05  # rad/s, more than joint 1 may lose in one step (2 rad/s^2 * 0.01 s)
+    ctl._st.cmd.qd = qd0.copy()  # noqa: SLF001
+    assert ctl.set_goal(T).accepted
+    r = wait_for_plan(ctl)
+    assert r.phase is Phase.REPLANNING and "no swivel corridor" in r.message, r.message
+    qd1 = (r.q - q0) / 0.01
+    assert np.all(np.abs(qd1 - qd0) <= np.asarray(arm.max_acc) * 0.01 + 1e-9), qd1
+
+
+def test_a_corridor_planned_while_obstacles_came_is_dropped():
+    """Obstacles set while the worker thread plans: the route (planned in free space) is not taken, and
+    the state says why."""
+    arm = load_arm("pa10")
+    ctl = make_controller(arm, params=ControllerParams.from_dict({"replan": {"corridor": True}}))
+    q0 = np.array(arm.park, float)
+    ctl.reset(q0)
+    gate = threading.Event()
+    job = ctl._corridor_job  # noqa: SLF001
+
+    def held_job(T):
+        run = job(T)
+        return lambda: (gate.wait(60), run())[1]
+
+    ctl._corridor_job = held_job  # noqa: SLF001
+    assert ctl.set_goal(arm.fk(q0 + np.array([0.5, 0.3, -0.2, -0.4, 0.3, 0.2, 0.4]))).accepted
+    ctl.step(0.01)
+    ctl.set_scene(Scene(obstacles=(Sphere((-0.6, -0.6, 0.3), 0.05),)))
+    gate.set()
+    r = wait_for_plan(ctl)
+    assert ctl._st.route is None  # noqa: SLF001
+    assert "the scene changed while it was planned" in r.message, r.message

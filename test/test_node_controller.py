@@ -31,7 +31,9 @@ from redarm_ros.geometry.obstacles import Box, Cylinder, Sphere  # noqa: E402
 from redarm_ros.kinematics import load_arm  # noqa: E402
 from redarm_ros.nodes._common import DuplicateNodeError  # noqa: E402
 from redarm_ros.nodes.controller import (  # noqa: E402
+    PARAMS,
     ControllerNode,
+    controller_params,
     marker_to_obstacle,
     obstacle_to_marker,
     pose_to_msg,
@@ -443,6 +445,15 @@ def test_parameters(ctx: Any) -> None:
         assert typo.unknown_parameters == ["prefered_swivel"]
     finally:
         typo.destroy_node()
+
+
+def test_the_corridor_route_is_a_node_parameter() -> None:
+    """``corridor`` (read-only, default the table's false) switches the controller's corridor route."""
+    spec = {p.name: p for p in PARAMS}["corridor"]
+    assert spec.default is False and spec.read_only
+    values = {p.name: p.default for p in PARAMS}
+    assert controller_params(values).replan.corridor is False
+    assert controller_params({**values, "corridor": True}).replan.corridor is True
 
 
 def test_marker_obstacle_round_trip() -> None:

@@ -7,14 +7,15 @@ goes to them or to the joint-space re-planner. Part of
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 
 from redarm_ros.control.attractor import direction, heading_angles
 from redarm_ros.control.base import SMALL_SCENE, ControllerBase
-from redarm_ros.control.corridor_route import min_jerk, min_jerk_inverse, plan_route
-from redarm_ros.control.elbow import ElbowCircle, elbow_circle
+from redarm_ros.control.corridor_route import CorridorRoute, plan_route
+from redarm_ros.control.elbow import ElbowCircle
 from redarm_ros.control.ik_step import DeadEnd, pose_matrix
 from redarm_ros.control.joint_limits import braking_speed
 from redarm_ros.control.paper_redundancy import MODE as PAPER_MODE
@@ -23,7 +24,6 @@ from redarm_ros.control.slide import obstacle_slide, workspace_slide
 from redarm_ros.control.state import REST_SPEED_SHARE, Mode
 from redarm_ros.control.swivel_dynamics import wrap_angle
 from redarm_ros.control.types import Phase, Quat, Vec3
-from redarm_ros.errors import UnreachableError
 from redarm_ros.kinematics.quaternion import (
     quat_between_vectors,
     quat_from_rotvec,
@@ -106,44 +106,54 @@ class AttractorMixin(ControllerBase):
                     f"{t_joint:.1f} s")
         return ""
 
-    def _plan_corridor(self, T: np.ndarray) -> str:
-        """Plan the straight route to the point goal ``T`` through the swivel corridor (once per goal):
-        sets ``st.route`` if there is one. Only with the hand at rest, in free space (the elbow's obstacle
-        avoidance then keeps the attractor dynamics) and with the swivel dynamics in charge of the elbow.
-        Returns why there is no corridor ('' if there is one, or if it was not asked for)."""
+    def _corridor_asked(self) -> bool:
+        """Is a point goal set now planned through the swivel corridor? Only with the hand at rest, in free
+        space (the elbow's obstacle avoidance then keeps the attractor dynamics) and with the swivel
+        dynamics in charge of the elbow."""
         st = self._state()
         p = self.params
         scene = self._index.reach_scene.scene
-        if not p.replan.corridor or p.swivel_mode in ("fixed", PAPER_MODE) or len(scene.obstacles) \
-                or scene.table_height is not None or st.ref.v_tool > 0.01 or st.att.v > 0.01 \
-                or not hasattr(self.arm, "swivel_corridor"):
-            return ""
-        T0 = pose_matrix(st.ref.pos, st.ref.rot)
+        return bool(p.replan.corridor) and p.swivel_mode not in ("fixed", PAPER_MODE) \
+            and not len(scene.obstacles) and scene.table_height is None and st.ref.v_tool <= 0.01 \
+            and st.att.v <= 0.01 and hasattr(self.arm, "swivel_corridor")
 
-        def preferred(_u: float, Tu: np.ndarray) -> float:
-            try:
-                return self._desired_swivel(elbow_circle(self.geom, Tu))
-            except UnreachableError:
-                return st.ref.s_des
-
+    def _corridor_job(self, T: np.ndarray) -> Callable[[], tuple[CorridorRoute | None, str]]:
+        """The planning of the straight route to the point goal ``T`` through the swivel corridor, from
+        the reference as it is now: a function of copies (it runs in the worker thread) that returns the
+        route, or None and why there is none."""
+        st = self._state()
+        p = self.params
         rp = p.replan
-        route, why = plan_route(self.arm, T0, T, st.ref.q, None, rp.corridor_sing_margin,
-                                rp.corridor_limit_margin, p.speed.v_max, p.max_ori_rate, p.swivel.max_rate,
-                                self._max_vel, self._max_acc, rp.corridor_share)
-        if route is None:
-            return why
-        q_near, _ = self.arm.ik_nearest(T, st.ref.q)
-        if q_near is not None:
-            t_joint = move_time(np.asarray(q_near, float) - st.ref.q, self._max_vel, self._max_acc)
-            if route.duration > max(2.0 * rp.slow_route * t_joint, t_joint + 8.0):
-                # (a schedule that must keep near a singularity margin turns joints 1 and 3 fast, and the
-                # hand crawls; a straight route is worth more patience than the attractor's route)
-                return (f"its route needs {route.duration:.1f} s of joint motion, a joint-space move "
-                        f"{t_joint:.1f} s")
+        arm, q0 = self.arm, st.ref.q.copy()
+        T0, T1 = pose_matrix(st.ref.pos, st.ref.rot), np.array(T, float)
+        max_vel, max_acc = self._max_vel.copy(), self._max_acc.copy()
+
+        def job() -> tuple[CorridorRoute | None, str]:
+            # the longest route taken: a straight route is worth more patience than the attractor's
+            # route. A route slower than that in u is paced (it slows where joints 1 and 3 swing near a
+            # singularity)
+            q_near, _ = arm.ik_nearest(T1, q0)
+            t_most, t_joint = math.inf, math.nan
+            if q_near is not None:
+                t_joint = move_time(np.asarray(q_near, float) - q0, max_vel, max_acc)
+                t_most = max(2.0 * rp.slow_route * t_joint, t_joint + 8.0)
+            route, why = plan_route(arm, T0, T1, q0, None, rp.corridor_sing_margin, rp.corridor_limit_margin,
+                                    p.speed.v_max, p.max_ori_rate, p.swivel.max_rate, max_vel, max_acc,
+                                    rp.corridor_share, pace_after=t_most)
+            if route is not None and route.duration > t_most:
+                return None, (f"its route needs {route.duration:.1f} s of joint motion, a joint-space move "
+                              f"{t_joint:.1f} s")
+            return route, why
+
+        return job
+
+    def _take_corridor(self, route: CorridorRoute) -> None:
+        """Follow ``route`` from now on."""
+        st = self._state()
+        p = self.params
         st.route = route
         st.progress.due = st.time + p.replan.overdue_factor * route.duration + p.replan.overdue_slack
         st.att.v, st.att.a, st.att.turn, st.att.v_cap = 0.0, 0.0, (0.0, 0.0), None
-        return ""
 
     def _route_step(self, dt: float) -> None:
         """The hand one step along the corridor route (minimum-jerk pace), the swivel on its schedule at
@@ -161,7 +171,7 @@ class AttractorMixin(ControllerBase):
             route.t_moved = st.time
         t_before = route.t
         route.t = min(route.t + dt, route.duration)
-        u = min_jerk(route.t / route.duration)
+        u = route.progress_at(route.t)
         new_pos, new_rot = route.pose(u)
         s_goal = wrap_angle(route.corridor.swivel_at(u))
 
@@ -181,7 +191,7 @@ class AttractorMixin(ControllerBase):
             # the step was shortened (a joint limit of speed) or the swivel moved off the schedule: the
             # profile's clock goes back to the progress reached
             u_now = route.progress_of(out.pos, out.rot)
-            route.t = route.duration * min_jerk_inverse(u_now)
+            route.t = route.time_at(u_now)
         if route.t > t_before + 1e-9 or route.t >= route.duration:
             route.t_moved = st.time
         elif st.time - route.t_moved >= self.params.replan.hold_time:
@@ -206,6 +216,25 @@ class AttractorMixin(ControllerBase):
 
     def _attractor_step(self, dt: float) -> None:
         st = self._state()
+        if st.corridor_plan is not None:
+            if not st.corridor_plan.done():  # the arm holds while the worker thread plans
+                st.ref.qd = np.zeros_like(st.ref.q)
+                self._track(dt)
+                return
+            route, why = st.corridor_plan.result()
+            st.corridor_plan = None
+            if route is not None and not self._corridor_asked():  # obstacles came while it was planned
+                route, why = None, "the scene changed while it was planned"
+            assert st.goal is not None
+            self._point_goal_route(pose_matrix(st.goal.pos, st.goal.rot), route, why)
+            # this step's command: the planner's (it brakes the arm), or braking onto the reference
+            if st.mode is Mode.PLAN:
+                self._plan_step(dt)
+                return
+            if st.mode is not Mode.ATTRACTOR:
+                st.ref.qd = np.zeros_like(st.ref.q)
+                self._track(dt)
+                return
         if st.route is not None:
             self._route_step(dt)
             return

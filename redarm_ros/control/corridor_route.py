@@ -9,10 +9,14 @@ the hand moves along the line (orientation by slerp) with the progress
 
     u(t) = 10 x^3 - 15 x^4 + 6 x^5,  x = t / T        (Flash & Hogan's minimum-jerk profile)
 
-and the swivel follows the schedule at the hand's progress. The duration T is the least that keeps the
-hand speed, the orientation rate, the swivel rate and every joint's velocity and acceleration (the
-schedule's joint derivatives along u times the profile's peak rate 1.875 / T and acceleration
-5.77 / T^2) within ``share`` of their limits. Units: m, rad, s.
+and the swivel follows the schedule at the hand's progress. The profile runs in the route's *pace*
+sigma when in u it would be too slow: sigma grows with the time the joints need per unit of progress
+(each joint's |dq/du| over its velocity limit, the hand's length over its speed, the turn and the
+swivel over their rates), so where the line passes near a singularity and joints 1 and 3 swing fast the
+hand slows there only (its speed then has more than one peak), instead of the whole route slowing to
+that stretch's pace. The duration T is the least that keeps
+every joint's velocity and acceleration (and the hand, orientation and swivel rates) within ``share``
+of their limits along that profile. Units: m, rad, s.
 """
 
 from __future__ import annotations
@@ -74,6 +78,20 @@ class CorridorRoute:
     duration: float
     t: float = 0.0
     t_moved: float = 0.0  # controller time (s) when the route's clock last advanced
+    pace_u: np.ndarray | None = None  # u at evenly spaced pace values (None: the pace is u)
+
+    def progress_at(self, t: float) -> float:
+        """The progress u at time t (s) along the route."""
+        sig = min_jerk(t / self.duration)
+        if self.pace_u is None:
+            return sig
+        return float(np.interp(sig, np.linspace(0.0, 1.0, len(self.pace_u)), self.pace_u))
+
+    def time_at(self, u: float) -> float:
+        """The time (s) along the route at which the progress is u (the inverse of :meth:`progress_at`)."""
+        sig = u if self.pace_u is None else \
+            float(np.interp(u, self.pace_u, np.linspace(0.0, 1.0, len(self.pace_u))))
+        return self.duration * min_jerk_inverse(sig)
 
     def pose(self, u: float) -> tuple[tuple[float, float, float], tuple[float, float, float, float]]:
         """Position and orientation at progress u."""
@@ -96,25 +114,55 @@ class CorridorRoute:
         return min(max(sum(a * b for a, b in zip(w, self.turn, strict=True)) / (ang * ang), 0.0), 1.0)
 
 
+#: samples of the pace table (sigma evenly spaced) and of the timing check
+PACE_SAMPLES = 201
+#: half-width (in progress u) of the moving average that smooths the pace, so the hand's speed changes
+#: smoothly where the joints' need changes
+PACE_WINDOW = 0.05
+
+
+def route_pace(corridor: SwivelCorridor, length: float, angle: float, v_max: float, w_max: float,
+               s_rate: float, max_vel: np.ndarray) -> np.ndarray:
+    """The progress u (increasing, 0..1) at PACE_SAMPLES evenly spaced values of the pace sigma: sigma
+    grows with the time per unit of progress that the slowest of the joints, the hand, the turn and the
+    swivel needs at its velocity limit (see the module docstring)."""
+    u = np.linspace(0.0, 1.0, PACE_SAMPLES)
+    need = np.full(len(u), max(length / v_max, angle / w_max, 1e-6))
+    if len(corridor.u) >= 2:
+        Q = np.stack([np.interp(u, corridor.u, corridor.q[:, j]) for j in range(corridor.q.shape[1])], axis=1)
+        S = np.interp(u, corridor.u, corridor.swivel)
+        need = np.maximum(need, np.max(np.abs(np.gradient(Q, u, axis=0)) / max_vel, axis=1))
+        need = np.maximum(need, np.abs(np.gradient(S, u)) / s_rate)
+        W = np.maximum(0.0, 1.0 - np.abs(u[:, None] - u[None, :]) / PACE_WINDOW)
+        need = np.maximum((W @ need) / W.sum(axis=1), 1e-6)
+    sigma = np.concatenate(([0.0], np.cumsum(0.5 * (need[1:] + need[:-1]) * np.diff(u))))
+    sigma /= sigma[-1]
+    return np.interp(np.linspace(0.0, 1.0, PACE_SAMPLES), sigma, u)
+
+
 def route_duration(corridor: SwivelCorridor, length: float, angle: float, v_max: float, w_max: float,
-                   s_rate: float, max_vel: np.ndarray, max_acc: np.ndarray, share: float) -> float:
-    """The least duration (s) of the minimum-jerk route within the limits (see the module docstring)."""
-    T = max(MIN_DURATION, PEAK_RATE * length / v_max, PEAK_RATE * angle / w_max)
-    u = corridor.u
-    if len(u) < 2:
+                   s_rate: float, max_vel: np.ndarray, max_acc: np.ndarray, share: float,
+                   pace_u: np.ndarray | None = None) -> float:
+    """The least duration (s) of the minimum-jerk route in the pace ``pace_u`` (None: in u) within the
+    limits (see the module docstring)."""
+    x = np.linspace(0.0, 1.0, PACE_SAMPLES)
+    sig = x * x * x * (10.0 - 15.0 * x + 6.0 * x * x)
+    u = sig if pace_u is None else np.interp(sig, np.linspace(0.0, 1.0, len(pace_u)), pace_u)
+    # position, orientation and swivel along the profile at T = 1: a rate is the x-derivative / T
+    du = np.gradient(u, x)
+    T = max(MIN_DURATION, float(np.max(du)) * max(length / v_max, angle / w_max))
+    if len(corridor.u) < 2:
         return T
-    grid = np.linspace(0.0, 1.0, 41)
-    Q = np.stack([np.interp(grid, u, corridor.q[:, j]) for j in range(corridor.q.shape[1])], axis=1)
-    S = np.interp(grid, u, corridor.swivel)
-    dq = np.abs(np.gradient(Q, grid, axis=0))
-    ddq = np.abs(np.gradient(np.gradient(Q, grid, axis=0), grid, axis=0))
-    ds = float(np.max(np.abs(np.gradient(S, grid))))
-    T = max(T, PEAK_RATE * ds / s_rate)
-    T = max(T, PEAK_RATE * float(np.max(dq.max(axis=0) / (share * max_vel))))
-    # acceleration: q' u'' + q'' u'^2. The q'' of the schedule is taken at its 90th percentile: the
-    # rate bound's corners give a few samples a large second difference (the IK step and the command's
-    # acceleration limit absorb those; the route's clock then waits for the hand)
-    need = (PEAK_ACC * dq.max(axis=0) + PEAK_RATE ** 2 * np.percentile(ddq, 90, axis=0)) / (share * max_acc)
+    Q = np.stack([np.interp(u, corridor.u, corridor.q[:, j]) for j in range(corridor.q.shape[1])], axis=1)
+    S = np.interp(u, corridor.u, corridor.swivel)
+    dq = np.abs(np.gradient(Q, x, axis=0))
+    ddq = np.abs(np.gradient(np.gradient(Q, x, axis=0), x, axis=0))
+    T = max(T, float(np.max(np.abs(np.gradient(S, x)))) / s_rate)
+    T = max(T, float(np.max(dq.max(axis=0) / (share * max_vel))))
+    # acceleration (x-second derivative / T^2), taken at its 95th percentile per joint: the rate bound's
+    # corners give a few samples a large second difference (the IK step and the command's acceleration
+    # limit absorb those; the route's clock then waits for the hand)
+    need = np.percentile(ddq, 95, axis=0) / (share * max_acc)
     return max(T, math.sqrt(float(np.max(need))))
 
 
@@ -148,9 +196,12 @@ def smoothed(arm: Any, T0: np.ndarray, T1: np.ndarray, cor: SwivelCorridor, m_li
 
 def plan_route(arm: Any, T0: np.ndarray, T1: np.ndarray, q0: np.ndarray, preferred: Any, margin_sing: float,
                margin_limit: float, v_max: float, w_max: float, s_rate: float, max_vel: np.ndarray,
-               max_acc: np.ndarray, share: float) -> tuple[CorridorRoute | None, str]:
+               max_acc: np.ndarray, share: float, pace_after: float = math.inf
+               ) -> tuple[CorridorRoute | None, str]:
     """The corridor route from the reference (pose T0, joints q0) to T1, or (None, why there is none).
-    Each margin is at most 0.9 of what the start configuration keeps."""
+    Each margin is at most 0.9 of what the start configuration keeps. The minimum-jerk profile runs in
+    u (a single-peaked hand speed) unless that takes longer than ``pace_after`` (s): then in the pace
+    (:func:`route_pace`; the hand slows where the joints swing)."""
     # the margins shrink to what the start keeps (an elbow resting near the shoulder axis may start).
     # First with three times the singularity margin: near a singularity margin joints 1 and 3 (5 and 7)
     # turn up to 1 / margin times faster than the swivel, and the route's timing slows down with them
@@ -174,5 +225,10 @@ def plan_route(arm: Any, T0: np.ndarray, T1: np.ndarray, q0: np.ndarray, preferr
     r0, r1 = quat_from_matrix(T0[:3, :3]), quat_from_matrix(T1[:3, :3])
     turn = rotvec_between(r0, r1)
     angle = math.sqrt(sum(c * c for c in turn))
-    T = route_duration(cor, math.dist(p0, p1), angle, v_max, w_max, s_rate, max_vel, max_acc, share)
-    return CorridorRoute(p0, p1, r0, turn, cor, T), ""
+    length = math.dist(p0, p1)
+    T = route_duration(cor, length, angle, v_max, w_max, s_rate, max_vel, max_acc, share)
+    if T <= pace_after:
+        return CorridorRoute(p0, p1, r0, turn, cor, T), ""
+    pace_u = route_pace(cor, length, angle, v_max, w_max, s_rate, max_vel)
+    T = route_duration(cor, length, angle, v_max, w_max, s_rate, max_vel, max_acc, share, pace_u)
+    return CorridorRoute(p0, p1, r0, turn, cor, T, pace_u=pace_u), ""

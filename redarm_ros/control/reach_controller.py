@@ -28,6 +28,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
@@ -36,6 +37,7 @@ from redarm_ros.control.attractor import HeadingDynamics, SpeedProfile, directio
 from redarm_ros.control.attractor_law import AttractorMixin
 from redarm_ros.control.base import pose_of
 from redarm_ros.control.command import CommandMixin
+from redarm_ros.control.corridor_route import CorridorRoute
 from redarm_ros.control.elbow import ArmGeometry, ElbowCircle, elbow_circle
 from redarm_ros.control.goal_check import check_goal, stream_feasibility
 from redarm_ros.control.goal_hint import BaseMoveHints
@@ -70,6 +72,9 @@ from redarm_ros.kinematics.urdf_chain import capsules_from_urdf
 
 LOG = logging.getLogger(__name__)
 SETTLING = "at the goal; the elbow is settling on its preferred swivel"
+#: the message of a point goal without a swivel corridor whose straight route the attractor takes
+NO_CORRIDOR = "attractor dynamics, no swivel corridor"
+PLANNING = "planning the straight route through the swivel corridor"
 #: s a swivel must stand (below settle_swivel_rate) while its dynamics asks to move, to count as settled
 SETTLE_DWELL_S = 0.3
 #: s the elbow's wanted rate must stay above REACHED's threshold to make REACHED leave: near a joint
@@ -218,6 +223,7 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
         self._d_inner, self._d_outer = wrist_shell(float(self._lower[3]), float(self._upper[3]),
                                                    self.geom.upper, self.geom.fore)
         self._st: CoreState | None = None
+        self._corridor_pool: ThreadPoolExecutor | None = None  # plans corridor routes off the control step
         self._hints = BaseMoveHints(arm, self.BASE_MOVE_BUDGET_S)
         self.scene = Scene()
         self._index = SceneIndex(self.scene, self.geom.shoulder, 1.0, 0.0)
@@ -486,6 +492,7 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
         st.twist = None
         st.phase = Phase.IDLE
         st.message = "stopped"
+        st.corridor_plan = None
         self._leave_plan()
 
     def _reject(self, check: GoalCheck) -> None:
@@ -497,6 +504,7 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
         st.twist = None
         st.phase = Phase.REJECTED
         st.message = check.message
+        st.corridor_plan = None
         self._leave_plan()
 
     def _accept_point_goal(self, T: np.ndarray) -> None:
@@ -513,11 +521,30 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
         if was_moving:
             self._resync_reference(keep_velocity=True)
         st.route = None
+        st.corridor_plan = None
         if st.ref.circle is None:
             self._start_plan("the arm is stretched (no elbow circle)")
             return
-        no_corridor = self._plan_corridor(T)
-        if st.route is not None:
+        if self._corridor_asked():
+            # planned in the worker thread (up to about a second); the arm holds at rest meanwhile
+            if self._corridor_pool is None:
+                self._corridor_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="swivel-corridor")
+            st.corridor_plan = self._corridor_pool.submit(self._corridor_job(T))
+            st.mode = Mode.ATTRACTOR
+            st.att.v, st.att.a, st.att.turn, st.att.v_cap = 0.0, 0.0, (0.0, 0.0), None
+            st.message = PLANNING
+            # (the progress watch counts the planning as progress; the route's time sets the due time)
+            st.progress.due = math.inf
+            return
+        self._point_goal_route(T, None, "")
+
+    def _point_goal_route(self, T: np.ndarray, route: CorridorRoute | None, no_corridor: str) -> None:
+        """Start the point goal ``T`` on its corridor ``route``, or without one (``no_corridor`` says why
+        there is none, '' if none was planned): the joint-space re-planner at a dead end, else the
+        attractor dynamics."""
+        st = self._state()
+        if route is not None:
+            self._take_corridor(route)
             st.mode = Mode.ATTRACTOR
             st.message = "straight through the swivel corridor"
             return
@@ -525,6 +552,7 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
         if reason:
             self._start_plan(f"{reason} (no swivel corridor: {no_corridor})" if no_corridor else reason)
             return
+        st.message = f"{NO_CORRIDOR}: {no_corridor}" if no_corridor else ""
         if st.mode is not Mode.ATTRACTOR:
             st.mode = Mode.ATTRACTOR
             self._enter_attractor()
@@ -631,7 +659,7 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
                 st.message = ""
         else:
             st.phase = Phase.REACHING
-            if at_goal and not st.message:
+            if at_goal and (not st.message or st.message.startswith(NO_CORRIDOR)):
                 st.message = SETTLING
 
     def _settled(self, slack: float = 1.0) -> bool:
@@ -642,13 +670,16 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
         :data:`SETTLE_DWELL_S` anyway (held by the joint limits). So REACHED neither flickers while the
         command catches up nor comes while the elbow still has to swing to its swivel (after a
         joint-space move the joints stop first, then the swivel dynamics turns the elbow). The elbow's
-        last slow approach (below that rate; a self-motion: the tool stands) may go on after REACHED.
+        last slow approach (below that rate; a self-motion: the tool stands) may go on after REACHED; a
+        corridor route's tail may not (it moves the hand).
         ``slack`` scales the rate thresholds; with ``slack`` > 1 (REACHED) the wanted rate counts only
         once it has lasted :data:`WANT_HOLD_S`."""
         st = self._state()
         p = self.params
         goal = st.goal
         assert goal is not None
+        if st.route is not None:  # the corridor route's tail (within the tolerance) still moves the hand
+            return False
         if math.dist(st.ref.pos, goal.pos) > p.pos_tolerance or \
                 quat_angle(st.ref.rot, goal.rot) > p.ori_tolerance:
             return False

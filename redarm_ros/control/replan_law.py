@@ -168,10 +168,12 @@ def stall_reason(st: CoreState, params: ControllerParams) -> str:
     d = math.dist(st.cmd.pos, goal.pos)
     a = quat_angle(st.cmd.rot, goal.rot)
     err = d + 0.1 * a
-    moving_on = st.route is not None and st.time - st.route.t_moved < rp.hold_time
+    moving_on = (st.route is not None and st.time - st.route.t_moved < rp.hold_time) \
+        or st.corridor_plan is not None
     if moving_on or (d <= params.pos_tolerance and a <= params.ori_tolerance) \
             or err < pr.best - rp.progress:
-        # (a corridor route's clock runs only as the hand moves along it: it is progress)
+        # (a corridor route's clock runs only as the hand moves along it: it is progress; so is its
+        # planning, the arm holding meanwhile)
         pr.best = err
         pr.t_best = st.time
         pr.travel = 0.0

@@ -11,6 +11,7 @@ from __future__ import annotations
 import enum
 import math
 from collections import deque
+from concurrent.futures import Future
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -165,4 +166,5 @@ class CoreState:
     """The last commands (joints, clearance m), oldest first: where the re-planner may retreat to."""
     stream_note: str = ""
     route: CorridorRoute | None = None  # the point goal's straight route through the swivel corridor
+    corridor_plan: Future[tuple[CorridorRoute | None, str]] | None = None  # planned in the worker thread
     time: float = 0.0  # controller clock (s): advanced by step(), or the caller's ``now``

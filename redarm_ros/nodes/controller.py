@@ -118,6 +118,7 @@ NODE_TO_TABLE: dict[str, tuple[str, str]] = {
     "stream_jump": ("stream", "jump"),
     "twist_timeout_s": ("servo", "twist_timeout"),
     "replan": ("replan", "enabled"),
+    "corridor": ("replan", "corridor"),
 }
 #: Of those, the ones that may change at run time (the rest are set at start-up).
 SETTABLE = ("preferred_swivel",)
