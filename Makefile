@@ -13,6 +13,8 @@ PY := $(VENV)/bin/python
 SANDBOX := scripts/ros_sandbox.sh
 DEMO_ARGS ?=
 PYTEST_ARGS ?=
+# pytest-xdist workers for `make test` (0: none). The stack tests run in order on one of them (test/conftest.py).
+TEST_WORKERS ?= 2
 # Extra arguments for every benchmark; `make bench BENCH_FULL=1` runs them in full (see scripts/run_benchmarks.sh).
 BENCH_ARGS ?=
 
@@ -31,8 +33,8 @@ test: setup
 	@if [ -f scripts/setup_chromium.sh ]; then bash scripts/setup_chromium.sh; fi  # headless Chromium for the browser test
 	@rc=0; \
 	echo "+ ruff check ."; $(VENV)/bin/ruff check . || rc=$$?; \
-	echo "+ pytest $(PYTEST_ARGS)"; \
-	prc=0; $(SANDBOX) $(PY) -m pytest $(PYTEST_ARGS) || prc=$$?; \
+	echo "+ pytest -n $(TEST_WORKERS) --dist loadfile $(PYTEST_ARGS)"; \
+	prc=0; $(SANDBOX) $(PY) -m pytest -n $(TEST_WORKERS) --dist loadfile $(PYTEST_ARGS) || prc=$$?; \
 	if [ $$prc -eq 5 ]; then echo "make test: pytest collected no tests"; prc=0; fi; \
 	if [ $$rc -ne 0 ]; then echo "make test: ruff found problems (exit $$rc)"; fi; \
 	if [ $$prc -ne 0 ]; then echo "make test: pytest failed (exit $$prc)"; fi; \

@@ -6,13 +6,18 @@
 * ``rclpy_context``, ``procs``, ``canbus_server``, ``no_open_buses``: the plugin's
   ``redarm_rclpy_context``, ``redarm_procs``, ``redarm_canbus``, ``redarm_no_open_buses`` (the CAN
   test modules use the last for every test: ``pytestmark = pytest.mark.usefixtures("no_open_buses")``).
+* under pytest-xdist ``--dist loadfile``: the files of hil tests in one unit (first, on one worker,
+  in order), every other file spread over the workers.
 * an autouse check that no child process of pytest outlives the test (``redarm_no_leftover_children``).
 * an MCAP recording of every failing HIL run that talks ROS (``hil_recording.py``).
 """
 
 from __future__ import annotations
 
+import functools
+import re
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -29,6 +34,43 @@ def pytest_configure(config: pytest.Config) -> None:
         import redarm_ros.testing.pytest_plugin as plugin
 
         config.pluginmanager.register(plugin, "redarm")
+
+
+# Under pytest-xdist (`make test`: -n 2 --dist loadfile) the test files marked hil (the simulated arm's
+# processes over the loopback bus) form one unit of work, started first and run in order by one
+# worker: two stacks at once would share the cores with each other instead of with pure computation.
+# Every other file is a unit of its own (its module fixtures start once), spread over the workers.
+HIL_MARK = re.compile(r"pytest\.mark\.hil\b")
+SERIAL_UNIT = "hil tests"
+
+
+@functools.cache
+def _is_hil_file(path: str) -> bool:
+    try:
+        return bool(HIL_MARK.search(Path(path).read_text(encoding="utf-8")))
+    except OSError:
+        return False
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
+    if config.getoption("dist") != "loadfile":
+        return None
+    from xdist.scheduler import LoadFileScheduling
+
+    root = config.rootpath
+
+    class HilTestsInOneUnit(LoadFileScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            path = nodeid.split("::", 1)[0]
+            return SERIAL_UNIT if _is_hil_file(str(root / path)) else path
+
+        def _assign_work_unit(self, node: Any) -> None:
+            if SERIAL_UNIT in self.workqueue:  # the longest unit: first, so it never ends the run alone
+                self.workqueue.move_to_end(SERIAL_UNIT, last=False)
+            super()._assign_work_unit(node)
+
+    return HilTestsInOneUnit(config, log)
 
 
 RosEnv = RosSandbox  # the suite's name for it
@@ -71,7 +113,5 @@ def _no_leftover_children(redarm_no_leftover_children: None) -> Iterator[None]:
 
 # An MCAP recording of every failing HIL run that talks ROS, kept in .build/test_failures/ (see there).
 # (A copy of this file elsewhere, as test_conftest_fixtures makes, goes without.)
-from pathlib import Path  # noqa: E402
-
 if (Path(__file__).parent / "hil_recording.py").is_file():
     from hil_recording import _hil_recording, pytest_runtest_makereport  # noqa: F401

@@ -48,3 +48,62 @@ def test_fixtures_catch_leaks_and_deaths(pytester: pytest.Pytester, monkeypatch:
     out = result.stdout.str()
     assert "test left child processes running" in out
     assert "crasher" in out and "died unexpectedly with code 3" in out
+
+
+HIL_FILE = '''
+import os
+import pytest
+
+pytestmark = pytest.mark.hil
+
+@pytest.mark.parametrize("i", range(4))
+def test_hil(i, ros_env):
+    with open(os.environ["OUT"], "a") as f:
+        f.write(f"hil {i} {os.environ['PYTEST_XDIST_WORKER']} {ros_env.domain_id}\\n")
+'''
+
+PLAIN_FILE = '''
+import os
+
+def test_plain(ros_env):
+    with open(os.environ["OUT"], "a") as f:
+        f.write(f"plain 0 {os.environ['PYTEST_XDIST_WORKER']} {ros_env.domain_id}\\n")
+'''
+
+
+def test_xdist_runs_the_hil_files_in_order_on_one_worker_each_worker_on_its_own_domain(
+        pytester: pytest.Pytester, monkeypatch: pytest.MonkeyPatch) -> None:
+    pytest.importorskip("xdist")
+    pytester.makeconftest((REPO / "test" / "conftest.py").read_text())
+    pytester.makeini("[pytest]\nmarkers =\n    hil: processes over a loopback bus\n")
+    # Two hil files (one unit) and more plain files than workers (spread).
+    pytester.makepyfile(test_a_hil=HIL_FILE, test_b_hil=HIL_FILE,
+                        **{f"test_plain_{k}": PLAIN_FILE for k in range(4)})
+    out = pytester.path / "ran.txt"
+    monkeypatch.setenv("OUT", str(out))
+    monkeypatch.setenv(
+        "PYTHONPATH", os.pathsep.join([str(REPO), str(REPO / "test"), os.environ.get("PYTHONPATH", "")])
+    )
+    monkeypatch.delenv("REDARM_TEST_DOMAIN_ID", raising=False)
+    result = pytester.runpytest_subprocess("-p", "no:cacheprovider", "-q", "-n", "2", "--dist", "loadfile",
+                                           timeout=120)
+    assert result.parseoutcomes().get("passed") == 12, result.stdout.str()
+    rows = [line.split() for line in out.read_text().splitlines()]
+    hil = [(int(i), w) for kind, i, w, _ in rows if kind == "hil"]
+    assert len({w for _, w in hil}) == 1, hil  # one worker ...
+    assert [i for i, _ in hil] == [0, 1, 2, 3, 0, 1, 2, 3], hil  # ... in order, file after file
+    domains = {w: int(d) for _, _, w, d in rows}
+    assert len(domains) == 2 and len(set(domains.values())) == 2, domains  # a domain per worker
+    assert all(1 <= d <= 200 for d in domains.values()), domains
+
+
+def test_worker_domains_are_distinct_and_in_range(monkeypatch: pytest.MonkeyPatch) -> None:
+    from redarm_ros.testing.sandbox import DOMAIN_ENV, worker_domain_id
+
+    monkeypatch.delenv(DOMAIN_ENV, raising=False)
+    for run in ("a", "b", "c3f0", "x" * 40):
+        for workers in (1, 2, 4, 16):
+            ids = [worker_domain_id(w, workers, run) for w in range(workers)]
+            assert len(set(ids)) == workers and all(1 <= d <= 200 for d in ids), (run, ids)
+    monkeypatch.setenv(DOMAIN_ENV, "42")
+    assert [worker_domain_id(w, 3, "a") for w in range(3)] == [42, 43, 44]

@@ -32,7 +32,8 @@ class Client(sc.GoalClient):
         super().__init__(ctx, "ns_client", namespace=NS)
 
 
-stack = sc.stack_fixture(arm="pa10", namespace=NS, view=True, view_port=0, ready_timeout_s=90.0)
+stack = sc.stack_fixture(arm="pa10", namespace=NS, description=True, view=True, view_port=0,
+                         ready_timeout_s=90.0)
 client = sc.ready_client_fixture(Client, ARM.joint_names, READY_Q, start_s=30.0, ik_s=10.0,
                                  reach_s=15.0, recover_s=15.0)
 

@@ -79,7 +79,7 @@ def test_real_arm_script_drives_a_simulated_arm(procs: Any, canbus_server: Any) 
 
 
 # -- the rest against one stack -------------------------------------------------------------------------
-stack = sc.stack_fixture(arm="pa10", ready_timeout_s=90.0)
+stack = sc.stack_fixture(arm="pa10", description=True, ready_timeout_s=90.0)  # as redarm-bringup
 
 
 def test_ik_client(stack: Stack, procs: Any) -> None:

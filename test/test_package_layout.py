@@ -48,6 +48,7 @@ ROSDEP_KEYS: dict[str, tuple[str, ...]] = {
     "matplotlib": ("python3-matplotlib",),
     "pytest": ("python3-pytest",),
     "hypothesis": ("python3-hypothesis",),
+    "xdist": ("python3-pytest-xdist",),
     "ikpy": ("python3-ikpy-pip",),
     "imageio": ("python3-imageio",),
     "PIL": ("python3-pil",),

@@ -5,7 +5,7 @@ its fixtures (no rclpy, pybullet or python-can import before that, no autouse fi
 fixture name starts with ``redarm_``:
 
 * ``redarm_dds`` (session): SHM-only DDS on a ROS domain of the session's own (random in 1..200,
-  or ``$REDARM_TEST_DOMAIN_ID``), set in ``os.environ`` for in-process rclpy too
+  or ``$REDARM_TEST_DOMAIN_ID``; one per pytest-xdist worker), set in ``os.environ`` for in-process rclpy too
   (:class:`~redarm_ros.testing.sandbox.RosSandbox`: ``domain_id``, ``log_dir``).
 * ``redarm_arm``: a started :class:`~redarm_ros.testing.SimulatedArm`, configured by the test's
   ``@pytest.mark.redarm_arm(...)`` (keywords of :class:`~redarm_ros.testing.SimArmConfig`);
@@ -62,11 +62,18 @@ def _child_report(dead: list[Any], leaked: list[Any]) -> str:
 
 
 @pytest.fixture(scope="session")
-def redarm_dds(tmp_path_factory: pytest.TempPathFactory) -> Iterator[RosSandbox]:
-    """SHM-only DDS and a ROS domain of the session's own, in ``os.environ`` for the session."""
-    from redarm_ros.testing.sandbox import dds_sandbox
+def redarm_dds(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory
+               ) -> Iterator[RosSandbox]:
+    """SHM-only DDS and a ROS domain of the session's own, in ``os.environ`` for the session (under
+    pytest-xdist: one domain per worker)."""
+    from redarm_ros.testing.sandbox import dds_sandbox, worker_domain_id
 
-    with dds_sandbox(tmp_path_factory.mktemp("ros_log")) as sandbox:
+    domain_id = None
+    worker = getattr(request.config, "workerinput", None)  # set in a pytest-xdist worker only
+    if worker is not None:
+        domain_id = worker_domain_id(int(worker["workerid"].removeprefix("gw")), int(worker["workercount"]),
+                                     str(worker["testrunuid"]))
+    with dds_sandbox(tmp_path_factory.mktemp("ros_log"), domain_id) as sandbox:
         yield sandbox
 
 

@@ -6,6 +6,7 @@ also puts them in ``os.environ``, so rclpy running inside the test process obeys
 
 from __future__ import annotations
 
+import hashlib
 import os
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -17,6 +18,19 @@ from redarm_ros.procs import random_domain_id
 #: Set to a number to pin the test session's ROS_DOMAIN_ID (default: random in 1..200).
 DOMAIN_ENV = "REDARM_TEST_DOMAIN_ID"
 DDS_KEYS = ("FASTDDS_BUILTIN_TRANSPORTS", "ROS_DOMAIN_ID", "ROS_LOG_DIR", "ROS_AUTOMATIC_DISCOVERY_RANGE")
+
+
+def worker_domain_id(worker: int, workers: int, run_id: str) -> int:
+    """The ROS domain of pytest-xdist worker ``worker`` (0-based) of ``workers`` in the run ``run_id``:
+    ``$REDARM_TEST_DOMAIN_ID`` plus the worker's index if pinned, else a base drawn from the run's id
+    (the same in every worker of the run) plus the index, so the workers of one run never share a
+    domain (each starts ROS children of its own)."""
+    pinned = os.environ.get(DOMAIN_ENV)
+    if pinned:
+        return int(pinned) + worker
+    span = 200 - workers + 1  # bases 1..span keep every worker's domain in 1..200
+    base = 1 + int(hashlib.sha256(run_id.encode()).hexdigest(), 16) % span
+    return base + worker
 
 
 @dataclass(frozen=True)

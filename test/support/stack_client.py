@@ -54,12 +54,13 @@ def pose_err(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
 
 def stack_fixture(node_args: dict[str, list[str]] | None = None, **cfg: Any) -> Any:
     """A module-scoped ``stack`` fixture: a :class:`SimulatedArm` with the driver (homed), the
-    controller, the IK service and the description node (``cfg`` overrides, keywords of
-    ``SimArmConfig``) on the test's ROS domain. Assign it to a module global named ``stack``."""
+    controller and the IK service (``cfg`` overrides, keywords of ``SimArmConfig``: e.g.
+    ``description=True`` for a test that needs ``/robot_description``) on the test's ROS domain.
+    Assign it to a module global named ``stack``."""
 
     @pytest.fixture(scope="module")
     def stack(ros_env: Any) -> Iterator[SimulatedArm]:
-        settings = {"driver": True, "controller": True, "ik_service": True, "description": True, **cfg}
+        settings = {"driver": True, "controller": True, "ik_service": True, **cfg}
         with SimulatedArm(domain_id=ros_env.domain_id, sink=stderr_sink, node_args=node_args or {},
                           **settings) as arm:
             yield arm
