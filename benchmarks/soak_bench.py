@@ -20,7 +20,8 @@ simulator's own lag, and the scheduling the real-time chain got. Target on a 2-c
 and 0 faults.
 
 Run: ``.venv/bin/python benchmarks/soak_bench.py`` (10 min; ``--quick`` = 60 s smoke, as ``make bench``
-runs it; ``--no-hog``; ``--realtime-priority 0`` runs the chain at normal priority for comparison).
+runs it; ``--no-hog``; ``--realtime-priority 0`` runs the chain and the driver node at normal
+priority, nice 0; ``--hog 1`` keeps one core busy).
 Writes ``benchmarks/results/soak_bench.md`` (every run kept, newest first) unless ``--no-write``.
 What it does not cover: a real CAN bus or real modules, other arms, faults injected on purpose (the
 HIL tests do those), memory growth.
@@ -100,6 +101,8 @@ def start_chain(group: ProcessGroup, tmp: Path, prio: int) -> tuple[str, Path]:
 def start_driver(group: ProcessGroup, channel: str, prio: int) -> ManagedProcess:
     params = {"arm": ARM_NAME, "can.interface": "remote", "can.channel": channel, "rate_hz": "250.0",
               "realtime_priority": str(prio), "joint_states_rate_hz": "0"}  # every cycle: stamps measured
+    if prio == 0:  # normal priority throughout: the node's own process at nice 0 too, not its default -10
+        params["nice"] = "0"
     ros_args = ["--ros-args"] + [a for k, v in params.items() for a in ("-p", f"{k}:={v}")]
     drv = group.start("can_driver", python_module_cmd("redarm_ros.nodes.can_driver", *ros_args),
                       ready=r"can_driver ready", ready_timeout=60)
