@@ -375,13 +375,16 @@ def test_constructor_starts_nothing_and_declares_ranges(rclpy_context: Any) -> N
 
 def test_halt_has_a_callback_group_of_its_own(rclpy_context: Any) -> None:
     # ~/init blocks its callback while homing: a ~/halt in the same mutually exclusive group would
-    # wait for it (with a multi-threaded executor, as the node runs).
+    # wait for it (on the services' multi-threaded executor); on the node itself, run by the
+    # single-threaded events executor, they would block its topics and each other.
     node = CanDriverNode(context=rclpy_context, parameter_overrides=[
         Parameter("can.interface", value="virtual"), Parameter("can.channel", value="unused"),
         Parameter("duplicate_check_s", value=0.0)])
     try:
-        groups = {s.srv_name.rsplit("/", 1)[-1]: s.callback_group for s in node.services}
-        assert {"init", "halt", "recover", "park"} <= set(groups)
+        assert not [s for s in node.services if "Trigger" in str(s.srv_type)]
+        groups = {s.srv_name: s.callback_group for s in node._service_node.services}
+        assert {f"/can_driver/{a}" for a in ("init", "halt", "recover", "park")} <= set(groups)
+        groups = {name.rsplit("/", 1)[-1]: g for name, g in groups.items()}
         others = [groups[a] for a in ("init", "recover", "park")]
         assert all(groups["halt"] is not g for g in others)
     finally:
