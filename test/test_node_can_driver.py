@@ -381,14 +381,69 @@ def test_constructor_starts_nothing_and_declares_ranges(rclpy_context: Any) -> N
 
 def test_halt_has_a_callback_group_of_its_own(rclpy_context: Any) -> None:
     # ~/init blocks its callback while homing: a ~/halt in the same mutually exclusive group would
-    # wait for it (with a multi-threaded executor, as the node runs).
+    # wait for it (on the services' multi-threaded executor); on the node itself, run by the
+    # single-threaded events executor, they would block its topics and each other.
     node = CanDriverNode(context=rclpy_context, parameter_overrides=[
         Parameter("can.interface", value="virtual"), Parameter("can.channel", value="unused"),
         Parameter("duplicate_check_s", value=0.0)])
     try:
-        groups = {s.srv_name.rsplit("/", 1)[-1]: s.callback_group for s in node.services}
-        assert {"init", "halt", "recover", "park"} <= set(groups)
+        assert not [s for s in node.services if "Trigger" in str(s.srv_type)]
+        groups = {s.srv_name: s.callback_group for s in node._service_node.services}
+        assert {f"/can_driver/{a}" for a in ("init", "halt", "recover", "park")} <= set(groups)
+        groups = {name.rsplit("/", 1)[-1]: g for name, g in groups.items()}
         others = [groups[a] for a in ("init", "recover", "park")]
         assert all(groups["halt"] is not g for g in others)
     finally:
+        node.destroy_node()
+
+
+def test_halt_is_answered_while_init_blocks_on_the_events_executor(rclpy_context: Any) -> None:
+    # The node runs on the single-threaded events executor (as main() runs it): a blocking ~/init
+    # must neither hold up ~/halt nor the node's own callbacks.
+    from rclpy.experimental import EventsExecutor  # noqa: PLC0415 - the executor main() picks
+
+    node = CanDriverNode(context=rclpy_context, parameter_overrides=[
+        Parameter("can.interface", value="virtual"), Parameter("can.channel", value="unused"),
+        Parameter("duplicate_check_s", value=0.0)])
+    release, asked = threading.Event(), []
+
+    def request(action: str, timeout: float = 60.0) -> tuple[bool, str]:
+        asked.append(action)
+        if action == "init":
+            release.wait(10.0)
+        return True, f"{action} done"
+
+    node.loop.request = request  # type: ignore[method-assign]
+    client_node = rclpy.create_node(f"halt_client_{uuid.uuid4().hex[:8]}", context=rclpy_context)
+    executor = EventsExecutor(context=rclpy_context)
+    executor.add_node(node)
+    client_exec = SingleThreadedExecutor(context=rclpy_context)
+    client_exec.add_node(client_node)
+
+    stop = threading.Event()
+
+    def spin() -> None:
+        while not stop.is_set():
+            executor.spin_once(timeout_sec=0.05)
+
+    spinner = threading.Thread(target=spin, daemon=True)
+    spinner.start()
+    try:
+        init_cli = client_node.create_client(Trigger, "/can_driver/init")
+        halt_cli = client_node.create_client(Trigger, "/can_driver/halt")
+        assert init_cli.wait_for_service(10.0) and halt_cli.wait_for_service(10.0)
+        init_future = init_cli.call_async(Trigger.Request())
+        assert wait_until(lambda: asked == ["init"], 10.0)
+        halt_future = halt_cli.call_async(Trigger.Request())
+        client_exec.spin_until_future_complete(halt_future, timeout_sec=10.0)
+        assert halt_future.done() and halt_future.result().success
+        assert not init_future.done()  # init still blocked: halt did not wait for it
+        release.set()
+        client_exec.spin_until_future_complete(init_future, timeout_sec=10.0)
+        assert init_future.result().message == "init done"
+    finally:
+        release.set()
+        stop.set()
+        spinner.join(5.0)
+        client_node.destroy_node()
         node.destroy_node()

@@ -44,6 +44,8 @@ import yaml
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile
 from sensor_msgs.msg import JointState
@@ -88,6 +90,7 @@ TWIN_DRIVER_REMEDY = (
     "needs a name or namespace of its own (--ros-args -r __ns:=/<arm>); never run two on the same bus"
 )
 DIAGNOSTICS_PERIOD_S = 0.5
+SERVICE_SHUTDOWN_S = 5.0  # wait at most this long (s) for service callbacks still running at shutdown
 #: A module's status is WARN for this long (s) after it last sent an implausible position.
 IMPLAUSIBLE_WARN_S = 10.0
 FUTURE_STAMP_WARN_S = 1.0  # a trajectory stamped further ahead than this (s) is logged (clocks apart?)
@@ -286,15 +289,26 @@ class CanDriverNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
         self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", QoSProfile(depth=10))
         self.create_subscription(JointTrajectory, "joint_command", self._on_trajectory, 10)
         self.create_subscription(JointState, "joint_command_state", self._on_joint_state_command, 10)
-        services = MutuallyExclusiveCallbackGroup()  # init may take seconds; keep topics flowing
+        # The Trigger services block for seconds (init homes, park waits for the arm) while ~/halt must
+        # still be answered: they live on a hidden helper node spun by a multi-threaded executor of its
+        # own, so this node's topics and timers run on the cheap single-threaded events executor (which
+        # needs every callback to return at once). Their names stay ~/init etc. of this node.
+        self._service_node = Node(f"_{self.get_name()}_services", namespace=self.get_namespace(),
+                                  context=self.context, start_parameter_services=False)
+        base = self.get_fully_qualified_name().rstrip("/")
+        services = MutuallyExclusiveCallbackGroup()  # init and recover never run at once
         for action in ("init", "recover"):
-            self.create_service(Trigger, f"~/{action}", self._trigger(action), callback_group=services)
-        # halt must be served while init is homing (or recover runs): a group of its own.
-        self.create_service(Trigger, "~/halt", self._trigger("halt"),
-                            callback_group=MutuallyExclusiveCallbackGroup())
-        # park waits for the arm to arrive: a group of its own, so ~/halt is served meanwhile.
-        self.create_service(Trigger, "~/park", self._trigger("park"),
-                            callback_group=MutuallyExclusiveCallbackGroup())
+            self._service_node.create_service(Trigger, f"{base}/{action}", self._trigger(action),
+                                              callback_group=services)
+        # halt must be served while init is homing (or recover runs): a group of its own; so must park,
+        # which waits for the arm to arrive.
+        for action in ("halt", "park"):
+            self._service_node.create_service(Trigger, f"{base}/{action}", self._trigger(action),
+                                              callback_group=MutuallyExclusiveCallbackGroup())
+        self._service_executor = MultiThreadedExecutor(num_threads=4, context=self.context)
+        self._service_executor.add_node(self._service_node)
+        self._service_thread = threading.Thread(target=self._spin_services, name="can-driver-services",
+                                                daemon=True)  # started by the first start-timer tick
         self.create_timer(DIAGNOSTICS_PERIOD_S, self._publish_diagnostics)
         self.add_post_set_parameters_callback(self._on_params_set)
         self._warn_times: dict[str, float] = {}
@@ -331,9 +345,7 @@ class CanDriverNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
     # -- life cycle ---------------------------------------------------------------------------------
     def _start_when_unique(self) -> None:
         """Timer: watch the graph for ``duplicate_check_s`` (a twin appears after DDS discovery), then
-        start the cycle; a twin of the same name means this driver never touches the bus. Also
-        called by a service callback waiting for the start (an executor with a single thread would
-        otherwise never run the timer while the callback waits). Idempotent."""
+        start the cycle; a twin of the same name means this driver never touches the bus. Idempotent."""
         with self._start_lock:
             if self.started or self.refused is not None:
                 return
@@ -378,26 +390,37 @@ class CanDriverNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
         """The start timer: try to start; once started (or refused) the timer cancels itself. Only
         its own callback cancels it: a cancel from another thread can race the executor taking the
         timer, which rclpy turns into an error."""
+        if self._service_thread.ident is None:
+            self._service_thread.start()
         self._start_when_unique()
         if self.started or self.refused is not None:
             self._start_timer.cancel()
 
     def _wait_for_start(self, timeout: float) -> bool:
-        """Block (a service callback) until the cycle is started, refused, or ``timeout`` s passed."""
+        """Block (a service callback, on the service thread) until the start timer started the cycle,
+        refused it, or ``timeout`` s passed."""
         end = time.monotonic() + timeout
         while not self.started and self.refused is None and time.monotonic() < end:
-            self._start_when_unique()
-            if not self.started:
-                time.sleep(0.05)
+            time.sleep(0.05)
         return self.started
 
+    def _spin_services(self) -> None:
+        """The service thread: serve the Trigger services until the executor is shut down."""
+        try:
+            self._service_executor.spin()
+        except (ExternalShutdownException, RuntimeError):
+            pass  # the context was shut down (Ctrl-C, SIGTERM): the node is stopping anyway
+
     def close(self) -> None:
-        """Stop the CAN cycle and close the bus (called by main() before destroy_node)."""
+        """Stop the CAN cycle and close the bus (called by main() before destroy_node); this ends the
+        waits of service callbacks still running."""
         self.loop.stop()
 
     def destroy_node(self) -> None:
-        """Stop the cycle first so nothing publishes on a destroyed node."""
+        """Stop the cycle first so nothing publishes on a destroyed node, then the service thread."""
         self.loop.stop()
+        self._service_executor.shutdown(timeout_sec=SERVICE_SHUTDOWN_S)
+        self._service_node.destroy_node()
         super().destroy_node()
 
     def _on_params_set(self, params: list[Parameter]) -> None:
@@ -685,7 +708,7 @@ def main(args: Sequence[str] | None = None) -> int:
         return node
 
     try:
-        return run_node(make, args, multithreaded=True)
+        return run_node(make, args)
     except DuplicateNodeError as exc:
         logging.basicConfig()
         logging.getLogger(NODE_NAME).error("could not start: %s", exc)
