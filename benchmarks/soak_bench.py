@@ -343,7 +343,8 @@ def main(argv: list[str] | None = None) -> int:
         f"stream targets sent: {obs.stream_sent}.",
         "",
         f"Command: `.venv/bin/python benchmarks/soak_bench.py --seconds {seconds:g}"
-        + (" --no-hog" if args.no_hog else "") + f" --realtime-priority {args.realtime_priority}`",
+        + (" --no-hog" if args.no_hog else f" --hog {hog}")
+        + f" --realtime-priority {args.realtime_priority}`",
         "",
     ])
     print()
