@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import threading
+from typing import Any
 
 import numpy as np
 
@@ -144,9 +145,9 @@ def test_the_pace_slows_the_hand_only_where_the_joints_swing():
     assert np.max(np.abs(np.diff(q1))) / 0.01 <= 0.75  # share 0.7, checked on PACE_SAMPLES samples
 
 
-def test_the_arm_holds_while_the_corridor_is_planned():
-    """The route is planned in a worker thread: the step returns at once, the arm holding at rest and the
-    goal REACHING (the progress watch waits), until the plan is there; a stop drops it."""
+def held_corridor_planner() -> tuple[Any, Any, np.ndarray, threading.Event]:
+    """(arm, controller with the corridor on, reset at the park posture, gate): the worker thread's plan
+    finishes only once the test sets the gate."""
     arm = load_arm("pa10")
     ctl = make_controller(arm, params=ControllerParams.from_dict({"replan": {"corridor": True}}))
     q0 = np.array(arm.park, float)
@@ -158,7 +159,14 @@ def test_the_arm_holds_while_the_corridor_is_planned():
         run = job(T)
         return lambda: (gate.wait(60), run())[1]
 
-    ctl._corridor_job = held_job  # noqa: SLF001 (the plan finishes only when the test says so)
+    ctl._corridor_job = held_job  # noqa: SLF001
+    return arm, ctl, q0, gate
+
+
+def test_the_arm_holds_while_the_corridor_is_planned():
+    """The route is planned in a worker thread: the step returns at once, the arm holding at rest and the
+    goal REACHING (the progress watch waits), until the plan is there; a stop drops it."""
+    arm, ctl, q0, gate = held_corridor_planner()
     assert ctl.set_goal(arm.fk(q0 + np.array([0.5, 0.3, -0.2, -0.4, 0.3, 0.2, 0.4]))).accepted
     for _ in range(150):  # 1.5 s: longer than the progress watch's stall time
         r = ctl.step(0.01)
@@ -198,18 +206,7 @@ def test_a_goal_sent_to_the_re_planner_after_the_corridor_plan_keeps_the_command
 def test_a_corridor_planned_while_obstacles_came_is_dropped():
     """Obstacles set while the worker thread plans: the route (planned in free space) is not taken, and
     the state says why."""
-    arm = load_arm("pa10")
-    ctl = make_controller(arm, params=ControllerParams.from_dict({"replan": {"corridor": True}}))
-    q0 = np.array(arm.park, float)
-    ctl.reset(q0)
-    gate = threading.Event()
-    job = ctl._corridor_job  # noqa: SLF001
-
-    def held_job(T):
-        run = job(T)
-        return lambda: (gate.wait(60), run())[1]
-
-    ctl._corridor_job = held_job  # noqa: SLF001
+    arm, ctl, q0, gate = held_corridor_planner()
     assert ctl.set_goal(arm.fk(q0 + np.array([0.5, 0.3, -0.2, -0.4, 0.3, 0.2, 0.4]))).accepted
     ctl.step(0.01)
     ctl.set_scene(Scene(obstacles=(Sphere((-0.6, -0.6, 0.3), 0.05),)))
