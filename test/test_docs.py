@@ -26,14 +26,7 @@ PENDING = {"examples"}
 
 def _prose(text: str) -> str:
     """``text`` without fenced code blocks and inline code (links there are not links)."""
-    out, in_fence = [], False
-    for line in text.splitlines():
-        if FENCE.match(line.strip()):
-            in_fence = not in_fence
-            continue
-        if not in_fence:
-            out.append(re.sub(r"`[^`]*`", "", line))
-    return "\n".join(out)
+    return "\n".join(re.sub(r"`[^`]*`", "", line) for line in _outside_fences(text))
 
 
 def github_anchor(heading: str) -> str:
@@ -46,7 +39,7 @@ def github_anchor(heading: str) -> str:
 def anchors(page: Path) -> set[str]:
     found: set[str] = set()
     seen: dict[str, int] = {}
-    for line in _prose_keep_headings(page.read_text(encoding="utf-8")):
+    for line in _outside_fences(page.read_text(encoding="utf-8")):
         m = re.match(r"^#{1,6}\s+(.*)$", line)
         if m:
             a = github_anchor(m.group(1))
@@ -57,7 +50,8 @@ def anchors(page: Path) -> set[str]:
     return found
 
 
-def _prose_keep_headings(text: str) -> list[str]:
+def _outside_fences(text: str) -> list[str]:
+    """The lines of ``text`` outside fenced code blocks."""
     out, in_fence = [], False
     for line in text.splitlines():
         if FENCE.match(line.strip()):
