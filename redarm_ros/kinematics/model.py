@@ -552,15 +552,15 @@ class Arm:
             seed = self.check_q(q_seed, "q_seed")
         except InvalidInputError as exc:
             return None, IKInfo(IKStatus.INVALID_INPUT, str(exc))
-        return solve_dls(
-            self,
-            np.asarray(T, dtype=float),
-            seed,
-            tol=tol,
-            max_iter=max_iter,
-            timeout_s=timeout_s,
-            rng_seed=rng_seed,
-        )
+        return self._solve_numeric(np.asarray(T, dtype=float), seed, tol=tol, max_iter=max_iter,
+                                   timeout_s=timeout_s, rng_seed=rng_seed)
+
+    def _solve_numeric(
+        self, T: np.ndarray, seed: np.ndarray, **options: Any
+    ) -> tuple[np.ndarray | None, IKInfo]:
+        """The numeric search behind :meth:`ik_nearest` (inputs checked): damped least squares from
+        the seed."""
+        return solve_dls(self, T, seed, **options)
 
     def pose_error(self, q: Sequence[float], T: np.ndarray) -> tuple[float, float]:
         """(position error m, orientation error rad) of fk(q) against T."""

@@ -546,30 +546,13 @@ def _canonical(
 # ------------------------------------------------------------------ the numeric chain
 class NumericChainArm(Arm):
     """A URDF chain without a closed form: :meth:`ik_nearest` is :func:`.numeric.solve_dls_multistart`
-    (the seed and 31 random starts descending together, TRAC-IK style), within the time budget."""
+    (the seed and 31 random starts descending together, TRAC-IK style), within the time budget: the first
+    within ``tol`` (m, rad), the nearest the seed of those converging together."""
 
-    def ik_nearest(
-        self,
-        T: np.ndarray,
-        q_seed: Sequence[float],
-        *,
-        timeout_s: float | None = 5e-3,
-        tol: float = 1e-5,
-        max_iter: int = 1000,
-        rng_seed: int = 0,
+    def _solve_numeric(
+        self, T: np.ndarray, seed: np.ndarray, **options: Any
     ) -> tuple[np.ndarray | None, IKInfo]:
-        """Damped least squares from the seed and random starts at once; the first within ``tol``
-        (m, rad), the nearest the seed of those converging together. TIMEOUT when ``timeout_s`` (s)
-        runs out."""
-        try:
-            self.check_pose(T)
-            seed = self.check_q(q_seed, "q_seed")
-        except InvalidInputError as exc:
-            return None, IKInfo(IKStatus.INVALID_INPUT, str(exc))
-        return solve_dls_multistart(
-            self, np.asarray(T, dtype=float), seed, tol=tol, timeout_s=timeout_s, max_iter=max_iter,
-            rng_seed=rng_seed,
-        )
+        return solve_dls_multistart(self, T, seed, **options)
 
 
 # ------------------------------------------------------------------ the mapped swivel arm
