@@ -24,7 +24,8 @@ from redarm_ros.control.elbow import ArmGeometry, ElbowCircle, elbow_circle
 from redarm_ros.control.goal_check import check_goal, stream_feasibility
 from redarm_ros.control.goal_hint import BaseMoveHints
 from redarm_ros.control.guard import CollisionGuard
-from redarm_ros.control.ik_step import IKStep, IKStepper, StepperBase, SwivelFn, pose_matrix
+from redarm_ros.control.ik_step import IKStep, IKStepper, SwivelFn, pose_matrix
+from redarm_ros.control.ik_step6 import IKStepper6
 from redarm_ros.control.joint_limits import JointBounds, braking_speed, joint_share_acc
 from redarm_ros.control.paper_redundancy import MODE as PAPER_MODE
 from redarm_ros.control.paper_redundancy import PaperSwivel
@@ -51,9 +52,20 @@ PosesAhead = Callable[[float], list[tuple[float, np.ndarray]]]
 class Redundancy(Protocol):
     """What the controller core asks of an arm's redundancy (see the module docstring)."""
 
-    geom: ArmGeometry
-    stepper: StepperBase
-    guard: CollisionGuard
+    @property
+    def geom(self) -> ArmGeometry:
+        """The arm's geometry (shoulder, upper arm and forearm lengths, wrist in the tool frame)."""
+        ...
+
+    @property
+    def stepper(self) -> IKStepper | IKStepper6:
+        """The IK step of the arm (the swivel arm's or the 6-DOF arm's)."""
+        ...
+
+    @property
+    def guard(self) -> CollisionGuard:
+        """The collision guard with the arm's lever arms."""
+        ...
 
     def scene_index(self, scene: Scene, p: ControllerParams) -> SceneIndex:
         """The broad phase of ``scene``: the obstacles within the arm's reach."""
