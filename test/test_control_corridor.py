@@ -153,13 +153,13 @@ def held_corridor_planner() -> tuple[Any, Any, np.ndarray, threading.Event]:
     q0 = np.array(arm.park, float)
     ctl.reset(q0)
     gate = threading.Event()
-    job = ctl._corridor_job  # noqa: SLF001
+    job = ctl.redundancy.corridor_job
 
-    def held_job(T):
-        run = job(T)
+    def held_job(st, p, T):
+        run = job(st, p, T)
         return lambda: (gate.wait(60), run())[1]
 
-    ctl._corridor_job = held_job  # noqa: SLF001
+    ctl.redundancy.corridor_job = held_job
     return arm, ctl, q0, gate
 
 

@@ -23,6 +23,7 @@ import numpy as np
 
 from redarm_ros.errors import InvalidInputError, UnreachableError
 from redarm_ros.geometry.obstacles import ELBOW_LINKS, ArmCapsules, Clearance, Scene, links_clearance
+from redarm_ros.kinematics.protocols import ControlledArm
 from redarm_ros.kinematics.quaternion import shortest_rotation_basis
 
 Vec3 = tuple[float, float, float]
@@ -46,7 +47,7 @@ class ArmGeometry:
     wrist_in_tool: Vec3
 
     @classmethod
-    def from_arm(cls, arm: Any) -> ArmGeometry:
+    def from_arm(cls, arm: ControlledArm) -> ArmGeometry:
         """Read the geometry from ``arm.key_points`` and ``arm.fk`` at a mid-range configuration."""
         lower = np.asarray(arm.lower, float)
         upper = np.asarray(arm.upper, float)

@@ -25,9 +25,10 @@ from redarm_ros.control.elbow import ArmGeometry, elbow_circle
 from redarm_ros.control.types import GoalCheck, GoalStatus
 from redarm_ros.errors import InvalidInputError, UnreachableError
 from redarm_ros.geometry.obstacles import TABLE, ArmCapsules, Scene, links_clearance
+from redarm_ros.kinematics.protocols import ControlledArm
 
 
-def check_goal(arm: Any, geom: ArmGeometry, T: Any, scene: Scene, capsules: ArmCapsules,
+def check_goal(arm: ControlledArm, geom: ArmGeometry, T: Any, scene: Scene, capsules: ArmCapsules,
                scan: int) -> GoalCheck:
     """Check goal pose ``T`` (4x4, base frame) against the arm's reach, limits and ``scene``."""
     try:

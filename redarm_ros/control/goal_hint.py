@@ -23,6 +23,7 @@ from redarm_ros.control.types import GoalCheck, GoalStatus
 from redarm_ros.errors import InvalidInputError
 from redarm_ros.geometry.self_collision import CollisionModel, collision_model
 from redarm_ros.kinematics.base_placement import BasePlacement, suggest_base_move
+from redarm_ros.kinematics.protocols import ControlledArm
 
 __all__ = ["HINTED", "BaseMoveHints", "hint_text"]
 
@@ -48,7 +49,7 @@ class BaseMoveHints:
     spacing keeps the search within its budget when the nearest one fails, e.g. a vertical approach of
     the 6-DOF arm at a wrist limit: about 150 candidates at 60 deg instead of 9000 at 1 deg)."""
 
-    def __init__(self, arm: Any, budget_s: float = 0.05, check_collisions: bool = True,
+    def __init__(self, arm: ControlledArm, budget_s: float = 0.05, check_collisions: bool = True,
                  step_deg: float = 60.0) -> None:
         self.arm = arm
         self.budget_s = float(budget_s)

@@ -21,13 +21,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Generator
-from typing import Any
 
 import numpy as np
 
 from redarm_ros.control.joint_limits import brake_step
 from redarm_ros.geometry.obstacles import TABLE, ArmCapsules, Clearance, Scene, links_clearance
 from redarm_ros.geometry.self_collision import collision_model, segment_distance
+from redarm_ros.kinematics.protocols import ControlledArm
 
 LINKS = ("base", "upper arm", "forearm", "hand")
 #: ``Clearance.obstacle`` of the arm's ground plane (the table is ``TABLE``, -1; -2 is the broad
@@ -73,7 +73,7 @@ class CollisionGuard:
     """The guard of one arm: ``capsules`` (collision model), ``margin`` (m), ``step`` (m, braking-path
     sampling), joint limits ``lower``/``upper`` (rad) and ``max_acc`` (rad/s^2)."""
 
-    def __init__(self, arm: Any, capsules: ArmCapsules, margin: float, step: float) -> None:
+    def __init__(self, arm: ControlledArm, capsules: ArmCapsules, margin: float, step: float) -> None:
         self.arm = arm
         self.capsules = capsules
         self.margin = float(margin)

@@ -24,7 +24,6 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
@@ -32,8 +31,10 @@ from redarm_ros.control.elbow import ArmGeometry, ElbowCircle, elbow_circle
 from redarm_ros.control.swivel_dynamics import wrap_angle
 from redarm_ros.control.types import Quat, Vec3
 from redarm_ros.errors import UnreachableError
+from redarm_ros.kinematics.protocols import ControlledArm, ControlledSwivelArm
 from redarm_ros.kinematics.quaternion import (
     matrix_from_quat,
+    quat_from_matrix,
     quat_from_rotvec,
     quat_mul,
     quat_normalize,
@@ -80,6 +81,11 @@ def pose_matrix(pos: Vec3, rot: Quat) -> np.ndarray:
     return T
 
 
+def pose_of(T: np.ndarray) -> tuple[Vec3, Quat]:
+    """Position (m) and quaternion (w, x, y, z) of a 4x4 pose: the inverse of :func:`pose_matrix`."""
+    return (float(T[0, 3]), float(T[1, 3]), float(T[2, 3])), quat_from_matrix(T[:3, :3])
+
+
 def blend(pos0: Vec3, rot0: Quat, pos1: Vec3, rot1: Quat, t: float) -> tuple[Vec3, Quat]:
     """Pose a fraction ``t`` of the way from (pos0, rot0) to (pos1, rot1)."""
     pos = (pos0[0] + t * (pos1[0] - pos0[0]), pos0[1] + t * (pos1[1] - pos0[1]),
@@ -93,7 +99,7 @@ class StepperBase:
     """What both IK steppers (7-DOF swivel, 6-DOF) keep of the arm: ``flip_ratio``, the search
     ``search_step`` (rad) and ``search_count``, the joint limits and ``1 / max_vel``."""
 
-    def __init__(self, arm: Any, flip_ratio: float, search_step: float, search_count: int) -> None:
+    def __init__(self, arm: ControlledArm, flip_ratio: float, search_step: float, search_count: int) -> None:
         self.arm = arm
         self.flip_ratio = float(flip_ratio)
         self.search_step = float(search_step)
@@ -108,7 +114,7 @@ class IKStepper(StepperBase):
     ``flip_ratio * max_vel * dt`` is a branch change, never taken; ``search_step`` (rad) and
     ``search_count``: the swivel search around a swivel without a continuous solution."""
 
-    def __init__(self, arm: Any, geom: ArmGeometry, flip_ratio: float, search_step: float,
+    def __init__(self, arm: ControlledSwivelArm, geom: ArmGeometry, flip_ratio: float, search_step: float,
                  search_count: int) -> None:
         super().__init__(arm, flip_ratio, search_step, search_count)
         self.geom = geom

@@ -39,6 +39,7 @@ import numpy as np
 from redarm_ros.control.elbow import ElbowCircle
 from redarm_ros.control.ik_step import DEAD_END, DeadEnd, IKStep, StepperBase, blend, pose_matrix
 from redarm_ros.control.types import Quat, Vec3
+from redarm_ros.kinematics.protocols import ControlledArm6
 from redarm_ros.kinematics.quaternion import (
     matrix_from_quat,
     quat_angle,
@@ -55,7 +56,7 @@ __all__ = ["Branch", "IKStepper6", "Route6", "branch", "check_route6", "fixed_ci
 BRANCH_TOL = 1e-3
 
 
-def is_6dof(arm: Any) -> bool:
+def is_6dof(arm: object) -> bool:
     """Is ``arm`` the 6-DOF PowerCube arm (analytic IK with joint 3 locked, no swivel)?"""
     return getattr(arm, "kind", "") == "powercube6" and getattr(arm, "n", None) == 6
 
@@ -98,7 +99,7 @@ class Branch:
         return f"{f}, {e}"
 
 
-def _radial(arm: Any, q: np.ndarray) -> float:
+def _radial(arm: ControlledArm6, q: np.ndarray) -> float:
     """Signed horizontal distance (m) of the tool from the base axis along the arm's plane (eq. 2 with
     joint 3 locked)."""
     L1, L23, L4, L56 = arm.link_lengths
@@ -106,7 +107,7 @@ def _radial(arm: Any, q: np.ndarray) -> float:
     return L1 + L23 * math.cos(a2) + L4 * math.cos(a4) + L56 * math.cos(a4 + float(q[4]))
 
 
-def branch(arm: Any, q: Any) -> Branch:
+def branch(arm: ControlledArm6, q: Any) -> Branch:
     """The :class:`Branch` of configuration ``q`` (rad) of the 6-DOF arm."""
     qa = np.asarray(q, float)
     r = _radial(arm, qa)
@@ -128,7 +129,7 @@ class IKStepper6(StepperBase):
     ``flip_ratio * max_vel * dt`` is a branch change, never taken; ``search_step`` (rad) and
     ``search_count``: the orientation search where the projected orientation has no solution."""
 
-    def __init__(self, arm: Any, flip_ratio: float, search_step: float = 0.03,
+    def __init__(self, arm: ControlledArm6, flip_ratio: float, search_step: float = 0.03,
                  search_count: int = 10) -> None:
         super().__init__(arm, flip_ratio, search_step, search_count)
         self.min_vel = float(np.min(np.asarray(arm.max_vel, float)))

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from redarm_ros.kinematics.protocols import ControlledArm
 from redarm_ros.motion import limits as motion
 
 
@@ -115,3 +116,36 @@ def brake_step(q_prev: np.ndarray, v_prev: np.ndarray, dt: float, max_acc: np.nd
     v = np.sign(v_prev) * np.maximum(np.abs(v_prev) - max_acc * dt, 0.0)
     q = np.clip(q_prev + v * dt, lower, upper)
     return q, (q - q_prev) / dt
+
+
+@dataclass(frozen=True)
+class JointBounds:
+    """An arm's joint limits as arrays: positions ``lower``/``upper`` (rad), ``max_vel`` (rad/s) and its
+    reciprocal ``inv_vel``, ``max_acc`` (rad/s^2)."""
+
+    lower: np.ndarray
+    upper: np.ndarray
+    max_vel: np.ndarray
+    inv_vel: np.ndarray
+    max_acc: np.ndarray
+
+    @classmethod
+    def of(cls, arm: ControlledArm) -> JointBounds:
+        """The limits of ``arm``."""
+        max_vel = np.asarray(arm.max_vel, float)
+        return cls(np.asarray(arm.lower, float), np.asarray(arm.upper, float), max_vel, 1.0 / max_vel,
+                   np.asarray(arm.max_acc, float))
+
+
+def joint_share_acc(rate: float, default: float, qd: np.ndarray, max_acc: np.ndarray, share: float) -> float:
+    """Largest rate of change of ``rate`` (a hand speed or an orientation rate) that keeps every joint
+    within ``share`` of its acceleration limit ``max_acc``, the joint velocities ``qd`` of the last
+    reference step taken as proportional to ``rate``; ``default`` caps it and is used at rest."""
+    if rate < 1e-4:  # from rest: a gentle first step, the ratio is measured from the next one
+        return min(default, 0.1 * float(np.min(max_acc)))
+    qd = np.abs(qd)
+    mask = qd > 1e-6
+    if not np.any(mask):
+        return default
+    a = float(np.min(max_acc[mask] / qd[mask])) * rate * share
+    return max(min(a, default), 1e-3)

@@ -2,10 +2,10 @@
 orientation dynamics, no swivel.
 
 :class:`ReachController6` is what :func:`~redarm_ros.control.make.make_controller` builds for a
-``powercube6`` arm. Everything
+``powercube6`` arm: the controller core with the redundancy strategy :class:`NoRedundancy`. Everything
 that moves the hand is the 7-DOF controller's (:mod:`~redarm_ros.control.attractor_law` for point goals,
 :mod:`~redarm_ros.control.servo_law` for streams and twists, :mod:`~redarm_ros.control.command` for the
-joint limits and the collision guard); what differs:
+joint limits and the collision guard); what differs (the strategy's):
 
 * **IK**: the analytic 6-DOF IK at every step, on the branch of the current configuration, the
   orientation projected onto the reachable ones (:mod:`~redarm_ros.control.ik_step6`). There is no
@@ -30,32 +30,33 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import math
 from collections.abc import Generator
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
-from redarm_ros.control.base import pose_of
 from redarm_ros.control.elbow import ArmGeometry, ElbowCircle
+from redarm_ros.control.goal_hint import BaseMoveHints
 from redarm_ros.control.guard import CollisionGuard, describe
-from redarm_ros.control.ik_step import pose_matrix
+from redarm_ros.control.ik_step import IKStep, SwivelFn, pose_matrix
 from redarm_ros.control.ik_step6 import IKStepper6, branch, check_route6, fixed_circle, is_6dof
+from redarm_ros.control.joint_limits import JointBounds
 from redarm_ros.control.params import ControllerParams
 from redarm_ros.control.reach_controller import ReachController
+from redarm_ros.control.redundancy import CorridorJob, PosesAhead, Redundancy
 from redarm_ros.control.replan import PathSearch, move_time
-from redarm_ros.control.state import ZERO3, Command, CoreState, Reference
-from redarm_ros.control.stream import StreamEstimator
-from redarm_ros.control.types import GoalCheck, GoalStatus
-from redarm_ros.errors import InvalidInputError
+from redarm_ros.control.state import CoreState, Reference
+from redarm_ros.control.swivel_dynamics import SwivelForces
+from redarm_ros.control.types import GoalCheck, GoalStatus, Quat, Vec3
+from redarm_ros.errors import ConfigError, InvalidInputError
 from redarm_ros.geometry.broadphase import SceneIndex
 from redarm_ros.geometry.obstacles import Scene
-from redarm_ros.kinematics.protocols import ControlledArm
+from redarm_ros.kinematics.protocols import ControlledArm, ControlledArm6
 from redarm_ros.kinematics.result import IKStatus
 
 LOG = logging.getLogger(__name__)
 
-__all__ = ["CollisionGuard6", "Planner6", "ReachController6", "check_goal6"]
+__all__ = ["CollisionGuard6", "NoRedundancy", "Planner6", "ReachController6", "check_goal6"]
 
 
 class CollisionGuard6(CollisionGuard):
@@ -81,7 +82,8 @@ class CollisionGuard6(CollisionGuard):
         return self._max_levers
 
 
-def check_goal6(arm: Any, guard: CollisionGuard, T: Any, scene: Scene, q_seed: np.ndarray) -> GoalCheck:
+def check_goal6(arm: ControlledArm6, guard: CollisionGuard, T: Any, scene: Scene,
+                q_seed: np.ndarray) -> GoalCheck:
     """Check goal pose ``T`` (4x4, base frame) of the 6-DOF arm: reachable with joint 3 locked, some IK
     solution in the limits and clear of the scene, of the arm itself and of the ground (``guard``'s
     clearance). ``free_swivels`` of an accepted goal counts the free solutions."""
@@ -127,7 +129,8 @@ class Planner6:
     up to ``vias`` random via configurations (uniform in the limits, seeded by ``seed``, collision-free);
     each segment checked by the guard's sphere tracing keeping ``need`` m."""
 
-    def __init__(self, arm: Any, guard: CollisionGuard, scene: Scene, q0: np.ndarray, T: np.ndarray,
+    def __init__(self, arm: ControlledArm6, guard: CollisionGuard, scene: Scene, q0: np.ndarray,
+                 T: np.ndarray,
                  need: float, work_per_step: int, vias: int = 0, seed: int = 0) -> None:
         self.path: list[np.ndarray] | None = None
         self.reason = ""
@@ -145,7 +148,7 @@ class Planner6:
                 return True
         return False
 
-    def _search(self, arm: Any, guard: CollisionGuard, scene: Scene, q0: np.ndarray, T: np.ndarray,
+    def _search(self, arm: ControlledArm6, guard: CollisionGuard, scene: Scene, q0: np.ndarray, T: np.ndarray,
                 need: float) -> Generator[None, None, None]:
         max_vel = np.asarray(arm.max_vel, float)
         max_acc = np.asarray(arm.max_acc, float)
@@ -191,18 +194,130 @@ class Planner6:
         self.reason = f"no collision-free joint path to any of the {len(goals)} goal configurations"
 
 
-class ReachController6(ReachController):
-    """:class:`~redarm_ros.control.reach_controller.ReachController` for the 6-DOF PowerCube arm (see
-    the module docstring). Build it as ``make_controller(load_arm("powercube6"), scene)`` or directly."""
+def _no_swivel(circle: ElbowCircle, T: np.ndarray, s0: float) -> tuple[float, float, bool]:
+    return 0.0, 0.0, False
 
-    def __init__(self, arm: ControlledArm, scene: Scene | None = None,
-                 params: ControllerParams | None = None) -> None:
-        super().__init__(arm, scene, params)
-        p = self.params
-        # the laws drive it as they drive the swivel stepper; the 6-DOF route check needs it as it is
-        self.stepper6 = IKStepper6(arm, p.flip_ratio, p.swivel_search_step, p.swivel_search_count)
-        self.stepper = self.stepper6
-        self.guard = CollisionGuard6(arm, p.capsules, p.collision_margin, p.guard_step)
+
+class NoRedundancy:
+    """The redundancy strategy of the 6-DOF arm (see the module docstring): no self-motion, so no swivel
+    law, corridor or swivel forces; the 6-DOF IK stepper, guard, route check, planner and goal check.
+    The elbow circle of the reference is a fixed stand-in (:func:`fixed_circle`, swivel 0) that carries
+    the shoulder and elbow."""
+
+    def __init__(self, arm: ControlledArm6, params: ControllerParams, bounds: JointBounds) -> None:
+        p = params
+        self.arm = arm
+        self.bounds = bounds
+        self.geom = ArmGeometry.from_arm(arm)
+        self.stepper = IKStepper6(arm, p.flip_ratio, p.swivel_search_step, p.swivel_search_count)
+        self.guard: CollisionGuard = CollisionGuard6(arm, p.capsules, p.collision_margin, p.guard_step)
+
+    def scene_index(self, scene: Scene, p: ControllerParams) -> SceneIndex:
+        """The obstacles within reach of the base: the shoulder turns with it (L1 off its axis)."""
+        reach = float(sum(self.arm.link_lengths))
+        return SceneIndex(scene, (0.0, 0.0, 0.0), reach + max(p.capsules.radii), p.broad_phase_margin)
+
+    def reference(self, q: np.ndarray, T: np.ndarray, pos: Vec3, rot: Quat, kp: np.ndarray) -> Reference:
+        """The reference at joints ``q``: swivel 0 on the fixed circle."""
+        return Reference(q.copy(), pos, rot, 0.0, fixed_circle(kp), qd=np.zeros(self.arm.n))
+
+    def resync(self, st: CoreState, T: np.ndarray, keep_velocity: bool) -> None:
+        """The fixed circle at the command; no swivel."""
+        ref = st.ref
+        ref.circle = fixed_circle(self.arm.key_points(st.cmd.q))
+        ref.s = ref.sdot = ref.sdot_dyn = 0.0
+
+    def elbow_circle(self, st: CoreState) -> ElbowCircle | None:
+        """No elbow circle (no self-motion): None, so a display draws none."""
+        return None
+
+    def slide_geom(self, st: CoreState) -> ArmGeometry:
+        """The shoulder sits L1 off the base axis, in the arm's plane: where the reference has it."""
+        assert st.ref.circle is not None
+        return dataclasses.replace(self.geom, shoulder=st.ref.circle.shoulder)
+
+    def swivel_fn(self, st: CoreState, p: ControllerParams, dt: float, scene: Scene) -> SwivelFn:
+        """No swivel: 0."""
+        return _no_swivel
+
+    def pose_law(self, p: ControllerParams) -> bool:
+        """No swivel to follow the pose."""
+        return False
+
+    def servo_swivel_fn(self, st: CoreState, p: ControllerParams, dt: float, scene: Scene,
+                        poses_ahead: PosesAhead) -> SwivelFn:
+        """No swivel: 0."""
+        return _no_swivel
+
+    def kept_swivel(self, st: CoreState, p: ControllerParams, step: IKStep) -> SwivelFn:
+        """The swivel of ``step`` (0)."""
+        return lambda c, T, s0: (step.s, step.s_des, False)
+
+    def onto_preferred_swivel(self, st: CoreState, p: ControllerParams) -> None:
+        """No swivel: nothing to do."""
+
+    def route_dead_end(self, st: CoreState, p: ControllerParams, T: np.ndarray) -> str:
+        """Why the attractor should not take the straight route to ``T`` on the current branch ('' if it
+        should): no continuous solution on the branch (e.g. only the other elbow reaches the goal). Sets
+        the point goal's due time from the route's."""
+        T0 = pose_matrix(st.ref.pos, st.ref.rot)
+        route = check_route6(self.stepper, T0, st.ref.q, T, p.replan.route_steps, p.speed.v_max,
+                             p.max_ori_rate)
+        st.progress.due = st.time + p.replan.overdue_factor * route.time + p.replan.overdue_slack
+        return route.dead_end
+
+    def corridor_asked(self, st: CoreState, p: ControllerParams, scene: Scene) -> bool:
+        """No swivel corridor."""
+        return False
+
+    def corridor_job(self, st: CoreState, p: ControllerParams, T: np.ndarray) -> CorridorJob:
+        """No swivel corridor.
+
+        Raises:
+            ConfigError: always.
+        """
+        raise ConfigError("the 6-DOF arm has no swivel corridor", field="replan.corridor")
+
+    def new_planner(self, st: CoreState, p: ControllerParams, T: np.ndarray, scene: Scene) -> PathSearch:
+        """:class:`Planner6` towards tool pose ``T``."""
+        rp = p.replan
+        return Planner6(self.arm, self.guard, scene, st.cmd.q.copy(), T, rp.clearance, rp.work_per_step,
+                        rp.vias, rp.seed + st.progress.replans)
+
+    def plan_message(self, st: CoreState, planner: PathSearch) -> str:
+        """What ``~/state`` says once the joint path starts (with the goal configuration's branch)."""
+        assert st.path is not None and planner.path is not None
+        vias = len(planner.path) - 2
+        return (f"moving in joint space {planner.reason} ({vias} via points, "
+                f"{st.path.duration:.1f} s): {st.plan_reason}")
+
+    def check_goal(self, T: object, scene: Scene, p: ControllerParams, q_now: np.ndarray | None,
+                   hints: BaseMoveHints) -> GoalCheck:
+        """:func:`check_goal6` from the command (mid-range before a reset); a goal out of reach or
+        without an in-limit solution gets the base-move suggestion."""
+        b = self.bounds
+        seed = q_now if q_now is not None else (b.lower + b.upper) / 2.0
+        check = check_goal6(self.arm, self.guard, T, scene, seed)
+        return hints.annotate(check, T, seed)
+
+    def stream_feasibility(self, T: np.ndarray, scene: Scene, p: ControllerParams) -> str:
+        """Why a stream sample cannot be followed exactly ('' if nothing is known against it)."""
+        if np.asarray(self.arm.ik(T)).shape[0] == 0:
+            return "stream goal out of reach (or its approach is not in the arm's plane)"
+        for j, o in enumerate(scene.obstacles):
+            if o.signed_distance(T[:3, 3]) < 0.0:
+                return f"stream goal inside obstacle {j} {o.name or type(o).__name__.lower()!r}"
+        return ""
+
+    def forces(self, st: CoreState, scene: Scene, p: ControllerParams) -> SwivelForces | None:
+        """No swivel, no swivel forces."""
+        return None
+
+
+class ReachController6(ReachController):
+    """:class:`~redarm_ros.control.reach_controller.ReachController` for the 6-DOF PowerCube arm: the
+    core with :class:`NoRedundancy` (see the module docstring). Build it as
+    ``make_controller(load_arm("powercube6"), scene)`` or directly."""
 
     @classmethod
     def refusal(cls, arm: object) -> str | None:
@@ -212,114 +327,7 @@ class ReachController6(ReachController):
         return (f"ReachController6 runs the 6-DOF PowerCube arm, not {getattr(arm, 'name', arm)!r}; "
                 "make_controller(arm, scene, params) builds the controller of any arm")
 
-    @property
-    def elbow_circle(self) -> None:
-        """No elbow circle (no self-motion): None, so a display draws none."""
-        return None
-
-    # -- set-up -----------------------------------------------------------------------------------
-    def _install_scene(self, scene: Scene) -> None:
-        # The shoulder turns with the base (L1 off its axis): the reach is counted from the base.
-        self.scene = scene
-        reach = float(sum(self.arm.link_lengths))
-        self._index = SceneIndex(scene, (0.0, 0.0, 0.0), reach + max(self.params.capsules.radii),
-                                 self.params.broad_phase_margin)
-        self._local = self._index.reach_scene
-
-    def reset(self, q: Any, now: float | None = None) -> None:
-        """As :meth:`ReachController.reset` (no swivel: 0)."""
-        qa = np.clip(self.arm.check_q(q), self._lower, self._upper)
-        T = np.asarray(self.arm.fk(qa), float)
-        pos, rot = pose_of(T)
-        t = now if now is not None else (0.0 if self._st is None else self._st.time)
-        local = self._index.reach_scene
-        kp = self.guard.key_points(qa)
-        clear = self.guard.clearance(qa, local.scene, kp)
-        zero = np.zeros(self.arm.n)
-        cmd = Command(qa.copy(), self._globalise(clear, local), pos, rot, kp, qd=zero.copy())
-        cmd.obs_clear = self._obstacle_clearance(qa, local, kp)
-        ref = Reference(qa.copy(), pos, rot, 0.0, fixed_circle(kp), qd=zero.copy())
-        self._st = CoreState(ref, cmd, stream=StreamEstimator(self.params.stream), time=float(t))
-
-    # -- goals ------------------------------------------------------------------------------------
-    def check_goal(self, T: Any) -> GoalCheck:
-        """Check a goal pose (4x4, base frame) without changing state (see :func:`check_goal6`); a goal
-        out of reach or without an in-limit solution gets the base-move suggestion."""
-        local = self._index.reach_scene
-        seed = self._st.cmd.q if self._st is not None else (self._lower + self._upper) / 2.0
-        check = check_goal6(self.arm, self.guard, T, local.scene, seed)
-        return self._hints.annotate(check, T, seed)
-
-    def _stream_feasibility(self, T: np.ndarray, scene: Scene) -> str:
-        if np.asarray(self.arm.ik(T)).shape[0] == 0:
-            return "stream goal out of reach (or its approach is not in the arm's plane)"
-        for j, o in enumerate(scene.obstacles):
-            if o.signed_distance(T[:3, 3]) < 0.0:
-                return f"stream goal inside obstacle {j} {o.name or type(o).__name__.lower()!r}"
-        return ""
-
-    def _route_dead_end(self, T: np.ndarray) -> str:
-        """Why the attractor should not take the straight route to ``T`` on the current branch ('' if it
-        should): no continuous solution on the branch (e.g. only the other elbow reaches the goal)."""
-        st = self._state()
-        p = self.params
-        T0 = pose_matrix(st.ref.pos, st.ref.rot)
-        route = check_route6(self.stepper6, T0, st.ref.q, T, p.replan.route_steps, p.speed.v_max,
-                             p.max_ori_rate)
-        st.progress.due = st.time + p.replan.overdue_factor * route.time + p.replan.overdue_slack
-        return route.dead_end
-
-    # -- no swivel ----------------------------------------------------------------------------------
-    def _swivel_fn(self, dt: float) -> Any:
-        def swivel(circle: ElbowCircle, T: np.ndarray, s0: float) -> tuple[float, float, bool]:
-            return 0.0, 0.0, False
-
-        return swivel
-
-    def _desired_swivel(self, circle: ElbowCircle) -> float:
-        return 0.0
-
-    def forces(self) -> None:
-        """No swivel, no swivel forces."""
-        return None
-
-    def _slide_geom(self, pos: Any) -> ArmGeometry:
-        # The shoulder sits L1 off the base axis, in the arm's plane: where the reference has it.
-        st = self._state()
-        assert st.ref.circle is not None
-        return dataclasses.replace(self.geom, shoulder=st.ref.circle.shoulder)
-
-    def _resync_reference(self, keep_velocity: bool = False) -> None:
-        """The reference becomes the command's pose (see ReachController); no swivel."""
-        st = self._state()
-        ref, cmd = st.ref, st.cmd
-        ref.q = cmd.q.copy()
-        ref.qd = cmd.qd.copy() if keep_velocity else np.zeros(self.arm.n)
-        T = np.asarray(self.arm.fk(cmd.q), float)
-        ref.pos, ref.rot = pose_of(T)
-        ref.circle = fixed_circle(self.arm.key_points(cmd.q))
-        ref.s = ref.sdot = ref.sdot_dyn = 0.0
-        ref.w_ori = 0.0
-        if keep_velocity:
-            tw = np.asarray(self.arm.jacobian(cmd.q), float) @ cmd.qd
-            ref.vel = (float(tw[0]), float(tw[1]), float(tw[2]))
-            ref.w = (float(tw[3]), float(tw[4]), float(tw[5]))
-            ref.w_ori = math.sqrt(ref.w[0] ** 2 + ref.w[1] ** 2 + ref.w[2] ** 2)
-        else:
-            ref.vel, ref.w = ZERO3, ZERO3
-        st.att.v = 0.0 if not keep_velocity else math.sqrt(sum(c * c for c in ref.vel))
-        st.att.a = 0.0
-
-    # -- joint-space moves --------------------------------------------------------------------------
-    def _new_planner(self, T: np.ndarray) -> PathSearch:
-        st = self._state()
-        rp = self.params.replan
-        return Planner6(self.arm, self.guard, self._index.reach_scene.scene, st.cmd.q.copy(), T,
-                        rp.clearance, rp.work_per_step, rp.vias, rp.seed + st.progress.replans)
-
-    def _plan_message(self, planner: PathSearch) -> str:
-        st = self._state()
-        assert st.path is not None
-        vias = len(planner.path) - 2
-        return (f"moving in joint space {planner.reason} ({vias} via points, "
-                f"{st.path.duration:.1f} s): {st.plan_reason}")
+    @classmethod
+    def _redundancy(cls, arm: ControlledArm, params: ControllerParams, bounds: JointBounds) -> Redundancy:
+        """The 6-DOF arm's: :class:`NoRedundancy`."""
+        return NoRedundancy(cast(ControlledArm6, arm), params, bounds)  # (refusal() checked it)

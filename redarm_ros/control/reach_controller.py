@@ -19,6 +19,13 @@ the joint velocity, acceleration and position limits (:mod:`~redarm_ros.control.
 passes the collision guard (:mod:`~redarm_ros.control.guard`). Distances use only the obstacles the
 broad phase keeps (:mod:`~redarm_ros.geometry.broadphase`).
 
+:class:`ReachController` is the core: it owns the :class:`~redarm_ros.control.state.CoreState`, picks
+the law, and composes the parts, each a class whose methods take the state and the parameters:
+:class:`~redarm_ros.control.attractor_law.AttractorLaw`, :class:`~redarm_ros.control.servo_law.ServoLaw`,
+:class:`~redarm_ros.control.replan_law.ReplanLaw`, :class:`~redarm_ros.control.command.CommandShaper`
+(reference to command), and the arm's redundancy strategy (:mod:`~redarm_ros.control.redundancy`: the
+swivel of a 7-DOF arm, none for the 6-DOF arm).
+
 Units: m, rad, s. Quaternions are (w, x, y, z). The core is pure Python/numpy (no ROS); the
 controller node converts messages to these calls.
 """
@@ -29,25 +36,23 @@ import dataclasses
 import logging
 import math
 from concurrent.futures import ThreadPoolExecutor
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
-from redarm_ros.control.attractor import HeadingDynamics, SpeedProfile, direction
-from redarm_ros.control.attractor_law import AttractorMixin
-from redarm_ros.control.base import pose_of
-from redarm_ros.control.command import CommandMixin
+from redarm_ros.control.attractor import direction
+from redarm_ros.control.attractor_law import AttractorLaw
+from redarm_ros.control.command import CommandShaper, SceneView
 from redarm_ros.control.corridor_route import CorridorRoute
-from redarm_ros.control.elbow import ArmGeometry, ElbowCircle, elbow_circle
-from redarm_ros.control.goal_check import check_goal, stream_feasibility
+from redarm_ros.control.elbow import ElbowCircle
 from redarm_ros.control.goal_hint import BaseMoveHints
-from redarm_ros.control.guard import CollisionGuard
-from redarm_ros.control.ik_step import IKStepper, pose_matrix
+from redarm_ros.control.ik_step import pose_matrix, pose_of
 from redarm_ros.control.ik_step6 import is_6dof
-from redarm_ros.control.paper_redundancy import PaperSwivel, TangentHand
+from redarm_ros.control.joint_limits import JointBounds
 from redarm_ros.control.params import ControllerParams, ReplanParams, ServoParams, StreamParams
-from redarm_ros.control.replan_law import ReplanMixin
-from redarm_ros.control.servo_law import ServoMixin
+from redarm_ros.control.redundancy import Redundancy, SwivelRedundancy
+from redarm_ros.control.replan_law import ReplanLaw
+from redarm_ros.control.servo_law import ServoLaw
 from redarm_ros.control.slide import wrist_shell
 from redarm_ros.control.state import (
     REST_SPEED_SHARE,
@@ -57,18 +62,17 @@ from redarm_ros.control.state import (
     Goal,
     Mode,
     Progress,
-    Reference,
     Twist,
 )
 from redarm_ros.control.stream import StreamEstimator
-from redarm_ros.control.swivel_dynamics import SwivelDynamics, SwivelForces
+from redarm_ros.control.swivel_dynamics import SwivelForces
 from redarm_ros.control.types import GoalCheck, GoalKind, GoalStatus, Phase, Quat, StepResult, Vec3
-from redarm_ros.errors import ConfigError, InvalidInputError, UnreachableError
+from redarm_ros.errors import ConfigError, InvalidInputError
 from redarm_ros.geometry.broadphase import LEFT_OUT, SceneIndex
 from redarm_ros.geometry.obstacles import ArmCapsules, Clearance, Scene
-from redarm_ros.kinematics.protocols import ControlledArm
+from redarm_ros.kinematics.protocols import ControlledArm, ControlledSwivelArm
 from redarm_ros.kinematics.quaternion import quat_angle
-from redarm_ros.kinematics.urdf_chain import capsules_from_urdf
+from redarm_ros.kinematics.urdf_chain import MappedSwivelArm, capsules_from_urdf
 
 LOG = logging.getLogger(__name__)
 SETTLING = "at the goal; the elbow is settling on its preferred swivel"
@@ -98,7 +102,7 @@ __all__ = [
 ]
 
 
-def has_swivel(arm: Any) -> bool:
+def has_swivel(arm: object) -> bool:
     """Does ``arm`` have an elbow circle, i.e. closed-form IK at a swivel angle? Asked by capability
     (a 7-joint arm whose ``ik(T, swivel)`` answers), not by attribute names."""
     if getattr(arm, "n", None) != 7:
@@ -130,7 +134,7 @@ def controller_refusal(arm: object) -> str | None:
     return None
 
 
-def urdf_capsules(arm: Any, params: ControllerParams | None) -> ControllerParams:
+def urdf_capsules(arm: ControlledArm, params: ControllerParams | None) -> ControllerParams:
     """``params`` (default: the defaults), with the capsule radii of the arm's URDF collision geometry
     (:func:`~redarm_ros.kinematics.urdf_chain.capsules_from_urdf`) where the capsules are left at the
     defaults."""
@@ -148,7 +152,8 @@ class JointMappedController:
     distance are the same in both; limits, rates and accelerations keep their sizes. Everything else is
     the inner controller's. Built by :func:`~redarm_ros.control.make.make_controller` for such an arm."""
 
-    def __init__(self, arm: Any, scene: Scene | None = None, params: ControllerParams | None = None) -> None:
+    def __init__(self, arm: MappedSwivelArm, scene: Scene | None = None,
+                 params: ControllerParams | None = None) -> None:
         if getattr(arm, "kind", "") != "swivel7_urdf":
             raise ConfigError(f"JointMappedController maps a URDF swivel arm onto its model; "
                               f"{getattr(arm, 'name', arm)!r} is not one", field="arm")
@@ -174,7 +179,7 @@ class JointMappedController:
         return dataclasses.replace(res, q=self.arm.from_canonical_q(res.q))
 
 
-class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
+class ReachController:
     """Reach Cartesian goals, follow goal streams and twists with a 7-DOF swivel arm (see the module
     docstring).
 
@@ -207,28 +212,25 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
         self.arm = arm
         self.params = urdf_capsules(arm, params)
         p = self.params
-        self.geom = ArmGeometry.from_arm(arm)
-        self.swivel_dyn = SwivelDynamics(p.swivel)
-        self.paper_swivel = PaperSwivel(p.paper_swivel, p.capsules, p.swivel.max_rate, arm.lower, arm.upper)
-        self.tangent_hand = TangentHand(p.paper_swivel)
-        self.heading_dyn = HeadingDynamics(p.heading)
-        self.speed_profile = SpeedProfile(p.speed)
-        self.stepper = IKStepper(arm, self.geom, p.flip_ratio, p.swivel_search_step, p.swivel_search_count)
-        self.guard = CollisionGuard(arm, p.capsules, p.collision_margin, p.guard_step)
-        self._lower = np.asarray(arm.lower, float)
-        self._upper = np.asarray(arm.upper, float)
-        self._max_vel = np.asarray(arm.max_vel, float)
-        self._inv_vel = 1.0 / self._max_vel
-        self._max_acc = np.asarray(arm.max_acc, float)
-        self._d_inner, self._d_outer = wrist_shell(float(self._lower[3]), float(self._upper[3]),
-                                                   self.geom.upper, self.geom.fore)
+        bounds = JointBounds.of(arm)
+        self.redundancy = self._redundancy(arm, p, bounds)
+        geom = self.redundancy.geom
+        shell = wrist_shell(float(bounds.lower[3]), float(bounds.upper[3]), geom.upper, geom.fore)
         self._st: CoreState | None = None
         self._corridor_pool: ThreadPoolExecutor | None = None  # plans corridor routes off the control step
         self._hints = BaseMoveHints(arm, self.BASE_MOVE_BUDGET_S)
         self.scene = Scene()
-        self._index = SceneIndex(self.scene, self.geom.shoulder, 1.0, 0.0)
-        self._local = self._index.reach_scene
+        self.view = SceneView.of(SceneIndex(self.scene, geom.shoulder, 1.0, 0.0))
+        self.command = CommandShaper(arm, self.redundancy.guard, bounds, self.view, self.redundancy)
+        self.attractor = AttractorLaw(p, self.redundancy, self.command, bounds, self.view, shell)
+        self.servo = ServoLaw(self.redundancy, self.command, bounds, self.view, shell)
+        self.replan = ReplanLaw(self.redundancy, self.command, bounds, self.view)
         self._install_scene(scene if scene is not None else Scene())
+
+    @classmethod
+    def _redundancy(cls, arm: ControlledArm, params: ControllerParams, bounds: JointBounds) -> Redundancy:
+        """The redundancy strategy of ``arm``: the swivel (:class:`SwivelRedundancy`)."""
+        return SwivelRedundancy(cast(ControlledSwivelArm, arm), params, bounds)  # (refusal() checked it)
 
     @classmethod
     def refusal(cls, arm: object) -> str | None:
@@ -264,8 +266,9 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
 
     @property
     def elbow_circle(self) -> ElbowCircle | None:
-        """Elbow circle of the current reference pose (centre, normal, radius, basis), for display."""
-        return None if self._st is None else self._st.ref.circle
+        """Elbow circle of the current reference pose (centre, normal, radius, basis), for display; None
+        without one (no self-motion, or the arm stretched)."""
+        return None if self._st is None else self.redundancy.elbow_circle(self._st)
 
     @property
     def heading_direction(self) -> Vec3:
@@ -308,7 +311,7 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
     @property
     def culled_obstacles(self) -> int:
         """Obstacles of the scene the broad phase leaves out for good (beyond the arm's reach)."""
-        return self._index.culled
+        return self.view.index.culled
 
     # ------------------------------------------------------------------ set-up
     def reset(self, q: Any, now: float | None = None) -> None:
@@ -319,29 +322,24 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
             InvalidInputError: wrong length or NaN. Positions slightly outside the limits are
                 clamped into them.
         """
-        qa = np.clip(self.arm.check_q(q), self._lower, self._upper)
+        b = self.command.bounds
+        qa = np.clip(self.arm.check_q(q), b.lower, b.upper)
         T = np.asarray(self.arm.fk(qa), float)
         pos, rot = pose_of(T)
-        s = float(self.arm.swivel(qa))
-        try:
-            circle: ElbowCircle | None = elbow_circle(self.geom, T)
-        except UnreachableError:  # singular reset pose (arm stretched): no circle; the planner moves first
-            circle = None
         t = now if now is not None else (0.0 if self._st is None else self._st.time)
-        local = self._index.reach_scene
-        kp = self.guard.key_points(qa)
-        clear = self.guard.clearance(qa, local.scene, kp)
-        cmd = Command(qa.copy(), self._globalise(clear, local), pos, rot, kp)
-        cmd.obs_clear = self._obstacle_clearance(qa, local, kp)
-        ref = Reference(qa.copy(), pos, rot, s, circle, s_des=s, s_fixed=s)
+        local = self.view.index.reach_scene
+        guard = self.command.guard
+        kp = guard.key_points(qa)
+        clear = guard.clearance(qa, local.scene, kp)
+        cmd = Command(qa.copy(), self.command.globalise(clear, local), pos, rot, kp, qd=np.zeros(self.arm.n))
+        cmd.obs_clear = self.command.obstacle_clearance(qa, local, kp)
+        ref = self.redundancy.reference(qa, T, pos, rot, kp)
         self._st = CoreState(ref, cmd, stream=StreamEstimator(self.params.stream), time=float(t))
 
     def _install_scene(self, scene: Scene) -> None:
         self.scene = scene
-        reach = self.geom.upper + self.geom.fore + float(np.linalg.norm(self.geom.wrist_in_tool))
-        self._index = SceneIndex(scene, self.geom.shoulder, reach + max(self.params.capsules.radii),
-                                 self.params.broad_phase_margin)
-        self._local = self._index.reach_scene
+        self.view.index = self.redundancy.scene_index(scene, self.params)
+        self.view.local = self.view.index.reach_scene
 
     def set_scene(self, scene: Scene) -> GoalCheck | None:
         """Replace the obstacles (e.g. from the node's MarkerArray). Re-checks the active point goal;
@@ -353,9 +351,10 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
         st = self._st
         if st is None:
             return None
-        local = self._index.reach_scene
-        st.cmd.clear = self._globalise(self.guard.clearance(st.cmd.q, local.scene, st.cmd.kp), local)
-        st.cmd.obs_clear = self._obstacle_clearance(st.cmd.q, local, st.cmd.kp)
+        local = self.view.index.reach_scene
+        st.cmd.clear = self.command.globalise(self.command.guard.clearance(st.cmd.q, local.scene, st.cmd.kp),
+                                              local)
+        st.cmd.obs_clear = self.command.obstacle_clearance(st.cmd.q, local, st.cmd.kp)
         st.cmd.obs_rate = 0.0
         if st.goal is None:
             return None
@@ -367,9 +366,9 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
                 return check
             if st.phase is Phase.BLOCKED or st.mode in (Mode.PLAN, Mode.JOINT):
                 st.progress = Progress(t_best=st.time)
-                self._start_plan("the scene changed")
+                self.replan.start(st, self.params, "the scene changed")
         elif st.goal.kind is GoalKind.STREAM:
-            st.stream_note = self._stream_feasibility(T, local.scene)
+            st.stream_note = self.redundancy.stream_feasibility(T, local.scene, self.params)
         return None
 
     def set_preferred_swivel(self, value: float) -> None:
@@ -388,14 +387,9 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
     # ------------------------------------------------------------------ goals
     def check_goal(self, T: Any) -> GoalCheck:
         """Check a goal pose (4x4, base frame) without changing state; see :class:`GoalStatus`."""
-        local = self._index.reach_scene
-        check = check_goal(self.arm, self.geom, T, local.scene, self.params.capsules, self.params.goal_scan)
         # A goal out of reach (or without an in-limit solution): say where the base should go.
-        return self._hints.annotate(check, T, None if self._st is None else self._st.cmd.q)
-
-    def _stream_feasibility(self, T: np.ndarray, scene: Scene) -> str:
-        """Why a stream sample cannot be followed exactly ('' if nothing is known against it)."""
-        return stream_feasibility(self.geom, T, scene, self.params.capsules)
+        return self.redundancy.check_goal(T, self.view.index.reach_scene.scene, self.params,
+                                          None if self._st is None else self._st.cmd.q, self._hints)
 
     def set_goal(self, T: Any) -> GoalCheck:
         """Set a new point goal (4x4 homogeneous, base frame, m). A goal mid-motion retargets smoothly
@@ -446,11 +440,12 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
                 st.progress = Progress(t_best=st.time)
             if st.mode not in (Mode.SERVO, Mode.PLAN, Mode.JOINT):
                 # (a joint-space move under way, e.g. out of the stretched pose, is finished first)
-                self._enter_servo()
+                self._enter_servo(st)
             newest = self.stream.newest
             assert newest is not None
             st.goal.pos, st.goal.rot = newest.pos, newest.rot
-            st.stream_note = self._stream_feasibility(Tn, self._index.reach_scene.scene)
+            st.stream_note = self.redundancy.stream_feasibility(Tn, self.view.index.reach_scene.scene,
+                                                                self.params)
             return GoalCheck(GoalStatus.ACCEPTED, st.stream_note, kind=GoalKind.STREAM)
         check = self.set_goal(Tn)
         if check.accepted:
@@ -479,7 +474,7 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
                          (float(ang[0]), float(ang[1]), float(ang[2])), now)
         if st.goal is None or st.goal.kind is not GoalKind.TWIST:
             self.stream.reset()
-            self._enter_servo()
+            self._enter_servo(st)
             st.goal = Goal(st.ref.pos, st.ref.rot, GoalKind.TWIST, st.time)
             st.progress = Progress(t_best=st.time)
             st.phase = Phase.TRACKING
@@ -493,7 +488,7 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
         st.phase = Phase.IDLE
         st.message = "stopped"
         st.corridor_plan = None
-        self._leave_plan()
+        self._leave_plan(st)
 
     def _reject(self, check: GoalCheck) -> None:
         LOG.info("goal rejected: %s", check.message)
@@ -505,7 +500,7 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
         st.phase = Phase.REJECTED
         st.message = check.message
         st.corridor_plan = None
-        self._leave_plan()
+        self._leave_plan(st)
 
     def _accept_point_goal(self, T: np.ndarray) -> None:
         st = self._state()
@@ -519,17 +514,17 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
         st.planner = None
         st.path = None
         if was_moving:
-            self._resync_reference(keep_velocity=True)
+            self.command.resync_reference(st, keep_velocity=True)
         st.route = None
         st.corridor_plan = None
         if st.ref.circle is None:
-            self._start_plan("the arm is stretched (no elbow circle)")
+            self.replan.start(st, self.params, "the arm is stretched (no elbow circle)")
             return
-        if self._corridor_asked():
+        if self.redundancy.corridor_asked(st, self.params, self.view.index.reach_scene.scene):
             # planned in the worker thread (up to about a second); the arm holds at rest meanwhile
             if self._corridor_pool is None:
                 self._corridor_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="swivel-corridor")
-            st.corridor_plan = self._corridor_pool.submit(self._corridor_job(T))
+            st.corridor_plan = self._corridor_pool.submit(self.redundancy.corridor_job(st, self.params, T))
             st.mode = Mode.ATTRACTOR
             st.att.v, st.att.a, st.att.turn, st.att.v_cap = 0.0, 0.0, (0.0, 0.0), None
             st.message = PLANNING
@@ -543,24 +538,64 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
         there is none, '' if none was planned): the joint-space re-planner at a dead end, else the
         attractor dynamics."""
         st = self._state()
+        p = self.params
         if route is not None:
-            self._take_corridor(route)
+            self.attractor.take_corridor(st, p, route)
             st.mode = Mode.ATTRACTOR
             st.message = "straight through the swivel corridor"
             return
-        reason = self._route_dead_end(T) if self.params.replan.enabled else ""
+        reason = self.redundancy.route_dead_end(st, p, T) if p.replan.enabled else ""
         if reason:
-            self._start_plan(f"{reason} (no swivel corridor: {no_corridor})" if no_corridor else reason)
+            self.replan.start(st, p, f"{reason} (no swivel corridor: {no_corridor})" if no_corridor
+                              else reason)
             return
         st.message = f"{NO_CORRIDOR}: {no_corridor}" if no_corridor else ""
         if st.mode is not Mode.ATTRACTOR:
             st.mode = Mode.ATTRACTOR
-            self._enter_attractor()
+            self.attractor.enter(st)
         elif st.att.v < 1e-6:  # starting from rest: head straight at the goal
-            st.att.phi, st.att.theta = self._heading_to_goal()
+            st.att.phi, st.att.theta = self.attractor.heading_to_goal(st)
             st.att.turn = (0.0, 0.0)
 
     # ------------------------------------------------------------------ mode changes
+    def _enter_servo(self, st: CoreState) -> None:
+        """Track a stream or twist from here: a corridor route or a joint-space move ends, the servo
+        goes on from the reference's motion."""
+        st.route = None  # (a point goal's corridor route ends where a stream or twist begins)
+        self.replan.end_joint_motion(st)  # from a joint-space move: drop its plan
+        self.servo.enter(st)
+
+    def _leave_plan(self, st: CoreState) -> None:
+        """Out of PLAN/JOINT (a stop or rejection): the reference becomes Cartesian again."""
+        if self.replan.end_joint_motion(st):
+            st.mode = Mode.ATTRACTOR
+            self.attractor.enter(st)
+
+    def _attractor_step(self, st: CoreState, dt: float) -> None:
+        """A point goal's step: wait for its corridor plan (the arm holds meanwhile), start the goal on
+        the plan's outcome, then the attractor law."""
+        p = self.params
+        if st.corridor_plan is not None:
+            if not st.corridor_plan.done():  # the arm holds while the worker thread plans
+                st.ref.qd = np.zeros_like(st.ref.q)
+                self.command.track(st, dt)
+                return
+            route, why = st.corridor_plan.result()
+            st.corridor_plan = None
+            scene = self.view.index.reach_scene.scene
+            if route is not None and not self.redundancy.corridor_asked(st, p, scene):
+                route, why = None, "the scene changed while it was planned"  # obstacles came meanwhile
+            assert st.goal is not None
+            self._point_goal_route(pose_matrix(st.goal.pos, st.goal.rot), route, why)
+            # this step's command: the planner's (it brakes the arm), or braking onto the reference
+            if st.mode is Mode.PLAN:
+                self.replan.plan_step(st, p, dt)
+                return
+            if st.mode is not Mode.ATTRACTOR:
+                st.ref.qd = np.zeros_like(st.ref.q)
+                self.command.track(st, dt)
+                return
+        self.attractor.step(st, p, dt)
 
     # ------------------------------------------------------------------ the step
     def step(self, dt: float | None = None, now: float | None = None) -> StepResult:
@@ -581,44 +616,45 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
         st.time = float(now) if now is not None else st.time + dt
         if dt == 0.0:
             return self._result()
-        self._local = self._local_scene(dt)
+        self.view.local = self.command.local_scene(st, p, dt)
         if st.mode is Mode.ATTRACTOR and st.goal is None and st.att.v <= 0.0:
             st.mode = Mode.HOLD
-        if st.mode is Mode.SERVO and st.goal is None and self._at_rest_servo():
+        if st.mode is Mode.SERVO and st.goal is None and self.servo.at_rest(st):
             st.mode = Mode.HOLD
         if st.mode is Mode.HOLD:
             if st.goal is not None and st.phase is not Phase.BLOCKED:
                 if st.goal.kind is GoalKind.POINT:
                     st.mode = Mode.ATTRACTOR
-                    self._enter_attractor()
+                    self.attractor.enter(st)
             if st.mode is Mode.HOLD:
                 if np.any(st.cmd.qd != 0.0) or not np.array_equal(st.ref.q, st.cmd.q):
                     st.ref.qd = np.zeros_like(st.ref.q)  # the reference stands: the command brakes onto it
-                    self._track(dt)
+                    self.command.track(st, dt)
                 return self._result()
         if st.mode is Mode.PLAN:
-            self._plan_step(dt)
+            self.replan.plan_step(st, p, dt)
         elif st.mode is Mode.JOINT:
-            self._joint_step(dt)
+            if self.replan.joint_step(st, p, dt):
+                if st.goal is not None and st.goal.kind is GoalKind.STREAM:
+                    self._enter_servo(st)  # a stream that arrived meanwhile: track it from here
+                else:
+                    st.mode = Mode.ATTRACTOR
+                    self.attractor.enter(st)
         elif st.mode is Mode.SERVO and st.ref.circle is None:
-            self._start_plan("the arm is stretched (no elbow circle): moving in joint space to the stream "
-                             "first")
+            self.replan.start(st, p, "the arm is stretched (no elbow circle): moving in joint space to the "
+                              "stream first")
         elif st.mode is Mode.SERVO:
-            self._servo_step(dt)
+            self.servo.step(st, p, dt)
         elif st.ref.circle is None:
             if st.goal is not None:
-                self._start_plan("the arm is stretched (no elbow circle)")
+                self.replan.start(st, p, "the arm is stretched (no elbow circle)")
             else:
                 st.mode = Mode.HOLD
         else:
-            self._attractor_step(dt)
+            self._attractor_step(st, dt)
         self._update_phase()
-        self._watch_progress()
+        self.replan.watch(st, p)
         return self._result()
-
-    # -- attractor dynamics -----------------------------------------------------------------------
-
-    # -- re-planning ------------------------------------------------------------------------------
 
     # -- phase and result -------------------------------------------------------------------------
     def _update_phase(self) -> None:
@@ -633,7 +669,7 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
             if goal.kind is GoalKind.TWIST:
                 tw = st.twist
                 active = tw is not None and st.time - tw.since <= self.params.servo.twist_timeout
-                if not active and self._at_rest_servo():
+                if not active and self.servo.at_rest(st):
                     st.goal = None
                     st.phase = Phase.IDLE
                     st.message = "twist ended"
@@ -696,7 +732,8 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
         if abs(ref.sdot_want) > settle and st.time - ref.swivel_moved_at < SETTLE_DWELL_S:
             if slack <= 1.0 or st.time - ref.want_over_since >= WANT_HOLD_S:
                 return False
-        return float(np.max(np.abs(st.cmd.qd) / self._max_vel)) <= slack * REST_SPEED_SHARE and \
+        max_vel = self.command.bounds.max_vel
+        return float(np.max(np.abs(st.cmd.qd) / max_vel)) <= slack * REST_SPEED_SHARE and \
             float(np.max(np.abs(st.ref.q - st.cmd.q))) <= 1e-3
 
     def _result(self) -> StepResult:
@@ -715,8 +752,9 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
             gv, gw = st.twist.vel, st.twist.w
         speed = st.att.v if st.mode is Mode.ATTRACTOR else math.sqrt(sum(c * c for c in st.ref.vel))
         clear = st.cmd.clear
-        if self._local.floor < clear.distance:  # an obstacle left out may be nearer: report the bound
-            clear = Clearance(self._local.floor, -1, LEFT_OUT)
+        local = self.view.local
+        if local.floor < clear.distance:  # an obstacle left out may be nearer: report the bound
+            clear = Clearance(local.floor, -1, LEFT_OUT)
         return StepResult(
             q=st.cmd.q.copy(),
             phase=st.phase,
@@ -738,9 +776,10 @@ class ReachController(AttractorMixin, ServoMixin, ReplanMixin, CommandMixin):
 
     def forces(self) -> SwivelForces | None:
         """Swivel forces at the current state (for plots and diagnostics)."""
-        st = self._state()
-        if st.ref.circle is None:
-            return None
-        return self.swivel_dyn.forces(st.ref.circle, st.ref.s, self._index.reach_scene.scene,
-                                      self.params.capsules)
+        return self.redundancy.forces(self._state(), self.view.index.reach_scene.scene, self.params)
+
+    def _state(self) -> CoreState:
+        if self._st is None:
+            raise InvalidInputError("reset(q) must be called first", field="q")
+        return self._st
 

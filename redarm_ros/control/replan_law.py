@@ -1,7 +1,8 @@
 """Never stuck: stall detection of point goals, and the joint-space re-plan (brake, search with
 :class:`~redarm_ros.control.replan.JointPlanner`, drive the :class:`~redarm_ros.control.replan.JointPath`,
-hand back to the attractor) or BLOCKED with the reason. Part of
-:class:`~redarm_ros.control.reach_controller.ReachController`. Units: m, rad, s.
+hand back to the attractor) or BLOCKED with the reason. :class:`ReplanLaw` is the part of
+:class:`~redarm_ros.control.reach_controller.ReachController` that does it; its methods take the
+controller's :class:`~redarm_ros.control.state.CoreState` and parameters. Units: m, rad, s.
 """
 
 from __future__ import annotations
@@ -11,31 +12,41 @@ import math
 
 import numpy as np
 
-from redarm_ros.control.base import ControllerBase
-from redarm_ros.control.elbow import ElbowCircle, elbow_circle
+from redarm_ros.control.command import CommandShaper, SceneView
 from redarm_ros.control.ik_step import pose_matrix
+from redarm_ros.control.joint_limits import JointBounds
 from redarm_ros.control.params import ControllerParams, ReplanParams
-from redarm_ros.control.replan import JointPath, JointPlanner, PathSearch
+from redarm_ros.control.redundancy import Redundancy
+from redarm_ros.control.replan import JointPath
 from redarm_ros.control.state import CoreState, Mode
 from redarm_ros.control.types import GoalKind, Phase
-from redarm_ros.errors import UnreachableError
 from redarm_ros.kinematics.quaternion import quat_angle
 
 LOG = logging.getLogger(__name__)
 
 
-class ReplanMixin(ControllerBase):
-    """Stall detection and the joint-space re-plan (see the module docstring)."""
+class ReplanLaw:
+    """Stall detection and the joint-space re-plan (see the module docstring): the ``redundancy``
+    strategy (the arm's planner), the ``command`` part, the joint ``bounds`` and the ``view`` of the
+    scene."""
 
-    def _start_plan(self, reason: str) -> None:
-        st = self._state()
+    def __init__(self, redundancy: Redundancy, command: CommandShaper, bounds: JointBounds,
+                 view: SceneView) -> None:
+        self.redundancy = redundancy
+        self.command = command
+        self.bounds = bounds
+        self.view = view
+
+    def start(self, st: CoreState, p: ControllerParams, reason: str) -> None:
+        """Re-plan in joint space (PLAN) for ``reason``; hold instead if re-planning is off, BLOCKED after
+        ``max_replans``."""
         st.route = None  # (a corridor route is left for good)
-        if not self.params.replan.enabled:
-            self._hold(reason)
+        if not p.replan.enabled:
+            self.command.hold(st, reason)
             return
         st.progress.replans += 1
-        if st.progress.replans > self.params.replan.max_replans:
-            self._block(f"gave up after {self.params.replan.max_replans} re-plans; last: {reason}")
+        if st.progress.replans > p.replan.max_replans:
+            self.block(st, f"gave up after {p.replan.max_replans} re-plans; last: {reason}")
             return
         LOG.info("re-planning in joint space: %s", reason)
         st.mode = Mode.PLAN
@@ -45,8 +56,9 @@ class ReplanMixin(ControllerBase):
         st.phase = Phase.REPLANNING
         st.message = f"re-planning in joint space: {reason}"
 
-    def _block(self, why: str) -> None:
-        st = self._state()
+    @staticmethod
+    def block(st: CoreState, why: str) -> None:
+        """Give the goal up: hold where the command is, phase BLOCKED with ``why``."""
         LOG.warning("goal blocked: %s", why)
         st.mode = Mode.HOLD
         st.planner = None
@@ -56,100 +68,69 @@ class ReplanMixin(ControllerBase):
         st.ref.q = st.cmd.q.copy()
         st.ref.qd = np.zeros_like(st.ref.q)
 
-    def _end_joint_motion(self, st: CoreState) -> bool:
+    def end_joint_motion(self, st: CoreState) -> bool:
         """In PLAN/JOINT: drop the planner and its path, the reference goes on from its motion
         (Cartesian again); the caller picks the next mode. False (nothing done) in any other mode."""
         if st.mode not in (Mode.PLAN, Mode.JOINT):
             return False
         st.planner = None
         st.path = None
-        self._resync_reference(keep_velocity=True)
+        self.command.resync_reference(st, keep_velocity=True)
         return True
 
-    def _leave_plan(self) -> None:
-        """Out of PLAN/JOINT (a stop or rejection): the reference becomes Cartesian again."""
-        st = self._state()
-        if self._end_joint_motion(st):
-            st.mode = Mode.ATTRACTOR
-            self._enter_attractor()
-
-    def _plan_step(self, dt: float) -> None:
-        st = self._state()
+    def plan_step(self, st: CoreState, p: ControllerParams, dt: float) -> None:
+        """Brake to rest, then one slice of the joint-space search; its path starts JOINT."""
         if np.any(st.cmd.qd != 0.0):  # brake to rest first, through the guard
-            self._brake(dt)
+            self.command.brake(st, dt)
             return
         if st.planner is None:
             assert st.goal is not None
-            st.planner = self._new_planner(pose_matrix(st.goal.pos, st.goal.rot))
+            st.planner = self.redundancy.new_planner(st, p, pose_matrix(st.goal.pos, st.goal.rot),
+                                                     self.view.index.reach_scene.scene)
         if not st.planner.work():
             return
         planner = st.planner
         st.planner = None
         if planner.path is None:
-            self._block(f"{planner.reason} (after: {st.plan_reason})")
+            self.block(st, f"{planner.reason} (after: {st.plan_reason})")
             return
-        st.path = JointPath(planner.path, self._max_vel, self._max_acc)
+        st.path = JointPath(planner.path, self.bounds.max_vel, self.bounds.max_acc)
         st.path_t = 0.0
         st.ref.q = st.cmd.q.copy()
         st.ref.qd = np.zeros_like(st.ref.q)
         st.brake_sync = True
         st.mode = Mode.JOINT
-        st.message = self._plan_message(planner)
+        st.message = self.redundancy.plan_message(st, planner)
 
-    def _new_planner(self, T: np.ndarray) -> PathSearch:
-        """The resumable joint-space search towards tool pose ``T`` (the 6-DOF arm has its own)."""
-        st = self._state()
-        s_pref = None
-        try:
-            circle: ElbowCircle | None = elbow_circle(self.geom, T)
-        except UnreachableError:
-            circle = None
-        if circle is not None and self.params.swivel_mode != "fixed":
-            s_pref = self._desired_swivel(circle)
-        clear_enough = self.params.replan.clearance + 2.0 * self.guard.step
-        retreat = [q for q, c in reversed(st.history) if c >= clear_enough][::10]
-        return JointPlanner(self.stepper, self.guard, self._index.reach_scene.scene, st.cmd.q.copy(),
-                            T, self.params.replan, self.params.unfold_pitch, retreat, s_pref)
-
-    def _plan_message(self, planner: PathSearch) -> str:
-        """What ``~/state`` says once the joint path starts."""
-        st = self._state()
-        assert st.path is not None
-        vias = len(planner.path) - 2
-        return f"moving in joint space ({vias} via points, {st.path.duration:.1f} s): {st.plan_reason}"
-
-    def _joint_step(self, dt: float) -> None:
-        st = self._state()
+    def joint_step(self, st: CoreState, p: ControllerParams, dt: float) -> bool:
+        """One step along the joint path; True when it has ended at its goal (the caller picks the next
+        law), the reference made the command's pose again."""
         path = st.path
         assert path is not None
         st.path_t += dt
         q_ref, _ = path.sample(st.path_t)
         st.ref.qd = (q_ref - st.ref.q) / dt
         st.ref.q = q_ref
-        if not self._track(dt):
+        if not self.command.track(st, dt):
             st.path = None
-            self._start_plan(f"the collision guard stopped the joint-space move ({st.message})")
-            return
+            self.start(st, p, f"the collision guard stopped the joint-space move ({st.message})")
+            return False
         done = st.path_t >= path.duration and float(np.max(np.abs(st.cmd.q - q_ref))) <= 1e-9 \
             and float(np.max(np.abs(st.cmd.qd))) <= 1e-9
         if done:
             st.path = None
-            self._resync_reference(keep_velocity=False)
+            self.command.resync_reference(st, keep_velocity=False)
             st.ref.s_fixed = st.ref.s
             st.message = ""
             st.progress.best = math.inf
             st.progress.t_best = st.time
-            if st.goal is not None and st.goal.kind is GoalKind.STREAM:
-                self._enter_servo()  # a stream that arrived meanwhile: track it from here
-            else:
-                st.mode = Mode.ATTRACTOR
-                self._enter_attractor()
+        return done
 
-    def _watch_progress(self) -> None:
+    def watch(self, st: CoreState, p: ControllerParams) -> None:
         """Stall detection of point goals: re-plan when :func:`stall_reason` gives a reason."""
-        reason = stall_reason(self._state(), self.params)
+        reason = stall_reason(st, p)
         if reason:
-            self._start_plan(reason)
+            self.start(st, p, reason)
 
 
 def stall_reason(st: CoreState, params: ControllerParams) -> str:

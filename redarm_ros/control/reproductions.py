@@ -45,6 +45,7 @@ from redarm_ros.control.reach_controller import ControllerParams
 from redarm_ros.control.simulate import Trajectory, evaluate, peak_jerk, run_controller
 from redarm_ros.control.swivel_dynamics import SwivelDynamics, SwivelParams, wrap_angle
 from redarm_ros.geometry.obstacles import ArmCapsules, Cylinder, Scene, Sphere, links_clearance, load_scene
+from redarm_ros.kinematics.protocols import ControlledSwivelArm
 
 LOG = logging.getLogger(__name__)
 DT = 0.01
@@ -103,8 +104,8 @@ def circle_path(t: float, period: float, center: Sequence[float], radius: float)
     return np.array([center[0] + radius * math.cos(w), center[1] + radius * math.sin(w), center[2]])
 
 
-def run_swivel_example(arm: Any, scene: Scene, s_des_fn: Any, laps: float = 3.0, period: float = 4.0,
-                       center: Sequence[float] = (0.5, 0.0, 0.62), radius: float = 0.12,
+def run_swivel_example(arm: ControlledSwivelArm, scene: Scene, s_des_fn: Any, laps: float = 3.0,
+                       period: float = 4.0, center: Sequence[float] = (0.5, 0.0, 0.62), radius: float = 0.12,
                        quaternion_form: bool = False, params: SwivelParams | None = None,
                        capsules: ArmCapsules | None = None,
                        score_scene: Scene | None = None) -> SwivelRun:
@@ -158,7 +159,7 @@ def run_swivel_example(arm: Any, scene: Scene, s_des_fn: Any, laps: float = 3.0,
                      np.array(clears))
 
 
-def _swivel_report(arm: Any, name: str, variant: str, run: SwivelRun) -> ScenarioReport:
+def _swivel_report(arm: ControlledSwivelArm, name: str, variant: str, run: SwivelRun) -> ScenarioReport:
     q = run.q
     valid = np.all(np.isfinite(q), axis=1)
     qv = q[valid]
@@ -195,7 +196,7 @@ def example2_ramp(total: float) -> Any:
     return ramp
 
 
-def reproduce_swivel(arm: Any, out: Path, quick: bool, example: int) -> list[ScenarioReport]:
+def reproduce_swivel(arm: ControlledSwivelArm, out: Path, quick: bool, example: int) -> list[ScenarioReport]:
     """Swivel paper example 1 (fixed s_des) or 2 (ramp s_des, quaternion form)."""
     import matplotlib
 
@@ -270,8 +271,8 @@ def _unwrap_from(s: np.ndarray, start: float) -> np.ndarray:
     return u + 2.0 * math.pi * round((start - u[0]) / (2.0 * math.pi))
 
 
-def _elbow_sphere_plot(arm: Any, scene: Scene, with_o: SwivelRun, without: SwivelRun, path: Path,
-                       title: str) -> None:
+def _elbow_sphere_plot(arm: ControlledSwivelArm, scene: Scene, with_o: SwivelRun, without: SwivelRun,
+                       path: Path, title: str) -> None:
     import matplotlib.pyplot as plt
 
     geom = ArmGeometry.from_arm(arm)
@@ -306,22 +307,22 @@ def _elbow_sphere_plot(arm: Any, scene: Scene, with_o: SwivelRun, without: Swive
 # ------------------------------------------------------------------------------------------------
 
 
-def _start(arm: Any, p: Sequence[float], yaw: float = 0.0) -> np.ndarray:
+def _start(arm: ControlledSwivelArm, p: Sequence[float], yaw: float = 0.0) -> np.ndarray:
     q, info = arm.ik_nearest(_pose(p, _down(yaw)), np.array([0.0, 0.6, 0.0, 1.6, 0.0, 1.0, 0.0]))
     if q is None:
         raise RuntimeError(f"no start posture for {p}: {info.message}")
     return q
 
 
-def _reach_report(arm: Any, name: str, variant: str, scene: Scene, tr: Trajectory, T_goal: np.ndarray,
-                  note: str = "") -> ScenarioReport:
+def _reach_report(arm: ControlledSwivelArm, name: str, variant: str, scene: Scene, tr: Trajectory,
+                  T_goal: np.ndarray, note: str = "") -> ScenarioReport:
     m = evaluate(arm, scene, tr.q, T_goal, DT, tr.step_s, tr.reached_at)
     return ScenarioReport(name, variant, m.reached, m.pos_err, m.min_clearance, m.limit_margin,
                           m.path_ratio, m.peak_jerk, note)
 
 
-def _reach_plot(arm: Any, scenes: list[tuple[float, Scene]], tr: Trajectory, goals: list[np.ndarray],
-                path: Path, title: str) -> None:
+def _reach_plot(arm: ControlledSwivelArm, scenes: list[tuple[float, Scene]], tr: Trajectory,
+                goals: list[np.ndarray], path: Path, title: str) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -387,7 +388,7 @@ def _reach_plot(arm: Any, scenes: list[tuple[float, Scene]], tr: Trajectory, goa
 NARROW_TARGET = (0.62, 0.0, 0.06)
 
 
-def reproduce_attractor(arm: Any, out: Path, quick: bool) -> list[ScenarioReport]:
+def reproduce_attractor(arm: ControlledSwivelArm, out: Path, quick: bool) -> list[ScenarioReport]:
     """Narrow passage, moved target, appearing obstacle (attractor paper section IV-C)."""
     reports = []
     duration = 8.0

@@ -17,6 +17,7 @@ import numpy as np
 
 from redarm_ros.control.reach_controller import Phase, ReachController
 from redarm_ros.geometry.obstacles import ArmCapsules, Scene, min_distance
+from redarm_ros.kinematics.protocols import ControlledArm
 
 
 @dataclass
@@ -150,7 +151,7 @@ def path_length(positions: np.ndarray) -> float:
     return float(np.sum(np.linalg.norm(np.diff(positions, axis=0), axis=1)))
 
 
-def evaluate(arm: Any, scene: Scene, q: np.ndarray, T_goal: np.ndarray, dt: float,
+def evaluate(arm: ControlledArm, scene: Scene, q: np.ndarray, T_goal: np.ndarray, dt: float,
              step_s: np.ndarray | None = None, reached_at: float | None = None,
              capsules: ArmCapsules | None = None, pos_tol: float = 1e-3,
              ori_tol: float = 0.01) -> ReachMetrics:

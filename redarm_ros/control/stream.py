@@ -74,16 +74,16 @@ class StreamEstimator:
 
     def __init__(self, params: StreamParams | None = None) -> None:
         self.params = params or StreamParams()
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the stream."""
         self._samples: list[_Sample] = []
         self._offset: float | None = None  # receive clock - stamp clock (s), None: same clock
         self._last_arrival = -math.inf
         self._fit: tuple[np.ndarray, ...] | None = None
         self.count = 0  # samples accepted since reset
         self.dropped = 0  # out-of-window or duplicate samples ignored
-
-    def reset(self) -> None:
-        """Forget the stream."""
-        self.__init__(self.params)  # type: ignore[misc]
 
     # -- clock ------------------------------------------------------------------------------------
     def stamp_time(self, stamp: float | None, now: float) -> float:
@@ -143,7 +143,7 @@ class StreamEstimator:
             if any(abs(s.t - t) < 1e-6 for s in self._samples):
                 self.dropped += 1
                 return False
-        insort(self._samples, _Sample(t, tuple(pos), tuple(rot)))  # type: ignore[arg-type]
+        insort(self._samples, _Sample(t, (pos[0], pos[1], pos[2]), (rot[0], rot[1], rot[2], rot[3])))
         t_new = self._samples[-1].t
         # Keep the window, at least three samples (a slow stream), nothing older than the gap.
         while self._samples[0].t < t_new - self.params.gap or \

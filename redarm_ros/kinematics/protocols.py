@@ -6,7 +6,9 @@
   ``ik_u``, ``swivel``, ``elbow_circle``, ``feasible_swivels`` and the batched nearest solve.
 
 * :class:`ControlledArm`: what the reaching controller uses of an arm (:class:`AnalyticIK` plus forward
-  kinematics, the Jacobian, the capsule model's key points, the velocity and acceleration limits).
+  kinematics, the Jacobian, the capsule model's key points, the velocity and acceleration limits);
+  :class:`ControlledSwivelArm` adds the swivel (the 7-DOF arms), :class:`ControlledArm6` the link lengths
+  (the 6-DOF PowerCube arm).
 
 Ask with :func:`has_swivel` / :func:`has_analytic_ik` (``isinstance`` against the protocol); a generic
 serial chain has neither and is solved numerically. This module imports nothing from the models, so
@@ -20,7 +22,8 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
-__all__ = ["AnalyticIK", "ControlledArm", "SwivelKinematics", "has_swivel", "has_analytic_ik"]
+__all__ = ["AnalyticIK", "ControlledArm", "ControlledArm6", "ControlledSwivelArm", "SwivelKinematics",
+           "has_swivel", "has_analytic_ik"]
 
 
 @runtime_checkable
@@ -73,6 +76,20 @@ class ControlledArm(AnalyticIK, Protocol):
     def check_q(self, q: Any, field: str = "q") -> np.ndarray: ...
 
     def check_pose(self, T: Any, field: str = "T") -> list[list[float]]: ...
+
+
+@runtime_checkable
+class ControlledSwivelArm(ControlledArm, SwivelKinematics, Protocol):
+    """A 7-DOF swivel arm the reaching controller runs: :class:`ControlledArm` and
+    :class:`SwivelKinematics`."""
+
+
+@runtime_checkable
+class ControlledArm6(ControlledArm, Protocol):
+    """The 6-DOF PowerCube arm the reaching controller runs (joint 3 locked, no self-motion):
+    :class:`ControlledArm` and its ``link_lengths`` (m: L1, L23, L4, L56)."""
+
+    link_lengths: tuple[float, ...]
 
 
 def has_swivel(arm: object) -> bool:
