@@ -16,7 +16,7 @@ answered with ``~/recover`` so the run goes on), missed replies (sum of the modu
 period error p99 / max of every cycle since the start (the node's since-start histogram, overruns
 included), overruns, reply latency, limit faults (modules entering ERROR|BEYOND_SOFT, from the
 simulator's status), watchdog trips (modules entering COMM_ERROR), implausible positions, the
-simulator's own lag, its longest garbage-collector pause and request-to-reply time, and the
+simulator's own lag, its longest garbage collection (CPU) and request-to-reply time, and the
 scheduling the real-time chain got. Target on a 2-core machine: 0 halts
 and 0 faults.
 
@@ -347,9 +347,9 @@ def main(argv: list[str] | None = None) -> int:
         "",
         f"Driver cycle scheduling: {r.scheduling}. Recoveries after halts: {obs.recoveries} "
         f"(failed: {obs.recover_failures}); modules entering an error: {obs.error_modules or 'none'}; "
-        f"stream targets sent: {obs.stream_sent}. Simulator: longest garbage-collector pause "
-        f"{r.sim_gc_max_pause_ms:.2f} ms ({r.sim_gc_collections} collections), longest request-to-reply "
-        f"{r.sim_reply_max_ms:.2f} ms.",
+        f"stream targets sent: {obs.stream_sent}. Simulator: longest garbage collection "
+        f"{r.sim_gc_max_pause_ms:.2f} ms CPU ({r.sim_gc_collections} collections), longest "
+        f"request-to-reply {r.sim_reply_max_ms:.2f} ms.",
         "",
         f"Command: `.venv/bin/python benchmarks/soak_bench.py --seconds {seconds:g}"
         + (" --no-hog" if args.no_hog else f" --hog {hog}")
