@@ -16,7 +16,8 @@ answered with ``~/recover`` so the run goes on), missed replies (sum of the modu
 period error p99 / max of every cycle since the start (the node's since-start histogram, overruns
 included), overruns, reply latency, limit faults (modules entering ERROR|BEYOND_SOFT, from the
 simulator's status), watchdog trips (modules entering COMM_ERROR), implausible positions, the
-simulator's own lag, and the scheduling the real-time chain got. Target on a 2-core machine: 0 halts
+simulator's own lag, its longest garbage collection (CPU) and request-to-reply time, and the
+scheduling the real-time chain got. Target on a 2-core machine: 0 halts
 and 0 faults.
 
 Run: ``.venv/bin/python benchmarks/soak_bench.py`` (10 min; ``--quick`` = 60 s smoke, as ``make bench``
@@ -268,6 +269,9 @@ class Row:
     sim_resyncs: int
     newcomers: int
     scheduling: str
+    sim_gc_max_pause_ms: float
+    sim_gc_collections: int
+    sim_reply_max_ms: float
 
 
 HEADER = ("| duration | hog | RT prio | load avg mean / max | halts | missed replies | cycles | overruns | "
@@ -306,6 +310,9 @@ def summarise(seconds: float, hog: int, prio: int, obs: Observed, diag: dict[str
         js_hz=obs.js_count / seconds, js_max_gap_ms=obs.js_max_gap_ms,
         sim_max_lag_ms=float(c.get("max_lag_ms", float("nan"))), sim_resyncs=int(c.get("resyncs", 0)),
         newcomers=obs.newcomers, scheduling=loop.get("cycle_scheduling", "-"),
+        sim_gc_max_pause_ms=float(c.get("gc_max_pause_ms", float("nan"))),
+        sim_gc_collections=int(c.get("gc_collections", 0)),
+        sim_reply_max_ms=float(c.get("reply_latency_max_ms", float("nan"))),
     )
 
 
@@ -340,7 +347,9 @@ def main(argv: list[str] | None = None) -> int:
         "",
         f"Driver cycle scheduling: {r.scheduling}. Recoveries after halts: {obs.recoveries} "
         f"(failed: {obs.recover_failures}); modules entering an error: {obs.error_modules or 'none'}; "
-        f"stream targets sent: {obs.stream_sent}.",
+        f"stream targets sent: {obs.stream_sent}. Simulator: longest garbage collection "
+        f"{r.sim_gc_max_pause_ms:.2f} ms CPU ({r.sim_gc_collections} collections), longest "
+        f"request-to-reply {r.sim_reply_max_ms:.2f} ms.",
         "",
         f"Command: `.venv/bin/python benchmarks/soak_bench.py --seconds {seconds:g}"
         + (" --no-hog" if args.no_hog else f" --hog {hog}")

@@ -213,3 +213,37 @@ def test_command_line_helpers(monkeypatch):
     args = build_parser().parse_args([])
     assert (args.drop_replies, args.delay_replies, args.die_after, args.seed) == (0.25, 0.0, 3.0, 0)
     assert build_parser().parse_args(["--drop-replies", "0.5"]).drop_replies == 0.5  # flags win over env
+
+
+def test_gc_frozen_after_start_up_and_its_pauses_counted():
+    """With freeze_gc the start-up objects are frozen before the sim reports ready (a full collection
+    then holds up no reply for tens of ms); every collection's pause is counted; run() undoes it."""
+    import gc
+
+    channel = f"redarm-sim-test-{uuid.uuid4().hex}"
+    sim_bus = can.Bus(interface="virtual", channel=channel)
+    plant = PybulletPlant.create(load_arm("pa10"))
+    sim = HardwareSim(plant, sim_bus, freeze_gc=True)
+    frozen_at_ready: list[int] = []
+    ready = threading.Event()
+
+    def on_ready() -> None:
+        frozen_at_ready.append(gc.get_freeze_count())
+        ready.set()
+
+    runner = threading.Thread(target=sim.run, kwargs={"on_ready": on_ready}, daemon=True)
+    runner.start()
+    try:
+        assert ready.wait(10)
+        assert frozen_at_ready[0] > 1000  # the arm model, pybullet, numpy: everything made so far
+        before = sim.counters.gc_collections
+        gc.collect()
+        assert sim.counters.gc_collections > before and sim.counters.gc_max_pause_ms > 0.0
+        assert "gc_max_pause_ms" in sim.call_in_physics(sim.status).result(5)["counters"]
+    finally:
+        sim.request_stop()
+        runner.join(timeout=10)
+        sim_bus.shutdown()
+        plant.close()
+    assert not runner.is_alive()
+    assert gc.get_freeze_count() == 0  # unfrozen again when run() returned

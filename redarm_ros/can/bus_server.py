@@ -808,6 +808,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         signal.signal(sig, _on_signal)
 
     server.start()
+    # Start-up objects are never scanned again: no full collection pauses the relay for milliseconds.
+    realtime.freeze_gc()
     if args.port_file is not None:
         _write_port_file(args.port_file, server.port)
     sys.stdout.write(f"{PORT_LINE}={server.port}\n{CHANNEL_LINE}={server.channel}\n")

@@ -30,6 +30,8 @@ from __future__ import annotations
 
 import argparse
 import collections
+import contextlib
+import gc
 import heapq
 import json
 import logging
@@ -133,6 +135,10 @@ class Counters:
     max_wire_gap_ms: float = 0.0  # longest silence between two frames for our modules, on the wire
     reply_latency_max_ms: float = 0.0
     reply_latency_sum_ms: float = 0.0
+    # The garbage collector holds the interpreter lock: while it runs, no reply goes out. The longest
+    # collection in the collecting thread's CPU time (time it was preempted is scheduling: max_lag_ms).
+    gc_collections: int = 0
+    gc_max_pause_ms: float = 0.0
     snapshots: int = 0
     control_errors: int = 0
 
@@ -148,6 +154,9 @@ class HardwareSim:
     ``bus`` is any python-can bus (a :class:`~redarm_ros.can.bus.ReconnectingBus` in the process, a
     ``virtual`` bus in tests); ``plant`` the pybullet plant; ``module_ids`` one id per joint.
     ``run()`` blocks in the physics loop until :meth:`request_stop`; the bus is served by a thread.
+    ``freeze_gc``: once started, freeze the garbage collector's view of every object made so far
+    (:func:`redarm_ros.can.realtime.freeze_gc`; undone when ``run()`` returns), so that no full
+    collection of the start-up objects holds up a reply; the process does this, a test need not.
     """
 
     def __init__(
@@ -165,6 +174,7 @@ class HardwareSim:
         control_file: str | os.PathLike[str] | None = None,
         die_after_s: float | None = None,
         emulator_factory: Callable[..., Any] | None = None,
+        freeze_gc: bool = False,
     ) -> None:
         self.plant = plant
         self.bus = bus
@@ -183,6 +193,8 @@ class HardwareSim:
         self.snapshot_size = snapshot_size
         self.control_file = Path(control_file) if control_file else None
         self.die_after_s = die_after_s
+        self.freeze_gc = freeze_gc
+        self._gc_start = 0.0
         self.counters = Counters()
         self.realtime = False  # set by main() when SCHED_FIFO was granted (the spin guard applies)
         self.snapshots: list[str] = []
@@ -452,8 +464,9 @@ class HardwareSim:
     def _write_status_file(self, status: dict[str, Any]) -> None:
         assert self.status_file is not None
         tmp = self.status_file.with_name(f".{self.status_file.name}.{os.getpid()}.tmp")
+        text = json.dumps(status)  # the C encoder: json.dump's chunked one allocates 6x more (gc runs)
         with open(tmp, "w", encoding="utf-8") as fh:
-            json.dump(status, fh)
+            fh.write(text)
         os.replace(tmp, self.status_file)
 
     def _post_status(self) -> None:
@@ -535,6 +548,17 @@ class HardwareSim:
             self.request_stop()
         _LOG.info("control applied: %s", data)
 
+    def _on_gc(self, phase: str, _info: dict[str, int]) -> None:
+        # Runs in whichever thread triggered the collection, holding the interpreter lock.
+        if phase == "start":
+            self._gc_start = time.thread_time()
+            return
+        c = self.counters
+        c.gc_collections += 1
+        pause = (time.thread_time() - self._gc_start) * 1e3
+        if pause > c.gc_max_pause_ms:
+            c.gc_max_pause_ms = pause
+
     def _resting(self) -> bool:
         """Nothing moves: no setpoint moved since the last call and every joint is (nearly) still. (A
         driver holding the arm keeps the setpoint generators active with the same target each cycle.)"""
@@ -552,6 +576,9 @@ class HardwareSim:
         if self.snapshot_dir is not None:
             self.snapshot("start")
         self.write_status()
+        if self.freeze_gc:
+            realtime.freeze_gc()
+        gc.callbacks.append(self._on_gc)  # the pauses while serving, not the start-up collection
         if on_ready is not None:
             on_ready()
         t0 = time.monotonic()
@@ -617,6 +644,10 @@ class HardwareSim:
                                  self.rate_hz)
         finally:
             self._stop.set()
+            if self.freeze_gc:
+                realtime.restore_gc()
+            with contextlib.suppress(ValueError):
+                gc.callbacks.remove(self._on_gc)
             self._run_physics_calls(cancel=True)
             self._bus_thread.join(timeout=2.0)
             with self._status_cond:
@@ -847,6 +878,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         snapshot_size=(w, h),
         control_file=args.control_file,
         die_after_s=args.die_after,
+        freeze_gc=True,
     )
     sim.realtime = prio.realtime
     channel = None
