@@ -50,6 +50,15 @@ def _vec(v: np.ndarray) -> Vec3:
     return (float(v[0]), float(v[1]), float(v[2]))
 
 
+def _median_spacing(stamps: list[float]) -> float:
+    """Median of the gaps (s) between sorted ``stamps`` longer than 1 us (inf if there is none)."""
+    gaps = sorted(b - a for a, b in zip(stamps, stamps[1:], strict=False) if b - a > 1e-6)
+    if not gaps:
+        return math.inf
+    mid = len(gaps) // 2
+    return gaps[mid] if len(gaps) % 2 else 0.5 * (gaps[mid - 1] + gaps[mid])
+
+
 @dataclass(frozen=True)
 class StreamTarget:
     """Where the streamed goal is: ``pos`` (m), ``rot`` (w, x, y, z), ``vel`` (m/s), ``w`` (rad/s,
@@ -82,6 +91,7 @@ class StreamEstimator:
         self._offset: float | None = None  # receive clock - stamp clock (s), None: same clock
         self._last_arrival = -math.inf
         self._fit: tuple[np.ndarray, ...] | None = None
+        self._period: float | None = None  # period() of the samples as they are (None: not computed yet)
         self.count = 0  # samples accepted since reset
         self.dropped = 0  # out-of-window or duplicate samples ignored
 
@@ -104,11 +114,10 @@ class StreamEstimator:
 
     def period(self) -> float:
         """Median spacing (s) of the stamps in the window (inf with fewer than two samples)."""
-        if len(self._samples) < 2:
-            return math.inf
-        d = np.diff([s.t for s in self._samples])
-        d = d[d > 1e-6]
-        return float(np.median(d)) if d.size else math.inf
+        # Asked several times per control step; the samples change only in add().
+        if self._period is None:
+            self._period = _median_spacing([s.t for s in self._samples])
+        return self._period
 
     def rate(self) -> float:
         """Message rate (Hz) of the stream, 0 if unknown."""
@@ -150,7 +159,7 @@ class StreamEstimator:
                 (len(self._samples) > 3 and self._samples[0].t < t_new - self.params.window):
             self._samples.pop(0)
         self.count += 1
-        self._fit = None
+        self._fit = self._period = None
         return True
 
     # -- fit and prediction -----------------------------------------------------------------------
