@@ -46,10 +46,6 @@ from redarm_ros.kinematics.quaternion import (
 )
 
 
-def _vec(v: np.ndarray) -> Vec3:
-    return (float(v[0]), float(v[1]), float(v[2]))
-
-
 def _median_spacing(stamps: list[float]) -> float:
     """Median of the gaps (s) between sorted ``stamps`` longer than 1 us (inf if there is none)."""
     gaps = sorted(b - a for a, b in zip(stamps, stamps[1:], strict=False) if b - a > 1e-6)
@@ -211,7 +207,9 @@ class StreamEstimator:
         ref = self._samples[-1]
         if self.ended(now):
             return StreamTarget(ref.pos, ref.rot, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0), True)
-        p0, v, a, r0, w, al = self._fitted()
+        # Plain floats from here (3-vectors: numpy's per-call cost is most of the work; the same
+        # arithmetic element by element gives the same numbers).
+        p0, v, a, r0, w, al = (x.tolist() for x in self._fitted())
         T = self.period()
         ahead = self.params.lead if lead else 0.0
         # (the lead is a known delay made up for, not a guess: the clamp applies beyond it)
@@ -221,12 +219,13 @@ class StreamEstimator:
             horizon = max(horizon, tau)
         moving = tau <= horizon
         tau = min(max(tau, -self.params.window), horizon)
-        pos = p0 + v * tau + 0.5 * a * tau * tau
-        rv = r0 + w * tau + 0.5 * al * tau * tau
-        rot = quat_normalize(quat_mul(quat_from_rotvec((float(rv[0]), float(rv[1]), float(rv[2]))), ref.rot))
-        vel = v + a * tau if moving else np.zeros(3)
-        wv = w + al * tau if moving else np.zeros(3)
-        return StreamTarget(_vec(pos), rot, _vec(vel), _vec(wv), False)
+        pos = tuple(p0[i] + v[i] * tau + 0.5 * a[i] * tau * tau for i in range(3))
+        rv = tuple(r0[i] + w[i] * tau + 0.5 * al[i] * tau * tau for i in range(3))
+        rot = quat_normalize(quat_mul(quat_from_rotvec(rv), ref.rot))
+        still = (0.0, 0.0, 0.0)
+        vel = tuple(v[i] + a[i] * tau for i in range(3)) if moving else still
+        wv = tuple(w[i] + al[i] * tau for i in range(3)) if moving else still
+        return StreamTarget(pos, rot, vel, wv, False)  # type: ignore[arg-type]
 
     def continues(self, pos: Vec3, rot: Quat, t: float, now: float) -> bool:
         """Would a message (pose, stamp ``t`` on the receive clock, arriving ``now``) continue this
