@@ -111,6 +111,18 @@ def test_stamps_on_another_clock_are_offset_zero_stamps_mean_now() -> None:
     assert est.stamp_time(None, 5.0) == 5.0
 
 
+def test_the_period_follows_every_sample_added() -> None:
+    est = StreamEstimator()
+    assert est.period() == math.inf
+    feed(est, line, [0.0, 0.02, 0.04])
+    assert est.period() == pytest.approx(0.02)
+    feed(est, line, [0.05, 0.06, 0.07, 0.08])  # the median spacing is 0.01 s now
+    assert est.period() == pytest.approx(0.01)
+    assert est.rate() == pytest.approx(100.0)
+    est.reset()
+    assert est.period() == math.inf
+
+
 def test_stream_ends_after_a_few_periods_and_the_target_is_the_last_goal() -> None:
     est = StreamEstimator(StreamParams(end_periods=3.0))
     feed(est, line, [k * 0.02 for k in range(10)])

@@ -78,6 +78,15 @@ def test_swivel_arm_fk_equals_paper_quaternion_fk(name: str) -> None:
         assert np.allclose(kp[1:], np.array(pts), atol=1e-12)
 
 
+@pytest.mark.parametrize("name", ["pa10", "powercube7", "powercube6"])
+def test_key_points_are_the_origins_of_the_fk_frames(name: str) -> None:
+    arm = load_arm(name)
+    for q in _rand_q(arm, 50, 6):
+        F = arm.fk_frames(q)
+        want = np.vstack([np.zeros(3), *(F[i, :3, 3] for i in arm.key_joints), F[arm.n, :3, 3]])
+        np.testing.assert_allclose(arm.key_points(q), want, rtol=0, atol=1e-14)
+
+
 def test_powercube6_fk_equals_eq_2_to_4() -> None:
     arm = load_arm("powercube6")
     L1, L23, L4, L56 = 0.13, 0.36, 0.18, 0.26

@@ -25,6 +25,28 @@ def test_vector_and_scalar_braking_speed_agree() -> None:
         np.testing.assert_allclose(v, ref, rtol=1e-12, atol=1e-15)
 
 
+def test_braking_speed_of_an_arm_s_few_joints_is_the_array_law_exactly() -> None:
+    # Small arrays and scalars go through the scalar law value by value: the same numbers as the
+    # numpy law, bit for bit; NaN, inf and a zero acceleration give the numpy law's answers too.
+    from redarm_ros.motion.limits import _braking_speed_array
+
+    rng = np.random.default_rng(5)
+    for k in range(3000):
+        n = int(rng.integers(1, 10))
+        d = float(rng.choice([1e-9, 1e-4, 0.1, 3.0])) * rng.standard_normal(n)
+        a = rng.uniform(0.1, 20.0, n) if k % 2 else float(rng.uniform(0.1, 20.0))
+        dt = float(rng.choice([1e-3, 4e-3, 1e-2]))
+        got = braking_speed(d, a, dt)
+        assert np.array_equal(got, _braking_speed_array(d, np.asarray(a), dt)), (d, a, dt)
+    assert braking_speed(0.3, 2.0, 0.01).shape == ()
+    assert float(braking_speed(0.3, 2.0, 0.01)) == braking_speed_scalar(0.3, 2.0, 0.01)
+    with np.errstate(all="ignore"):
+        odd = braking_speed(np.array([np.nan, np.inf, 1.0, -np.inf]), np.array([1.0, 1.0, 0.0, 1.0]), 0.01)
+        ref = _braking_speed_array(np.array([np.nan, np.inf, 1.0, -np.inf]), np.array([1.0, 1.0, 0.0, 1.0]),
+                                   0.01)
+    np.testing.assert_array_equal(odd, ref)
+
+
 @pytest.mark.parametrize("dt", [1e-3, 4e-3])
 def test_a_joint_keeping_to_the_braking_speed_stops_exactly_on_the_point(dt: float) -> None:
     rng = np.random.default_rng(11)

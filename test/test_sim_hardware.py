@@ -16,7 +16,7 @@ from redarm_ros.can import protocol as pc
 from redarm_ros.can.protocol import ActState, Param
 from redarm_ros.errors import BusError
 from redarm_ros.kinematics import load_arm
-from redarm_ros.sim.hardware import Faults, HardwareSim, build_parser, strip_ros_args
+from redarm_ros.sim.hardware import REST_BATCH, Faults, HardwareSim, build_parser, strip_ros_args
 from redarm_ros.sim.plant import PybulletPlant
 
 
@@ -113,6 +113,32 @@ def test_streamed_fsteps_are_followed(rig):
         assert time.monotonic() < deadline, sim.plant.q - last
         time.sleep(0.05)
     assert sim.counters.malformed == 0 and sim.counters.handler_errors == 0
+
+
+def test_the_physics_loop_wakes_every_few_steps(rig):
+    # Each wake-up costs more than a step: a moving arm is stepped two steps per wake (1 kHz), a
+    # resting one REST_BATCH; late wakes catch up more at once, so a wake never steps fewer.
+    sim, host, _ = rig
+    calls: list[int] = []
+    step = sim.plant.step
+
+    def counting(count: int = 1) -> None:
+        calls.append(count)
+        step(count)
+
+    sim.plant.step = counting
+    time.sleep(0.5)
+    resting = list(calls)
+    for j in range(sim.n):
+        host.send(pc.fstep(j + 1, 0.3, 1000))  # every joint moves for about a second
+    time.sleep(0.2)
+    calls.clear()
+    time.sleep(0.4)
+    moving = list(calls)
+    assert np.abs(sim.plant.dq).max() > 0.05  # still moving
+    assert sim.moving_batch == 2
+    assert moving and sum(c == 1 for c in moving) <= 0.2 * len(moving), moving
+    assert sorted(resting)[len(resting) // 2] >= REST_BATCH, resting
 
 
 def test_bus_loss_is_survived(rig):

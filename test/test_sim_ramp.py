@@ -280,3 +280,49 @@ def test_a_stream_holding_still_keeps_the_setpoint_without_evaluating_the_law(
         r.command_position(0.3 + 0.0004 * (k + 1), duration_s=0.004)
         _run(r, 4)
     assert calls and r.pos == pytest.approx(0.32, abs=2e-3)
+
+
+class _EveryBound(JointRamp):
+    """The generator evaluating every speed bound, also those from farther than it could matter."""
+
+    def _far_distance(self, a: float, dt: float) -> float:
+        return math.inf
+
+
+def _random_commands(r: JointRamp, rng: np.random.Generator, steps: int) -> list[tuple[float, float]]:
+    """Streams (with bursts, gaps and drifts into a limit), single moves, velocity, halt, moved limits."""
+    out = []
+    target = r.pos
+    drift = 0.003 if rng.random() < 0.5 else 0.0
+    for k in range(steps):
+        ev = rng.random()
+        if k % 4 == 0 and ev < 0.85:
+            target = min(max(target + rng.normal(0.0, 0.004) + drift, r.lower - 0.1), r.upper + 0.1)
+            for _ in range(2 if rng.random() < 0.05 else 1):
+                r.command_position(target, None, None if rng.random() < 0.9 else 0.5 * r.max_acc, 0.004)
+        elif ev < 0.002:
+            r.command_position(rng.uniform(r.lower, r.upper), rng.uniform(0.1, r.max_vel))
+        elif ev < 0.003:
+            r.command_velocity(rng.uniform(-r.max_vel, r.max_vel))
+        elif ev < 0.0035:
+            r.halt()
+        elif ev < 0.0038:
+            lo, hi = sorted(rng.uniform(r.lower, r.upper, 2))
+            r.set_limits(lo, hi)
+        out.append((r.step(DT), r.vel))
+    return out
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_speed_bounds_from_far_away_are_skipped_without_changing_a_step(seed: int) -> None:
+    # A bound from where the braking speed is at least max_vel cannot bind (every speed is capped at
+    # max_vel): the generator skips it, and every setpoint is the one of evaluating them all.
+    rng = np.random.default_rng(seed)
+    lo, hi = -rng.uniform(0.2, 3.0), rng.uniform(0.2, 3.0)
+    args = (rng.uniform(lo, hi), lo, hi, rng.uniform(0.3, 3.0), rng.uniform(0.5, 10.0))
+    fast, full = JointRamp(*args), _EveryBound(*args)
+    assert _random_commands(fast, np.random.default_rng(100 + seed), 3000) == \
+        _random_commands(full, np.random.default_rng(100 + seed), 3000)
+    a = fast.acc_limit
+    far = fast._far_distance(a, DT)
+    assert braking_speed(far, a, DT) >= fast.max_vel > braking_speed(0.999 * far, a, DT)

@@ -46,8 +46,13 @@ from redarm_ros.kinematics.quaternion import (
 )
 
 
-def _vec(v: np.ndarray) -> Vec3:
-    return (float(v[0]), float(v[1]), float(v[2]))
+def _median_spacing(stamps: list[float]) -> float:
+    """Median of the gaps (s) between sorted ``stamps`` longer than 1 us (inf if there is none)."""
+    gaps = sorted(b - a for a, b in zip(stamps, stamps[1:], strict=False) if b - a > 1e-6)
+    if not gaps:
+        return math.inf
+    mid = len(gaps) // 2
+    return gaps[mid] if len(gaps) % 2 else 0.5 * (gaps[mid - 1] + gaps[mid])
 
 
 @dataclass(frozen=True)
@@ -82,6 +87,7 @@ class StreamEstimator:
         self._offset: float | None = None  # receive clock - stamp clock (s), None: same clock
         self._last_arrival = -math.inf
         self._fit: tuple[np.ndarray, ...] | None = None
+        self._period: float | None = None  # period() of the samples as they are (None: not computed yet)
         self.count = 0  # samples accepted since reset
         self.dropped = 0  # out-of-window or duplicate samples ignored
 
@@ -104,11 +110,10 @@ class StreamEstimator:
 
     def period(self) -> float:
         """Median spacing (s) of the stamps in the window (inf with fewer than two samples)."""
-        if len(self._samples) < 2:
-            return math.inf
-        d = np.diff([s.t for s in self._samples])
-        d = d[d > 1e-6]
-        return float(np.median(d)) if d.size else math.inf
+        # Asked several times per control step; the samples change only in add().
+        if self._period is None:
+            self._period = _median_spacing([s.t for s in self._samples])
+        return self._period
 
     def rate(self) -> float:
         """Message rate (Hz) of the stream, 0 if unknown."""
@@ -150,7 +155,7 @@ class StreamEstimator:
                 (len(self._samples) > 3 and self._samples[0].t < t_new - self.params.window):
             self._samples.pop(0)
         self.count += 1
-        self._fit = None
+        self._fit = self._period = None
         return True
 
     # -- fit and prediction -----------------------------------------------------------------------
@@ -202,7 +207,9 @@ class StreamEstimator:
         ref = self._samples[-1]
         if self.ended(now):
             return StreamTarget(ref.pos, ref.rot, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0), True)
-        p0, v, a, r0, w, al = self._fitted()
+        # Plain floats from here (3-vectors: numpy's per-call cost is most of the work; the same
+        # arithmetic element by element gives the same numbers).
+        p0, v, a, r0, w, al = (x.tolist() for x in self._fitted())
         T = self.period()
         ahead = self.params.lead if lead else 0.0
         # (the lead is a known delay made up for, not a guess: the clamp applies beyond it)
@@ -212,12 +219,13 @@ class StreamEstimator:
             horizon = max(horizon, tau)
         moving = tau <= horizon
         tau = min(max(tau, -self.params.window), horizon)
-        pos = p0 + v * tau + 0.5 * a * tau * tau
-        rv = r0 + w * tau + 0.5 * al * tau * tau
-        rot = quat_normalize(quat_mul(quat_from_rotvec((float(rv[0]), float(rv[1]), float(rv[2]))), ref.rot))
-        vel = v + a * tau if moving else np.zeros(3)
-        wv = w + al * tau if moving else np.zeros(3)
-        return StreamTarget(_vec(pos), rot, _vec(vel), _vec(wv), False)
+        pos = tuple(p0[i] + v[i] * tau + 0.5 * a[i] * tau * tau for i in range(3))
+        rv = tuple(r0[i] + w[i] * tau + 0.5 * al[i] * tau * tau for i in range(3))
+        rot = quat_normalize(quat_mul(quat_from_rotvec(rv), ref.rot))
+        still = (0.0, 0.0, 0.0)
+        vel = tuple(v[i] + a[i] * tau for i in range(3)) if moving else still
+        wv = tuple(w[i] + al[i] * tau for i in range(3)) if moving else still
+        return StreamTarget(pos, rot, vel, wv, False)  # type: ignore[arg-type]
 
     def continues(self, pos: Vec3, rot: Quat, t: float, now: float) -> bool:
         """Would a message (pose, stamp ``t`` on the receive clock, arriving ``now``) continue this

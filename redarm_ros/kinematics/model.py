@@ -484,12 +484,15 @@ class Arm:
 
         Shoulder/elbow/wrist are the origins of the joint frames named by the YAML ``key_joints``.
         """
-        F = self.fk_frames(q)
+        # The scalar FK with its per-joint record (the controller asks every step; the 4x4 matrix
+        # chain of fk_frames costs several times more).
+        joints: list[tuple[list[float], list[float]]] = []
+        _, tool = self._fk_lists(self.check_q(q).tolist(), joints)
         pts = np.empty((5, 3))
         pts[0] = 0.0
         for k, i in enumerate(self.key_joints):
-            pts[k + 1] = F[i, :3, 3]
-        pts[4] = F[self.n, :3, 3]
+            pts[k + 1] = joints[i][0]
+        pts[4] = tool
         return pts
 
     def fk_jacobian(self, q: Sequence[float]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

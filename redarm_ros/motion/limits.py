@@ -34,6 +34,10 @@ from redarm_ros.errors import InvalidInputError
 __all__ = ["JointLimits", "braking_distance", "braking_speed", "braking_speed_scalar", "velocity_bounds"]
 
 
+#: Up to this many values, :func:`braking_speed` evaluates the scalar law value by value.
+_SCALAR_LOOP_MAX = 16
+
+
 def braking_speed_scalar(distance: float, acc: float, dt: float) -> float:
     """Largest speed (rad/s) for the next step of ``dt`` s from which a joint stops within ``distance``
     (rad) braking at ``acc`` (rad/s^2); 0 for ``distance <= 0``. Pure Python, for per-joint loops.
@@ -60,8 +64,30 @@ def braking_speed(distance: Any, acc: Any, dt: float) -> np.ndarray:
 
     ``distance`` and ``acc`` broadcast against each other; the result is a float array.
     """
-    d = np.maximum(np.asarray(distance, dtype=float), 0.0)
-    adt = np.asarray(acc, dtype=float) * dt
+    d = np.asarray(distance, dtype=float)
+    a = np.asarray(acc, dtype=float)
+    # An arm's few joints (and scalars) go through the scalar law: a dozen numpy calls on seven
+    # values cost several times more than seven scalar evaluations, and the controller asks every
+    # step. The results are the same numbers; NaN, inf and zero or negative accelerations (errors for
+    # the scalar law) take the vectorised path.
+    if d.size <= _SCALAR_LOOP_MAX and d.ndim <= 1 and a.shape in ((), d.shape):
+        try:
+            if a.ndim == 0:
+                acc0 = float(a)
+                out = [braking_speed_scalar(x, acc0, dt) for x in d.ravel().tolist()]
+            else:
+                out = [braking_speed_scalar(x, ai, dt) for x, ai in zip(d.tolist(), a.tolist(), strict=True)]
+        except (ValueError, OverflowError, ZeroDivisionError):
+            pass
+        else:
+            return np.array(out).reshape(d.shape)
+    return _braking_speed_array(d, a, dt)
+
+
+def _braking_speed_array(distance: np.ndarray, acc: np.ndarray, dt: float) -> np.ndarray:
+    """:func:`braking_speed` in numpy, for any shapes and values."""
+    d = np.maximum(distance, 0.0)
+    adt = acc * dt
     x = d / (adt * dt)
     j = np.maximum(0.0, np.ceil((np.sqrt(1.0 + 8.0 * x) - 3.0) / 2.0))
     # One correction step each way covers the rounding of the closed form (as the scalar loop does).

@@ -3,8 +3,9 @@
 No ROS here: to the rest of the system this process *is* the hardware. It
 
 * owns a :class:`~redarm_ros.sim.plant.PybulletPlant` and steps it in real time at ``--rate`` Hz
-  (default 1000, sleeping until each step's deadline; late steps are counted as overruns and caught
-  up in bursts, a backlog of more than :data:`MAX_BURST` steps is dropped and counted as a resync),
+  (default 1000, waking every :data:`MOVING_WAKE_S`, every :data:`REST_BATCH` steps while the arm
+  rests, and sleeping until the batch's deadline; late steps are counted as overruns and caught up in
+  bursts, a backlog of more than :data:`MAX_BURST` steps is dropped and counted as a resync),
 * emulates modules ``1..n`` (``--first-id`` shifts them) with :mod:`redarm_ros.can.module_emulator`
   on the CAN bus chosen by python-can configuration (``--can-interface``/``--can-channel``/
   ``--can-config-file`` passed through, else ``CAN_INTERFACE``/``CAN_CHANNEL``/``CAN_CONFIG``),
@@ -64,9 +65,14 @@ MAX_BURST = 50  # steps caught up at once; a larger backlog is dropped (resync)
 # While the arm rests (no setpoint moving, every joint slower than REST_SPEED_RAD_S) the
 # physics loop wakes every REST_BATCH steps and steps them at once instead of waking every step: a
 # still arm is the same arm a few ms later, and each wake-up costs more than a step. A command that
-# starts a motion takes effect within those steps; then the loop steps one at a time again.
+# starts a motion takes effect within those steps; then the loop wakes as a moving arm's does.
 REST_BATCH = 10
 REST_SPEED_RAD_S = 1e-4
+# While it moves, the loop wakes every MOVING_WAKE_S (as many steps as fit, at least one: 2 at
+# 1 kHz): each wake-up (sleep, scheduler, the GIL from the bus thread) costs more than a step. A
+# command takes effect within that time, well inside a 250 Hz host's 4 ms cycle; the replies are the
+# bus thread's and go out at once.
+MOVING_WAKE_S = 2e-3
 CONTROL_POLL_S = 0.05
 OUTBOX_MAX = 64  # replies queued while requests keep coming are sent once this many wait
 SWITCH_INTERVAL_S = 5e-4
@@ -183,6 +189,7 @@ class HardwareSim:
         if len(self.module_ids) != self.n or len(set(self.module_ids)) != self.n:
             raise ValueError(f"need {self.n} distinct module ids, got {self.module_ids}")
         self.rate_hz = float(rate_hz)
+        self.moving_batch = max(1, int(MOVING_WAKE_S * self.rate_hz + 1e-9))  # steps per wake while moving
         self.faults = faults or Faults()
         self.faults.validate()
         self.status_file = Path(status_file) if status_file else None
@@ -587,7 +594,7 @@ class HardwareSim:
         next_status = t0
         next_control = t0
         next_report, reported = t0 + OVERRUN_REPORT_S, 0
-        batch = 1  # steps per wake-up: REST_BATCH while the arm rests (planned, not late)
+        batch = 1  # steps per wake-up: self.moving_batch, or REST_BATCH at rest (planned, not late)
         try:
             while not self._stop.is_set():
                 now = time.monotonic()
@@ -605,7 +612,7 @@ class HardwareSim:
                         c.overruns += 1
                     self.plant.step(due)
                     k += due
-                    batch = REST_BATCH if self._resting() else 1
+                    batch = REST_BATCH if self._resting() else self.moving_batch
                 if self._physics_calls:
                     self._run_physics_calls()
                 if self.die_after_s is not None and now - self._start >= self.die_after_s:

@@ -127,6 +127,8 @@ class JointRamp:
         self._stream_until = -math.inf  # an FSTEP before this time continues the stream
         self._single_end = 0.0  # when the last single FSTEP move was due to arrive
         self.skipped_steps = 0  # stream steps dropped because the buffer was full
+        self._far_key = (math.nan, math.nan)  # (acc, dt) of _far
+        self._far = math.inf  # distance (rad) from which the braking speed is at least max_vel
 
     # -- commands ---------------------------------------------------------------------------------
     def _limits(self, vel_limit: float | None, acc_limit: float | None) -> tuple[float, float]:
@@ -224,6 +226,17 @@ class JointRamp:
         return self._streaming and self.mode is RampMode.POSITION
 
     # -- integration ------------------------------------------------------------------------------
+    def _far_distance(self, a: float, dt: float) -> float:
+        """A distance (rad) from which :func:`braking_speed` (at ``a``, steps of ``dt``) is at least
+        ``max_vel``: a speed bound from that far is no bound (every speed is capped at ``max_vel`` by
+        then) and need not be evaluated. Cached per (a, dt)."""
+        if self._far_key != (a, dt):
+            far = _braking_distance(self.max_vel, a, dt) * (1.0 + 1e-6) + 1e-12
+            while braking_speed_scalar(far, a, dt) < self.max_vel:  # (never taken: rounding guard)
+                far *= 2.0
+            self._far_key, self._far = (a, dt), far
+        return self._far
+
     def _idle(self) -> float:
         self.vel = 0.0
         self.mode = RampMode.IDLE
@@ -336,6 +349,9 @@ class JointRamp:
                     v_des = min(v_des, braking_speed_scalar(err + d_ref, a, dt))
                 else:
                     v_des = max(v_des, -braking_speed_scalar(d_ref - err, a, dt))
+            # (Bounds from at least far away are at least max_vel >= vcap: the cap below decides, so
+            # they are not evaluated.)
+            far = self._far_distance(a, dt)
             if self._streaming:
                 # The host's stream stops at the earliest on its last target plus the braking distance
                 # of that step's velocity (a host braking for a limit of its own, e.g. the CAN driver's
@@ -344,16 +360,23 @@ class JointRamp:
                 # reference stopped, the joint ran on) otherwise stayed ahead of it and passed the
                 # host's stop: 0.5-0.9 mrad past the driver's 1 mrad margin.
                 fence_lo, fence_hi = self._stream_fence(a)
-                v_des = min(v_des, braking_speed_scalar(fence_hi - self.pos, a, dt))
-                v_des = max(v_des, -braking_speed_scalar(self.pos - fence_lo, a, dt))
+                if fence_hi - self.pos < far:
+                    v_des = min(v_des, braking_speed_scalar(fence_hi - self.pos, a, dt))
+                if self.pos - fence_lo < far:
+                    v_des = max(v_des, -braking_speed_scalar(self.pos - fence_lo, a, dt))
             v_des = max(-vcap, min(vcap, v_des))
         elif mode is RampMode.VELOCITY:
             v_des = self.target_vel
+            far = self._far_distance(a, dt)
         else:  # HALT
             v_des = 0.0
-        # The limits in view in every mode: never faster towards one than allows stopping on it.
-        v_des = min(v_des, braking_speed_scalar(self.upper - self.pos, a, dt))
-        v_des = max(v_des, -braking_speed_scalar(self.pos - self.lower, a, dt))
+            far = self._far_distance(a, dt)
+        # The limits in view in every mode: never faster towards one than allows stopping on it
+        # (|v_des| <= max_vel here: a bound from at least ``far`` away changes nothing).
+        if self.upper - self.pos < far:
+            v_des = min(v_des, braking_speed_scalar(self.upper - self.pos, a, dt))
+        if self.pos - self.lower < far:
+            v_des = max(v_des, -braking_speed_scalar(self.pos - self.lower, a, dt))
         v_new = v + max(-dv, min(dv, v_des - v))
         p_new = self.pos + v_new * dt
         if settled:
@@ -366,8 +389,8 @@ class JointRamp:
                 return self.pos
         if mode is RampMode.POSITION and self._streaming:
             # Clamp the integration too, not only the speed: a step never carries the setpoint past the
-            # host's stop point (it binds only after a late stream let the joint overtake it).
-            fence_lo, fence_hi = self._stream_fence(a)
+            # host's stop point (it binds only after a late stream let the joint overtake it). (The
+            # fence of the speed bound above: nothing it depends on changed since.)
             if p_new > fence_hi and v_new > 0.0:
                 p_new = max(self.pos, fence_hi)
                 v_new = (p_new - self.pos) / dt
