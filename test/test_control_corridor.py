@@ -106,6 +106,24 @@ def test_a_route_without_a_corridor_says_why():
     assert "corridor closes" in why and "joint 4" in why, why
 
 
+def test_a_goal_near_a_limit_or_the_elbow_singularity_keeps_its_corridor():
+    """PA10 goals whose joint 4 is 0.02 rad from its limit (every swivel) or 0.02 rad from the elbow
+    singularity (|q4|, every swivel): the margins shrink to what the goal keeps, so the corridor reaches
+    the goal instead of closing just before it, and the route ends at the goal."""
+    arm = load_arm("pa10")
+    for q0, q1 in (([0.379, 0.644, -0.085, 1.459, -0.223, 2.166, -1.18], [0.502, 0.242, 0.222, 2.372, 0.522,
+                                                                          2.589, -0.873]),
+                   ([-0.797, 0.388, 0.142, 0.898, -0.294, 1.503, -4.301], [-0.442, 0.923, -0.053, 0.019,
+                                                                           -0.493, 1.279, -3.948])):
+        q0 = np.array(q0)
+        T0, T1 = np.asarray(arm.fk(q0)), np.asarray(arm.fk(np.array(q1)))
+        route, why = plan_route(arm, T0, T1, q0, None, 0.15, 0.05, 0.4, 1.5, 1.0, np.asarray(arm.max_vel),
+                                np.asarray(arm.max_acc), 0.7, pace_after=0.0)
+        assert route is not None, why
+        assert route.corridor.u[-1] == 1.0
+        assert np.allclose(np.asarray(arm.fk(route.corridor.q[-1]))[:3, 3], T1[:3, 3], atol=1e-6)
+
+
 def test_route_progress_of_a_pose():
     route = CorridorRoute((0.0, 0.0, 0.0), (1.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.5), None, 1.0)
     pos, rot = route.pose(0.25)

@@ -194,24 +194,56 @@ def smoothed(arm: Any, T0: np.ndarray, T1: np.ndarray, cor: SwivelCorridor, m_li
     return replace(cor, swivel=S_new, q=Q, max_joint_step=float(np.max(np.abs(np.diff(Q, axis=0)))))
 
 
+#: swivels (evenly spaced on the circle) at which :func:`goal_keeps` looks at the goal's joints
+GOAL_SWIVELS = 72
+
+
+def goal_keeps(arm: Any, T0: np.ndarray, T1: np.ndarray, q0: np.ndarray) -> tuple[float, float, float, float]:
+    """What the goal pose ``T1`` can keep at best on the flip pattern of the start ``q0`` (pose ``T0``),
+    which the corridor keeps, over the swivel circle: the distance (rad) to the nearest joint limit (joints of
+    range 2 pi or wider, which fit on some copy, left out), |sin q2|, |sin q6| and |q4| (rad; q4 is the
+    same at every swivel), each at its own best swivel. (inf, 1, 1, pi) where nothing is known (the
+    goal out of reach)."""
+    s0 = float(arm.swivel(q0))
+    rows = arm.ik(T0, s0, limits=False)
+    if len(rows) != 8:
+        return math.inf, 1.0, 1.0, math.pi
+    pattern = int(np.argmin(np.abs(np.remainder(rows - q0 + math.pi, 2.0 * math.pi) - math.pi).max(axis=1)))
+    lower, upper = np.asarray(arm.lower, float), np.asarray(arm.upper, float)
+    narrow = upper - lower < 2.0 * math.pi - 1e-9
+    best = np.array([-math.inf, 0.0, 0.0, 0.0])
+    for s in np.linspace(-math.pi, math.pi, GOAL_SWIVELS, endpoint=False):
+        sol = arm.ik(T1, float(s), limits=False)
+        if len(sol) != 8:
+            return math.inf, 1.0, 1.0, math.pi
+        q = sol[pattern]
+        slack = float(np.min(np.minimum(q - lower, upper - q)[narrow])) if narrow.any() else math.inf
+        best = np.maximum(best, (slack, abs(math.sin(q[1])), abs(math.sin(q[5])), abs(q[3])))
+    return float(best[0]), float(best[1]), float(best[2]), float(best[3])
+
+
 def plan_route(arm: Any, T0: np.ndarray, T1: np.ndarray, q0: np.ndarray, preferred: Any, margin_sing: float,
                margin_limit: float, v_max: float, w_max: float, s_rate: float, max_vel: np.ndarray,
                max_acc: np.ndarray, share: float, pace_after: float = math.inf
                ) -> tuple[CorridorRoute | None, str]:
     """The corridor route from the reference (pose T0, joints q0) to T1, or (None, why there is none).
-    Each margin is at most 0.9 of what the start configuration keeps. The minimum-jerk profile runs in
+    Each margin is at most 0.9 of what the start configuration keeps, and of what the goal keeps at its best
+    swivel (:func:`goal_keeps`). The minimum-jerk profile runs in
     u (a single-peaked hand speed) unless that takes longer than ``pace_after`` (s): then in the pace
     (:func:`route_pace`; the hand slows where the joints swing)."""
     # the margins shrink to what the start keeps (an elbow resting near the shoulder axis may start).
     # First with three times the singularity margin: near a singularity margin joints 1 and 3 (5 and 7)
     # turn up to 1 / margin times faster than the swivel, and the route's timing slows down with them
+    # Likewise to what the goal keeps at its best swivel: a goal near a limit or a singularity would
+    # otherwise close the corridor just before the end
+    g_slack, g_sh, g_wr, g_el = goal_keeps(arm, T0, T1, q0)
     slack = float(np.min(np.minimum(q0 - np.asarray(arm.lower), np.asarray(arm.upper) - q0)))
-    m_limit = min(margin_limit, 0.9 * max(slack, 0.0))
+    m_limit = min(margin_limit, 0.9 * max(slack, 0.0), 0.9 * max(g_slack, 0.0))
     # and with a low swivel rate bound (a slow swivel keeps the joints slow), raised if that closes it
     for sing, rate in ((min(3.0 * margin_sing, 0.5), 1.0), (margin_sing, 1.0), (margin_sing, 4.0)):
-        m_sh = max(min(sing, 0.9 * abs(math.sin(q0[1]))), 1e-3)
-        m_wr = max(min(sing, 0.9 * abs(math.sin(q0[5]))), 1e-3)
-        m_el = min(sing, 0.9 * abs(q0[3]))
+        m_sh = max(min(sing, 0.9 * abs(math.sin(q0[1])), 0.9 * g_sh), 1e-3)
+        m_wr = max(min(sing, 0.9 * abs(math.sin(q0[5])), 0.9 * g_wr), 1e-3)
+        m_el = min(sing, 0.9 * abs(q0[3]), 0.9 * g_el)
         cor = arm.swivel_corridor(T0, T1, q0, limit_margin=m_limit, shoulder_margin=m_sh,
                                   wrist_margin=m_wr, elbow_margin=m_el, max_rate=rate,
                                   preferred=preferred, samples=12, max_joint_step=0.1)
