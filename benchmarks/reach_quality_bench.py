@@ -128,6 +128,7 @@ class Move:
     oracle: bool
     oracle_margin: bool
     oracle_u: float  # the furthest route parameter the oracle's chains reach
+    route: str = ""  # controller: its message on the first step (the route taken, or why no corridor)
 
     @property
     def straight(self) -> bool:
@@ -188,6 +189,7 @@ class Traj:
     reason: str = ""
     step_us: tuple[float, ...] = ()
     plan_s: float = 0.0  # wall time the controller's corridor plan took (its worker thread), 0 if none
+    route: str = ""  # the controller's message on its first step: the route it took, or why not a corridor
 
 
 def run_controller(ctl: ReachController, T: np.ndarray) -> Traj:
@@ -197,7 +199,7 @@ def run_controller(ctl: ReachController, T: np.ndarray) -> Traj:
     check = ctl.set_goal(T)
     rows = [q0]
     steps: list[float] = []
-    replanned, reason = False, ""
+    replanned, reason, route = False, "", ""
     if not check.accepted:
         return Traj(np.array(rows), False, math.nan, False, f"rejected: {check.message}")
     plan_s = bench_common.wait_for_corridor_plan(ctl)
@@ -207,6 +209,8 @@ def run_controller(ctl: ReachController, T: np.ndarray) -> Traj:
         r = ctl.step(DT)
         steps.append((time.perf_counter() - t0) * 1e6)
         rows.append(r.q)
+        if len(rows) == 2:
+            route = r.message
         if r.phase is Phase.REPLANNING and not replanned:
             replanned, reason = True, r.message
         if r.phase is Phase.REACHED:
@@ -215,7 +219,7 @@ def run_controller(ctl: ReachController, T: np.ndarray) -> Traj:
     if not reached and not reason:
         reason = f"not reached: {r.phase.value} {r.message}"
     return Traj(np.array(rows), reached, (len(rows) - 1) * DT if reached else math.nan, replanned, reason,
-                tuple(steps), plan_s)
+                tuple(steps), plan_s, route)
 
 
 def _min_jerk(x: np.ndarray) -> np.ndarray:
@@ -301,6 +305,23 @@ def reason_key(message: str) -> str:
     """The kind of a re-planning reason: the controller's message without its prefix and numbers."""
     r = message.removeprefix("re-planning in joint space: ")
     return re.sub(r" at \d+ %", "", r.split(" (")[0].split(":")[0])[:90]
+
+
+def miss_cause(m: Move) -> str:
+    """Why a controller move with an oracle route did not go straight: the corridor's reason (numbers
+    as N) when none was taken, else what went wrong on the way."""
+    tag = "no swivel corridor: "
+    no_corridor = m.route.partition(tag)[2] or m.reason.partition(tag)[2]
+    if no_corridor:
+        cause = re.sub(r"blocked at every swivel within reach by ", "", no_corridor.rstrip(")"))
+        return "no corridor: " + re.sub(r"-?\d+(\.\d+)?", "N", cause)[:80]
+    if m.route.startswith("straight through the swivel corridor"):
+        if m.replanned:
+            return "corridor, then re-planned: " + reason_key(m.reason)
+        return "corridor route, path ratio > 1.05" if m.reached else "corridor route, not reached"
+    if m.replanned:
+        return "re-planned: " + reason_key(m.reason)
+    return "attractor dynamics" + (", not reached" if not m.reached else ", path ratio > 1.05")
 
 
 # ------------------------------------------------------------------------------------------------
@@ -454,13 +475,14 @@ def run_case(arm, case: str, moves: int, seed: int, params: ControllerParams, ve
                 sc = score(arm, scene, tr, T, caps)
                 out.moves.append(Move(arm.name, case, scene.name or "free", k, method, dist, turn, tr.reached,
                                       tr.time_s, tr.replanned, tr.reason, oracle=orc.exists,
-                                      oracle_margin=orm.exists, oracle_u=orc.reached_u, **sc))
+                                      oracle_margin=orm.exists, oracle_u=orc.reached_u, route=tr.route, **sc))
                 if verbose:
                     m = out.moves[-1]
                     print(f"{arm.name} {case} {k:3d} {method:10s} reached={m.reached} "
                           f"ratio={m.path_ratio:.3f} "
                           f"peaks={m.peaks} mj={m.mj_dev:.3f} replanned={m.replanned} oracle={m.oracle}/"
-                          f"{m.oracle_margin} {m.reason[:70]}", flush=True)
+                          f"{m.oracle_margin} {m.reason[:70]}"
+                          + (f" | {m.route[:90]}" if m.route and not m.straight else ""), flush=True)
             k += 1
     return out
 
@@ -551,6 +573,12 @@ def report(runs: dict[tuple[str, str], CaseRun], params_note: str) -> list[str]:
         if r.reasons:
             lines.append(f"First re-planning reasons, {arm} {case}: "
                          + "; ".join(f"{k or '(none)'}: {v}" for k, v in r.reasons.most_common(8)))
+    for (arm, case), r in runs.items():
+        missed = Counter(miss_cause(m) for m in r.moves if m.method == "controller" and m.oracle
+                         and not m.straight)
+        if missed:
+            lines.append(f"Oracle-route moves not straight, {arm} {case}, by cause: "
+                         + "; ".join(f"{k}: {v}" for k, v in missed.most_common(8)))
     fails = Counter(f"{m.arm} {m.method}: {re.sub(r'[0-9.]+', 'N', m.reason)[:70]}" for m in moves
                     if m.method != "controller" and not m.reached)
     if fails:
