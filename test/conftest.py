@@ -7,7 +7,7 @@
   ``redarm_rclpy_context``, ``redarm_procs``, ``redarm_canbus``, ``redarm_no_open_buses`` (the CAN
   test modules use the last for every test: ``pytestmark = pytest.mark.usefixtures("no_open_buses")``).
 * under pytest-xdist ``--dist loadfile``: the files of hil tests in one unit (first, on one worker,
-  in order), every other file spread over the workers.
+  in order), every other file spread over the workers, the files with a test marked slow first.
 * an autouse check that no child process of pytest outlives the test (``redarm_no_leftover_children``).
 * an MCAP recording of every failing HIL run that talks ROS (``hil_recording.py``).
 """
@@ -39,17 +39,31 @@ def pytest_configure(config: pytest.Config) -> None:
 # Under pytest-xdist (`make test`: -n 2 --dist loadfile) the test files marked hil (the simulated arm's
 # processes over the loopback bus) form one unit of work, started first and run in order by one
 # worker: two stacks at once would share the cores with each other instead of with pure computation.
-# Every other file is a unit of its own (its module fixtures start once), spread over the workers.
+# Every other file is a unit of its own (its module fixtures start once), spread over the workers:
+# the files with a test marked slow first, so that the run ends on short files on both workers
+# instead of one worker finishing a long file alone.
 HIL_MARK = re.compile(r"pytest\.mark\.hil\b")
+SLOW_MARK = re.compile(r"pytest\.mark\.slow\b")
 SERIAL_UNIT = "hil tests"
 
 
 @functools.cache
-def _is_hil_file(path: str) -> bool:
+def _file_text(path: str) -> str:
     try:
-        return bool(HIL_MARK.search(Path(path).read_text(encoding="utf-8")))
+        return Path(path).read_text(encoding="utf-8")
     except OSError:
-        return False
+        return ""
+
+
+def _is_hil_file(path: str) -> bool:
+    return bool(HIL_MARK.search(_file_text(path)))
+
+
+def _unit_rank(root: Path, scope: str) -> int:
+    """Where a unit of work goes in the queue: the hil unit, then the files with slow tests, then the rest."""
+    if scope == SERIAL_UNIT:
+        return 0
+    return 1 if SLOW_MARK.search(_file_text(str(root / scope))) else 2
 
 
 @pytest.hookimpl(optionalhook=True)
@@ -66,8 +80,9 @@ def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
             return SERIAL_UNIT if _is_hil_file(str(root / path)) else path
 
         def _assign_work_unit(self, node: Any) -> None:
-            if SERIAL_UNIT in self.workqueue:  # the longest unit: first, so it never ends the run alone
-                self.workqueue.move_to_end(SERIAL_UNIT, last=False)
+            # A stable sort: within a rank, xdist's order (most tests first) stays.
+            for scope in sorted(self.workqueue, key=lambda scope: _unit_rank(root, scope)):
+                self.workqueue.move_to_end(scope)
             super()._assign_work_unit(node)
 
     return HilTestsInOneUnit(config, log)
