@@ -14,8 +14,8 @@
 
 from __future__ import annotations
 
+import ast
 import functools
-import re
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -42,28 +42,28 @@ def pytest_configure(config: pytest.Config) -> None:
 # Every other file is a unit of its own (its module fixtures start once), spread over the workers:
 # the files with a test marked slow first, so that the run ends on short files on both workers
 # instead of one worker finishing a long file alone.
-HIL_MARK = re.compile(r"pytest\.mark\.hil\b")
-SLOW_MARK = re.compile(r"pytest\.mark\.slow\b")
 SERIAL_UNIT = "hil tests"
 
 
 @functools.cache
-def _file_text(path: str) -> str:
+def marks_used(path: str) -> frozenset[str]:
+    """The marks a test file's code uses (``pytest.mark.<name>``); a mark named in a string (a test file
+    that writes test files) does not count."""
     try:
-        return Path(path).read_text(encoding="utf-8")
-    except OSError:
-        return ""
-
-
-def _is_hil_file(path: str) -> bool:
-    return bool(HIL_MARK.search(_file_text(path)))
+        tree = ast.parse(Path(path).read_text(encoding="utf-8"), filename=path)
+    except (OSError, SyntaxError):
+        return frozenset()
+    return frozenset(node.attr for node in ast.walk(tree)
+                     if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Attribute)
+                     and node.value.attr == "mark" and isinstance(node.value.value, ast.Name)
+                     and node.value.value.id == "pytest")
 
 
 def _unit_rank(root: Path, scope: str) -> int:
     """Where a unit of work goes in the queue: the hil unit, then the files with slow tests, then the rest."""
     if scope == SERIAL_UNIT:
         return 0
-    return 1 if SLOW_MARK.search(_file_text(str(root / scope))) else 2
+    return 1 if "slow" in marks_used(str(root / scope)) else 2
 
 
 @pytest.hookimpl(optionalhook=True)
@@ -77,7 +77,7 @@ def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
     class HilTestsInOneUnit(LoadFileScheduling):
         def _split_scope(self, nodeid: str) -> str:
             path = nodeid.split("::", 1)[0]
-            return SERIAL_UNIT if _is_hil_file(str(root / path)) else path
+            return SERIAL_UNIT if "hil" in marks_used(str(root / path)) else path
 
         def _assign_work_unit(self, node: Any) -> None:
             # A stable sort: within a rank, xdist's order (most tests first) stays.

@@ -113,3 +113,15 @@ def test_worker_domains_are_distinct_and_in_range(monkeypatch: pytest.MonkeyPatc
             assert len(set(ids)) == workers and all(1 <= d <= 200 for d in ids), (run, ids)
     monkeypatch.setenv(DOMAIN_ENV, "42")
     assert [worker_domain_id(w, 3, "a") for w in range(3)] == [42, 43, 44]
+
+
+def test_a_mark_named_in_a_string_does_not_make_a_hil_file(tmp_path: Path) -> None:
+    """The scheduler reads the marks a file's code uses: this file writes hil files, but is not one."""
+    from conftest import marks_used
+
+    f = tmp_path / "test_writes_files.py"
+    f.write_text("import pytest\n\nHIL = 'pytestmark = pytest.mark.hil'\n\n@pytest.mark.slow\ndef test_x():\n"
+                 "    pass\n", encoding="utf-8")
+    assert marks_used(str(f)) == {"slow"}
+    assert "hil" not in marks_used(__file__)
+    assert "hil" in marks_used(str(REPO / "test" / "test_e2e_stack.py"))
