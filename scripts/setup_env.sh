@@ -196,6 +196,10 @@ if [ -f "$IFACE_DIR/package.xml" ] && { ! stamp_ok interfaces "$IFACE_KEY" \
         cd "$COLCON_DIR"
         export CMAKE_PREFIX_PATH="$VENV" AMENT_PREFIX_PATH="$VENV" PATH="$VENV/bin:$PATH"
         export PYTHONNOUSERSITE=1 COLCON_HOME="$COLCON_DIR/home"
+        # Without -j in MAKEFLAGS colcon runs make with -l<cores> too: no second job while the load
+        # average is above the core count, which on a machine with anything else running (or still
+        # counting the pip step) makes the whole compile serial.
+        export MAKEFLAGS="-j$(nproc)"
         quiet "$BUILD/logs/colcon-interfaces.log" "$VENV/bin/colcon" --log-base "$COLCON_DIR/log" build \
             --merge-install --install-base "$VENV" --build-base "$COLCON_DIR/build" \
             --base-paths "$REPO/interfaces" --packages-select redarm_interfaces \
