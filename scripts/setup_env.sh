@@ -141,13 +141,18 @@ fi
 DEPS_KEY="$(hash_files "$REPO/requirements.txt" "$REPO/requirements-build.txt")"
 if ! stamp_ok deps "$DEPS_KEY"; then
     log "installing requirements.txt + requirements-build.txt into .venv (pip)"
-    # pip byte-compiles file after file (half of this step); compileall does the venv on every core.
-    # Failures are ignored, as pip ignores them (some wheels ship files that are not Python 3.11).
+    # pip byte-compiles file after file (half of this step); compileall does the venv on every core,
+    # in the background while steps 3-5 run (the colcon build leaves a core idle much of the time).
     quiet "$BUILD/logs/pip-install.log" "$VENV/bin/python" -m pip install --progress-bar off --no-compile \
         -r "$REPO/requirements.txt" -r "$REPO/requirements-build.txt"
-    "$VENV/bin/python" -m compileall -q -j 0 "$VENV" >"$BUILD/logs/compileall.log" 2>&1 || true
-    rm -f "$STAMPS/editable" "$STAMPS/interfaces"
+    rm -f "$STAMPS/editable" "$STAMPS/interfaces" "$STAMPS/compiled"
     stamp_set deps "$DEPS_KEY"
+fi
+if ! stamp_ok compiled "$DEPS_KEY"; then
+    # Failures are ignored, as pip ignores them (some wheels ship files that are not Python 3.11).
+    ( "$VENV/bin/python" -m compileall -q -j 0 "$VENV/lib" >"$BUILD/logs/compileall.log" 2>&1 || true
+      stamp_set compiled "$DEPS_KEY" ) &
+    COMPILE_PID=$!
 fi
 
 # --- 3. patch the wheels' CMake exports -----------------------------------------------------------
@@ -191,6 +196,10 @@ if [ -f "$IFACE_DIR/package.xml" ] && { ! stamp_ok interfaces "$IFACE_KEY" \
         cd "$COLCON_DIR"
         export CMAKE_PREFIX_PATH="$VENV" AMENT_PREFIX_PATH="$VENV" PATH="$VENV/bin:$PATH"
         export PYTHONNOUSERSITE=1 COLCON_HOME="$COLCON_DIR/home"
+        # Without -j in MAKEFLAGS colcon runs make with -l<cores> too: no second job while the load
+        # average is above the core count, which on a machine with anything else running (or still
+        # counting the pip step) makes the whole compile serial.
+        export MAKEFLAGS="-j$(nproc)"
         quiet "$BUILD/logs/colcon-interfaces.log" "$VENV/bin/colcon" --log-base "$COLCON_DIR/log" build \
             --merge-install --install-base "$VENV" --build-base "$COLCON_DIR/build" \
             --base-paths "$REPO/interfaces" --packages-select redarm_interfaces \
@@ -205,4 +214,7 @@ if [ -f "$IFACE_DIR/package.xml" ] && { ! stamp_ok interfaces "$IFACE_KEY" \
     stamp_set interfaces "$IFACE_KEY"
 fi
 
+if [ -n "${COMPILE_PID:-}" ]; then
+    wait "$COMPILE_PID"
+fi
 log "environment ready ($VENV)"

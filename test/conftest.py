@@ -7,15 +7,15 @@
   ``redarm_rclpy_context``, ``redarm_procs``, ``redarm_canbus``, ``redarm_no_open_buses`` (the CAN
   test modules use the last for every test: ``pytestmark = pytest.mark.usefixtures("no_open_buses")``).
 * under pytest-xdist ``--dist loadfile``: the files of hil tests in one unit (first, on one worker,
-  in order), every other file spread over the workers.
+  in order), every other file spread over the workers, the files with a test marked slow first.
 * an autouse check that no child process of pytest outlives the test (``redarm_no_leftover_children``).
 * an MCAP recording of every failing HIL run that talks ROS (``hil_recording.py``).
 """
 
 from __future__ import annotations
 
+import ast
 import functools
-import re
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -39,17 +39,31 @@ def pytest_configure(config: pytest.Config) -> None:
 # Under pytest-xdist (`make test`: -n 2 --dist loadfile) the test files marked hil (the simulated arm's
 # processes over the loopback bus) form one unit of work, started first and run in order by one
 # worker: two stacks at once would share the cores with each other instead of with pure computation.
-# Every other file is a unit of its own (its module fixtures start once), spread over the workers.
-HIL_MARK = re.compile(r"pytest\.mark\.hil\b")
+# Every other file is a unit of its own (its module fixtures start once), spread over the workers:
+# the files with a test marked slow first, so that the run ends on short files on both workers
+# instead of one worker finishing a long file alone.
 SERIAL_UNIT = "hil tests"
 
 
 @functools.cache
-def _is_hil_file(path: str) -> bool:
+def marks_used(path: str) -> frozenset[str]:
+    """The marks a test file's code uses (``pytest.mark.<name>``); a mark named in a string (a test file
+    that writes test files) does not count."""
     try:
-        return bool(HIL_MARK.search(Path(path).read_text(encoding="utf-8")))
-    except OSError:
-        return False
+        tree = ast.parse(Path(path).read_text(encoding="utf-8"), filename=path)
+    except (OSError, SyntaxError):
+        return frozenset()
+    return frozenset(node.attr for node in ast.walk(tree)
+                     if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Attribute)
+                     and node.value.attr == "mark" and isinstance(node.value.value, ast.Name)
+                     and node.value.value.id == "pytest")
+
+
+def _unit_rank(root: Path, scope: str) -> int:
+    """Where a unit of work goes in the queue: the hil unit, then the files with slow tests, then the rest."""
+    if scope == SERIAL_UNIT:
+        return 0
+    return 1 if "slow" in marks_used(str(root / scope)) else 2
 
 
 @pytest.hookimpl(optionalhook=True)
@@ -63,11 +77,12 @@ def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
     class HilTestsInOneUnit(LoadFileScheduling):
         def _split_scope(self, nodeid: str) -> str:
             path = nodeid.split("::", 1)[0]
-            return SERIAL_UNIT if _is_hil_file(str(root / path)) else path
+            return SERIAL_UNIT if "hil" in marks_used(str(root / path)) else path
 
         def _assign_work_unit(self, node: Any) -> None:
-            if SERIAL_UNIT in self.workqueue:  # the longest unit: first, so it never ends the run alone
-                self.workqueue.move_to_end(SERIAL_UNIT, last=False)
+            # A stable sort: within a rank, xdist's order (most tests first) stays.
+            for scope in sorted(self.workqueue, key=lambda scope: _unit_rank(root, scope)):
+                self.workqueue.move_to_end(scope)
             super()._assign_work_unit(node)
 
     return HilTestsInOneUnit(config, log)

@@ -1,4 +1,5 @@
-"""redarm-bringup: Ctrl-C stops every child; a child that dies is reported and the rest are stopped."""
+"""redarm-bringup: Ctrl-C stops every child; a child that dies is reported and the rest are stopped.
+The whole simulated stack's bring-up is in test_bringup_stack.py (a hil file)."""
 
 from __future__ import annotations
 
@@ -154,21 +155,3 @@ def test_child_that_cannot_start_is_reported() -> None:
     assert all(not c.is_running() for c in started)
     stack.close()
 
-
-@pytest.mark.hil
-def test_full_stack_ctrl_c_stops_everything(procs: Any) -> None:
-    """The simulated stack (bus server, simulator, driver, ik_service, controller, description): SIGINT
-    stops all."""
-    pytest.importorskip("redarm_ros.nodes.can_driver", reason="can_driver node not written yet")
-    pytest.importorskip("redarm_ros.sim.hardware", reason="simulator not written yet")
-    bringup = procs.start("bringup", python_module_cmd("redarm_ros.bringup", "--log-level", "warn"))
-    pids = _child_pids(bringup.wait_for_line(UP, timeout=90.0))
-    assert set(pids) == {"canbus", "sim", "can_driver", "ik_service", "controller", "description"}
-    assert all(_alive(p) for p in pids.values())
-    bringup.expect_exit()
-    bringup.send_signal(signal.SIGINT)
-    assert _wait_exit(bringup.popen, 60.0) == 0, bringup.tail(30)
-    assert _wait_gone(list(pids.values()), 5.0) == [], "a child outlived the bring-up"
-    out = "\n".join(bringup.output())
-    for name in pids:
-        assert f"{name} stopped (exit code" in out, name

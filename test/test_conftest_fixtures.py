@@ -70,14 +70,18 @@ def test_plain(ros_env):
         f.write(f"plain 0 {os.environ['PYTEST_XDIST_WORKER']} {ros_env.domain_id}\\n")
 '''
 
+SLOW_FILE = PLAIN_FILE.replace("def test_plain", "@pytest.mark.slow\ndef test_slow").replace(
+    "import os", "import os\nimport pytest").replace("plain 0", "slow 0")
+
 
 def test_xdist_runs_the_hil_files_in_order_on_one_worker_each_worker_on_its_own_domain(
         pytester: pytest.Pytester, monkeypatch: pytest.MonkeyPatch) -> None:
     pytest.importorskip("xdist")
     pytester.makeconftest((REPO / "test" / "conftest.py").read_text())
-    pytester.makeini("[pytest]\nmarkers =\n    hil: processes over a loopback bus\n")
-    # Two hil files (one unit) and more plain files than workers (spread).
-    pytester.makepyfile(test_a_hil=HIL_FILE, test_b_hil=HIL_FILE,
+    pytester.makeini("[pytest]\nmarkers =\n    hil: processes over a loopback bus\n    slow: long\n")
+    # Two hil files (one unit), more plain files than workers (spread), and a file with a slow test that
+    # xdist alone would hand out last (as many tests as the others, last by name).
+    pytester.makepyfile(test_a_hil=HIL_FILE, test_b_hil=HIL_FILE, test_z_slow=SLOW_FILE,
                         **{f"test_plain_{k}": PLAIN_FILE for k in range(4)})
     out = pytester.path / "ran.txt"
     monkeypatch.setenv("OUT", str(out))
@@ -87,11 +91,13 @@ def test_xdist_runs_the_hil_files_in_order_on_one_worker_each_worker_on_its_own_
     monkeypatch.delenv("REDARM_TEST_DOMAIN_ID", raising=False)
     result = pytester.runpytest_subprocess("-p", "no:cacheprovider", "-q", "-n", "2", "--dist", "loadfile",
                                            timeout=120)
-    assert result.parseoutcomes().get("passed") == 12, result.stdout.str()
+    assert result.parseoutcomes().get("passed") == 13, result.stdout.str()
     rows = [line.split() for line in out.read_text().splitlines()]
     hil = [(int(i), w) for kind, i, w, _ in rows if kind == "hil"]
     assert len({w for _, w in hil}) == 1, hil  # one worker ...
     assert [i for i, _ in hil] == [0, 1, 2, 3, 0, 1, 2, 3], hil  # ... in order, file after file
+    other = [kind for kind, _, w, _ in rows if w != hil[0][1]]
+    assert other[0] == "slow", rows  # the other worker starts with the slow file
     domains = {w: int(d) for _, _, w, d in rows}
     assert len(domains) == 2 and len(set(domains.values())) == 2, domains  # a domain per worker
     assert all(1 <= d <= 200 for d in domains.values()), domains
@@ -107,3 +113,15 @@ def test_worker_domains_are_distinct_and_in_range(monkeypatch: pytest.MonkeyPatc
             assert len(set(ids)) == workers and all(1 <= d <= 200 for d in ids), (run, ids)
     monkeypatch.setenv(DOMAIN_ENV, "42")
     assert [worker_domain_id(w, 3, "a") for w in range(3)] == [42, 43, 44]
+
+
+def test_a_mark_named_in_a_string_does_not_make_a_hil_file(tmp_path: Path) -> None:
+    """The scheduler reads the marks a file's code uses: this file writes hil files, but is not one."""
+    from conftest import marks_used
+
+    f = tmp_path / "test_writes_files.py"
+    f.write_text("import pytest\n\nHIL = 'pytestmark = pytest.mark.hil'\n\n@pytest.mark.slow\ndef test_x():\n"
+                 "    pass\n", encoding="utf-8")
+    assert marks_used(str(f)) == {"slow"}
+    assert "hil" not in marks_used(__file__)
+    assert "hil" in marks_used(str(REPO / "test" / "test_e2e_stack.py"))

@@ -47,6 +47,9 @@ NODES = {
 }
 TOOLS = ["redarm-sim", "redarm-canbus", "redarm-bringup", "redarm-demo", "redarm-view", "redarm-record"]
 START_GRACE_S = 6.0
+# Jobs named (as scripts/setup_env.sh does): else colcon adds make's -l<cores>, which runs the compile
+# serially while the other test worker keeps the load average up.
+MAKEFLAGS = f"-j{os.cpu_count() or 1}"
 
 pytestmark = pytest.mark.slow
 
@@ -78,6 +81,7 @@ def workspace(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Workspace]:
         PATH=f"{VENV_BIN}{os.pathsep}{env.get('PATH', '')}",
         COLCON_HOME=str(root / "colcon_home"),
         PYTHONNOUSERSITE="1",
+        MAKEFLAGS=MAKEFLAGS,
     )
     cmd = [
         colcon, "--log-base", str(root / "log"), "build",
@@ -146,7 +150,7 @@ def test_symlink_install_links_the_generated_urdfs(tmp_path: Path) -> None:
     assert colcon is not None
     env = dict(os.environ, CMAKE_PREFIX_PATH=sys.prefix, AMENT_PREFIX_PATH=sys.prefix,
                PATH=f"{VENV_BIN}{os.pathsep}{os.environ.get('PATH', '')}", COLCON_HOME=str(tmp_path / "home"),
-               PYTHONNOUSERSITE="1")
+               PYTHONNOUSERSITE="1", MAKEFLAGS=MAKEFLAGS)
     cmd = [colcon, "--log-base", str(tmp_path / "log"), "build", "--symlink-install",
            "--base-paths", str(REPO), "--packages-select", "redarm_ros",
            "--build-base", str(tmp_path / "build"), "--install-base", str(tmp_path / "install"),

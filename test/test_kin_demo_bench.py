@@ -15,6 +15,7 @@ from redarm_ros.kinematics.quaternion import qmul, qy, qz
 BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "ik_bench.py"
 
 
+@pytest.mark.slow
 def test_benchmark_smoke(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -336,6 +336,7 @@ def test_nearest_no_flip_next_to_a_solution(name: str) -> None:
         assert d_found <= np.sum((q - seed) ** 2) + 1e-6  # at least as near as the known solution
 
 
+@pytest.mark.slow
 def test_nearest_is_close_to_brute_force_optimum() -> None:
     arm = ARMS["pa10"]
     rng = np.random.default_rng(17)

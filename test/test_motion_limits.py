@@ -84,6 +84,7 @@ def test_braking_distance_is_the_inverse() -> None:
     assert braking_distance(10.0, 2.0, 1e-5) == pytest.approx(10.0**2 / 4.0, rel=1e-3)
 
 
+@pytest.mark.slow
 def test_velocity_bounds_keep_a_random_walk_inside_the_limits() -> None:
     rng = np.random.default_rng(7)
     lim = JointLimits([-1.0, -0.2], [1.0, 0.3], [1.0, 2.0], [2.0, 8.0])

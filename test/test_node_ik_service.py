@@ -471,6 +471,7 @@ def test_bad_placement_tasks_refuse_to_start(ctx: Any, tmp_path: Any) -> None:
 # ---------------------------------------------------------------------------------------------
 # Across processes
 # ---------------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_cross_process_service_and_duplicate_refused(procs: Any, ctx: Any) -> None:
     """The node as its own process: answers good and bad requests; a second one of the same name
     refuses to start with a clear message and exit code 1, and the first keeps serving."""
@@ -540,6 +541,7 @@ def test_cross_process_service_and_duplicate_refused(procs: Any, ctx: Any) -> No
 # ---------------------------------------------------------------------------------------------
 # Bursts: many requests outstanding at once are all answered (none dropped by the service's queue)
 # ---------------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_burst_of_2000_outstanding_requests_all_answered(procs: Any, ctx: Any) -> None:
     """4 clients keep 500 requests each outstanding (sent before any answer is read) against the node
     in its own process: every one of the 2000 gets its answer, and each answer is for its request.

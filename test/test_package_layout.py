@@ -129,6 +129,7 @@ def _check_covered(folder: str, allowed: set[str]) -> list[str]:
     return problems
 
 
+@pytest.mark.slow
 def test_manifest_covers_runtime_imports() -> None:
     root = _manifest()
     allowed = _deps(root, "depend", "exec_depend")
@@ -136,6 +137,7 @@ def test_manifest_covers_runtime_imports() -> None:
     assert not problems, "\n".join(problems)
 
 
+@pytest.mark.slow
 def test_manifest_covers_test_imports() -> None:
     root = _manifest()
     allowed = _deps(root, "depend", "exec_depend", "test_depend")

@@ -170,6 +170,7 @@ def test_inverse_map_is_conservative_on_random_pairs(arm_name):
     assert possible_pairs(arm, tasks, np.zeros((1, 3)), 0.0).all()
 
 
+@pytest.mark.slow
 def test_engines_agree_bit_for_bit():
     problem = _pa10_problem()
     one = place(problem, workers=1)
@@ -180,6 +181,7 @@ def test_engines_agree_bit_for_bit():
         assert getattr(one, name).tobytes() == getattr(two, name).tobytes(), name
 
 
+@pytest.mark.slow
 def test_dask_engine_on_a_loopback_cluster_agrees_bit_for_bit():
     distributed = pytest.importorskip("distributed")
     problem = _pc6_problem()
@@ -276,6 +278,7 @@ def test_capability_map_is_the_same_on_worker_processes():
     assert one.fraction.max() > 0.5
 
 
+@pytest.mark.slow
 def test_placement_benchmark_smoke(monkeypatch, capsys):
     """benchmarks/placement_bench.py in quick mode on the powercube6 task set: every section is there and
     pruning changes nothing."""

@@ -11,6 +11,7 @@ import math
 from pathlib import Path
 
 import numpy as np
+import pytest
 from support.benches import load_bench
 
 from redarm_ros.kinematics import load_arm
@@ -131,6 +132,7 @@ def test_baselines_by_construction() -> None:
     assert not bad.reached and ("no solution" in bad.reason or "jump" in bad.reason)
 
 
+@pytest.mark.slow
 def test_smoke_run_writes_every_move_and_the_summary(tmp_path: Path, capsys) -> None:
     out = tmp_path / "moves.json"
     assert bench.main(["--moves", "1", "--arms", "pa10", "--cases", "free45,table_cylinder", "--no-write",

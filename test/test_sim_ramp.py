@@ -45,6 +45,7 @@ def test_fstep_duration_caps_speed():
     assert ps[-1] == -0.5
 
 
+@pytest.mark.slow
 def test_random_command_sequences_respect_limits():
     rng = np.random.default_rng(5)
     for _ in range(150):
