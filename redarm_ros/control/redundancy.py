@@ -32,7 +32,14 @@ from redarm_ros.control.paper_redundancy import PaperSwivel
 from redarm_ros.control.params import ControllerParams
 from redarm_ros.control.replan import JointPlanner, PathSearch, check_route, move_time
 from redarm_ros.control.state import REST_SPEED_SHARE, CoreState, Mode, Reference
-from redarm_ros.control.stream_swivel import OFFSET_EPS, closing_acc, offset_rate, time_to_axis, wrap_offset
+from redarm_ros.control.stream_swivel import (
+    OFFSET_EPS,
+    closing_acc,
+    offset_rate,
+    shoulder_sine,
+    time_to_axis,
+    wrap_offset,
+)
 from redarm_ros.control.swivel_dynamics import SwivelDynamics, SwivelForces, wrap_angle
 from redarm_ros.control.types import GoalCheck, Phase, Quat, Vec3
 from redarm_ros.errors import UnreachableError
@@ -462,12 +469,22 @@ class SwivelRedundancy:
         return swivel
 
     def kept_swivel(self, st: CoreState, p: ControllerParams, step: IKStep) -> SwivelFn:
-        """The swivel of ``step`` for another pose of the same step (the acceleration fit's coasting
-        pose and blend): the swivel itself. With the pose law too: its offset takes up the difference
-        and closes once the joints have acceleration to spare (keeping the offset instead costs the hand
-        more of the joints' acceleration: a circle at 0.3 m/s streamed at 10 Hz, p95 14 mm instead of
-        10 mm)."""
-        return lambda c, T, s0: (step.s, step.s_des, False)
+        """The swivel of ``step`` for another pose of the same step (the acceleration fit's coasting pose
+        and blend): the swivel itself; with the pose law near the shoulder axis (the elbow within
+        ``servo.axis_margin``), its offset from the preferred swivel (the elbow stays in the vertical
+        plane through the wrist where the step had it there: a small offset there turns joint 1 far).
+        Elsewhere the pose law's offset takes up the difference and closes once the joints have
+        acceleration to spare (keeping it costs the hand more of the joints' acceleration)."""
+        if not self.pose_law(p) or step.circle is None \
+                or shoulder_sine(step.circle, step.s) >= p.servo.axis_margin:
+            return lambda c, T, s0: (step.s, step.s_des, False)
+        off = wrap_offset(step.s, self.preferred_swivel(st, p, step.circle))
+
+        def swivel(circle: ElbowCircle, T: np.ndarray, s0: float) -> tuple[float, float, bool]:
+            s_pref = self.preferred_swivel(st, p, circle)
+            return wrap_angle(s_pref + off), s_pref, False
+
+        return swivel
 
     # -- point goals: the route, the corridor, the joint-space planner ----------------------------
     def route_dead_end(self, st: CoreState, p: ControllerParams, T: np.ndarray) -> str:

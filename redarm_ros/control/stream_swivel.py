@@ -75,13 +75,17 @@ def time_to_axis(geom: ArmGeometry, poses: Sequence[tuple[float, np.ndarray]], o
 def offset_rate(offset: float, rate: float, push: float, close_acc: float, max_rate: float, acc: float,
                 dt: float) -> float:
     """The offset's rate (rad/s) for the next step of ``dt`` s: back to 0 at the braking speed of
-    ``close_acc`` (rad/s^2; it lands on 0 exactly, in finite time; 0: it holds), plus ``push`` (rad/s,
+    ``close_acc`` (rad/s^2; it lands on 0 exactly, in finite time; 0: it holds, i.e. no faster towards
+    0 than ``rate`` and braking at ``acc`` to land on 0), plus ``push`` (rad/s,
     the obstacle and limit forces); within ``max_rate`` and at most ``acc * dt`` from the last ``rate``
     (speeding up towards 0: ``close_acc * dt``)."""
     d = abs(offset)
     back = 0.0
     if d > 0.0 and close_acc > 0.0:
         back = -math.copysign(min(float(braking_speed(d, close_acc, dt)), max_rate), offset)
+    elif d > 0.0:  # holding: no faster towards 0 than now, braking at ``acc`` so as to land on 0
+        closing = abs(rate) if rate * offset < 0.0 else 0.0
+        back = -math.copysign(min(float(braking_speed(d, acc, dt)), max_rate, closing), offset)
     want = max(-max_rate, min(max_rate, back + push))
     # Towards 0 the offset speeds up at close_acc too (not at the joints' whole share: the hand's motion
     # has priority); slowing down, turning and the forces' pushes use ``acc``.
