@@ -20,9 +20,11 @@ out of order).
 Methods (same arm limits, same start posture, same messages):
 
   servo   ReachController: a stream is told apart from new goals and tracked by the servo with
-          the stream's velocity (estimated from the stamps) fed forward (phase TRACKING)
-  servo-pose  the same with servo.swivel_law pose: the elbow at the pose's preferred swivel plus an
-          offset that returns to 0 (the same joints every lap; over the shoulder in the wrist's plane)
+          the stream's velocity (estimated from the stamps) fed forward (phase TRACKING); the elbow
+          at the pose's preferred swivel plus an offset that returns to 0 (servo.swivel_law pose:
+          the same joints every lap; over the shoulder in the wrist's plane)
+  servo-dyn  the same with servo.swivel_law dynamics: the elbow by eq. 31, the preferred swivel's
+          motion fed forward
   point   the behaviour before goal streams: every message is a new point goal, reached by the
           attractor dynamics (it retargets smoothly)
   dls     a damped-least-squares differential-IK servo (MoveIt Servo's method): pose error times
@@ -330,8 +332,8 @@ def run_method(method: str, arm, path: PathDef, msgs: list[Message], q0: np.ndar
         params = ControllerParams()
         if method == "point":  # every message a new point goal (no stream)
             params = params.with_(stream=StreamParams(gap=1e-6))
-        elif method == "servo-pose":  # the elbow at the pose's preferred swivel plus a closing offset
-            params = ControllerParams.from_dict({"servo": {"swivel_law": "pose"}})
+        elif method == "servo-dyn":  # the elbow by the swivel dynamics (eq. 31)
+            params = ControllerParams.from_dict({"servo": {"swivel_law": "dynamics"}})
         ctl = make_controller(arm, path.scene, params)
         ctl.reset(q0, now=0.0)
 
@@ -458,7 +460,7 @@ MOVING_SHARE = 0.5  # ... while the target moves above this share of it
 LAP_PHASES = 200  # path points per lap at which consecutive laps' joints are compared
 R_UP6 = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])  # powercube6: approach axis up
 Q_HINT6 = np.array([0.0, 0.3, 0.0, 1.0, 0.27, 0.0])
-LAP_METHODS = ("servo", "servo-pose", "dls")
+LAP_METHODS = ("servo", "servo-dyn", "dls")
 LAP_TARGETS = ("p95 <= 5 mm on every lap at 0.157 m/s (50 Hz); no stall at 0.314 m/s (100 Hz); joints at "
                "the same path point within 0.02 rad of the previous lap's after the first lap")
 
@@ -795,7 +797,7 @@ def lap_section(args: argparse.Namespace) -> list[str]:
         for rate in rates:
             msgs = make_stream(lp.path.duration, rate, "clean", seed=int(rate))
             for method in LAP_METHODS:
-                if arm.n != 7 and method == "servo-pose":
+                if arm.n != 7 and method == "servo-dyn":
                     continue  # (no swivel: the same as servo)
                 run = run_method(method, arm, lp.path, msgs, q0)
                 if method.startswith("servo"):
@@ -853,7 +855,7 @@ def in_process(
     arm = load_arm("pa10")
     if args.quick:
         cases = [(circle(0.16), [50.0], ["clean", "jitter"]), (circle(0.30), [50.0], ["clean"])]
-        methods = ["servo", "servo-pose", "point", "dls"]
+        methods = ["servo", "servo-dyn", "point", "dls"]
     else:
         cases = [
             (circle(0.08), [10.0, 50.0, 100.0], ["clean", "jitter"]),
@@ -865,7 +867,7 @@ def in_process(
             (abrupt(circle(0.16), 2.0), [50.0, 100.0], ["clean"]),
             (abrupt(circle(0.30), 1.5), [50.0, 100.0], ["clean"]),
         ]
-        methods = ["servo", "servo-pose", "point", "dls"]
+        methods = ["servo", "servo-dyn", "point", "dls"]
     cases.append((elbow_obstacle_path(arm), [50.0], ["clean"]))
     lines = [HEADER]
     steps: dict[str, list[float]] = {m: [] for m in methods}

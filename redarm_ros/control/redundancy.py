@@ -32,7 +32,14 @@ from redarm_ros.control.paper_redundancy import PaperSwivel
 from redarm_ros.control.params import ControllerParams
 from redarm_ros.control.replan import JointPlanner, PathSearch, check_route, move_time
 from redarm_ros.control.state import REST_SPEED_SHARE, CoreState, Mode, Reference
-from redarm_ros.control.stream_swivel import OFFSET_EPS, closing_acc, offset_rate, time_to_axis, wrap_offset
+from redarm_ros.control.stream_swivel import (
+    OFFSET_EPS,
+    closing_acc,
+    offset_rate,
+    shoulder_sine,
+    time_to_axis,
+    wrap_offset,
+)
 from redarm_ros.control.swivel_dynamics import SwivelDynamics, SwivelForces, wrap_angle
 from redarm_ros.control.types import GoalCheck, Phase, Quat, Vec3
 from redarm_ros.errors import UnreachableError
@@ -434,7 +441,7 @@ class SwivelRedundancy:
         pref_prev = self.preferred_swivel(st, p, ref.circle)
         offset = wrap_offset(ref.s, pref_prev)
         s_acc = self.swivel_acc_share(st, p)
-        close_acc = min(sp.swivel_acc, s_acc)
+        close_acc = 0.0 if ref.acc_limited else min(sp.swivel_acc, s_acc)
 
         def preferred(circle: ElbowCircle) -> float:
             return self.preferred_swivel(st, p, circle)
@@ -442,7 +449,7 @@ class SwivelRedundancy:
         if abs(offset) > OFFSET_EPS and sp.lookahead > 0.0:
             hit = time_to_axis(self.geom, poses_ahead(sp.lookahead), offset, preferred, sp.axis_margin)
             if hit is not None:
-                close_acc = closing_acc(offset, 0.5 * hit, close_acc, s_acc)
+                close_acc = closing_acc(offset, 0.5 * hit, min(sp.swivel_acc, s_acc), s_acc)
         rate0 = ref.sdot_dyn
 
         def swivel(circle: ElbowCircle, T: np.ndarray, s0: float) -> tuple[float, float, bool]:
@@ -462,10 +469,14 @@ class SwivelRedundancy:
         return swivel
 
     def kept_swivel(self, st: CoreState, p: ControllerParams, step: IKStep) -> SwivelFn:
-        """The swivel of ``step`` for another pose of the same step: its offset from the preferred swivel
-        kept (``servo.swivel_law`` pose: the elbow stays in the vertical plane through the wrist where
-        the step had it there), or the swivel itself."""
-        if not self.pose_law(p):
+        """The swivel of ``step`` for another pose of the same step (the acceleration fit's coasting pose
+        and blend): the swivel itself; with the pose law near the shoulder axis (the elbow within
+        ``servo.axis_margin``), its offset from the preferred swivel (the elbow stays in the vertical
+        plane through the wrist where the step had it there: a small offset there turns joint 1 far).
+        Elsewhere the pose law's offset takes up the difference and closes once the joints have
+        acceleration to spare (keeping it costs the hand more of the joints' acceleration)."""
+        if not self.pose_law(p) or step.circle is None \
+                or shoulder_sine(step.circle, step.s) >= p.servo.axis_margin:
             return lambda c, T, s0: (step.s, step.s_des, False)
         off = wrap_offset(step.s, self.preferred_swivel(st, p, step.circle))
 

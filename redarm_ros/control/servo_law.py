@@ -115,6 +115,7 @@ class ServoLaw:
         if shaped is not None:
             out = shaped
             limited = "joint acceleration limits"
+        st.ref.acc_limited = shaped is not None
         self.command.commit(st, p, out, dt)
         if limited and not st.message:
             st.message = f"{self._stream_word(st)}: {limited}: following as closely as they allow"
@@ -161,8 +162,8 @@ class ServoLaw:
         c_pos = (ref.pos[0] + v[0] * dt, ref.pos[1] + v[1] * dt, ref.pos[2] + v[2] * dt)
         c_rot = quat_normalize(quat_mul(quat_from_rotvec((w[0] * dt, w[1] * dt, w[2] * dt)), ref.rot))
         red = self.redundancy
-        keep = red.kept_swivel(st, p, step)
         pose_law = red.pose_law(p)
+        keep = red.kept_swivel(st, p, step)
         coast = red.stepper.advance(ref.pos, ref.rot, ref.s, ref.q, c_pos, c_rot, dt, keep, pose_law)
         if isinstance(coast, DeadEnd):
             return None

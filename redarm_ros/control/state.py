@@ -63,6 +63,9 @@ class Reference:
     # last moved, or the reference was reset: a swivel its dynamics asks to move that stands this long
     # with the hand still is held by the limits, and counts as settled after SETTLE_DWELL_S
     swivel_moved_at: float = -math.inf
+    # the last servo step was shortened to the joints' acceleration limits (the hand fell behind): the
+    # pose law's offset then holds instead of closing (the hand has priority over the elbow's way back)
+    acc_limited: bool = False
     w_ori: float = 0.0  # orientation rate of the last step (rad/s)
     v_tool: float = 0.0  # tool speed of the last step (m/s)
     vel: Vec3 = ZERO3  # tool velocity of the last step (m/s), the servo's state

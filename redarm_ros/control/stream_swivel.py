@@ -1,15 +1,17 @@
 """The elbow while the servo tracks a stream or a twist: the swivel as a function of the hand's pose
-(``servo.swivel_law`` pose; the default, ``dynamics``, is eq. 31 with the preferred swivel fed forward).
+(``servo.swivel_law`` pose, the default; ``dynamics`` is eq. 31 with the preferred swivel fed forward).
 
 The swivel is the preferred swivel of the present pose plus an offset, ``s = s_pref(T) + e``:
 
 * ``s_pref(T)`` is the preferred swivel (``preferred_swivel`` from the highest or lowest elbow, or
   absolute), a function of the pose alone, and its change from step to step is fed forward;
 * the offset ``e`` is the elbow's only state: the obstacle and joint-limit forces of the swivel
-  dynamics (eq. 31) push it, and otherwise it returns to exactly 0 at the braking speed of
+  dynamics (eq. 31) push it, and otherwise it returns to exactly 0 accelerating and braking at
   ``servo.swivel_acc`` (the braking law of :mod:`redarm_ros.motion.limits`: it lands on 0 in finite
-  time; 0.1 rad in about 0.45 s at 2 rad/s^2), its rate within ``swivel.max_rate`` and its change
-  within the joints' acceleration share.
+  time; 0.1 rad in about 0.9 s at 0.5 rad/s^2), its rate within ``swivel.max_rate`` and its change
+  within the joints' acceleration share. While the hand needs the joints' whole acceleration (the
+  servo's step was cut to it) the offset holds instead: the hand has priority over the elbow's way
+  back.
 
 So once the offset is 0 the joints are a function of the pose (and the branch): a closed path gives the
 same joint motion on every lap, and nothing integrates a drift (a differential-IK servo's null space
@@ -73,14 +75,23 @@ def time_to_axis(geom: ArmGeometry, poses: Sequence[tuple[float, np.ndarray]], o
 def offset_rate(offset: float, rate: float, push: float, close_acc: float, max_rate: float, acc: float,
                 dt: float) -> float:
     """The offset's rate (rad/s) for the next step of ``dt`` s: back to 0 at the braking speed of
-    ``close_acc`` (rad/s^2; it lands on 0 exactly, in finite time), plus ``push`` (rad/s, the obstacle
-    and limit forces); within ``max_rate`` and at most ``acc * dt`` from the last ``rate``."""
+    ``close_acc`` (rad/s^2; it lands on 0 exactly, in finite time; 0: it holds, i.e. no faster towards
+    0 than ``rate`` and braking at ``acc`` to land on 0), plus ``push`` (rad/s,
+    the obstacle and limit forces); within ``max_rate`` and at most ``acc * dt`` from the last ``rate``
+    (speeding up towards 0: ``close_acc * dt``)."""
     d = abs(offset)
     back = 0.0
-    if d > 0.0:
+    if d > 0.0 and close_acc > 0.0:
         back = -math.copysign(min(float(braking_speed(d, close_acc, dt)), max_rate), offset)
+    elif d > 0.0:  # holding: no faster towards 0 than now, braking at ``acc`` so as to land on 0
+        closing = abs(rate) if rate * offset < 0.0 else 0.0
+        back = -math.copysign(min(float(braking_speed(d, acc, dt)), max_rate, closing), offset)
     want = max(-max_rate, min(max_rate, back + push))
-    new = max(rate - acc * dt, min(rate + acc * dt, want))
+    # Towards 0 the offset speeds up at close_acc too (not at the joints' whole share: the hand's motion
+    # has priority); slowing down, turning and the forces' pushes use ``acc``.
+    speeding = push == 0.0 and abs(want) > abs(rate) and want * rate >= 0.0
+    step = min(acc, close_acc) * dt if speeding else acc * dt
+    new = max(rate - step, min(rate + step, want))
     if push == 0.0 and d > 0.0 and abs(new * dt) >= d and (new * offset) < 0.0:
         return -offset / dt  # (lands on 0, not past it)
     return new
