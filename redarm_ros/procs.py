@@ -216,6 +216,7 @@ class ManagedProcess:
         cwd: str | os.PathLike[str] | None = None,
         sink: LineSink | IO[str] | None = None,
         on_exit: Callable[[ManagedProcess], None] | None = None,
+        exits: bool = False,
     ) -> None:
         self.name = name
         self.cmd = [str(c) for c in cmd]
@@ -232,7 +233,7 @@ class ManagedProcess:
         self._cursor = 0  # absolute index after the last matched line
         self._eof = False
         self._stopping = False
-        self.expected_exit = False
+        self.expected_exit = exits  # set before the child runs: it may exit before start() returns
         self.started_at = time.monotonic()
         self.popen = subprocess.Popen(
             self.cmd,
@@ -485,19 +486,22 @@ class ProcessGroup:
         ready_timeout: float = 15.0,
         extra_env: Mapping[str, str] | None = None,
         cwd: str | os.PathLike[str] | None = None,
+        exits: bool = False,
     ) -> ManagedProcess:
         """Start child ``name`` with the group's environment (+ ``extra_env``, DDS rules kept).
 
         If ``ready`` is given, wait for a matching output line; the match is
         stored on the child as ``ready_match``. On failure the child is stopped
-        and the error re-raised.
+        and the error re-raised. ``exits``: the child will exit on its own, announced before it
+        runs (:meth:`ManagedProcess.expect_exit` after the start can come too late for a short one).
         """
         env = dict(self.env)
         if extra_env:
             env.update({k: str(v) for k, v in extra_env.items()})
             env["FASTDDS_BUILTIN_TRANSPORTS"] = "SHM"
             env["ROS_DOMAIN_ID"] = str(self.domain_id)
-        child = ManagedProcess(name, cmd, env=env, cwd=cwd, sink=self._sink, on_exit=self._child_exited)
+        child = ManagedProcess(name, cmd, env=env, cwd=cwd, sink=self._sink, on_exit=self._child_exited,
+                               exits=exits)
         with self._lock:
             self.children.append(child)
         child.ready_match = None  # type: ignore[attr-defined]

@@ -23,8 +23,7 @@ def test_child_dies(procs):
     c.popen.wait(10)
 
 def test_announced_exit_is_fine(procs):
-    c = procs.start("planned", [sys.executable, "-c", "print('up', flush=True)"], ready="up")
-    c.expect_exit()
+    c = procs.start("planned", [sys.executable, "-c", "print('up', flush=True)"], ready="up", exits=True)
     c.popen.wait(10)
 
 def test_env(ros_env):

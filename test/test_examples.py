@@ -40,8 +40,7 @@ def run_example(procs: Any, name: str, *args: str, env: dict[str, str] | None = 
     """Run ``examples/<name>`` to its end as a child of ``procs``; (exit code, its output)."""
     path = EXAMPLES / name
     cmd = ["bash", str(path), *args] if name.endswith(".sh") else [sys.executable, str(path), *args]
-    proc = procs.start(name, cmd, extra_env={**_env(), **(env or {})})
-    proc.expect_exit()
+    proc = procs.start(name, cmd, extra_env={**_env(), **(env or {})}, exits=True)
     with pytest.raises(ChildDiedError):  # raised once its output has ended: every line is read
         proc.wait_for_line(r"(?!)", timeout=timeout)
     return proc.returncode, "\n".join(proc.output())

@@ -59,8 +59,7 @@ def test_params_file_paths_only_inside_ros_args() -> None:
 def _run(procs: Any, name: str, module: str, *ros_args: str, env: dict[str, str] | None = None,
          timeout: float = 60.0) -> tuple[int, list[str]]:
     """Run ``python -m module --ros-args ...`` to its end; (exit code, output lines)."""
-    proc = procs.start(name, python_module_cmd(module, "--ros-args", *ros_args), extra_env=env)
-    proc.expect_exit()
+    proc = procs.start(name, python_module_cmd(module, "--ros-args", *ros_args), extra_env=env, exits=True)
     with pytest.raises(ChildDiedError):  # raised once the child's output has ended: every line is read
         proc.wait_for_line(r"(?!)", timeout=timeout)
     return proc.returncode, proc.output()

@@ -206,8 +206,7 @@ def _free_port() -> int:
     ],
 )
 def test_bad_arguments_and_missing_bus_exit_with_a_code(procs, args, code):
-    proc = procs.start("sim-bad", python_module_cmd("redarm_ros.sim.hardware", *args))
-    proc.expect_exit()
+    proc = procs.start("sim-bad", python_module_cmd("redarm_ros.sim.hardware", *args), exits=True)
     proc.popen.wait(timeout=30)
     assert proc.returncode == code
 
