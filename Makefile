@@ -13,8 +13,8 @@ PY := $(VENV)/bin/python
 SANDBOX := scripts/ros_sandbox.sh
 DEMO_ARGS ?=
 PYTEST_ARGS ?=
-# pytest-xdist workers for `make test` (0: none). The stack tests run in order on one of them (test/conftest.py).
-TEST_WORKERS ?= 2
+# pytest-xdist workers for `make test` (0: none). The stack tests run in order on one or two of them (test/conftest.py).
+TEST_WORKERS ?= 3
 # Extra arguments for every benchmark; `make bench BENCH_FULL=1` runs them in full (see scripts/run_benchmarks.sh).
 BENCH_ARGS ?=
 

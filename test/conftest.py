@@ -6,8 +6,9 @@
 * ``rclpy_context``, ``procs``, ``canbus_server``, ``no_open_buses``: the plugin's
   ``redarm_rclpy_context``, ``redarm_procs``, ``redarm_canbus``, ``redarm_no_open_buses`` (the CAN
   test modules use the last for every test: ``pytestmark = pytest.mark.usefixtures("no_open_buses")``).
-* under pytest-xdist ``--dist loadfile``: the files of hil tests in one unit (first, on one worker,
-  in order), every other file spread over the workers, the files with a test marked slow first.
+* under pytest-xdist ``--dist loadfile``: the files of hil tests in one unit (two with three workers or
+  more; first, each on one worker, in order), every other file spread over the workers, the files with
+  a test marked slow first.
 * an autouse check that no child process of pytest outlives the test (``redarm_no_leftover_children``).
 * an MCAP recording of every failing HIL run that talks ROS (``hil_recording.py``).
 """
@@ -36,13 +37,18 @@ def pytest_configure(config: pytest.Config) -> None:
         config.pluginmanager.register(plugin, "redarm")
 
 
-# Under pytest-xdist (`make test`: -n 2 --dist loadfile) the test files marked hil (the simulated arm's
-# processes over the loopback bus) form one unit of work, started first and run in order by one
-# worker: two stacks at once would share the cores with each other instead of with pure computation.
-# Every other file is a unit of its own (its module fixtures start once), spread over the workers:
-# the files with a test marked slow first, so that the run ends on short files on both workers
-# instead of one worker finishing a long file alone.
+# Under pytest-xdist (`make test`: -n 3 --dist loadfile) the test files marked hil (the simulated arm's
+# processes over the loopback bus) form serial units of work, started first and run in order, each by
+# one worker: one unit with fewer than three workers, two with three or more (the demo and the stacks
+# of its kind in the second), so at most two stacks share the cores and the stack chain is not the
+# whole run's length. The stack tests spend much of their time waiting on real motion, which is why
+# a third worker of pure computation fits beside them on two cores. Every other file is a unit of its
+# own (its module fixtures start once), spread over the workers: the files with a test marked slow
+# first, so that the run ends on short files on every worker instead of one finishing a long file alone.
 SERIAL_UNIT = "hil tests"
+SECOND_SERIAL_UNIT = "hil tests (demo)"
+SECOND_UNIT_FILES = frozenset({"test/test_e2e_demo.py", "test/test_examples.py", "test/test_e2e_urdf.py",
+                               "test/test_e2e_stack6.py", "test/test_two_hosts.py"})
 
 
 @functools.cache
@@ -61,7 +67,7 @@ def marks_used(path: str) -> frozenset[str]:
 
 def _unit_rank(root: Path, scope: str) -> int:
     """Where a unit of work goes in the queue: the hil unit, then the files with slow tests, then the rest."""
-    if scope == SERIAL_UNIT:
+    if scope in (SERIAL_UNIT, SECOND_SERIAL_UNIT):
         return 0
     return 1 if "slow" in marks_used(str(root / scope)) else 2
 
@@ -73,11 +79,14 @@ def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
     from xdist.scheduler import LoadFileScheduling
 
     root = config.rootpath
+    two_units = int(config.getoption("numprocesses") or 0) >= 3
 
     class HilTestsInOneUnit(LoadFileScheduling):
         def _split_scope(self, nodeid: str) -> str:
             path = nodeid.split("::", 1)[0]
-            return SERIAL_UNIT if "hil" in marks_used(str(root / path)) else path
+            if "hil" not in marks_used(str(root / path)):
+                return path
+            return SECOND_SERIAL_UNIT if two_units and path in SECOND_UNIT_FILES else SERIAL_UNIT
 
         def _assign_work_unit(self, node: Any) -> None:
             # A stable sort: within a rank, xdist's order (most tests first) stays.

@@ -102,6 +102,37 @@ def test_xdist_runs_the_hil_files_in_order_on_one_worker_each_worker_on_its_own_
     assert all(1 <= d <= 200 for d in domains.values()), domains
 
 
+
+def test_three_workers_run_the_hil_files_in_two_serial_units(
+        pytester: pytest.Pytester, monkeypatch: pytest.MonkeyPatch) -> None:
+    """With three workers the demo's unit and the other hil files go to two workers, each in order."""
+    pytest.importorskip("xdist")
+    pytester.makeconftest((REPO / "test" / "conftest.py").read_text())
+    pytester.makeini("[pytest]\nmarkers =\n    hil: processes over a loopback bus\n    slow: long\n")
+    (pytester.path / "test").mkdir()
+    for name in ("test_e2e_demo", "test_examples", "test_a_hil", "test_b_hil"):  # 2 + 2 hil files
+        (pytester.path / "test" / f"{name}.py").write_text(HIL_FILE.replace("hil {i}", f"{name} {{i}}"))
+    for k in range(4):
+        (pytester.path / "test" / f"test_plain_{k}.py").write_text(PLAIN_FILE)
+    out = pytester.path / "ran.txt"
+    monkeypatch.setenv("OUT", str(out))
+    monkeypatch.setenv(
+        "PYTHONPATH", os.pathsep.join([str(REPO), str(REPO / "test"), os.environ.get("PYTHONPATH", "")])
+    )
+    monkeypatch.delenv("REDARM_TEST_DOMAIN_ID", raising=False)
+    result = pytester.runpytest_subprocess("-p", "no:cacheprovider", "-q", "-n", "3", "--dist", "loadfile",
+                                           "test", timeout=120)
+    assert result.parseoutcomes().get("passed") == 20, result.stdout.str()
+    rows = [line.split() for line in out.read_text().splitlines()]
+    worker_of = {kind: {w for k, _, w, _ in rows if k == kind} for kind, *_ in rows if kind != "plain"}
+    assert all(len(ws) == 1 for ws in worker_of.values()), worker_of  # a hil file runs on one worker
+    demo_unit = worker_of["test_e2e_demo"] | worker_of["test_examples"]
+    rest_unit = worker_of["test_a_hil"] | worker_of["test_b_hil"]
+    assert len(demo_unit) == 1 and len(rest_unit) == 1 and demo_unit != rest_unit, worker_of
+    for unit in (demo_unit, rest_unit):  # each unit in order, file after file
+        ran = [(k, int(i)) for k, i, w, _ in rows if w in unit and k != "plain"]
+        assert [i for _, i in ran] == [0, 1, 2, 3, 0, 1, 2, 3], ran
+
 def test_worker_domains_are_distinct_and_in_range(monkeypatch: pytest.MonkeyPatch) -> None:
     from redarm_ros.testing.sandbox import DOMAIN_ENV, worker_domain_id
 
