@@ -767,13 +767,21 @@ def test_live_init_homes_and_follows_a_trajectory(live) -> None:
     assert all(s & S.HOME_OK for s in st.states) and st.positions == pytest.approx([0.0] * N, abs=1e-6)
     dt = 0.004
     errs = []
+    starts = []
     for k in range(1, 250):  # smooth start from rest: 0.3 (1 - cos(pi t)), within the limits
         target = 0.3 * (1 - math.cos(math.pi * k * dt)) * np.array([1.0, -1.0, 0.5])
+        starts.append(time.monotonic())
         res = drv.cycle(target, dt)
         assert res.replied.all() and res.fault is None
         errs.append(np.max(np.abs(res.positions - res.targets)))
         time.sleep(dt)
-    assert max(errs[10:]) < 0.05  # positions before the move trail the target by about a step
+    # Positions before the move trail the target by about a step. A cycle this process started
+    # 3 periods late (a starved machine) is a stall of the test's own clock, not of the driver: the
+    # 10 cycles after one, while the arm catches up, are not judged; most cycles still are.
+    late = [k for k in range(1, len(starts)) if starts[k] - starts[k - 1] > 3 * dt]
+    judged = [e for k, e in enumerate(errs) if k >= 10 and not any(0 <= k - j < 10 for j in late)]
+    assert len(judged) >= 150, f"{len(late)} late cycles"
+    assert max(judged) < 0.05
     time.sleep(0.3)
     assert arm.positions() == pytest.approx(res.targets, abs=1e-6)  # arrived on the last target
     assert all(s.lost == 0 and s.replies == 249 for s in drv.stats)
