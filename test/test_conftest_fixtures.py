@@ -73,25 +73,32 @@ SLOW_FILE = PLAIN_FILE.replace("def test_plain", "@pytest.mark.slow\ndef test_sl
     "import os", "import os\nimport pytest").replace("plain 0", "slow 0")
 
 
-def test_xdist_runs_the_hil_files_in_order_on_one_worker_each_worker_on_its_own_domain(
-        pytester: pytest.Pytester, monkeypatch: pytest.MonkeyPatch) -> None:
-    pytest.importorskip("xdist")
+def run_under_xdist(pytester: pytest.Pytester, monkeypatch: pytest.MonkeyPatch, workers: int, *args: str,
+                    passed: int) -> list[list[str]]:
+    """Run the files written in ``pytester`` on ``workers`` workers with the suite's conftest; check that
+    ``passed`` tests passed and return the rows they wrote (kind, index, worker, domain)."""
     pytester.makeconftest((REPO / "test" / "conftest.py").read_text())
     pytester.makeini("[pytest]\nmarkers =\n    hil: processes over a loopback bus\n    slow: long\n")
-    # Two hil files (one unit), more plain files than workers (spread), and a file with a slow test that
-    # xdist alone would hand out last (as many tests as the others, last by name).
-    pytester.makepyfile(test_a_hil=HIL_FILE, test_b_hil=HIL_FILE, test_z_slow=SLOW_FILE,
-                        **{f"test_plain_{k}": PLAIN_FILE for k in range(4)})
     out = pytester.path / "ran.txt"
     monkeypatch.setenv("OUT", str(out))
     monkeypatch.setenv(
         "PYTHONPATH", os.pathsep.join([str(REPO), str(REPO / "test"), os.environ.get("PYTHONPATH", "")])
     )
     monkeypatch.delenv("REDARM_TEST_DOMAIN_ID", raising=False)
-    result = pytester.runpytest_subprocess("-p", "no:cacheprovider", "-q", "-n", "2", "--dist", "loadfile",
-                                           timeout=120)
-    assert result.parseoutcomes().get("passed") == 13, result.stdout.str()
-    rows = [line.split() for line in out.read_text().splitlines()]
+    result = pytester.runpytest_subprocess("-p", "no:cacheprovider", "-q", "-n", str(workers), "--dist",
+                                           "loadfile", *args, timeout=120)
+    assert result.parseoutcomes().get("passed") == passed, result.stdout.str()
+    return [line.split() for line in out.read_text().splitlines()]
+
+
+def test_xdist_runs_the_hil_files_in_order_on_one_worker_each_worker_on_its_own_domain(
+        pytester: pytest.Pytester, monkeypatch: pytest.MonkeyPatch) -> None:
+    pytest.importorskip("xdist")
+    # Two hil files (one unit), more plain files than workers (spread), and a file with a slow test that
+    # xdist alone would hand out last (as many tests as the others, last by name).
+    pytester.makepyfile(test_a_hil=HIL_FILE, test_b_hil=HIL_FILE, test_z_slow=SLOW_FILE,
+                        **{f"test_plain_{k}": PLAIN_FILE for k in range(4)})
+    rows = run_under_xdist(pytester, monkeypatch, 2, passed=13)
     hil = [(int(i), w) for kind, i, w, _ in rows if kind == "hil"]
     assert len({w for _, w in hil}) == 1, hil  # one worker ...
     assert [i for i, _ in hil] == [0, 1, 2, 3, 0, 1, 2, 3], hil  # ... in order, file after file
@@ -102,28 +109,16 @@ def test_xdist_runs_the_hil_files_in_order_on_one_worker_each_worker_on_its_own_
     assert all(1 <= d <= 200 for d in domains.values()), domains
 
 
-
 def test_three_workers_run_the_hil_files_in_two_serial_units(
         pytester: pytest.Pytester, monkeypatch: pytest.MonkeyPatch) -> None:
     """With three workers the demo's unit and the other hil files go to two workers, each in order."""
     pytest.importorskip("xdist")
-    pytester.makeconftest((REPO / "test" / "conftest.py").read_text())
-    pytester.makeini("[pytest]\nmarkers =\n    hil: processes over a loopback bus\n    slow: long\n")
     (pytester.path / "test").mkdir()
     for name in ("test_e2e_demo", "test_examples", "test_a_hil", "test_b_hil"):  # 2 + 2 hil files
         (pytester.path / "test" / f"{name}.py").write_text(HIL_FILE.replace("hil {i}", f"{name} {{i}}"))
     for k in range(4):
         (pytester.path / "test" / f"test_plain_{k}.py").write_text(PLAIN_FILE)
-    out = pytester.path / "ran.txt"
-    monkeypatch.setenv("OUT", str(out))
-    monkeypatch.setenv(
-        "PYTHONPATH", os.pathsep.join([str(REPO), str(REPO / "test"), os.environ.get("PYTHONPATH", "")])
-    )
-    monkeypatch.delenv("REDARM_TEST_DOMAIN_ID", raising=False)
-    result = pytester.runpytest_subprocess("-p", "no:cacheprovider", "-q", "-n", "3", "--dist", "loadfile",
-                                           "test", timeout=120)
-    assert result.parseoutcomes().get("passed") == 20, result.stdout.str()
-    rows = [line.split() for line in out.read_text().splitlines()]
+    rows = run_under_xdist(pytester, monkeypatch, 3, "test", passed=20)
     worker_of = {kind: {w for k, _, w, _ in rows if k == kind} for kind, *_ in rows if kind != "plain"}
     assert all(len(ws) == 1 for ws in worker_of.values()), worker_of  # a hil file runs on one worker
     demo_unit = worker_of["test_e2e_demo"] | worker_of["test_examples"]
