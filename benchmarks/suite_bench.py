@@ -1,0 +1,136 @@
+"""Fresh-clone runs of the README's test command: how long ``CI=true make test`` takes on this machine
+and whether it passes, quiet or with one core kept busy.
+
+Each run clones the repository at one commit into a new temporary folder (nothing of this checkout's
+venv, build or caches comes along), runs ``CI=true make test`` there (set-up included, as ``.ci/run``
+does) and records the wall time in all, pytest's own time and its summary line, the exit code and the
+load average before and after. ``--busy`` keeps one core busy for the whole run with a shell loop at
+normal priority (started before the clone, ended by its PID after the run). The clone is removed after
+each run; a failed run keeps its log under ``--log-dir``.
+
+Run: ``python3 benchmarks/suite_bench.py --runs 3`` (each run takes 7-8 minutes on 2 cores);
+``--busy`` for the busy-core condition; ``--commit REV`` (default HEAD). Appends one row per run to
+``benchmarks/results/suite_bench.md`` unless ``--no-write``. Target (issue 34): at most 480 s in all,
+passing 10 of 10 times quiet and 10 of 10 with a busy core.
+What it does not cover: a machine other than this one; the network namespace the CI gives.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+RESULTS = REPO / "benchmarks" / "results" / "suite_bench.md"
+TIMEOUT_S = 5400.0  # CI's limit
+TARGET_S = 480.0
+HEADER = [
+    "# Fresh-clone runs of the test command (`benchmarks/suite_bench.py`)",
+    "",
+    "Each row: `git clone` of the commit into an empty folder, then `CI=true make test` there (set-up, "
+    "ruff and pytest, as `.ci/run`). *busy*: one shell loop kept a core busy throughout. Target: at most "
+    f"{TARGET_S:.0f} s in all, 10 of 10 passing in each condition. Newest first.",
+    "",
+    "| date (UTC) | commit | condition | in all s | pytest | result | load avg before / after |",
+    "|---|---|---|---:|---|---|---|",
+]
+SUMMARY = re.compile(r"=+ (.*\b(passed|failed|error)\b.*) in ([0-9.]+)s(?: \(([0-9:]+)\))? =+")
+
+
+def start_hog() -> subprocess.Popen[bytes]:
+    """One busy shell loop at normal priority, in its own process group."""
+    return subprocess.Popen(["sh", "-c", "while :; do :; done"], start_new_session=True)
+
+
+def stop(proc: subprocess.Popen[bytes]) -> None:
+    """End a child we started: SIGINT, wait, SIGINT again, then SIGKILL."""
+    for sig, wait_s in ((signal.SIGINT, 2.0), (signal.SIGINT, 2.0), (signal.SIGKILL, 5.0)):
+        if proc.poll() is not None:
+            return
+        proc.send_signal(sig)
+        try:
+            proc.wait(wait_s)
+        except subprocess.TimeoutExpired:
+            continue
+
+
+def one_run(commit: str, busy: bool, log_dir: Path) -> dict[str, str]:
+    """Clone ``commit``, run the test command, and return the row's fields."""
+    load0 = os.getloadavg()
+    hog = start_hog() if busy else None
+    work = Path(tempfile.mkdtemp(prefix="redarm-suite-"))
+    t0 = time.monotonic()
+    try:
+        src = work / "p"
+        subprocess.run(["git", "clone", "-q", str(REPO), str(src)], check=True)
+        subprocess.run(["git", "-C", str(src), "checkout", "-q", commit], check=True)
+        env = dict(os.environ, CI="true")
+        try:
+            out = subprocess.run(["make", "test"], cwd=src, env=env, stdout=subprocess.PIPE,
+                                 stderr=subprocess.STDOUT, timeout=TIMEOUT_S)
+            rc, text = out.returncode, out.stdout.decode(errors="replace")
+        except subprocess.TimeoutExpired as exc:
+            rc, text = -1, (exc.stdout or b"").decode(errors="replace") + "\n(timed out)"
+    finally:
+        wall = time.monotonic() - t0
+        if hog is not None:
+            stop(hog)
+        shutil.rmtree(work, ignore_errors=True)
+    load1 = os.getloadavg()
+    found = list(SUMMARY.finditer(text))
+    m = found[-1] if found else None
+    summary = m.group(1) if m else "no summary"
+    pytest_time = (m.group(4) or f"{float(m.group(3)):.0f} s") if m else "-"
+    if rc != 0:
+        log_dir.mkdir(parents=True, exist_ok=True)
+        log = log_dir / f"suite-{commit[:10]}-{int(time.time())}.log"
+        log.write_text(text)
+        print(f"suite_bench: run failed (exit {rc}), log in {log}", file=sys.stderr)
+    result = ("passed: " if rc == 0 else f"FAILED (exit {rc}): ") + summary
+    return {"date": time.strftime("%Y-%m-%d %H:%M", time.gmtime()), "commit": commit[:10],
+            "condition": "busy" if busy else "quiet", "wall": f"{wall:.0f}", "pytest": pytest_time,
+            "result": result,
+            "load": f"{load0[0]:.2f} / {load1[0]:.2f}"}
+
+
+def write_row(row: dict[str, str]) -> None:
+    """Put ``row`` first under the table (the file is created with its header when missing)."""
+    lines = RESULTS.read_text().splitlines() if RESULTS.is_file() else list(HEADER)
+    cells = [row[k] for k in ("date", "commit", "condition", "wall", "pytest", "result", "load")]
+    at = len(HEADER)
+    lines.insert(at, "| " + " | ".join(cells) + " |")
+    RESULTS.parent.mkdir(parents=True, exist_ok=True)
+    RESULTS.write_text("\n".join(lines) + "\n")
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--runs", type=int, default=1, help="runs in a row (default 1)")
+    ap.add_argument("--busy", action="store_true", help="keep one core busy during each run")
+    ap.add_argument("--commit", default="HEAD", help="the commit to clone (default HEAD)")
+    ap.add_argument("--log-dir", type=Path, default=Path(tempfile.gettempdir()) / "redarm-suite-logs",
+                    help="where a failed run's output is kept")
+    ap.add_argument("--no-write", action="store_true", help="do not write the results file")
+    args = ap.parse_args(argv)
+    commit = subprocess.run(["git", "-C", str(REPO), "rev-parse", args.commit], check=True,
+                            stdout=subprocess.PIPE, text=True).stdout.strip()
+    failed = 0
+    for i in range(args.runs):
+        row = one_run(commit, args.busy, args.log_dir)
+        failed += not row["result"].startswith("passed")
+        print(f"run {i + 1}/{args.runs}: {row['condition']} {row['wall']} s, {row['result']}", flush=True)
+        if not args.no_write:
+            write_row(row)
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
