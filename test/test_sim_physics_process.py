@@ -24,7 +24,7 @@ from support.stalling_plant import stalling_plant
 from redarm_ros.can import protocol as pc
 from redarm_ros.can.protocol import ActState, Param
 from redarm_ros.kinematics import load_arm
-from redarm_ros.procs import group_members, python_module_cmd
+from redarm_ros.procs import python_module_cmd
 from redarm_ros.sim.hardware import EXIT_PHYSICS_LOST, READY_LINE, HardwareSim
 from redarm_ros.sim.physics_process import PhysicsProcess, build_plant
 
@@ -114,10 +114,17 @@ def _start_sim(procs, server, *extra: str):
 
 
 def _physics_pid(sim) -> int:
-    """The simulator's physics process (its main thread is named so)."""
-    found = [p for p in group_members(sim.pid)
-             if Path(f"/proc/{p}/comm").read_text().strip() == "sim-physics"]
-    assert len(found) == 1, group_members(sim.pid)
+    """The simulator's physics process: its child whose main thread is named so."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        try:
+            ppid = int((entry / "stat").read_text().rsplit(")", 1)[-1].split()[1])
+            comm = (entry / "comm").read_text().strip()
+        except (OSError, ValueError, IndexError):
+            continue
+        if ppid == sim.pid and comm == "sim-physics":
+            found.append(int(entry.name))
+    assert len(found) == 1, found
     return found[0]
 
 
@@ -125,8 +132,8 @@ def _physics_pid(sim) -> int:
 def test_the_physics_process_ends_with_the_simulator(procs, canbus_server):
     sim = _start_sim(procs, canbus_server)
     physics = _physics_pid(sim)
-    assert procs.stop(sim) == 0  # SIGINT to the group: the simulator stops its physics, then exits
-    assert not group_members(sim.pid)
+    assert os.getsid(physics) == physics  # its own session (and CPU share)
+    assert procs.stop(sim) == 0  # SIGINT: the simulator stops its physics, then exits
     assert not Path(f"/proc/{physics}").exists()
 
 

@@ -5,7 +5,10 @@ physics holds that lock for nearly all of its running time (pybullet does not re
 kernel preempts the physics thread, e.g. for a busy process or a new one starting, the lock stays with
 it and every reply of the emulated modules waits until the physics runs again: tens of ms on a loaded
 machine, past the host's reply timeout. In a process of its own the physics never stands between a
-request and its reply; a late physics step only makes the reported position older.
+request and its reply; a late physics step only makes the reported position older. The process also
+runs in a session of its own: where the kernel shares the CPU between sessions (autogroup, the default
+of desktop kernels), the physics' CPU time is not taken from the share the simulator's bus thread
+needs to answer.
 
 Pieces:
 
@@ -24,8 +27,9 @@ Pieces:
 * :func:`build_plant`: what the process runs to build its plant (picklable with
   :func:`functools.partial`; tests pass their own factory).
 
-The process ignores SIGINT and SIGTERM (the simulator stops it, after its final snapshot) and dies
-with the simulator (``PR_SET_PDEATHSIG``, and at the end of its pipe).
+The process ignores SIGINT and SIGTERM (the simulator stops it, after its final snapshot; signals to
+the simulator's process group do not reach its session anyway) and dies with the simulator
+(``PR_SET_PDEATHSIG``, and at the end of its pipe).
 """
 
 from __future__ import annotations
@@ -406,6 +410,10 @@ def _apply(plant: Any, cmd: tuple[Any, ...]) -> bool:
 def _physics_main(make_plant: Callable[[], Any], raw: Any, conn: Connection, rate_hz: float,
                   realtime_priority: int, log_level: int) -> None:
     _die_with_parent()
+    # A session of its own: where the kernel shares the CPU between sessions (autogroup), the physics'
+    # CPU time is then not charged to the simulator's share, which its bus thread needs for the replies.
+    with contextlib.suppress(OSError):
+        os.setsid()
     realtime.name_thread("sim-physics")
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the simulator stops this process when it is done
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
