@@ -54,7 +54,14 @@ from typing import Any
 
 import numpy as np
 
-from redarm_ros.procs import ManagedProcess, ProcessGroup, group_members, python_module_cmd, random_domain_id
+from redarm_ros.procs import (
+    ManagedProcess,
+    ProcessGroup,
+    descendants,
+    group_members,
+    python_module_cmd,
+    random_domain_id,
+)
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench_common, also when loaded by path
 import bench_common  # noqa: E402
@@ -106,8 +113,9 @@ class Observed:
 
 
 class SchedstatSampler:
-    """Samples the run-queue wait of every thread of some process groups (Linux schedstat) in a
-    thread; waits of :data:`RUNQ_WAIT_EVENT_MS` or more within one sample period become events."""
+    """Samples the run-queue wait of every thread of some process groups and their leaders'
+    descendants (Linux schedstat) in a thread; waits of :data:`RUNQ_WAIT_EVENT_MS` or more within one
+    sample period become events."""
 
     def __init__(self, groups: dict[str, int]) -> None:
         self.groups = groups  # label -> process group id
@@ -126,7 +134,7 @@ class SchedstatSampler:
     def _tasks(self) -> list[tuple[str, str]]:
         out = []
         for label, pgid in self.groups.items():
-            for pid in group_members(pgid):
+            for pid in sorted(set(group_members(pgid)) | set(descendants(pgid))):
                 try:
                     tids = os.listdir(f"/proc/{pid}/task")
                 except OSError:
