@@ -86,11 +86,7 @@ def test_replies_do_not_wait_for_a_stalled_physics(arm):
 def test_commands_reach_the_physics_and_its_state_comes_back(arm, tmp_path: Path):
     physics = PhysicsProcess(arm, functools.partial(build_plant, arm, time_step=1e-3))
     for sim, host in _serve(physics):
-        _ask(host, pc.home(2))  # moves need HOME_OK
-        deadline = time.monotonic() + 10
-        while ActState.HOME_OK not in ActState(_ask(host, pc.get_param(2, Param.ACT_STATE))[0].value):
-            assert time.monotonic() < deadline
-            time.sleep(0.05)
+        _home(host, 2)
         _ask(host, pc.fstep(2, 0.3, 1000))
         # in motion from the moment it took the command, before the physics applied it
         assert ActState.MOTION in ActState(_ask(host, pc.get_param(2, Param.ACT_STATE))[0].value)
@@ -105,6 +101,33 @@ def test_commands_reach_the_physics_and_its_state_comes_back(arm, tmp_path: Path
         png = tmp_path / "now.png"
         physics.snapshot_png(png, 64, 48)
         assert png.stat().st_size > 0
+
+
+def _home(host: can.BusABC, mid: int) -> None:
+    _ask(host, pc.home(mid))  # moves need HOME_OK
+    deadline = time.monotonic() + 10
+    while ActState.HOME_OK not in ActState(_ask(host, pc.get_param(mid, Param.ACT_STATE))[0].value):
+        assert time.monotonic() < deadline
+        time.sleep(0.05)
+
+
+def test_replies_keep_coming_while_the_physics_process_is_stopped(arm):
+    # A stopped physics takes no commands: thousands of them (more than a pipe holds) must not hold up
+    # a reply; once it runs again it takes the newest.
+    physics = PhysicsProcess(arm, functools.partial(build_plant, arm, time_step=1e-3))
+    for _sim, host in _serve(physics):
+        _home(host, 2)
+        os.kill(physics.pid, signal.SIGSTOP)
+        try:
+            for k in range(3000):
+                reply, _ = _ask(host, pc.fstep(2, 0.2 * (k + 1) / 3000, 4))
+                assert isinstance(reply, pc.SetMoveExtAck)
+        finally:
+            os.kill(physics.pid, signal.SIGCONT)
+        deadline = time.monotonic() + 10
+        while abs(physics.q[1] - 0.2) > 1e-3:
+            assert time.monotonic() < deadline, physics.q
+            time.sleep(0.05)
 
 
 def _start_sim(procs, server, *extra: str):

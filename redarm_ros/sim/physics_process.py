@@ -18,8 +18,9 @@ Pieces:
   :class:`~redarm_ros.sim.hardware.HardwareSim` and by the physics process alike.
 * :class:`PhysicsProcess`: the handle the bus side holds. It has the plant's surface as the module
   emulation and the status see it (``arm``, ``n``, ``joint(i)``, ``q``, ``dq``, ``q_setpoint``,
-  ``steps``, ``sim_time``, ``tool_pose()``, ``snapshot_png()``, ``close()``). Joint commands go to the
-  process through a pipe and are applied before its next batch of steps (within
+  ``steps``, ``sim_time``, ``tool_pose()``, ``snapshot_png()``, ``close()``). Joint commands are
+  queued (never waiting for the process), written to a pipe by a sender thread one burst at a time,
+  and applied before the process's next batch of steps (within
   :data:`~redarm_ros.sim.hardware.MOVING_WAKE_S`, 10 steps at rest, as in the thread); the state
   comes back through shared memory that the bus side reads without waiting for anything: one
   writer, per-value reads of aligned doubles, and a sequence counter around each write for a
@@ -34,6 +35,7 @@ the simulator's process group do not reach its session anyway) and dies with the
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import ctypes
 import logging
@@ -73,6 +75,7 @@ LAG_LOGS_PER_S = 20
 START_TIMEOUT_S = 60.0
 STOP_TIMEOUT_S = 10.0
 SNAPSHOT_TIMEOUT_S = 30.0
+OUTBOX_MAX = 4096  # commands waiting for a stopped process; beyond that the oldest are dropped
 _PR_SET_PDEATHSIG = 1
 
 
@@ -261,7 +264,12 @@ class PhysicsProcess:
         self._raw = ctx.RawArray(ctypes.c_double, _size(self.n))
         self._view = np.frombuffer(self._raw, dtype=np.float64)
         recv, self._conn = ctx.Pipe(duplex=False)
-        self._send_lock = threading.Lock()
+        # Commands wait here for the sender thread, which alone writes to the pipe: a full pipe (the
+        # physics stopped) blocks that thread, never the bus thread that answers the requests.
+        self._outbox: collections.deque[tuple[Any, ...]] = collections.deque()
+        self._outbox_cond = threading.Condition()
+        self._closing = False
+        self.dropped_commands = 0  # commands dropped because OUTBOX_MAX were waiting
         self._seq = 0
         self._joints = [RemoteJoint(self, i) for i in range(self.n)]
         self._proc = ctx.Process(
@@ -271,6 +279,8 @@ class PhysicsProcess:
         )
         self._proc.start()
         recv.close()
+        self._sender = threading.Thread(target=self._send_loop, name="sim-physics-commands", daemon=True)
+        self._sender.start()
         deadline = time.monotonic() + start_timeout_s
         while self._view[_READY] == 0.0 and self._proc.is_alive() and time.monotonic() < deadline:
             time.sleep(0.01)
@@ -280,13 +290,31 @@ class PhysicsProcess:
 
     # -- commands ---------------------------------------------------------------------------------
     def _send(self, op: str, *args: Any) -> int:
-        with self._send_lock:
+        """Queue a command for the process; returns its sequence number (never waits for the process)."""
+        with self._outbox_cond:
             self._seq += 1
-            try:
-                self._conn.send((self._seq, op, *args))
-            except (OSError, ValueError) as exc:  # the process is gone: the status says so
-                _LOG.debug("physics command %s not sent: %s", op, exc)
+            if len(self._outbox) >= OUTBOX_MAX:  # the process stopped taking commands: keep the newest
+                self._outbox.popleft()
+                self.dropped_commands += 1
+            self._outbox.append((self._seq, op, *args))
+            self._outbox_cond.notify()
             return self._seq
+
+    def _send_loop(self) -> None:
+        realtime.name_thread("sim-physics-tx")
+        while True:
+            with self._outbox_cond:
+                while not self._outbox and not self._closing:
+                    self._outbox_cond.wait()
+                if not self._outbox:
+                    return
+                batch = list(self._outbox)
+                self._outbox.clear()
+            try:
+                self._conn.send(batch)  # one write per burst of commands
+            except (OSError, ValueError) as exc:  # the process is gone: run() notices
+                _LOG.debug("physics commands not sent: %s", exc)
+                return
 
     def _wait_applied(self, seq: int, timeout_s: float) -> bool:
         deadline = time.monotonic() + timeout_s
@@ -366,6 +394,10 @@ class PhysicsProcess:
     def close(self) -> None:
         """Stop the process (after the commands sent before) and reap it."""
         self._send("stop")
+        with self._outbox_cond:
+            self._closing = True
+            self._outbox_cond.notify()
+        self._sender.join(STOP_TIMEOUT_S)
         self._proc.join(STOP_TIMEOUT_S)
         self._kill()
         with contextlib.suppress(OSError):
@@ -472,13 +504,15 @@ def _physics_main(make_plant: Callable[[], Any], raw: Any, conn: Connection, rat
             paused = False
             try:
                 while running and conn.poll():
-                    cmd = conn.recv()
-                    try:
-                        running = _apply(plant, cmd)
-                    except Exception:  # noqa: BLE001 - one bad command must not stop the arm
-                        _LOG.exception("physics command %r failed", cmd[1])
-                    paused = paused or cmd[1] == "snapshot"
-                    applied = float(cmd[0])
+                    for cmd in conn.recv():
+                        try:
+                            running = _apply(plant, cmd)
+                        except Exception:  # noqa: BLE001 - one bad command must not stop the arm
+                            _LOG.exception("physics command %r failed", cmd[1])
+                        paused = paused or cmd[1] == "snapshot"
+                        applied = float(cmd[0])
+                        if not running:
+                            break
             except (EOFError, OSError):  # the simulator is gone
                 break
             if paused:  # rendering took a while: not an overrun, nor a spinning real-time loop
