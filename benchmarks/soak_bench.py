@@ -176,12 +176,40 @@ def line_events(proc: ManagedProcess, label: str, pattern: str) -> list[tuple[fl
     return out
 
 
+HOP_RE = re.compile(r"read ([0-9.]+) ms later")
+READ_RE = re.compile(r"request sent to read \(bus thread since: ran ([0-9.]+) ms, run queue ([0-9.]+) ms\) "
+                     r"([0-9.]+) ms")
+ANSWER_RE = re.compile(r"request read to reply sent ([0-9.]+) ms")
+
+
+def where_it_waited(t_miss: float, events: list[tuple[float, str]]) -> str:
+    """One line on the missed cycle's requests (events up to the reply timeout after it): the bus
+    server's hop, the simulator's read (and how much of it its bus thread ran or waited for a CPU; the
+    rest it slept: for the frame, or for the interpreter lock), the simulator's answer."""
+    hop = read = ran = queued = answer = 0.0
+    for t, ev in events:
+        if not -0.002 <= t - t_miss <= 0.025:
+            continue
+        if ev.startswith("canbus") and (m := HOP_RE.search(ev)):
+            hop = max(hop, float(m.group(1)))
+        elif (m := READ_RE.search(ev)) and float(m.group(3)) > read:
+            ran, queued, read = (float(g) for g in m.groups())
+        elif m := ANSWER_RE.search(ev):
+            answer = max(answer, float(m.group(1)))
+    if not (hop or read or answer):
+        return "  no hop, read or answer of this cycle took 5 ms or more (the driver's side)"
+    slept = max(0.0, read - hop - ran - queued)
+    return (f"  bus server hop {hop:.1f} ms; simulator read {read:.1f} ms (its bus thread ran {ran:.1f}, "
+            f"waited for a CPU {queued:.1f}, slept {slept:.1f} beyond the hop); answer {answer:.1f} ms")
+
+
 def timelines(misses: list[tuple[float, str]], events: list[tuple[float, str]]) -> list[str]:
-    """For each miss, the events within :data:`TIMELINE_S` of it, in time order, as a text block."""
+    """For each miss, where its requests waited and the events within :data:`TIMELINE_S` of it, in
+    time order, as a text block."""
     blocks = []
     events = sorted(events)
     for t_miss, what in misses:
-        lines = [f"miss at wall time {t_miss:.4f}: {what}"]
+        lines = [f"miss at wall time {t_miss:.4f}: {what}", where_it_waited(t_miss, events)]
         for t, ev in events:
             near = RUNQ_TIMELINE_S if ev.startswith("run-queue") else TIMELINE_S
             if abs(t - t_miss) <= near:

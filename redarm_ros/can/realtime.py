@@ -118,6 +118,32 @@ def name_thread(name: str) -> None:
         pass
 
 
+class ThreadSchedstat:
+    """The scheduler statistics of the thread that made it (Linux ``/proc/thread-self/schedstat``),
+    read with one system call: :meth:`read` -> (ms on a CPU, ms waiting in the run queue) since that
+    thread began; (0, 0) where the kernel does not say, or for ``path=None`` (a placeholder)."""
+
+    def __init__(self, path: str | None = "/proc/thread-self/schedstat") -> None:
+        self._fd: int | None = None
+        if path is not None:
+            with contextlib.suppress(OSError):
+                self._fd = os.open(path, os.O_RDONLY)
+
+    def read(self) -> tuple[float, float]:
+        if self._fd is None:
+            return 0.0, 0.0
+        try:
+            ran, queued = os.pread(self._fd, 96, 0).split()[:2]
+            return int(ran) / 1e6, int(queued) / 1e6
+        except (OSError, ValueError):
+            return 0.0, 0.0
+
+    def close(self) -> None:
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
+
+
 def _thread_ids() -> list[int]:
     """This process's threads (Linux), or ``[0]`` (the caller) where they cannot be listed."""
     try:

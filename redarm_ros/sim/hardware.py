@@ -226,6 +226,9 @@ class HardwareSim:
         self._slow_log_second = 0
         self._slow_logs = 0
         self._slow_stamp = 0.0  # sender stamp of the last slow read logged
+        # the bus thread's scheduling (opened by that thread) and its reading at the last empty receive
+        self._sched = realtime.ThreadSchedstat(None)
+        self._sched_empty = (0.0, 0.0)
         self.emulator = (emulator_factory or _default_emulator)(plant, self.module_ids)
         self._bus_thread = threading.Thread(target=self._bus_loop, name="sim-bus", daemon=True)
         self._status_cond = threading.Condition()
@@ -373,7 +376,12 @@ class HardwareSim:
         if t_rx - sent >= SLOW_EVENT_S and msg.timestamp != self._slow_stamp:  # once per burst
             self._slow_stamp = msg.timestamp
             c.slow_reads += 1
-            self._note_slow("request sent to read", (t_rx - sent) * 1e3, sent)
+            # Where this thread spent the time since it last found nothing to read: running, or
+            # waiting for a CPU; the rest it slept (in the receive, or for the interpreter lock).
+            now_ran, now_queued = self._sched.read()
+            ran, queued = now_ran - self._sched_empty[0], now_queued - self._sched_empty[1]
+            self._note_slow(f"request sent to read (bus thread since: ran {ran:.1f} ms, run queue "
+                            f"{queued:.1f} ms)", (t_rx - sent) * 1e3, sent)
         # When the frame was on the bus, by its stamp; but never earlier than the last moment this
         # thread saw the socket empty (less a transit allowance): a frame cannot have waited longer
         # than that, so a wall-clock step cannot make it look old.
@@ -424,6 +432,14 @@ class HardwareSim:
 
     def _bus_loop(self) -> None:
         realtime.name_thread("sim-bus")
+        self._sched = realtime.ThreadSchedstat()
+        self._sched_empty = self._sched.read()
+        try:
+            self._serve_bus()
+        finally:
+            self._sched.close()
+
+    def _serve_bus(self) -> None:
         backoff = 0.05
         backlog = False
         while not self._stop.is_set():
@@ -451,6 +467,7 @@ class HardwareSim:
             else:
                 self._last_empty = time.monotonic()
                 self._known_empty = t_check
+                self._sched_empty = self._sched.read()
 
     def _on_bus_lost(self, exc: BaseException, delay: float) -> None:
         self.counters.bus_lost += 1
