@@ -65,7 +65,6 @@ _LOG = logging.getLogger("redarm_ros.sim.hardware")
 
 READY_LINE = "REDARM_SIM_READY"
 CONTROL_POLL_S = 0.05
-HOUSEKEEPING_S = 0.01  # the main thread's wake-up period while the physics steps in its own process
 OUTBOX_MAX = 64  # replies queued while requests keep coming are sent once this many wait
 SWITCH_INTERVAL_S = 5e-4
 OVERRUN_REPORT_S = 5.0  # log late steps at most this often
@@ -207,6 +206,7 @@ class HardwareSim:
         self.snapshots: list[str] = []
         self._rng = random.Random(self.faults.seed)
         self._stop = threading.Event()
+        self._wake = threading.Event()  # work for run()'s thread (stop, a call)
         self._snapshot_requests: list[str | None] = []
         # work for the physics thread from other threads (the control channel's status reads)
         self._physics_calls: collections.deque[tuple[Callable[[], Any], Future[Any]]] = collections.deque()
@@ -239,6 +239,7 @@ class HardwareSim:
     def request_stop(self) -> None:
         """Ask :meth:`run` to return (safe from signal handlers and other threads)."""
         self._stop.set()
+        self._wake.set()
 
     def request_snapshot(self, name: str | None = None) -> None:
         """Ask the physics thread to write a snapshot (``name``.png, or a numbered one)."""
@@ -250,6 +251,7 @@ class HardwareSim:
         thread); the future holds its result. Cancelled if the simulator stops first."""
         fut: Future[Any] = Future()
         self._physics_calls.append((fn, fut))
+        self._wake.set()  # (a run() that does not step wakes only when there is something to do)
         if self._stop.is_set():
             self._run_physics_calls(cancel=True)
         return fut
@@ -317,6 +319,9 @@ class HardwareSim:
             self._flush_out()
 
     def _flush_out(self) -> None:
+        flush_commands = getattr(self.plant, "flush", None)  # a PhysicsProcess: this burst's commands
+        if flush_commands is not None:
+            flush_commands()
         out = self._outbox
         if not out:
             return
@@ -684,8 +689,12 @@ class HardwareSim:
                             c.overruns - reported, OVERRUN_REPORT_S, c.max_lag_ms, c.resyncs,
                         )  # fmt: skip
                         reported = c.overruns
-                if steps_itself:
-                    self._stop.wait(HOUSEKEEPING_S)
+                if steps_itself:  # nothing to step: sleep until the next chore, or work arrives
+                    due = min(next_control, next_status, next_report)
+                    if self.die_after_s is not None:
+                        due = min(due, self._start + self.die_after_s)
+                    self._wake.wait(max(0.0, due - time.monotonic()))
+                    self._wake.clear()
                 else:
                     stepper.sleep()
         finally:

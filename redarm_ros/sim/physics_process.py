@@ -19,8 +19,9 @@ Pieces:
 * :class:`PhysicsProcess`: the handle the bus side holds. It has the plant's surface as the module
   emulation and the status see it (``arm``, ``n``, ``joint(i)``, ``q``, ``dq``, ``q_setpoint``,
   ``steps``, ``sim_time``, ``tool_pose()``, ``snapshot_png()``, ``close()``). Joint commands are
-  queued (never waiting for the process), written to a pipe by a sender thread one burst at a time,
-  and applied before the process's next batch of steps (within
+  queued and written to a pipe once per burst of requests (:meth:`PhysicsProcess.flush`, a write
+  that never waits: with the process stopped they wait in the queue), and applied before the
+  process's next batch of steps (within
   :data:`~redarm_ros.sim.hardware.MOVING_WAKE_S`, 10 steps at rest, as in the thread); the state
   comes back through shared memory that the bus side reads without waiting for anything: one
   writer, per-value reads of aligned doubles, and a sequence counter around each write for a
@@ -38,10 +39,13 @@ from __future__ import annotations
 import collections
 import contextlib
 import ctypes
+import itertools
 import logging
 import multiprocessing as mp
 import os
+import pickle
 import signal
+import struct
 import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -76,6 +80,7 @@ START_TIMEOUT_S = 60.0
 STOP_TIMEOUT_S = 10.0
 SNAPSHOT_TIMEOUT_S = 30.0
 OUTBOX_MAX = 4096  # commands waiting for a stopped process; beyond that the oldest are dropped
+PIPE_ATOMIC_BYTES = 4096  # PIPE_BUF on Linux: a write of at most this many bytes is never split
 _PR_SET_PDEATHSIG = 1
 
 
@@ -264,11 +269,11 @@ class PhysicsProcess:
         self._raw = ctx.RawArray(ctypes.c_double, _size(self.n))
         self._view = np.frombuffer(self._raw, dtype=np.float64)
         recv, self._conn = ctx.Pipe(duplex=False)
-        # Commands wait here for the sender thread, which alone writes to the pipe: a full pipe (the
-        # physics stopped) blocks that thread, never the bus thread that answers the requests.
+        # Commands wait here until flush() writes them; the write never blocks (a full pipe: the physics
+        # stopped), so the bus thread that answers the requests never waits for the process.
+        os.set_blocking(self._conn.fileno(), False)
         self._outbox: collections.deque[tuple[Any, ...]] = collections.deque()
-        self._outbox_cond = threading.Condition()
-        self._closing = False
+        self._outbox_lock = threading.Lock()
         self.dropped_commands = 0  # commands dropped because OUTBOX_MAX were waiting
         self._seq = 0
         self._joints = [RemoteJoint(self, i) for i in range(self.n)]
@@ -279,8 +284,6 @@ class PhysicsProcess:
         )
         self._proc.start()
         recv.close()
-        self._sender = threading.Thread(target=self._send_loop, name="sim-physics-commands", daemon=True)
-        self._sender.start()
         deadline = time.monotonic() + start_timeout_s
         while self._view[_READY] == 0.0 and self._proc.is_alive() and time.monotonic() < deadline:
             time.sleep(0.01)
@@ -289,32 +292,45 @@ class PhysicsProcess:
             raise RedarmError("the physics process did not start (see its log above)")
 
     # -- commands ---------------------------------------------------------------------------------
-    def _send(self, op: str, *args: Any) -> int:
-        """Queue a command for the process; returns its sequence number (never waits for the process)."""
-        with self._outbox_cond:
+    def _send(self, op: str, *args: Any, now: bool = False) -> int:
+        """Queue a command for the process (written at the next :meth:`flush`, or ``now``); returns its
+        sequence number."""
+        with self._outbox_lock:
             self._seq += 1
             if len(self._outbox) >= OUTBOX_MAX:  # the process stopped taking commands: keep the newest
                 self._outbox.popleft()
                 self.dropped_commands += 1
             self._outbox.append((self._seq, op, *args))
-            self._outbox_cond.notify()
-            return self._seq
+            seq = self._seq
+        if now:
+            self.flush()
+        return seq
 
-    def _send_loop(self) -> None:
-        realtime.name_thread("sim-physics-tx")
-        while True:
-            with self._outbox_cond:
-                while not self._outbox and not self._closing:
-                    self._outbox_cond.wait()
-                if not self._outbox:
+    def flush(self) -> None:
+        """Write the queued commands to the process, as many as the pipe takes now; never waits.
+
+        The bus side calls this once per burst of requests (one write per driver cycle). Each write is
+        one message of at most :data:`PIPE_ATOMIC_BYTES` bytes in the pipe's own framing (a length,
+        then the pickled list of commands), which the kernel writes whole or not at all."""
+        with self._outbox_lock:
+            while self._outbox:
+                count = len(self._outbox)
+                while True:
+                    batch = list(itertools.islice(self._outbox, count))
+                    payload = pickle.dumps(batch, pickle.HIGHEST_PROTOCOL)
+                    if len(payload) + 4 <= PIPE_ATOMIC_BYTES or count == 1:
+                        break
+                    count = max(1, count // 2)
+                try:
+                    os.write(self._conn.fileno(), struct.pack("!i", len(payload)) + payload)
+                except BlockingIOError:  # the pipe is full: the process is not reading; later
                     return
-                batch = list(self._outbox)
-                self._outbox.clear()
-            try:
-                self._conn.send(batch)  # one write per burst of commands
-            except (OSError, ValueError) as exc:  # the process is gone: run() notices
-                _LOG.debug("physics commands not sent: %s", exc)
-                return
+                except OSError as exc:  # the process is gone: run() notices
+                    _LOG.debug("physics commands not sent: %s", exc)
+                    self._outbox.clear()
+                    return
+                for _ in range(count):
+                    self._outbox.popleft()
 
     def _wait_applied(self, seq: int, timeout_s: float) -> bool:
         deadline = time.monotonic() + timeout_s
@@ -387,18 +403,18 @@ class PhysicsProcess:
         Raises:
             RedarmError: not written within :data:`SNAPSHOT_TIMEOUT_S` (the process is gone or stuck).
         """
-        seq = self._send("snapshot", str(path), int(width), int(height))
+        seq = self._send("snapshot", str(path), int(width), int(height), now=True)
         if not self._wait_applied(seq, SNAPSHOT_TIMEOUT_S):
             raise RedarmError(f"snapshot {path} not written by the physics process")
 
     def close(self) -> None:
         """Stop the process (after the commands sent before) and reap it."""
-        self._send("stop")
-        with self._outbox_cond:
-            self._closing = True
-            self._outbox_cond.notify()
-        self._sender.join(STOP_TIMEOUT_S)
-        self._proc.join(STOP_TIMEOUT_S)
+        deadline = time.monotonic() + STOP_TIMEOUT_S
+        self._send("stop", now=True)
+        while self._outbox and self._proc.is_alive() and time.monotonic() < deadline:
+            time.sleep(0.01)  # a full pipe: the process reads it within its next wake-up
+            self.flush()
+        self._proc.join(max(0.0, deadline - time.monotonic()))
         self._kill()
         with contextlib.suppress(OSError):
             self._conn.close()
@@ -504,7 +520,7 @@ def _physics_main(make_plant: Callable[[], Any], raw: Any, conn: Connection, rat
             paused = False
             try:
                 while running and conn.poll():
-                    for cmd in conn.recv():
+                    for cmd in pickle.loads(conn.recv_bytes()):
                         try:
                             running = _apply(plant, cmd)
                         except Exception:  # noqa: BLE001 - one bad command must not stop the arm
