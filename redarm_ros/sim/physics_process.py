@@ -1,14 +1,15 @@
 """The simulated arm's physics stepped in real time, in the simulator's process or in one of its own.
 
-Why a process of its own: CPython runs one thread of a process at a time (the interpreter lock). The
-physics holds that lock for nearly all of its running time (pybullet does not release it), so when the
-kernel preempts the physics thread, e.g. for a busy process or a new one starting, the lock stays with
-it and every reply of the emulated modules waits until the physics runs again: tens of ms on a loaded
-machine, past the host's reply timeout. In a process of its own the physics never stands between a
-request and its reply; a late physics step only makes the reported position older. The process also
-runs in a session of its own: where the kernel shares the CPU between sessions (autogroup, the default
-of desktop kernels), the physics' CPU time is not taken from the share the simulator's bus thread
-needs to answer.
+Why a process of its own, in a session of its own: the simulator's bus thread answers the modules'
+requests and needs the CPU for a moment per driver cycle; the physics needs it steadily (a quarter of
+a core at 1 kHz). In one process the bus thread waits for the physics twice over. Where the kernel
+shares the CPU between sessions (autogroup, the default of desktop kernels), the physics' CPU time
+used up the session's share, and a woken bus thread waited in the run queue behind other sessions
+(traced on a busy 2-core machine: 20-80 ms, with the bus server prompt: the host's replies timed
+out). And CPython runs one thread of a process at a time: pybullet keeps the interpreter lock while
+it steps, so a physics thread preempted mid-step holds up every reply until it runs again. In a
+process and session of its own the physics stands between no request and its reply; a late physics
+step only makes the reported position older.
 
 Pieces:
 
