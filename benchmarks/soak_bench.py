@@ -8,8 +8,8 @@ joint; joint 2's amplitude reaches past its joint limit, so the arm brakes onto 
 every few seconds). Meanwhile:
 
 * a CPU hog of twice the cores (``sh -c 'while :; do :; done'``, normal priority) runs throughout;
-* every 30 s a new Python process starts (imports numpy and rclpy, creates a node, spins 2 s: what
-  the controller does at bring-up).
+* every 30 s (``--newcomer-period``) a new Python process starts (imports numpy and rclpy, creates a
+  node, spins 2 s: what the controller does at bring-up); a shorter period stresses that faster.
 
 Reported (table row per run, with the load average): halts of the driver (``HALTED:`` lines; each is
 answered with ``~/recover`` so the run goes on), missed replies (sum of the modules' ``lost``),
@@ -19,6 +19,14 @@ simulator's status), watchdog trips (modules entering COMM_ERROR), implausible p
 simulator's own lag, its longest garbage collection (CPU) and request-to-reply time, and the
 scheduling the real-time chain got. Target on a 2-core machine: 0 halts
 and 0 faults.
+
+Each missed reply is traced: the driver logs the wall time of the first cycle of a run of misses, the
+bus server every frame it read 5 ms or more after its sender's stamp (slow hop), the simulator every
+request read 5 ms or more after it was sent, every reply sent 5 ms or more after its request was read
+and every physics wake-up 5 ms or more late; the benchmark notes when it started the hog and each new
+process, and samples every 25 ms the run-queue wait of every thread of the bus server, the simulator
+and the driver (``/proc/<pid>/task/*/schedstat``; waits of 4 ms or more are kept). For each miss it
+prints what happened within 1 s of it (run-queue waits: 0.1 s), the timeline.
 
 Run: ``.venv/bin/python benchmarks/soak_bench.py`` (10 min; ``--quick`` = 60 s smoke, as ``make bench``
 runs it; ``--no-hog``; ``--realtime-priority 0`` runs the chain and the driver node at normal
@@ -34,6 +42,7 @@ import argparse
 import json
 import os
 import platform
+import re
 import subprocess
 import sys
 import tempfile
@@ -45,7 +54,14 @@ from typing import Any
 
 import numpy as np
 
-from redarm_ros.procs import ManagedProcess, ProcessGroup, python_module_cmd, random_domain_id
+from redarm_ros.procs import (
+    ManagedProcess,
+    ProcessGroup,
+    descendants,
+    group_members,
+    python_module_cmd,
+    random_domain_id,
+)
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench_common, also when loaded by path
 import bench_common  # noqa: E402
@@ -55,6 +71,12 @@ REPO = Path(__file__).resolve().parents[1]
 ARM_NAME = "pa10"
 STREAM_HZ = 100.0
 NEWCOMER_PERIOD_S = 30.0
+SCHEDSTAT_PERIOD_S = 0.025  # run-queue waits sampled this often
+RUNQ_WAIT_EVENT_MS = 4.0  # a thread's run-queue wait in one sample period kept as an event
+TIMELINE_S = 1.0  # a miss's timeline: events this close to it
+RUNQ_TIMELINE_S = 0.1  # (run-queue waits: this close)
+MAX_TIMELINES = 8  # timelines written to the results
+WALL_RE = re.compile(r"wall time (\d+\.\d+)")
 NEWCOMER = """
 import time, numpy, rclpy
 rclpy.init()
@@ -84,19 +106,131 @@ class Observed:
     js_gaps_ms: list[float] = field(default_factory=list)  # header-stamp gaps of /joint_states (plot)
     stream_sent: int = 0
     last_diag: dict[str, dict[str, str]] = field(default_factory=dict)
+    events: list[tuple[float, str]] = field(default_factory=list)  # (wall time, what): the benchmark's own
+    misses: list[tuple[float, str]] = field(default_factory=list)  # (wall time, driver line)
+    timelines: list[str] = field(default_factory=list)  # one text block per miss
+    hop_lines: list[tuple[float, str]] = field(default_factory=list)  # the bus server's slow hops
 
 
-def start_chain(group: ProcessGroup, tmp: Path, prio: int) -> tuple[str, Path]:
+class SchedstatSampler:
+    """Samples the run-queue wait of every thread of some process groups and their leaders'
+    descendants (Linux schedstat) in a thread; waits of :data:`RUNQ_WAIT_EVENT_MS` or more within one
+    sample period become events."""
+
+    def __init__(self, groups: dict[str, int]) -> None:
+        self.groups = groups  # label -> process group id
+        self.events: list[tuple[float, str]] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="schedstat", daemon=True)
+
+    def start(self) -> SchedstatSampler:
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(5)
+
+    def _tasks(self) -> list[tuple[str, str]]:
+        out = []
+        for label, pgid in self.groups.items():
+            for pid in sorted(set(group_members(pgid)) | set(descendants(pgid))):
+                try:
+                    tids = os.listdir(f"/proc/{pid}/task")
+                except OSError:
+                    continue
+                for tid in tids:
+                    try:
+                        comm = Path(f"/proc/{pid}/task/{tid}/comm").read_text().strip()
+                    except OSError:
+                        continue
+                    out.append((f"{label}:{comm}({tid})", f"/proc/{pid}/task/{tid}/schedstat"))
+        return out
+
+    def _run(self) -> None:
+        last: dict[str, float] = {}
+        tasks: list[tuple[str, str]] = []
+        next_list = 0.0
+        while not self._stop.wait(SCHEDSTAT_PERIOD_S):
+            now = time.time()
+            if now >= next_list:
+                tasks, next_list = self._tasks(), now + 1.0
+            for name, path in tasks:
+                try:
+                    wait_ns = int(Path(path).read_text().split()[1])
+                except (OSError, IndexError, ValueError):
+                    continue
+                before = last.get(name)
+                last[name] = wait_ns
+                if before is not None and (wait_ns - before) / 1e6 >= RUNQ_WAIT_EVENT_MS:
+                    self.events.append((now, f"run-queue wait {(wait_ns - before) / 1e6:.1f} ms of {name} "
+                                             f"in the {SCHEDSTAT_PERIOD_S * 1e3:.0f} ms before"))
+
+
+def line_events(proc: ManagedProcess, label: str, pattern: str) -> list[tuple[float, str]]:
+    """(wall time, line) of every output line of ``proc`` holding ``pattern`` and a wall time."""
+    out = []
+    for line in proc.output():
+        if pattern in line and (m := WALL_RE.search(line)):
+            out.append((float(m.group(1)), f"{label}: {line.split(pattern, 1)[-1].strip()[:110]}"))
+    return out
+
+
+HOP_RE = re.compile(r"read ([0-9.]+) ms later")
+READ_RE = re.compile(r"request sent to read \(bus thread since: ran ([0-9.]+) ms, run queue ([0-9.]+) ms\) "
+                     r"([0-9.]+) ms")
+ANSWER_RE = re.compile(r"request read to reply sent ([0-9.]+) ms")
+
+
+def where_it_waited(t_miss: float, events: list[tuple[float, str]]) -> str:
+    """One line on the missed cycle's requests (events up to the reply timeout after it): the bus
+    server's hop, the simulator's read (and how much of it its bus thread ran or waited for a CPU; the
+    rest it slept: for the frame, or for the interpreter lock), the simulator's answer."""
+    hop = read = ran = queued = answer = 0.0
+    for t, ev in events:
+        if not -0.002 <= t - t_miss <= 0.025:
+            continue
+        if ev.startswith("canbus") and (m := HOP_RE.search(ev)):
+            hop = max(hop, float(m.group(1)))
+        elif (m := READ_RE.search(ev)) and float(m.group(3)) > read:
+            ran, queued, read = (float(g) for g in m.groups())
+        elif m := ANSWER_RE.search(ev):
+            answer = max(answer, float(m.group(1)))
+    if not (hop or read or answer):
+        return "  no hop, read or answer of this cycle took 5 ms or more (the driver's side)"
+    slept = max(0.0, read - hop - ran - queued)
+    return (f"  bus server hop {hop:.1f} ms; simulator read {read:.1f} ms (its bus thread ran {ran:.1f}, "
+            f"waited for a CPU {queued:.1f}, slept {slept:.1f} beyond the hop); answer {answer:.1f} ms")
+
+
+def timelines(misses: list[tuple[float, str]], events: list[tuple[float, str]]) -> list[str]:
+    """For each miss, where its requests waited and the events within :data:`TIMELINE_S` of it, in
+    time order, as a text block."""
+    blocks = []
+    events = sorted(events)
+    for t_miss, what in misses:
+        lines = [f"miss at wall time {t_miss:.4f}: {what}", where_it_waited(t_miss, events)]
+        for t, ev in events:
+            near = RUNQ_TIMELINE_S if ev.startswith("run-queue") else TIMELINE_S
+            if abs(t - t_miss) <= near:
+                lines.append(f"  {(t - t_miss) * 1e3:+8.1f} ms  {ev}")
+        blocks.append("\n".join(lines))
+    return blocks
+
+
+def start_chain(group: ProcessGroup, tmp: Path, prio: int,
+                physics: str = "process") -> tuple[str, Path, ManagedProcess, ManagedProcess]:
     bus = group.start("canbus", python_module_cmd("redarm_ros.can.bus_server", "--host", "127.0.0.1",
                                                   "--port", "0", "--realtime-priority", str(prio)),
                       ready=r"REDARM_CANBUS_PORT=(\d+)")
     channel = f"ws://127.0.0.1:{int(bus.ready_match.group(1))}/"  # type: ignore[attr-defined]
     status = tmp / "sim.json"
-    group.start("sim", python_module_cmd("redarm_ros.sim.hardware", "--arm", ARM_NAME, "--can-interface",
-                                         "remote", "--can-channel", channel, "--status-file", str(status),
-                                         "--status-rate", "10", "--realtime-priority", str(prio)),
+    sim = group.start("sim", python_module_cmd("redarm_ros.sim.hardware", "--arm", ARM_NAME,
+                                               "--can-interface", "remote", "--can-channel", channel,
+                                               "--status-file", str(status), "--status-rate", "10",
+                                               "--realtime-priority", str(prio), "--physics", physics),
                 ready=r"REDARM_SIM_READY", ready_timeout=60)
-    return channel, status
+    return channel, status, bus, sim
 
 
 def start_driver(group: ProcessGroup, channel: str, prio: int) -> ManagedProcess:
@@ -121,7 +255,8 @@ def stream_target(arm: Any, t: float) -> np.ndarray:
     return q
 
 
-def soak(seconds: float, hog: int, prio: int) -> tuple[Observed, dict[str, Any], dict[str, Any]]:
+def soak(seconds: float, hog: int, prio: int, newcomer_period: float = NEWCOMER_PERIOD_S,
+         physics: str = "process") -> tuple[Observed, dict[str, Any], dict[str, Any]]:
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.executors import SingleThreadedExecutor
@@ -142,8 +277,9 @@ def soak(seconds: float, hog: int, prio: int) -> tuple[Observed, dict[str, Any],
                          log_dir=Path(tmpdir) / "ros_log") as group:
         tmp = Path(tmpdir)
         os.environ["ROS_LOG_DIR"] = str(tmp / "ros_log")
-        channel, status_file = start_chain(group, tmp, prio)
+        channel, status_file, bus_proc, sim_proc = start_chain(group, tmp, prio, physics)
         driver = start_driver(group, channel, prio)
+        sampler = SchedstatSampler({"canbus": bus_proc.pid, "sim": sim_proc.pid, "driver": driver.pid})
         ctx = rclpy.Context()
         rclpy.init(context=ctx, domain_id=domain)
         node = rclpy.create_node("soak_bench", context=ctx)
@@ -182,8 +318,10 @@ def soak(seconds: float, hog: int, prio: int) -> tuple[Observed, dict[str, Any],
         try:
             if not call("init"):
                 raise RuntimeError("~/init failed")
+            sampler.start()
             for i in range(hog):
                 hogs.append(group.start(f"hog{i}", ["sh", "-c", "while :; do :; done"]))
+                obs.events.append((time.time(), f"bench: hog {i} started"))
             t0 = time.monotonic()
             next_pub = t0
             next_newcomer = t0 + 5.0
@@ -201,7 +339,8 @@ def soak(seconds: float, hog: int, prio: int) -> tuple[Observed, dict[str, Any],
                     newcomers.append(subprocess.Popen([sys.executable, "-c", NEWCOMER],
                                                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
                     obs.newcomers += 1
-                    next_newcomer += NEWCOMER_PERIOD_S
+                    obs.events.append((time.time(), f"bench: new process {obs.newcomers} started"))
+                    next_newcomer += newcomer_period
                 if now >= next_poll:
                     next_poll = now + 0.2
                     obs.loads.append(os.getloadavg()[0])
@@ -233,7 +372,12 @@ def soak(seconds: float, hog: int, prio: int) -> tuple[Observed, dict[str, Any],
             sim_status = json.loads(status_file.read_text())
             for p in newcomers:
                 p.wait(30)
+            obs.misses = line_events(driver, "driver", "missed replies")
+            obs.hop_lines = line_events(bus_proc, "canbus", "slow hop:")
+            events = [*obs.events, *sampler.events, *obs.hop_lines, *line_events(sim_proc, "sim", "slow:")]
+            obs.timelines = timelines(obs.misses, events)
         finally:
+            sampler.stop()
             for h in hogs:
                 group.stop(h)
             stop.set()
@@ -316,6 +460,12 @@ def summarise(seconds: float, hog: int, prio: int, obs: Observed, diag: dict[str
     )
 
 
+def sim_counts(sim: dict[str, Any]) -> str:
+    c = sim.get("counters", {})
+    return (f"{c.get('slow_reads', 0)} requests read >= 5 ms after sending, {c.get('slow_replies', 0)} "
+            f"replies >= 5 ms after reading, {c.get('lag_spikes', 0)} physics wake-ups >= 5 ms late")
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=600.0, help="soak duration (default 600 s)")
@@ -325,6 +475,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--realtime-priority", type=int, default=50,
                     help="SCHED_FIFO priority of bus server, simulator and driver cycle (0: normal)")
     ap.add_argument("--no-write", action="store_true", help="do not write the results file")
+    ap.add_argument("--newcomer-period", type=float, default=NEWCOMER_PERIOD_S, metavar="S",
+                    help=f"start a new Python process every S seconds (default {NEWCOMER_PERIOD_S:g})")
+    ap.add_argument("--sim-physics", choices=("process", "thread"), default="process",
+                    help="the simulator's --physics (default process; thread: as before, for comparison)")
     ap.add_argument("--plot-dir", type=Path, default=None,
                     help="write the PNG plot here (default: beside the results file when it is written)")
     args = ap.parse_args(argv)
@@ -333,7 +487,9 @@ def main(argv: list[str] | None = None) -> int:
     print(f"soak: {seconds:g} s at 250 Hz, hog {hog}, real-time priority {args.realtime_priority} ...",
           flush=True)
     load_before = os.getloadavg()
-    obs, diag, sim = soak(seconds, hog, args.realtime_priority)
+    if not args.newcomer_period > 0:
+        ap.error("--newcomer-period must be > 0")
+    obs, diag, sim = soak(seconds, hog, args.realtime_priority, args.newcomer_period, args.sim_physics)
     load_after = os.getloadavg()
     r = summarise(seconds, hog, args.realtime_priority, obs, diag, sim)
     run = "\n".join([
@@ -351,10 +507,18 @@ def main(argv: list[str] | None = None) -> int:
         f"{r.sim_gc_max_pause_ms:.2f} ms CPU ({r.sim_gc_collections} collections), longest "
         f"request-to-reply {r.sim_reply_max_ms:.2f} ms.",
         "",
+        f"Slow events: simulator {sim_counts(sim)}; bus server slow hops {len(obs.hop_lines)}.",
+        "",
         f"Command: `.venv/bin/python benchmarks/soak_bench.py --seconds {seconds:g}"
         + (" --no-hog" if args.no_hog else f" --hog {hog}")
-        + f" --realtime-priority {args.realtime_priority}`",
+        + f" --realtime-priority {args.realtime_priority}"
+        + (f" --newcomer-period {args.newcomer_period:g}"
+           if args.newcomer_period != NEWCOMER_PERIOD_S else "")
+        + (f" --sim-physics {args.sim_physics}" if args.sim_physics != "process" else "")
+        + "`",
         "",
+        *([f"Timelines of the missed replies (first {MAX_TIMELINES}; times relative to the missed cycle):",
+           "", "```", *obs.timelines[:MAX_TIMELINES], "```", ""] if obs.timelines else []),
     ])
     print()
     print(run)

@@ -12,11 +12,12 @@ the demo's ready pose through ``/joint_command``; then three cases are measured 
 * **demo**: the demo's goal sequence (``redarm_ros.demo.GOALS``: five reachable goals and one out of
   reach), each sent once and waited for until the controller reports it reached or rejected.
 
-Reported per case and process (each child's whole process group, so the driver's cycle process is
-counted on its own row): CPU seconds consumed in the window (utime + stime from /proc/<pid>/stat) and
-the same as % of one core over the window's wall time; the total; the load average before and after
-the case; the driver loop's achieved rate, cycles, overruns and missed replies (the modules' ``lost``
-counters) from its ``/diagnostics``, and the controller's steps. CPU seconds are what a busy machine
+Reported per case and process (each child's process group and descendants, so the driver's cycle
+process and the simulator's physics process are counted on rows of their own): CPU seconds consumed
+in the window (utime + stime from /proc/<pid>/stat) and the same as % of one core over the window's
+wall time; the total; the load average before and after the case; the driver loop's achieved rate,
+cycles, overruns and missed replies (the modules' ``lost`` counters) from its ``/diagnostics``, and
+the controller's steps. CPU seconds are what a busy machine
 inflates least; the percentages of a shared machine are noisy, so compare runs made back to back.
 Targets (quiet machine): rest <= 40 %, stream <= 80 %, demo <= 100 % of one core in total, with the
 driver loop at 250 Hz and 0 missed replies.
@@ -49,7 +50,7 @@ import numpy as np
 import yaml
 
 from redarm_ros.bringup import Stack, StackConfig
-from redarm_ros.procs import group_members
+from redarm_ros.procs import descendants, group_members
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench_common, also when loaded by path
 import bench_common  # noqa: E402
@@ -76,11 +77,12 @@ def proc_cpu_s(pid: int) -> float | None:
 
 
 def process_rows(stack: Stack) -> dict[str, list[int]]:
-    """Row name -> pids: each child's process group; the driver's other processes (its cycle
-    process) get a row of their own."""
+    """Row name -> pids: each child's process group and descendants; the others than the child itself
+    (the driver's cycle process, the simulator's physics) get a row of their own."""
     rows: dict[str, list[int]] = {}
     for name, child in stack.children.items():
-        members = group_members(child.pid) or [child.pid]
+        # its process group and every descendant (the simulator's physics runs in a session of its own)
+        members = sorted(set(group_members(child.pid) or [child.pid]) | set(descendants(child.pid)))
         rows[name] = [child.pid]
         others = [p for p in members if p != child.pid]
         if others:

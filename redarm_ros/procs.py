@@ -603,6 +603,28 @@ def group_members(pgid: int) -> list[int]:
     return members
 
 
+def descendants(pid: int) -> list[int]:
+    """Pids of the live (non-zombie) children of ``pid``, their children, and so on, wherever their
+    process group or session (Linux /proc scan)."""
+    parent_of: dict[int, int] = {}
+    for entry in os.scandir("/proc"):
+        if not entry.name.isdigit():
+            continue
+        try:
+            with open(f"/proc/{entry.name}/stat", encoding="ascii", errors="replace") as f:
+                fields = f.read().rsplit(")", 1)[-1].split()
+        except OSError:
+            continue
+        if len(fields) >= 2 and fields[0] not in ("Z", "X"):
+            parent_of[int(entry.name)] = int(fields[1])
+    found: list[int] = []
+    frontier = {pid}
+    while frontier:
+        frontier = {child for child, parent in parent_of.items() if parent in frontier}
+        found.extend(sorted(frontier))
+    return found
+
+
 def thread_states(pid: int) -> str:
     """One line on the threads of process ``pid`` for a log: how many in each state (R running, S
     sleeping, D uninterruptible, ...) and the scheduling, kernel wait point and CPU time of every thread

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import time
 
 import pytest
 from support.thread_probe import probe_threads
@@ -46,3 +47,17 @@ def test_not_permitted_falls_back_with_one_line() -> None:
     assert r["policy"] == "normal", r
     assert "not permitted" in r["message"] and "CAP_SYS_NICE" in r["message"]
     assert set(r["nice"].values()) == {5}
+
+
+def test_thread_schedstat_counts_the_threads_own_cpu_time() -> None:
+    from redarm_ros.can.realtime import ThreadSchedstat
+
+    stat = ThreadSchedstat()
+    ran0, queued0 = stat.read()
+    end = time.thread_time() + 0.05
+    while time.thread_time() < end:  # 50 ms of this thread's CPU
+        pass
+    ran1, queued1 = stat.read()
+    stat.close()
+    assert ran1 - ran0 >= 40.0 and queued1 >= queued0
+    assert ThreadSchedstat(None).read() == (0.0, 0.0)

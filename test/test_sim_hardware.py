@@ -16,7 +16,8 @@ from redarm_ros.can import protocol as pc
 from redarm_ros.can.protocol import ActState, Param
 from redarm_ros.errors import BusError
 from redarm_ros.kinematics import load_arm
-from redarm_ros.sim.hardware import REST_BATCH, Faults, HardwareSim, build_parser, strip_ros_args
+from redarm_ros.sim.hardware import Faults, HardwareSim, build_parser, strip_ros_args
+from redarm_ros.sim.physics_process import REST_BATCH
 from redarm_ros.sim.plant import PybulletPlant
 
 

@@ -13,6 +13,8 @@ from types import ModuleType, SimpleNamespace
 
 import pytest
 
+from redarm_ros.procs import descendants
+
 BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "stack_cpu_bench.py"
 
 
@@ -55,6 +57,28 @@ def test_a_childs_process_group_gives_its_own_row_and_one_for_the_rest(bench: Mo
         assert rows["can_driver"] == [leader.pid]
         assert len(rows["can_driver (cycle process)"]) == 1
     finally:
+        os.killpg(leader.pid, 9)
+        leader.wait()
+
+
+def test_a_descendant_in_a_session_of_its_own_is_counted(bench: ModuleType) -> None:
+    # As the simulator's physics process: a child that left its parent's process group.
+    leader = subprocess.Popen([sys.executable, "-c", "import subprocess, sys, time; subprocess.Popen("
+                               "[sys.executable, '-c', 'import time; time.sleep(30)'], "
+                               "start_new_session=True); time.sleep(30)"],
+                              start_new_session=True)
+    try:
+        end = time.monotonic() + 10.0
+        while not any(os.getsid(p) == p for p in descendants(leader.pid)):  # the child's own session
+            assert time.monotonic() < end
+            time.sleep(0.05)
+        rows = bench.process_rows(SimpleNamespace(children={"sim": SimpleNamespace(pid=leader.pid)}))
+        assert rows["sim"] == [leader.pid]
+        (child,) = rows["sim (children)"]
+        assert os.getsid(child) == child
+    finally:
+        for pid in descendants(leader.pid):
+            os.kill(pid, 9)
         os.killpg(leader.pid, 9)
         leader.wait()
 

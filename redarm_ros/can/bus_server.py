@@ -92,6 +92,10 @@ SOCKET_BUFFER_BYTES = 64 * 1024
 SEND_BUFFER_BYTES = 4 * 1024
 #: A sender stamp may be this old (s) and still be taken as the time the frame went on the bus.
 MAX_STAMP_AGE_S = 1.0
+#: A frame read this long (s) after its sender's stamp is logged (with the time) as a slow hop.
+SLOW_HOP_S = 0.005
+#: At most this many slow hops are logged per second.
+SLOW_HOP_LOGS_PER_S = 20
 DEFAULT_REALTIME_PRIORITY = 50
 
 PORT_LINE = "REDARM_CANBUS_PORT"
@@ -273,6 +277,11 @@ class _Relay:
         self.dropped = 0
         self.skipped = 0
         self.overflowed = 0
+        self.slow_hops = 0  # bursts read SLOW_HOP_S or more after their sender's stamp
+        self.max_hop_ms = 0.0  # the longest sender-stamp-to-read time of a frame (ms)
+        self._hop_log_second = 0
+        self._hop_stamp = 0.0  # the sender stamp of the last slow hop noted
+        self._hop_logs = 0
         self._stop = False
         self._close_all = threading.Event()
         self._closed_all = threading.Event()
@@ -464,14 +473,29 @@ class _Relay:
         if binary_frames:
             self._deliver(c, binary_frames)
 
-    @staticmethod
-    def _stamped(payload: bytes, now: float) -> bytes:
+    def _stamped(self, payload: bytes, now: float) -> bytes:
         # Every frame keeps the time its sender put it on the bus; an unstamped or implausible one is
         # on the bus now.
         ts = _BINARY_MSG.unpack_from(payload, 1)[0]
         if now - MAX_STAMP_AGE_S <= ts <= now + 0.001:
+            if now - ts >= SLOW_HOP_S and ts != self._hop_stamp:  # once per burst of one stamp
+                self._hop_stamp = ts
+                self._note_slow_hop(now - ts, ts)
             return payload
         return payload[:1] + struct.pack(">d", now) + payload[9:]
+
+    def _note_slow_hop(self, hop_s: float, stamp: float) -> None:
+        # How long a frame waited between its sender and this relay (the sender or the relay not
+        # running), with its time, so that a late reply can be traced to the hop that held it.
+        self.slow_hops += 1
+        self.max_hop_ms = max(self.max_hop_ms, hop_s * 1e3)
+        second = int(stamp)
+        if second != self._hop_log_second:
+            self._hop_log_second, self._hop_logs = second, 0
+        self._hop_logs += 1
+        if self._hop_logs <= SLOW_HOP_LOGS_PER_S:
+            logger.warning("slow hop: frames stamped at wall time %.4f were read %.1f ms later (%d so far)",
+                           stamp, hop_s * 1e3, self.slow_hops)
 
     def _text(self, c: _Client, payload: bytes, frames: list[bytes], now: float, backlog: int) -> None:
         try:

@@ -1043,6 +1043,7 @@ class DriverLoop:
                 self._log(logging.ERROR, f"on_state failed: {exc!r}")
 
     def _run(self) -> None:
+        realtime.name_thread("can-cycle")
         cfg = self.config
         if cfg.realtime_priority > 0:
             prio = realtime.raise_priority(cfg.realtime_priority, who="can_driver cycle thread")
@@ -1222,6 +1223,7 @@ class DriverLoop:
         prev_now: float | None = None  # when the previous cycle sampled its target
         seen_generation = self.commands.generation
         k = 0
+        prev_lost = 0  # missed replies of the previous cycle (a run of misses is logged once)
         while not self._stop.is_set() and self._requests.empty():
             now = time.monotonic()
             if now < next_t:
@@ -1256,6 +1258,12 @@ class DriverLoop:
                 self._frames_rx += int(ok.size)
             if beyond or result.clamped:
                 self._note_clamps(result, now, beyond)
+            if result.lost and not prev_lost:  # the first cycle of a run of misses: when, and who
+                missing = [drv.module_ids[j] for j in np.flatnonzero(~result.replied)]
+                started = time.time() - (time.monotonic() - now)
+                self._log(logging.WARNING, f"missed replies from modules {missing} in the cycle started at "
+                          f"wall time {started:.4f}")
+            prev_lost = result.lost
             self._emit(CycleSample(time.time(), q_meas, result.velocities, q_ref))
             if result.fault is not None:
                 self._halted_by(result.fault, halt=False)  # the driver core has halted every module

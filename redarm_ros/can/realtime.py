@@ -21,6 +21,7 @@ spare.
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import gc
 import logging
 import os
@@ -39,6 +40,7 @@ _LOG = logging.getLogger(__name__)
 
 #: The nice level tried when SCHED_FIFO is refused (-20 is the highest priority; a normal task is 0).
 FALLBACK_NICE = -10
+_PR_SET_NAME = 15  # <linux/prctl.h>
 
 
 class Policy(Enum):
@@ -104,6 +106,42 @@ def _fifo_level(fifo_priority: int, who: str) -> tuple[int, Priority | None]:
     if not hasattr(os, "sched_setscheduler"):
         return 0, Priority(Policy.NORMAL, 0, f"{who}: normal scheduling (no SCHED_FIFO on this platform)")
     return max(1, min(int(fifo_priority), os.sched_get_priority_max(os.SCHED_FIFO))), None
+
+
+def name_thread(name: str) -> None:
+    """Give the calling thread ``name`` (at most 15 bytes) as the kernel shows it (``/proc/*/task/*/comm``,
+    ``top -H``), so a scheduling trace says which thread waited. Linux only; never raises."""
+    try:
+        libc = ctypes.CDLL(None)
+        libc.prctl(_PR_SET_NAME, name.encode()[:15], 0, 0, 0)
+    except (OSError, AttributeError):
+        pass
+
+
+class ThreadSchedstat:
+    """The scheduler statistics of the thread that made it (Linux ``/proc/thread-self/schedstat``),
+    read with one system call: :meth:`read` -> (ms on a CPU, ms waiting in the run queue) since that
+    thread began; (0, 0) where the kernel does not say, or for ``path=None`` (a placeholder)."""
+
+    def __init__(self, path: str | None = "/proc/thread-self/schedstat") -> None:
+        self._fd: int | None = None
+        if path is not None:
+            with contextlib.suppress(OSError):
+                self._fd = os.open(path, os.O_RDONLY)
+
+    def read(self) -> tuple[float, float]:
+        if self._fd is None:
+            return 0.0, 0.0
+        try:
+            ran, queued = os.pread(self._fd, 96, 0).split()[:2]
+            return int(ran) / 1e6, int(queued) / 1e6
+        except (OSError, ValueError):
+            return 0.0, 0.0
+
+    def close(self) -> None:
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
 
 
 def _thread_ids() -> list[int]:

@@ -22,9 +22,10 @@ from typing import Any
 import can
 
 from redarm_ros.can import protocol as pc
-from redarm_ros.can.module_emulator import EmulatedArm, ModuleConfig, PowerCubeModule
+from redarm_ros.can.module_emulator import EmulatedArm, ModuleConfig, Plant, PowerCubeModule
 from redarm_ros.can.protocol import ActState
-from redarm_ros.sim.plant import JointPlant, PybulletPlant
+from redarm_ros.sim.physics_process import PhysicsProcess
+from redarm_ros.sim.plant import PybulletPlant
 
 LIMIT_SLACK = 1e-5  # rad
 
@@ -32,7 +33,7 @@ LIMIT_SLACK = 1e-5  # rad
 class _LimitedJoint:
     """A :class:`JointPlant` whose reported position is clamped into the limits within the slack."""
 
-    def __init__(self, joint: JointPlant, lower: float, upper: float) -> None:
+    def __init__(self, joint: Plant, lower: float, upper: float) -> None:
         self._j = joint
         self._lo, self._hi = lower, upper
 
@@ -71,7 +72,8 @@ class PlantModules:
     Thread-safety: all module access happens under the bank's lock.
     """
 
-    def __init__(self, plant: PybulletPlant, module_ids: Sequence[int], *, homed: bool = False) -> None:
+    def __init__(self, plant: PybulletPlant | PhysicsProcess, module_ids: Sequence[int], *,
+                 homed: bool = False) -> None:
         arm = plant.arm
         if len(module_ids) != plant.n:
             raise ValueError(f"need {plant.n} module ids, got {len(module_ids)}")

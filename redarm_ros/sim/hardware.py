@@ -2,10 +2,11 @@
 
 No ROS here: to the rest of the system this process *is* the hardware. It
 
-* owns a :class:`~redarm_ros.sim.plant.PybulletPlant` and steps it in real time at ``--rate`` Hz
-  (default 1000, waking every :data:`MOVING_WAKE_S`, every :data:`REST_BATCH` steps while the arm
-  rests, and sleeping until the batch's deadline; late steps are counted as overruns and caught up in
-  bursts, a backlog of more than :data:`MAX_BURST` steps is dropped and counted as a resync),
+* has a :class:`~redarm_ros.sim.plant.PybulletPlant` stepped in real time at ``--rate`` Hz by a
+  :class:`~redarm_ros.sim.physics_process.RealTimeStepper` (default 1000; late steps are counted as
+  overruns and caught up in bursts, a large backlog is dropped and counted as a resync), in a process
+  of its own (:class:`~redarm_ros.sim.physics_process.PhysicsProcess`, so that no reply ever waits
+  for the physics to get the interpreter lock back; ``--physics thread`` steps it in a thread here),
 * emulates modules ``1..n`` (``--first-id`` shifts them) with :mod:`redarm_ros.can.module_emulator`
   on the CAN bus chosen by python-can configuration (``--can-interface``/``--can-channel``/
   ``--can-config-file`` passed through, else ``CAN_INTERFACE``/``CAN_CHANNEL``/``CAN_CONFIG``),
@@ -24,7 +25,8 @@ No ROS here: to the rest of the system this process *is* the hardware. It
 
 See ``docs/sim.md`` for the status schema and the control file format. Exit codes: 0 clean stop
 (SIGINT/SIGTERM), 2 bad arguments, 3 bus could not be opened (at once for a configuration that can
-never work, else after ``--bus-wait`` seconds of retries), -9 (killed) after ``--die-after``.
+never work, else after ``--bus-wait`` seconds of retries), 4 the physics process ended, -9 (killed)
+after ``--die-after``.
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ from __future__ import annotations
 import argparse
 import collections
 import contextlib
+import functools
 import gc
 import heapq
 import json
@@ -50,43 +53,33 @@ from pathlib import Path
 from typing import Any
 
 import can
-import numpy as np
 
 from redarm_ros.can import protocol as pc
 from redarm_ros.can import realtime
 from redarm_ros.can.module_emulator import wire_time
 from redarm_ros.errors import BusError, RedarmError
+from redarm_ros.sim.physics_process import PhysicsProcess, RealTimeStepper, build_plant
 from redarm_ros.sim.plant import PybulletPlant
 
 _LOG = logging.getLogger("redarm_ros.sim.hardware")
 
 READY_LINE = "REDARM_SIM_READY"
-MAX_BURST = 50  # steps caught up at once; a larger backlog is dropped (resync)
-# While the arm rests (no setpoint moving, every joint slower than REST_SPEED_RAD_S) the
-# physics loop wakes every REST_BATCH steps and steps them at once instead of waking every step: a
-# still arm is the same arm a few ms later, and each wake-up costs more than a step. A command that
-# starts a motion takes effect within those steps; then the loop wakes as a moving arm's does.
-REST_BATCH = 10
-REST_SPEED_RAD_S = 1e-4
-# While it moves, the loop wakes every MOVING_WAKE_S (as many steps as fit, at least one: 2 at
-# 1 kHz): each wake-up (sleep, scheduler, the GIL from the bus thread) costs more than a step. A
-# command takes effect within that time, well inside a 250 Hz host's 4 ms cycle; the replies are the
-# bus thread's and go out at once.
-MOVING_WAKE_S = 2e-3
 CONTROL_POLL_S = 0.05
 OUTBOX_MAX = 64  # replies queued while requests keep coming are sent once this many wait
 SWITCH_INTERVAL_S = 5e-4
 OVERRUN_REPORT_S = 5.0  # log late steps at most this often
-# With real-time priority the physics loop must never keep a core: if it has not slept for this
-# long (stepping slower than real time), the process drops back to normal scheduling.
-RT_SPIN_LIMIT_S = 0.5
 DEFAULT_REALTIME_PRIORITY = 50
 # How long a frame may have been under way (sender -> bus server -> this process) before it was
 # readable here; bounds how old a frame's own stamp may make it look (s).
 WIRE_TRANSIT_ALLOWANCE_S = 0.02
+#: A request read this long (s) after it was sent, or answered this long after it was read, is logged
+#: with its wall time (for tracing a late reply to where it waited; late physics: LAG_EVENT_S).
+SLOW_EVENT_S = 0.005
+SLOW_LOGS_PER_S = 20  # at most this many such lines per second
 ENV_PREFIX = "REDARM_SIM_"
 EXIT_BAD_ARGS = 2
 EXIT_NO_BUS = 3
+EXIT_PHYSICS_LOST = 4
 #: How long (s) the simulator waits for its bus by default: a launch file starts the bus server beside it.
 BUS_WAIT_S = 20.0
 
@@ -147,6 +140,9 @@ class Counters:
     gc_max_pause_ms: float = 0.0
     snapshots: int = 0
     control_errors: int = 0
+    slow_reads: int = 0  # requests read SLOW_EVENT_S or more after their sender's stamp
+    slow_replies: int = 0  # replies sent SLOW_EVENT_S or more after their request was read
+    lag_spikes: int = 0  # physics wake-ups LAG_EVENT_S or more late
 
 
 # --------------------------------------------------------------------------------------------------
@@ -158,8 +154,10 @@ class HardwareSim:
     """The simulated arm plus its emulated modules on ``bus``.
 
     ``bus`` is any python-can bus (a :class:`~redarm_ros.can.bus.ReconnectingBus` in the process, a
-    ``virtual`` bus in tests); ``plant`` the pybullet plant; ``module_ids`` one id per joint.
-    ``run()`` blocks in the physics loop until :meth:`request_stop`; the bus is served by a thread.
+    ``virtual`` bus in tests); ``plant`` the pybullet plant, stepped by ``run()`` in the calling
+    thread, or a :class:`~redarm_ros.sim.physics_process.PhysicsProcess`, which steps itself;
+    ``module_ids`` one id per joint. ``run()`` blocks until :meth:`request_stop`; the bus is served
+    by a thread.
     ``freeze_gc``: once started, freeze the garbage collector's view of every object made so far
     (:func:`redarm_ros.can.realtime.freeze_gc`; undone when ``run()`` returns), so that no full
     collection of the start-up objects holds up a reply; the process does this, a test need not.
@@ -167,7 +165,7 @@ class HardwareSim:
 
     def __init__(
         self,
-        plant: PybulletPlant,
+        plant: PybulletPlant | PhysicsProcess,
         bus: can.BusABC,
         *,
         module_ids: Sequence[int] | None = None,
@@ -189,7 +187,9 @@ class HardwareSim:
         if len(self.module_ids) != self.n or len(set(self.module_ids)) != self.n:
             raise ValueError(f"need {self.n} distinct module ids, got {self.module_ids}")
         self.rate_hz = float(rate_hz)
-        self.moving_batch = max(1, int(MOVING_WAKE_S * self.rate_hz + 1e-9))  # steps per wake while moving
+        # paces the plant in run() unless it steps itself (a PhysicsProcess)
+        self.stepper = RealTimeStepper(plant, self.rate_hz, on_lag=self._on_lag)
+        self.moving_batch = self.stepper.moving_batch  # steps per wake-up while moving
         self.faults = faults or Faults()
         self.faults.validate()
         self.status_file = Path(status_file) if status_file else None
@@ -203,11 +203,10 @@ class HardwareSim:
         self.freeze_gc = freeze_gc
         self._gc_start = 0.0
         self.counters = Counters()
-        self.realtime = False  # set by main() when SCHED_FIFO was granted (the spin guard applies)
         self.snapshots: list[str] = []
         self._rng = random.Random(self.faults.seed)
         self._stop = threading.Event()
-        self._last_setpoint: np.ndarray | None = None  # physics thread: see _resting
+        self._wake = threading.Event()  # work for run()'s thread (stop, a call)
         self._snapshot_requests: list[str | None] = []
         # work for the physics thread from other threads (the control channel's status reads)
         self._physics_calls: collections.deque[tuple[Callable[[], Any], Future[Any]]] = collections.deque()
@@ -223,6 +222,13 @@ class HardwareSim:
         self._known_empty = self._last_empty  # the start of the receive that found nothing to read
         self._control_sig: tuple[int, int] | None = None
         self._start = time.monotonic()
+        self.physics_lost = False  # the physics process ended while serving
+        self._slow_log_second = 0
+        self._slow_logs = 0
+        self._slow_stamp = 0.0  # sender stamp of the last slow read logged
+        # the bus thread's scheduling (opened by that thread) and its reading at the last empty receive
+        self._sched = realtime.ThreadSchedstat(None)
+        self._sched_empty = (0.0, 0.0)
         self.emulator = (emulator_factory or _default_emulator)(plant, self.module_ids)
         self._bus_thread = threading.Thread(target=self._bus_loop, name="sim-bus", daemon=True)
         self._status_cond = threading.Condition()
@@ -233,6 +239,7 @@ class HardwareSim:
     def request_stop(self) -> None:
         """Ask :meth:`run` to return (safe from signal handlers and other threads)."""
         self._stop.set()
+        self._wake.set()
 
     def request_snapshot(self, name: str | None = None) -> None:
         """Ask the physics thread to write a snapshot (``name``.png, or a numbered one)."""
@@ -244,6 +251,7 @@ class HardwareSim:
         thread); the future holds its result. Cancelled if the simulator stops first."""
         fut: Future[Any] = Future()
         self._physics_calls.append((fn, fut))
+        self._wake.set()  # (a run() that does not step wakes only when there is something to do)
         if self._stop.is_set():
             self._run_physics_calls(cancel=True)
         return fut
@@ -280,6 +288,28 @@ class HardwareSim:
                 self.faults.silenced |= ts
             _LOG.info("silenced modules now %s", sorted(self.faults.silenced))
 
+    @property
+    def realtime(self) -> bool:
+        """This thread steps the plant under SCHED_FIFO (set by main(); the spin guard applies)."""
+        return self.stepper.realtime
+
+    @realtime.setter
+    def realtime(self, value: bool) -> None:
+        self.stepper.realtime = value
+
+    def _on_lag(self, ms: float, now: float) -> None:
+        self._note_slow("physics wake-up late", ms, now)
+
+    def _note_slow(self, what: str, ms: float, at_mono: float) -> None:
+        """Log a slow event (wall time of ``at_mono``), at most :data:`SLOW_LOGS_PER_S` a second."""
+        wall = time.time() - (time.monotonic() - at_mono)
+        second = int(wall)
+        if second != self._slow_log_second:
+            self._slow_log_second, self._slow_logs = second, 0
+        self._slow_logs += 1
+        if self._slow_logs <= SLOW_LOGS_PER_S:
+            _LOG.warning("slow: %s %.1f ms at wall time %.4f", what, ms, wall)
+
     # -- bus side -------------------------------------------------------------------------------------
     def _send(self, msg: can.Message, t_rx: float) -> None:
         """Queue a reply; :meth:`_flush_out` sends the queue once no request waits to be read (a cycle's
@@ -289,6 +319,9 @@ class HardwareSim:
             self._flush_out()
 
     def _flush_out(self) -> None:
+        flush_commands = getattr(self.plant, "flush", None)  # a PhysicsProcess: this burst's commands
+        if flush_commands is not None:
+            flush_commands()
         out = self._outbox
         if not out:
             return
@@ -308,11 +341,16 @@ class HardwareSim:
             return
         now = time.monotonic()
         c.replies_tx += len(out)
+        slowest = 0.0
         for _, t_rx in out:
             lat = (now - t_rx) * 1e3
             c.reply_latency_sum_ms += lat
+            slowest = max(slowest, lat)
             if lat > c.reply_latency_max_ms:
                 c.reply_latency_max_ms = lat
+        if slowest >= SLOW_EVENT_S * 1e3:
+            c.slow_replies += 1
+            self._note_slow("request read to reply sent", slowest, now)
         out.clear()
 
     def _flush_pending(self, now: float) -> None:
@@ -339,10 +377,20 @@ class HardwareSim:
             c.silenced_rx += 1
             return
         c.requests += 1
+        sent = wire_time(msg)
+        if t_rx - sent >= SLOW_EVENT_S and msg.timestamp != self._slow_stamp:  # once per burst
+            self._slow_stamp = msg.timestamp
+            c.slow_reads += 1
+            # Where this thread spent the time since it last found nothing to read: running, or
+            # waiting for a CPU; the rest it slept (in the receive, or for the interpreter lock).
+            now_ran, now_queued = self._sched.read()
+            ran, queued = now_ran - self._sched_empty[0], now_queued - self._sched_empty[1]
+            self._note_slow(f"request sent to read (bus thread since: ran {ran:.1f} ms, run queue "
+                            f"{queued:.1f} ms)", (t_rx - sent) * 1e3, sent)
         # When the frame was on the bus, by its stamp; but never earlier than the last moment this
         # thread saw the socket empty (less a transit allowance): a frame cannot have waited longer
         # than that, so a wall-clock step cannot make it look old.
-        t_wire = max(wire_time(msg), self._last_empty - WIRE_TRANSIT_ALLOWANCE_S)
+        t_wire = max(sent, self._last_empty - WIRE_TRANSIT_ALLOWANCE_S)
         if self._last_wire is not None and t_wire - self._last_wire > c.max_wire_gap_ms * 1e-3:
             c.max_wire_gap_ms = (t_wire - self._last_wire) * 1e3
         self._last_wire = t_wire
@@ -388,6 +436,15 @@ class HardwareSim:
             self._emit(frames, now, drop, delay)
 
     def _bus_loop(self) -> None:
+        realtime.name_thread("sim-bus")
+        self._sched = realtime.ThreadSchedstat()
+        self._sched_empty = self._sched.read()
+        try:
+            self._serve_bus()
+        finally:
+            self._sched.close()
+
+    def _serve_bus(self) -> None:
         backoff = 0.05
         backlog = False
         while not self._stop.is_set():
@@ -415,6 +472,7 @@ class HardwareSim:
             else:
                 self._last_empty = time.monotonic()
                 self._known_empty = t_check
+                self._sched_empty = self._sched.read()
 
     def _on_bus_lost(self, exc: BaseException, delay: float) -> None:
         self.counters.bus_lost += 1
@@ -438,6 +496,7 @@ class HardwareSim:
         p = self.plant
         pos, quat = p.tool_pose()
         faults = self.fault_settings()
+        self._sync_pacing()
         counters = asdict(self.counters)
         n_rep = max(1, counters["replies_tx"])
         counters["reply_latency_mean_ms"] = counters.pop("reply_latency_sum_ms") / n_rep
@@ -463,6 +522,13 @@ class HardwareSim:
             "snapshots": list(self.snapshots),
         }
 
+    def _sync_pacing(self) -> None:
+        """Copy how well the physics keeps real time into the counters."""
+        steps_itself = getattr(self.plant, "steps_itself", False)
+        pacing = self.plant.pacing() if steps_itself else self.stepper.counters  # type: ignore[union-attr]
+        for key, value in asdict(pacing).items():
+            setattr(self.counters, key, value)
+
     def write_status(self) -> None:
         """Write :meth:`status` to the status file atomically (temp file + rename), now."""
         if self.status_file is not None:
@@ -485,6 +551,7 @@ class HardwareSim:
             self._status_cond.notify()
 
     def _status_writer(self) -> None:
+        realtime.name_thread("sim-status")
         while True:
             with self._status_cond:
                 while self._status_mailbox is None and not self._stop.is_set():
@@ -566,20 +633,13 @@ class HardwareSim:
         if pause > c.gc_max_pause_ms:
             c.gc_max_pause_ms = pause
 
-    def _resting(self) -> bool:
-        """Nothing moves: no setpoint moved since the last call and every joint is (nearly) still. (A
-        driver holding the arm keeps the setpoint generators active with the same target each cycle.)"""
-        sp = self.plant.q_setpoint
-        held = self._last_setpoint is not None and np.array_equal(sp, self._last_setpoint)
-        self._last_setpoint = sp
-        return held and float(np.max(np.abs(self.plant.dq))) < REST_SPEED_RAD_S
-
     def run(self, on_ready: Callable[[], None] | None = None) -> None:
-        """Serve the bus and step physics in real time until :meth:`request_stop`."""
-        period = 1.0 / self.rate_hz
+        """Serve the bus and step physics in real time (or watch the physics process step it) until
+        :meth:`request_stop`."""
         self._bus_thread.start()
         self._status_thread.start()
         c = self.counters
+        steps_itself = getattr(self.plant, "steps_itself", False)
         if self.snapshot_dir is not None:
             self.snapshot("start")
         self.write_status()
@@ -588,31 +648,21 @@ class HardwareSim:
         gc.callbacks.append(self._on_gc)  # the pauses while serving, not the start-up collection
         if on_ready is not None:
             on_ready()
+        stepper = self.stepper
+        stepper.start()
         t0 = time.monotonic()
-        k = 0
-        last_sleep = t0
         next_status = t0
         next_control = t0
         next_report, reported = t0 + OVERRUN_REPORT_S, 0
-        batch = 1  # steps per wake-up: self.moving_batch, or REST_BATCH at rest (planned, not late)
         try:
             while not self._stop.is_set():
                 now = time.monotonic()
-                due = int((now - t0) / period) - k
-                if due > 0:
-                    lag = (now - (t0 + (k + batch) * period)) * 1e3
-                    if lag > c.max_lag_ms:
-                        c.max_lag_ms = lag
-                    if due > MAX_BURST:
-                        c.resyncs += 1
-                        c.overruns += 1
-                        t0 += (due - 1) * period  # forget the backlog: simulated time lags wall time
-                        due = 1
-                    elif due > batch:
-                        c.overruns += 1
-                    self.plant.step(due)
-                    k += due
-                    batch = REST_BATCH if self._resting() else self.moving_batch
+                if not steps_itself:
+                    stepper.advance(now)
+                elif not self.plant.alive():  # type: ignore[union-attr]
+                    _LOG.error("the physics process ended unexpectedly: stopping")
+                    self.physics_lost = True
+                    break
                 if self._physics_calls:
                     self._run_physics_calls()
                 if self.die_after_s is not None and now - self._start >= self.die_after_s:
@@ -625,30 +675,28 @@ class HardwareSim:
                         reqs, self._snapshot_requests = self._snapshot_requests, []
                     for name in reqs:
                         self.snapshot(name)
-                    if reqs:  # rendering took a while: do not count the catch-up as overruns
-                        t0 = time.monotonic() - k * period
-                        last_sleep = time.monotonic()  # nor as a spinning real-time loop
+                    if reqs:  # rendering took a while: neither overruns nor a spinning real-time loop
+                        stepper.rebase()
                 if now >= next_status:
                     next_status = now + self.status_period
                     self._post_status()
                 if now >= next_report:
                     next_report = now + OVERRUN_REPORT_S
+                    self._sync_pacing()
                     if c.overruns > reported:
                         _LOG.warning(
                             "%d late physics steps in the last %.0f s (max lag so far %.2f ms, %d resyncs)",
                             c.overruns - reported, OVERRUN_REPORT_S, c.max_lag_ms, c.resyncs,
                         )  # fmt: skip
                         reported = c.overruns
-                delay = t0 + (k + batch) * period - time.monotonic()
-                if delay > 0:
-                    time.sleep(delay)
-                    last_sleep = time.monotonic()
-                elif self.realtime and time.monotonic() - last_sleep > RT_SPIN_LIMIT_S:
-                    realtime.drop_priority()
-                    self.realtime = False
-                    _LOG.warning("physics cannot keep up with --rate %g Hz: dropped real-time priority "
-                                 "(a real-time loop that never sleeps would take a core from everyone)",
-                                 self.rate_hz)
+                if steps_itself:  # nothing to step: sleep until the next chore, or work arrives
+                    due = min(next_control, next_status, next_report)
+                    if self.die_after_s is not None:
+                        due = min(due, self._start + self.die_after_s)
+                    self._wake.wait(max(0.0, due - time.monotonic()))
+                    self._wake.clear()
+                else:
+                    stepper.sleep()
         finally:
             self._stop.set()
             if self.freeze_gc:
@@ -677,7 +725,7 @@ def _target_of(frame: Any) -> int | None:
     return None
 
 
-def _default_emulator(plant: PybulletPlant, module_ids: Sequence[int]) -> Any:
+def _default_emulator(plant: PybulletPlant | PhysicsProcess, module_ids: Sequence[int]) -> Any:
     from redarm_ros.sim.emulation import PlantModules
 
     return PlantModules(plant, module_ids)
@@ -779,6 +827,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="SCHED_FIFO priority of the simulator's threads (1..98, 0 = normal scheduling; "
         f"default {DEFAULT_REALTIME_PRIORITY}); falls back to a raised nice level when not permitted",
     )
+    ap.add_argument(
+        "--physics",
+        choices=("process", "thread"),
+        default="process",
+        help="step the physics in a process of its own (default: no reply waits for it) or in a thread "
+        "of this process (replies can wait for it to release the interpreter lock)",
+    )
     ap.add_argument("--log-level", default="INFO", help="logging level (DEBUG, INFO, WARNING)")
     return ap
 
@@ -840,11 +895,19 @@ def main(argv: Sequence[str] | None = None) -> int:
                 _LOG.error("--start park: arm %s has no park posture (park: in its YAML)", arm.name)
                 return EXIT_BAD_ARGS
             initial_q = arm.park.tolist()
-        plant = PybulletPlant.create(arm, gui=args.gui, time_step=1.0 / args.rate, initial_q=initial_q)
+        scene = None
         if args.scene:
             from redarm_ros.geometry.obstacles import load_scene
 
-            plant.add_scene(load_scene(args.scene).to_dict())
+            scene = load_scene(args.scene).to_dict()
+        make_plant = functools.partial(build_plant, arm, time_step=1.0 / args.rate, initial_q=initial_q,
+                                       gui=args.gui, scene=scene)
+        plant: PybulletPlant | PhysicsProcess
+        if args.physics == "thread":
+            plant = make_plant()
+        else:
+            plant = PhysicsProcess(arm, make_plant, rate_hz=args.rate,
+                                   realtime_priority=args.realtime_priority)
     except RedarmError as exc:
         _LOG.error("%s", exc)
         return EXIT_BAD_ARGS
@@ -927,6 +990,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         except Exception:  # noqa: BLE001 - shutting down a dead transport must not mask the exit
             _LOG.debug("bus shutdown failed", exc_info=True)
         plant.close()
+    if sim.physics_lost:
+        return EXIT_PHYSICS_LOST
     c = sim.counters
     _LOG.info(
         "stopped: %d frames, %d replies, %d malformed, %d overruns, max lag %.2f ms, max reply %.2f ms",

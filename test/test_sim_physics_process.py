@@ -1,0 +1,172 @@
+"""The simulator's physics in a process of its own: replies never wait for it, commands reach it, the
+state comes back, and it ends with the simulator.
+
+In-process tests run a HardwareSim on python-can's virtual bus over a PhysicsProcess; the last test
+runs ``redarm-sim`` itself. Waits are generous deadlines, never speed assertions.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+import signal
+import threading
+import time
+import uuid
+from collections.abc import Iterator
+from pathlib import Path
+
+import can
+import numpy as np
+import pytest
+from support.stalling_plant import stalling_plant
+
+from redarm_ros.can import protocol as pc
+from redarm_ros.can.protocol import ActState, Param
+from redarm_ros.kinematics import load_arm
+from redarm_ros.procs import python_module_cmd
+from redarm_ros.sim.hardware import EXIT_PHYSICS_LOST, READY_LINE, HardwareSim
+from redarm_ros.sim.physics_process import PhysicsProcess, build_plant
+
+STALL_S = 1.0  # every physics step holds the interpreter lock this long
+
+
+@pytest.fixture
+def arm():
+    return load_arm("pa10")
+
+
+def _serve(physics: PhysicsProcess) -> Iterator[tuple[HardwareSim, can.BusABC]]:
+    channel = f"redarm-physics-test-{uuid.uuid4().hex}"
+    sim_bus = can.Bus(interface="virtual", channel=channel)
+    host = can.Bus(interface="virtual", channel=channel)
+    sim = HardwareSim(physics, sim_bus)
+    runner = threading.Thread(target=sim.run, daemon=True)
+    runner.start()
+    try:
+        yield sim, host
+    finally:
+        sim.request_stop()
+        runner.join(timeout=10)
+        host.shutdown()
+        sim_bus.shutdown()
+        physics.close()
+    assert not runner.is_alive()
+    assert not physics.alive()
+
+
+def _ask(host: can.BusABC, msg: can.Message, timeout: float = 2.0) -> tuple[object, float]:
+    mid = msg.arbitration_id & 0x1F
+    t0 = time.monotonic()
+    host.send(msg)
+    while (left := t0 + timeout - time.monotonic()) > 0:
+        r = host.recv(left)
+        if r is not None and r.arbitration_id == pc.IdBase.CMD_ACK + mid:
+            return pc.decode(r), time.monotonic() - t0
+    raise AssertionError(f"no reply of module {mid} within {timeout} s")
+
+
+def test_replies_do_not_wait_for_a_stalled_physics(arm):
+    # Every physics step holds the interpreter lock for a second (a preempted physics thread): in the
+    # simulator's own process that would hold up every reply for as long; in its own process, none.
+    physics = PhysicsProcess(arm, functools.partial(stalling_plant, arm, STALL_S))
+    for sim, host in _serve(physics):
+        time.sleep(STALL_S)  # the physics is inside a stall now
+        waits = []
+        for k in range(30):
+            reply, waited = _ask(host, pc.get_param(k % sim.n + 1, Param.ACT_FPOS))
+            assert reply.value == pytest.approx(0.0, abs=1e-4)
+            waits.append(waited)
+            time.sleep(0.05)
+        # 1.5 s of requests: one that waited for the lock would have waited up to STALL_S
+        assert max(waits) < STALL_S / 2, waits
+        assert sim.counters.replies_tx >= 30
+
+
+def test_commands_reach_the_physics_and_its_state_comes_back(arm, tmp_path: Path):
+    physics = PhysicsProcess(arm, functools.partial(build_plant, arm, time_step=1e-3))
+    for sim, host in _serve(physics):
+        _home(host, 2)
+        _ask(host, pc.fstep(2, 0.3, 1000))
+        # in motion from the moment it took the command, before the physics applied it
+        assert ActState.MOTION in ActState(_ask(host, pc.get_param(2, Param.ACT_STATE))[0].value)
+        deadline = time.monotonic() + 10
+        while abs(physics.q[1] - 0.3) > 1e-4 or physics.joint(1).in_motion():
+            assert time.monotonic() < deadline, physics.q
+            time.sleep(0.05)
+        assert _ask(host, pc.get_param(2, Param.ACT_FPOS))[0].value == pytest.approx(0.3, abs=1e-4)
+        st = sim.status()
+        assert np.allclose(st["tool"]["position"], arm.fk(np.asarray(st["q"]))[:3, 3], atol=1e-5)
+        assert st["steps"] > 0 and st["sim_time_s"] > 0
+        png = tmp_path / "now.png"
+        physics.snapshot_png(png, 64, 48)
+        assert png.stat().st_size > 0
+
+
+def _home(host: can.BusABC, mid: int) -> None:
+    _ask(host, pc.home(mid))  # moves need HOME_OK
+    deadline = time.monotonic() + 10
+    while ActState.HOME_OK not in ActState(_ask(host, pc.get_param(mid, Param.ACT_STATE))[0].value):
+        assert time.monotonic() < deadline
+        time.sleep(0.05)
+
+
+def test_replies_keep_coming_while_the_physics_process_is_stopped(arm):
+    # A stopped physics takes no commands: thousands of them (more than a pipe holds) must not hold up
+    # a reply; once it runs again it takes the newest.
+    physics = PhysicsProcess(arm, functools.partial(build_plant, arm, time_step=1e-3))
+    for _sim, host in _serve(physics):
+        _home(host, 2)
+        os.kill(physics.pid, signal.SIGSTOP)
+        try:
+            for k in range(3000):
+                reply, _ = _ask(host, pc.fstep(2, 0.2 * (k + 1) / 3000, 4))
+                assert isinstance(reply, pc.SetMoveExtAck)
+        finally:
+            os.kill(physics.pid, signal.SIGCONT)
+        deadline = time.monotonic() + 10
+        while abs(physics.q[1] - 0.2) > 1e-3:
+            assert time.monotonic() < deadline, physics.q
+            time.sleep(0.05)
+
+
+def _start_sim(procs, server, *extra: str):
+    cmd = python_module_cmd("redarm_ros.sim.hardware", "--arm", "pa10", "--realtime-priority", "0",
+                            *server.cli_args(), *extra)
+    return procs.start("sim", cmd, ready=READY_LINE, ready_timeout=30.0)
+
+
+def _physics_pid(sim) -> int:
+    """The simulator's physics process: its child whose main thread is named so."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        try:
+            ppid = int((entry / "stat").read_text().rsplit(")", 1)[-1].split()[1])
+            comm = (entry / "comm").read_text().strip()
+        except (OSError, ValueError, IndexError):
+            continue
+        if ppid == sim.pid and comm == "sim-physics":
+            found.append(int(entry.name))
+    assert len(found) == 1, found
+    return found[0]
+
+
+@pytest.mark.hil
+def test_the_physics_process_ends_with_the_simulator(procs, canbus_server):
+    sim = _start_sim(procs, canbus_server)
+    physics = _physics_pid(sim)
+    assert os.getsid(physics) == physics  # its own session (and CPU share)
+    assert procs.stop(sim) == 0  # SIGINT: the simulator stops its physics, then exits
+    assert not Path(f"/proc/{physics}").exists()
+
+
+@pytest.mark.hil
+def test_the_simulator_exits_when_its_physics_process_dies(procs, canbus_server):
+    sim = _start_sim(procs, canbus_server)
+    sim.expect_exit()
+    os.kill(_physics_pid(sim), signal.SIGKILL)
+    deadline = time.monotonic() + 10
+    while sim.returncode is None:
+        assert time.monotonic() < deadline
+        time.sleep(0.05)
+    assert sim.returncode == EXIT_PHYSICS_LOST
