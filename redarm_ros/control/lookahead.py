@@ -71,6 +71,22 @@ def box_qp(H: np.ndarray, g: np.ndarray, lo: np.ndarray, hi: np.ndarray, x0: np.
     return x
 
 
+def _velocity_weights(t: np.ndarray) -> np.ndarray:
+    """(k, k): the velocities at the times ``t`` (k >= 3, ascending) of values there, from the parabola
+    through each point and its neighbours (the first and last: the nearest three)."""
+    k = len(t)
+    D = np.zeros((k, k))
+    for i in range(k):
+        j = min(max(i - 1, 0), k - 3)
+        a, b, c = t[j], t[j + 1], t[j + 2]
+        x = t[i]
+        # derivative at x of the Lagrange basis polynomials through a, b, c
+        D[i, j] = (2 * x - b - c) / ((a - b) * (a - c))
+        D[i, j + 1] = (2 * x - a - c) / ((b - a) * (b - c))
+        D[i, j + 2] = (2 * x - a - b) / ((c - a) * (c - b))
+    return D
+
+
 @dataclass(frozen=True)
 class JointPlan:
     """A planned motion: the accelerations ``acc`` (blocks, n) rad/s^2, the joints ``q`` (n,) and their
@@ -85,13 +101,17 @@ class JointPlan:
 
 def growing_blocks(dt: float, first: float, growth: float, horizon: float) -> list[int]:
     """Block lengths (steps of ``dt`` s) covering ``horizon`` s: the first about ``first`` s, each next
-    ``growth`` times longer (the prediction they are planned on grows less certain with time)."""
+    ``growth`` times longer (the prediction they are planned on grows less certain with time); a rest
+    shorter than half a block joins the last block."""
+    total = max(1, round(horizon / dt))
     blocks: list[int] = []
-    length, total = first, 0
-    while total * dt < horizon - 0.5 * dt:
-        n = max(1, min(round(length / dt), round(horizon / dt) - total))
+    length = first / dt
+    while sum(blocks) < total:
+        n = max(1, round(length))
+        rest = total - sum(blocks) - n
+        if rest < 0.5 * n * growth:
+            n += rest
         blocks.append(n)
-        total += n
         length *= growth
     return blocks
 
@@ -102,8 +122,8 @@ class JointLookahead:
 
     def __init__(self, dt: float, block_steps: list[int], max_acc: np.ndarray,
                  share: float = ACC_SHARE) -> None:
-        if not dt > 0.0 or len(block_steps) < 2 or min(block_steps) < 1:
-            raise ValueError(f"a plan needs dt > 0 and 2 blocks of at least 1 step, got {dt}, {block_steps}")
+        if not dt > 0.0 or len(block_steps) < 3 or min(block_steps) < 1:
+            raise ValueError(f"a plan needs dt > 0 and 3 blocks of at least 1 step, got {dt}, {block_steps}")
         self.dt = float(dt)
         self.block_steps = tuple(int(m) for m in block_steps)
         self.bound_acc = share * np.asarray(max_acc, float)
@@ -115,12 +135,16 @@ class JointLookahead:
         # adds dt^2 a_i (L_i (L_i + 1) / 2 within it + L_i (n_k - n_i) after it).
         C = dt * dt * (L * (L + 1.0) / 2.0 + L * (self.ends[:, None] - self.ends[None, :]))
         self.C = np.tril(C)
-        self.vel_gain = L * dt  # velocity added per unit acceleration of each block
-        last = L[-1] * dt
-        self.vel_weight = last * last  # a velocity error over the last block weighs as its position error
-        self.H = (self.C.T @ self.C + self.vel_weight * np.outer(self.vel_gain, self.vel_gain)
+        # Velocity at the end of block k: every block up to k adds L_i dt a_i.
+        self.V = np.tril(np.broadcast_to(L * dt, (N, N)))
+        # A velocity error at a block's end weighs as the position error it makes over that block (matched
+        # positions alone leave the accelerations ringing from block to block).
+        self.vel_weight = (L * dt) ** 2
+        self.H = (self.C.T @ self.C + self.V.T @ (self.vel_weight[:, None] * self.V)
                   + ACC_REG * np.eye(N))
         self.H_inv = np.linalg.inv(self.H)
+        self._velocity = _velocity_weights(self.times())
+        self._warm: np.ndarray | None = None  # the last plan's accelerations: where the next one starts
 
     @property
     def horizon(self) -> float:
@@ -140,18 +164,21 @@ class JointLookahead:
 
     def plan(self, q0: np.ndarray, v0: np.ndarray, targets: np.ndarray) -> JointPlan:
         """The plan from joints ``q0`` (n,) moving at ``v0`` (n,) towards the path's joints ``targets``
-        (blocks, n) at :meth:`times`; the path's velocity at the horizon is taken from its last two
-        targets."""
+        (blocks, n) at :meth:`times`, and their velocities (from the parabola through each target and its
+        neighbours)."""
         dt = self.dt
         free = q0[None, :] + (self.ends * dt)[:, None] * v0[None, :]  # where the joints coast to
-        v_end = (targets[-1] - targets[-2]) / (self.block_steps[-1] * dt)
+        path_vel = self._velocity @ targets
         # gradient of the cost at a = 0, one column per joint
-        G = self.C.T @ (free - targets) + self.vel_weight * np.outer(self.vel_gain, v0 - v_end)
+        G = self.C.T @ (free - targets) + self.V.T @ (self.vel_weight[:, None] * (v0[None, :] - path_vel))
         A = -self.H_inv @ G
         over = np.any(np.abs(A) > self.bound_acc[None, :], axis=0)
         n = len(self.block_steps)
+        warm = self._warm if self._warm is not None and self._warm.shape == A.shape else A
         for j in np.flatnonzero(over):
             b = np.full(n, self.bound_acc[j])
-            A[:, j] = box_qp(self.H, G[:, j], -b, b, A[:, j])
+            # (from the last plan's active bounds: a step later they are mostly the same)
+            A[:, j] = box_qp(self.H, G[:, j], -b, b, warm[:, j])
+        self._warm = A
         qd = v0 + dt * A[0]
         return JointPlan(A, q0 + dt * qd, qd, bool(np.any(over)))

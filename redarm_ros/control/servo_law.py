@@ -31,7 +31,7 @@ from redarm_ros.kinematics.quaternion import (
 #: s: the plan ahead's first acceleration block is about this long, and each next one PLAN_GROWTH times
 #: longer
 PLAN_BLOCK = 0.04
-PLAN_GROWTH = 1.25
+PLAN_GROWTH = 1.5
 #: the plan ahead starts where the path's joints need more than this share of an acceleration limit
 #: within PLAN_TRIGGER_AHEAD s (the nearer prediction: the farther one errs more)
 PLAN_TRIGGER = 1.0
@@ -192,8 +192,8 @@ class ServoLaw:
         la = self._lookahead
         if la is None or la.dt != dt or abs(la.horizon - horizon) > 0.5 * dt:
             blocks = growing_blocks(dt, PLAN_BLOCK, PLAN_GROWTH, horizon)
-            if len(blocks) < 2:
-                blocks = [1, 1]
+            if len(blocks) < 3:  # (a horizon of a few steps)
+                blocks = [1, 1, 1]
             la = self._lookahead = JointLookahead(dt, blocks, self.bounds.max_acc)
         return la
 
