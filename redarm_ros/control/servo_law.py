@@ -33,9 +33,10 @@ from redarm_ros.kinematics.quaternion import (
 PLAN_BLOCK = 0.04
 PLAN_GROWTH = 1.5
 #: the plan ahead starts where the path's joints need more than this share of an acceleration limit
-#: within PLAN_TRIGGER_AHEAD s (the nearer prediction: the farther one errs more)
-PLAN_TRIGGER = 1.0
-PLAN_TRIGGER_AHEAD = 0.4
+#: within PLAN_TRIGGER_AHEAD s (the nearer prediction: the farther one errs more; above 1: a jittered
+#: stream's estimate errs by some 20 %)
+PLAN_TRIGGER = 1.15
+PLAN_TRIGGER_AHEAD = 0.5
 #: s: while it is not needed, how often the plan ahead looks whether the path needs it
 PLAN_CHECK = 0.05
 #: Hz: slower streams are not planned ahead (too few samples to tell how the path turns)

@@ -242,12 +242,16 @@ class StreamEstimator:
     def path_poses(self, times: np.ndarray, now: float) -> np.ndarray | None:
         """The goal's poses (k, 4, 4) at ``times`` (k,) s, further ahead than :meth:`predict` trusts a
         parabola: the hand goes on along a path of constant curvature (a circle, or a line) in the plane of
-        its velocity and acceleration, its speed changing at the present tangential acceleration (never
-        below 0), from :meth:`_fitted_turn`; the orientation extrapolated as by :meth:`predict`. With the
-        lead, not clamped. None before the first sample and once the stream has ended (``now`` s)."""
+        its velocity and acceleration, its speed changing at the present tangential acceleration for at
+        most ``window`` s (never below 0), from :meth:`_fitted_turn`; the orientation extrapolated as by
+        :meth:`predict`. With the lead. None before the first sample, once the stream has ended (``now``
+        s), and while no sample has come for longer than :meth:`predict` extrapolates."""
         if not self._samples or self.ended(now):
             return None
         ref = self._samples[-1]
+        T = self.period()
+        if not math.isfinite(T) or now - ref.t > self.params.extrapolate_periods * T:
+            return None  # (no newer sample for longer than predict() extrapolates: the stream may stop)
         tau = np.asarray(times, float) + self.params.lead - ref.t
         p0, v, a = self._fitted_turn()
         out = np.zeros((len(tau), 4, 4))
@@ -261,8 +265,11 @@ class StreamEstimator:
             a_t = float(a @ e)
             a_n = a - a_t * e
             k = float(np.linalg.norm(a_n)) / (speed * speed)  # curvature (1/m)
-            tt = np.minimum(tau, speed / -a_t) if a_t < 0.0 else tau  # (until the speed would reach 0)
-            arc = speed * tt + 0.5 * a_t * tt * tt
+            # The speed changes at a_t for at most the fit's window (then it holds; never below 0): a
+            # speed-up or a slow-down seen in the window is not taken to last.
+            lasts = self.params.window if a_t >= 0.0 else min(self.params.window, speed / -a_t)
+            tt = np.minimum(tau, lasts)
+            arc = speed * tau + a_t * tt * (tau - 0.5 * tt)
             if k * float(np.max(np.abs(arc))) < 1e-9:
                 out[:, :3, 3] = p0 + arc[:, None] * e
             else:
