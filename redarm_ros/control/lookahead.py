@@ -9,14 +9,16 @@ starts its reversal early and cuts the corner by the least it can.
 joint acceleration constant within a block. Each joint ``j`` (independently: the joints' limits do not
 couple) gets the accelerations ``a`` (rad/s^2) that minimise
 
-    sum_k (q(t_k) - r_k)^2 + w_v (v(t_N) - v_N)^2 + eps |a|^2,    |a_i| <= share * max_acc_j
+    sum_k (q(t_k) - r_k)^2 + T_k^2 (v(t_k) - v_k)^2 + eps |a|^2,    |a_i| <= share * max_acc_j
 
 from its present position and velocity, ``r_k`` the path's joints at the end of block ``k`` (the IK of
-the stream's predicted poses), ``v_N`` the path's velocity at the horizon (so the plan does not end in a
-state it cannot leave), integrated step by step as the controller does (``v += a dt; q += v dt``). The
-problem is a small box-constrained QP per joint (``blocks`` variables, one Hessian for every joint),
-solved exactly by a primal active-set method. Only the first step is taken; the next step plans again
-from where the joints are, with the stream's newest estimate.
+the stream's predicted poses), ``v_k`` the path's velocity there (a parabola through the neighbouring
+targets; matched positions alone leave the accelerations ringing from block to block), ``T_k`` the
+block's duration, integrated step by step as the controller does (``v += a dt; q += v dt``). The blocks
+grow with time (the prediction grows less certain). The problem is a small box-constrained QP per joint
+(``blocks`` variables, one Hessian for every joint), solved exactly by a primal active-set method from
+the last plan's bounds. Only the first step is taken; the next step plans again from where the joints
+are, with the stream's newest estimate.
 
 Units: rad, rad/s, rad/s^2, s.
 """
