@@ -1,6 +1,8 @@
 """The servo law of goal streams and twists: the tracking law of :mod:`~redarm_ros.control.servo`
 around the IK step, with the joint-acceleration fit, the command-lag resync, sliding and the
-elbow-before-hand slowdown. :class:`ServoLaw` is the part of
+elbow-before-hand slowdown; where a stream's path asks a joint for more than its acceleration limit,
+the joints' motion planned ahead within the limits instead (:mod:`~redarm_ros.control.lookahead`).
+:class:`ServoLaw` is the part of
 :class:`~redarm_ros.control.reach_controller.ReachController` that moves the reference while tracking;
 its methods take the controller's :class:`~redarm_ros.control.state.CoreState` and parameters. Units:
 m, rad, s.
@@ -19,7 +21,7 @@ from redarm_ros.control.params import ControllerParams, ServoParams
 from redarm_ros.control.redundancy import Redundancy
 from redarm_ros.control.servo import ServoTarget, servo_step
 from redarm_ros.control.slide import obstacle_slide, workspace_slide
-from redarm_ros.control.state import ZERO3, CoreState, Mode
+from redarm_ros.control.state import ZERO3, CoreState, Mode, PlanAhead
 from redarm_ros.control.stream_swivel import LOOKAHEAD_SAMPLES
 from redarm_ros.control.types import GoalKind
 from redarm_ros.kinematics.quaternion import (
@@ -65,6 +67,7 @@ class ServoLaw:
             st.ref.vel = (st.att.v * e[0], st.att.v * e[1], st.att.v * e[2])
         st.mode = Mode.SERVO
         st.ref.sdot_dyn = st.ref.sdot
+        st.ahead = PlanAhead()
         st.message = ""
         st.stream_note = ""
 
