@@ -111,3 +111,27 @@ def test_the_fast_circle_over_the_shoulder_is_followed_after_the_first_lap_withi
     acc = np.diff(q, n=2, axis=0) / (track.DT * track.DT)
     assert float(np.max(np.abs(vel) / np.asarray(PA10.max_vel))) <= 1.0 + 1e-9
     assert float(np.max(np.abs(acc) / np.asarray(PA10.max_acc))) <= 1.0 + 1e-6
+
+
+def test_a_free_joint_makes_up_for_one_held_by_its_limit() -> None:
+    # two joints moving the tool along the same direction: joint 1 is held back by its limit on a fast
+    # sine; joint 2, free, moves the other way by the lag of joint 1 (the tool stays on the path)
+    dt, max_acc = 0.01, np.array([1.0, 50.0])
+    blocks = [4, 6, 9, 14, 20, 27]
+    la = JointLookahead(dt, blocks, max_acc)
+    t = la.times()
+    targets = np.stack([0.05 * np.sin(10.0 * t), np.zeros_like(t)], axis=1)
+    v0 = np.array([0.5, 0.0])
+    J = np.zeros((6, 2))
+    J[0] = (0.5, 0.5)
+
+    held = la.plan(np.zeros(2), v0, targets)
+    assert held.bound and held.acc[:, 1] == pytest.approx(0.0, abs=1e-9)  # without a Jacobian: no help
+    helped = JointLookahead(dt, blocks, max_acc).plan(np.zeros(2), v0, targets, lambda q: J)
+    assert np.all(np.abs(helped.acc) <= 0.98 * max_acc[None, :] + 1e-12)
+    assert helped.acc[:, 0] == pytest.approx(held.acc[:, 0])  # (the held joint's plan is its own)
+    ends = np.cumsum(blocks)
+    tool = 0.5 * (ends * dt * v0[0] + la.C @ helped.acc[:, 0]) + 0.5 * (la.C @ helped.acc[:, 1])
+    lag = 0.5 * (ends * dt * v0[0] + la.C @ held.acc[:, 0]) - 0.5 * targets[:, 0]
+    assert float(np.max(np.abs(tool - 0.5 * targets[:, 0]))) < 0.3 * float(np.max(np.abs(lag)))
+

@@ -17,20 +17,28 @@ targets; matched positions alone leave the accelerations ringing from block to b
 block's duration, integrated step by step as the controller does (``v += a dt; q += v dt``). The blocks
 grow with time (the prediction grows less certain). The problem is a small box-constrained QP per joint
 (``blocks`` variables, one Hessian for every joint), solved exactly by a primal active-set method from
-the last plan's bounds. Only the first step is taken; the next step plans again from where the joints
-are, with the stream's newest estimate.
+the last plan's bounds. The joints with acceleration to spare then make up for the tool error of those
+held back: their targets move by the damped least-squares answer to it (position, and orientation as
+0.3 m per rad), and they are planned again (on the fast circle over the PA10's shoulder: 6.6 instead of
+8.0 mm p95, 0.3 instead of 0.8 deg). Only the first step is taken; the next step plans again from where
+the joints are, with the stream's newest estimate.
 
 Units: rad, rad/s, rad/s^2, s.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
 #: share of each joint's acceleration limit a plan uses (the command's own limiter uses all of it)
 ACC_SHARE = 0.98
+#: weights of the tool error the free joints make up for: position (m) and orientation (rad, as 0.3 m)
+COMP_WEIGHTS = np.array([1.0, 1.0, 1.0, 0.3, 0.3, 0.3])
+#: m: the damping of that least-squares answer (no large joint motion for a nearly singular direction)
+COMP_DAMPING = 0.02
 #: weight of the acceleration regulariser (rad^2 per (rad/s^2)^2): keeps the QP strictly convex
 ACC_REG = 1e-10
 
@@ -164,10 +172,11 @@ class JointLookahead:
         vel = np.diff(targets, axis=0) / h
         return 2.0 * np.diff(vel, axis=0) / (h[1:] + h[:-1])
 
-    def plan(self, q0: np.ndarray, v0: np.ndarray, targets: np.ndarray) -> JointPlan:
+    def plan(self, q0: np.ndarray, v0: np.ndarray, targets: np.ndarray,
+             jacobian: Callable[[np.ndarray], np.ndarray] | None = None) -> JointPlan:
         """The plan from joints ``q0`` (n,) moving at ``v0`` (n,) towards the path's joints ``targets``
         (blocks, n) at :meth:`times`, and their velocities (from the parabola through each target and its
-        neighbours)."""
+        neighbours); ``jacobian(q)`` (6, n), if given, lets the free joints make up for the held ones."""
         dt = self.dt
         free = q0[None, :] + (self.ends * dt)[:, None] * v0[None, :]  # where the joints coast to
         path_vel = self._velocity @ targets
@@ -181,6 +190,29 @@ class JointLookahead:
             b = np.full(n, self.bound_acc[j])
             # (from the last plan's active bounds: a step later they are mostly the same)
             A[:, j] = box_qp(self.H, G[:, j], -b, b, warm[:, j])
+        free_j = ~over
+        if jacobian is not None and np.any(over) and np.any(free_j):
+            # The joints with acceleration to spare make up, where they can, for the tool error of those
+            # held back: their targets move by the damped least-squares answer to it, knot by knot.
+            # (a Jacobian every other knot: the arm moves little in between)
+            dev = free + self.C @ A - targets  # (the free joints' own deviation is ~0)
+            shifted = targets.copy()
+            for k in range(n):
+                if k % 2 == 0:
+                    J = jacobian(targets[k]) * COMP_WEIGHTS[:, None]
+                    Jf = J[:, free_j]
+                    solve = np.linalg.inv(Jf @ Jf.T + COMP_DAMPING ** 2 * np.eye(J.shape[0]))
+                shifted[k, free_j] -= Jf.T @ (solve @ (J[:, over] @ dev[k, over]))
+            path_vel = self._velocity @ shifted
+            G2 = self.C.T @ (free - shifted) + self.V.T @ (self.vel_weight[:, None]
+                                                             * (v0[None, :] - path_vel))
+            A2 = -self.H_inv @ G2
+            for j in np.flatnonzero(free_j):
+                a = A2[:, j]
+                if np.any(np.abs(a) > self.bound_acc[j]):
+                    b = np.full(n, self.bound_acc[j])
+                    a = box_qp(self.H, G2[:, j], -b, b, warm[:, j])
+                A[:, j] = a
         self._warm = A
         qd = v0 + dt * A[0]
         return JointPlan(A, q0 + dt * qd, qd, bool(np.any(over)))

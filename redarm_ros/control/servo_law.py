@@ -177,7 +177,7 @@ class ServoLaw:
         if st.time > ahead.until:
             ahead.offset, ahead.rate = kept  # (not planning after all: the offset stays the servo's)
             return False
-        plan = la.plan(ref.q, ref.qd, path)
+        plan = la.plan(ref.q, ref.qd, path, red.stepper.arm.jacobian)
         step = red.joint_step(st, p, plan.q)
         if step is None:
             return False
