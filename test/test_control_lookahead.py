@@ -98,7 +98,7 @@ def test_the_fast_circle_over_the_shoulder_is_followed_after_the_first_lap_withi
     sc, run = _laps(0.314, 100.0)
     # within a few times the least error any motion within the limits allows (about 4 mm), the same
     # joints every lap after the first (lap 1 starts 0.1 rad off the preferred swivel)
-    assert max(sc.p95[1:]) <= 12.0, sc.p95
+    assert max(sc.p95[1:]) <= 10.0, sc.p95
     assert max(sc.stall) == 0.0
     assert sc.joint_diff[2] <= 0.02, sc.joint_diff
     assert min(sc.min_q2) < 0.01  # it does pass over the shoulder
