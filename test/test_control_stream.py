@@ -11,7 +11,7 @@ import pytest
 from redarm_ros.control.params import StreamParams
 from redarm_ros.control.servo import ServoTarget, servo_step
 from redarm_ros.control.stream import StreamEstimator
-from redarm_ros.kinematics.quaternion import quat_angle, quat_from_rotvec
+from redarm_ros.kinematics.quaternion import quat_angle, quat_from_matrix, quat_from_rotvec
 
 Q0 = (1.0, 0.0, 0.0, 0.0)
 
@@ -53,6 +53,35 @@ def test_circle_prediction_is_within_a_fifth_of_a_millimetre() -> None:
         pred = est.predict(times[-1] + dt)
         assert pred is not None
         assert math.dist(pred.pos, circle(times[-1] + dt)) < 2e-4
+
+
+def test_the_path_ahead_of_a_fast_circle_follows_its_turn_and_stops_with_the_stream() -> None:
+    # 0.314 m/s on r 0.1 m at 100 Hz: half a second ahead the circle has turned 1.6 rad; the parabola of
+    # predict() is 90 mm off there, the turn of path_poses() a few mm
+    est = StreamEstimator()
+    times = [k * 0.01 for k in range(100)]
+    feed(est, lambda t: circle(t, 0.314), times, rot=lambda t: quat_from_rotvec((0.0, 0.0, 0.5 * t)))
+    now = times[-1]
+    ahead = np.array([0.1, 0.3, 0.5])
+    poses = est.path_poses(now + ahead, now)
+    assert poses is not None and poses.shape == (3, 4, 4)
+    for T, tau in zip(poses, ahead, strict=True):
+        parabola = est.predict(now + tau, now, clamp=False)
+        assert parabola is not None
+        truth = circle(now + tau, 0.314)
+        assert math.dist(T[:3, 3], truth) < 2e-3 + 4e-3 * tau, tau
+        assert math.dist(parabola.pos, truth) > 5.0 * math.dist(T[:3, 3], truth) or tau < 0.2
+        R_truth = quat_from_rotvec((0.0, 0.0, 0.5 * (now + tau)))
+        assert quat_angle(quat_from_matrix(T[:3, :3]), R_truth) < 1e-6
+    # a straight line goes on straight; a stream whose samples stop is no longer predicted (it may stop)
+    line_est = StreamEstimator()
+    feed(line_est, line, times[:20])
+    straight = line_est.path_poses(np.array([0.3, 0.6]), times[19])
+    assert straight is not None
+    assert straight[0, :3, 3] == pytest.approx(line(0.3), abs=1e-9)
+    assert straight[1, :3, 3] == pytest.approx(line(0.6), abs=1e-9)
+    assert line_est.path_poses(np.array([0.3]), times[19] + 0.03) is None
+    assert StreamEstimator().path_poses(np.array([0.1]), 0.0) is None
 
 
 def test_angular_velocity_from_orientations() -> None:

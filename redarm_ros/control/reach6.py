@@ -249,6 +249,18 @@ class NoRedundancy:
         """No swivel: 0."""
         return _no_swivel
 
+    def path_joints(self, st: CoreState, p: ControllerParams, dt: float, poses: np.ndarray,
+                    ends: np.ndarray, poses_ahead: PosesAhead) -> np.ndarray | None:
+        """Not planned ahead for the 6-DOF arm (None)."""
+        return None
+
+    def plan_offset(self, st: CoreState, p: ControllerParams) -> None:
+        """No swivel: nothing."""
+
+    def joint_step(self, st: CoreState, p: ControllerParams, q: np.ndarray) -> IKStep | None:
+        """Not used (no plan ahead)."""
+        return None
+
     def kept_swivel(self, st: CoreState, p: ControllerParams, step: IKStep) -> SwivelFn:
         """The swivel of ``step`` (0)."""
         return lambda c, T, s0: (step.s, step.s_des, False)

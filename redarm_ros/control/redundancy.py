@@ -24,7 +24,7 @@ from redarm_ros.control.elbow import ArmGeometry, ElbowCircle, elbow_circle
 from redarm_ros.control.goal_check import check_goal, stream_feasibility
 from redarm_ros.control.goal_hint import BaseMoveHints
 from redarm_ros.control.guard import CollisionGuard
-from redarm_ros.control.ik_step import IKStep, IKStepper, SwivelFn, pose_matrix
+from redarm_ros.control.ik_step import IKStep, IKStepper, SwivelFn, pose_matrix, pose_of
 from redarm_ros.control.ik_step6 import IKStepper6
 from redarm_ros.control.joint_limits import JointBounds, braking_speed, joint_share_acc
 from redarm_ros.control.paper_redundancy import MODE as PAPER_MODE
@@ -114,6 +114,22 @@ class Redundancy(Protocol):
 
     def onto_preferred_swivel(self, st: CoreState, p: ControllerParams) -> None:
         """After a resync while tracking: the reference's swivel back on the pose's preferred one."""
+        ...
+
+    def path_joints(self, st: CoreState, p: ControllerParams, dt: float, poses: np.ndarray,
+                    ends: np.ndarray, poses_ahead: PosesAhead) -> np.ndarray | None:
+        """While tracking: the joints (k, n) at the predicted ``poses`` (k, 4, 4), ``ends`` steps of ``dt`` s
+        from now (ascending), along the servo's swivel law from ``st.ahead``'s offset (moved on by one
+        step), continuous from the reference; None where they cannot be followed ahead (no pose law, out
+        of reach, a branch change)."""
+        ...
+
+    def plan_offset(self, st: CoreState, p: ControllerParams) -> None:
+        """Where the plan ahead starts: ``st.ahead``'s offset from the reference."""
+        ...
+
+    def joint_step(self, st: CoreState, p: ControllerParams, q: np.ndarray) -> IKStep | None:
+        """The reference step to joints ``q`` (their pose and swivel); None at a stretched pose."""
         ...
 
     def route_dead_end(self, st: CoreState, p: ControllerParams, T: np.ndarray) -> str:
@@ -437,19 +453,15 @@ class SwivelRedundancy:
         ref = st.ref
         if not self.pose_law(p) or ref.circle is None:
             return self.swivel_fn(st, p, dt, scene)
-        sp, sw = p.servo, p.swivel
+        sw = p.swivel
         pref_prev = self.preferred_swivel(st, p, ref.circle)
         offset = wrap_offset(ref.s, pref_prev)
         s_acc = self.swivel_acc_share(st, p)
-        close_acc = 0.0 if ref.acc_limited else min(sp.swivel_acc, s_acc)
+        close_acc = self._offset_close_acc(st, p, offset, s_acc, poses_ahead, hold=ref.acc_limited)
 
         def preferred(circle: ElbowCircle) -> float:
             return self.preferred_swivel(st, p, circle)
 
-        if abs(offset) > OFFSET_EPS and sp.lookahead > 0.0:
-            hit = time_to_axis(self.geom, poses_ahead(sp.lookahead), offset, preferred, sp.axis_margin)
-            if hit is not None:
-                close_acc = closing_acc(offset, 0.5 * hit, min(sp.swivel_acc, s_acc), s_acc)
         rate0 = ref.sdot_dyn
 
         def swivel(circle: ElbowCircle, T: np.ndarray, s0: float) -> tuple[float, float, bool]:
@@ -467,6 +479,86 @@ class SwivelRedundancy:
             return wrap_angle(s_pref + e0 + rate * dt), s_pref, f.clearance < p.elbow_priority_clearance
 
         return swivel
+
+    def _offset_close_acc(self, st: CoreState, p: ControllerParams, offset: float, s_acc: float,
+                          poses_ahead: PosesAhead, hold: bool = False) -> float:
+        """The acceleration (rad/s^2) at which the pose law's ``offset`` closes: ``servo.swivel_acc`` within
+        the joints' share ``s_acc`` (0 with ``hold``: the hand needs the joints' whole acceleration), harder
+        where the elbow at that offset would pass near the shoulder axis within ``servo.lookahead``."""
+        sp = p.servo
+        close_acc = 0.0 if hold else min(sp.swivel_acc, s_acc)
+        if abs(offset) > OFFSET_EPS and sp.lookahead > 0.0:
+            def preferred(circle: ElbowCircle) -> float:
+                return self.preferred_swivel(st, p, circle)
+
+            hit = time_to_axis(self.geom, poses_ahead(sp.lookahead), offset, preferred, sp.axis_margin)
+            if hit is not None:
+                close_acc = closing_acc(offset, 0.5 * hit, min(sp.swivel_acc, s_acc), s_acc)
+        return close_acc
+
+    def path_joints(self, st: CoreState, p: ControllerParams, dt: float, poses: np.ndarray,
+                    ends: np.ndarray, poses_ahead: PosesAhead) -> np.ndarray | None:
+        """The joints (k, 7) at the predicted ``poses``, ``ends`` steps of ``dt`` s from now (ascending), at
+        the pose law's swivel: the preferred swivel plus the offset of ``st.ahead``, which closes as the law
+        closes it without forces (``st.ahead`` moves on by one step); each the in-limit solution nearest
+        the one before, starting from the reference. None without the pose law, where a pose is out of
+        reach, or where the motion between two poses would change the branch."""
+        ref, ahead = st.ref, st.ahead
+        if not self.pose_law(p) or ref.circle is None:
+            return None
+        offset, rate = ahead.offset, ahead.rate
+        offsets = np.zeros(len(poses))
+        first = (0.0, 0.0)
+        if abs(offset) > OFFSET_EPS:
+            s_acc = self.swivel_acc_share(st, p)
+            close_acc = self._offset_close_acc(st, p, offset, s_acc, poses_ahead)
+            k = 0
+            for n in range(1, int(ends[-1]) + 1):
+                if offset != 0.0:
+                    rate = offset_rate(offset, rate, 0.0, close_acc, p.swivel.max_rate, s_acc, dt)
+                    lands = abs(rate * dt) >= abs(offset) and rate * offset < 0.0
+                    offset, rate = (0.0, 0.0) if lands else (offset + rate * dt, rate)
+                if n == 1:
+                    first = (offset, rate)
+                if n == ends[k]:
+                    offsets[k] = offset
+                    k += 1
+        q = ref.q
+        rows = np.empty((len(poses), self.arm.n))
+        last = 0
+        for k, T in enumerate(poses):
+            try:
+                circle = elbow_circle(self.geom, T)
+            except UnreachableError:
+                return None
+            s = wrap_angle(self.preferred_swivel(st, p, circle) + float(offsets[k]))
+            pick = self.stepper.solve(T, s, q, (ends[k] - last) * dt)
+            if pick is None or pick[1] > p.flip_ratio:
+                return None
+            q = rows[k] = pick[0]
+            last = ends[k]
+        ahead.offset, ahead.rate = first
+        return rows
+
+    def plan_offset(self, st: CoreState, p: ControllerParams) -> None:
+        """The pose law's offset and rate where the plan ahead starts: the reference's (``st.ahead``)."""
+        ref = st.ref
+        if ref.circle is not None:
+            st.ahead.offset = wrap_offset(ref.s, self.preferred_swivel(st, p, ref.circle))
+            st.ahead.rate = ref.sdot_dyn
+
+    def joint_step(self, st: CoreState, p: ControllerParams, q: np.ndarray) -> IKStep | None:
+        """The reference step to joints ``q`` (clipped into the limits): their pose, swivel and elbow
+        circle; None at a stretched pose."""
+        q = np.clip(q, self.bounds.lower, self.bounds.upper)
+        T = np.asarray(self.arm.fk(q), float)
+        try:
+            circle = elbow_circle(self.geom, T)
+        except UnreachableError:
+            return None
+        pos, rot = pose_of(T)
+        s = float(self.arm.swivel(q))
+        return IKStep(q, pos, rot, s, self.preferred_swivel(st, p, circle), circle, 1.0)
 
     def kept_swivel(self, st: CoreState, p: ControllerParams, step: IKStep) -> SwivelFn:
         """The swivel of ``step`` for another pose of the same step (the acceleration fit's coasting pose

@@ -1,6 +1,8 @@
 """The servo law of goal streams and twists: the tracking law of :mod:`~redarm_ros.control.servo`
 around the IK step, with the joint-acceleration fit, the command-lag resync, sliding and the
-elbow-before-hand slowdown. :class:`ServoLaw` is the part of
+elbow-before-hand slowdown; where a stream's path asks a joint for more than its acceleration limit,
+the joints' motion planned ahead within the limits instead (:mod:`~redarm_ros.control.lookahead`).
+:class:`ServoLaw` is the part of
 :class:`~redarm_ros.control.reach_controller.ReachController` that moves the reference while tracking;
 its methods take the controller's :class:`~redarm_ros.control.state.CoreState` and parameters. Units:
 m, rad, s.
@@ -14,11 +16,12 @@ from redarm_ros.control.attractor import direction
 from redarm_ros.control.command import CommandShaper, SceneView
 from redarm_ros.control.ik_step import DeadEnd, IKStep, blend, pose_matrix
 from redarm_ros.control.joint_limits import JointBounds
+from redarm_ros.control.lookahead import JointLookahead, growing_blocks
 from redarm_ros.control.params import ControllerParams, ServoParams
 from redarm_ros.control.redundancy import Redundancy
 from redarm_ros.control.servo import ServoTarget, servo_step
 from redarm_ros.control.slide import obstacle_slide, workspace_slide
-from redarm_ros.control.state import ZERO3, CoreState, Mode
+from redarm_ros.control.state import ZERO3, CoreState, Mode, PlanAhead
 from redarm_ros.control.stream_swivel import LOOKAHEAD_SAMPLES
 from redarm_ros.control.types import GoalKind
 from redarm_ros.kinematics.quaternion import (
@@ -26,6 +29,20 @@ from redarm_ros.kinematics.quaternion import (
     quat_mul,
     quat_normalize,
 )
+
+#: s: the plan ahead's first acceleration block is about this long, and each next one PLAN_GROWTH times
+#: longer
+PLAN_BLOCK = 0.04
+PLAN_GROWTH = 1.5
+#: the plan ahead starts where the path's joints need more than this share of an acceleration limit
+#: within PLAN_TRIGGER_AHEAD s (the nearer prediction: the farther one errs more; above 1: a jittered
+#: stream's estimate errs by some 20 %)
+PLAN_TRIGGER = 1.15
+PLAN_TRIGGER_AHEAD = 0.5
+#: s: while it is not needed, how often the plan ahead looks whether the path needs it
+PLAN_CHECK = 0.05
+#: Hz: slower streams are not planned ahead (too few samples to tell how the path turns)
+PLAN_MIN_RATE = 20.0
 
 
 class ServoLaw:
@@ -40,6 +57,7 @@ class ServoLaw:
         self.bounds = bounds
         self.view = view
         self.shell = shell
+        self._lookahead: JointLookahead | None = None  # for the last step and horizon
 
     @staticmethod
     def enter(st: CoreState) -> None:
@@ -49,6 +67,7 @@ class ServoLaw:
             st.ref.vel = (st.att.v * e[0], st.att.v * e[1], st.att.v * e[2])
         st.mode = Mode.SERVO
         st.ref.sdot_dyn = st.ref.sdot
+        st.ahead = PlanAhead()
         st.message = ""
         st.stream_note = ""
 
@@ -77,6 +96,8 @@ class ServoLaw:
             self.command.resync_reference(st, keep_velocity=True)
             if self.redundancy.pose_law(p):
                 self.redundancy.onto_preferred_swivel(st, p)
+        if self._planned_step(st, p, dt):
+            return
         ref = st.ref
         target = self._target(st, p)
         # The servo's own bounds are Cartesian; the joints' velocity limits shorten the IK step below
@@ -120,30 +141,87 @@ class ServoLaw:
         if limited and not st.message:
             st.message = f"{self._stream_word(st)}: {limited}: following as closely as they allow"
 
-    def _poses_ahead(self, st: CoreState, horizon: float) -> list[tuple[float, np.ndarray]]:
-        """The goal's poses predicted up to ``horizon`` s ahead ((tau, 4x4) each): the stream's estimate,
-        or a twist's velocity from the reference; none once the stream has ended."""
+    def _planned_step(self, st: CoreState, p: ControllerParams, dt: float) -> bool:
+        """The step of a stream whose path asks a joint for nearly its acceleration limit within
+        ``servo.plan_horizon`` (or did so within the last horizon, or whose plan is still held by a limit):
+        the first step of each joint's motion planned ahead within the limits
+        (:mod:`~redarm_ros.control.lookahead`). False (nothing done) otherwise, and where the path ahead
+        cannot be followed in joint space (out of reach, a branch change, the stream ending) or an obstacle
+        is within ``elbow_priority_clearance`` (the elbow's forces have the say there)."""
         goal = st.goal
-        out: list[tuple[float, np.ndarray]] = []
+        horizon = p.servo.plan_horizon
+        if horizon <= 0.0 or goal is None or goal.kind is not GoalKind.STREAM \
+                or st.cmd.obs_clear < p.elbow_priority_clearance or st.stream.rate() < PLAN_MIN_RATE:
+            return False
+        ref, ahead = st.ref, st.ahead
+        planning = st.time <= ahead.until
+        if not planning and st.time - ahead.checked < PLAN_CHECK - 1e-9:
+            return False
+        ahead.checked = st.time
+        la = self._planner(dt, horizon)
+        # (the reference after n steps is on the goal of st.time + (n - 1) dt)
+        poses = st.stream.path_poses(st.time - dt + la.times(), st.time)
+        if poses is None:
+            return False
+        red = self.redundancy
+        if not planning:
+            red.plan_offset(st, p)
+        kept = (ahead.offset, ahead.rate)
+        path = red.path_joints(st, p, dt, poses, la.ends, lambda h: self._poses_ahead(st, h))
+        if path is None:
+            return False
+        near = la.times()[1:-1] <= PLAN_TRIGGER_AHEAD  # (the path acceleration of the nearer knots)
+        need = np.abs(la.path_acceleration(path))[near] / self.bounds.max_acc
+        if need.size and float(np.max(need)) > PLAN_TRIGGER:
+            ahead.until = st.time + la.horizon
+        if st.time > ahead.until:
+            ahead.offset, ahead.rate = kept  # (not planning after all: the offset stays the servo's)
+            return False
+        plan = la.plan(ref.q, ref.qd, path, red.stepper.arm.jacobian)
+        step = red.joint_step(st, p, plan.q)
+        if step is None:
+            return False
+        if plan.bound:  # (still cutting a corner: the plan goes on until the joints are back on the path)
+            ahead.until = max(ahead.until, st.time + la.block_steps[0] * dt)
+        ref.acc_limited = plan.bound
+        ref.sdot_dyn = ahead.rate
+        self.command.commit(st, p, step, dt)
+        if plan.bound and not st.message:
+            st.message = "stream: joint acceleration limits: planned ahead within them"
+        return True
+
+    def _planner(self, dt: float, horizon: float) -> JointLookahead:
+        """The plan ahead for steps of ``dt`` s over ``horizon`` s (:data:`PLAN_BLOCK`, growing by
+        :data:`PLAN_GROWTH`)."""
+        la = self._lookahead
+        if la is None or la.dt != dt or abs(la.horizon - horizon) > 0.5 * dt:
+            blocks = growing_blocks(dt, PLAN_BLOCK, PLAN_GROWTH, horizon)
+            if len(blocks) < 3:  # (a horizon of a few steps)
+                blocks = [1, 1, 1]
+            la = self._lookahead = JointLookahead(dt, blocks, self.bounds.max_acc)
+        return la
+
+    def _poses_ahead(self, st: CoreState, horizon: float) -> list[tuple[float, np.ndarray]]:
+        """The goal's poses predicted up to ``horizon`` s ahead ((tau, 4x4) each): the stream's path
+        (:meth:`~redarm_ros.control.stream.StreamEstimator.path_poses`), or a twist's velocity from the
+        reference; none once the stream has ended."""
+        goal = st.goal
         if goal is None:
-            return out
+            return []
+        taus = horizon * np.arange(1, LOOKAHEAD_SAMPLES + 1) / LOOKAHEAD_SAMPLES
+        if goal.kind is not GoalKind.TWIST:
+            poses = st.stream.path_poses(st.time + taus, st.time)
+            return [] if poses is None else list(zip(taus.tolist(), poses, strict=True))
+        tw = st.twist
+        if tw is None:
+            return []
         ref = st.ref
-        for k in range(1, LOOKAHEAD_SAMPLES + 1):
-            tau = horizon * k / LOOKAHEAD_SAMPLES
-            if goal.kind is GoalKind.TWIST:
-                tw = st.twist
-                if tw is None:
-                    return out
-                v, w = tw.vel, tw.w
-                pos = (ref.pos[0] + v[0] * tau, ref.pos[1] + v[1] * tau, ref.pos[2] + v[2] * tau)
-                turn = quat_from_rotvec((w[0] * tau, w[1] * tau, w[2] * tau))
-                rot = quat_normalize(quat_mul(turn, ref.rot))
-            else:
-                pred = st.stream.predict(st.time + tau, st.time, clamp=False)
-                if pred is None or pred.ended:
-                    return out
-                pos, rot = pred.pos, pred.rot
-            out.append((tau, pose_matrix(pos, rot)))
+        out: list[tuple[float, np.ndarray]] = []
+        v, w = tw.vel, tw.w
+        for tau in taus.tolist():
+            pos = (ref.pos[0] + v[0] * tau, ref.pos[1] + v[1] * tau, ref.pos[2] + v[2] * tau)
+            turn = quat_from_rotvec((w[0] * tau, w[1] * tau, w[2] * tau))
+            out.append((tau, pose_matrix(pos, quat_normalize(quat_mul(turn, ref.rot)))))
         return out
 
     def _joint_acceleration_fit(self, st: CoreState, p: ControllerParams, step: IKStep, dt: float

@@ -86,6 +86,19 @@ class Attractor:
 
 
 @dataclass
+class PlanAhead:
+    """The servo's plan ahead (``servo.plan_horizon``): the controller time (s) ``until`` which it plans,
+    when it last ``checked`` whether the path ahead needs it, and the pose law's swivel ``offset`` (rad)
+    and its ``rate`` (rad/s) along which the path ahead is solved, kept here while it plans (measured
+    from the planned joints, a joint held back by its limit would feed its own lag back as an offset)."""
+
+    until: float = -math.inf
+    checked: float = -math.inf
+    offset: float = 0.0
+    rate: float = 0.0
+
+
+@dataclass
 class Command:
     """What was sent: joints ``q`` moving at ``qd``, their ``clear``-ance and tool pose."""
 
@@ -171,3 +184,4 @@ class CoreState:
     route: CorridorRoute | None = None  # the point goal's straight route through the swivel corridor
     corridor_plan: Future[tuple[CorridorRoute | None, str]] | None = None  # planned in the worker thread
     time: float = 0.0  # controller clock (s): advanced by step(), or the caller's ``now``
+    ahead: PlanAhead = field(default_factory=PlanAhead)

@@ -38,12 +38,26 @@ import numpy as np
 from redarm_ros.control.params import StreamParams
 from redarm_ros.control.types import Quat, Vec3
 from redarm_ros.kinematics.quaternion import (
+    matrix_from_quat,
     quat_angle,
     quat_from_rotvec,
     quat_mul,
     quat_normalize,
     rotvec_between,
 )
+
+
+def _rotvec_matrices(rv: np.ndarray) -> np.ndarray:
+    """Rotation matrices (k, 3, 3) of rotation vectors ``rv`` (k, 3) rad (Rodrigues)."""
+    th = np.linalg.norm(rv, axis=1)
+    safe = np.where(th > 1e-12, th, 1.0)
+    u = rv / safe[:, None]
+    K = np.zeros((len(rv), 3, 3))
+    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -u[:, 2], u[:, 1], -u[:, 0]
+    K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = u[:, 2], -u[:, 1], u[:, 0]
+    s = np.where(th > 1e-12, np.sin(th), 0.0)[:, None, None]
+    c = np.where(th > 1e-12, 1.0 - np.cos(th), 0.0)[:, None, None]
+    return np.eye(3) + s * K + c * (K @ K)
 
 
 def _median_spacing(stamps: list[float]) -> float:
@@ -87,6 +101,7 @@ class StreamEstimator:
         self._offset: float | None = None  # receive clock - stamp clock (s), None: same clock
         self._last_arrival = -math.inf
         self._fit: tuple[np.ndarray, ...] | None = None
+        self._fit3: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # (p0, v, a) of _fitted_turn
         self._period: float | None = None  # period() of the samples as they are (None: not computed yet)
         self.count = 0  # samples accepted since reset
         self.dropped = 0  # out-of-window or duplicate samples ignored
@@ -155,7 +170,7 @@ class StreamEstimator:
                 (len(self._samples) > 3 and self._samples[0].t < t_new - self.params.window):
             self._samples.pop(0)
         self.count += 1
-        self._fit = self._period = None
+        self._fit = self._fit3 = self._period = None
         return True
 
     # -- fit and prediction -----------------------------------------------------------------------
@@ -188,6 +203,83 @@ class StreamEstimator:
         acc = X[2] if n >= 3 else np.zeros(6)
         self._fit = (X[0, :3], X[1, :3], acc[:3], X[0, 3:], X[1, 3:], acc[3:])
         return self._fit
+
+    def _fitted_turn(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(p0, v, a): position, velocity and acceleration at the newest stamp of the positions' fit on a
+        path that turns at a constant rate ``w``:
+        ``p(tau) = p0 + v sin(w tau) / w + a (1 - cos(w tau)) / w^2``
+        (a circle at constant speed exactly; the quadratic fit as ``w`` goes to 0), ``w = |a_n| / |v|`` of
+        the fit before, three times over from the quadratic fit. The quadratic fit takes a turning path's
+        jerk for a deceleration (on a circle at 0.3 m/s its acceleration comes out a third too short), a
+        free cubic fit amplifies the stamps' jitter."""
+        if self._fit3 is not None:
+            return self._fit3
+        p0, v, a, *_ = self._fitted()
+        n = len(self._samples)
+        if n >= 4:
+            ref = self._samples[-1]
+            tau = np.array([s.t - ref.t for s in self._samples])
+            P = np.array([s.pos for s in self._samples])
+            for _ in range(3):
+                speed2 = float(v @ v)
+                if speed2 < 1e-12:
+                    break
+                a_n = a - (float(a @ v) / speed2) * v
+                w = math.sqrt(float(a_n @ a_n) / speed2)
+                if not 1e-3 < w * float(-tau[0]) < 1.0:
+                    break  # (straight: the quadratic fit is the fit; over 1 rad: no turn to trust)
+                A = np.stack([np.ones(n), np.sin(w * tau) / w, (1.0 - np.cos(w * tau)) / (w * w)], axis=1)
+                M = A.T @ A
+                M[2, 2] += self.params.accel_weight
+                try:
+                    X = np.linalg.solve(M, A.T @ P)
+                except np.linalg.LinAlgError:
+                    break
+                p0, v, a = X[0], X[1], X[2]
+        self._fit3 = (p0, v, a)
+        return self._fit3
+
+    def path_poses(self, times: np.ndarray, now: float) -> np.ndarray | None:
+        """The goal's poses (k, 4, 4) at ``times`` (k,) s, further ahead than :meth:`predict` trusts a
+        parabola: the hand goes on along a path of constant curvature (a circle, or a line) in the plane of
+        its velocity and acceleration, its speed changing at the present tangential acceleration for at
+        most ``window`` s (never below 0), from :meth:`_fitted_turn`; the orientation extrapolated as by
+        :meth:`predict`. With the lead. None before the first sample, once the stream has ended (``now``
+        s), and while no sample has come for longer than :meth:`predict` extrapolates."""
+        if not self._samples or self.ended(now):
+            return None
+        ref = self._samples[-1]
+        T = self.period()
+        if not math.isfinite(T) or now - ref.t > self.params.extrapolate_periods * T:
+            return None  # (no newer sample for longer than predict() extrapolates: the stream may stop)
+        tau = np.asarray(times, float) + self.params.lead - ref.t
+        p0, v, a = self._fitted_turn()
+        out = np.zeros((len(tau), 4, 4))
+        out[:, 3, 3] = 1.0
+        speed = float(np.linalg.norm(v))
+        if speed < 1e-6:
+            _, _, _, r0, w, al = self._fitted()
+            out[:, :3, 3] = p0
+        else:
+            e = v / speed
+            a_t = float(a @ e)
+            a_n = a - a_t * e
+            k = float(np.linalg.norm(a_n)) / (speed * speed)  # curvature (1/m)
+            # The speed changes at a_t for at most the fit's window (then it holds; never below 0): a
+            # speed-up or a slow-down seen in the window is not taken to last.
+            lasts = self.params.window if a_t >= 0.0 else min(self.params.window, speed / -a_t)
+            tt = np.minimum(tau, lasts)
+            arc = speed * tau + a_t * tt * (tau - 0.5 * tt)
+            if k * float(np.max(np.abs(arc))) < 1e-9:
+                out[:, :3, 3] = p0 + arc[:, None] * e
+            else:
+                nrm = a_n / (k * speed * speed)
+                th = k * arc
+                out[:, :3, 3] = p0 + (np.sin(th)[:, None] * e + (1.0 - np.cos(th))[:, None] * nrm) / k
+            _, _, _, r0, w, al = self._fitted()
+        rv = r0 + tau[:, None] * w + 0.5 * (tau * tau)[:, None] * al
+        out[:, :3, :3] = _rotvec_matrices(rv) @ np.asarray(matrix_from_quat(ref.rot))
+        return out
 
     def velocity(self) -> tuple[Vec3, Vec3]:
         """Estimated linear (m/s) and angular (rad/s) velocity of the stream."""
