@@ -7,7 +7,7 @@ where the controller ended the move before (the controller with the corridor on 
 oracle and the baselines are left out, they draw no random numbers). ``--save`` keeps every plan's
 inputs and result (npz), ``--load`` times the plans of such a file instead of running the controller, and
 ``--compare`` checks the results against a saved file: the same found / not found on every plan, the
-schedule's joints within ``--tol`` rad at the saved samples, the durations within 1 %.
+schedule's joints within ``--tol`` rad at the saved samples, the durations within 5 %.
 
     .venv/bin/python benchmarks/corridor_plan_bench.py --arms pa10,powercube7 --moves 80 --save /tmp/plans.npz
     .venv/bin/python benchmarks/corridor_plan_bench.py --load /tmp/plans.npz --compare /tmp/plans.npz
@@ -100,7 +100,7 @@ def compare(new: list[dict[str, Any]], old: list[dict[str, Any]], tol: float) ->
         Qa = np.stack([np.interp(b["u"], a["u"], a["q"][:, j]) for j in range(a["q"].shape[1])], axis=1)
         dq = float(np.max(np.abs(Qa - b["q"])))
         dT = abs(a["duration"] - b["duration"]) / b["duration"]
-        if dq > tol or dT > 0.01:
+        if dq > tol or dT > 0.05:
             out.append(f"plan {i}: joints {dq:.3g} rad apart, duration {a['duration']:.3f} s, was "
                        f"{b['duration']:.3f} s")
     return out
