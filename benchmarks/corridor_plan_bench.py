@@ -71,13 +71,15 @@ def capture(arm_name: str, moves: int, seed: int, params: ControllerParams) -> l
     return jobs
 
 
-def run_plan(red: SwivelRedundancy, params: ControllerParams, job: dict[str, Any]) -> tuple[Any, str, float]:
-    """One plan, as the controller's worker thread runs it: (route or None, why, wall time s)."""
+def run_plan(red: SwivelRedundancy, params: ControllerParams, job: dict[str, Any]
+             ) -> tuple[Any, str, float, float]:
+    """One plan, as the controller's worker thread runs it: (route or None, why, wall time s, this
+    thread's CPU time s)."""
     ref = SimpleNamespace(q=job["q0"].copy(), pos=tuple(job["pos"]), rot=tuple(job["rot"]))
     fn = red.corridor_job(SimpleNamespace(ref=ref), params, job["T1"])
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.thread_time()
     route, why = fn()
-    return route, why, time.perf_counter() - t0
+    return route, why, time.perf_counter() - t0, time.thread_time() - c0
 
 
 def result_record(route: Any, why: str) -> dict[str, Any]:
@@ -165,18 +167,20 @@ def main(argv: list[str] | None = None) -> int:
     else:
         plans = {a: capture(a, args.moves, args.seed, params) for a in args.arms.split(",") if a}
     results: dict[str, list[dict[str, Any]]] = {}
-    rows = ["| arm | plans | found | plan time median / p90 / max ms |", "|---|---|---|---|"]
+    rows = ["| arm | plans | found | plan wall time median / p90 / max ms | CPU time median / p90 / max ms |",
+            "|---|---|---|---|---|"]
     for arm_name, jobs in plans.items():
         arm = rq._load(arm_name)
         red = make_controller(arm, Scene(), params).redundancy
         assert isinstance(red, SwivelRedundancy)
-        results[arm_name], times = [], []
+        results[arm_name], times, cpu = [], [], []
         for job in jobs:
-            route, why, dt = run_plan(red, params, job)
+            route, why, dt, dc = run_plan(red, params, job)
             results[arm_name].append(result_record(route, why))
             times.append(dt)
+            cpu.append(dc)
         found = sum(r["found"] for r in results[arm_name])
-        rows.append(f"| {arm_name} | {len(jobs)} | {found} | {_stats(times)} |")
+        rows.append(f"| {arm_name} | {len(jobs)} | {found} | {_stats(times)} | {_stats(cpu)} |")
         print(rows[-1], flush=True)
     if args.save is not None:
         _save(args.save, plans, results)

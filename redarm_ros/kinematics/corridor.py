@@ -189,6 +189,8 @@ class _Corridor:
         self.lo, self.up, self.lo_tol, self.up_tol = self._bounds()
         self.tab = LimitTables(self.lo, self.up, INTERVAL_ROOT_TOL) if np.all(self.lo <= self.up) else None
         self.wide = [j for j in range(7) if self.up[j] - self.lo[j] >= TWO_PI - 2e-10]
+        self.wide_pivots = all(j % 2 == 0 for j in self.wide)
+        self.wide_rows = [j // 2 for j in self.wide] + [4 + j // 2 for j in self.wide]  # rows X, then Y
         # grid step (rad) along a piece for the wide joints' continuous value: a pivot turns at most about
         # 1 / m rad per rad of swivel at a hinge margin m, so consecutive grid values differ by ~1.5 < pi
         self.h = min(0.05, 1.5 * min(self.m["shoulder"], self.m["wrist"]))
@@ -252,22 +254,32 @@ class _Corridor:
         """(7, M) joint values on the start's pattern at swivels s (pivot joints in (-pi, pi] + shift)."""
         return fn.angles(np.asarray(s, float)) * self.sign[:, None] + self.shift[:, None]
 
-    def _wide_roots(self, fn: SwivelFunctions, lo: float, hi: float) -> list[float]:
+    def _wide_angles(self, fn: SwivelFunctions, s: np.ndarray) -> np.ndarray:
+        """(len(wide), M) the wide joints' values as :meth:`angles` gives them, computed for those only
+        (pivot joints: atan2 of two rows of the closed form)."""
+        if not self.wide_pivots:
+            return self.angles(fn, s)[self.wide]
+        P = fn.K[self.wide_rows] @ np.stack([np.ones_like(s), np.cos(s), np.sin(s)])
+        n = len(self.wide)
+        th = np.arctan2(P[n:], P[:n])
+        for k, j in enumerate(self.wide):
+            if (j == 0 and fn.deg_shoulder) or (j == 4 and fn.deg_wrist):
+                th[k] = 0.0
+        return th * self.sign[self.wide][:, None] + self.shift[self.wide][:, None]
+
+    def _wide_roots(self, fn: SwivelFunctions, lo: float, hi: float) -> np.ndarray:
         """Swivels in [lo, hi] where a wide joint equals one of its bounds (mod pi): closed-form roots."""
-        out: list[float] = []
-        K = fn.K
-        for j in self.wide:
-            p = j // 2
-            for L in (self.lo[j], self.up[j]):
-                E = (-math.sin(L) * K[p] + math.cos(L) * K[p + 4])[None, :]
-                for r in roots(E):
-                    x = float(r[0])
-                    if x == x:
-                        base = lo + (x - lo) % TWO_PI
-                        while base <= hi:
-                            out.append(base)
-                            base += TWO_PI
-        return out
+        L = np.concatenate([self.lo[self.wide], self.up[self.wide]])
+        p = np.array([j // 2 for j in self.wide] * 2)
+        E = -np.sin(L)[:, None] * fn.K[p] + np.cos(L)[:, None] * fn.K[p + 4]
+        x = np.concatenate(roots(E))
+        x = x[x == x]
+        base = lo + (x - lo) % TWO_PI
+        out = [base[base <= hi]]
+        while len(out[-1]):
+            nxt = out[-1] + TWO_PI
+            out.append(nxt[nxt <= hi])
+        return np.concatenate(out)
 
     def _wide_grid(self, smp: _Sample, J: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
         """Along the stretch J of sample smp: the swivels (bounds roots, a grid of step h, and the mid
@@ -284,7 +296,9 @@ class _Corridor:
         allp = np.empty(2 * len(pts) - 1)
         allp[0::2] = pts
         allp[1::2] = 0.5 * (pts[1:] + pts[:-1])
-        V = np.unwrap(self.angles(smp.fn, allp)[self.wide], axis=1)
+        A = self._wide_angles(smp.fn, allp)
+        V = A.copy()  # unwrapped along the grid: each step taken as the nearest 2 pi copy
+        V[:, 1:] -= TWO_PI * np.cumsum(np.round(np.diff(A, axis=1) / TWO_PI), axis=1)
         smp.grids[key] = (allp, V)
         return allp, V
 
@@ -335,7 +349,7 @@ class _Corridor:
         allp, V = self._wide_grid(smp, J)
         i = min(int(np.searchsorted(allp, s)), len(allp) - 1)
         approx = V[:, i] + shift
-        base = self.angles(smp.fn, np.array([s]))[self.wide, 0]
+        base = self._wide_angles(smp.fn, np.array([s]))[:, 0]
         return base + TWO_PI * np.round((approx - base) / TWO_PI)
 
     # -- refinement of the samples ---------------------------------------------------------------
