@@ -156,6 +156,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--load", type=Path, default=None, help="time the plans of this file")
     ap.add_argument("--compare", type=Path, default=None, help="check the results against this file")
     ap.add_argument("--tol", type=float, default=0.02, help="joints' tolerance of --compare (rad)")
+    ap.add_argument("--note", default="", help="appended to the section title (e.g. the code's commit)")
     ap.add_argument("--no-write", action="store_true", help="do not write the results file")
     args = ap.parse_args(argv)
     pdict = json.loads(args.params) if args.params else {}
@@ -190,8 +191,9 @@ def main(argv: list[str] | None = None) -> int:
         for arm_name in results:
             diffs += [f"{arm_name} {d}" for d in compare(results[arm_name], old[arm_name], args.tol)]
         print("\n".join(diffs) if diffs else f"same results as {args.compare}", flush=True)
-    title = f"## pa10, powercube7 free45 plans, seed {args.seed}" + (f"; parameters {args.params}"
-                                                                       if args.params else "")
+    title = (f"## {', '.join(plans)} free45 plans, seed {args.seed}"
+             + (f"; parameters {args.params}" if args.params else "")
+             + (f"; {args.note}" if args.note else ""))
     body = ["", *rows, "", bench_common.load_line(load0, t0), ""]
     header = bench_common.doc_header("# Corridor-plan benchmark (`benchmarks/corridor_plan_bench.py`)",
                                      __doc__)
