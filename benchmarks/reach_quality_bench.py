@@ -609,6 +609,7 @@ model; timings are wall clock on a shared machine, the quality figures are deter
 
 
 def main(argv: list[str] | None = None) -> int:
+    global GOAL_TIMEOUT  # noqa: PLW0603 (the moves' timeout, read by the methods)
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--moves", type=int, default=80, help="moves per arm and case (default 80)")
     ap.add_argument("--arms", default="pa10,powercube7",
@@ -626,7 +627,6 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", type=Path, default=None, help="also write every move as JSON here")
     ap.add_argument("--verbose", action="store_true", help="one line per move and method")
     args = ap.parse_args(argv)
-    global GOAL_TIMEOUT  # noqa: PLW0603 (the moves' timeout, read by the methods)
     GOAL_TIMEOUT = args.timeout
     if args.quick:
         args.moves = 2
