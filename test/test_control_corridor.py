@@ -107,6 +107,22 @@ def test_corridor_max_slowdown_0_takes_a_slow_corridor_route():
     assert r.message == "straight through the swivel corridor"
 
 
+def test_a_reference_pose_off_its_joints_is_planned_from_the_joints():
+    """The reference pose may be off the pose of the reference joints by the IK step's residual (0.15 mm
+    seen in a free-space sequence): the corridor starts from the joints' pose, and the goal goes
+    straight (it raised in the worker thread, and the step with it, before)."""
+    arm = load_arm("pa10")
+    ctl = make_controller(arm)
+    q0 = np.array(arm.park, float)
+    ctl.reset(q0)
+    ref = ctl._st.ref  # noqa: SLF001
+    ref.pos = (ref.pos[0] + 1.5e-4, ref.pos[1], ref.pos[2])
+    assert ctl.set_goal(arm.fk(q0 + np.array([0.5, 0.3, -0.2, -0.4, 0.3, 0.2, 0.4]))).accepted
+    r = ctl.step(0.01)
+    assert ctl._st.route is not None, r.message  # noqa: SLF001
+    assert r.message == "straight through the swivel corridor"
+
+
 def test_a_route_without_a_corridor_says_why():
     """PowerCube 7: a route that would fold the elbow beyond joint 4's limit at every swivel has no
     corridor route, and the reason names the closing corridor and the joint."""

@@ -42,7 +42,7 @@ from redarm_ros.control.stream_swivel import (
 )
 from redarm_ros.control.swivel_dynamics import SwivelDynamics, SwivelForces, wrap_angle
 from redarm_ros.control.types import GoalCheck, Phase, Quat, Vec3
-from redarm_ros.errors import UnreachableError
+from redarm_ros.errors import InvalidInputError, UnreachableError
 from redarm_ros.geometry.broadphase import SceneIndex
 from redarm_ros.geometry.obstacles import Scene
 from redarm_ros.kinematics.protocols import ControlledSwivelArm
@@ -537,7 +537,9 @@ class SwivelRedundancy:
         route, or None and why there is none."""
         rp = p.replan
         arm, q0 = self.arm, st.ref.q.copy()
-        T0, T1 = pose_matrix(st.ref.pos, st.ref.rot), np.array(T, float)
+        # the route starts at the pose of the reference's joints: the reference pose may be off it by
+        # the IK step's residual (0.15 mm seen), and the corridor starts from a solution of its start
+        T0, T1 = np.asarray(arm.fk(q0), float), np.array(T, float)
         max_vel, max_acc = self.bounds.max_vel.copy(), self.bounds.max_acc.copy()
 
         def job() -> tuple[CorridorRoute | None, str]:
@@ -551,9 +553,13 @@ class SwivelRedundancy:
                 t_pace = max(PACE_AFTER * t_joint, t_joint + SLOW_SLACK)
                 if rp.corridor_max_slowdown > 0.0:
                     t_most = max(rp.corridor_max_slowdown * t_joint, t_joint + SLOW_SLACK)
-            route, why = plan_route(arm, T0, T1, q0, None, rp.corridor_sing_margin, rp.corridor_limit_margin,
-                                    p.speed.v_max, p.max_ori_rate, p.swivel.max_rate, max_vel, max_acc,
-                                    rp.corridor_share, pace_after=min(t_most, t_pace))
+            try:
+                route, why = plan_route(arm, T0, T1, q0, None, rp.corridor_sing_margin,
+                                        rp.corridor_limit_margin, p.speed.v_max, p.max_ori_rate,
+                                        p.swivel.max_rate, max_vel, max_acc, rp.corridor_share,
+                                        pace_after=min(t_most, t_pace))
+            except (InvalidInputError, UnreachableError) as e:  # (a start the corridor cannot take)
+                return None, f"the corridor cannot start here: {e}"
             if route is not None and route.duration > t_most:
                 return None, (f"its route needs {route.duration:.1f} s of joint motion, a joint-space move "
                               f"{t_joint:.1f} s")
