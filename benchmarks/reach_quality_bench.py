@@ -27,17 +27,18 @@ Methods, interleaved per move, every one from the configuration the controller s
                   the same limits allow
 
 Per move (scored from the commanded joints: FK, capsules): reached (tool within the controller's
-tolerances within 10 s), re-planned (the controller went through REPLANNING, i.e. a joint-space move;
-its first reason is kept), path ratio (tool path length / straight distance), speed peaks (maxima of the
-hand speed that rise and fall by at least max(10 % of the move's peak speed, 5 mm/s): a hysteresis that
-ignores ripple), minimum-jerk deviation (RMS difference between the hand speed and the minimum-jerk
-speed profile of the same path length and duration, Flash & Hogan 1985, both over the time their speed
-is above 2 % of its peak, divided by the peak speed), time to reach, limit violations (position,
-velocity or acceleration over a limit), collisions (capsules against the scene, and self-collision), and
-whether the route oracle (benchmarks/route_oracle.py) finds a straight route: the line and slerp sampled
-40 times, the swivel 180 times, every in-limit solution on the start's flip pattern, links of at most
-0.35 rad; "margin" also keeps 3 deg from the shoulder, elbow and wrist singularities. A move goes
-*straight* when it is reached with a path ratio of at most 1.05 and no joint-space move.
+tolerances within 10 s, or --timeout), re-planned (the controller went through REPLANNING, i.e. a
+joint-space move; its first reason is kept), path ratio (tool path length / straight distance), speed
+peaks (maxima of the hand speed that rise and fall by at least max(10 % of the move's peak speed, 5
+mm/s): a hysteresis that ignores ripple), minimum-jerk deviation (RMS difference between the hand speed
+and the minimum-jerk speed profile of the same path length and duration, Flash & Hogan 1985, both over
+the time their speed is above 2 % of its peak, divided by the peak speed), time to reach, limit
+violations (position, velocity or acceleration over a limit), collisions (capsules against the scene,
+and self-collision), and whether the route oracle (benchmarks/route_oracle.py) finds a straight route:
+the line and slerp sampled 40 times, the swivel 180 times, every in-limit solution on the start's flip
+pattern, links of at most 0.35 rad; "margin" also keeps 3 deg from the shoulder, elbow and wrist
+singularities. A move goes *straight* when it is reached with a path ratio of at most 1.05 and no
+joint-space move.
 
     .venv/bin/python benchmarks/reach_quality_bench.py            # writes results/reach_quality_bench.md
     .venv/bin/python benchmarks/reach_quality_bench.py --quick --no-write
@@ -594,7 +595,8 @@ def report(runs: dict[tuple[str, str], CaseRun], params_note: str) -> list[str]:
     plans = [v for r in runs.values() for v in r.plan_s]
     if plans:
         lines[-1] += (" Corridor plans (worker thread, the arm holding; not in the step or the move's time): "
-                      f"{len(plans)}, median {np.median(plans):.2f} s, p90 {np.percentile(plans, 90):.2f} s.")
+                      f"{len(plans)}, median {np.median(plans):.2f} s, p90 {np.percentile(plans, 90):.2f} s, "
+                      f"max {np.max(plans):.2f} s.")
     return lines
 
 
@@ -607,6 +609,7 @@ model; timings are wall clock on a shared machine, the quality figures are deter
 
 
 def main(argv: list[str] | None = None) -> int:
+    global GOAL_TIMEOUT  # noqa: PLW0603 (the moves' timeout, read by the methods)
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--moves", type=int, default=80, help="moves per arm and case (default 80)")
     ap.add_argument("--arms", default="pa10,powercube7",
@@ -616,12 +619,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--params", default="",
                     help="controller parameters as JSON (ControllerParams.from_dict), e.g. a behaviour "
                     "to keep")
+    ap.add_argument("--timeout", type=float, default=GOAL_TIMEOUT,
+                    help=f"s a move may take to count as reached, every method (default {GOAL_TIMEOUT:.0f})")
     ap.add_argument("--quick", action="store_true", help="smoke run: 2 moves per arm and case")
     ap.add_argument("--no-write", action="store_true",
                     help="do not write benchmarks/results/reach_quality_bench.md")
     ap.add_argument("--json", type=Path, default=None, help="also write every move as JSON here")
     ap.add_argument("--verbose", action="store_true", help="one line per move and method")
     args = ap.parse_args(argv)
+    GOAL_TIMEOUT = args.timeout
     if args.quick:
         args.moves = 2
     params = ControllerParams.from_dict(json.loads(args.params)) if args.params else ControllerParams()
@@ -641,7 +647,8 @@ def main(argv: list[str] | None = None) -> int:
     header = bench_common.doc_header("# Reach-quality benchmark (`benchmarks/reach_quality_bench.py`)",
                                      __doc__)
     title = (f"## In-process: {', '.join(arms)}; {', '.join(cases)}; {args.moves} moves per arm and case, "
-             f"seeds from {args.seed}" + (f"; parameters {args.params}" if args.params else ""))
+             f"seeds from {args.seed}" + (f"; parameters {args.params}" if args.params else "")
+             + (f"; goal timeout {args.timeout:g} s" if args.timeout != 10.0 else ""))
     if args.quick:
         title += " -- quick"
     body = ["", *report(runs, params_note), "", bench_common.load_line(load0, t0), ""]

@@ -135,6 +135,17 @@ def _no_leftover_children(redarm_no_leftover_children: None) -> Iterator[None]:
     yield
 
 
+@pytest.fixture(autouse=True)
+def _corridor_plans_waited(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> None:
+    """In-process controllers wait for a point goal's corridor plan (``ReachController.wait_for_plans``)
+    instead of holding for as many steps as the worker thread takes, so a test's steps do not depend on
+    the machine's load; the node tests keep the node's hold."""
+    if not request.path.name.startswith(("test_node_", "test_e2e_")):
+        from redarm_ros.control.reach_controller import ReachController  # noqa: PLC0415
+
+        monkeypatch.setattr(ReachController, "wait_for_plans", True)
+
+
 # An MCAP recording of every failing HIL run that talks ROS, kept in .build/test_failures/ (see there).
 # (A copy of this file elsewhere, as test_conftest_fixtures makes, goes without.)
 if (Path(__file__).parent / "hil_recording.py").is_file():

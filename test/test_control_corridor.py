@@ -57,7 +57,7 @@ def test_a_goal_with_a_corridor_goes_straight():
     without the corridor): the hand follows the line (path ratio <= 1.02), never re-plans, and the
     state says so while it moves."""
     arm = load_arm("pa10")
-    ctl = make_controller(arm, params=ControllerParams.from_dict({"replan": {"corridor": True}}))
+    ctl = make_controller(arm)
     q0 = np.array(arm.park, float)
     ctl.reset(q0)
     T = arm.fk(q0 + np.array([0.5, 0.3, -0.2, -0.4, 0.3, 0.2, 0.4]))
@@ -79,7 +79,7 @@ def test_a_goal_whose_corridor_is_refused_says_which_route_and_why():
     goal goes to the attractor dynamics (its straight-route check passes), and the state says so and
     why while the arm moves."""
     arm = load_arm("pa10")
-    params = ControllerParams.from_dict({"replan": {"corridor": True, "corridor_share": 0.01}})
+    params = ControllerParams.from_dict({"replan": {"corridor_share": 0.01}})
     ctl = make_controller(arm, params=params)
     q0 = np.array(arm.park, float)
     ctl.reset(q0)
@@ -89,6 +89,38 @@ def test_a_goal_whose_corridor_is_refused_says_which_route_and_why():
     assert r.phase is Phase.REACHING
     assert r.message.startswith("attractor dynamics, no swivel corridor: its route needs"), r.message
     assert "a joint-space move" in r.message
+
+
+def test_corridor_max_slowdown_0_takes_a_slow_corridor_route():
+    """The route timed at 1 % of the joint limits (far slower than a joint-space move) is taken when
+    ``replan.corridor_max_slowdown`` is 0 (no cap); with the suite's controllers waiting for their plans
+    (``wait_for_plans``) the first step after the goal already follows it."""
+    arm = load_arm("pa10")
+    params = ControllerParams.from_dict({"replan": {"corridor_share": 0.01, "corridor_max_slowdown": 0.0}})
+    ctl = make_controller(arm, params=params)
+    q0 = np.array(arm.park, float)
+    ctl.reset(q0)
+    assert ctl.set_goal(arm.fk(q0 + np.array([0.5, 0.3, -0.2, -0.4, 0.3, 0.2, 0.4]))).accepted
+    r = ctl.step(0.01)
+    route = ctl._st.route  # noqa: SLF001
+    assert route is not None and route.duration > 20.0, r.message
+    assert r.message == "straight through the swivel corridor"
+
+
+def test_a_reference_pose_off_its_joints_is_planned_from_the_joints():
+    """The reference pose may be off the pose of the reference joints by the IK step's residual (0.15 mm
+    seen in a free-space sequence): the corridor starts from the joints' pose, and the goal goes
+    straight (it raised in the worker thread, and the step with it, before)."""
+    arm = load_arm("pa10")
+    ctl = make_controller(arm)
+    q0 = np.array(arm.park, float)
+    ctl.reset(q0)
+    ref = ctl._st.ref  # noqa: SLF001
+    ref.pos = (ref.pos[0] + 1.5e-4, ref.pos[1], ref.pos[2])
+    assert ctl.set_goal(arm.fk(q0 + np.array([0.5, 0.3, -0.2, -0.4, 0.3, 0.2, 0.4]))).accepted
+    r = ctl.step(0.01)
+    assert ctl._st.route is not None, r.message  # noqa: SLF001
+    assert r.message == "straight through the swivel corridor"
 
 
 def test_a_route_without_a_corridor_says_why():
@@ -167,7 +199,8 @@ def held_corridor_planner() -> tuple[Any, Any, np.ndarray, threading.Event]:
     """(arm, controller with the corridor on, reset at the park posture, gate): the worker thread's plan
     finishes only once the test sets the gate."""
     arm = load_arm("pa10")
-    ctl = make_controller(arm, params=ControllerParams.from_dict({"replan": {"corridor": True}}))
+    ctl = make_controller(arm)
+    ctl.wait_for_plans = False  # (the node's hold; the suite's controllers wait)
     q0 = np.array(arm.park, float)
     ctl.reset(q0)
     gate = threading.Event()
@@ -203,7 +236,7 @@ def test_a_goal_sent_to_the_re_planner_after_the_corridor_plan_keeps_the_command
     the arm in that same step (braking it), so joints still moving (an elbow settling after the last
     goal) do not stop within one step."""
     arm = load_arm("pa10")
-    ctl = make_controller(arm, params=ControllerParams.from_dict({"replan": {"corridor": True}}))
+    ctl = make_controller(arm)
     q0 = np.array([0.8620380935781569, -0.8963437758270911, -2.6761380381656896, 0.37568770912873944,
                    0.3606396759147724, 1.7980185737534031, -0.9225085188112081])
     T = np.eye(4)

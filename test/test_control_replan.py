@@ -389,7 +389,7 @@ def test_stall_reason_is_a_function_of_the_state_and_the_parameters() -> None:
     from redarm_ros.control.replan_law import stall_reason
     from redarm_ros.control.state import Mode
 
-    ctl = make_controller(ARM)
+    ctl = make_controller(ARM, params=ControllerParams.from_dict({"replan": {"corridor": False}}))
     q0 = np.array([0.0, 0.5, 0.0, 1.2, 0.0, 0.8, 0.0])
     ctl.reset(q0, now=0.0)
     T = ARM.fk(q0 + np.array([0.6, 0.3, 0.0, -0.4, 0.0, 0.2, 0.0]))

@@ -202,6 +202,42 @@ def test_route_whose_corridor_closes():
     assert not oracle(arm, T0, T1, q0, cor.pattern, shoulder=0.05, wrist=0.05, elbow=0.05)[0]
 
 
+def test_a_schedule_riding_a_curved_bound_is_not_halved_to_min_du():
+    """PA10 from its ready posture to the first goal of reach_quality_bench's free45 case, with the
+    margins of the controller's first attempt: the schedule rides the shoulder margin along a stretch,
+    where the chord between two samples sags past it by about 1e-4 rad, a sag that halving shrinks only
+    4 times per step (halved down to min_du / 16 that made 825 samples). Each step's midpoint passes a
+    bound by at most MID_SHARE of its margin, and far fewer samples do."""
+    from redarm_ros.kinematics.corridor import MID_SHARE
+
+    arm = ARMS["pa10"]
+    q0 = np.array([0.0, 0.5, 0.0, 1.3, 0.0, 1.0, 0.0])
+    T0, T1 = arm.fk(q0), np.eye(4)
+    T1[:3] = [[-0.8569785693731684, 0.3889759611626206, 0.33806128626734644, 0.3929507043394475],
+              [0.4114140926630704, 0.911430263123888, -0.005772332296615619, 0.7600314115756154],
+              [-0.31036458559787383, 0.13413641228069073, -0.9411063951047854, 0.4594049181314856]]
+    m = {"limit": 0.05, "shoulder": 0.4314829847437827, "wrist": 0.45, "elbow": 0.45}
+    cor = arm.swivel_corridor(T0, T1, q0, limit_margin=m["limit"], shoulder_margin=m["shoulder"],
+                              wrist_margin=m["wrist"], elbow_margin=m["elbow"], max_rate=1.0, samples=12)
+    check_schedule(arm, T0, T1, cor, shoulder=m["shoulder"], wrist=m["wrist"], elbow=m["elbow"],
+                   limit=m["limit"])
+    assert len(cor.u) < 200
+    sh, wr = math.asin(m["shoulder"]), math.asin(m["wrist"])
+    lo, up = np.asarray(arm.lower) + m["limit"], np.asarray(arm.upper) - m["limit"]
+    riding = 0
+    for i in range(1, len(cor.u)):
+        um = 0.5 * (cor.u[i - 1] + cor.u[i])
+        sm = 0.5 * (cor.swivel[i - 1] + cor.swivel[i])
+        qm = arm.ik(route_pose(T0, T1, um), sm, limits=False)[cor.pattern]
+        qm = qm + TWO_PI * np.round((cor.q[i - 1] - qm) / TWO_PI)
+        assert np.all(qm >= lo - MID_SHARE * m["limit"]) and np.all(qm <= up + MID_SHARE * m["limit"])
+        assert sh * (1.0 - MID_SHARE) <= abs(qm[1]) <= math.pi - sh * (1.0 - MID_SHARE)
+        assert wr * (1.0 - MID_SHARE) <= abs(qm[5]) <= math.pi - wr * (1.0 - MID_SHARE)
+        assert abs(qm[3]) >= m["elbow"] * (1.0 - MID_SHARE)
+        riding += abs(qm[1]) < sh - 1e-9
+    assert riding  # (the case in point: some midpoints do pass the shoulder margin)
+
+
 def test_bad_input_is_refused():
     arm = ARMS["pa10"]
     q0 = np.array([0.3, 0.35, 0.2, 1.4, 0.3, 0.9, 0.1])

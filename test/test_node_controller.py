@@ -448,12 +448,12 @@ def test_parameters(ctx: Any) -> None:
 
 
 def test_the_corridor_route_is_a_node_parameter() -> None:
-    """``corridor`` (read-only, default the table's false) switches the controller's corridor route."""
+    """``corridor`` (read-only, default the table's true) switches the controller's corridor route."""
     spec = {p.name: p for p in PARAMS}["corridor"]
-    assert spec.default is False and spec.read_only
+    assert spec.default is True and spec.read_only
     values = {p.name: p.default for p in PARAMS}
-    assert controller_params(values).replan.corridor is False
-    assert controller_params({**values, "corridor": True}).replan.corridor is True
+    assert controller_params(values).replan.corridor is True
+    assert controller_params({**values, "corridor": False}).replan.corridor is False
 
 
 def test_marker_obstacle_round_trip() -> None:

@@ -204,6 +204,11 @@ class ReachController:
     #: per rejected goal, in the control step's thread).
     BASE_MOVE_BUDGET_S = 0.1
 
+    #: False (the node): the arm holds while the worker thread plans a point goal's corridor route, the
+    #: steps go on. True: the step after the goal waits for the plan, so an in-process run (tests,
+    #: benches) does not depend on the thread's speed
+    wait_for_plans = False
+
     def __init__(self, arm: ControlledArm, scene: Scene | None = None,
                  params: ControllerParams | None = None) -> None:
         refused = controller_refusal(arm) or self.refusal(arm)
@@ -576,7 +581,7 @@ class ReachController:
         the plan's outcome, then the attractor law."""
         p = self.params
         if st.corridor_plan is not None:
-            if not st.corridor_plan.done():  # the arm holds while the worker thread plans
+            if not self.wait_for_plans and not st.corridor_plan.done():  # the arm holds while it plans
                 st.ref.qd = np.zeros_like(st.ref.q)
                 self.command.track(st, dt)
                 return

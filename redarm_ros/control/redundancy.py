@@ -42,13 +42,19 @@ from redarm_ros.control.stream_swivel import (
 )
 from redarm_ros.control.swivel_dynamics import SwivelDynamics, SwivelForces, wrap_angle
 from redarm_ros.control.types import GoalCheck, Phase, Quat, Vec3
-from redarm_ros.errors import UnreachableError
+from redarm_ros.errors import InvalidInputError, UnreachableError
 from redarm_ros.geometry.broadphase import SceneIndex
 from redarm_ros.geometry.obstacles import Scene
 from redarm_ros.kinematics.protocols import ControlledSwivelArm
 
 #: swivels sampled along the goal's in-limit swivel interval to find where the elbow can rest
 REST_SAMPLES = 64
+
+#: a corridor route whose minimum-jerk profile in progress would take longer than this many times a
+#: joint-space move (or SLOW_SLACK s more) is paced (:func:`~redarm_ros.control.corridor_route.route_pace`)
+PACE_AFTER = 4.0
+#: s: the least extra time a corridor route may take beyond a joint-space move (replan.corridor_max_slowdown)
+SLOW_SLACK = 8.0
 
 #: the planning of a corridor route, run in a worker thread: the route, or None and why there is none
 CorridorJob = Callable[[], tuple[CorridorRoute | None, str]]
@@ -623,21 +629,29 @@ class SwivelRedundancy:
         route, or None and why there is none."""
         rp = p.replan
         arm, q0 = self.arm, st.ref.q.copy()
-        T0, T1 = pose_matrix(st.ref.pos, st.ref.rot), np.array(T, float)
+        # the route starts at the pose of the reference's joints: the reference pose may be off it by
+        # the IK step's residual (0.15 mm seen), and the corridor starts from a solution of its start
+        T0, T1 = np.asarray(arm.fk(q0), float), np.array(T, float)
         max_vel, max_acc = self.bounds.max_vel.copy(), self.bounds.max_acc.copy()
 
         def job() -> tuple[CorridorRoute | None, str]:
-            # the longest route taken: a straight route is worth more patience than the attractor's
-            # route. A route slower than that in u is paced (it slows where joints 1 and 3 swing near a
-            # singularity)
+            # the longest route taken (replan.corridor_max_slowdown): a straight route is worth more
+            # patience than the attractor's route. A route slower than PACE_AFTER times a joint-space move
+            # in u is paced (it slows where joints 1 and 3 swing near a singularity)
             q_near, _ = arm.ik_nearest(T1, q0)
-            t_most, t_joint = math.inf, math.nan
+            t_most, t_pace, t_joint = math.inf, math.inf, math.nan
             if q_near is not None:
                 t_joint = move_time(np.asarray(q_near, float) - q0, max_vel, max_acc)
-                t_most = max(2.0 * rp.slow_route * t_joint, t_joint + 8.0)
-            route, why = plan_route(arm, T0, T1, q0, None, rp.corridor_sing_margin, rp.corridor_limit_margin,
-                                    p.speed.v_max, p.max_ori_rate, p.swivel.max_rate, max_vel, max_acc,
-                                    rp.corridor_share, pace_after=t_most)
+                t_pace = max(PACE_AFTER * t_joint, t_joint + SLOW_SLACK)
+                if rp.corridor_max_slowdown > 0.0:
+                    t_most = max(rp.corridor_max_slowdown * t_joint, t_joint + SLOW_SLACK)
+            try:
+                route, why = plan_route(arm, T0, T1, q0, None, rp.corridor_sing_margin,
+                                        rp.corridor_limit_margin, p.speed.v_max, p.max_ori_rate,
+                                        p.swivel.max_rate, max_vel, max_acc, rp.corridor_share,
+                                        pace_after=min(t_most, t_pace))
+            except (InvalidInputError, UnreachableError) as e:  # (a start the corridor cannot take)
+                return None, f"the corridor cannot start here: {e}"
             if route is not None and route.duration > t_most:
                 return None, (f"its route needs {route.duration:.1f} s of joint motion, a joint-space move "
                               f"{t_joint:.1f} s")

@@ -27,13 +27,16 @@ reachable set becomes empty the corridor is closed, and the constraints that clo
 
 Between samples (adaptive refinement, not a derivative bound): a step of the route is halved, down to
 ``min_du``, (1) where the number of corridor intervals changes or an interval end moves by more than
-``end_step`` rad between neighbouring samples, so every opening and closing of the corridor is located
-to ``min_du``; (2) where the schedule's joints change by more than ``max_joint_step`` rad between
-neighbouring samples, or the step's midpoint (its pose on the route and the mean swivel, solved in
-closed form) breaks a constraint. So each step of the result is checked at both ends and its midpoint,
-with every joint moving at most ``max_joint_step``; a constraint region that rises and falls within
-half a refined step, between those three points, could still be passed by. The margins are the buffer
-for that: the joint limits themselves are kept (checked) at every sample.
+``end_step`` rad between neighbouring samples, so every opening and closing of the corridor up to where
+it closes is located to ``min_du`` (the steps are refined as the forward pass reaches them); (2) where
+the schedule's joints change by more than ``max_joint_step`` rad between neighbouring samples, or the
+step's midpoint (its pose on the route and the mean swivel, solved in closed form) passes a bound by
+more than MID_SHARE of its margin (a schedule riding a curved bound sags past it between samples). So
+each step of the result is checked at both ends and its midpoint, with every joint moving at most
+``max_joint_step``; a constraint region that rises and falls within half a refined step, between those
+three points, could still be passed by. The margins are the buffer for that: the joint limits
+themselves are kept (checked) at every sample. A refinement pass repeats the forward pass only from
+the first sample it adds (the pass is causal).
 
 Units: m, rad. Quaternions are (w, x, y, z).
 """
@@ -55,7 +58,7 @@ from redarm_ros.kinematics.feasible import (
     INTERVAL_ROOT_TOL,
     LimitTables,
     SwivelFunctions,
-    feasible_intervals,
+    pattern_intervals,
     roots,
 )
 from redarm_ros.kinematics.quaternion import (
@@ -78,6 +81,11 @@ TWO_PI = 2.0 * math.pi
 CHECK_TOL = 1e-9
 #: most samples of the route (the refinement stops there)
 MAX_SAMPLES = 2000
+#: share of a bound's margin (the limit margin, the singularity margins) by which a step's midpoint may pass
+#: that bound before the step is refined: a schedule that rides a curved bound of the corridor has midpoints
+#: beyond it by the chord's sag, which only shrinks 4 times per halving (refining that to CHECK_TOL took
+#: hundreds of samples, for a sag of thousandths of the margin)
+MID_SHARE = 0.02
 
 #: the preferred swivel (rad) at progress u and pose T (4x4), or a constant
 PreferredSwivel = Callable[[float, np.ndarray], float]
@@ -178,13 +186,17 @@ class _Corridor:
         b = self.pattern
         self.sign = np.array([ALT_SIGN[j, ALT_INDEX[b, j]] for j in range(7)])
         self.shift = np.array([ALT_SHIFT[j, ALT_INDEX[b, j]] for j in range(7)])
-        self.lo, self.up = self._bounds()
+        self.lo, self.up, self.lo_tol, self.up_tol = self._bounds()
         self.tab = LimitTables(self.lo, self.up, INTERVAL_ROOT_TOL) if np.all(self.lo <= self.up) else None
         self.wide = [j for j in range(7) if self.up[j] - self.lo[j] >= TWO_PI - 2e-10]
+        self.wide_pivots = all(j % 2 == 0 for j in self.wide)
+        self.wide_rows = [j // 2 for j in self.wide] + [4 + j // 2 for j in self.wide]  # rows X, then Y
         # grid step (rad) along a piece for the wide joints' continuous value: a pivot turns at most about
         # 1 / m rad per rad of swivel at a hinge margin m, so consecutive grid values differ by ~1.5 < pi
         self.h = min(0.05, 1.5 * min(self.m["shoulder"], self.m["wrist"]))
         self.cache: dict[float, _Sample] = {}
+        self.frontier = 0.0  # progress from which the initial steps are not refined yet (topology_grid)
+        self.rows: dict[tuple[float, float], np.ndarray] = {}  # ik rows on the pattern by (u, swivel)
 
     # -- set-up ----------------------------------------------------------------------------------
     def _pattern(self) -> int:
@@ -199,23 +211,26 @@ class _Corridor:
                                     field="q_start", value=self.q_start)
         return b
 
-    def _bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        """Per joint the bounds on its value on the start's flip pattern: limits and singularity margins."""
+    def _bounds(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Per joint the bounds on its value on the start's flip pattern (limits and singularity margins),
+        and how far a step's midpoint may pass each (MID_SHARE of the margin that sets it)."""
         arm, m = self.arm, self.m
         lo = np.asarray(arm.lower, float) + m["limit"]
         up = np.asarray(arm.upper, float) - m["limit"]
+        lo_tol, up_tol = np.full(7, MID_SHARE * m["limit"]), np.full(7, MID_SHARE * m["limit"])
         f2, f4, f6 = (self.pattern >> 2) & 1, (self.pattern >> 1) & 1, self.pattern & 1
         for j, flip, key in ((1, f2, "shoulder"), (5, f6, "wrist")):
             a = math.asin(min(m[key], 1.0))
-            if flip == 0:
-                lo[j], up[j] = max(lo[j], a), min(up[j], PI - a)
-            else:
-                lo[j], up[j] = max(lo[j], a - PI), min(up[j], -a)
-        if f4 == 0:
-            lo[3] = max(lo[3], m["elbow"])
-        else:
-            up[3] = min(up[3], -m["elbow"])
-        return lo, up
+            lo_a, up_a = (a, PI - a) if flip == 0 else (a - PI, -a)
+            if lo_a > lo[j]:
+                lo[j], lo_tol[j] = lo_a, MID_SHARE * a
+            if up_a < up[j]:
+                up[j], up_tol[j] = up_a, MID_SHARE * a
+        if f4 == 0 and m["elbow"] > lo[3]:
+            lo[3], lo_tol[3] = m["elbow"], MID_SHARE * m["elbow"]
+        elif f4 == 1 and -m["elbow"] < up[3]:
+            up[3], up_tol[3] = -m["elbow"], MID_SHARE * m["elbow"]
+        return lo, up, np.maximum(lo_tol, CHECK_TOL), np.maximum(up_tol, CHECK_TOL)
 
     # -- per sample ------------------------------------------------------------------------------
     def sample(self, u: float) -> _Sample:
@@ -230,7 +245,7 @@ class _Corridor:
         if fn is None or self.tab is None:
             ivs = np.empty((0, 2))
         else:
-            ivs = feasible_intervals(fn, self.tab)[self.pattern]
+            ivs = pattern_intervals(fn, self.tab, self.pattern)
         smp = _Sample(u, T, fn, ivs)
         self.cache[u] = smp
         return smp
@@ -239,22 +254,32 @@ class _Corridor:
         """(7, M) joint values on the start's pattern at swivels s (pivot joints in (-pi, pi] + shift)."""
         return fn.angles(np.asarray(s, float)) * self.sign[:, None] + self.shift[:, None]
 
-    def _wide_roots(self, fn: SwivelFunctions, lo: float, hi: float) -> list[float]:
+    def _wide_angles(self, fn: SwivelFunctions, s: np.ndarray) -> np.ndarray:
+        """(len(wide), M) the wide joints' values as :meth:`angles` gives them, computed for those only
+        (pivot joints: atan2 of two rows of the closed form)."""
+        if not self.wide_pivots:
+            return self.angles(fn, s)[self.wide]
+        P = fn.K[self.wide_rows] @ np.stack([np.ones_like(s), np.cos(s), np.sin(s)])
+        n = len(self.wide)
+        th = np.arctan2(P[n:], P[:n])
+        for k, j in enumerate(self.wide):
+            if (j == 0 and fn.deg_shoulder) or (j == 4 and fn.deg_wrist):
+                th[k] = 0.0
+        return th * self.sign[self.wide][:, None] + self.shift[self.wide][:, None]
+
+    def _wide_roots(self, fn: SwivelFunctions, lo: float, hi: float) -> np.ndarray:
         """Swivels in [lo, hi] where a wide joint equals one of its bounds (mod pi): closed-form roots."""
-        out: list[float] = []
-        K = fn.K
-        for j in self.wide:
-            p = j // 2
-            for L in (self.lo[j], self.up[j]):
-                E = (-math.sin(L) * K[p] + math.cos(L) * K[p + 4])[None, :]
-                for r in roots(E):
-                    x = float(r[0])
-                    if x == x:
-                        base = lo + (x - lo) % TWO_PI
-                        while base <= hi:
-                            out.append(base)
-                            base += TWO_PI
-        return out
+        L = np.concatenate([self.lo[self.wide], self.up[self.wide]])
+        p = np.array([j // 2 for j in self.wide] * 2)
+        E = -np.sin(L)[:, None] * fn.K[p] + np.cos(L)[:, None] * fn.K[p + 4]
+        x = np.concatenate(roots(E))
+        x = x[x == x]
+        base = lo + (x - lo) % TWO_PI
+        out = [base[base <= hi]]
+        while len(out[-1]):
+            nxt = out[-1] + TWO_PI
+            out.append(nxt[nxt <= hi])
+        return np.concatenate(out)
 
     def _wide_grid(self, smp: _Sample, J: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
         """Along the stretch J of sample smp: the swivels (bounds roots, a grid of step h, and the mid
@@ -271,7 +296,9 @@ class _Corridor:
         allp = np.empty(2 * len(pts) - 1)
         allp[0::2] = pts
         allp[1::2] = 0.5 * (pts[1:] + pts[:-1])
-        V = np.unwrap(self.angles(smp.fn, allp)[self.wide], axis=1)
+        A = self._wide_angles(smp.fn, allp)
+        V = A.copy()  # unwrapped along the grid: each step taken as the nearest 2 pi copy
+        V[:, 1:] -= TWO_PI * np.cumsum(np.round(np.diff(A, axis=1) / TWO_PI), axis=1)
         smp.grids[key] = (allp, V)
         return allp, V
 
@@ -322,23 +349,33 @@ class _Corridor:
         allp, V = self._wide_grid(smp, J)
         i = min(int(np.searchsorted(allp, s)), len(allp) - 1)
         approx = V[:, i] + shift
-        base = self.angles(smp.fn, np.array([s]))[self.wide, 0]
+        base = self._wide_angles(smp.fn, np.array([s]))[:, 0]
         return base + TWO_PI * np.round((approx - base) / TWO_PI)
 
     # -- refinement of the samples ---------------------------------------------------------------
     def topology_grid(self, n0: int) -> list[float]:
-        us = list(np.linspace(0.0, 1.0, n0 + 1))
+        """The initial samples: n0 even steps, each halved (up to 12 times, down to min_du) where the
+        corridor's intervals change between its ends (:meth:`_changes`). Lazily: a step is refined when
+        the forward pass reaches it (:meth:`_refine_step`), so a corridor that closes early leaves the
+        rest of the route unsampled; ``frontier`` is the progress from which the steps are not refined."""
+        self.frontier = 0.0
+        return list(np.linspace(0.0, 1.0, n0 + 1))
+
+    def _refine_step(self, ua: float, ub: float, n_now: int) -> list[float]:
+        """The samples strictly inside the initial step [ua, ub] (see :meth:`topology_grid`): rounds of
+        halving every part whose ends' intervals change."""
+        us = [ua, ub]
         for _ in range(12):
             new: list[float] = []
-            for ua, ub in zip(us[:-1], us[1:], strict=True):
-                if ub - ua <= self.min_du or len(us) + len(new) >= MAX_SAMPLES:
+            for a, b in zip(us[:-1], us[1:], strict=True):
+                if b - a <= self.min_du or n_now + len(us) - 2 + len(new) >= MAX_SAMPLES:
                     continue
-                if self._changes(self.sample(ua).intervals, self.sample(ub).intervals):
-                    new.append(0.5 * (ua + ub))
+                if self._changes(self.sample(a).intervals, self.sample(b).intervals):
+                    new.append(0.5 * (a + b))
             if not new:
                 break
             us = sorted(us + new)
-        return us
+        return us[1:-1]
 
     def _changes(self, A: np.ndarray, B: np.ndarray) -> bool:
         if len(A) != len(B):
@@ -349,14 +386,26 @@ class _Corridor:
         return bool(d.max() > self.end_step)
 
     # -- propagation -----------------------------------------------------------------------------
-    def forward(self, us: list[float]) -> tuple[list[list[_Piece]], int | None, list[int]]:
+    def forward(self, us: list[float], prev: tuple[list[float], list[list[_Piece]], list[int]] | None = None
+                ) -> tuple[list[list[_Piece]], int | None, list[int]]:
         """Reachable pieces per sample; the index of the first sample with none (None if all have some);
         the steps (index of their end) where an interval was within the rate bound of a piece but did not
         overlap the piece's own interval (to refine if the corridor closes).
 
         A piece at sample i reaches only swivels of sample i + 1 that lie in its own corridor interval at
         sample i too: the two samples' intervals must overlap, so a gap between two intervals that moves
-        along the route is never jumped (the refinement locates where the overlap ends)."""
+        along the route is never jumped (the refinement locates where the overlap ends).
+
+        ``prev``: the samples, levels and misses of an earlier pass over samples that ``us`` refines. The
+        pass is causal (level i depends on the samples up to i only), so the levels before the first
+        sample added are that pass's, unchanged."""
+        if prev is not None:
+            us_old, levels_old, misses_old = prev
+            k = 0
+            while k < min(len(us), len(us_old), len(levels_old)) and us[k] == us_old[k] and levels_old[k]:
+                k += 1
+            if k >= 1:
+                return self._propagate(us, levels_old[:k], [i for i in misses_old if i < k])
         smp0 = self.sample(us[0])
         for a, b in smp0.intervals:
             x = a + (self.s0 - a) % TWO_PI
@@ -373,9 +422,16 @@ class _Corridor:
             if not runs:
                 return [[]], 0, []
             run = (runs[0][0], runs[0][1])
-        levels = [[_Piece(self.s0, self.s0, J, shift, run, [])]]
-        misses: list[int] = []
-        for i in range(1, len(us)):
+        return self._propagate(us, [[_Piece(self.s0, self.s0, J, shift, run, [])]], [])
+
+    def _propagate(self, us: list[float], levels: list[list[_Piece]], misses: list[int]
+                   ) -> tuple[list[list[_Piece]], int | None, list[int]]:
+        """:meth:`forward` from the last of the given ``levels`` on (they and ``misses`` are extended)."""
+        i = len(levels)
+        while i < len(us):
+            if us[i - 1] >= self.frontier:  # an initial step not refined yet (beyond every added sample)
+                self.frontier = us[i]
+                us[i:i] = self._refine_step(us[i - 1], us[i], len(us))
             prev = levels[-1]
             smp_p, smp = self.sample(us[i - 1]), self.sample(us[i])
             d = self.max_rate * (us[i] - us[i - 1])
@@ -396,6 +452,7 @@ class _Corridor:
             levels.append(out)
             if not out:
                 return levels, i, misses
+            i += 1
         return levels, None, misses
 
     def _add(self, out: list[_Piece], smp_p: _Sample, P: _Piece, smp: _Sample, J: tuple[float, float],
@@ -461,8 +518,15 @@ class _Corridor:
         return sched, pieces
 
     # -- checks ----------------------------------------------------------------------------------
-    def solve(self, T: np.ndarray, s: float, q_prev: np.ndarray) -> np.ndarray:
-        row = self.arm.ik(T, s, limits=False)[self.pattern]
+    def solve(self, u: float, s: float, q_prev: np.ndarray) -> np.ndarray:
+        """The joints on the start's pattern at progress u and swivel s, the 2 pi copy nearest q_prev."""
+        key = (u, s)  # (a refinement pass solves the same samples again where the schedule kept them)
+        row = self.rows.get(key)
+        if row is None:
+            smp = self.cache.get(u)
+            T = smp.T if smp is not None else _route_pose(self.T0, self.T1, self.q0r, self.rv, u)
+            row = self.arm.ik(T, s, limits=False)[self.pattern]
+            self.rows[key] = row
         return row + TWO_PI * np.round((q_prev - row) / TWO_PI)
 
     def violations(self, q: np.ndarray) -> list[str]:
@@ -488,15 +552,15 @@ class _Corridor:
         Q[0] = self.q_start
         bad: list[float] = []
         for i in range(1, len(us)):
-            Q[i] = self.solve(self.sample(us[i]).T, sched[i], Q[i - 1])
+            Q[i] = self.solve(us[i], sched[i], Q[i - 1])
             step = float(np.max(np.abs(Q[i] - Q[i - 1])))
             mid_bad = False
             if step > 1e-12:
                 um = 0.5 * (us[i - 1] + us[i])
-                Tm = _route_pose(self.T0, self.T1, self.q0r, self.rv, um)
-                qm = self.solve(Tm, 0.5 * (sched[i - 1] + sched[i]), Q[i - 1])
+                qm = self.solve(um, 0.5 * (sched[i - 1] + sched[i]), Q[i - 1])
                 jump = float(np.max(np.abs(qm - Q[i - 1])))
-                mid_bad = bool(self.violations(qm)) or jump > self.max_joint_step
+                mid_bad = jump > self.max_joint_step or bool(np.any(qm < self.lo - self.lo_tol)) \
+                    or bool(np.any(qm > self.up + self.up_tol))
             du = us[i] - us[i - 1]
             # (near a singularity margin the pivot joints turn up to 1 / margin times faster than the
             # swivel: these steps may go below min_du)
@@ -612,8 +676,10 @@ def swivel_corridor(
     cor = _Corridor(arm, Ta, Tb, q0, margins, float(max_rate), pref, float(max_joint_step), float(min_du),
                     float(end_step))
     us = cor.topology_grid(samples)
+    prev = None
     for _ in range(24):
-        levels, closed, misses = cor.forward(us)
+        levels, closed, misses = cor.forward(us, prev)
+        prev = (us, levels, misses)
         if closed is not None:
             # locate the closing to min_du, and resolve where an interval was lost for want of overlap
             add = {0.5 * (us[i - 1] + us[i]) for i in [*misses, closed] if 0 < i <= closed

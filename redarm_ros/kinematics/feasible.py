@@ -68,6 +68,7 @@ __all__ = [
     "SwivelFunctions",
     "swivel_functions",
     "feasible_intervals",
+    "pattern_intervals",
     "nearest",
     "NearestResult",
     "roots",
@@ -517,48 +518,62 @@ def feasible_intervals(fn: SwivelFunctions, tab: LimitTables) -> list[np.ndarray
     may run past pi); the whole circle is [-pi, pi]. Ends are closed-form roots; an isolated feasible
     swivel (a joint touching a limit) is a zero-width row. Rows are sorted by start.
     """
+    crit, ok = _feasible_arcs(fn, tab)
+    return [_pattern_rows(crit, ok[b]) for b in range(8)]
+
+
+def pattern_intervals(fn: SwivelFunctions, tab: LimitTables, pattern: int) -> np.ndarray:
+    """``feasible_intervals(fn, tab)[pattern]``, computed for that flip pattern only."""
+    crit, ok = _feasible_arcs(fn, tab)
+    return _pattern_rows(crit, ok[pattern])
+
+
+def _feasible_arcs(fn: SwivelFunctions, tab: LimitTables) -> tuple[np.ndarray, np.ndarray]:
+    """The critical swivels (sorted, n) and per pattern whether every joint is feasible (8, P): on the
+    n arcs between them (their mid points) first, then at the n critical swivels."""
     crit = _critical(fn, tab)
     n = len(crit)
     mids = (crit + np.append(crit[1:], crit[0] + TWO_PI)) / 2.0 if n else np.array([0.0])
     pts = np.concatenate([mids, crit])
     _, feas = tab.fit(_alternatives(fn.angles(pts)), None)
-    ok = (_SEL @ np.where(feas, 0.0, 1.0).reshape(14, -1)) < 0.5  # (8, P): every joint feasible
-    nm = len(mids)
-    out: list[np.ndarray] = []
+    return crit, (_SEL @ np.where(feas, 0.0, 1.0).reshape(14, -1)) < 0.5
+
+
+def _pattern_rows(crit: np.ndarray, ok_b: np.ndarray) -> np.ndarray:
+    """One pattern's intervals (see :func:`feasible_intervals`) from :func:`_feasible_arcs`."""
+    n = len(crit)
+    nm = max(n, 1)
+    arc_ok = ok_b[:nm]
+    if n == 0 or arc_ok.all():
+        return np.array([[-PI, PI]]) if arc_ok.all() else np.empty((0, 2))
+    pt_ok = ok_b[nm:]
     crit_l = crit.tolist()
-    for b in range(8):
-        arc_ok = ok[b, :nm]
-        if n == 0 or arc_ok.all():
-            out.append(np.array([[-PI, PI]]) if arc_ok.all() else np.empty((0, 2)))
-            continue
-        pt_ok = ok[b, nm:]
-        rows: list[list[float]] = []
-        start = int(np.argmin(arc_ok))  # an infeasible arc: every feasible run is contiguous after it
-        cur: list[float] | None = None
-        for t in range(n):
-            i = (start + 1 + t) % n  # arc i runs from crit[i] to crit[i + 1]
-            a = crit_l[i]
-            if arc_ok[i]:
-                end = crit_l[i + 1] if i + 1 < n else crit_l[0] + TWO_PI
-                if cur is None:
-                    cur = [a, end]
-                else:
-                    cur[1] = end if end >= cur[1] else end + TWO_PI
+    rows: list[list[float]] = []
+    start = int(np.argmin(arc_ok))  # an infeasible arc: every feasible run is contiguous after it
+    cur: list[float] | None = None
+    for t in range(n):
+        i = (start + 1 + t) % n  # arc i runs from crit[i] to crit[i + 1]
+        a = crit_l[i]
+        if arc_ok[i]:
+            end = crit_l[i + 1] if i + 1 < n else crit_l[0] + TWO_PI
+            if cur is None:
+                cur = [a, end]
             else:
-                if cur is not None:
-                    rows.append(cur)
-                    cur = None
-                if pt_ok[i] and not arc_ok[i - 1]:  # isolated: infeasible arcs on both sides
-                    rows.append([a, a])
-        if cur is not None:
-            rows.append(cur)
-        for r in rows:  # start in [-pi, pi)
-            w = r[1] - r[0]
-            r[0] = r[0] - TWO_PI if r[0] >= PI else r[0]
-            r[1] = r[0] + w
-        rows.sort()
-        out.append(np.array(rows) if rows else np.empty((0, 2)))
-    return out
+                cur[1] = end if end >= cur[1] else end + TWO_PI
+        else:
+            if cur is not None:
+                rows.append(cur)
+                cur = None
+            if pt_ok[i] and not arc_ok[i - 1]:  # isolated: infeasible arcs on both sides
+                rows.append([a, a])
+    if cur is not None:
+        rows.append(cur)
+    for r in rows:  # start in [-pi, pi)
+        w = r[1] - r[0]
+        r[0] = r[0] - TWO_PI if r[0] >= PI else r[0]
+        r[1] = r[0] + w
+    rows.sort()
+    return np.array(rows) if rows else np.empty((0, 2))
 
 
 # realise(swivel, pattern, predicted cost) -> (q, swivel, pattern, cost) of a solution as ``ik`` computes
