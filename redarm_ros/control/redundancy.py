@@ -15,11 +15,12 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Protocol
 
 import numpy as np
 
-from redarm_ros.control.corridor_route import CorridorRoute, plan_route
+from redarm_ros.control.corridor_route import CorridorRoute, plan_route, timed_route
 from redarm_ros.control.elbow import ArmGeometry, ElbowCircle, elbow_circle
 from redarm_ros.control.goal_check import check_goal, stream_feasibility
 from redarm_ros.control.goal_hint import BaseMoveHints
@@ -42,6 +43,7 @@ from redarm_ros.control.stream_swivel import (
 )
 from redarm_ros.control.swivel_dynamics import SwivelDynamics, SwivelForces, wrap_angle
 from redarm_ros.control.types import GoalCheck, Phase, Quat, Vec3
+from redarm_ros.control.via_route import ViaRoute, plan_via_route
 from redarm_ros.errors import UnreachableError
 from redarm_ros.geometry.broadphase import SceneIndex
 from redarm_ros.geometry.obstacles import Scene
@@ -547,11 +549,35 @@ class SwivelRedundancy:
                                     p.speed.v_max, p.max_ori_rate, p.swivel.max_rate, max_vel, max_acc,
                                     rp.corridor_share, pace_after=t_most)
             if route is not None and route.duration > t_most:
-                return None, (f"its route needs {route.duration:.1f} s of joint motion, a joint-space move "
-                              f"{t_joint:.1f} s")
+                route, why = None, (f"its route needs {route.duration:.1f} s of joint motion, a joint-space "
+                                    f"move {t_joint:.1f} s")
+            if route is None and q_near is not None:
+                # no straight corridor: two straight legs through the via pose nearest the line
+                via = self._via_route(p, T0, T1, q0, max_vel, max_acc, t_most)
+                if via is not None:
+                    return replace(via, why=why), why
             return route, why
 
         return job
+
+    def _via_route(self, p: ControllerParams, T0: np.ndarray, T1: np.ndarray, q0: np.ndarray,
+                   max_vel: np.ndarray, max_acc: np.ndarray, t_most: float) -> ViaRoute | None:
+        """The route from (T0, q0) to T1 through a via pose (:mod:`~redarm_ros.control.via_route`) that
+        takes at most ``t_most`` s, or None (runs in the worker thread: no controller state)."""
+        rp = p.replan
+        timing = (p.speed.v_max, p.max_ori_rate, p.swivel.max_rate, max_vel, max_acc, rp.corridor_share)
+
+        def leg(Ta: np.ndarray, Tb: np.ndarray, qa: np.ndarray, preferred: float | None
+                ) -> tuple[CorridorRoute | None, str]:
+            return plan_route(self.arm, Ta, Tb, qa, preferred, rp.corridor_sing_margin,
+                              rp.corridor_limit_margin, *timing)
+
+        def timer(route: CorridorRoute, length: float, angle: float) -> CorridorRoute:
+            return timed_route(route, length, angle, *timing, pace_after=t_most)
+
+        via, _search = plan_via_route(self.arm, T0, T1, q0, rp.corridor_sing_margin, rp.corridor_limit_margin,
+                                      leg, timer, max_duration=t_most)
+        return via
 
     def new_planner(self, st: CoreState, p: ControllerParams, T: np.ndarray, scene: Scene) -> PathSearch:
         """The resumable joint-space search towards tool pose ``T`` in ``scene``, the elbow towards its
