@@ -43,7 +43,7 @@ from redarm_ros.control.stream_swivel import (
 )
 from redarm_ros.control.swivel_dynamics import SwivelDynamics, SwivelForces, wrap_angle
 from redarm_ros.control.types import GoalCheck, Phase, Quat, Vec3
-from redarm_ros.control.via_route import ViaRoute, plan_via_route
+from redarm_ros.control.via_route import ViaRoute, ViaSearch, plan_via_route
 from redarm_ros.errors import UnreachableError
 from redarm_ros.geometry.broadphase import SceneIndex
 from redarm_ros.geometry.obstacles import Scene
@@ -553,17 +553,20 @@ class SwivelRedundancy:
                                     f"move {t_joint:.1f} s")
             if route is None and q_near is not None:
                 # no straight corridor: two straight legs through the via pose nearest the line
-                via = self._via_route(p, T0, T1, q0, max_vel, max_acc, t_most)
+                via, search = self._via_route(p, T0, T1, q0, max_vel, max_acc, t_most)
                 if via is not None:
                     return replace(via, why=why), why
+                why += f"; no via route: {search.summary()}"
             return route, why
 
         return job
 
     def _via_route(self, p: ControllerParams, T0: np.ndarray, T1: np.ndarray, q0: np.ndarray,
-                   max_vel: np.ndarray, max_acc: np.ndarray, t_most: float) -> ViaRoute | None:
+                   max_vel: np.ndarray, max_acc: np.ndarray, t_most: float
+                   ) -> tuple[ViaRoute | None, ViaSearch]:
         """The route from (T0, q0) to T1 through a via pose (:mod:`~redarm_ros.control.via_route`) that
-        takes at most ``t_most`` s, or None (runs in the worker thread: no controller state)."""
+        takes at most ``t_most`` s, or None; and what the search did (runs in the worker thread: no
+        controller state)."""
         rp = p.replan
         timing = (p.speed.v_max, p.max_ori_rate, p.swivel.max_rate, max_vel, max_acc, rp.corridor_share)
 
@@ -575,9 +578,8 @@ class SwivelRedundancy:
         def timer(route: CorridorRoute, length: float, angle: float) -> CorridorRoute:
             return timed_route(route, length, angle, *timing, pace_after=t_most)
 
-        via, _search = plan_via_route(self.arm, T0, T1, q0, rp.corridor_sing_margin, rp.corridor_limit_margin,
-                                      leg, timer, max_duration=t_most)
-        return via
+        return plan_via_route(self.arm, T0, T1, q0, rp.corridor_sing_margin, rp.corridor_limit_margin, leg,
+                              timer, max_duration=t_most)
 
     def new_planner(self, st: CoreState, p: ControllerParams, T: np.ndarray, scene: Scene) -> PathSearch:
         """The resumable joint-space search towards tool pose ``T`` in ``scene``, the elbow towards its

@@ -246,6 +246,12 @@ class ViaSearch:
     planned: int = 0
     why: str = ""
 
+    def summary(self) -> str:
+        """What ``~/state`` says when no via route was found."""
+        if not self.planned:
+            return f"none of {self.tried} via poses passed the screen"
+        return f"{self.planned} via poses planned, the last: {self.why}"
+
 
 def plan_via_route(arm: Any, T0: np.ndarray, T1: np.ndarray, q0: np.ndarray, margin_sing: float,
                    margin_limit: float, plan_leg: LegPlanner, timer: LegTimer, max_duration: float = math.inf,
