@@ -107,6 +107,11 @@ def test_no_straight_corridor_but_a_via_route_checked_by_brute_force():
     # the progress of a pose on the route is found again (off the corner arc)
     for u in (0.1, 0.3, 0.9):
         assert route.progress_of(*route.pose(u)) == pytest.approx(u, abs=1e-6)
+    # the progress is proportional to the path length, the corner arc included (a minimum-jerk profile
+    # in progress is one in the hand's speed: a single peak)
+    step = np.linalg.norm(np.diff(P, axis=0), axis=1)
+    assert route.blend > 0.0
+    assert float(step.max() / step.min()) < 1.02, (step.min(), step.max())
 
 
 def test_the_controller_takes_the_via_route_before_the_joint_space_planner():
@@ -140,3 +145,19 @@ def test_the_controller_takes_the_via_route_before_the_joint_space_planner():
     rise, fall = v[: peak + 1], v[peak:]
     assert np.all(np.diff(rise) >= -0.1 * v[peak]) and np.all(np.diff(fall) <= 0.1 * v[peak])
     assert np.all(ctl.q >= arm.lower) and np.all(ctl.q <= arm.upper)
+
+
+def test_the_progress_is_proportional_to_the_path_length_round_the_corner():
+    """A via 1.22 times the line (a sharp corner): the Bezier parameter alone would slow the
+    hand at the corner by cos(turn / 2); the route's progress is proportional to the path length, so
+    the hand's speed follows the minimum-jerk profile there too."""
+    arm = load_arm("pa10")
+    T0, T1 = np.asarray(arm.fk(Q_START)), _orthonormal(T_GOAL)
+    leg, timer = _legs(arm)
+    route, search = plan_via_route(arm, T0, T1, Q_START, MARGIN_SING, MARGIN_LIMIT, leg, timer,
+                                   candidates=via_candidates(T0, T1, ratios=(1.22,)))
+    assert isinstance(route, ViaRoute), search
+    assert route.blend > 0.0
+    P = np.array([route.pose(float(u))[0] for u in np.linspace(0.0, 1.0, 2001)])
+    step = np.linalg.norm(np.diff(P, axis=0), axis=1)
+    assert float(step.max() / step.min()) < 1.02, (step.min(), step.max())

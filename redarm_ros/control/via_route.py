@@ -19,12 +19,12 @@ the line least:
   passed, leg 2 from leg 1's last configuration, so both keep the start's flip pattern), and the first
   whose two corridors exist (and whose route is not too slow) is taken.
 
-The route (:class:`ViaRoute`) is one minimum-jerk profile over both legs, progress shared by path
-length, the swivel on the two schedules joined. Around the via the corner is cut by a quadratic Bezier
-arc over ``BLEND`` of the shorter leg (at most ``BLEND_MAX`` m), tangent to both legs, so the hand's
-velocity is continuous; the joints along the arc are solved in closed form on the schedule's swivel and
-must keep the limits (``limit_margin`` / 2) and stay continuous, else the arc is halved (up to
-``BLEND_TRIES`` times) and, failing that, the candidate is dropped. Units: m, rad, s.
+The route (:class:`ViaRoute`) is one minimum-jerk profile over both legs, the progress proportional
+to the hand's path length, the swivel on the two schedules joined. Around the via the corner is cut by
+a quadratic Bezier arc over ``BLEND`` of the shorter leg (at most ``BLEND_MAX`` m), tangent to both
+legs, so the hand's velocity is continuous; the joints along the arc are solved in closed form on the
+schedule's swivel and must keep the limits (``limit_margin`` / 2) and stay continuous, else the arc is
+halved (up to ``BLEND_TRIES`` times) and, failing that, the candidate is dropped. Units: m, rad, s.
 """
 
 from __future__ import annotations
@@ -60,6 +60,8 @@ VIA_SWIVELS = 6
 BLEND = 0.3
 BLEND_MAX = 0.06
 BLEND_TRIES = 3
+#: samples of the table from progress to the nominal progress of the legs (see ``_by_length``)
+ARC_SAMPLES = 1001
 #: joint samples along the corner arc, and the largest joint change (rad) between two of them
 BLEND_SAMPLES = 16
 BLEND_JOINT_STEP = 0.15
@@ -133,6 +135,7 @@ class ViaRoute(CorridorRoute):
     blend: float = 0.0
     via: ViaCandidate | None = field(default=None, repr=False)
     why: str = ""  # why the straight route has no corridor
+    arc_u: np.ndarray | None = field(default=None, repr=False)  # see _by_length
 
     def message(self) -> str:
         """What ``~/state`` says while the hand is on the route: the via, and why not straight."""
@@ -141,6 +144,27 @@ class ViaRoute(CorridorRoute):
 
     def pose(self, u: float) -> tuple[tuple[float, float, float], tuple[float, float, float, float]]:
         """Position and orientation at progress u: on leg 1, the corner arc, leg 2."""
+        return self._pose_nominal(self._nominal(u))
+
+    def progress_of(self, pos: tuple[float, float, float], rot: tuple[float, float, float, float]) -> float:
+        """The progress of a pose: by the position's projection on the nearer leg."""
+        w = self.share
+        leg1, leg2 = self.legs
+        u1, u2 = leg1.progress_of(pos, rot), leg2.progress_of(pos, rot)
+        d1 = math.dist(pos, leg1.pose(u1)[0])
+        d2 = math.dist(pos, leg2.pose(u2)[0])
+        un = w + u2 * (1.0 - w) if u2 > 0.0 and (d2 < d1 or u1 >= 1.0) else u1 * w
+        if self.arc_u is None:
+            return un
+        return float(np.interp(un, self.arc_u, np.linspace(0.0, 1.0, len(self.arc_u))))
+
+    def _nominal(self, u: float) -> float:
+        """The nominal progress (leg 1 on [0, share], leg 2 on [share, 1]) at progress u."""
+        if self.arc_u is None:
+            return u
+        return float(np.interp(u, np.linspace(0.0, 1.0, len(self.arc_u)), self.arc_u))
+
+    def _pose_nominal(self, u: float) -> tuple[tuple[float, float, float], tuple[float, float, float, float]]:
         w, b = self.share, self.blend
         leg1, leg2 = self.legs
         pos, rot = leg1.pose(u / w) if u <= w else leg2.pose((u - w) / (1.0 - w))
@@ -151,17 +175,6 @@ class ViaRoute(CorridorRoute):
             p = (1.0 - tau) ** 2 * a + 2.0 * tau * (1.0 - tau) * np.array(leg1.p1) + tau * tau * c
             pos = (float(p[0]), float(p[1]), float(p[2]))
         return pos, rot
-
-    def progress_of(self, pos: tuple[float, float, float], rot: tuple[float, float, float, float]) -> float:
-        """The progress of a pose: by the position's projection on the nearer leg."""
-        w = self.share
-        leg1, leg2 = self.legs
-        u1, u2 = leg1.progress_of(pos, rot), leg2.progress_of(pos, rot)
-        d1 = math.dist(pos, leg1.pose(u1)[0])
-        d2 = math.dist(pos, leg2.pose(u2)[0])
-        if u2 > 0.0 and (d2 < d1 or u1 >= 1.0):
-            return w + u2 * (1.0 - w)
-        return u1 * w
 
 
 def _joined(arm: Any, route: ViaRoute, margin: float) -> ViaRoute | None:
@@ -204,7 +217,24 @@ def _joined(arm: Any, route: ViaRoute, margin: float) -> ViaRoute | None:
     cor = SwivelCorridor(True, u, swivel, Q, c1.pattern, narrow.narrowest,
                          narrow.narrowest_u * (w if narrow is c1 else 1.0 - w) + (0.0 if narrow is c1 else w),
                          None, "", float(steps.max()))
-    return replace(route, corridor=cor)
+    return _by_length(replace(route, corridor=cor))
+
+
+def _by_length(route: ViaRoute) -> ViaRoute:
+    """``route`` with the progress proportional to the hand's path length: on the corner arc the Bezier
+    parameter runs slower at the corner than at its ends, so the hand's speed would dip by up to
+    1 - cos(turn / 2) there (two speed peaks). The nominal progress at ARC_SAMPLES evenly spaced
+    values of the path-length share, and the schedule's samples moved to it."""
+    un = np.linspace(0.0, 1.0, ARC_SAMPLES)
+    P = np.array([route._pose_nominal(float(u))[0] for u in un])  # noqa: SLF001
+    cum = np.concatenate(([0.0], np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))))
+    if cum[-1] < 1e-9:
+        return route
+    share = cum / cum[-1]
+    cor = route.corridor
+    return replace(route, arc_u=np.interp(un, share, un),
+                   corridor=replace(cor, u=np.interp(cor.u, un, share),
+                                    narrowest_u=float(np.interp(cor.narrowest_u, un, share))))
 
 
 def join_legs(arm: Any, leg1: CorridorRoute, leg2: CorridorRoute, via: ViaCandidate, margin: float,
