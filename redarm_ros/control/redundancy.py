@@ -6,7 +6,8 @@ step (the attractor's and the servo's), the route check and the joint-space plan
 the goal check, and the swivel corridor. :class:`SwivelRedundancy` is the 7-DOF swivel arm's: the swivel
 dynamics (eq. 31 of the swivel paper) or the attractor paper's eq. 22-24, the elbow's rest swivel at a
 point goal, the pose-following swivel law while tracking, and the straight route through the swivel
-corridor; the 6-DOF arm's (no self-motion) is :class:`~redarm_ros.control.reach6.NoRedundancy`.
+corridor (without one, two straight legs through a via pose: :mod:`~redarm_ros.control.via_route`);
+the 6-DOF arm's (no self-motion) is :class:`~redarm_ros.control.reach6.NoRedundancy`.
 Methods take the controller's :class:`~redarm_ros.control.state.CoreState` and parameters. Units: m,
 rad, s.
 """
@@ -529,8 +530,8 @@ class SwivelRedundancy:
 
     def corridor_job(self, st: CoreState, p: ControllerParams, T: np.ndarray) -> CorridorJob:
         """The planning of the straight route to the point goal ``T`` through the swivel corridor, from
-        the reference as it is now: a function of copies (it runs in the worker thread) that returns the
-        route, or None and why there is none."""
+        the reference as it is now, or else of a via route: a function of copies (it runs in the worker
+        thread) that returns the route, or None and why there is none."""
         rp = p.replan
         arm, q0 = self.arm, st.ref.q.copy()
         T0, T1 = pose_matrix(st.ref.pos, st.ref.rot), np.array(T, float)
