@@ -161,3 +161,28 @@ def test_the_progress_is_proportional_to_the_path_length_round_the_corner():
     P = np.array([route.pose(float(u))[0] for u in np.linspace(0.0, 1.0, 2001)])
     step = np.linalg.norm(np.diff(P, axis=0), axis=1)
     assert float(step.max() / step.min()) < 1.02, (step.min(), step.max())
+
+
+def test_the_swivel_rate_does_not_jump_at_the_via():
+    """PowerCube 7 (the straight route closes on a joint limit at u = 0.48): leg 1 keeps its swivel, leg
+    2 starts turning at once; the joined schedule is averaged around the via, so the swivel's rate (per
+    unit progress) changes by less than 0.3 between samples 0.0025 apart (1.09 unsmoothed), and the
+    joints stay within their limits along it."""
+    arm = load_arm("powercube7")
+    q0 = np.array([-0.37709361888665444, 1.203691034840305, -1.5088488971604361, -1.387136491412343,
+                   1.5481072196422472, 1.9721170546113633, 0.6283754080940991])
+    T1 = _orthonormal(np.array([
+        [-0.5250500890049504, -0.8481459330311965, 0.07050447020250004, -0.04661411450594505],
+        [-0.818927266068361, 0.4809304886572355, -0.3131517171750985, 0.19094783851262384],
+        [0.23169060603678737, -0.2221583700033701, -0.9470824260389125, 0.49295020308385684],
+        [0.0, 0.0, 0.0, 1.0]]))
+    T0 = np.asarray(arm.fk(q0))
+    leg, timer = _legs(arm)
+    assert leg(T0, T1, q0, None)[0] is None
+    route, search = plan_via_route(arm, T0, T1, q0, MARGIN_SING, MARGIN_LIMIT, leg, timer)
+    assert isinstance(route, ViaRoute), search
+    us = np.linspace(0.0, 1.0, 401)
+    rate = np.diff([route.corridor.swivel_at(float(u)) for u in us]) / np.diff(us)
+    assert float(np.max(np.abs(np.diff(rate)))) < 0.3
+    Q = route.corridor.q
+    assert np.all(Q >= np.asarray(arm.lower) - 1e-9) and np.all(Q <= np.asarray(arm.upper) + 1e-9)

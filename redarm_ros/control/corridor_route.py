@@ -177,19 +177,28 @@ def smoothed(arm: Any, T0: np.ndarray, T1: np.ndarray, cor: SwivelCorridor, m_li
     0.15 rad of the sample before); else the schedule as it is. The backward pass leaves corners where
     the rate bound starts or ends; the command cannot follow a corner within the joints' acceleration
     limits without the hand leaving the line."""
+    return smoothed_along(arm, lambda u: route_pose(T0, T1, u), cor, m_limit, m_sing, m_elbow, window)
+
+
+def smoothed_along(arm: Any, pose_at: Any, cor: SwivelCorridor, m_limit: float, m_sing: float,
+                   m_elbow: float, window: float = 0.08, share: np.ndarray | None = None) -> SwivelCorridor:
+    """:func:`smoothed` for a route whose pose (4x4) at progress u is ``pose_at(u)``; ``share`` (per
+    sample, 0..1): how much of the average replaces the schedule there (None: all)."""
     u, S = cor.u, cor.swivel
     if len(u) < 3:
         return cor
     W = np.maximum(0.0, 1.0 - np.abs(u[:, None] - u[None, :]) / window)
     W *= np.gradient(u)[None, :]  # (uneven samples: weights per unit progress)
     S_new = (W @ S) / W.sum(axis=1)
+    if share is not None:
+        S_new = share * S_new + (1.0 - share) * S
     S_new[0] = S[0]
     lo = np.asarray(arm.lower) + 0.5 * m_limit
     up = np.asarray(arm.upper) - 0.5 * m_limit
     Q = np.empty_like(cor.q)
     Q[0] = cor.q[0]
     for i in range(1, len(u)):
-        row = arm.ik(route_pose(T0, T1, float(u[i])), float(S_new[i]), limits=False)[cor.pattern]
+        row = arm.ik(pose_at(float(u[i])), float(S_new[i]), limits=False)[cor.pattern]
         q = row + 2.0 * math.pi * np.round((Q[i - 1] - row) / (2.0 * math.pi))
         if np.any(q < lo) or np.any(q > up) or float(np.max(np.abs(q - Q[i - 1]))) > 0.15 \
                 or min(abs(math.sin(q[1])), abs(math.sin(q[5]))) < 0.5 * m_sing or abs(q[3]) < 0.5 * m_elbow:

@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from redarm_ros.control.corridor_route import CorridorRoute, RouteMargins, route_margins
+from redarm_ros.control.corridor_route import CorridorRoute, RouteMargins, route_margins, smoothed_along
 from redarm_ros.control.ik_step import pose_matrix
 from redarm_ros.kinematics.corridor import SwivelCorridor, corridor_screen, route_pose
 from redarm_ros.kinematics.quaternion import quat_from_rotvec, quat_mul, quat_normalize, rotvec_between
@@ -60,6 +60,8 @@ VIA_SWIVELS = 6
 BLEND = 0.3
 BLEND_MAX = 0.06
 BLEND_TRIES = 3
+#: half-width (progress) of the swivel's moving average around the via
+SMOOTH_WINDOW = 0.08
 #: samples of the table from progress to the nominal progress of the legs (see ``_by_length``)
 ARC_SAMPLES = 1001
 #: joint samples along the corner arc, and the largest joint change (rad) between two of them
@@ -217,6 +219,14 @@ def _joined(arm: Any, route: ViaRoute, margin: float) -> ViaRoute | None:
     cor = SwivelCorridor(True, u, swivel, Q, c1.pattern, narrow.narrowest,
                          narrow.narrowest_u * (w if narrow is c1 else 1.0 - w) + (0.0 if narrow is c1 else w),
                          None, "", float(steps.max()))
+    # the swivel's rate jumps where leg 2 starts (and at the legs' own rate-bound corners): smoothed as
+    # a corridor's schedule is, the closest approaches to the limits and singularities kept at least halved
+    slack = float(np.min(np.minimum(Q - np.asarray(arm.lower), np.asarray(arm.upper) - Q)))
+    m_sing = float(np.min(np.minimum(np.abs(np.sin(Q[:, 1])), np.abs(np.sin(Q[:, 5])))))
+    # (near the via only: the legs' ends keep their swivels, the goal's joints may be near a limit)
+    near = np.clip((b + 2.0 * SMOOTH_WINDOW - np.abs(u - w)) / SMOOTH_WINDOW, 0.0, 1.0)
+    cor = smoothed_along(arm, lambda uk: pose_matrix(*route.pose(uk)), cor, min(2.0 * margin, slack), m_sing,
+                         float(np.min(np.abs(Q[:, 3]))), SMOOTH_WINDOW, near)
     return _by_length(replace(route, corridor=cor))
 
 
