@@ -44,7 +44,7 @@ from redarm_ros.control.stream_swivel import (
 )
 from redarm_ros.control.swivel_dynamics import SwivelDynamics, SwivelForces, wrap_angle
 from redarm_ros.control.types import GoalCheck, Phase, Quat, Vec3
-from redarm_ros.control.via_route import ViaRoute, ViaSearch, plan_via_route
+from redarm_ros.control.via_route import VIA_SLACK, ViaRoute, ViaSearch, plan_via_route
 from redarm_ros.errors import UnreachableError
 from redarm_ros.geometry.broadphase import SceneIndex
 from redarm_ros.geometry.obstacles import Scene
@@ -554,7 +554,8 @@ class SwivelRedundancy:
                                     f"move {t_joint:.1f} s")
             if route is None and q_near is not None:
                 # no straight corridor: two straight legs through the via pose nearest the line
-                via, search = self._via_route(p, T0, T1, q0, max_vel, max_acc, t_most)
+                t_via = min(t_most, t_joint + VIA_SLACK)
+                via, search = self._via_route(p, T0, T1, q0, max_vel, max_acc, t_via)
                 if via is not None:
                     return replace(via, why=why), why
                 why += f"; no via route: {search.summary()}"
