@@ -53,7 +53,7 @@ MAX_PLANS = 3
 MAX_SCREENS = 100
 #: s: a via route takes at most this much longer than a joint-space move (and no longer than a straight
 #: corridor route may): a detour is worth less patience than the straight route
-VIA_SLACK = 5.0
+VIA_SLACK = 6.5
 #: route samples of the screen per leg
 SCREEN_SAMPLES = 16
 #: swivels at the via (evenly spaced, nearest the start's first) from which leg 2 is screened
