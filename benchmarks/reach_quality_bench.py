@@ -316,13 +316,24 @@ def miss_cause(m: Move) -> str:
     if no_corridor:
         cause = re.sub(r"blocked at every swivel within reach by ", "", no_corridor.rstrip(")"))
         return "no corridor: " + re.sub(r"-?\d+(\.\d+)?", "N", cause)[:80]
-    if m.route.startswith("straight through the swivel corridor"):
+    if route_kind(m) in ("corridor", "via"):
         if m.replanned:
             return "corridor, then re-planned: " + reason_key(m.reason)
-        return "corridor route, path ratio > 1.05" if m.reached else "corridor route, not reached"
+        kind = route_kind(m) + " route"
+        return f"{kind}, path ratio > 1.05" if m.reached else f"{kind}, not reached"
     if m.replanned:
         return "re-planned: " + reason_key(m.reason)
     return "attractor dynamics" + (", not reached" if not m.reached else ", path ratio > 1.05")
+
+
+def route_kind(m: Move) -> str:
+    """The route a controller move took first: the straight corridor route, a via route, a joint-space
+    move (re-planned without a route), or the attractor dynamics."""
+    if m.route.startswith("straight through the swivel corridor"):
+        return "corridor"
+    if m.route.startswith("via a pose"):
+        return "via"
+    return "joint-space" if m.replanned else "attractor"
 
 
 # ------------------------------------------------------------------------------------------------
@@ -580,6 +591,15 @@ def report(runs: dict[tuple[str, str], CaseRun], params_note: str) -> list[str]:
         if missed:
             lines.append(f"Oracle-route moves not straight, {arm} {case}, by cause: "
                          + "; ".join(f"{k}: {v}" for k, v in missed.most_common(8)))
+    for (arm, case), r in runs.items():
+        ctl_moves = [m for m in r.moves if m.method == "controller"]
+        kinds = Counter(route_kind(m) for m in ctl_moves)
+        parts = []
+        for kind in ("corridor", "via", "joint-space", "attractor"):
+            ratios = [m.path_ratio for m in ctl_moves if route_kind(m) == kind]
+            note = f" (path ratio median {_q(ratios, 50)})" if ratios else ""
+            parts.append(f"{kind} {kinds[kind]}{note}")
+        lines.append(f"Routes taken by the controller, {arm} {case}: " + ", ".join(parts))
     fails = Counter(f"{m.arm} {m.method}: {re.sub(r'[0-9.]+', 'N', m.reason)[:70]}" for m in moves
                     if m.method != "controller" and not m.reached)
     if fails:

@@ -250,6 +250,7 @@ def test_a_goal_sent_to_the_re_planner_after_the_corridor_plan_keeps_the_command
     assert ctl.set_goal(T).accepted
     r = wait_for_plan(ctl)
     assert r.phase is Phase.REPLANNING and "no swivel corridor" in r.message, r.message
+    assert "; no via route: " in r.message, r.message  # (and why none)
     qd1 = (r.q - q0) / 0.01
     assert np.all(np.abs(qd1 - qd0) <= np.asarray(arm.max_acc) * 0.01 + 1e-9), qd1
 

@@ -126,7 +126,7 @@ class AttractorLaw:
             st.route = None
             st.att.v, st.att.a = 0.0, 0.0
             st.att.phi, st.att.theta = self.heading_to_goal(st)
-            if st.message == "straight through the swivel corridor":
+            if st.message == route.message():
                 st.message = ""
 
     def step(self, st: CoreState, p: ControllerParams, dt: float) -> None:

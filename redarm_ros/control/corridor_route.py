@@ -100,6 +100,10 @@ class CorridorRoute:
         rot = quat_normalize(quat_mul(quat_from_rotvec((u * w[0], u * w[1], u * w[2])), self.rot0))
         return pos, rot
 
+    def message(self) -> str:
+        """What ``~/state`` says while the hand is on the route."""
+        return "straight through the swivel corridor"
+
     def progress_of(self, pos: tuple[float, float, float], rot: tuple[float, float, float, float]) -> float:
         """The progress of a pose on the route: by position on the line, or by the orientation's turn
         when the route is (nearly) a pure rotation."""
@@ -173,19 +177,28 @@ def smoothed(arm: Any, T0: np.ndarray, T1: np.ndarray, cor: SwivelCorridor, m_li
     0.15 rad of the sample before); else the schedule as it is. The backward pass leaves corners where
     the rate bound starts or ends; the command cannot follow a corner within the joints' acceleration
     limits without the hand leaving the line."""
+    return smoothed_along(arm, lambda u: route_pose(T0, T1, u), cor, m_limit, m_sing, m_elbow, window)
+
+
+def smoothed_along(arm: Any, pose_at: Any, cor: SwivelCorridor, m_limit: float, m_sing: float,
+                   m_elbow: float, window: float = 0.08, share: np.ndarray | None = None) -> SwivelCorridor:
+    """:func:`smoothed` for a route whose pose (4x4) at progress u is ``pose_at(u)``; ``share`` (per
+    sample, 0..1): how much of the average replaces the schedule there (None: all)."""
     u, S = cor.u, cor.swivel
     if len(u) < 3:
         return cor
     W = np.maximum(0.0, 1.0 - np.abs(u[:, None] - u[None, :]) / window)
     W *= np.gradient(u)[None, :]  # (uneven samples: weights per unit progress)
     S_new = (W @ S) / W.sum(axis=1)
+    if share is not None:
+        S_new = share * S_new + (1.0 - share) * S
     S_new[0] = S[0]
     lo = np.asarray(arm.lower) + 0.5 * m_limit
     up = np.asarray(arm.upper) - 0.5 * m_limit
     Q = np.empty_like(cor.q)
     Q[0] = cor.q[0]
     for i in range(1, len(u)):
-        row = arm.ik(route_pose(T0, T1, float(u[i])), float(S_new[i]), limits=False)[cor.pattern]
+        row = arm.ik(pose_at(float(u[i])), float(S_new[i]), limits=False)[cor.pattern]
         q = row + 2.0 * math.pi * np.round((Q[i - 1] - row) / (2.0 * math.pi))
         if np.any(q < lo) or np.any(q > up) or float(np.max(np.abs(q - Q[i - 1]))) > 0.15 \
                 or min(abs(math.sin(q[1])), abs(math.sin(q[5]))) < 0.5 * m_sing or abs(q[3]) < 0.5 * m_elbow:
@@ -222,15 +235,23 @@ def goal_keeps(arm: Any, T0: np.ndarray, T1: np.ndarray, q0: np.ndarray) -> tupl
     return float(best[0]), float(best[1]), float(best[2]), float(best[3])
 
 
-def plan_route(arm: Any, T0: np.ndarray, T1: np.ndarray, q0: np.ndarray, preferred: Any, margin_sing: float,
-               margin_limit: float, v_max: float, w_max: float, s_rate: float, max_vel: np.ndarray,
-               max_acc: np.ndarray, share: float, pace_after: float = math.inf
-               ) -> tuple[CorridorRoute | None, str]:
-    """The corridor route from the reference (pose T0, joints q0) to T1, or (None, why there is none).
-    Each margin is at most 0.9 of what the start configuration keeps, and of what the goal keeps at its best
-    swivel (:func:`goal_keeps`). The minimum-jerk profile runs in
-    u (a single-peaked hand speed) unless that takes longer than ``pace_after`` (s): then in the pace
-    (:func:`route_pace`; the hand slows where the joints swing)."""
+@dataclass(frozen=True)
+class RouteMargins:
+    """The margins of one corridor try (see :func:`route_margins`): ``limit`` (rad) from the joint
+    limits, ``shoulder`` and ``wrist`` (least |sin q2|, |sin q6|), ``elbow`` (least |q4|, rad), ``rate``
+    (swivel rad per unit progress)."""
+
+    limit: float
+    shoulder: float
+    wrist: float
+    elbow: float
+    rate: float
+
+
+def route_margins(arm: Any, T0: np.ndarray, T1: np.ndarray, q0: np.ndarray, margin_sing: float,
+                  margin_limit: float) -> list[RouteMargins]:
+    """The margins :func:`plan_route` tries in turn, strictest first. Each margin is at most 0.9 of what
+    the start configuration keeps, and of what the goal keeps at its best swivel (:func:`goal_keeps`)."""
     # the margins shrink to what the start keeps (an elbow resting near the shoulder axis may start).
     # First with three times the singularity margin: near a singularity margin joints 1 and 3 (5 and 7)
     # turn up to 1 / margin times faster than the swivel, and the route's timing slows down with them
@@ -240,27 +261,49 @@ def plan_route(arm: Any, T0: np.ndarray, T1: np.ndarray, q0: np.ndarray, preferr
     slack = float(np.min(np.minimum(q0 - np.asarray(arm.lower), np.asarray(arm.upper) - q0)))
     m_limit = min(margin_limit, 0.9 * max(slack, 0.0), 0.9 * max(g_slack, 0.0))
     # and with a low swivel rate bound (a slow swivel keeps the joints slow), raised if that closes it
+    out = []
     for sing, rate in ((min(3.0 * margin_sing, 0.5), 1.0), (margin_sing, 1.0), (margin_sing, 4.0)):
-        m_sh = max(min(sing, 0.9 * abs(math.sin(q0[1])), 0.9 * g_sh), 1e-3)
-        m_wr = max(min(sing, 0.9 * abs(math.sin(q0[5])), 0.9 * g_wr), 1e-3)
-        m_el = min(sing, 0.9 * abs(q0[3]), 0.9 * g_el)
-        cor = arm.swivel_corridor(T0, T1, q0, limit_margin=m_limit, shoulder_margin=m_sh,
-                                  wrist_margin=m_wr, elbow_margin=m_el, max_rate=rate,
+        out.append(RouteMargins(m_limit, max(min(sing, 0.9 * abs(math.sin(q0[1])), 0.9 * g_sh), 1e-3),
+                                max(min(sing, 0.9 * abs(math.sin(q0[5])), 0.9 * g_wr), 1e-3),
+                                min(sing, 0.9 * abs(q0[3]), 0.9 * g_el), rate))
+    return out
+
+
+def timed_route(route: CorridorRoute, length: float, angle: float, v_max: float, w_max: float, s_rate: float,
+                max_vel: np.ndarray, max_acc: np.ndarray, share: float, pace_after: float) -> CorridorRoute:
+    """``route`` (of hand path ``length`` m and turn ``angle`` rad) with its duration: the minimum-jerk
+    profile in u unless that takes longer than ``pace_after`` (s), then in the pace (:func:`route_pace`)."""
+    cor = route.corridor
+    T = route_duration(cor, length, angle, v_max, w_max, s_rate, max_vel, max_acc, share)
+    if T <= pace_after:
+        return replace(route, duration=T, pace_u=None)
+    pace_u = route_pace(cor, length, angle, v_max, w_max, s_rate, max_vel)
+    T = route_duration(cor, length, angle, v_max, w_max, s_rate, max_vel, max_acc, share, pace_u)
+    return replace(route, duration=T, pace_u=pace_u)
+
+
+def plan_route(arm: Any, T0: np.ndarray, T1: np.ndarray, q0: np.ndarray, preferred: Any, margin_sing: float,
+               margin_limit: float, v_max: float, w_max: float, s_rate: float, max_vel: np.ndarray,
+               max_acc: np.ndarray, share: float, pace_after: float = math.inf
+               ) -> tuple[CorridorRoute | None, str]:
+    """The corridor route from the reference (pose T0, joints q0) to T1, or (None, why there is none),
+    with the margins of :func:`route_margins`. The minimum-jerk profile runs in
+    u (a single-peaked hand speed) unless that takes longer than ``pace_after`` (s): then in the pace
+    (:func:`route_pace`; the hand slows where the joints swing)."""
+    for m in route_margins(arm, T0, T1, q0, margin_sing, margin_limit):
+        cor = arm.swivel_corridor(T0, T1, q0, limit_margin=m.limit, shoulder_margin=m.shoulder,
+                                  wrist_margin=m.wrist, elbow_margin=m.elbow, max_rate=m.rate,
                                   preferred=preferred, samples=12, max_joint_step=0.1)
         if cor.found:
             break
     if not cor.found:
         return None, cor.reason
-    cor = smoothed(arm, T0, T1, cor, m_limit, min(m_sh, m_wr), m_el)
+    cor = smoothed(arm, T0, T1, cor, m.limit, min(m.shoulder, m.wrist), m.elbow)
     p0 = (float(T0[0, 3]), float(T0[1, 3]), float(T0[2, 3]))
     p1 = (float(T1[0, 3]), float(T1[1, 3]), float(T1[2, 3]))
     r0, r1 = quat_from_matrix(T0[:3, :3]), quat_from_matrix(T1[:3, :3])
     turn = rotvec_between(r0, r1)
     angle = math.sqrt(sum(c * c for c in turn))
     length = math.dist(p0, p1)
-    T = route_duration(cor, length, angle, v_max, w_max, s_rate, max_vel, max_acc, share)
-    if T <= pace_after:
-        return CorridorRoute(p0, p1, r0, turn, cor, T), ""
-    pace_u = route_pace(cor, length, angle, v_max, w_max, s_rate, max_vel)
-    T = route_duration(cor, length, angle, v_max, w_max, s_rate, max_vel, max_acc, share, pace_u)
-    return CorridorRoute(p0, p1, r0, turn, cor, T, pace_u=pace_u), ""
+    return timed_route(CorridorRoute(p0, p1, r0, turn, cor, 0.0), length, angle, v_max, w_max, s_rate,
+                       max_vel, max_acc, share, pace_after), ""

@@ -547,7 +547,7 @@ class ReachController:
         if route is not None:
             self.attractor.take_corridor(st, p, route)
             st.mode = Mode.ATTRACTOR
-            st.message = "straight through the swivel corridor"
+            st.message = route.message()
             return
         reason = self.redundancy.route_dead_end(st, p, T) if p.replan.enabled else ""
         if reason:

@@ -6,7 +6,8 @@ step (the attractor's and the servo's), the route check and the joint-space plan
 the goal check, and the swivel corridor. :class:`SwivelRedundancy` is the 7-DOF swivel arm's: the swivel
 dynamics (eq. 31 of the swivel paper) or the attractor paper's eq. 22-24, the elbow's rest swivel at a
 point goal, the pose-following swivel law while tracking, and the straight route through the swivel
-corridor; the 6-DOF arm's (no self-motion) is :class:`~redarm_ros.control.reach6.NoRedundancy`.
+corridor (without one, two straight legs through a via pose: :mod:`~redarm_ros.control.via_route`);
+the 6-DOF arm's (no self-motion) is :class:`~redarm_ros.control.reach6.NoRedundancy`.
 Methods take the controller's :class:`~redarm_ros.control.state.CoreState` and parameters. Units: m,
 rad, s.
 """
@@ -15,11 +16,12 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Protocol
 
 import numpy as np
 
-from redarm_ros.control.corridor_route import CorridorRoute, plan_route
+from redarm_ros.control.corridor_route import CorridorRoute, plan_route, timed_route
 from redarm_ros.control.elbow import ArmGeometry, ElbowCircle, elbow_circle
 from redarm_ros.control.goal_check import check_goal, stream_feasibility
 from redarm_ros.control.goal_hint import BaseMoveHints
@@ -42,6 +44,7 @@ from redarm_ros.control.stream_swivel import (
 )
 from redarm_ros.control.swivel_dynamics import SwivelDynamics, SwivelForces, wrap_angle
 from redarm_ros.control.types import GoalCheck, Phase, Quat, Vec3
+from redarm_ros.control.via_route import VIA_SLACK, ViaRoute, ViaSearch, plan_via_route
 from redarm_ros.errors import InvalidInputError, UnreachableError
 from redarm_ros.geometry.broadphase import SceneIndex
 from redarm_ros.geometry.obstacles import Scene
@@ -625,8 +628,8 @@ class SwivelRedundancy:
 
     def corridor_job(self, st: CoreState, p: ControllerParams, T: np.ndarray) -> CorridorJob:
         """The planning of the straight route to the point goal ``T`` through the swivel corridor, from
-        the reference as it is now: a function of copies (it runs in the worker thread) that returns the
-        route, or None and why there is none."""
+        the reference as it is now, or else of a via route: a function of copies (it runs in the worker
+        thread) that returns the route, or None and why there is none."""
         rp = p.replan
         arm, q0 = self.arm, st.ref.q.copy()
         # the route starts at the pose of the reference's joints: the reference pose may be off it by
@@ -653,11 +656,38 @@ class SwivelRedundancy:
             except (InvalidInputError, UnreachableError) as e:  # (a start the corridor cannot take)
                 return None, f"the corridor cannot start here: {e}"
             if route is not None and route.duration > t_most:
-                return None, (f"its route needs {route.duration:.1f} s of joint motion, a joint-space move "
-                              f"{t_joint:.1f} s")
+                route, why = None, (f"its route needs {route.duration:.1f} s of joint motion, a joint-space "
+                                    f"move {t_joint:.1f} s")
+            if route is None and q_near is not None:
+                # no straight corridor: two straight legs through the via pose nearest the line
+                t_via = min(t_most, t_joint + VIA_SLACK)
+                via, search = self._via_route(p, T0, T1, q0, max_vel, max_acc, t_via)
+                if via is not None:
+                    return replace(via, why=why), why
+                why += f"; no via route: {search.summary()}"
             return route, why
 
         return job
+
+    def _via_route(self, p: ControllerParams, T0: np.ndarray, T1: np.ndarray, q0: np.ndarray,
+                   max_vel: np.ndarray, max_acc: np.ndarray, t_most: float
+                   ) -> tuple[ViaRoute | None, ViaSearch]:
+        """The route from (T0, q0) to T1 through a via pose (:mod:`~redarm_ros.control.via_route`) that
+        takes at most ``t_most`` s, or None; and what the search did (runs in the worker thread: no
+        controller state)."""
+        rp = p.replan
+        timing = (p.speed.v_max, p.max_ori_rate, p.swivel.max_rate, max_vel, max_acc, rp.corridor_share)
+
+        def leg(Ta: np.ndarray, Tb: np.ndarray, qa: np.ndarray, preferred: float | None
+                ) -> tuple[CorridorRoute | None, str]:
+            return plan_route(self.arm, Ta, Tb, qa, preferred, rp.corridor_sing_margin,
+                              rp.corridor_limit_margin, *timing)
+
+        def timer(route: CorridorRoute, length: float, angle: float) -> CorridorRoute:
+            return timed_route(route, length, angle, *timing, pace_after=t_most)
+
+        return plan_via_route(self.arm, T0, T1, q0, rp.corridor_sing_margin, rp.corridor_limit_margin, leg,
+                              timer, max_duration=t_most)
 
     def new_planner(self, st: CoreState, p: ControllerParams, T: np.ndarray, scene: Scene) -> PathSearch:
         """The resumable joint-space search towards tool pose ``T`` in ``scene``, the elbow towards its

@@ -73,7 +73,7 @@ from redarm_ros.kinematics.quaternion import (
 if TYPE_CHECKING:
     from redarm_ros.kinematics.swivel import SwivelArm
 
-__all__ = ["SwivelCorridor", "swivel_corridor", "route_pose", "PreferredSwivel"]
+__all__ = ["SwivelCorridor", "swivel_corridor", "corridor_screen", "route_pose", "PreferredSwivel"]
 
 PI = math.pi
 TWO_PI = 2.0 * math.pi
@@ -725,3 +725,30 @@ def _not_found(cor: _Corridor, us: list[float], levels: list[list[_Piece]], k: i
                               float(steps.max()))
     return SwivelCorridor(False, np.empty(0), np.empty(0), np.empty((0, 7)), cor.pattern, 0.0, 0.0, 0.0,
                           f"no corridor at the start: {reason}", 0.0)
+
+
+def corridor_screen(
+    arm: SwivelArm,
+    T_start: np.ndarray,
+    T_goal: np.ndarray,
+    q_start: np.ndarray,
+    *,
+    limit_margin: float,
+    shoulder_margin: float,
+    wrist_margin: float,
+    elbow_margin: float,
+    max_rate: float,
+    samples: int = 16,
+) -> float | None:
+    """A quick screen before :func:`swivel_corridor` (same arguments, checked by the caller): the
+    forward pass alone at ``samples`` + 1 evenly spaced progress values, without refinement. Returns
+    the first of them with no reachable swivel, or None. Coarse: a corridor that closes between two
+    samples passes the screen (the full call finds it); one that a refinement would reconnect may fail it."""
+    margins = {"limit": limit_margin, "shoulder": shoulder_margin, "wrist": wrist_margin,
+               "elbow": elbow_margin}
+    s0 = float(arm.swivel(q_start))
+    cor = _Corridor(arm, np.asarray(T_start, float), np.asarray(T_goal, float), np.asarray(q_start, float),
+                    margins, float(max_rate), lambda _u, _T: s0, 0.1, 1e-3, 0.05)
+    us = [float(u) for u in np.linspace(0.0, 1.0, samples + 1)]
+    _levels, closed, _misses = cor.forward(us)
+    return None if closed is None else us[closed]
