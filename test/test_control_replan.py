@@ -305,15 +305,22 @@ def test_reached_means_the_arm_stays_at_the_goal(seed: int) -> None:
             q_prev = r.q
 
 
-def test_a_dead_end_is_reported_at_once_and_left_by_a_joint_move() -> None:
-    """The straight route folds the elbow onto its limit: the controller says so at the first step
-    (REPLANNING, the reason in the message), moves in joint space and reaches the goal."""
-    ctl = make_controller(ARM, Scene())
+@pytest.mark.parametrize("corridor", [False, True])
+def test_a_dead_end_is_reported_at_once_and_left_by_a_joint_move(corridor: bool) -> None:
+    """The straight route folds the elbow onto its limit: the controller says so at the first step,
+    the reason in the message, and reaches the goal. Without the corridor (the attractor's route
+    check) it moves in joint space (REPLANNING); with it (the default) the straight route has no
+    corridor for the same reason, and the hand goes round through a via pose instead."""
+    ctl = make_controller(ARM, Scene(), ControllerParams.from_dict({"replan": {"corridor": corridor}}))
     ctl.reset(Q_DEAD_0)
     T = ARM.fk(Q_DEAD_1)
     assert ctl.set_goal(T).accepted
     first = ctl.step(DT)
-    assert first.phase is Phase.REPLANNING and "joint 4" in first.message
+    assert "joint 4" in first.message, first.message
+    if corridor:
+        assert first.phase is Phase.REACHING and first.message.startswith("via a pose"), first.message
+    else:
+        assert first.phase is Phase.REPLANNING
     qs = [first.q]
     for _ in range(1000):
         r = ctl.step(DT)
