@@ -587,7 +587,12 @@ def group_members(pgid: int) -> list[int]:
         return []
     except PermissionError:
         pass
-    members = []
+    return [pid for pid, (_, group) in live_processes().items() if group == pgid]
+
+
+def live_processes() -> dict[int, tuple[int, int]]:
+    """Every live (non-zombie) process: pid -> (parent pid, process group) (Linux /proc scan)."""
+    out: dict[int, tuple[int, int]] = {}
     for entry in os.scandir("/proc"):
         if not entry.name.isdigit():
             continue
@@ -598,25 +603,15 @@ def group_members(pgid: int) -> list[int]:
             continue
         # Fields after the parenthesised command: state ppid pgrp ...
         fields = stat.rsplit(")", 1)[-1].split()
-        if len(fields) >= 3 and int(fields[2]) == pgid and fields[0] not in ("Z", "X"):
-            members.append(int(entry.name))
-    return members
+        if len(fields) >= 3 and fields[0] not in ("Z", "X"):
+            out[int(entry.name)] = (int(fields[1]), int(fields[2]))
+    return out
 
 
 def descendants(pid: int) -> list[int]:
     """Pids of the live (non-zombie) children of ``pid``, their children, and so on, wherever their
     process group or session (Linux /proc scan)."""
-    parent_of: dict[int, int] = {}
-    for entry in os.scandir("/proc"):
-        if not entry.name.isdigit():
-            continue
-        try:
-            with open(f"/proc/{entry.name}/stat", encoding="ascii", errors="replace") as f:
-                fields = f.read().rsplit(")", 1)[-1].split()
-        except OSError:
-            continue
-        if len(fields) >= 2 and fields[0] not in ("Z", "X"):
-            parent_of[int(entry.name)] = int(fields[1])
+    parent_of = {child: parent for child, (parent, _) in live_processes().items()}
     found: list[int] = []
     frontier = {pid}
     while frontier:

@@ -323,6 +323,7 @@ def test_ros_can_driver_node_follows_a_trajectory(scenario_run: ScenarioRun) -> 
     # /joint_states streams every cycle; a loaded one-CPU guest runs fewer cycles (measured 12-35 Hz of
     # the 50 Hz asked), so only a live stream is required here, not its rate.
     assert tr["joint_states_received"] >= 10, tr
-    assert ros["halt"]["success"] and ros["recover"]["success"], ros
+    assert ros["halt"]["success"] and ros["recover"]["success"], \
+        (ros["halt"], ros["recover"], ros.get("node_log_tail"))
     stops = {k: ros.get(k) for k in ("node_rc", "node_stop_s", "sim_rc", "sim_stop_s")}
     assert ros["node_rc"] == 0 and ros["sim_rc"] == 0, (stops, ros.get("node_log_tail"))

@@ -19,6 +19,8 @@ import weakref
 from types import TracebackType
 from typing import Any
 
+from redarm_ros.procs import live_processes
+
 #: Long-lived helpers that libraries start once per interpreter on purpose (not leaks).
 BENIGN_CHILDREN = ("multiprocessing.resource_tracker", "multiprocessing.forkserver")
 
@@ -26,19 +28,14 @@ BENIGN_CHILDREN = ("multiprocessing.resource_tracker", "multiprocessing.forkserv
 def live_children(pid: int) -> dict[int, str]:
     """Live (non-zombie) direct children of ``pid``: pid -> command line (Linux /proc scan)."""
     out: dict[int, str] = {}
-    for entry in os.scandir("/proc"):
-        if not entry.name.isdigit():
+    for child, (parent, _) in live_processes().items():
+        if parent != pid:
             continue
         try:
-            with open(f"/proc/{entry.name}/stat", encoding="ascii", errors="replace") as f:
-                fields = f.read().rsplit(")", 1)[-1].split()
-            if int(fields[1]) != pid or fields[0] in ("Z", "X"):
-                continue
-            with open(f"/proc/{entry.name}/cmdline", "rb") as f:
-                cmd = f.read().replace(b"\0", b" ").decode(errors="replace").strip()
-        except (OSError, IndexError, ValueError):
+            with open(f"/proc/{child}/cmdline", "rb") as f:
+                out[child] = f.read().replace(b"\0", b" ").decode(errors="replace").strip()
+        except OSError:  # (ended meanwhile)
             continue
-        out[int(entry.name)] = cmd
     return out
 
 
