@@ -95,6 +95,9 @@ def one_run(commit: str, busy: bool, log_dir: Path) -> dict[str, str]:
         log.write_text(text)
         print(f"suite_bench: run failed (exit {rc}), log in {log}", file=sys.stderr)
     result = ("passed: " if rc == 0 else f"FAILED (exit {rc}): ") + summary
+    failed = sorted(set(re.findall(r"^FAILED (\S+)", text, flags=re.MULTILINE)))
+    if failed:
+        result += " (" + ", ".join(f"`{t}`" for t in failed) + ")"
     return {"date": time.strftime("%Y-%m-%d %H:%M", time.gmtime()), "commit": commit[:10],
             "condition": "busy" if busy else "quiet", "wall": f"{wall:.0f}", "pytest": pytest_time,
             "result": result,

@@ -103,6 +103,26 @@ def test_commands_reach_the_physics_and_its_state_comes_back(arm, tmp_path: Path
         assert png.stat().st_size > 0
 
 
+def test_the_status_of_a_moving_arm_is_one_snapshot(arm):
+    # Joints and tool pose read one by one come from different steps of a moving arm (the status said
+    # tool != fk(q) by 4e-5 m once); the status takes them from one write of the process.
+    physics = PhysicsProcess(arm, functools.partial(build_plant, arm, time_step=1e-3))
+    for sim, host in _serve(physics):
+        _home(host, 2)
+        _ask(host, pc.fstep(2, 1.0, 3000))
+        worst, reads = 0.0, 0
+        deadline = time.monotonic() + 10
+        while reads == 0 or physics.joint(1).in_motion():
+            assert time.monotonic() < deadline, reads
+            st = sim.status()
+            if abs(st["dq"][1]) > 0.05:  # (judged while the joint moves)
+                tool = np.asarray(st["tool"]["position"])
+                worst = max(worst, float(np.max(np.abs(tool - arm.fk(np.asarray(st["q"]))[:3, 3]))))
+                reads += 1
+        assert reads >= 100, reads
+        assert worst <= 1e-5, worst  # (as at rest: pybullet against fk)
+
+
 def _home(host: can.BusABC, mid: int) -> None:
     _ask(host, pc.home(mid))  # moves need HOME_OK
     deadline = time.monotonic() + 10

@@ -494,7 +494,7 @@ class HardwareSim:
     def status(self) -> dict[str, Any]:
         """The machine-readable status (see docs/sim.md); call from the physics thread."""
         p = self.plant
-        pos, quat = p.tool_pose()
+        q, dq, q_sp, pos, quat = p.motion_state()
         faults = self.fault_settings()
         self._sync_pacing()
         counters = asdict(self.counters)
@@ -512,9 +512,9 @@ class HardwareSim:
             "sim_time_s": p.sim_time,
             "steps": p.steps,
             "rate_hz": self.rate_hz,
-            "q": p.q.tolist(),
-            "dq": p.dq.tolist(),
-            "q_setpoint": p.q_setpoint.tolist(),
+            "q": q.tolist(),
+            "dq": dq.tolist(),
+            "q_setpoint": q_sp.tolist(),
             "tool": {"position": pos.tolist(), "quaternion_xyzw": quat.tolist()},
             "modules": self.emulator.describe(),
             "faults": faults,

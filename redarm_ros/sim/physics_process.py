@@ -19,7 +19,8 @@ Pieces:
   :class:`~redarm_ros.sim.hardware.HardwareSim` and by the physics process alike.
 * :class:`PhysicsProcess`: the handle the bus side holds. It has the plant's surface as the module
   emulation and the status see it (``arm``, ``n``, ``joint(i)``, ``q``, ``dq``, ``q_setpoint``,
-  ``steps``, ``sim_time``, ``tool_pose()``, ``snapshot_png()``, ``close()``). Joint commands are
+  ``steps``, ``sim_time``, ``tool_pose()``, ``motion_state()``, ``snapshot_png()``, ``close()``).
+  Joint commands are
   queued and written to a pipe once per burst of requests (:meth:`PhysicsProcess.flush`, a write
   that never waits: with the process stopped they wait in the queue), and applied before the
   process's next batch of steps (within
@@ -384,6 +385,12 @@ class PhysicsProcess:
         """Tool position and quaternion (x, y, z, w) at :attr:`q`."""
         s = self.state()
         return s[self._lay["pos"]], s[self._lay["quat"]]
+
+    def motion_state(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``q``, ``dq``, ``q_setpoint``, the tool position and quaternion (x, y, z, w) of one write of
+        the process (read one by one, a moving arm's tool pose and joints came from different steps)."""
+        s, lay = self.state(), self._lay
+        return s[lay["q"]], s[lay["dq"]], s[lay["sp"]], s[lay["pos"]], s[lay["quat"]]
 
     def pacing(self) -> PacingCounters:
         """How well the process keeps real time."""

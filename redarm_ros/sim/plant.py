@@ -344,6 +344,12 @@ class PybulletPlant:
         """World pose of the tool frame: position (3,) m, quaternion (x, y, z, w) (pybullet link state)."""
         return self.link_pose(self.tool_link)
 
+    def motion_state(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``q``, ``dq``, ``q_setpoint``, the tool position and quaternion (x, y, z, w), all after the same
+        step (call from the physics thread)."""
+        pos, quat = self.tool_pose()
+        return self.q, self.dq, self.q_setpoint, pos, quat
+
     def tool_transform(self) -> np.ndarray:
         """World 4x4 transform of the tool frame (pybullet link state)."""
         p, quat = self.tool_pose()
