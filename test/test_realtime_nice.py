@@ -61,3 +61,11 @@ def test_thread_schedstat_counts_the_threads_own_cpu_time() -> None:
     stat.close()
     assert ran1 - ran0 >= 40.0 and queued1 >= queued0
     assert ThreadSchedstat(None).read() == (0.0, 0.0)
+
+
+def test_per_second_limit_allows_so_many_events_in_each_wall_second() -> None:
+    from redarm_ros.can.realtime import PerSecondLimit
+
+    limit = PerSecondLimit(3)
+    assert [limit.allow(100.0 + 0.1 * k) for k in range(5)] == [True, True, True, False, False]
+    assert limit.allow(101.2) and limit.allow(101.3) and limit.allow(101.4) and not limit.allow(101.5)

@@ -279,9 +279,8 @@ class _Relay:
         self.overflowed = 0
         self.slow_hops = 0  # bursts read SLOW_HOP_S or more after their sender's stamp
         self.max_hop_ms = 0.0  # the longest sender-stamp-to-read time of a frame (ms)
-        self._hop_log_second = 0
         self._hop_stamp = 0.0  # the sender stamp of the last slow hop noted
-        self._hop_logs = 0
+        self._hop_logs = realtime.PerSecondLimit(SLOW_HOP_LOGS_PER_S)
         self._stop = False
         self._close_all = threading.Event()
         self._closed_all = threading.Event()
@@ -489,11 +488,7 @@ class _Relay:
         # running), with its time, so that a late reply can be traced to the hop that held it.
         self.slow_hops += 1
         self.max_hop_ms = max(self.max_hop_ms, hop_s * 1e3)
-        second = int(stamp)
-        if second != self._hop_log_second:
-            self._hop_log_second, self._hop_logs = second, 0
-        self._hop_logs += 1
-        if self._hop_logs <= SLOW_HOP_LOGS_PER_S:
+        if self._hop_logs.allow(stamp):
             logger.warning("slow hop: frames stamped at wall time %.4f were read %.1f ms later (%d so far)",
                            stamp, hop_s * 1e3, self.slow_hops)
 

@@ -118,6 +118,24 @@ def name_thread(name: str) -> None:
         pass
 
 
+class PerSecondLimit:
+    """At most ``per_second`` events in each wall-clock second: for log lines about slow events, which
+    come in bursts when a process is starved (the count restarts when the second changes)."""
+
+    def __init__(self, per_second: int) -> None:
+        self.per_second = per_second
+        self._second = 0
+        self._count = 0
+
+    def allow(self, wall: float) -> bool:
+        """Count an event at wall time ``wall`` (s); True if it is within this second's allowance."""
+        second = int(wall)
+        if second != self._second:
+            self._second, self._count = second, 0
+        self._count += 1
+        return self._count <= self.per_second
+
+
 class ThreadSchedstat:
     """The scheduler statistics of the thread that made it (Linux ``/proc/thread-self/schedstat``),
     read with one system call: :meth:`read` -> (ms on a CPU, ms waiting in the run queue) since that

@@ -223,8 +223,7 @@ class HardwareSim:
         self._control_sig: tuple[int, int] | None = None
         self._start = time.monotonic()
         self.physics_lost = False  # the physics process ended while serving
-        self._slow_log_second = 0
-        self._slow_logs = 0
+        self._slow_logs = realtime.PerSecondLimit(SLOW_LOGS_PER_S)
         self._slow_stamp = 0.0  # sender stamp of the last slow read logged
         # the bus thread's scheduling (opened by that thread) and its reading at the last empty receive
         self._sched = realtime.ThreadSchedstat(None)
@@ -303,11 +302,7 @@ class HardwareSim:
     def _note_slow(self, what: str, ms: float, at_mono: float) -> None:
         """Log a slow event (wall time of ``at_mono``), at most :data:`SLOW_LOGS_PER_S` a second."""
         wall = time.time() - (time.monotonic() - at_mono)
-        second = int(wall)
-        if second != self._slow_log_second:
-            self._slow_log_second, self._slow_logs = second, 0
-        self._slow_logs += 1
-        if self._slow_logs <= SLOW_LOGS_PER_S:
+        if self._slow_logs.allow(wall):
             _LOG.warning("slow: %s %.1f ms at wall time %.4f", what, ms, wall)
 
     # -- bus side -------------------------------------------------------------------------------------

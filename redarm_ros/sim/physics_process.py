@@ -485,15 +485,11 @@ def _physics_main(make_plant: Callable[[], Any], raw: Any, conn: Connection, rat
     prio = realtime.raise_priority(realtime_priority, who="redarm-sim physics")
     if realtime_priority > 0:
         (_LOG.info if prio.realtime else _LOG.warning)("%s", prio.message)
-    slow_second, slow_logs = 0, 0
+    lag_logs = realtime.PerSecondLimit(LAG_LOGS_PER_S)
 
     def on_lag(ms: float, at: float) -> None:
-        nonlocal slow_second, slow_logs
         wall = time.time() - (time.monotonic() - at)
-        if int(wall) != slow_second:
-            slow_second, slow_logs = int(wall), 0
-        slow_logs += 1
-        if slow_logs <= LAG_LOGS_PER_S:
+        if lag_logs.allow(wall):
             _LOG.warning("slow: physics wake-up late %.1f ms at wall time %.4f", ms, wall)
 
     stepper = RealTimeStepper(plant, rate_hz, realtime_sched=prio.realtime, on_lag=on_lag)
