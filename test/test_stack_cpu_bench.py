@@ -90,3 +90,11 @@ def test_the_table_has_a_row_per_process_the_total_and_the_targets(bench: Module
     assert "| sim | 2.00 / 20.0 |" in text and "| canbus | 1.00 / 10.0 |" in text
     assert "**3.00 / 30.0**" in text and "<= 40" in text and "1.00 / 1.50" in text
     assert "| driver overruns, missed replies | 0, 0 |" in text
+
+
+def test_the_summary_gives_each_runs_total_and_the_median_against_the_target(bench: ModuleType) -> None:
+    def case(total_s: float, lost: float = 0.0) -> object:
+        return bench.CaseResult("rest", 10.0, {"sim": total_s}, (1.0,) * 3, (1.0,) * 3, {"lost": lost})
+
+    text = "\n".join(bench.summary([[case(3.0)], [case(4.5, lost=7.0)], [case(3.2)]]))
+    assert "| rest | 30.0 | 45.0 | 32.0 | **32.0** | <= 40 | (7 missed replies in all)" in text
