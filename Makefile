@@ -27,14 +27,17 @@ lint: setup
 	$(VENV)/bin/ruff check .
 
 # Lint and tests both run; the target fails if either failed. pytest's exit 5 ("no tests collected")
-# is reported and not treated as a failure.
+# is reported and not treated as a failure. Bytecode caches are written even where the caller's
+# environment sets PYTHONDONTWRITEBYTECODE: the suite starts hundreds of Python processes (nodes,
+# simulators, CLIs) and each would compile the package's modules again (about 1 s of CPU a process), and
+# every xdist worker would rewrite every test module's asserts again.
 test: setup
 	@if [ -f scripts/setup_uml.sh ]; then bash scripts/setup_uml.sh; fi  # UML guest for SocketCAN tests
 	@if [ -f scripts/setup_chromium.sh ]; then bash scripts/setup_chromium.sh; fi  # headless Chromium for the browser test
 	@rc=0; \
 	echo "+ ruff check ."; $(VENV)/bin/ruff check . || rc=$$?; \
 	echo "+ pytest -n $(TEST_WORKERS) --dist loadfile $(PYTEST_ARGS)"; \
-	prc=0; $(SANDBOX) $(PY) -m pytest -n $(TEST_WORKERS) --dist loadfile $(PYTEST_ARGS) || prc=$$?; \
+	prc=0; PYTHONDONTWRITEBYTECODE= $(SANDBOX) $(PY) -m pytest -n $(TEST_WORKERS) --dist loadfile $(PYTEST_ARGS) || prc=$$?; \
 	if [ $$prc -eq 5 ]; then echo "make test: pytest collected no tests"; prc=0; fi; \
 	if [ $$rc -ne 0 ]; then echo "make test: ruff found problems (exit $$rc)"; fi; \
 	if [ $$prc -ne 0 ]; then echo "make test: pytest failed (exit $$prc)"; fi; \
