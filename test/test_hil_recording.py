@@ -11,10 +11,13 @@ import subprocess
 import sys
 import textwrap
 from pathlib import Path
+from typing import Any
 
 import pytest
 
-pytest.importorskip("rclpy")
+rclpy = pytest.importorskip("rclpy")
+
+from sensor_msgs.msg import JointState  # noqa: E402
 
 from redarm_ros.record.mcap_io import summarize  # noqa: E402
 
@@ -54,8 +57,16 @@ from sensor_msgs.msg import JointState
 def _publish(ctx, n):
     node = rclpy.create_node("inner_pub", context=ctx)
     pub = node.create_publisher(JointState, "/joint_states", 50)
-    end = time.monotonic() + 20
-    while pub.get_subscription_count() == 0 and time.monotonic() < end:
+    # Wait for the recorder's own subscription, matched: with only a count, another subscriber of the
+    # domain (a node left in the outer session's worker) would let the messages go before it.
+    def recorder_matched():
+        subs = node.get_subscriptions_info_by_topic("/joint_states")
+        return (any(s.node_name == "redarm_record" for s in subs)
+                and pub.get_subscription_count() >= len(subs))
+
+    end = time.monotonic() + 60
+    while not recorder_matched():
+        assert time.monotonic() < end, "the recorder never subscribed to /joint_states"
         time.sleep(0.05)
     for i in range(n):
         pub.publish(JointState(name=[f"pa10_joint_{k}" for k in range(1, 8)], position=[0.01 * i] * 7))
@@ -76,7 +87,11 @@ def test_passes(rclpy_context):
 """
 
 
-def test_failing_hil_run_keeps_its_recording(tmp_path: Path) -> None:
+def test_failing_hil_run_keeps_its_recording(tmp_path: Path, rclpy_context: Any) -> None:
+    # Another subscriber of /joint_states on the domain, as a worker of a full run may hold: the
+    # recording must still have every message.
+    bystander = rclpy.create_node("bystander", context=rclpy_context)
+    bystander.create_subscription(JointState, "/joint_states", lambda _msg: None, 50)
     inner = tmp_path / "inner"
     inner.mkdir()
     (inner / "conftest.py").write_text(INNER_CONFTEST, encoding="utf-8")
