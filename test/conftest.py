@@ -7,8 +7,8 @@
   ``redarm_rclpy_context``, ``redarm_procs``, ``redarm_canbus``, ``redarm_no_open_buses`` (the CAN
   test modules use the last for every test: ``pytestmark = pytest.mark.usefixtures("no_open_buses")``).
 * under pytest-xdist ``--dist loadfile``: the files of hil tests in one unit (two with three workers or
-  more; first, each on one worker, in order), every other file spread over the workers, the files with
-  a test marked slow first.
+  more; first, each on one worker, in order), every other file spread over the workers, the longest
+  files first (``LONGEST_FILES``, then the files with a test marked slow).
 * an autouse check that no child process of pytest outlives the test (``redarm_no_leftover_children``).
 * an MCAP recording of every failing HIL run that talks ROS (``hil_recording.py``).
 """
@@ -43,12 +43,24 @@ def pytest_configure(config: pytest.Config) -> None:
 # of its kind in the second), so at most two stacks share the cores and the stack chain is not the
 # whole run's length. The stack tests spend much of their time waiting on real motion, which is why
 # a third worker of pure computation fits beside them on two cores. Every other file is a unit of its
-# own (its module fixtures start once), spread over the workers: the files with a test marked slow
-# first, so that the run ends on short files on every worker instead of one finishing a long file alone.
+# own (its module fixtures start once), spread over the workers, longest first (LONGEST_FILES, then
+# the files with a test marked slow), so that the run ends on short files on every worker instead of one
+# finishing a long file alone. The two hil units take about as long as each other.
 SERIAL_UNIT = "hil tests"
 SECOND_SERIAL_UNIT = "hil tests (demo)"
 SECOND_UNIT_FILES = frozenset({"test/test_e2e_demo.py", "test/test_examples.py", "test/test_e2e_urdf.py",
-                               "test/test_e2e_stack6.py", "test/test_two_hosts.py"})
+                               "test/test_e2e_stack6.py", "test/test_two_hosts.py",
+                               "test/test_e2e_namespace.py", "test/test_e2e_stream.py"})
+# The files outside the hil units that took longest in a full run on two cores (one of them kept busy),
+# longest first; a file missing here only starts later.
+LONGEST_FILES = (
+    "test/test_install_colcon.py", "test/test_control_reach.py", "test/test_node_reach_action.py",
+    "test/test_control_replan.py", "test/test_kin_corridor.py", "test/test_node_controller.py",
+    "test/test_control_tracking.py", "test/test_placement.py", "test/test_node_ik_service.py",
+    "test/test_kin_feasible.py", "test/test_conftest_fixtures.py", "test/test_uml_socketcan.py",
+    "test/test_control_stream_swivel.py", "test/test_control_reproductions.py",
+    "test/test_view_browser.py",
+)
 
 
 @functools.cache
@@ -65,11 +77,14 @@ def marks_used(path: str) -> frozenset[str]:
                      and node.value.value.id == "pytest")
 
 
-def _unit_rank(root: Path, scope: str) -> int:
-    """Where a unit of work goes in the queue: the hil unit, then the files with slow tests, then the rest."""
+def _unit_rank(root: Path, scope: str) -> tuple[int, int]:
+    """Where a unit of work goes in the queue: the hil units, LONGEST_FILES in their order, the files
+    with slow tests, then the rest."""
     if scope in (SERIAL_UNIT, SECOND_SERIAL_UNIT):
-        return 0
-    return 1 if "slow" in marks_used(str(root / scope)) else 2
+        return (0, 0)
+    if scope in LONGEST_FILES:
+        return (1, LONGEST_FILES.index(scope))
+    return (2, 0) if "slow" in marks_used(str(root / scope)) else (3, 0)
 
 
 @pytest.hookimpl(optionalhook=True)

@@ -128,6 +128,17 @@ def test_three_workers_run_the_hil_files_in_two_serial_units(
         ran = [(k, int(i)) for k, i, w, _ in rows if w in unit and k != "plain"]
         assert [i for _, i in ran] == [0, 1, 2, 3, 0, 1, 2, 3], ran
 
+def test_the_longest_files_are_queued_after_the_hil_units_and_before_the_rest() -> None:
+    from conftest import LONGEST_FILES, SERIAL_UNIT, _unit_rank, marks_used
+
+    for path in LONGEST_FILES:  # real files, none of them hil (those go in the serial units)
+        assert (REPO / path).is_file() and "hil" not in marks_used(str(REPO / path)), path
+    order = [SERIAL_UNIT, *LONGEST_FILES, "test/test_kin_swivel.py", "test/test_can_protocol.py"]
+    assert "slow" in marks_used(str(REPO / order[-2])) and "slow" not in marks_used(str(REPO / order[-1]))
+    ranks = [_unit_rank(REPO, scope) for scope in order]
+    assert ranks == sorted(ranks) and len(set(ranks)) == len(ranks), list(zip(order, ranks, strict=True))
+
+
 def test_worker_domains_are_distinct_and_in_range(monkeypatch: pytest.MonkeyPatch) -> None:
     from redarm_ros.testing.sandbox import DOMAIN_ENV, worker_domain_id
 
