@@ -16,7 +16,9 @@ swivel over their rates), so where the line passes near a singularity and joints
 hand slows there only (its speed then has more than one peak), instead of the whole route slowing to
 that stretch's pace. The duration T is the least that keeps
 every joint's velocity and acceleration (and the hand, orientation and swivel rates) within ``share``
-of their limits along that profile. Units: m, rad, s.
+of their limits along that profile. The duration is set by the joint that needs the most time per unit
+progress, so a slow route (or none) of the straight route is planned again with the schedule on the
+corridor's speed guide (:func:`plan_route` with ``fast``). Units: m, rad, s.
 """
 
 from __future__ import annotations

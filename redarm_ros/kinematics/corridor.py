@@ -23,7 +23,9 @@ cut is a closed-form root, :func:`.feasible.roots`). The swivel is unwrapped (a 
 The schedule: the reachable set is propagated forward from the start swivel, sample to sample, widened by
 the rate bound ``max_rate * du`` (rad) and intersected with the next sample's corridor; then a backward
 pass picks at each sample the reachable swivel nearest the preferred one within the rate bound. Where the
-reachable set becomes empty the corridor is closed, and the constraints that close it are named.
+reachable set becomes empty the corridor is closed, and the constraints that close it are named. With
+the joints' speeds given (``speed_rates``) the preferred swivel is first replaced by the speed guide
+(:meth:`_Corridor.speed_guide`), a coarse grid schedule that keeps the joints' path-speed demand least.
 
 Between samples (adaptive refinement, not a derivative bound): a step of the route is halved, down to
 ``min_du``, (1) where the number of corridor intervals changes or an interval end moves by more than
