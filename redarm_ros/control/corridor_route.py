@@ -294,6 +294,12 @@ def timed_route(route: CorridorRoute, length: float, angle: float, v_max: float,
     return replace(route, duration=T, pace_u=pace_u)
 
 
+def _slower(a: CorridorRoute, b: CorridorRoute) -> bool:
+    """Is route a worse than b: paced where b is not (its hand speed has several peaks), or as paced and
+    longer."""
+    return (a.pace_u is not None, a.duration) > (b.pace_u is not None, b.duration)
+
+
 def _find_corridor(arm: Any, T0: np.ndarray, T1: np.ndarray, q0: np.ndarray, preferred: Any,
                    tries: list[RouteMargins], **guide: Any) -> tuple[SwivelCorridor, RouteMargins]:
     """The corridor of the first of ``tries`` that has one (else the last's), and its margins."""
@@ -316,8 +322,9 @@ def plan_route(arm: Any, T0: np.ndarray, T1: np.ndarray, q0: np.ndarray, preferr
     (:func:`route_pace`; the hand slows where the joints swing).
 
     ``fast``: a route that takes over GUIDE_AFTER times the hand's own time, or none, is planned again
-    with the schedule on the speed guide (the swivel rate bound GUIDE_RATE) and the faster of the two
-    kept; and where a joint limit closes the corridor, it is tried with the limit margin LIMIT_FLOOR."""
+    with the schedule on the speed guide (the swivel rate bound GUIDE_RATE) and the better of the two
+    kept (not paced, then the shorter); and where a joint limit closes the corridor, it is tried with
+    the limit margin LIMIT_FLOOR."""
     p0 = (float(T0[0, 3]), float(T0[1, 3]), float(T0[2, 3]))
     p1 = (float(T1[0, 3]), float(T1[1, 3]), float(T1[2, 3]))
     r0, r1 = quat_from_matrix(T0[:3, :3]), quat_from_matrix(T1[:3, :3])
@@ -349,7 +356,7 @@ def plan_route(arm: Any, T0: np.ndarray, T1: np.ndarray, q0: np.ndarray, preferr
         cor, m = _find_corridor(arm, T0, T1, q0, preferred, fast_tries, **guide)
         if cor.found:
             guided = route_of(cor, m)
-            if route is None or guided.duration < route.duration:
+            if route is None or _slower(route, guided):
                 route = guided
     if route is None:
         return None, why
