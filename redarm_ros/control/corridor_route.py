@@ -48,7 +48,7 @@ MIN_DURATION = 0.3
 #: speed against the joints', so it is not held to the low bound of :func:`route_margins`); the least limit
 #: margin (rad) tried where a joint limit's margin closes the corridor
 GUIDE_AFTER = 1.5
-GUIDE_RATE = 4.0
+GUIDE_RATE = 10.0
 LIMIT_FLOOR = 0.01
 
 
