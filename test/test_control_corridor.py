@@ -231,12 +231,12 @@ def test_the_arm_holds_while_the_corridor_is_planned():
 
 
 def test_a_goal_sent_to_the_re_planner_after_the_corridor_plan_keeps_the_command_continuous():
-    """The worker thread finds no corridor worth taking (too slow) and the straight route passes the
-    shoulder singularity: the step that takes the plan hands the goal to the re-planner and commands
-    the arm in that same step (braking it), so joints still moving (an elbow settling after the last
-    goal) do not stop within one step."""
+    """The worker thread finds no corridor worth taking (timed at 1 % of the joint limits: too slow) and
+    the straight route passes the shoulder singularity: the step that takes the plan hands the goal to
+    the re-planner and commands the arm in that same step (braking it), so joints still moving (an elbow
+    settling after the last goal) do not stop within one step."""
     arm = load_arm("pa10")
-    ctl = make_controller(arm)
+    ctl = make_controller(arm, params=ControllerParams.from_dict({"replan": {"corridor_share": 0.01}}))
     q0 = np.array([0.8620380935781569, -0.8963437758270911, -2.6761380381656896, 0.37568770912873944,
                    0.3606396759147724, 1.7980185737534031, -0.9225085188112081])
     T = np.eye(4)
@@ -266,3 +266,53 @@ def test_a_corridor_planned_while_obstacles_came_is_dropped():
     r = wait_for_plan(ctl)
     assert ctl._st.route is None  # noqa: SLF001
     assert "the scene changed while it was planned" in r.message, r.message
+
+
+def _pose(pos, R) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, pos
+    return T
+
+
+def _straight_move(q0, T):
+    """The PA10 from q0 to T with the default parameters: the messages, the hand path ratio, the
+    commanded joints kept within the limits, and whether it re-planned."""
+    arm = load_arm("pa10")
+    ctl = make_controller(arm)
+    ctl.reset(np.array(q0))
+    assert ctl.set_goal(T).accepted
+    r = wait_for_plan(ctl)
+    P, phases, messages, r_end = run_to_rest(ctl, T)
+    qs_ok = bool(np.all(ctl.q >= arm.lower) and np.all(ctl.q <= arm.upper))
+    ratio = np.sum(np.linalg.norm(np.diff(P, axis=0), axis=1)) / np.linalg.norm(P[-1] - P[0])
+    return r.message, r_end.phase, Phase.REPLANNING in phases, ratio, qs_ok
+
+
+def test_a_slow_straight_route_is_made_fast_enough_by_the_speed_guide():
+    """A reach whose line passes the elbow and shoulder singularities nearby: on the schedule nearest the
+    start swivel the route needs about 12 s, over 4 times a joint-space move (2.5 s), and went to the
+    planner; on the speed guide it takes about 8 s and the hand goes straight."""
+    q0 = [-2.6524096455753536, -1.271125332459373, 0.8874459085435809, 1.0575023737399984,
+          0.9537533074667197, 1.9527283615415267, 0.7299905983189493]
+    T = _pose([-0.689115967142905, -0.3338769899360669, 0.8144093287119364],
+              [[0.43540169321890965, 0.8643461080329122, -0.2516568518249873],
+               [0.8139034536158053, -0.49740856867823924, -0.30024304154756004],
+               [-0.3846901788899362, -0.07409805215943492, -0.9200668154714671]])
+    message, phase, replanned, ratio, within = _straight_move(q0, T)
+    assert message == "straight through the swivel corridor", message
+    assert phase is Phase.REACHED and not replanned and ratio <= 1.05 and within
+
+
+def test_a_corridor_closed_by_the_limit_margin_is_taken_with_a_smaller_margin():
+    """A goal whose reachable swivels all keep joint 1 within 0.05 rad of its limit at the end: the
+    corridor closes there with the limit margin, and opens with 0.01 rad; the state says which margin,
+    the hand goes straight and the commanded joints keep their limits."""
+    q0 = [-2.569506902470383, -0.6507945363100227, 1.4627276538546585, 0.15707442497138022,
+          -2.092640135205545, 1.8769298576419853, -5.569539191170589]
+    T = _pose([-0.05680357214520221, 0.00023633199062496162, 1.2616301205161975],
+              [[-0.11817336868293743, -0.049150773634893424, -0.9917758095382332],
+               [-0.984642218052671, -0.12345783944374342, 0.12344174459314283],
+               [-0.12850975590375374, 0.99113185970938, -0.03380649799348183]])
+    message, phase, replanned, ratio, within = _straight_move(q0, T)
+    assert message == "straight through the swivel corridor (joint-limit margin 0.010 rad)", message
+    assert phase is Phase.REACHED and not replanned and ratio <= 1.05 and within

@@ -250,3 +250,39 @@ def test_bad_input_is_refused():
         arm.swivel_corridor(T0, T0, q0, max_rate=-1.0)
     cor = arm.swivel_corridor(T0, T0, q0)  # no motion: the start swivel throughout
     assert cor.found and np.allclose(cor.swivel, arm.swivel(q0))
+
+
+def test_the_speed_guide_lowers_the_joints_path_speed_demand():
+    """A PA10 line passing near the shoulder axis: the schedule nearest the start swivel turns joint 1
+    at 15 times its speed per unit progress; on the speed guide (the least largest |dq/du| over the
+    joints' speeds, weighted by the minimum-jerk profile) at 12, the schedule keeping the bounds and the
+    route's poses."""
+    arm = ARMS["pa10"]
+    q0 = np.array([1.2999125794864783, -0.6065520243287214, -0.019005298270521, -1.0164191446634179,
+                   2.6314811019964726, 1.4905848010482132, -1.7073761691289138])
+    T1 = np.eye(4)
+    T1[:3, 3] = [-0.5149858994923524, 0.40000454424521975, 0.8102976233400754]
+    T1[:3, :3] = [[-0.9403096969527954, 0.2999003693222375, 0.16086467075441946],
+                  [0.3290791526687879, 0.9217433450550282, 0.20517338308260152],
+                  [-0.08674436636078929, 0.24586373121538874, -0.9654151648785678]]
+    T0 = arm.fk(q0)
+    speeds = np.array([0.7, 0.7, 1.4, 1.4, 4.4, 4.4, 4.4, 1.0])  # joints' speeds (rad/s), then the swivel
+    opts = {"limit_margin": 0.05, "shoulder_margin": 0.15, "wrist_margin": 0.15, "elbow_margin": 0.15,
+            "max_rate": 4.0, "samples": 12}
+
+    def demand(c: SwivelCorridor) -> float:
+        u = np.linspace(0.0, 1.0, 401)
+        Q = np.stack([np.interp(u, c.u, c.q[:, j]) for j in range(7)], axis=1)
+        return float(np.max(np.abs(np.gradient(Q, u, axis=0)) / speeds[:7]))
+
+    plain = swivel_corridor(arm, T0, T1, q0, **opts)
+    guided = swivel_corridor(arm, T0, T1, q0, speed_rates=speeds, **opts)
+    assert plain.found and guided.found
+    assert demand(guided) < 0.85 * demand(plain), (demand(guided), demand(plain))
+    lo, up = np.asarray(arm.lower) + 0.05 - 1e-9, np.asarray(arm.upper) - 0.05 + 1e-9
+    assert np.all(guided.q >= lo) and np.all(guided.q <= up)
+    assert np.min(np.abs(np.sin(guided.q[:, 1]))) >= 0.15 - 1e-9
+    for u, q in zip(guided.u, guided.q, strict=True):
+        assert np.allclose(arm.fk(q), route_pose(T0, T1, float(u)), atol=1e-9)
+    with pytest.raises(InvalidInputError):
+        swivel_corridor(arm, T0, T1, q0, speed_rates=speeds[:7], **opts)

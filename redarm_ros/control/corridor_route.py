@@ -16,7 +16,9 @@ swivel over their rates), so where the line passes near a singularity and joints
 hand slows there only (its speed then has more than one peak), instead of the whole route slowing to
 that stretch's pace. The duration T is the least that keeps
 every joint's velocity and acceleration (and the hand, orientation and swivel rates) within ``share``
-of their limits along that profile. Units: m, rad, s.
+of their limits along that profile. The duration is set by the joint that needs the most time per unit
+progress, so a slow route (or none) of the straight route is planned again with the schedule on the
+corridor's speed guide (:func:`plan_route` with ``fast``). Units: m, rad, s.
 """
 
 from __future__ import annotations
@@ -41,6 +43,13 @@ PEAK_RATE = 1.875
 PEAK_ACC = 5.7735
 #: shortest route (s)
 MIN_DURATION = 0.3
+#: :func:`plan_route` with ``fast``: the speed guide is tried for a route that takes over GUIDE_AFTER times
+#: the hand's own time; its swivel rate bound (rad per unit progress; the guide weighs the swivel's own
+#: speed against the joints', so it is not held to the low bound of :func:`route_margins`); the least limit
+#: margin (rad) tried where a joint limit's margin closes the corridor
+GUIDE_AFTER = 1.5
+GUIDE_RATE = 10.0
+LIMIT_FLOOR = 0.01
 
 
 def min_jerk(x: float) -> float:
@@ -79,6 +88,7 @@ class CorridorRoute:
     t: float = 0.0
     t_moved: float = 0.0  # controller time (s) when the route's clock last advanced
     pace_u: np.ndarray | None = None  # u at evenly spaced pace values (None: the pace is u)
+    limit_margin: float = math.nan  # rad: the joint-limit margin kept, when LIMIT_FLOOR or less
 
     def progress_at(self, t: float) -> float:
         """The progress u at time t (s) along the route."""
@@ -102,7 +112,9 @@ class CorridorRoute:
 
     def message(self) -> str:
         """What ``~/state`` says while the hand is on the route."""
-        return "straight through the swivel corridor"
+        if math.isnan(self.limit_margin):
+            return "straight through the swivel corridor"
+        return f"straight through the swivel corridor (joint-limit margin {self.limit_margin:.3f} rad)"
 
     def progress_of(self, pos: tuple[float, float, float], rot: tuple[float, float, float, float]) -> float:
         """The progress of a pose on the route: by position on the line, or by the orientation's turn
@@ -282,28 +294,70 @@ def timed_route(route: CorridorRoute, length: float, angle: float, v_max: float,
     return replace(route, duration=T, pace_u=pace_u)
 
 
+def _slower(a: CorridorRoute, b: CorridorRoute) -> bool:
+    """Is route a worse than b: paced where b is not (its hand speed has several peaks), or as paced and
+    longer."""
+    return (a.pace_u is not None, a.duration) > (b.pace_u is not None, b.duration)
+
+
+def _find_corridor(arm: Any, T0: np.ndarray, T1: np.ndarray, q0: np.ndarray, preferred: Any,
+                   tries: list[RouteMargins], **guide: Any) -> tuple[SwivelCorridor, RouteMargins]:
+    """The corridor of the first of ``tries`` that has one (else the last's), and its margins."""
+    for m in tries:
+        cor = arm.swivel_corridor(T0, T1, q0, limit_margin=m.limit, shoulder_margin=m.shoulder,
+                                  wrist_margin=m.wrist, elbow_margin=m.elbow, max_rate=m.rate,
+                                  preferred=preferred, samples=12, max_joint_step=0.1, **guide)
+        if cor.found:
+            break
+    return cor, m
+
+
 def plan_route(arm: Any, T0: np.ndarray, T1: np.ndarray, q0: np.ndarray, preferred: Any, margin_sing: float,
                margin_limit: float, v_max: float, w_max: float, s_rate: float, max_vel: np.ndarray,
-               max_acc: np.ndarray, share: float, pace_after: float = math.inf
+               max_acc: np.ndarray, share: float, pace_after: float = math.inf, fast: bool = False
                ) -> tuple[CorridorRoute | None, str]:
     """The corridor route from the reference (pose T0, joints q0) to T1, or (None, why there is none),
     with the margins of :func:`route_margins`. The minimum-jerk profile runs in
     u (a single-peaked hand speed) unless that takes longer than ``pace_after`` (s): then in the pace
-    (:func:`route_pace`; the hand slows where the joints swing)."""
-    for m in route_margins(arm, T0, T1, q0, margin_sing, margin_limit):
-        cor = arm.swivel_corridor(T0, T1, q0, limit_margin=m.limit, shoulder_margin=m.shoulder,
-                                  wrist_margin=m.wrist, elbow_margin=m.elbow, max_rate=m.rate,
-                                  preferred=preferred, samples=12, max_joint_step=0.1)
-        if cor.found:
-            break
-    if not cor.found:
-        return None, cor.reason
-    cor = smoothed(arm, T0, T1, cor, m.limit, min(m.shoulder, m.wrist), m.elbow)
+    (:func:`route_pace`; the hand slows where the joints swing).
+
+    ``fast``: a route that takes over GUIDE_AFTER times the hand's own time, or none, is planned again
+    with the schedule on the speed guide (the swivel rate bound GUIDE_RATE) and the better of the two
+    kept (not paced, then the shorter); and where a joint limit closes the corridor, it is tried with
+    the limit margin LIMIT_FLOOR."""
     p0 = (float(T0[0, 3]), float(T0[1, 3]), float(T0[2, 3]))
     p1 = (float(T1[0, 3]), float(T1[1, 3]), float(T1[2, 3]))
     r0, r1 = quat_from_matrix(T0[:3, :3]), quat_from_matrix(T1[:3, :3])
     turn = rotvec_between(r0, r1)
     angle = math.sqrt(sum(c * c for c in turn))
     length = math.dist(p0, p1)
-    return timed_route(CorridorRoute(p0, p1, r0, turn, cor, 0.0), length, angle, v_max, w_max, s_rate,
-                       max_vel, max_acc, share, pace_after), ""
+    timing = (length, angle, v_max, w_max, s_rate, max_vel, max_acc, share, pace_after)
+
+    def route_of(cor: SwivelCorridor, m: RouteMargins) -> CorridorRoute:
+        cor = smoothed(arm, T0, T1, cor, m.limit, min(m.shoulder, m.wrist), m.elbow)
+        limit = m.limit if m.limit <= LIMIT_FLOOR + 1e-12 else math.nan
+        return timed_route(CorridorRoute(p0, p1, r0, turn, cor, 0.0, limit_margin=limit), *timing)
+
+    tries = route_margins(arm, T0, T1, q0, margin_sing, margin_limit)
+    cor, m = _find_corridor(arm, T0, T1, q0, preferred, tries)
+    route = route_of(cor, m) if cor.found else None
+    why = cor.reason
+    hand_time = PEAK_RATE * max(length / v_max, angle / w_max)
+    if fast and (route is None or route.duration > GUIDE_AFTER * hand_time):
+        # the schedule keeps the joints' speed demand low (the route's duration is set by its worst joint),
+        # down to what the hand's own length and turn take, and else keeps near the preferred swivel
+        rates = np.append(share * np.asarray(max_vel, float), s_rate)
+        guide = {"speed_rates": rates, "speed_floor": hand_time}
+        fast_tries = list(dict.fromkeys(replace(t, rate=max(t.rate, GUIDE_RATE)) for t in tries[1:]))
+        if route is None and "limit" in why:
+            # a corridor closed by a joint limit's margin: the margin down to LIMIT_FLOOR (the joints
+            # keep their limits themselves at every sample, and the command's limiter keeps them too)
+            fast_tries.append(replace(fast_tries[-1], limit=min(fast_tries[-1].limit, LIMIT_FLOOR)))
+        cor, m = _find_corridor(arm, T0, T1, q0, preferred, fast_tries, **guide)
+        if cor.found:
+            guided = route_of(cor, m)
+            if route is None or _slower(route, guided):
+                route = guided
+    if route is None:
+        return None, why
+    return route, ""

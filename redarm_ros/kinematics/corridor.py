@@ -23,7 +23,9 @@ cut is a closed-form root, :func:`.feasible.roots`). The swivel is unwrapped (a 
 The schedule: the reachable set is propagated forward from the start swivel, sample to sample, widened by
 the rate bound ``max_rate * du`` (rad) and intersected with the next sample's corridor; then a backward
 pass picks at each sample the reachable swivel nearest the preferred one within the rate bound. Where the
-reachable set becomes empty the corridor is closed, and the constraints that close it are named.
+reachable set becomes empty the corridor is closed, and the constraints that close it are named. With
+the joints' speeds given (``speed_rates``) the preferred swivel is first replaced by the speed guide
+(:meth:`_Corridor.speed_guide`), a coarse grid schedule that keeps the joints' path-speed demand least.
 
 Between samples (adaptive refinement, not a derivative bound): a step of the route is halved, down to
 ``min_du``, (1) where the number of corridor intervals changes or an interval end moves by more than
@@ -87,6 +89,12 @@ MAX_SAMPLES = 2000
 #: hundreds of samples, for a sag of thousandths of the margin)
 MID_SHARE = 0.02
 
+#: the speed guide (see :meth:`_Corridor.speed_guide`): route samples, most swivel grid step (rad), and
+#: the share above the least path-speed demand that the guide may take to keep nearer the preferred swivel
+GUIDE_SAMPLES = 40
+GUIDE_STEP = 0.05
+GUIDE_SLACK = 1.25
+
 #: the preferred swivel (rad) at progress u and pose T (4x4), or a constant
 PreferredSwivel = Callable[[float, np.ndarray], float]
 
@@ -119,6 +127,18 @@ class SwivelCorridor:
     def swivel_at(self, u: float) -> float:
         """The schedule's swivel (rad, unwrapped) at progress ``u`` (linear between samples, clamped)."""
         return float(np.interp(min(max(float(u), 0.0), 1.0), self.u, self.swivel))
+
+
+def _min_jerk_time(u: float) -> float:
+    """The time share x at which the minimum-jerk profile 10 x^3 - 15 x^4 + 6 x^5 reaches u (bisection)."""
+    lo, hi = 0.0, 1.0
+    for _ in range(40):
+        mid = 0.5 * (lo + hi)
+        if mid * mid * mid * (10.0 - 15.0 * mid + 6.0 * mid * mid) < u:
+            lo = mid
+        else:
+            hi = mid
+    return 0.5 * (lo + hi)
 
 
 def route_pose(T_start: np.ndarray, T_goal: np.ndarray, u: float) -> np.ndarray:
@@ -517,6 +537,93 @@ class _Corridor:
         sched[0] = self.s0
         return sched, pieces
 
+    # -- the speed guide --------------------------------------------------------------------------
+    def speed_guide(self, rates: np.ndarray, floor: float, n: int = GUIDE_SAMPLES) -> PreferredSwivel | None:
+        """The swivel the schedule follows when it keeps the joints' path-speed demand low (see
+        :func:`swivel_corridor`): on ``n`` + 1 evenly spaced samples and a swivel grid, the schedule from
+        the start whose largest demand max_j |dq_j/du| / rates[j] (s per unit progress; the swivel's
+        |ds/du| / rates[7] too) is least, or at most ``floor`` (s per unit progress), is found (a bottleneck
+        path); among those within GUIDE_SLACK of that least demand, the one nearest the preferred swivel
+        (least integral of the distance). None where a sample is out of reach or no grid path exists."""
+        us = np.linspace(0.0, 1.0, n + 1)
+        du = 1.0 / n
+        h = min(GUIDE_STEP, self.max_rate * du)
+        K = int(math.ceil(1.5 * PI / h))
+        S = self.s0 + h * np.arange(-K, K + 1)
+        band = max(1, int(round(self.max_rate * du / h)))
+        A, ok = [], []
+        for u in us:
+            smp = self.sample(float(u))
+            if smp.fn is None:
+                return None
+            A.append(self.angles(smp.fn, S))
+            inside = np.zeros(len(S), bool)
+            for a, b in smp.intervals:
+                inside |= (b - a >= TWO_PI - 1e-9) | ((S - a) % TWO_PI <= b - a + 1e-9)
+            ok.append(inside)
+        offsets = range(-band, band + 1)
+        # a step's demand in s of route time: per unit progress, times the minimum-jerk profile's
+        # du/dx where the step lies (the route's duration is the largest of those; near the ends the
+        # profile is slow, so a joint may swing faster there)
+        xm = np.array([_min_jerk_time(0.5 * (us[i] + us[i + 1])) for i in range(n)])
+        pace = 30.0 * xm * xm * (1.0 - xm) ** 2 / du
+
+        def edges(i: int) -> list[np.ndarray]:
+            """Per offset o: the demand of the step from grid k at sample i to k + o at i + 1 (inf: none)."""
+            out = []
+            for o in offsets:
+                src = np.arange(max(0, -o), min(len(S), len(S) - o))
+                # (every joint modulo 2 pi: the closed form's copy may be 2 pi off the in-limit one)
+                d = np.abs(np.remainder(A[i + 1][:, src + o] - A[i][:, src] + PI, TWO_PI) - PI)
+                c = np.full(len(S), math.inf)
+                c[src] = np.maximum(np.max(d / rates[:7, None], axis=0), abs(o) * h / rates[7]) * pace[i]
+                c[~ok[i]] = math.inf
+                c[src[~ok[i + 1][src + o]]] = math.inf
+                out.append(c)
+            return out
+
+        def shifted(x: np.ndarray, o: int) -> np.ndarray:
+            """x moved by o grid steps (x[k] at k + o), inf where nothing lands."""
+            y = np.full_like(x, math.inf)
+            if o >= 0:
+                y[o:] = x[:len(x) - o]
+            else:
+                y[:o] = x[-o:]
+            return y
+
+        E = [edges(i) for i in range(n)]
+        V = np.full(len(S), math.inf)
+        V[K] = 0.0
+        for i in range(n):  # the bottleneck: least largest step demand up to each grid swivel
+            V = np.min([shifted(np.maximum(V, E[i][k]), o) for k, o in enumerate(offsets)], axis=0)
+        best = float(V.min())
+        if not math.isfinite(best):
+            return None
+        bound = max(GUIDE_SLACK * best, floor)
+
+        def dev(i: int) -> np.ndarray:
+            return np.abs(np.remainder(S - self.preferred(float(us[i]), self.sample(float(us[i])).T) + PI,
+                                       TWO_PI) - PI) * du
+        W = np.full(len(S), math.inf)
+        W[K] = 0.0
+        back = np.zeros((n, len(S)), int)
+        for i in range(n):  # the nearest the preferred swivel with every step within the bound
+            cand = np.array([shifted(np.where(E[i][k] <= bound, W, math.inf), o)
+                             for k, o in enumerate(offsets)])
+            j = np.argmin(cand, axis=0)
+            back[i] = np.asarray(list(offsets))[j]
+            W = cand[j, np.arange(len(S))] + dev(i + 1)
+        k = int(np.argmin(W))
+        path = np.empty(n + 1)
+        for i in range(n, 0, -1):
+            path[i] = S[k]
+            k -= back[i - 1, k]
+        path[0] = S[k]
+
+        def guide(u: float, _T: np.ndarray) -> float:
+            return float(np.interp(u, us, path))
+        return guide
+
     # -- checks ----------------------------------------------------------------------------------
     def solve(self, u: float, s: float, q_prev: np.ndarray) -> np.ndarray:
         """The joints on the start's pattern at progress u and swivel s, the 2 pi copy nearest q_prev."""
@@ -617,6 +724,8 @@ def swivel_corridor(
     max_joint_step: float = 0.1,
     min_du: float = 1e-3,
     end_step: float = 0.05,
+    speed_rates: Any = None,
+    speed_floor: float = 0.0,
 ) -> SwivelCorridor:
     """The swivel corridor of the straight route from ``T_start`` (the pose of ``q_start``) to ``T_goal``,
     and a continuous swivel schedule through it (see the module docstring).
@@ -626,7 +735,10 @@ def swivel_corridor(
     (rad per unit progress, > 0) bounds |ds/du|. ``preferred``: the swivel the schedule keeps nearest
     (rad), a constant or a function ``(u, T) -> swivel``; None: the start's swivel. ``samples``: the
     initial number of route steps; ``max_joint_step`` (rad), ``min_du`` and ``end_step`` (rad) steer the
-    refinement.
+    refinement. ``speed_rates`` (8 values > 0: the joints' speeds, rad/s, then the swivel's): the
+    schedule then follows the speed guide instead of the preferred swivel: the grid schedule whose
+    joints need the least time per unit progress (each |dq/du| over its speed), up to ``speed_floor``
+    (s per unit progress, what the route takes anyway), and among those nearest the preferred swivel.
 
     Raises:
         InvalidInputError: malformed poses or joints, ``q_start`` not a solution of ``T_start`` (1e-6
@@ -675,6 +787,17 @@ def swivel_corridor(
 
     cor = _Corridor(arm, Ta, Tb, q0, margins, float(max_rate), pref, float(max_joint_step), float(min_du),
                     float(end_step))
+    if speed_rates is not None:
+        rates = np.asarray(speed_rates, float)
+        if rates.shape != (8,) or not np.all(np.isfinite(rates)) or np.any(rates <= 0.0):
+            raise InvalidInputError("speed_rates must be 8 finite numbers > 0", field="speed_rates",
+                                    value=speed_rates)
+        if not (isinstance(speed_floor, (int, float)) and math.isfinite(speed_floor) and speed_floor >= 0.0):
+            raise InvalidInputError(f"speed_floor must be a finite number >= 0, got {speed_floor!r}",
+                                    field="speed_floor", value=speed_floor)
+        guide = cor.speed_guide(rates, float(speed_floor))
+        if guide is not None:
+            cor.preferred = guide
     us = cor.topology_grid(samples)
     prev = None
     for _ in range(24):
