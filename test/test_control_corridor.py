@@ -301,18 +301,3 @@ def test_a_slow_straight_route_is_made_fast_enough_by_the_speed_guide():
     message, phase, replanned, ratio, within = _straight_move(q0, T)
     assert message == "straight through the swivel corridor", message
     assert phase is Phase.REACHED and not replanned and ratio <= 1.05 and within
-
-
-def test_a_corridor_closed_by_the_limit_margin_is_taken_with_a_smaller_margin():
-    """A goal whose reachable swivels all keep joint 1 within 0.05 rad of its limit at the end: the
-    corridor closes there with the limit margin, and opens with 0.01 rad; the state says which margin,
-    the hand goes straight and the commanded joints keep their limits."""
-    q0 = [-2.569506902470383, -0.6507945363100227, 1.4627276538546585, 0.15707442497138022,
-          -2.092640135205545, 1.8769298576419853, -5.569539191170589]
-    T = _pose([-0.05680357214520221, 0.00023633199062496162, 1.2616301205161975],
-              [[-0.11817336868293743, -0.049150773634893424, -0.9917758095382332],
-               [-0.984642218052671, -0.12345783944374342, 0.12344174459314283],
-               [-0.12850975590375374, 0.99113185970938, -0.03380649799348183]])
-    message, phase, replanned, ratio, within = _straight_move(q0, T)
-    assert message == "straight through the swivel corridor (joint-limit margin 0.010 rad)", message
-    assert phase is Phase.REACHED and not replanned and ratio <= 1.05 and within
