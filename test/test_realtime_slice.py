@@ -38,11 +38,12 @@ def _kernel_takes_slices() -> str:
 pytestmark = pytest.mark.skipif(bool(_kernel_takes_slices()), reason=_kernel_takes_slices() or "-")
 
 
-def _proc_slice_ns(pid: int, comm: str) -> int | None:
-    """``se.slice`` (ns) of the thread of ``pid`` named ``comm`` (/proc), None when there is none."""
+def _proc_slice_ns(pid: int, comm: str | None) -> int | None:
+    """``se.slice`` (ns) of the thread of ``pid`` named ``comm`` (None: its main thread) (/proc), None
+    when there is none."""
     for task in Path(f"/proc/{pid}/task").iterdir():
         try:
-            if (task / "comm").read_text().strip() != comm:
+            if (task.name != str(pid)) if comm is None else ((task / "comm").read_text().strip() != comm):
                 continue
             for line in (task / "sched").read_text().splitlines():
                 if line.startswith("se.slice"):
@@ -108,7 +109,7 @@ def test_bus_server_relay_thread_takes_its_slice(slice_ms: float) -> None:
         assert wait_until(lambda: _proc_slice_ns(child.pid, "canbus-relay") == int(slice_ms * 1e6)
                           or not slice_ms and _proc_slice_ns(child.pid, "canbus-relay") is not None)
         relay = _proc_slice_ns(child.pid, "canbus-relay")
-        main = _proc_slice_ns(child.pid, "python") or _proc_slice_ns(child.pid, Path(cmd[0]).name[:15])
+        main = _proc_slice_ns(child.pid, None)
     finally:
         assert child.stop() == 0
     if slice_ms:
@@ -154,3 +155,20 @@ def test_sim_bus_thread_takes_its_slice() -> None:
         sim_bus.shutdown()
         plant.close()
     assert not runner.is_alive()
+
+
+def test_driver_cycle_process_takes_its_slice() -> None:
+    from redarm_ros.can.bus_server import LoopbackBusServer
+    from redarm_ros.can.driver_loop import LoopConfig
+    from redarm_ros.can.driver_process import DriverProcess, DriverSpec
+
+    with LoopbackBusServer() as server:  # no modules: the cycle scans for them, which is enough here
+        spec = DriverSpec(module_ids=(1,), lower=(-1.0,), upper=(1.0,), max_vel=(1.0,), max_acc=(5.0,),
+                          can_kwargs=server.client_config(),
+                          loop=LoopConfig(rate_hz=100.0, slice_ms=SLICE_MS))
+        proc = DriverProcess(spec, on_sample=lambda _s: None, log=lambda _lvl, _msg: None).start()
+        try:
+            assert wait_until(lambda: _proc_slice_ns(proc.pid, "can-cycle") == int(SLICE_MS * 1e6), 20)
+            assert _proc_slice_ns(proc.pid, None) != int(SLICE_MS * 1e6)  # the cycle thread only
+        finally:
+            proc.stop()
