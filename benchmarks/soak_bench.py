@@ -30,7 +30,9 @@ prints what happened within 1 s of it (run-queue waits: 0.1 s), the timeline.
 
 Run: ``.venv/bin/python benchmarks/soak_bench.py`` (10 min; ``--quick`` = 60 s smoke, as ``make bench``
 runs it; ``--no-hog``; ``--realtime-priority 0`` runs the chain and the driver node at normal
-priority, nice 0; ``--hog 1`` keeps one core busy).
+priority, nice 0; ``--hog 1`` keeps one core busy; ``--slice-ms MS`` the time slice of the threads on
+the reply path, 0 = the kernel's default). The results give each run's longest run-queue waits of
+those threads.
 Writes ``benchmarks/results/soak_bench.md`` (every run kept, newest first) unless ``--no-write``.
 What it does not cover: a real CAN bus or real modules, other arms, faults injected on purpose (the
 HIL tests do those), memory growth.
