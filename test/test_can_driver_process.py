@@ -67,7 +67,6 @@ def test_cycle_process_inits_follows_and_stops(rig: dict[str, Any]) -> None:
     proc.start()
     assert wait_for(lambda: proc.state is LoopState.IDLE), proc.accepting_commands()
     assert proc.pid != os.getpid() and proc.alive
-    assert os.getsid(proc.pid) == proc.pid != os.getsid(0)  # a session of its own (autogroup share)
     ok, msg = proc.request("init", timeout=30.0)
     assert ok, msg
     assert proc.state is LoopState.RUNNING and proc.accepting_commands() == (True, "")

@@ -22,8 +22,7 @@ parent loses samples (counted) but never stalls the cycle; a parent reader that 
 on only the newest sample queued (``samples_skipped`` counts the others), so what it publishes is
 never older than its own delay. The child ignores SIGINT and SIGTERM (the parent
 stops it) and ends when the parent's end of the socket closes, so a killed node takes its cycle
-with it: the modules' watchdog then halts the arm. It runs in a session of its own, so where the
-kernel shares the CPU between sessions (autogroup) the node's threads do not use up the cycle's share.
+with it: the modules' watchdog then halts the arm.
 """
 
 from __future__ import annotations
@@ -302,9 +301,6 @@ class DriverProcess:
                 [self._python, "-m", "redarm_ros.can.driver_process", "--fd", str(theirs.fileno())],
                 pass_fds=(theirs.fileno(),), env=env, stdin=subprocess.DEVNULL,
                 preexec_fn=die_with_parent_preexec(),  # no real-time orphan if the node is killed
-                # A session of its own: where the kernel shares the CPU between sessions (autogroup),
-                # the node's executor and middleware threads then do not use up the cycle's share.
-                start_new_session=True,
             )
         finally:
             theirs.close()
