@@ -30,7 +30,9 @@ prints what happened within 1 s of it (run-queue waits: 0.1 s), the timeline.
 
 Run: ``.venv/bin/python benchmarks/soak_bench.py`` (10 min; ``--quick`` = 60 s smoke, as ``make bench``
 runs it; ``--no-hog``; ``--realtime-priority 0`` runs the chain and the driver node at normal
-priority, nice 0; ``--hog 1`` keeps one core busy).
+priority, nice 0; ``--hog 1`` keeps one core busy; ``--slice-ms MS`` the time slice of the threads on
+the reply path, 0 = the kernel's default). The results give each run's longest run-queue waits of
+those threads.
 Writes ``benchmarks/results/soak_bench.md`` (every run kept, newest first) unless ``--no-write``.
 What it does not cover: a real CAN bus or real modules, other arms, faults injected on purpose (the
 HIL tests do those), memory growth.
@@ -110,6 +112,7 @@ class Observed:
     misses: list[tuple[float, str]] = field(default_factory=list)  # (wall time, driver line)
     timelines: list[str] = field(default_factory=list)  # one text block per miss
     hop_lines: list[tuple[float, str]] = field(default_factory=list)  # the bus server's slow hops
+    runq_waits: list[tuple[float, str]] = field(default_factory=list)  # the sampler's events
 
 
 class SchedstatSampler:
@@ -182,6 +185,22 @@ READ_RE = re.compile(r"request sent to read \(bus thread since: ran ([0-9.]+) ms
 ANSWER_RE = re.compile(r"request read to reply sent ([0-9.]+) ms")
 
 
+RUNQ_RE = re.compile(r"run-queue wait ([0-9.]+) ms of (\w+):([^(]+)\(")
+#: The threads every reply passes through (label:thread name as the sampler reports them).
+REPLY_PATH = ("canbus:canbus-relay", "sim:sim-bus", "driver:can-cycle")
+
+
+def worst_waits(events: list[tuple[float, str]]) -> str:
+    """The longest run-queue wait (ms, per sample) and the count of waits of
+    :data:`RUNQ_WAIT_EVENT_MS` or more of each thread on the reply path, e.g. ``sim:sim-bus 6.1 (2)``."""
+    worst = {name: (0.0, 0) for name in REPLY_PATH}
+    for _t, ev in events:
+        if (m := RUNQ_RE.search(ev)) and (name := f"{m.group(2)}:{m.group(3)}") in worst:
+            ms, n = worst[name]
+            worst[name] = (max(ms, float(m.group(1))), n + 1)
+    return ", ".join(f"{name} {ms:.1f} ({n})" for name, (ms, n) in worst.items())
+
+
 def where_it_waited(t_miss: float, events: list[tuple[float, str]]) -> str:
     """One line on the missed cycle's requests (events up to the reply timeout after it): the bus
     server's hop, the simulator's read (and how much of it its bus thread ran or waited for a CPU; the
@@ -218,24 +237,34 @@ def timelines(misses: list[tuple[float, str]], events: list[tuple[float, str]]) 
     return blocks
 
 
-def start_chain(group: ProcessGroup, tmp: Path, prio: int,
-                physics: str = "process") -> tuple[str, Path, ManagedProcess, ManagedProcess]:
+def slice_args(slice_ms: float | None) -> list[str]:
+    """``--slice-ms`` for the bus server and the simulator (none: their default)."""
+    return [] if slice_ms is None else ["--slice-ms", f"{slice_ms:g}"]
+
+
+def start_chain(group: ProcessGroup, tmp: Path, prio: int, physics: str = "process",
+                slice_ms: float | None = None) -> tuple[str, Path, ManagedProcess, ManagedProcess]:
     bus = group.start("canbus", python_module_cmd("redarm_ros.can.bus_server", "--host", "127.0.0.1",
-                                                  "--port", "0", "--realtime-priority", str(prio)),
+                                                  "--port", "0", "--realtime-priority", str(prio),
+                                                  *slice_args(slice_ms)),
                       ready=r"REDARM_CANBUS_PORT=(\d+)")
     channel = f"ws://127.0.0.1:{int(bus.ready_match.group(1))}/"  # type: ignore[attr-defined]
     status = tmp / "sim.json"
     sim = group.start("sim", python_module_cmd("redarm_ros.sim.hardware", "--arm", ARM_NAME,
                                                "--can-interface", "remote", "--can-channel", channel,
                                                "--status-file", str(status), "--status-rate", "10",
-                                               "--realtime-priority", str(prio), "--physics", physics),
+                                               "--realtime-priority", str(prio), "--physics", physics,
+                                               *slice_args(slice_ms)),
                 ready=r"REDARM_SIM_READY", ready_timeout=60)
     return channel, status, bus, sim
 
 
-def start_driver(group: ProcessGroup, channel: str, prio: int) -> ManagedProcess:
+def start_driver(group: ProcessGroup, channel: str, prio: int,
+                 slice_ms: float | None = None) -> ManagedProcess:
     params = {"arm": ARM_NAME, "can.interface": "remote", "can.channel": channel, "rate_hz": "250.0",
               "realtime_priority": str(prio), "joint_states_rate_hz": "0"}  # every cycle: stamps measured
+    if slice_ms is not None:
+        params["slice_ms"] = f"{float(slice_ms)!r}"
     if prio == 0:  # normal priority throughout: the node's own process at nice 0 too, not its default -10
         params["nice"] = "0"
     ros_args = ["--ros-args"] + [a for k, v in params.items() for a in ("-p", f"{k}:={v}")]
@@ -256,7 +285,8 @@ def stream_target(arm: Any, t: float) -> np.ndarray:
 
 
 def soak(seconds: float, hog: int, prio: int, newcomer_period: float = NEWCOMER_PERIOD_S,
-         physics: str = "process") -> tuple[Observed, dict[str, Any], dict[str, Any]]:
+         physics: str = "process",
+         slice_ms: float | None = None) -> tuple[Observed, dict[str, Any], dict[str, Any]]:
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.executors import SingleThreadedExecutor
@@ -277,8 +307,8 @@ def soak(seconds: float, hog: int, prio: int, newcomer_period: float = NEWCOMER_
                          log_dir=Path(tmpdir) / "ros_log") as group:
         tmp = Path(tmpdir)
         os.environ["ROS_LOG_DIR"] = str(tmp / "ros_log")
-        channel, status_file, bus_proc, sim_proc = start_chain(group, tmp, prio, physics)
-        driver = start_driver(group, channel, prio)
+        channel, status_file, bus_proc, sim_proc = start_chain(group, tmp, prio, physics, slice_ms)
+        driver = start_driver(group, channel, prio, slice_ms)
         sampler = SchedstatSampler({"canbus": bus_proc.pid, "sim": sim_proc.pid, "driver": driver.pid})
         ctx = rclpy.Context()
         rclpy.init(context=ctx, domain_id=domain)
@@ -376,6 +406,7 @@ def soak(seconds: float, hog: int, prio: int, newcomer_period: float = NEWCOMER_
             obs.hop_lines = line_events(bus_proc, "canbus", "slow hop:")
             events = [*obs.events, *sampler.events, *obs.hop_lines, *line_events(sim_proc, "sim", "slow:")]
             obs.timelines = timelines(obs.misses, events)
+            obs.runq_waits = sampler.events
         finally:
             sampler.stop()
             for h in hogs:
@@ -479,6 +510,9 @@ def main(argv: list[str] | None = None) -> int:
                     help=f"start a new Python process every S seconds (default {NEWCOMER_PERIOD_S:g})")
     ap.add_argument("--sim-physics", choices=("process", "thread"), default="process",
                     help="the simulator's --physics (default process; thread: as before, for comparison)")
+    ap.add_argument("--slice-ms", type=float, default=None, metavar="MS",
+                    help="time slice of the threads on the reply path (bus server relay, simulator bus "
+                    "thread, driver cycle; 0 = the kernel's default; default: theirs)")
     ap.add_argument("--plot-dir", type=Path, default=None,
                     help="write the PNG plot here (default: beside the results file when it is written)")
     args = ap.parse_args(argv)
@@ -489,7 +523,8 @@ def main(argv: list[str] | None = None) -> int:
     load_before = os.getloadavg()
     if not args.newcomer_period > 0:
         ap.error("--newcomer-period must be > 0")
-    obs, diag, sim = soak(seconds, hog, args.realtime_priority, args.newcomer_period, args.sim_physics)
+    obs, diag, sim = soak(seconds, hog, args.realtime_priority, args.newcomer_period, args.sim_physics,
+                          args.slice_ms)
     load_after = os.getloadavg()
     r = summarise(seconds, hog, args.realtime_priority, obs, diag, sim)
     run = "\n".join([
@@ -507,7 +542,10 @@ def main(argv: list[str] | None = None) -> int:
         f"{r.sim_gc_max_pause_ms:.2f} ms CPU ({r.sim_gc_collections} collections), longest "
         f"request-to-reply {r.sim_reply_max_ms:.2f} ms.",
         "",
-        f"Slow events: simulator {sim_counts(sim)}; bus server slow hops {len(obs.hop_lines)}.",
+        f"Slow events: simulator {sim_counts(sim)}; bus server slow hops {len(obs.hop_lines)}. Longest "
+        f"run-queue wait in a {SCHEDSTAT_PERIOD_S * 1e3:.0f} ms sample, ms (samples of "
+        f"{RUNQ_WAIT_EVENT_MS:g} ms or more), of the threads on the reply path: "
+        f"{worst_waits(obs.runq_waits)}.",
         "",
         f"Command: `.venv/bin/python benchmarks/soak_bench.py --seconds {seconds:g}"
         + (" --no-hog" if args.no_hog else f" --hog {hog}")
@@ -515,6 +553,7 @@ def main(argv: list[str] | None = None) -> int:
         + (f" --newcomer-period {args.newcomer_period:g}"
            if args.newcomer_period != NEWCOMER_PERIOD_S else "")
         + (f" --sim-physics {args.sim_physics}" if args.sim_physics != "process" else "")
+        + (f" --slice-ms {args.slice_ms:g}" if args.slice_ms is not None else "")
         + "`",
         "",
         *([f"Timelines of the missed replies (first {MAX_TIMELINES}; times relative to the missed cycle):",

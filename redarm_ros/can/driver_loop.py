@@ -657,7 +657,9 @@ class LoopConfig:
     stream timeout, reconnect backoff (s), ``auto_init`` after connecting, ``limit_margin_rad`` kept
     from each joint limit by the reference (:data:`DEFAULT_LIMIT_MARGIN`), ``realtime_priority``
     (SCHED_FIFO priority for the loop thread, 0 = normal scheduling; see
-    :func:`redarm_ros.can.realtime.raise_priority`), ``quiet_gc`` (freeze the garbage collector at
+    :func:`redarm_ros.can.realtime.raise_priority`), ``slice_ms`` (time slice the loop thread asks for
+    at normal scheduling, 0 = the kernel's default; :func:`redarm_ros.can.realtime.request_slice`),
+    ``quiet_gc`` (freeze the garbage collector at
     start and collect young objects only in spare time between cycles; for a process of its own).
     ``park`` is the park posture (rad, one per joint; None: ``park`` is refused), ``park_tolerance_rad``
     how close every measured joint must come to it before ``park`` reports success,
@@ -675,6 +677,7 @@ class LoopConfig:
     clamp_log_interval_s: float = 1.0
     limit_margin_rad: float = DEFAULT_LIMIT_MARGIN
     realtime_priority: int = 0
+    slice_ms: float = 0.0
     quiet_gc: bool = False
     park: tuple[float, ...] | None = None
     park_tolerance_rad: float = 2e-3
@@ -1049,6 +1052,10 @@ class DriverLoop:
             prio = realtime.raise_priority(cfg.realtime_priority, who="can_driver cycle thread")
             self._priority = prio.message
             self._log(logging.INFO if prio.realtime else logging.WARNING, prio.message)
+        if cfg.slice_ms > 0:  # woken by every reply: a short slice gets it a CPU sooner
+            got = realtime.request_slice(cfg.slice_ms, who="can_driver cycle thread")
+            self._priority = f"{self._priority}; {got.message}" if self._priority else got.message
+            self._log(logging.WARNING if got.refused else logging.INFO, got.message)
         if cfg.quiet_gc:
             realtime.quiet_gc()
         backoff = Backoff(cfg.reconnect_first_s, cfg.reconnect_max_s)

@@ -161,6 +161,8 @@ class HardwareSim:
     ``freeze_gc``: once started, freeze the garbage collector's view of every object made so far
     (:func:`redarm_ros.can.realtime.freeze_gc`; undone when ``run()`` returns), so that no full
     collection of the start-up objects holds up a reply; the process does this, a test need not.
+    ``slice_ms``: time slice the bus thread asks for (:func:`redarm_ros.can.realtime.request_slice`;
+    0: the kernel's default).
     """
 
     def __init__(
@@ -179,6 +181,7 @@ class HardwareSim:
         die_after_s: float | None = None,
         emulator_factory: Callable[..., Any] | None = None,
         freeze_gc: bool = False,
+        slice_ms: float = 0.0,
     ) -> None:
         self.plant = plant
         self.bus = bus
@@ -201,6 +204,7 @@ class HardwareSim:
         self.control_file = Path(control_file) if control_file else None
         self.die_after_s = die_after_s
         self.freeze_gc = freeze_gc
+        self.slice_ms = slice_ms
         self._gc_start = 0.0
         self.counters = Counters()
         self.snapshots: list[str] = []
@@ -432,6 +436,9 @@ class HardwareSim:
 
     def _bus_loop(self) -> None:
         realtime.name_thread("sim-bus")
+        if self.slice_ms > 0:  # woken by each request: a short slice gets it a CPU sooner
+            got = realtime.request_slice(self.slice_ms, who="redarm-sim bus thread")
+            (_LOG.warning if got.refused else _LOG.info)("%s", got.message)
         self._sched = realtime.ThreadSchedstat()
         self._sched_empty = self._sched.read()
         try:
@@ -823,6 +830,14 @@ def build_parser() -> argparse.ArgumentParser:
         f"default {DEFAULT_REALTIME_PRIORITY}); falls back to a raised nice level when not permitted",
     )
     ap.add_argument(
+        "--slice-ms",
+        type=float,
+        default=realtime.DEFAULT_SLICE_MS,
+        metavar="MS",
+        help="time slice of the bus thread at normal scheduling (0.1..100 ms, 0 = the kernel's default; "
+        f"default {realtime.DEFAULT_SLICE_MS:g}): woken sooner, same CPU share",
+    )
+    ap.add_argument(
         "--physics",
         choices=("process", "thread"),
         default="process",
@@ -944,6 +959,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         control_file=args.control_file,
         die_after_s=args.die_after,
         freeze_gc=True,
+        slice_ms=args.slice_ms,
     )
     sim.realtime = prio.realtime
     channel = None
