@@ -10,6 +10,7 @@ import pytest
 
 from redarm_ros.errors import ConfigError, InvalidInputError
 from redarm_ros.kinematics import Arm, has_analytic_ik, has_swivel, load_arm
+from redarm_ros.kinematics.protocols import CorridorArm
 from redarm_ros.kinematics.quaternion import qmul, quat_to_matrix, qy, qz, rotation_error
 
 ARMS = ["pa10", "pa10_7c", "powercube7", "powercube6"]
@@ -197,6 +198,9 @@ def test_generic_chain_yaml_reproduces_pa10(tmp_path: Path) -> None:
     assert not has_analytic_ik(chain) and not hasattr(chain, "ik")
     assert has_swivel(pa10) and has_analytic_ik(pa10) and pa10.has_swivel
     assert has_analytic_ik(load_arm("powercube6")) and not has_swivel(load_arm("powercube6"))
+    # the routes' protocol (the swivel corridor and the limit check) holds for the swivel arms only
+    assert all(isinstance(load_arm(a), CorridorArm) for a in ("pa10", "powercube7"))
+    assert not isinstance(load_arm("powercube6"), CorridorArm) and not isinstance(chain, CorridorArm)
 
 
 @pytest.mark.parametrize(

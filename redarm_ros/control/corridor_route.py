@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from redarm_ros.kinematics.corridor import SwivelCorridor, route_pose
+from redarm_ros.kinematics.protocols import CorridorArm
 from redarm_ros.kinematics.quaternion import (
     quat_from_matrix,
     quat_from_rotvec,
@@ -179,8 +180,8 @@ def route_duration(corridor: SwivelCorridor, length: float, angle: float, v_max:
     return max(T, math.sqrt(float(np.max(need))))
 
 
-def smoothed(arm: Any, T0: np.ndarray, T1: np.ndarray, cor: SwivelCorridor, m_limit: float, m_sing: float,
-             m_elbow: float, window: float = 0.08) -> SwivelCorridor:
+def smoothed(arm: CorridorArm, T0: np.ndarray, T1: np.ndarray, cor: SwivelCorridor, m_limit: float,
+             m_sing: float, m_elbow: float, window: float = 0.08) -> SwivelCorridor:
     """The schedule averaged over +-``window`` of progress (triangular weights; the start kept), if every
     sample's joints at the averaged swivel keep half the margins and stay continuous (each joint within
     0.15 rad of the sample before); else the schedule as it is. The backward pass leaves corners where
@@ -189,7 +190,7 @@ def smoothed(arm: Any, T0: np.ndarray, T1: np.ndarray, cor: SwivelCorridor, m_li
     return smoothed_along(arm, lambda u: route_pose(T0, T1, u), cor, m_limit, m_sing, m_elbow, window)
 
 
-def smoothed_along(arm: Any, pose_at: Any, cor: SwivelCorridor, m_limit: float, m_sing: float,
+def smoothed_along(arm: CorridorArm, pose_at: Any, cor: SwivelCorridor, m_limit: float, m_sing: float,
                    m_elbow: float, window: float = 0.08, share: np.ndarray | None = None) -> SwivelCorridor:
     """:func:`smoothed` for a route whose pose (4x4) at progress u is ``pose_at(u)``; ``share`` (per
     sample, 0..1): how much of the average replaces the schedule there (None: all)."""
@@ -220,7 +221,8 @@ def smoothed_along(arm: Any, pose_at: Any, cor: SwivelCorridor, m_limit: float, 
 GOAL_SWIVELS = 72
 
 
-def goal_keeps(arm: Any, T0: np.ndarray, T1: np.ndarray, q0: np.ndarray) -> tuple[float, float, float, float]:
+def goal_keeps(arm: CorridorArm, T0: np.ndarray, T1: np.ndarray,
+               q0: np.ndarray) -> tuple[float, float, float, float]:
     """What the goal pose ``T1`` can keep at best on the flip pattern of the start ``q0`` (pose ``T0``),
     which the corridor keeps, over the swivel circle: the distance (rad) to the nearest joint limit (joints of
     range 2 pi or wider, which fit on some copy, left out), |sin q2|, |sin q6| and |q4| (rad; q4 is the
@@ -257,7 +259,7 @@ class RouteMargins:
     rate: float
 
 
-def route_margins(arm: Any, T0: np.ndarray, T1: np.ndarray, q0: np.ndarray, margin_sing: float,
+def route_margins(arm: CorridorArm, T0: np.ndarray, T1: np.ndarray, q0: np.ndarray, margin_sing: float,
                   margin_limit: float) -> list[RouteMargins]:
     """The margins :func:`plan_route` tries in turn, strictest first. Each margin is at most 0.9 of what
     the start configuration keeps, and of what the goal keeps at its best swivel (:func:`goal_keeps`)."""
@@ -297,7 +299,7 @@ def _slower(a: CorridorRoute, b: CorridorRoute) -> bool:
     return (a.pace_u is not None, a.duration) > (b.pace_u is not None, b.duration)
 
 
-def _find_corridor(arm: Any, T0: np.ndarray, T1: np.ndarray, q0: np.ndarray, preferred: Any,
+def _find_corridor(arm: CorridorArm, T0: np.ndarray, T1: np.ndarray, q0: np.ndarray, preferred: Any,
                    tries: list[RouteMargins], **guide: Any) -> tuple[SwivelCorridor, RouteMargins]:
     """The corridor of the first of ``tries`` that has one (else the last's), and its margins."""
     for m in tries:
@@ -309,10 +311,10 @@ def _find_corridor(arm: Any, T0: np.ndarray, T1: np.ndarray, q0: np.ndarray, pre
     return cor, m
 
 
-def plan_route(arm: Any, T0: np.ndarray, T1: np.ndarray, q0: np.ndarray, preferred: Any, margin_sing: float,
-               margin_limit: float, v_max: float, w_max: float, s_rate: float, max_vel: np.ndarray,
-               max_acc: np.ndarray, share: float, pace_after: float = math.inf, fast: bool = False
-               ) -> tuple[CorridorRoute | None, str]:
+def plan_route(arm: CorridorArm, T0: np.ndarray, T1: np.ndarray, q0: np.ndarray, preferred: Any,
+               margin_sing: float, margin_limit: float, v_max: float, w_max: float, s_rate: float,
+               max_vel: np.ndarray, max_acc: np.ndarray, share: float, pace_after: float = math.inf,
+               fast: bool = False) -> tuple[CorridorRoute | None, str]:
     """The corridor route from the reference (pose T0, joints q0) to T1, or (None, why there is none),
     with the margins of :func:`route_margins`. The minimum-jerk profile runs in
     u (a single-peaked hand speed) unless that takes longer than ``pace_after`` (s): then in the pace

@@ -32,13 +32,13 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from typing import Any
 
 import numpy as np
 
 from redarm_ros.control.corridor_route import CorridorRoute, RouteMargins, route_margins, smoothed_along
 from redarm_ros.control.ik_step import pose_matrix
 from redarm_ros.kinematics.corridor import SwivelCorridor, corridor_screen, route_pose
+from redarm_ros.kinematics.protocols import CorridorArm
 from redarm_ros.kinematics.quaternion import quat_from_rotvec, quat_mul, quat_normalize, rotvec_between
 
 #: path ratios (both legs' length over the straight line's) of the candidates, in the order tried
@@ -182,7 +182,7 @@ class ViaRoute(CorridorRoute):
         return pos, rot
 
 
-def _joined(arm: Any, route: ViaRoute, margin: float) -> ViaRoute | None:
+def _joined(arm: CorridorArm, route: ViaRoute, margin: float) -> ViaRoute | None:
     """``route`` with its joined corridor: the legs' schedules on the route's progress, the samples
     within the corner arc replaced by the arc's own joints (closed form at the schedule's swivel). None
     if the arc's joints leave the limits (less ``margin``) or jump."""
@@ -250,7 +250,7 @@ def _by_length(route: ViaRoute) -> ViaRoute:
                                     narrowest_u=float(np.interp(cor.narrowest_u, un, share))))
 
 
-def join_legs(arm: Any, leg1: CorridorRoute, leg2: CorridorRoute, via: ViaCandidate, margin: float,
+def join_legs(arm: CorridorArm, leg1: CorridorRoute, leg2: CorridorRoute, via: ViaCandidate, margin: float,
               timer: LegTimer) -> ViaRoute | None:
     """The route over ``leg1`` then ``leg2`` (leg 2 starting at leg 1's last configuration) through
     ``via``, with the corner arc (halved where its joints leave the limits less ``margin``) and its
@@ -296,7 +296,7 @@ class ViaSearch:
         return f"{self.planned} via poses planned, the last: {self.why}"
 
 
-def plan_via_route(arm: Any, T0: np.ndarray, T1: np.ndarray, q0: np.ndarray, margin_sing: float,
+def plan_via_route(arm: CorridorArm, T0: np.ndarray, T1: np.ndarray, q0: np.ndarray, margin_sing: float,
                    margin_limit: float, plan_leg: LegPlanner, timer: LegTimer, max_duration: float = math.inf,
                    candidates: list[ViaCandidate] | None = None, max_plans: int = MAX_PLANS
                    ) -> tuple[ViaRoute | None, ViaSearch]:
@@ -348,7 +348,7 @@ def plan_via_route(arm: Any, T0: np.ndarray, T1: np.ndarray, q0: np.ndarray, mar
     return None, search
 
 
-def _pattern(arm: Any, T0: np.ndarray, q0: np.ndarray, s0: float) -> int | None:
+def _pattern(arm: CorridorArm, T0: np.ndarray, q0: np.ndarray, s0: float) -> int | None:
     """The flip pattern of q0 (the row of arm.ik nearest it), None out of reach."""
     rows = arm.ik(T0, s0, limits=False)
     if len(rows) != 8:
@@ -356,7 +356,7 @@ def _pattern(arm: Any, T0: np.ndarray, q0: np.ndarray, s0: float) -> int | None:
     return int(np.argmin(np.abs(np.remainder(rows - q0 + math.pi, 2.0 * math.pi) - math.pi).max(axis=1)))
 
 
-def _via_swivel(arm: Any, T_via: np.ndarray, T1: np.ndarray, q0: np.ndarray, pattern: int, s0: float,
+def _via_swivel(arm: CorridorArm, T_via: np.ndarray, T1: np.ndarray, q0: np.ndarray, pattern: int, s0: float,
                 m: RouteMargins, search: ViaSearch) -> float | None:
     """The swivel at the via, of VIA_SWIVELS nearest the start's ``s0`` first, whose joints on the flip
     ``pattern`` keep the limits and from which leg 2 passes the screen (counted in ``search``); None if
@@ -376,7 +376,7 @@ def _via_swivel(arm: Any, T_via: np.ndarray, T1: np.ndarray, q0: np.ndarray, pat
     return None
 
 
-def _screen(arm: Any, T0: np.ndarray, T1: np.ndarray, q0: np.ndarray, m: RouteMargins) -> bool:
+def _screen(arm: CorridorArm, T0: np.ndarray, T1: np.ndarray, q0: np.ndarray, m: RouteMargins) -> bool:
     """Does the leg pass the screen (:func:`~redarm_ros.kinematics.corridor.corridor_screen`) with the
     margins ``m``?"""
     return corridor_screen(arm, T0, T1, q0, limit_margin=m.limit, shoulder_margin=m.shoulder,

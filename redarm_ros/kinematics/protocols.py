@@ -8,7 +8,8 @@
 * :class:`ControlledArm`: what the reaching controller uses of an arm (:class:`AnalyticIK` plus forward
   kinematics, the Jacobian, the capsule model's key points, the velocity and acceleration limits);
   :class:`ControlledSwivelArm` adds the swivel (the 7-DOF arms), :class:`ControlledArm6` the link lengths
-  (the 6-DOF PowerCube arm).
+  (the 6-DOF PowerCube arm); :class:`CorridorArm` what the straight and via routes use (the swivel
+  corridor of a straight route and the limit check).
 
 Ask with :func:`has_swivel` / :func:`has_analytic_ik` (``isinstance`` against the protocol); a generic
 serial chain has neither and is solved numerically. This module imports nothing from the models, so
@@ -22,8 +23,8 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
-__all__ = ["AnalyticIK", "ControlledArm", "ControlledArm6", "ControlledSwivelArm", "SwivelKinematics",
-           "has_swivel", "has_analytic_ik"]
+__all__ = ["AnalyticIK", "ControlledArm", "ControlledArm6", "ControlledSwivelArm", "CorridorArm",
+           "SwivelKinematics", "has_swivel", "has_analytic_ik"]
 
 
 @runtime_checkable
@@ -82,6 +83,18 @@ class ControlledArm(AnalyticIK, Protocol):
 class ControlledSwivelArm(ControlledArm, SwivelKinematics, Protocol):
     """A 7-DOF swivel arm the reaching controller runs: :class:`ControlledArm` and
     :class:`SwivelKinematics`."""
+
+
+@runtime_checkable
+class CorridorArm(ControlledSwivelArm, Protocol):
+    """A swivel arm the corridor and via routes plan on (:mod:`redarm_ros.control.corridor_route`,
+    :mod:`redarm_ros.control.via_route`): :class:`ControlledSwivelArm`, the swivel corridor of a
+    straight route (:func:`redarm_ros.kinematics.corridor.swivel_corridor`) and the limit check."""
+
+    def swivel_corridor(self, T_start: np.ndarray, T_goal: np.ndarray, q_start: Sequence[float],
+                        **options: Any) -> Any: ...
+
+    def within_limits(self, q: np.ndarray, tol: float = ...) -> bool: ...
 
 
 @runtime_checkable
