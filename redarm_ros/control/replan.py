@@ -11,16 +11,18 @@ after homing); a reactive method then stops for good. This module supplies the w
 * :func:`goal_candidates` picks goal configurations among all in-limit IK solutions (every swivel
   sample, every branch, every 2 pi copy of the wide joints): cost = time of a synchronised
   joint-space move at the velocity/acceleration limits + a penalty for limit margins below
-  ``limit_margin`` + a little for a swivel far from the preferred one + a little for a clearance
-  below ``clearance``; colliding ones are dropped.
+  ``limit_margin`` + a little for a swivel far from the preferred one (more beyond ``SETTLE_FREE``:
+  the elbow settles there after the move) + ``BEND_COST`` per unit of
+  the hand path's excess length on the straight joint segment (the straightest reach among the
+  branches and swivels) + a little for a clearance below ``clearance``; colliding ones are dropped.
 * :class:`JointPlanner` searches a collision-free joint path to one of them, cheapest first: the
   straight joint segment, then through the "fold" posture (shoulder up, elbow bent, as after an
   unfold) above the start and above the goal, then through random via configurations (seeded).
   Every segment is checked by sphere tracing (:meth:`CollisionGuard.segment_clearance`) with a
   clearance of ``clearance`` m. The work is done in slices of ``work_per_step`` clearance
   evaluations, one slice per control step, so the control loop stays periodic while the arm holds.
-* :class:`JointPath` times the path: each segment a synchronised trapezoid (rest to rest) within the
-  joint velocity and acceleration limits, so the command follows it exactly; the attractor dynamics
+* :class:`JointPath` times the path: each segment a synchronised minimum-jerk move (rest to rest) within
+  the joint velocity and acceleration limits, so the command follows it exactly; the attractor dynamics
   takes over at the goal configuration (the elbow then settles on its swivel, the hand stays).
 
 Units: m, rad, s.
@@ -35,6 +37,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from redarm_ros.control.corridor_route import PEAK_ACC, PEAK_RATE, min_jerk
 from redarm_ros.control.elbow import ElbowCircle, elbow_circle
 from redarm_ros.control.guard import CollisionGuard
 from redarm_ros.control.ik_step import IKStepper, blend, pose_matrix
@@ -143,6 +146,29 @@ def _copies(q: np.ndarray, lower: np.ndarray, upper: np.ndarray, wide: list[int]
     return out
 
 
+#: s of goal-candidate cost per unit of the hand path's excess length (path ratio - 1) on the straight
+#: joint segment to it: a hand path 10 % longer weighs as much as a move BEND_COST / 10 s slower
+BEND_COST = 8.0
+#: rad of swivel from the preferred one beyond which a goal candidate costs SETTLE_COST s per rad more
+SETTLE_FREE, SETTLE_COST = 0.5, 2.0
+#: samples of the straight joint segment at which its hand path is measured
+BEND_SAMPLES = 12
+
+
+def hand_path_ratio(arm: Any, q_from: np.ndarray, Q: np.ndarray, samples: int = BEND_SAMPLES) -> np.ndarray:
+    """The hand's path length over its straight distance (>= 1) on the straight joint segment from
+    ``q_from`` to each row of ``Q`` (all ending at the same tool pose), at ``samples`` segment samples;
+    1 where the hand hardly moves (under 1 mm)."""
+    Q = np.atleast_2d(np.asarray(Q, float))
+    x = np.linspace(0.0, 1.0, samples + 1)
+    path = q_from[None, None, :] + x[None, :, None] * (Q - q_from)[:, None, :]
+    P = np.asarray(arm.fk_batch(path.reshape(-1, Q.shape[1])), float)[:, :3, 3]
+    P = P.reshape(len(Q), samples + 1, 3)
+    length = np.sum(np.linalg.norm(np.diff(P, axis=1), axis=2), axis=1)
+    straight = np.linalg.norm(P[:, -1] - P[:, 0], axis=1)
+    return np.where(straight > 1e-3, length / np.maximum(straight, 1e-3), 1.0)
+
+
 @dataclass(frozen=True)
 class Candidate:
     """A goal configuration ``q`` (rad) at swivel ``s`` with its ``cost`` (s) and ``clearance`` (m)."""
@@ -195,7 +221,11 @@ def goal_candidates_iter(stepper: IKStepper, guard: CollisionGuard, T: np.ndarra
     m = np.minimum(Q - stepper.lower, stepper.upper - Q)
     cost += 0.5 * np.sum(np.maximum(params.limit_margin - m, 0.0), axis=1) / max(params.limit_margin, 1e-9)
     if s_pref is not None:
-        cost += 0.2 * np.abs(np.remainder(S - s_pref + math.pi, TWO_PI) - math.pi)
+        ds = np.abs(np.remainder(S - s_pref + math.pi, TWO_PI) - math.pi)
+        # (the elbow settles on its preferred swivel after the move, slowly: a far one costs seconds)
+        cost += 0.2 * ds + SETTLE_COST * np.maximum(ds - SETTLE_FREE, 0.0)
+    cost += BEND_COST * (hand_path_ratio(arm, q_from, Q) - 1.0)
+    yield None
     out: list[Candidate] = []
     for n, i in enumerate(np.argsort(cost, kind="stable")):
         if n >= checks:
@@ -384,19 +414,20 @@ class _Segment:
     qa: np.ndarray
     dq: np.ndarray
     t0: float
-    t_acc: float
-    t_flat: float
-    sd: float  # peak of ds/dt (1/s)
-    sdd: float  # ds/dt^2 (1/s^2)
+    duration: float
 
-    @property
-    def duration(self) -> float:
-        return 2.0 * self.t_acc + self.t_flat
+
+def min_jerk_duration(dq: np.ndarray, max_vel: np.ndarray, max_acc: np.ndarray) -> float:
+    """Least duration (s) of a synchronised minimum-jerk move by ``dq`` (rad) within the joint velocity
+    and acceleration limits (the slowest joint sets it)."""
+    d = np.abs(dq)
+    return float(max(np.max(PEAK_RATE * d / max_vel), np.max(np.sqrt(PEAK_ACC * d / max_acc))))
 
 
 class JointPath:
-    """Waypoints (rad) joined by straight joint segments, each a synchronised rest-to-rest trapezoid
-    in the path parameter within ``share`` of every joint's velocity and acceleration limit."""
+    """Waypoints (rad) joined by straight joint segments, each a synchronised rest-to-rest minimum-jerk
+    move within ``share`` of every joint's velocity and acceleration limit: where the hand's path is
+    nearly straight its speed is then the single-peaked bell of a human reach."""
 
     def __init__(self, waypoints: list[np.ndarray], max_vel: np.ndarray, max_acc: np.ndarray,
                  share: float = 0.95) -> None:
@@ -405,20 +436,9 @@ class JointPath:
         t = 0.0
         for qa, qb in zip(self.waypoints[:-1], self.waypoints[1:], strict=True):
             dq = qb - qa
-            ad = np.abs(dq)
-            if float(np.max(ad)) <= 1e-12:
+            if float(np.max(np.abs(dq))) <= 1e-12:
                 continue
-            with np.errstate(divide="ignore"):
-                sd = share * float(np.min(np.where(ad > 0, max_vel / ad, np.inf)))
-                sdd = share * float(np.min(np.where(ad > 0, max_acc / ad, np.inf)))
-            if sd * sd / sdd >= 1.0:  # never reaches full speed: triangle
-                t_acc = math.sqrt(1.0 / sdd)
-                sd = sdd * t_acc
-                t_flat = 0.0
-            else:
-                t_acc = sd / sdd
-                t_flat = (1.0 - sd * t_acc) / sd
-            seg = _Segment(qa, dq, t, t_acc, t_flat, sd, sdd)
+            seg = _Segment(qa, dq, t, min_jerk_duration(dq, share * max_vel, share * max_acc))
             segs.append(seg)
             t += seg.duration
         self._segs = segs
@@ -436,16 +456,9 @@ class JointPath:
             if t < sg.t0 + sg.duration:
                 seg = sg
                 break
-        u = max(t - seg.t0, 0.0)
-        ta, tf, a = seg.t_acc, seg.t_flat, seg.sdd
-        if u < ta:
-            s, sdot = 0.5 * a * u * u, a * u
-        elif u < ta + tf:
-            s, sdot = 0.5 * a * ta * ta + seg.sd * (u - ta), seg.sd
-        else:
-            r = max(2.0 * ta + tf - u, 0.0)
-            s, sdot = 1.0 - 0.5 * a * r * r, a * r
-        s = min(max(s, 0.0), 1.0)
+        x = min(max((t - seg.t0) / seg.duration, 0.0), 1.0)
+        s = min_jerk(x)
+        sdot = 30.0 * x * x * (1.0 - x) * (1.0 - x) / seg.duration
         return seg.qa + s * seg.dq, sdot * seg.dq
 
 
