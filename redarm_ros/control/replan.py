@@ -12,9 +12,9 @@ after homing); a reactive method then stops for good. This module supplies the w
   sample, every branch, every 2 pi copy of the wide joints): cost = time of a synchronised
   joint-space move at the velocity/acceleration limits + a penalty for limit margins below
   ``limit_margin`` + a little for a swivel far from the preferred one (more beyond ``SETTLE_FREE``:
-  the elbow settles there after the move) + ``BEND_COST`` per unit of
-  the hand path's excess length on the straight joint segment (the straightest reach among the
-  branches and swivels) + a little for a clearance below ``clearance``; colliding ones are dropped.
+  the elbow settles there after the move) + in free space ``BEND_COST`` per
+  unit of the hand path's excess length on the straight joint segment (the straightest reach among
+  the branches and swivels) + a little for a clearance below ``clearance``; colliding ones are dropped.
 * :class:`JointPlanner` searches a collision-free joint path to one of them, cheapest first: the
   straight joint segment, then through the "fold" posture (shoulder up, elbow bent, as after an
   unfold) above the start and above the goal, then through random via configurations (seeded).
@@ -224,8 +224,10 @@ def goal_candidates_iter(stepper: IKStepper, guard: CollisionGuard, T: np.ndarra
         ds = np.abs(np.remainder(S - s_pref + math.pi, TWO_PI) - math.pi)
         # (the elbow settles on its preferred swivel after the move, slowly: a far one costs seconds)
         cost += 0.2 * ds + SETTLE_COST * np.maximum(ds - SETTLE_FREE, 0.0)
-    cost += BEND_COST * (hand_path_ratio(arm, q_from, Q) - 1.0)
-    yield None
+    if not scene.obstacles and scene.table_height is None:
+        # (in free space only: near obstacles the elbow's settling and the clearance come first)
+        cost += BEND_COST * (hand_path_ratio(arm, q_from, Q) - 1.0)
+        yield None
     out: list[Candidate] = []
     for n, i in enumerate(np.argsort(cost, kind="stable")):
         if n >= checks:
