@@ -11,10 +11,11 @@ after homing); a reactive method then stops for good. This module supplies the w
 * :func:`goal_candidates` picks goal configurations among all in-limit IK solutions (every swivel
   sample, every branch, every 2 pi copy of the wide joints): cost = time of a synchronised
   joint-space move at the velocity/acceleration limits + a penalty for limit margins below
-  ``limit_margin`` + a little for a swivel far from the preferred one (more beyond ``SETTLE_FREE``:
-  the elbow settles there after the move) + in free space ``BEND_COST`` per
-  unit of the hand path's excess length on the straight joint segment (the straightest reach among
-  the branches and swivels) + a little for a clearance below ``clearance``; colliding ones are dropped.
+  ``limit_margin`` + a little for a swivel far from the preferred one + a little for a clearance below
+  ``clearance``; colliding ones are dropped. In free space also ``SETTLE_COST`` per rad of swivel
+  beyond ``SETTLE_FREE`` (the elbow settles on its preferred swivel after the move) and ``BEND_COST``
+  per unit of the hand path's excess length on the straight joint segment (the straightest reach
+  among the branches and swivels).
 * :class:`JointPlanner` searches a collision-free joint path to one of them, cheapest first: the
   straight joint segment, then through the "fold" posture (shoulder up, elbow bent, as after an
   unfold) above the start and above the goal, then through random via configurations (seeded).
@@ -169,6 +170,62 @@ def hand_path_ratio(arm: Any, q_from: np.ndarray, Q: np.ndarray, samples: int = 
     return np.where(straight > 1e-3, length / np.maximum(straight, 1e-3), 1.0)
 
 
+#: the bend of a free-space joint move (see :func:`bend_search`): first step and least step (rad) of the
+#: coordinate search, samples of the curve, and the least gain in path ratio worth a bend
+BEND_STEP, BEND_MIN_STEP = 0.3, 0.01
+BEND_CURVE_SAMPLES = 16
+BEND_GAIN = 0.02
+
+
+def bent_points(qa: np.ndarray, qb: np.ndarray, bend: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """Joints (len(s), n) of the bent segment qa -> qb at path parameters ``s`` in [0, 1]: the straight
+    segment plus ``bend`` (rad per joint) times sin(pi s), which is 0 at both ends."""
+    return qa + s[:, None] * (qb - qa) + np.sin(math.pi * s)[:, None] * bend
+
+
+def _bent_ratios(arm: Any, qa: np.ndarray, qb: np.ndarray, bends: np.ndarray, lower: np.ndarray,
+                 upper: np.ndarray) -> np.ndarray:
+    """The hand's path ratio on each bent segment (rows of ``bends``); inf where one leaves the limits."""
+    s = np.linspace(0.0, 1.0, BEND_CURVE_SAMPLES + 1)
+    C = np.stack([bent_points(qa, qb, b, s) for b in bends])
+    P = np.asarray(arm.fk_batch(C.reshape(-1, len(qa))), float)[:, :3, 3].reshape(len(bends), len(s), 3)
+    length = np.sum(np.linalg.norm(np.diff(P, axis=1), axis=2), axis=1)
+    inside = np.all((C >= lower) & (C <= upper), axis=(1, 2))
+    return np.where(inside, length / max(float(np.linalg.norm(P[0, -1] - P[0, 0])), 1e-3), np.inf)
+
+
+def bend_search(arm: Any, qa: np.ndarray, qb: np.ndarray, lower: np.ndarray, upper: np.ndarray
+                ) -> Generator[None, None, tuple[np.ndarray, float, float]]:
+    """The bend (rad per joint, see :func:`bent_points`) of the joint segment qa -> qb whose hand path is
+    shortest, within the limits: a coordinate search (each joint's bend up and down by a step, the step
+    halved when none shortens the path, down to BEND_MIN_STEP). A generator, one iteration per step
+    tried; returns (bend, the straight segment's path ratio, the bent one's)."""
+    bend = np.zeros(len(qa))
+    straight = best = float(_bent_ratios(arm, qa, qb, bend[None], lower, upper)[0])
+    step = BEND_STEP
+    eye = np.vstack((np.eye(len(qa)), -np.eye(len(qa))))
+    while step >= BEND_MIN_STEP:
+        yield None
+        ratios = _bent_ratios(arm, qa, qb, bend + step * eye, lower, upper)
+        k = int(np.argmin(ratios))
+        if ratios[k] < best - 1e-4:
+            bend, best = bend + step * eye[k], float(ratios[k])
+        else:
+            step *= 0.5
+    # (the samples keep the limits; between them the curve may bulge past one: shrunk until dense
+    # samples keep them too)
+    dense = np.linspace(0.0, 1.0, 8 * BEND_CURVE_SAMPLES + 1)
+    for _ in range(30):
+        C = bent_points(qa, qb, bend, dense)
+        if np.all(C >= lower) and np.all(C <= upper):
+            break
+        bend = 0.8 * bend
+    else:
+        return np.zeros(len(qa)), straight, straight
+    best = float(_bent_ratios(arm, qa, qb, bend[None], lower, upper)[0])
+    return bend, straight, best
+
+
 @dataclass(frozen=True)
 class Candidate:
     """A goal configuration ``q`` (rad) at swivel ``s`` with its ``cost`` (s) and ``clearance`` (m)."""
@@ -220,14 +277,16 @@ def goal_candidates_iter(stepper: IKStepper, guard: CollisionGuard, T: np.ndarra
     cost = np.max(np.where(d < max_vel * max_vel / max_acc, t_tri, t_trap), axis=1)
     m = np.minimum(Q - stepper.lower, stepper.upper - Q)
     cost += 0.5 * np.sum(np.maximum(params.limit_margin - m, 0.0), axis=1) / max(params.limit_margin, 1e-9)
+    free = not scene.obstacles and scene.table_height is None
     if s_pref is not None:
         ds = np.abs(np.remainder(S - s_pref + math.pi, TWO_PI) - math.pi)
-        # (the elbow settles on its preferred swivel after the move, slowly: a far one costs seconds)
-        cost += 0.2 * ds + SETTLE_COST * np.maximum(ds - SETTLE_FREE, 0.0)
-    if not scene.obstacles and scene.table_height is None:
-        # (in free space only: near obstacles the elbow's settling and the clearance come first)
-        cost += BEND_COST * (hand_path_ratio(arm, q_from, Q) - 1.0)
-        yield None
+        cost += 0.2 * ds
+        if free:  # (the elbow settles on its preferred swivel after the move, slowly: far costs seconds)
+            cost += SETTLE_COST * np.maximum(ds - SETTLE_FREE, 0.0)
+    if free:  # (near obstacles the clearance comes first)
+        for i in range(0, len(Q), 128):
+            cost[i:i + 128] += BEND_COST * (hand_path_ratio(arm, q_from, Q[i:i + 128]) - 1.0)
+            yield None
     out: list[Candidate] = []
     for n, i in enumerate(np.argsort(cost, kind="stable")):
         if n >= checks:
@@ -292,6 +351,8 @@ class JointPlanner:
         self.s_pref = s_pref
         self.goals: list[Candidate] = []
         self.path: list[np.ndarray] | None = None
+        self.bends: list[np.ndarray] | None = None  # per segment of path (see JointPath), None: straight
+        self.bent_ratio = math.nan  # the bent move's hand path over the straight distance
         self.reason = ""
         self.done = False
         self._rng = np.random.default_rng(params.seed)
@@ -339,6 +400,7 @@ class JointPlanner:
             return
         head: list[np.ndarray] = []
         start = self.q_start
+        lo, up = g.lower, g.upper
         if c_start < p.clearance + g.step:
             for q_r in self.retreat[:8]:
                 ok = yield from self._segment(start, q_r)
@@ -349,7 +411,17 @@ class JointPlanner:
                 esc = yield from self._escape(start, c_start)
                 if esc:
                     head, start = [start, *esc[:-1]], esc[-1]
-        lo, up = g.lower, g.upper
+        if not head and not self.scene.obstacles and self.scene.table_height is None:
+            # free space: the direct move to the cheapest goal bent so that the hand's path is shortest,
+            # checked as the polyline through its samples
+            bend, straight, bent = yield from bend_search(self.stepper.arm, start, self.goals[0].q, lo, up)
+            if bent < straight - BEND_GAIN:
+                pts = list(bent_points(start, self.goals[0].q, bend,
+                                       np.linspace(0.0, 1.0, BEND_CURVE_SAMPLES + 1)))
+                ok = yield from self._chain(pts)
+                if ok:
+                    self.path, self.bends, self.bent_ratio = [start, self.goals[0].q], [bend], bent
+                    return
         tries: list[list[np.ndarray]] = [[start, c.q] for c in self.goals]
         f0 = fold_posture(start, self.fold_pitch, lo, up)
         tries += [[start, f0, fold_posture(c.q, self.fold_pitch, lo, up), c.q] for c in self.goals[:3]]
@@ -411,36 +483,56 @@ def _dedupe(points: list[np.ndarray]) -> list[np.ndarray]:
 # ----------------------------------------------------------------------------------------------
 # Timing
 # ----------------------------------------------------------------------------------------------
+#: samples of a bent segment's time law at which its joint rates are bounded
+BEND_TIMING_SAMPLES = 401
+
+
 @dataclass(frozen=True)
 class _Segment:
     qa: np.ndarray
     dq: np.ndarray
     t0: float
     duration: float
+    bend: np.ndarray | None = None
 
 
-def min_jerk_duration(dq: np.ndarray, max_vel: np.ndarray, max_acc: np.ndarray) -> float:
-    """Least duration (s) of a synchronised minimum-jerk move by ``dq`` (rad) within the joint velocity
-    and acceleration limits (the slowest joint sets it)."""
-    d = np.abs(dq)
-    return float(max(np.max(PEAK_RATE * d / max_vel), np.max(np.sqrt(PEAK_ACC * d / max_acc))))
+def min_jerk_duration(dq: np.ndarray, max_vel: np.ndarray, max_acc: np.ndarray,
+                      bend: np.ndarray | None = None) -> float:
+    """Least duration (s) of a synchronised minimum-jerk move by ``dq`` (rad), straight or with ``bend``
+    (see :func:`bent_points`), within the joint velocity and acceleration limits (the slowest joint
+    sets it)."""
+    if bend is None:
+        d = np.abs(dq)
+        return float(max(np.max(PEAK_RATE * d / max_vel), np.max(np.sqrt(PEAK_ACC * d / max_acc))))
+    x = np.linspace(0.0, 1.0, BEND_TIMING_SAMPLES)[:, None]
+    s = x * x * x * (10.0 - 15.0 * x + 6.0 * x * x)
+    s1 = 30.0 * x * x * (1.0 - x) ** 2  # ds/dx
+    s2 = 60.0 * x * (1.0 - x) * (1.0 - 2.0 * x)  # d2s/dx2
+    tangent = dq + math.pi * np.cos(math.pi * s) * bend  # dq/ds
+    q_x = tangent * s1
+    q_xx = tangent * s2 - math.pi * math.pi * np.sin(math.pi * s) * bend * s1 * s1
+    return float(max(np.max(np.abs(q_x) / max_vel), math.sqrt(float(np.max(np.abs(q_xx) / max_acc)))))
 
 
 class JointPath:
-    """Waypoints (rad) joined by straight joint segments, each a synchronised rest-to-rest minimum-jerk
-    move within ``share`` of every joint's velocity and acceleration limit: where the hand's path is
-    nearly straight its speed is then the single-peaked bell of a human reach."""
+    """Waypoints (rad) joined by joint segments, each a synchronised rest-to-rest minimum-jerk move
+    within ``share`` of every joint's velocity and acceleration limit: where the hand's path is nearly
+    straight its speed is then the single-peaked bell of a human reach. A segment is straight, or bent
+    by its entry of ``bends`` (see :func:`bent_points`; None: all straight)."""
 
     def __init__(self, waypoints: list[np.ndarray], max_vel: np.ndarray, max_acc: np.ndarray,
-                 share: float = 0.95) -> None:
+                 share: float = 0.95, bends: list[np.ndarray] | None = None) -> None:
         self.waypoints = [np.asarray(w, float) for w in waypoints]
+        if bends is not None and len(bends) != len(self.waypoints) - 1:
+            raise ValueError(f"{len(bends)} bends for {len(self.waypoints) - 1} segments")
         segs: list[_Segment] = []
         t = 0.0
-        for qa, qb in zip(self.waypoints[:-1], self.waypoints[1:], strict=True):
+        for k, (qa, qb) in enumerate(zip(self.waypoints[:-1], self.waypoints[1:], strict=True)):
             dq = qb - qa
             if float(np.max(np.abs(dq))) <= 1e-12:
                 continue
-            seg = _Segment(qa, dq, t, min_jerk_duration(dq, share * max_vel, share * max_acc))
+            bend = None if bends is None else np.asarray(bends[k], float)
+            seg = _Segment(qa, dq, t, min_jerk_duration(dq, share * max_vel, share * max_acc, bend), bend)
             segs.append(seg)
             t += seg.duration
         self._segs = segs
@@ -461,7 +553,10 @@ class JointPath:
         x = min(max((t - seg.t0) / seg.duration, 0.0), 1.0)
         s = min_jerk(x)
         sdot = 30.0 * x * x * (1.0 - x) * (1.0 - x) / seg.duration
-        return seg.qa + s * seg.dq, sdot * seg.dq
+        if seg.bend is None:
+            return seg.qa + s * seg.dq, sdot * seg.dq
+        q = seg.qa + s * seg.dq + math.sin(math.pi * s) * seg.bend
+        return q, sdot * (seg.dq + math.pi * math.cos(math.pi * s) * seg.bend)
 
 
 def circle_or_none(geom: Any, T: np.ndarray) -> ElbowCircle | None:
