@@ -13,7 +13,14 @@ from redarm_ros.control.ik_step import IKStepper
 from redarm_ros.control.make import make_controller
 from redarm_ros.control.params import ControllerParams, ReplanParams
 from redarm_ros.control.reach_controller import Phase
-from redarm_ros.control.replan import JointPath, bend_search, bent_points, goal_candidates, move_time
+from redarm_ros.control.replan import (
+    JointPath,
+    bend_search,
+    bent_points,
+    goal_candidates,
+    move_time,
+    paced_bend,
+)
 from redarm_ros.geometry.obstacles import ArmCapsules, Scene
 from redarm_ros.kinematics import load_arm
 
@@ -84,17 +91,25 @@ def test_bend_search_shortens_the_hand_path_within_the_limits() -> None:
     P = ARM.fk_batch(C)[:, :3, 3]
     assert np.sum(np.linalg.norm(np.diff(P, axis=0), axis=1)) / np.linalg.norm(P[-1] - P[0]) < bent + 0.01
     # the bent segment as a JointPath: on the curve, within the limits, at rest at its ends
-    path = JointPath([READY, q1], np.asarray(ARM.max_vel), np.asarray(ARM.max_acc), bends=[bend])
+    shape = paced_bend(ARM, READY, q1, bend)
+    path = JointPath([READY, q1], np.asarray(ARM.max_vel), np.asarray(ARM.max_acc), bends=[shape])
     ts = np.arange(0.0, path.duration + DT, DT)
     q = np.array([path.sample(t)[0] for t in ts])
     assert np.all(np.abs(np.diff(q, axis=0)) <= np.asarray(ARM.max_vel) * DT)
     assert np.all(np.abs(np.diff(np.vstack([q[:1], q]), n=2, axis=0)) <= np.asarray(ARM.max_acc) * DT * DT)
     assert np.all(q >= ARM.lower) and np.all(q <= ARM.upper)
     assert np.allclose(q[-1], q1) and np.allclose(path.sample(path.duration)[1], 0.0)
-    mid = path.sample(0.5 * path.duration)[0]
-    assert np.allclose(mid, bent_points(READY, q1, bend, np.array([0.5]))[0])
+    # on the curve, the hand's path length following the minimum-jerk profile (its share at half time 1/2)
+    for x in (0.1, 0.3, 0.5, 0.8):
+        qi = path.sample(x * path.duration)[0]
+        C = bent_points(READY, q1, bend, np.linspace(0.0, 1.0, 4001))
+        assert np.min(np.max(np.abs(C - qi), axis=1)) < 2e-3
+    P = ARM.fk_batch(q)[:, :3, 3]
+    cum = np.concatenate(([0.0], np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))))
+    share = np.interp(0.5 * path.duration, ts, cum) / cum[-1]
+    assert share == pytest.approx(0.5, abs=0.02)
     with pytest.raises(ValueError):
-        JointPath([READY, q1], np.asarray(ARM.max_vel), np.asarray(ARM.max_acc), bends=[bend, bend])
+        JointPath([READY, q1], np.asarray(ARM.max_vel), np.asarray(ARM.max_acc), bends=[shape, shape])
 
 
 def test_a_free_space_dead_end_is_left_by_a_bent_joint_move_with_a_short_hand_path() -> None:

@@ -226,6 +226,49 @@ def bend_search(arm: Any, qa: np.ndarray, qb: np.ndarray, lower: np.ndarray, upp
     return bend, straight, best
 
 
+#: degree of the polynomial that paces a bent segment by the hand's path length, and its samples
+PACE_DEGREE, PACE_SAMPLES = 5, 64
+
+
+@dataclass(frozen=True)
+class Bend:
+    """A bent joint segment's shape: ``bump`` (rad per joint, see :func:`bent_points`) and ``pace``, the
+    coefficients c of s(sigma) = sigma + sigma (1 - sigma) poly(c, sigma) (highest power first), the
+    path parameter at the share sigma of the hand's path length, so that a minimum-jerk profile in
+    sigma gives the hand the bell of a minimum-jerk reach; ``ratio`` the hand path over the line."""
+
+    bump: np.ndarray
+    pace: np.ndarray
+    ratio: float
+
+
+def paced_bend(arm: Any, qa: np.ndarray, qb: np.ndarray, bump: np.ndarray) -> Bend:
+    """The :class:`Bend` of the segment qa -> qb bent by ``bump``: its pace fitted to the hand's path
+    length at PACE_SAMPLES samples (no pace, s = sigma, where the fit is not increasing)."""
+    s = np.linspace(0.0, 1.0, PACE_SAMPLES + 1)
+    P = np.asarray(arm.fk_batch(bent_points(qa, qb, bump, s)), float)[:, :3, 3]
+    cum = np.concatenate(([0.0], np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))))
+    ratio = float(cum[-1] / max(float(np.linalg.norm(P[-1] - P[0])), 1e-3))
+    none = Bend(bump, np.zeros(1), ratio)
+    if cum[-1] < 1e-3:
+        return none
+    sigma = cum / cum[-1]
+    inner = (sigma > 1e-3) & (sigma < 1.0 - 1e-3)
+    si = sigma[inner]
+    c = np.polyfit(si, (s[inner] - si) / (si * (1.0 - si)), PACE_DEGREE)
+    dense = np.linspace(0.0, 1.0, 401)
+    if np.min(_pace(c, dense)[1]) <= 0.05:
+        return none
+    return Bend(bump, c, ratio)
+
+
+def _pace(c: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """s, ds/dsigma, d2s/dsigma2 of the pace ``c`` (see :class:`Bend`) at ``sigma``."""
+    p, p1, p2 = np.polyval(c, sigma), np.polyval(np.polyder(c), sigma), np.polyval(np.polyder(c, 2), sigma)
+    w, w1 = sigma * (1.0 - sigma), 1.0 - 2.0 * sigma
+    return sigma + w * p, 1.0 + w1 * p + w * p1, -2.0 * p + 2.0 * w1 * p1 + w * p2
+
+
 @dataclass(frozen=True)
 class Candidate:
     """A goal configuration ``q`` (rad) at swivel ``s`` with its ``cost`` (s) and ``clearance`` (m)."""
@@ -351,8 +394,7 @@ class JointPlanner:
         self.s_pref = s_pref
         self.goals: list[Candidate] = []
         self.path: list[np.ndarray] | None = None
-        self.bends: list[np.ndarray] | None = None  # per segment of path (see JointPath), None: straight
-        self.bent_ratio = math.nan  # the bent move's hand path over the straight distance
+        self.bends: list[Bend | None] | None = None  # per segment of path (see JointPath), None: straight
         self.reason = ""
         self.done = False
         self._rng = np.random.default_rng(params.seed)
@@ -420,7 +462,8 @@ class JointPlanner:
                                        np.linspace(0.0, 1.0, BEND_CURVE_SAMPLES + 1)))
                 ok = yield from self._chain(pts)
                 if ok:
-                    self.path, self.bends, self.bent_ratio = [start, self.goals[0].q], [bend], bent
+                    self.path = [start, self.goals[0].q]
+                    self.bends = [paced_bend(self.stepper.arm, start, self.goals[0].q, bend)]
                     return
         tries: list[list[np.ndarray]] = [[start, c.q] for c in self.goals]
         f0 = fold_posture(start, self.fold_pitch, lo, up)
@@ -493,35 +536,41 @@ class _Segment:
     dq: np.ndarray
     t0: float
     duration: float
-    bend: np.ndarray | None = None
+    bend: Bend | None = None
 
 
 def min_jerk_duration(dq: np.ndarray, max_vel: np.ndarray, max_acc: np.ndarray,
-                      bend: np.ndarray | None = None) -> float:
-    """Least duration (s) of a synchronised minimum-jerk move by ``dq`` (rad), straight or with ``bend``
-    (see :func:`bent_points`), within the joint velocity and acceleration limits (the slowest joint
-    sets it)."""
+                      bend: Bend | None = None) -> float:
+    """Least duration (s) of a synchronised minimum-jerk move by ``dq`` (rad), straight or bent and paced
+    by ``bend``, within the joint velocity and acceleration limits (the slowest joint sets it)."""
     if bend is None:
         d = np.abs(dq)
         return float(max(np.max(PEAK_RATE * d / max_vel), np.max(np.sqrt(PEAK_ACC * d / max_acc))))
     x = np.linspace(0.0, 1.0, BEND_TIMING_SAMPLES)[:, None]
-    s = x * x * x * (10.0 - 15.0 * x + 6.0 * x * x)
-    s1 = 30.0 * x * x * (1.0 - x) ** 2  # ds/dx
-    s2 = 60.0 * x * (1.0 - x) * (1.0 - 2.0 * x)  # d2s/dx2
-    tangent = dq + math.pi * np.cos(math.pi * s) * bend  # dq/ds
-    q_x = tangent * s1
-    q_xx = tangent * s2 - math.pi * math.pi * np.sin(math.pi * s) * bend * s1 * s1
+    _, q_x, q_xx = _bent_motion(dq, bend, x)
     return float(max(np.max(np.abs(q_x) / max_vel), math.sqrt(float(np.max(np.abs(q_xx) / max_acc)))))
+
+
+def _bent_motion(dq: np.ndarray, bend: Bend, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Path parameter s and the joints' first and second derivatives in the time share ``x`` (column)
+    of a bent, paced segment by ``dq`` (a minimum-jerk profile sigma(x), s = pace(sigma))."""
+    sig = x * x * x * (10.0 - 15.0 * x + 6.0 * x * x)
+    sig1 = 30.0 * x * x * (1.0 - x) ** 2
+    sig2 = 60.0 * x * (1.0 - x) * (1.0 - 2.0 * x)
+    s, g1, g2 = _pace(bend.pace, sig)
+    s_x, s_xx = g1 * sig1, g2 * sig1 * sig1 + g1 * sig2
+    tangent = dq + math.pi * np.cos(math.pi * s) * bend.bump  # dq/ds
+    return s, tangent * s_x, tangent * s_xx - math.pi * math.pi * np.sin(math.pi * s) * bend.bump * s_x * s_x
 
 
 class JointPath:
     """Waypoints (rad) joined by joint segments, each a synchronised rest-to-rest minimum-jerk move
-    within ``share`` of every joint's velocity and acceleration limit: where the hand's path is nearly
-    straight its speed is then the single-peaked bell of a human reach. A segment is straight, or bent
-    by its entry of ``bends`` (see :func:`bent_points`; None: all straight)."""
+    within ``share`` of every joint's velocity and acceleration limit: a straight one's progress, a bent
+    one's share of the hand's path (its entry of ``bends``, :class:`Bend`; None: all straight) follows
+    the minimum-jerk profile, the single-peaked bell of a human reach."""
 
     def __init__(self, waypoints: list[np.ndarray], max_vel: np.ndarray, max_acc: np.ndarray,
-                 share: float = 0.95, bends: list[np.ndarray] | None = None) -> None:
+                 share: float = 0.95, bends: list[Bend | None] | None = None) -> None:
         self.waypoints = [np.asarray(w, float) for w in waypoints]
         if bends is not None and len(bends) != len(self.waypoints) - 1:
             raise ValueError(f"{len(bends)} bends for {len(self.waypoints) - 1} segments")
@@ -531,7 +580,7 @@ class JointPath:
             dq = qb - qa
             if float(np.max(np.abs(dq))) <= 1e-12:
                 continue
-            bend = None if bends is None else np.asarray(bends[k], float)
+            bend = None if bends is None else bends[k]
             seg = _Segment(qa, dq, t, min_jerk_duration(dq, share * max_vel, share * max_acc, bend), bend)
             segs.append(seg)
             t += seg.duration
@@ -551,12 +600,13 @@ class JointPath:
                 seg = sg
                 break
         x = min(max((t - seg.t0) / seg.duration, 0.0), 1.0)
-        s = min_jerk(x)
-        sdot = 30.0 * x * x * (1.0 - x) * (1.0 - x) / seg.duration
         if seg.bend is None:
+            s = min_jerk(x)
+            sdot = 30.0 * x * x * (1.0 - x) * (1.0 - x) / seg.duration
             return seg.qa + s * seg.dq, sdot * seg.dq
-        q = seg.qa + s * seg.dq + math.sin(math.pi * s) * seg.bend
-        return q, sdot * (seg.dq + math.pi * math.cos(math.pi * s) * seg.bend)
+        s_arr, q_x, _ = _bent_motion(seg.dq, seg.bend, np.array([[x]]))
+        q = bent_points(seg.qa, seg.qa + seg.dq, seg.bend.bump, s_arr[0]).reshape(-1)
+        return q, q_x[0] / seg.duration
 
 
 def circle_or_none(geom: Any, T: np.ndarray) -> ElbowCircle | None:
