@@ -12,8 +12,8 @@ after homing); a reactive method then stops for good. This module supplies the w
   sample, every branch, every 2 pi copy of the wide joints): cost = time of a synchronised
   joint-space move at the velocity/acceleration limits + a penalty for limit margins below
   ``limit_margin`` + a little for a swivel far from the preferred one + a little for a clearance below
-  ``clearance``; colliding ones are dropped. In free space also ``SETTLE_COST`` per rad of swivel
-  beyond ``SETTLE_FREE`` (the elbow settles on its preferred swivel after the move) and ``BEND_COST``
+  ``clearance``; colliding ones are dropped. In free space also the time the elbow takes to settle
+  on its preferred swivel after the move (at ``SETTLE_RATE``) and ``BEND_COST``
   per unit of the hand path's excess length on the straight joint segment (the straightest reach
   among the branches and swivels).
 * :class:`JointPlanner` searches a collision-free joint path to one of them, cheapest first: the
@@ -150,8 +150,9 @@ def _copies(q: np.ndarray, lower: np.ndarray, upper: np.ndarray, wide: list[int]
 #: s of goal-candidate cost per unit of the hand path's excess length (path ratio - 1) on the straight
 #: joint segment to it: a hand path 10 % longer weighs as much as a move BEND_COST / 10 s slower
 BEND_COST = 8.0
-#: rad of swivel from the preferred one beyond which a goal candidate costs SETTLE_COST s per rad more
-SETTLE_FREE, SETTLE_COST = 0.5, 2.0
+#: rad/s at which the elbow settles on its preferred swivel after a joint-space move, about: a free-space
+#: goal candidate's swivel off the preferred one costs the time that takes
+SETTLE_RATE = 0.3
 #: samples of the straight joint segment at which its hand path is measured
 BEND_SAMPLES = 12
 
@@ -226,8 +227,9 @@ def bend_search(arm: Any, qa: np.ndarray, qb: np.ndarray, lower: np.ndarray, upp
     return bend, straight, best
 
 
-#: degree of the polynomial that paces a bent segment by the hand's path length, and its samples
-PACE_DEGREE, PACE_SAMPLES = 5, 64
+#: degrees of the polynomial that paces a bent segment by the hand's path length (the best fit is
+#: taken), and its samples
+PACE_DEGREES, PACE_SAMPLES = (5, 7, 9, 11), 64
 
 
 @dataclass(frozen=True)
@@ -244,7 +246,8 @@ class Bend:
 
 def paced_bend(arm: Any, qa: np.ndarray, qb: np.ndarray, bump: np.ndarray) -> Bend:
     """The :class:`Bend` of the segment qa -> qb bent by ``bump``: its pace fitted to the hand's path
-    length at PACE_SAMPLES samples (no pace, s = sigma, where the fit is not increasing)."""
+    length at PACE_SAMPLES samples, the increasing fit of PACE_DEGREES nearest them (no pace, s = sigma,
+    where none is increasing)."""
     s = np.linspace(0.0, 1.0, PACE_SAMPLES + 1)
     P = np.asarray(arm.fk_batch(bent_points(qa, qb, bump, s)), float)[:, :3, 3]
     cum = np.concatenate(([0.0], np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))))
@@ -255,11 +258,14 @@ def paced_bend(arm: Any, qa: np.ndarray, qb: np.ndarray, bump: np.ndarray) -> Be
     sigma = cum / cum[-1]
     inner = (sigma > 1e-3) & (sigma < 1.0 - 1e-3)
     si = sigma[inner]
-    c = np.polyfit(si, (s[inner] - si) / (si * (1.0 - si)), PACE_DEGREE)
     dense = np.linspace(0.0, 1.0, 401)
-    if np.min(_pace(c, dense)[1]) <= 0.05:
-        return none
-    return Bend(bump, c, ratio)
+    best, worst = none, math.inf
+    for degree in PACE_DEGREES:  # the increasing fit nearest the samples
+        c = np.polyfit(si, (s[inner] - si) / (si * (1.0 - si)), degree)
+        miss = float(np.max(np.abs(_pace(c, sigma)[0] - s)))
+        if miss < worst and np.min(_pace(c, dense)[1]) > 0.05:
+            best, worst = Bend(bump, c, ratio), miss
+    return best
 
 
 def _pace(c: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -325,7 +331,7 @@ def goal_candidates_iter(stepper: IKStepper, guard: CollisionGuard, T: np.ndarra
         ds = np.abs(np.remainder(S - s_pref + math.pi, TWO_PI) - math.pi)
         cost += 0.2 * ds
         if free:  # (the elbow settles on its preferred swivel after the move, slowly: far costs seconds)
-            cost += SETTLE_COST * np.maximum(ds - SETTLE_FREE, 0.0)
+            cost += ds / SETTLE_RATE
     if free:  # (near obstacles the clearance comes first)
         for i in range(0, len(Q), 128):
             cost[i:i + 128] += BEND_COST * (hand_path_ratio(arm, q_from, Q[i:i + 128]) - 1.0)
