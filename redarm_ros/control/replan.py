@@ -268,6 +268,24 @@ def paced_bend(arm: Any, qa: np.ndarray, qb: np.ndarray, bump: np.ndarray) -> Be
     return best
 
 
+#: shares of the searched bend weighed against the straight move (a bend lengthens the joints' travel)
+BEND_SCALES = (1.0, 0.75, 0.5, 0.25)
+
+
+def worth_bending(arm: Any, qa: np.ndarray, qb: np.ndarray, bump: np.ndarray, straight: float) -> Bend | None:
+    """The share of BEND_SCALES of ``bump`` (paced, :func:`paced_bend`) whose duration at the arm's
+    limits plus BEND_COST per unit of excess path ratio is least, if less than the straight move's
+    (hand path ratio ``straight``); None if the straight move is cheaper."""
+    vel, acc = np.asarray(arm.max_vel, float), np.asarray(arm.max_acc, float)
+    best, cost = None, min_jerk_duration(qb - qa, vel, acc) + BEND_COST * (straight - 1.0)
+    for k in BEND_SCALES:
+        shape = paced_bend(arm, qa, qb, k * bump)
+        c = min_jerk_duration(qb - qa, vel, acc, shape) + BEND_COST * (shape.ratio - 1.0)
+        if c < cost:
+            best, cost = shape, c
+    return best
+
+
 def _pace(c: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """s, ds/dsigma, d2s/dsigma2 of the pace ``c`` (see :class:`Bend`) at ``sigma``."""
     p, p1, p2 = np.polyval(c, sigma), np.polyval(np.polyder(c), sigma), np.polyval(np.polyder(c, 2), sigma)
@@ -462,14 +480,16 @@ class JointPlanner:
         if not head and not self.scene.obstacles and self.scene.table_height is None:
             # free space: the direct move to the cheapest goal bent so that the hand's path is shortest,
             # checked as the polyline through its samples
-            bend, straight, bent = yield from bend_search(self.stepper.arm, start, self.goals[0].q, lo, up)
-            if bent < straight - BEND_GAIN:
-                pts = list(bent_points(start, self.goals[0].q, bend,
-                                       np.linspace(0.0, 1.0, BEND_CURVE_SAMPLES + 1)))
+            arm, q_goal = self.stepper.arm, self.goals[0].q
+            bend, straight, bent = yield from bend_search(arm, start, q_goal, lo, up)
+            shape = worth_bending(arm, start, q_goal, bend, straight) if bent < straight - BEND_GAIN else None
+            yield None
+            if shape is not None:
+                s_pts = np.linspace(0.0, 1.0, BEND_CURVE_SAMPLES + 1)
+                pts = list(bent_points(start, q_goal, shape.bump, s_pts))
                 ok = yield from self._chain(pts)
                 if ok:
-                    self.path = [start, self.goals[0].q]
-                    self.bends = [paced_bend(self.stepper.arm, start, self.goals[0].q, bend)]
+                    self.path, self.bends = [start, q_goal], [shape]
                     return
         tries: list[list[np.ndarray]] = [[start, c.q] for c in self.goals]
         f0 = fold_posture(start, self.fold_pitch, lo, up)
