@@ -114,8 +114,8 @@ def test_bend_search_shortens_the_hand_path_within_the_limits() -> None:
 
 def test_a_free_space_dead_end_is_left_by_a_bent_joint_move_with_a_short_hand_path() -> None:
     """The straight route folds joint 4 onto its limit; without the corridor the joint-space move is
-    bent: the hand's path within 10 % of the line (the straight joint move: 1.24), one speed peak,
-    every joint within its limits; ``~/state`` says so."""
+    bent (as far as it is worth the time): the hand's path within 15 % of the line (the straight joint
+    move: 1.24), one speed peak, every joint within its limits; ``~/state`` says so."""
     q0 = np.array([-0.276, 0.847, -1.472, -1.928, -0.765, -1.563, -4.628])
     T = ARM.fk(np.array([0.447, -0.575, 0.94, -1.293, 3.542, -0.699, -4.462]))
     ctl = make_controller(ARM, Scene(), ControllerParams.from_dict({"replan": {"corridor": False}}))
@@ -135,7 +135,7 @@ def test_a_free_space_dead_end_is_left_by_a_bent_joint_move_with_a_short_hand_pa
     assert np.all(np.abs(np.diff(Q, axis=0)) <= np.asarray(ARM.max_vel) * DT * (1 + 1e-9))
     P = ARM.fk_batch(Q)[:, :3, 3]
     v = np.linalg.norm(np.diff(P, axis=0), axis=1) / DT
-    assert np.sum(v) * DT / np.linalg.norm(P[-1] - P[0]) < 1.1
+    assert np.sum(v) * DT / np.linalg.norm(P[-1] - P[0]) < 1.15
     assert speed_peaks(v) == 1
 
 
