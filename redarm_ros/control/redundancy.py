@@ -708,6 +708,10 @@ class SwivelRedundancy:
         """What ``~/state`` says once the joint path starts."""
         assert st.path is not None and planner.path is not None
         vias = len(planner.path) - 2
+        bends = getattr(planner, "bends", None)
+        if bends and bends[0] is not None:
+            return (f"moving in joint space (bent: the hand's path {bends[0].ratio:.2f} times the line, "
+                    f"{st.path.duration:.1f} s): {st.plan_reason}")
         return f"moving in joint space ({vias} via points, {st.path.duration:.1f} s): {st.plan_reason}"
 
     # -- goals ------------------------------------------------------------------------------------

@@ -11,16 +11,19 @@ after homing); a reactive method then stops for good. This module supplies the w
 * :func:`goal_candidates` picks goal configurations among all in-limit IK solutions (every swivel
   sample, every branch, every 2 pi copy of the wide joints): cost = time of a synchronised
   joint-space move at the velocity/acceleration limits + a penalty for limit margins below
-  ``limit_margin`` + a little for a swivel far from the preferred one + a little for a clearance
-  below ``clearance``; colliding ones are dropped.
+  ``limit_margin`` + a little for a swivel far from the preferred one + a little for a clearance below
+  ``clearance``; colliding ones are dropped. In free space also the time the elbow takes to settle
+  on its preferred swivel after the move (at ``SETTLE_RATE``) and ``BEND_COST``
+  per unit of the hand path's excess length on the straight joint segment (the straightest reach
+  among the branches and swivels).
 * :class:`JointPlanner` searches a collision-free joint path to one of them, cheapest first: the
   straight joint segment, then through the "fold" posture (shoulder up, elbow bent, as after an
   unfold) above the start and above the goal, then through random via configurations (seeded).
   Every segment is checked by sphere tracing (:meth:`CollisionGuard.segment_clearance`) with a
   clearance of ``clearance`` m. The work is done in slices of ``work_per_step`` clearance
   evaluations, one slice per control step, so the control loop stays periodic while the arm holds.
-* :class:`JointPath` times the path: each segment a synchronised trapezoid (rest to rest) within the
-  joint velocity and acceleration limits, so the command follows it exactly; the attractor dynamics
+* :class:`JointPath` times the path: each segment a synchronised minimum-jerk move (rest to rest) within
+  the joint velocity and acceleration limits, so the command follows it exactly; the attractor dynamics
   takes over at the goal configuration (the elbow then settles on its swivel, the hand stays).
 
 Units: m, rad, s.
@@ -35,6 +38,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from redarm_ros.control.corridor_route import PEAK_ACC, PEAK_RATE, min_jerk
 from redarm_ros.control.elbow import ElbowCircle, elbow_circle
 from redarm_ros.control.guard import CollisionGuard
 from redarm_ros.control.ik_step import IKStepper, blend, pose_matrix
@@ -143,6 +147,152 @@ def _copies(q: np.ndarray, lower: np.ndarray, upper: np.ndarray, wide: list[int]
     return out
 
 
+#: s of goal-candidate cost per unit of the hand path's excess length (path ratio - 1) on the straight
+#: joint segment to it: a hand path 10 % longer weighs as much as a move BEND_COST / 10 s slower
+BEND_COST = 8.0
+#: rad/s at which the elbow settles on its preferred swivel after a joint-space move, about: a free-space
+#: goal candidate's swivel off the preferred one costs the time that takes
+SETTLE_RATE = 0.3
+#: samples of the straight joint segment at which its hand path is measured
+BEND_SAMPLES = 12
+
+
+def hand_path_ratio(arm: Any, q_from: np.ndarray, Q: np.ndarray, samples: int = BEND_SAMPLES) -> np.ndarray:
+    """The hand's path length over its straight distance (>= 1) on the straight joint segment from
+    ``q_from`` to each row of ``Q`` (all ending at the same tool pose), at ``samples`` segment samples;
+    1 where the hand hardly moves (under 1 mm)."""
+    Q = np.atleast_2d(np.asarray(Q, float))
+    x = np.linspace(0.0, 1.0, samples + 1)
+    path = q_from[None, None, :] + x[None, :, None] * (Q - q_from)[:, None, :]
+    P = np.asarray(arm.fk_batch(path.reshape(-1, Q.shape[1])), float)[:, :3, 3]
+    P = P.reshape(len(Q), samples + 1, 3)
+    length = np.sum(np.linalg.norm(np.diff(P, axis=1), axis=2), axis=1)
+    straight = np.linalg.norm(P[:, -1] - P[:, 0], axis=1)
+    return np.where(straight > 1e-3, length / np.maximum(straight, 1e-3), 1.0)
+
+
+#: the bend of a free-space joint move (see :func:`bend_search`): first step and least step (rad) of the
+#: coordinate search, samples of the curve, and the least gain in path ratio worth a bend
+BEND_STEP, BEND_MIN_STEP = 0.3, 0.01
+BEND_CURVE_SAMPLES = 16
+BEND_GAIN = 0.02
+
+
+def bent_points(qa: np.ndarray, qb: np.ndarray, bend: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """Joints (len(s), n) of the bent segment qa -> qb at path parameters ``s`` in [0, 1]: the straight
+    segment plus ``bend`` (rad per joint) times sin(pi s), which is 0 at both ends."""
+    return qa + s[:, None] * (qb - qa) + np.sin(math.pi * s)[:, None] * bend
+
+
+def _bent_ratios(arm: Any, qa: np.ndarray, qb: np.ndarray, bends: np.ndarray, lower: np.ndarray,
+                 upper: np.ndarray) -> np.ndarray:
+    """The hand's path ratio on each bent segment (rows of ``bends``); inf where one leaves the limits."""
+    s = np.linspace(0.0, 1.0, BEND_CURVE_SAMPLES + 1)
+    C = np.stack([bent_points(qa, qb, b, s) for b in bends])
+    P = np.asarray(arm.fk_batch(C.reshape(-1, len(qa))), float)[:, :3, 3].reshape(len(bends), len(s), 3)
+    length = np.sum(np.linalg.norm(np.diff(P, axis=1), axis=2), axis=1)
+    inside = np.all((C >= lower) & (C <= upper), axis=(1, 2))
+    return np.where(inside, length / max(float(np.linalg.norm(P[0, -1] - P[0, 0])), 1e-3), np.inf)
+
+
+def bend_search(arm: Any, qa: np.ndarray, qb: np.ndarray, lower: np.ndarray, upper: np.ndarray
+                ) -> Generator[None, None, tuple[np.ndarray, float, float]]:
+    """The bend (rad per joint, see :func:`bent_points`) of the joint segment qa -> qb whose hand path is
+    shortest, within the limits: a coordinate search (each joint's bend up and down by a step, the step
+    halved when none shortens the path, down to BEND_MIN_STEP). A generator, one iteration per step
+    tried; returns (bend, the straight segment's path ratio, the bent one's)."""
+    bend = np.zeros(len(qa))
+    straight = best = float(_bent_ratios(arm, qa, qb, bend[None], lower, upper)[0])
+    step = BEND_STEP
+    eye = np.vstack((np.eye(len(qa)), -np.eye(len(qa))))
+    while step >= BEND_MIN_STEP:
+        yield None
+        ratios = _bent_ratios(arm, qa, qb, bend + step * eye, lower, upper)
+        k = int(np.argmin(ratios))
+        if ratios[k] < best - 1e-4:
+            bend, best = bend + step * eye[k], float(ratios[k])
+        else:
+            step *= 0.5
+    # (the samples keep the limits; between them the curve may bulge past one: shrunk until dense
+    # samples keep them too)
+    dense = np.linspace(0.0, 1.0, 8 * BEND_CURVE_SAMPLES + 1)
+    for _ in range(30):
+        C = bent_points(qa, qb, bend, dense)
+        if np.all(C >= lower) and np.all(C <= upper):
+            break
+        bend = 0.8 * bend
+    else:
+        return np.zeros(len(qa)), straight, straight
+    best = float(_bent_ratios(arm, qa, qb, bend[None], lower, upper)[0])
+    return bend, straight, best
+
+
+#: degrees of the polynomial that paces a bent segment by the hand's path length (the best fit is
+#: taken), and its samples
+PACE_DEGREES, PACE_SAMPLES = (5, 7, 9, 11), 64
+
+
+@dataclass(frozen=True)
+class Bend:
+    """A bent joint segment's shape: ``bump`` (rad per joint, see :func:`bent_points`) and ``pace``, the
+    coefficients c of s(sigma) = sigma + sigma (1 - sigma) poly(c, sigma) (highest power first), the
+    path parameter at the share sigma of the hand's path length, so that a minimum-jerk profile in
+    sigma gives the hand the bell of a minimum-jerk reach; ``ratio`` the hand path over the line."""
+
+    bump: np.ndarray
+    pace: np.ndarray
+    ratio: float
+
+
+def paced_bend(arm: Any, qa: np.ndarray, qb: np.ndarray, bump: np.ndarray) -> Bend:
+    """The :class:`Bend` of the segment qa -> qb bent by ``bump``: its pace fitted to the hand's path
+    length at PACE_SAMPLES samples, the increasing fit of PACE_DEGREES nearest them (no pace, s = sigma,
+    where none is increasing)."""
+    s = np.linspace(0.0, 1.0, PACE_SAMPLES + 1)
+    P = np.asarray(arm.fk_batch(bent_points(qa, qb, bump, s)), float)[:, :3, 3]
+    cum = np.concatenate(([0.0], np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))))
+    ratio = float(cum[-1] / max(float(np.linalg.norm(P[-1] - P[0])), 1e-3))
+    none = Bend(bump, np.zeros(1), ratio)
+    if cum[-1] < 1e-3:
+        return none
+    sigma = cum / cum[-1]
+    inner = (sigma > 1e-3) & (sigma < 1.0 - 1e-3)
+    si = sigma[inner]
+    dense = np.linspace(0.0, 1.0, 401)
+    best, worst = none, math.inf
+    for degree in PACE_DEGREES:  # the increasing fit nearest the samples
+        c = np.polyfit(si, (s[inner] - si) / (si * (1.0 - si)), degree)
+        miss = float(np.max(np.abs(_pace(c, sigma)[0] - s)))
+        if miss < worst and np.min(_pace(c, dense)[1]) > 0.05:
+            best, worst = Bend(bump, c, ratio), miss
+    return best
+
+
+#: shares of the searched bend weighed against the straight move (a bend lengthens the joints' travel)
+BEND_SCALES = (1.0, 0.75, 0.5, 0.25)
+
+
+def worth_bending(arm: Any, qa: np.ndarray, qb: np.ndarray, bump: np.ndarray, straight: float) -> Bend | None:
+    """The share of BEND_SCALES of ``bump`` (paced, :func:`paced_bend`) whose duration at the arm's
+    limits plus BEND_COST per unit of excess path ratio is least, if less than the straight move's
+    (hand path ratio ``straight``); None if the straight move is cheaper."""
+    vel, acc = np.asarray(arm.max_vel, float), np.asarray(arm.max_acc, float)
+    best, cost = None, min_jerk_duration(qb - qa, vel, acc) + BEND_COST * (straight - 1.0)
+    for k in BEND_SCALES:
+        shape = paced_bend(arm, qa, qb, k * bump)
+        c = min_jerk_duration(qb - qa, vel, acc, shape) + BEND_COST * (shape.ratio - 1.0)
+        if c < cost:
+            best, cost = shape, c
+    return best
+
+
+def _pace(c: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """s, ds/dsigma, d2s/dsigma2 of the pace ``c`` (see :class:`Bend`) at ``sigma``."""
+    p, p1, p2 = np.polyval(c, sigma), np.polyval(np.polyder(c), sigma), np.polyval(np.polyder(c, 2), sigma)
+    w, w1 = sigma * (1.0 - sigma), 1.0 - 2.0 * sigma
+    return sigma + w * p, 1.0 + w1 * p + w * p1, -2.0 * p + 2.0 * w1 * p1 + w * p2
+
+
 @dataclass(frozen=True)
 class Candidate:
     """A goal configuration ``q`` (rad) at swivel ``s`` with its ``cost`` (s) and ``clearance`` (m)."""
@@ -194,8 +344,16 @@ def goal_candidates_iter(stepper: IKStepper, guard: CollisionGuard, T: np.ndarra
     cost = np.max(np.where(d < max_vel * max_vel / max_acc, t_tri, t_trap), axis=1)
     m = np.minimum(Q - stepper.lower, stepper.upper - Q)
     cost += 0.5 * np.sum(np.maximum(params.limit_margin - m, 0.0), axis=1) / max(params.limit_margin, 1e-9)
+    free = not scene.obstacles and scene.table_height is None
     if s_pref is not None:
-        cost += 0.2 * np.abs(np.remainder(S - s_pref + math.pi, TWO_PI) - math.pi)
+        ds = np.abs(np.remainder(S - s_pref + math.pi, TWO_PI) - math.pi)
+        cost += 0.2 * ds
+        if free:  # (the elbow settles on its preferred swivel after the move, slowly: far costs seconds)
+            cost += ds / SETTLE_RATE
+    if free:  # (near obstacles the clearance comes first)
+        for i in range(0, len(Q), 128):
+            cost[i:i + 128] += BEND_COST * (hand_path_ratio(arm, q_from, Q[i:i + 128]) - 1.0)
+            yield None
     out: list[Candidate] = []
     for n, i in enumerate(np.argsort(cost, kind="stable")):
         if n >= checks:
@@ -260,6 +418,7 @@ class JointPlanner:
         self.s_pref = s_pref
         self.goals: list[Candidate] = []
         self.path: list[np.ndarray] | None = None
+        self.bends: list[Bend | None] | None = None  # per segment of path (see JointPath), None: straight
         self.reason = ""
         self.done = False
         self._rng = np.random.default_rng(params.seed)
@@ -307,6 +466,7 @@ class JointPlanner:
             return
         head: list[np.ndarray] = []
         start = self.q_start
+        lo, up = g.lower, g.upper
         if c_start < p.clearance + g.step:
             for q_r in self.retreat[:8]:
                 ok = yield from self._segment(start, q_r)
@@ -317,7 +477,20 @@ class JointPlanner:
                 esc = yield from self._escape(start, c_start)
                 if esc:
                     head, start = [start, *esc[:-1]], esc[-1]
-        lo, up = g.lower, g.upper
+        if not head and not self.scene.obstacles and self.scene.table_height is None:
+            # free space: the direct move to the cheapest goal bent so that the hand's path is shortest,
+            # checked as the polyline through its samples
+            arm, q_goal = self.stepper.arm, self.goals[0].q
+            bend, straight, bent = yield from bend_search(arm, start, q_goal, lo, up)
+            shape = worth_bending(arm, start, q_goal, bend, straight) if bent < straight - BEND_GAIN else None
+            yield None
+            if shape is not None:
+                s_pts = np.linspace(0.0, 1.0, BEND_CURVE_SAMPLES + 1)
+                pts = list(bent_points(start, q_goal, shape.bump, s_pts))
+                ok = yield from self._chain(pts)
+                if ok:
+                    self.path, self.bends = [start, q_goal], [shape]
+                    return
         tries: list[list[np.ndarray]] = [[start, c.q] for c in self.goals]
         f0 = fold_posture(start, self.fold_pitch, lo, up)
         tries += [[start, f0, fold_posture(c.q, self.fold_pitch, lo, up), c.q] for c in self.goals[:3]]
@@ -379,46 +552,62 @@ def _dedupe(points: list[np.ndarray]) -> list[np.ndarray]:
 # ----------------------------------------------------------------------------------------------
 # Timing
 # ----------------------------------------------------------------------------------------------
+#: samples of a bent segment's time law at which its joint rates are bounded
+BEND_TIMING_SAMPLES = 401
+
+
 @dataclass(frozen=True)
 class _Segment:
     qa: np.ndarray
     dq: np.ndarray
     t0: float
-    t_acc: float
-    t_flat: float
-    sd: float  # peak of ds/dt (1/s)
-    sdd: float  # ds/dt^2 (1/s^2)
+    duration: float
+    bend: Bend | None = None
 
-    @property
-    def duration(self) -> float:
-        return 2.0 * self.t_acc + self.t_flat
+
+def min_jerk_duration(dq: np.ndarray, max_vel: np.ndarray, max_acc: np.ndarray,
+                      bend: Bend | None = None) -> float:
+    """Least duration (s) of a synchronised minimum-jerk move by ``dq`` (rad), straight or bent and paced
+    by ``bend``, within the joint velocity and acceleration limits (the slowest joint sets it)."""
+    if bend is None:
+        d = np.abs(dq)
+        return float(max(np.max(PEAK_RATE * d / max_vel), np.max(np.sqrt(PEAK_ACC * d / max_acc))))
+    x = np.linspace(0.0, 1.0, BEND_TIMING_SAMPLES)[:, None]
+    _, q_x, q_xx = _bent_motion(dq, bend, x)
+    return float(max(np.max(np.abs(q_x) / max_vel), math.sqrt(float(np.max(np.abs(q_xx) / max_acc)))))
+
+
+def _bent_motion(dq: np.ndarray, bend: Bend, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Path parameter s and the joints' first and second derivatives in the time share ``x`` (column)
+    of a bent, paced segment by ``dq`` (a minimum-jerk profile sigma(x), s = pace(sigma))."""
+    sig = x * x * x * (10.0 - 15.0 * x + 6.0 * x * x)
+    sig1 = 30.0 * x * x * (1.0 - x) ** 2
+    sig2 = 60.0 * x * (1.0 - x) * (1.0 - 2.0 * x)
+    s, g1, g2 = _pace(bend.pace, sig)
+    s_x, s_xx = g1 * sig1, g2 * sig1 * sig1 + g1 * sig2
+    tangent = dq + math.pi * np.cos(math.pi * s) * bend.bump  # dq/ds
+    return s, tangent * s_x, tangent * s_xx - math.pi * math.pi * np.sin(math.pi * s) * bend.bump * s_x * s_x
 
 
 class JointPath:
-    """Waypoints (rad) joined by straight joint segments, each a synchronised rest-to-rest trapezoid
-    in the path parameter within ``share`` of every joint's velocity and acceleration limit."""
+    """Waypoints (rad) joined by joint segments, each a synchronised rest-to-rest minimum-jerk move
+    within ``share`` of every joint's velocity and acceleration limit: a straight one's progress, a bent
+    one's share of the hand's path (its entry of ``bends``, :class:`Bend`; None: all straight) follows
+    the minimum-jerk profile, the single-peaked bell of a human reach."""
 
     def __init__(self, waypoints: list[np.ndarray], max_vel: np.ndarray, max_acc: np.ndarray,
-                 share: float = 0.95) -> None:
+                 share: float = 0.95, bends: list[Bend | None] | None = None) -> None:
         self.waypoints = [np.asarray(w, float) for w in waypoints]
+        if bends is not None and len(bends) != len(self.waypoints) - 1:
+            raise ValueError(f"{len(bends)} bends for {len(self.waypoints) - 1} segments")
         segs: list[_Segment] = []
         t = 0.0
-        for qa, qb in zip(self.waypoints[:-1], self.waypoints[1:], strict=True):
+        for k, (qa, qb) in enumerate(zip(self.waypoints[:-1], self.waypoints[1:], strict=True)):
             dq = qb - qa
-            ad = np.abs(dq)
-            if float(np.max(ad)) <= 1e-12:
+            if float(np.max(np.abs(dq))) <= 1e-12:
                 continue
-            with np.errstate(divide="ignore"):
-                sd = share * float(np.min(np.where(ad > 0, max_vel / ad, np.inf)))
-                sdd = share * float(np.min(np.where(ad > 0, max_acc / ad, np.inf)))
-            if sd * sd / sdd >= 1.0:  # never reaches full speed: triangle
-                t_acc = math.sqrt(1.0 / sdd)
-                sd = sdd * t_acc
-                t_flat = 0.0
-            else:
-                t_acc = sd / sdd
-                t_flat = (1.0 - sd * t_acc) / sd
-            seg = _Segment(qa, dq, t, t_acc, t_flat, sd, sdd)
+            bend = None if bends is None else bends[k]
+            seg = _Segment(qa, dq, t, min_jerk_duration(dq, share * max_vel, share * max_acc, bend), bend)
             segs.append(seg)
             t += seg.duration
         self._segs = segs
@@ -436,17 +625,14 @@ class JointPath:
             if t < sg.t0 + sg.duration:
                 seg = sg
                 break
-        u = max(t - seg.t0, 0.0)
-        ta, tf, a = seg.t_acc, seg.t_flat, seg.sdd
-        if u < ta:
-            s, sdot = 0.5 * a * u * u, a * u
-        elif u < ta + tf:
-            s, sdot = 0.5 * a * ta * ta + seg.sd * (u - ta), seg.sd
-        else:
-            r = max(2.0 * ta + tf - u, 0.0)
-            s, sdot = 1.0 - 0.5 * a * r * r, a * r
-        s = min(max(s, 0.0), 1.0)
-        return seg.qa + s * seg.dq, sdot * seg.dq
+        x = min(max((t - seg.t0) / seg.duration, 0.0), 1.0)
+        if seg.bend is None:
+            s = min_jerk(x)
+            sdot = 30.0 * x * x * (1.0 - x) * (1.0 - x) / seg.duration
+            return seg.qa + s * seg.dq, sdot * seg.dq
+        s_arr, q_x, _ = _bent_motion(seg.dq, seg.bend, np.array([[x]]))
+        q = bent_points(seg.qa, seg.qa + seg.dq, seg.bend.bump, s_arr[0]).reshape(-1)
+        return q, q_x[0] / seg.duration
 
 
 def circle_or_none(geom: Any, T: np.ndarray) -> ElbowCircle | None:

@@ -94,7 +94,8 @@ class ReplanLaw:
         if planner.path is None:
             self.block(st, f"{planner.reason} (after: {st.plan_reason})")
             return
-        st.path = JointPath(planner.path, self.bounds.max_vel, self.bounds.max_acc)
+        st.path = JointPath(planner.path, self.bounds.max_vel, self.bounds.max_acc,
+                            bends=getattr(planner, "bends", None))  # (bends: JointPlanner's, in free space)
         st.path_t = 0.0
         st.ref.q = st.cmd.q.copy()
         st.ref.qd = np.zeros_like(st.ref.q)
