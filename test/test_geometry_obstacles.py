@@ -200,3 +200,9 @@ def test_obstacle_from_marker_fields() -> None:
         obstacle_from_marker(4, (0, 0, 0), (0, 0, 0, 1), (1, 1, 1))
     with pytest.raises(InvalidInputError):
         obstacle_from_marker(2, (0, 0, 0), (0, 0, 0, 1), (0, 0, 0))
+
+
+def test_free_space_means_no_obstacle_and_no_table():
+    assert Scene().free_space
+    assert not Scene(table_height=0.0).free_space
+    assert not Scene((Sphere((0.5, 0.0, 0.5), 0.1),)).free_space

@@ -623,7 +623,7 @@ class SwivelRedundancy:
         space (``scene`` without obstacles: the elbow's obstacle avoidance then keeps the attractor
         dynamics) and with the swivel dynamics in charge of the elbow."""
         return bool(p.replan.corridor) and p.swivel_mode not in ("fixed", PAPER_MODE) \
-            and not len(scene.obstacles) and scene.table_height is None and st.ref.v_tool <= 0.01 \
+            and scene.free_space and st.ref.v_tool <= 0.01 \
             and st.att.v <= 0.01 and hasattr(self.arm, "swivel_corridor")
 
     def corridor_job(self, st: CoreState, p: ControllerParams, T: np.ndarray) -> CorridorJob:

@@ -157,18 +157,23 @@ SETTLE_RATE = 0.3
 BEND_SAMPLES = 12
 
 
+def _hand_paths(arm: Any, C: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The tool positions (k, m, 3) of joint paths ``C`` (k paths of m samples, n joints) and the
+    lengths (k, m - 1) of each path's steps between its samples."""
+    k, m, n = C.shape
+    P = np.asarray(arm.fk_batch(C.reshape(-1, n)), float)[:, :3, 3].reshape(k, m, 3)
+    return P, np.linalg.norm(np.diff(P, axis=1), axis=2)
+
+
 def hand_path_ratio(arm: Any, q_from: np.ndarray, Q: np.ndarray, samples: int = BEND_SAMPLES) -> np.ndarray:
     """The hand's path length over its straight distance (>= 1) on the straight joint segment from
     ``q_from`` to each row of ``Q`` (all ending at the same tool pose), at ``samples`` segment samples;
     1 where the hand hardly moves (under 1 mm)."""
     Q = np.atleast_2d(np.asarray(Q, float))
     x = np.linspace(0.0, 1.0, samples + 1)
-    path = q_from[None, None, :] + x[None, :, None] * (Q - q_from)[:, None, :]
-    P = np.asarray(arm.fk_batch(path.reshape(-1, Q.shape[1])), float)[:, :3, 3]
-    P = P.reshape(len(Q), samples + 1, 3)
-    length = np.sum(np.linalg.norm(np.diff(P, axis=1), axis=2), axis=1)
+    P, steps = _hand_paths(arm, q_from[None, None, :] + x[None, :, None] * (Q - q_from)[:, None, :])
     straight = np.linalg.norm(P[:, -1] - P[:, 0], axis=1)
-    return np.where(straight > 1e-3, length / np.maximum(straight, 1e-3), 1.0)
+    return np.where(straight > 1e-3, np.sum(steps, axis=1) / np.maximum(straight, 1e-3), 1.0)
 
 
 #: the bend of a free-space joint move (see :func:`bend_search`): first step and least step (rad) of the
@@ -189,10 +194,10 @@ def _bent_ratios(arm: Any, qa: np.ndarray, qb: np.ndarray, bends: np.ndarray, lo
     """The hand's path ratio on each bent segment (rows of ``bends``); inf where one leaves the limits."""
     s = np.linspace(0.0, 1.0, BEND_CURVE_SAMPLES + 1)
     C = np.stack([bent_points(qa, qb, b, s) for b in bends])
-    P = np.asarray(arm.fk_batch(C.reshape(-1, len(qa))), float)[:, :3, 3].reshape(len(bends), len(s), 3)
-    length = np.sum(np.linalg.norm(np.diff(P, axis=1), axis=2), axis=1)
+    P, steps = _hand_paths(arm, C)
     inside = np.all((C >= lower) & (C <= upper), axis=(1, 2))
-    return np.where(inside, length / max(float(np.linalg.norm(P[0, -1] - P[0, 0])), 1e-3), np.inf)
+    straight = max(float(np.linalg.norm(P[0, -1] - P[0, 0])), 1e-3)
+    return np.where(inside, np.sum(steps, axis=1) / straight, np.inf)
 
 
 def bend_search(arm: Any, qa: np.ndarray, qb: np.ndarray, lower: np.ndarray, upper: np.ndarray
@@ -249,8 +254,8 @@ def paced_bend(arm: Any, qa: np.ndarray, qb: np.ndarray, bump: np.ndarray) -> Be
     length at PACE_SAMPLES samples, the increasing fit of PACE_DEGREES nearest them (no pace, s = sigma,
     where none is increasing)."""
     s = np.linspace(0.0, 1.0, PACE_SAMPLES + 1)
-    P = np.asarray(arm.fk_batch(bent_points(qa, qb, bump, s)), float)[:, :3, 3]
-    cum = np.concatenate(([0.0], np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))))
+    Ps, steps = _hand_paths(arm, bent_points(qa, qb, bump, s)[None])
+    P, cum = Ps[0], np.concatenate(([0.0], np.cumsum(steps[0])))
     ratio = float(cum[-1] / max(float(np.linalg.norm(P[-1] - P[0])), 1e-3))
     none = Bend(bump, np.zeros(1), ratio)
     if cum[-1] < 1e-3:
@@ -344,7 +349,7 @@ def goal_candidates_iter(stepper: IKStepper, guard: CollisionGuard, T: np.ndarra
     cost = np.max(np.where(d < max_vel * max_vel / max_acc, t_tri, t_trap), axis=1)
     m = np.minimum(Q - stepper.lower, stepper.upper - Q)
     cost += 0.5 * np.sum(np.maximum(params.limit_margin - m, 0.0), axis=1) / max(params.limit_margin, 1e-9)
-    free = not scene.obstacles and scene.table_height is None
+    free = scene.free_space
     if s_pref is not None:
         ds = np.abs(np.remainder(S - s_pref + math.pi, TWO_PI) - math.pi)
         cost += 0.2 * ds
@@ -477,7 +482,7 @@ class JointPlanner:
                 esc = yield from self._escape(start, c_start)
                 if esc:
                     head, start = [start, *esc[:-1]], esc[-1]
-        if not head and not self.scene.obstacles and self.scene.table_height is None:
+        if not head and self.scene.free_space:
             # free space: the direct move to the cheapest goal bent so that the hand's path is shortest,
             # checked as the polyline through its samples
             arm, q_goal = self.stepper.arm, self.goals[0].q

@@ -564,6 +564,11 @@ class Scene:
     def __len__(self) -> int:
         return len(self.obstacles)
 
+    @property
+    def free_space(self) -> bool:
+        """No obstacle and no table: nothing but the arm itself to keep clear of."""
+        return not self.obstacles and self.table_height is None
+
     def with_obstacles(self, obstacles: Iterable[Obstacle]) -> Scene:
         """A copy with another obstacle list (same table)."""
         return Scene(tuple(obstacles), self.table_height, self.name)
