@@ -75,6 +75,7 @@ from redarm_ros.kinematics.quaternion import (
     quat_to_matrix,
     rotvec_between,
 )
+from redarm_ros.motion.min_jerk import min_jerk
 from redarm_ros.sim.urdf_arms import SHIPPED, load_shipped
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench_common, also when loaded by path
@@ -223,11 +224,6 @@ def run_controller(ctl: ReachController, T: np.ndarray) -> Traj:
                 tuple(steps), plan_s, route)
 
 
-def _min_jerk(x: np.ndarray) -> np.ndarray:
-    x = np.clip(x, 0.0, 1.0)
-    return x**3 * (10.0 + x * (-15.0 + 6.0 * x))
-
-
 def _retime(arm, path: np.ndarray, v_hand: float) -> np.ndarray:
     """Joints at DT along ``path`` ((m, n) joint samples at equal steps of the path parameter) with a
     minimum-jerk time law, as fast as the joint velocity/acceleration limits and ``v_hand`` allow."""
@@ -237,7 +233,7 @@ def _retime(arm, path: np.ndarray, v_hand: float) -> np.ndarray:
 
     def sample(T: float) -> np.ndarray:
         n = max(2, int(math.ceil(T / DT)) + 1)
-        s = _min_jerk(np.arange(n) * DT / T)
+        s = min_jerk(np.arange(n) * DT / T)
         return np.stack([np.interp(s, s_grid, path[:, j]) for j in range(path.shape[1])], axis=1)
 
     T = 0.2
@@ -246,7 +242,7 @@ def _retime(arm, path: np.ndarray, v_hand: float) -> np.ndarray:
         Q = sample(T)
         rv = float(np.max(np.abs(np.diff(Q, axis=0)) / (vmax * DT)))
         ra = float(np.max(np.abs(np.diff(Q, n=2, axis=0)) / (amax * DT * DT))) if len(Q) > 2 else 0.0
-        s = _min_jerk(np.arange(len(Q)) * DT / T)
+        s = min_jerk(np.arange(len(Q)) * DT / T)
         P = np.stack([np.interp(s, s_grid, tool[:, j]) for j in range(3)], 1)
         rh = float(np.max(np.linalg.norm(np.diff(P, axis=0), axis=1)) / (v_hand * DT))
         scale = max(rv, math.sqrt(ra), rh)
@@ -374,7 +370,7 @@ def min_jerk_deviation(v: np.ndarray) -> float:
     n = len(w)
     tau0 = 0.5 - math.sqrt(0.25 - math.sqrt(ONSET / 16.0))  # v_mj / v_peak = 16 tau^2 (1 - tau)^2
     dur = n * DT / (1.0 - 2.0 * tau0)
-    share = float(_min_jerk(np.array([1.0 - tau0]))[0] - _min_jerk(np.array([tau0]))[0])
+    share = float(min_jerk(np.array([1.0 - tau0]))[0] - min_jerk(np.array([tau0]))[0])
     length = float(np.sum(w)) * DT / share
     tau = tau0 + (np.arange(n) + 0.5) / n * (1.0 - 2.0 * tau0)
     v_mj = length / dur * 30.0 * tau**2 * (1.0 - tau) ** 2

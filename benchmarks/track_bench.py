@@ -75,6 +75,7 @@ from redarm_ros.kinematics.quaternion import (
     quat_to_matrix,
     rotvec_between,
 )
+from redarm_ros.motion.min_jerk import min_jerk
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench_common, also when loaded by path
 import bench_common  # noqa: E402
@@ -162,11 +163,6 @@ def line(v: float = 0.16, amp: float = 0.1, trips: int = 2) -> PathDef:
     return PathDef("line", pose, total)
 
 
-def _min_jerk(x: float) -> float:
-    x = min(max(x, 0.0), 1.0)
-    return 10 * x**3 - 15 * x**4 + 6 * x**5
-
-
 def min_jerk_vias(seed: int = 3, n: int = 5, speed: float = 0.12, turn_deg: float = 45.0) -> PathDef:
     rng = np.random.default_rng(seed)
     c = np.array([0.65, 0.0, 0.25])
@@ -186,9 +182,9 @@ def min_jerk_vias(seed: int = 3, n: int = 5, speed: float = 0.12, turn_deg: floa
     def pose(t: float) -> np.ndarray:
         t = min(max(t, 0.0), total)
         k = min(int(np.searchsorted(starts, t, side="right")) - 1, len(durs) - 1)
-        a = _min_jerk((t - starts[k]) / durs[k])
+        a = min_jerk((t - starts[k]) / durs[k])
         p = vias[k] + a * (vias[k + 1] - vias[k])
-        f = _min_jerk(t / total)
+        f = min_jerk(t / total)
         qr = quat_mul(quat_from_rotvec(tuple(f * rv)), q0)
         T = np.eye(4)
         T[:3, :3] = quat_to_matrix(qr)

@@ -11,8 +11,6 @@ import numpy as np
 
 from redarm_ros.control.corridor_route import (
     CorridorRoute,
-    min_jerk,
-    min_jerk_inverse,
     plan_route,
     route_duration,
     route_pace,
@@ -23,12 +21,32 @@ from redarm_ros.control.reach_controller import Phase
 from redarm_ros.geometry.obstacles import Scene, Sphere
 from redarm_ros.kinematics import load_arm
 from redarm_ros.kinematics.corridor import SwivelCorridor
+from redarm_ros.motion.min_jerk import (
+    PEAK_ACC,
+    PEAK_RATE,
+    min_jerk,
+    min_jerk_accel,
+    min_jerk_inverse,
+    min_jerk_rate,
+)
 
 
 def test_min_jerk_profile_and_its_inverse():
     assert min_jerk(0.0) == 0.0 and min_jerk(1.0) == 1.0 and abs(min_jerk(0.5) - 0.5) < 1e-12
     for u in (0.01, 0.3, 0.77):
         assert abs(min_jerk(min_jerk_inverse(u)) - u) < 1e-9
+
+
+def test_min_jerk_derivatives_and_peaks_match_the_polynomial():
+    x = np.linspace(-0.2, 1.2, 1401)
+    u, du, ddu = min_jerk(x), min_jerk_rate(x), min_jerk_accel(x)
+    assert u[0] == 0.0 and u[-1] == 1.0 and np.all(np.diff(u) >= 0.0)  # rests outside the move
+    inside = (x > 0.01) & (x < 0.99)
+    h = x[1] - x[0]
+    assert np.allclose(np.gradient(u, h)[inside], du[inside], atol=1e-3)
+    assert np.allclose(np.gradient(du, h)[inside], ddu[inside], atol=1e-2)
+    assert abs(du.max() - PEAK_RATE) < 1e-9 and abs(np.abs(ddu).max() - PEAK_ACC) < 1e-3
+    assert isinstance(min_jerk(0.3), float) and min_jerk(0.3) == float(min_jerk(np.array([0.3]))[0])
 
 
 def wait_for_plan(ctl):

@@ -38,10 +38,8 @@ from redarm_ros.kinematics.quaternion import (
     quat_normalize,
     rotvec_between,
 )
+from redarm_ros.motion.min_jerk import PEAK_RATE, min_jerk, min_jerk_inverse
 
-#: peak of du/dx and |d2u/dx2| of the minimum-jerk profile
-PEAK_RATE = 1.875
-PEAK_ACC = 5.7735
 #: shortest route (s)
 MIN_DURATION = 0.3
 #: :func:`plan_route` with ``fast``: the speed guide is tried for a route that takes over GUIDE_AFTER times
@@ -51,24 +49,6 @@ MIN_DURATION = 0.3
 #: limiter brakes the joint (powercube7, margin 0.01 rad: path ratio 1.12, seven speed peaks).
 GUIDE_AFTER = 1.5
 GUIDE_RATE = 10.0
-
-
-def min_jerk(x: float) -> float:
-    """Progress (0..1) of the minimum-jerk profile at the time share x (clamped to [0, 1])."""
-    x = min(max(x, 0.0), 1.0)
-    return x * x * x * (10.0 - 15.0 * x + 6.0 * x * x)
-
-
-def min_jerk_inverse(u: float) -> float:
-    """The time share x with min_jerk(x) = u (bisection; the profile is increasing)."""
-    lo, hi = 0.0, 1.0
-    for _ in range(50):
-        mid = 0.5 * (lo + hi)
-        if min_jerk(mid) < u:
-            lo = mid
-        else:
-            hi = mid
-    return 0.5 * (lo + hi)
 
 
 @dataclass
@@ -160,7 +140,7 @@ def route_duration(corridor: SwivelCorridor, length: float, angle: float, v_max:
     """The least duration (s) of the minimum-jerk route in the pace ``pace_u`` (None: in u) within the
     limits (see the module docstring)."""
     x = np.linspace(0.0, 1.0, PACE_SAMPLES)
-    sig = x * x * x * (10.0 - 15.0 * x + 6.0 * x * x)
+    sig = min_jerk(x)
     u = sig if pace_u is None else np.interp(sig, np.linspace(0.0, 1.0, len(pace_u)), pace_u)
     # position, orientation and swivel along the profile at T = 1: a rate is the x-derivative / T
     du = np.gradient(u, x)

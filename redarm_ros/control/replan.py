@@ -38,7 +38,6 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from redarm_ros.control.corridor_route import PEAK_ACC, PEAK_RATE, min_jerk
 from redarm_ros.control.elbow import ElbowCircle, elbow_circle
 from redarm_ros.control.guard import CollisionGuard
 from redarm_ros.control.ik_step import IKStepper, blend, pose_matrix
@@ -47,6 +46,7 @@ from redarm_ros.control.swivel_dynamics import wrap_angle
 from redarm_ros.errors import UnreachableError
 from redarm_ros.geometry.obstacles import Scene
 from redarm_ros.kinematics.quaternion import quat_angle, quat_from_matrix
+from redarm_ros.motion.min_jerk import PEAK_ACC, PEAK_RATE, min_jerk, min_jerk_accel, min_jerk_rate
 
 TWO_PI = 2.0 * math.pi
 
@@ -585,9 +585,7 @@ def min_jerk_duration(dq: np.ndarray, max_vel: np.ndarray, max_acc: np.ndarray,
 def _bent_motion(dq: np.ndarray, bend: Bend, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Path parameter s and the joints' first and second derivatives in the time share ``x`` (column)
     of a bent, paced segment by ``dq`` (a minimum-jerk profile sigma(x), s = pace(sigma))."""
-    sig = x * x * x * (10.0 - 15.0 * x + 6.0 * x * x)
-    sig1 = 30.0 * x * x * (1.0 - x) ** 2
-    sig2 = 60.0 * x * (1.0 - x) * (1.0 - 2.0 * x)
+    sig, sig1, sig2 = min_jerk(x), min_jerk_rate(x), min_jerk_accel(x)
     s, g1, g2 = _pace(bend.pace, sig)
     s_x, s_xx = g1 * sig1, g2 * sig1 * sig1 + g1 * sig2
     tangent = dq + math.pi * np.cos(math.pi * s) * bend.bump  # dq/ds
@@ -633,7 +631,7 @@ class JointPath:
         x = min(max((t - seg.t0) / seg.duration, 0.0), 1.0)
         if seg.bend is None:
             s = min_jerk(x)
-            sdot = 30.0 * x * x * (1.0 - x) * (1.0 - x) / seg.duration
+            sdot = min_jerk_rate(x) / seg.duration
             return seg.qa + s * seg.dq, sdot * seg.dq
         s_arr, q_x, _ = _bent_motion(seg.dq, seg.bend, np.array([[x]]))
         q = bent_points(seg.qa, seg.qa + seg.dq, seg.bend.bump, s_arr[0]).reshape(-1)

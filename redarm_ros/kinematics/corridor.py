@@ -71,6 +71,7 @@ from redarm_ros.kinematics.quaternion import (
     quat_normalize,
     rotvec_between,
 )
+from redarm_ros.motion.min_jerk import min_jerk_inverse, min_jerk_rate
 
 if TYPE_CHECKING:
     from redarm_ros.kinematics.swivel import SwivelArm
@@ -127,18 +128,6 @@ class SwivelCorridor:
     def swivel_at(self, u: float) -> float:
         """The schedule's swivel (rad, unwrapped) at progress ``u`` (linear between samples, clamped)."""
         return float(np.interp(min(max(float(u), 0.0), 1.0), self.u, self.swivel))
-
-
-def _min_jerk_time(u: float) -> float:
-    """The time share x at which the minimum-jerk profile 10 x^3 - 15 x^4 + 6 x^5 reaches u (bisection)."""
-    lo, hi = 0.0, 1.0
-    for _ in range(40):
-        mid = 0.5 * (lo + hi)
-        if mid * mid * mid * (10.0 - 15.0 * mid + 6.0 * mid * mid) < u:
-            lo = mid
-        else:
-            hi = mid
-    return 0.5 * (lo + hi)
 
 
 def route_pose(T_start: np.ndarray, T_goal: np.ndarray, u: float) -> np.ndarray:
@@ -565,8 +554,8 @@ class _Corridor:
         # a step's demand in s of route time: per unit progress, times the minimum-jerk profile's
         # du/dx where the step lies (the route's duration is the largest of those; near the ends the
         # profile is slow, so a joint may swing faster there)
-        xm = np.array([_min_jerk_time(0.5 * (us[i] + us[i + 1])) for i in range(n)])
-        pace = 30.0 * xm * xm * (1.0 - xm) ** 2 / du
+        xm = np.array([min_jerk_inverse(0.5 * (us[i] + us[i + 1])) for i in range(n)])
+        pace = min_jerk_rate(xm) / du
 
         def edges(i: int) -> list[np.ndarray]:
             """Per offset o: the demand of the step from grid k at sample i to k + o at i + 1 (inf: none)."""

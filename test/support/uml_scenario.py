@@ -39,6 +39,7 @@ from typing import Any
 import can
 import numpy as np
 
+from redarm_ros.motion.min_jerk import min_jerk
 from redarm_ros.procs import ChildDiedError, ManagedProcess, ReadinessTimeoutError
 
 _LOG = logging.getLogger("uml_scenario")
@@ -186,12 +187,6 @@ def cmd_pingpong(ns: argparse.Namespace) -> int:
 HIL_DELTA = (0.40, -0.30, 0.50, 0.60, -0.40, 0.30, 0.50)
 
 
-def _min_jerk(s: float) -> float:
-    """Minimum-jerk blend 0..1 for s in [0, 1] (peak speed 1.875 / duration)."""
-    s = min(max(s, 0.0), 1.0)
-    return s * s * s * (10.0 - 15.0 * s + 6.0 * s * s)
-
-
 def _read_json(path: Path) -> dict[str, Any]:
     try:
         return json.loads(path.read_text())
@@ -297,7 +292,7 @@ def cmd_hil(ns: argparse.Namespace) -> int:
                 periods.append(start - prev_start)
             prev_start = start
             next_t = max(next_t + dt, start)  # absolute deadlines; no catch-up burst after a stall
-            q_des = q0 + (goal - q0) * _min_jerk(k / n_move)
+            q_des = q0 + (goal - q0) * min_jerk(k / n_move)
             res = drv.cycle(q_des, dt)
             lost += res.lost
             late += res.late
