@@ -314,7 +314,7 @@ CORE_MAY_IMPORT: dict[str, set[str]] = {
     "param_table": {"errors"},
     "motion": {"errors"},
     "geometry": {"errors", "param_table"},
-    "kinematics": {"errors", "param_table", "geometry", "parallel"},
+    "kinematics": {"errors", "param_table", "geometry", "motion", "parallel"},
 }
 
 
