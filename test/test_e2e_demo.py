@@ -23,7 +23,9 @@ pytestmark = [pytest.mark.hil, pytest.mark.slow]
 
 def test_demo_passes_and_reports(procs: Any, tmp_path: Path) -> None:
     out = tmp_path / "demo_output"
-    cmd = python_module_cmd("redarm_ros.demo", "--output", str(out), "--log-level", "warn")
+    # The GIF at 3 frames per second of recording time instead of the default 10: the same rendering
+    # and writing, some 120 frames instead of 400 (each a TinyRenderer picture, 40 ms of CPU).
+    cmd = python_module_cmd("redarm_ros.demo", "--output", str(out), "--log-level", "warn", "--gif-fps", "3")
     demo = procs.start("demo", cmd)
     demo.expect_exit()
     # About 70 s on a quiet machine (45 s of motion, then the GIF); far longer when it is starved.
@@ -64,6 +66,8 @@ def test_demo_passes_and_reports(procs: Any, tmp_path: Path) -> None:
     gif = iio.imread(out / "demo.gif", index=None)
     assert gif.shape[0] >= 50 and gif.shape[1:3] == (480, 640), gif.shape
     assert report["animation"]["ok"] and report["recording"]["ok"], (report["animation"], report["recording"])
+    animation = report["animation"]
+    assert animation["fps"] == 3 and animation["frames"] >= gif.shape[0], animation
     # The recording: ROS 2 profile, every demo topic with its schema, /tf for 3-D viewers, in time order.
     profile, topics = summarize(out / "demo.mcap")
     assert profile == "ros2"
@@ -81,11 +85,13 @@ def test_demo_passes_and_reports(procs: Any, tmp_path: Path) -> None:
 def test_iiwa_demo_from_its_urdf_passes(procs: Any, tmp_path: Path) -> None:
     # The iiwa14-like arm through the stack's URDF path (simulator, driver, IK service and controller
     # all from the URDF file), its own goal set; no GIF (the recording and the GIF are tested above).
+    # A lighter stack than the default rates above: the driver at 125 Hz, the controller at 50 Hz
+    # (a quarter less CPU), which also runs the demo's two rate options end to end.
     from redarm_ros.demo import DEMOS
 
     out = tmp_path / "demo_iiwa"
     cmd = python_module_cmd("redarm_ros.demo", "--arm", "iiwa14", "--output", str(out), "--log-level", "warn",
-                            "--gif-fps", "0")
+                            "--gif-fps", "0", "--driver-rate", "125", "--control-rate", "50")
     demo = procs.start("demo_iiwa", cmd)
     demo.expect_exit()
     demo.wait_for_line(r"demo (PASSED|FAILED)", timeout=420.0)
@@ -93,6 +99,7 @@ def test_iiwa_demo_from_its_urdf_passes(procs: Any, tmp_path: Path) -> None:
     assert rc == 0, "\n".join(demo.output())[-4000:]
     report = json.loads((out / "report.json").read_text(encoding="utf-8"))
     assert report["success"] is True and report["arm"] == "iiwa14"
+    assert report["loop_rates"]["controller_state"]["target_hz"] == 50, report["loop_rates"]
     goals = DEMOS["iiwa14"].goals
     assert [g["name"] for g in report["goals"]] == [g.name for g in goals]
     for g, spec in zip(report["goals"], goals, strict=True):

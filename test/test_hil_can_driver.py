@@ -1,11 +1,12 @@
 """Hardware-in-the-loop: bus server + ``redarm-sim --arm pa10`` + ``can_driver`` as separate processes.
 
-Every test starts its own simulated arm (the public ``redarm_arm_factory`` fixture: loopback remote
-CAN bus on 127.0.0.1, the simulator, the driver). The test process is an rclpy client on the
-``redarm_ros`` test context: it calls ``/can_driver/init``, publishes ``/joint_command``, reads
-``/joint_states`` and ``/diagnostics``, and checks what the simulated arm really did through the
-simulator's control channel (pybullet joint positions, setpoints, tool pose, module states). Faults are
-injected through the same channel (:class:`redarm_ros.testing.SimulatedArm`).
+A simulated arm is a loopback remote CAN bus on 127.0.0.1, the simulator and the driver (the public
+``redarm_arm_factory`` fixture). The tests that leave it initialised and running share one, initialised
+again (homed) for each (``homed_arm``); the tests that break it, or need other settings, start their own.
+The test process is an rclpy client on the ``redarm_ros`` test context: it calls ``/can_driver/init``,
+publishes ``/joint_command``, reads ``/joint_states`` and ``/diagnostics``, and checks what the simulated
+arm really did through the simulator's control channel (pybullet joint positions, setpoints, tool pose,
+module states). Faults are injected through the same channel (:class:`redarm_ros.testing.SimulatedArm`).
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import can
@@ -36,6 +37,7 @@ from redarm_ros.kinematics import load_arm  # noqa: E402
 from redarm_ros.nodes._common import call_resending  # noqa: E402
 from redarm_ros.procs import python_module_cmd  # noqa: E402
 from redarm_ros.testing import SimulatedArm  # noqa: E402
+from redarm_ros.testing.pytest_plugin import _stderr_sink  # noqa: E402  (the plugin's sink for its arms)
 from redarm_ros.testing.ros import RosTestContext  # noqa: E402
 
 pytestmark = pytest.mark.hil
@@ -134,14 +136,17 @@ def client(redarm_ros: RosTestContext) -> Client:
     return Client(redarm_ros)
 
 
+# The driver's settings for these tests: initialised by the test (~/init), not parked after it.
+DRIVER_PARAMS = {"auto_init": False, "park_after_init": False, "reconnect_max_s": 0.5}
+
+
 def start_arm(factory: Factory, *, sim_args: tuple[str, ...] = (), start: str | None = None,
               **driver_params: Any) -> SimulatedArm:
     """The simulator and the driver (not initialised: the tests call ~/init; homing leaves it at 0 rad),
     the driver connected.
     The node's defaults (reply_timeout_s 0.02, max_missed_replies 5) unless a test says otherwise."""
     arm = factory(driver=True, start=start, sim_args=list(sim_args),
-                  driver_params={"auto_init": False, "park_after_init": False, "reconnect_max_s": 0.5,
-                                 **driver_params})
+                  driver_params={**DRIVER_PARAMS, **driver_params})
     arm.driver.wait_for_line(r"CAN bus connected", 30, from_start=True)
     return arm
 
@@ -164,26 +169,236 @@ def start_and_init(client: Client, factory: Factory) -> SimulatedArm:
     return arm
 
 
-def test_hil_nominal_trajectory_followed(redarm_arm_factory: Factory, client: Client) -> None:
-    arm = start_and_init(client, redarm_arm_factory)
-    q1 = goal_pose()
-    client.send_trajectory([q1 / 2, q1], [0.8, 1.6])
-    arm.wait_at(q1, 2e-3, 10)
-    assert wait_for(lambda: client.last_q() is not None and np.allclose(client.last_q(), q1, atol=3e-3), 5)
-    # The tool pose pybullet reports is the model's FK of where the joints went.
-    st = arm.status().raw
-    np.testing.assert_allclose(st["tool"]["position"], ARM.fk(np.array(st["q"]))[:3, 3], atol=1e-4)
-    np.testing.assert_allclose(st["tool"]["position"], ARM.fk(q1)[:3, 3], atol=3e-3)
-    # Diagnostics: loop OK and running, every module present with no error bits.
+@pytest.fixture(scope="class")
+def _shared_arm(redarm_dds: Any) -> Iterator[dict[str, SimulatedArm]]:
+    """The class's shared simulated arm (started before any test's own fixtures, so no test counts
+    its processes as left behind), stopped after the class, or taken out and stopped once unusable."""
+    holder = {"arm": SimulatedArm(domain_id=redarm_dds.domain_id, sink=_stderr_sink, driver=True,
+                                  driver_params=DRIVER_PARAMS).start()}
+    try:
+        holder["arm"].driver.wait_for_line(r"CAN bus connected", 30, from_start=True)
+        yield holder
+    finally:
+        if "arm" in holder:
+            holder.pop("arm").close()
+
+
+@pytest.fixture
+def homed_arm(request: pytest.FixtureRequest, _shared_arm: dict[str, SimulatedArm],
+              redarm_arm_factory: Factory, client: Client) -> Iterator[SimulatedArm]:
+    """The simulator and the driver with their defaults, initialised and homed: the class's shared
+    arm, or an own one for each test after a shared-arm test failed or one of its processes died."""
+    arm = _shared_arm.get("arm")
+    if arm is None:
+        arm = start_arm(redarm_arm_factory)
+    init_and_check(client, arm)
+    failed = request.session.testsfailed
+    yield arm
+    if arm is _shared_arm.get("arm"):
+        dead = arm.stack.group.unexpected_deaths()
+        if dead or request.session.testsfailed > failed:
+            _shared_arm.pop("arm").close()  # the next tests start their own
+        if dead:
+            pytest.fail(f"shared arm: {', '.join(c.name for c in dead)} died", pytrace=False)
+
+
+def _diag_now(client: Client) -> dict[str, tuple[int, str, dict[str, str]]]:
+    """The first diagnostics array published from now on."""
     t0 = client.now_ns()
     assert wait_for(lambda: client.diag_since(t0), 5)
-    d = client.diag_since(t0)[-1]
-    level, msg, values = d["can_driver: loop"]
-    assert level == OK and values["state"] == "running", msg
-    assert int(values["cycles"]) > 100
-    for j in range(N):
-        lv, m, v = d[f"can_driver: module {j + 1} ({ARM.joint_names[j]})"]
-        assert lv == OK and v["errors"] == "-" and "HOME_OK" in v["state"], (j, m, v)
+    return client.diag_since(t0)[-1]
+
+
+def _malformed(d: dict[str, tuple[int, str, dict[str, str]]]) -> dict[int, int]:
+    """Malformed frames counted per module (id -> count)."""
+    return {int(k.split()[2]): int(v[2]["malformed"])
+            for k, v in d.items() if k.startswith("can_driver: module")}
+
+
+def _refused(d: dict[str, tuple[int, str, dict[str, str]]]) -> int:
+    """Module 3's replies refused as implausible or late."""
+    m3 = d[f"can_driver: module 3 ({ARM.joint_names[2]})"][2]
+    return int(m3["implausible"]) + int(m3["late"])
+
+
+class TestOneArm:
+    """The tests that leave the simulated arm initialised and running, on one arm (``homed_arm``),
+    stopped when the last of them is done: before the tests that start arms of their own (two drivers
+    on one ROS domain would be two nodes named /can_driver)."""
+
+    def test_hil_nominal_trajectory_followed(self, homed_arm: SimulatedArm, client: Client) -> None:
+        arm = homed_arm
+        q1 = goal_pose()
+        client.send_trajectory([q1 / 2, q1], [0.8, 1.6])
+        arm.wait_at(q1, 2e-3, 10)
+        assert wait_for(lambda: client.last_q() is not None
+                        and np.allclose(client.last_q(), q1, atol=3e-3), 5)
+        # The tool pose pybullet reports is the model's FK of where the joints went.
+        st = arm.status().raw
+        np.testing.assert_allclose(st["tool"]["position"], ARM.fk(np.array(st["q"]))[:3, 3], atol=1e-4)
+        np.testing.assert_allclose(st["tool"]["position"], ARM.fk(q1)[:3, 3], atol=3e-3)
+        # Diagnostics: loop OK and running, every module present with no error bits.
+        t0 = client.now_ns()
+        assert wait_for(lambda: client.diag_since(t0), 5)
+        d = client.diag_since(t0)[-1]
+        level, msg, values = d["can_driver: loop"]
+        assert level == OK and values["state"] == "running", msg
+        assert int(values["cycles"]) > 100
+        for j in range(N):
+            lv, m, v = d[f"can_driver: module {j + 1} ({ARM.joint_names[j]})"]
+            assert lv == OK and v["errors"] == "-" and "HOME_OK" in v["state"], (j, m, v)
+
+
+    def test_hil_malformed_frames_ignored_and_counted(self, homed_arm: SimulatedArm, client: Client) -> None:
+        arm = homed_arm
+        q1 = goal_pose()
+        client.send_trajectory([q1], [1.5])
+        arm.wait_at(q1, 2e-3, 10)
+        before = _malformed(_diag_now(client))  # (counted since the driver started)
+        sim_before = arm.status().raw["counters"]["malformed"]
+        nan = bytes([0x00, 0x00, 0xC0, 0x7F])  # float32 NaN, little-endian
+        garbage = [
+            # Host-bound "replies" the driver must refuse: truncated ext ack, NaN position, unknown mode.
+            can.Message(arbitration_id=0x0A2, data=[0x0B, 0x10, 0x00], is_extended_id=False),
+            can.Message(arbitration_id=0x0A3, data=[0x0B, 0x10, *nan, 0x00, 0x00], is_extended_id=False),
+            can.Message(arbitration_id=0x0A4, data=[0x0B, 0x7E, 0, 0, 0, 0, 0, 0], is_extended_id=False),
+            # Module-bound nonsense the simulator must refuse: unknown command, FSTEP to NaN, short SETPARAM.
+            can.Message(arbitration_id=0x0E1, data=[0x55, 0x01], is_extended_id=False),
+            can.Message(arbitration_id=0x0E2, data=[0x0B, 0x10, *nan, 0x04, 0x00], is_extended_id=False),
+            can.Message(arbitration_id=0x0E5, data=[0x08, 0x3C], is_extended_id=False),
+        ]
+        bus = can.Bus(**arm.can_kwargs)
+        try:
+            for _ in range(20):
+                for m in garbage:
+                    bus.send(m)
+                time.sleep(0.01)
+        finally:
+            bus.shutdown()
+        time.sleep(0.5)
+        # Nothing moved wrongly: still holding the goal, driver still running.
+        np.testing.assert_allclose(arm.q, q1, atol=2e-3)
+        t0 = client.now_ns()
+        assert wait_for(lambda: client.diag_since(t0), 5)
+        d = client.diag_since(t0)[-1]
+        assert d["can_driver: loop"][2]["state"] == "running"
+        malformed = {j: n - before[j] for j, n in _malformed(d).items()}
+        assert malformed[2] > 0 and malformed[3] > 0 and malformed[4] > 0, malformed
+        assert arm.status().raw["counters"]["malformed"] > sim_before
+        # And it still follows commands.
+        client.send_trajectory([np.zeros(N)], [1.5])
+        arm.wait_at(np.zeros(N), 2e-3, 10)
+
+
+    def test_hil_command_beyond_joint_limit_clamped(self, homed_arm: SimulatedArm, client: Client) -> None:
+        arm = homed_arm
+        clamped_before = int(_diag_now(client)["can_driver: loop"][2]["clamped_cycles"])
+        j = 1  # +-91 deg
+        beyond = np.zeros(N)
+        # within command_limit_tolerance_rad (5 mrad) of the limit: clamped (further beyond: refused)
+        beyond[j] = ARM.upper[j] + 0.004
+        client.send_trajectory([beyond], [1.0])
+        worst_setpoint = worst_q = -math.inf
+        end = time.monotonic() + 30.0
+        settled = 0
+        while time.monotonic() < end and settled < 25:  # until it has rested at the limit for 0.5 s
+            st = arm.status().raw
+            worst_setpoint = max(worst_setpoint, st["q_setpoint"][j])
+            worst_q = max(worst_q, st["q"][j])
+            settled = settled + 1 if abs(st["q"][j] - (ARM.upper[j] - 1e-3)) < 1e-4 else 0
+            time.sleep(0.02)
+        st = arm.status().raw
+        # Went to the limit and rests there short of it by the driver's 1 mrad margin ...
+        assert st["q"][j] == pytest.approx(ARM.upper[j] - 1e-3, abs=1e-4)
+        # ... the module's profile never ran past the limit (a stream that pauses while the joint moves,
+        # e.g. the driver descheduled, is overshot as physics demands, but braked for the limit) ...
+        assert worst_setpoint <= ARM.upper[j] + 1e-9
+        assert worst_q <= ARM.upper[j] + 5e-5  # ... nor did the joint (BEYOND_SOFT trips at +1e-4)
+        mod = next(m for m in st["modules"] if m["id"] == j + 1)
+        assert "ERROR" not in mod["flags"] and "BEYOND_SOFT" not in mod["flags"]
+        arm.driver.wait_for_line(r"clamped", 2)
+        values = _diag_now(client)["can_driver: loop"][2]
+        assert int(values["clamped_cycles"]) > clamped_before and values["state"] == "running"
+
+
+    def test_hil_forged_reply_is_never_published(self, homed_arm: SimulatedArm, client: Client) -> None:
+        from redarm_ros.can import protocol as pc
+
+        arm = homed_arm
+        q1 = goal_pose()
+        q1[2] = 0.2
+        client.send_trajectory([q1], [1.0])
+        arm.wait_at(q1, 2e-3, 10)
+        refused_before = _refused(_diag_now(client))
+        # Another node answers for module 3 with a well-formed acknowledgement claiming 3.0 rad.
+        forged = pc.set_move_ext_ack(3, pc.MoveMode.FSTEP_EXT, 3.0, 0x20, 0)
+        # Judged by the time each state was measured (its stamp): a starved test process may still take
+        # states measured during the move after the arm got there (a fresh-clone run saw joint 3 at 0.164).
+        t_forged = client.now_ns()
+        seen: list[float] = []  # |joint 3 - 0.2| of every state measured from now on (not only the last 200)
+
+        def watch(js: JointState) -> None:
+            if js.header.stamp.sec * 1_000_000_000 + js.header.stamp.nanosec >= t_forged:
+                seen.append(abs(js.position[2] - 0.2))
+
+        with client.lock:
+            client.watch = watch
+        try:
+            with can.Bus(**arm.can_kwargs) as bus:
+                end = time.monotonic() + 1.0
+                while time.monotonic() < end:
+                    bus.send(forged)
+                    time.sleep(0.002)
+            time.sleep(0.3)
+            wait_for(lambda: len(seen) >= 10, 10.0)  # a starved test process takes its backlog late
+        finally:
+            with client.lock:
+                client.watch = None
+        # Joint states kept flowing (how fast this starved test process takes them is not the claim: a
+        # fresh-clone run received 34 in the 1.3 s)
+        assert len(seen) >= 10, len(seen)
+        assert max(seen) < 0.01  # never the forged 3.0 rad
+        np.testing.assert_allclose(arm.q, q1, atol=2e-3)
+        d = _diag_now(client)
+        # Each forged frame was refused: by the plausibility check when it came while the driver waited
+        # for module 3, as a late (unasked) reply otherwise; which one depends on timing (a busy machine
+        # delivers the flood in bursts between the cycles), that none was taken does not.
+        assert _refused(d) > refused_before, d[f"can_driver: module 3 ({ARM.joint_names[2]})"]
+        assert d["can_driver: loop"][2]["state"] == "running"
+
+
+    def test_hil_park_reaches_the_posture_within_limits(self, homed_arm: SimulatedArm,
+                                                        client: Client) -> None:
+        arm = homed_arm
+        client.send_trajectory([goal_pose()], [1.0])  # start the park from somewhere else than home
+        arm.wait_at(goal_pose(), 2e-3, 10)
+        answer: list[Trigger.Response] = []
+        caller = threading.Thread(target=lambda: answer.append(client.call("park", timeout=60)))
+        caller.start()
+        samples = []
+        while caller.is_alive():  # the simulated arm during the move (status at 50 Hz)
+            samples.append(arm.status().raw)
+            time.sleep(0.02)
+        caller.join()
+        assert answer and answer[0].success, answer
+        assert "parked" in answer[0].message
+        # It answered once the arm was there (the driver's tolerance is 2 mrad) ...
+        np.testing.assert_allclose(arm.q, ARM.park, atol=2.5e-3)
+        # ... and the move kept the velocity and position limits (pybullet's measured joint velocity). A
+        # busy machine polls less often (17 samples seen beside a CPU hog): distinct status writes only.
+        samples = list({s["wall_time"]: s for s in samples}.values())
+        dq = np.array([s["dq"] for s in samples])
+        q = np.array([s["q"] for s in samples])
+        assert len(samples) >= 10, len(samples)
+        assert np.all(np.abs(dq) <= ARM.max_vel * 1.05 + 1e-3), np.max(np.abs(dq) / ARM.max_vel, axis=0)
+        assert np.all(q >= ARM.lower - 1e-4) and np.all(q <= ARM.upper + 1e-4)
+        # A synchronised move: every joint that moves is still on its way halfway through (in time).
+        t = np.array([s["wall_time"] for s in samples])
+        mid = q[int(np.argmin(np.abs(t - 0.5 * (t[0] + t[-1]))))]
+        moving = np.abs(ARM.park - goal_pose()) > 0.1
+        assert np.all(np.abs(mid - ARM.park)[moving] > 0.01)
+        mods = arm.status().raw["modules"]
+        assert all("ERROR" not in m["flags"] for m in mods)
 
 
 def test_hil_dropped_replies_still_followed(redarm_arm_factory: Factory, client: Client) -> None:
@@ -275,78 +490,6 @@ def test_hil_simulator_killed_and_restarted(redarm_arm_factory: Factory, client:
     arm.wait_at(q2, 2e-3, 8)
 
 
-def test_hil_malformed_frames_ignored_and_counted(redarm_arm_factory: Factory, client: Client) -> None:
-    arm = start_and_init(client, redarm_arm_factory)
-    q1 = goal_pose()
-    client.send_trajectory([q1], [1.5])
-    arm.wait_at(q1, 2e-3, 10)
-    nan = bytes([0x00, 0x00, 0xC0, 0x7F])  # float32 NaN, little-endian
-    garbage = [
-        # Host-bound "replies" the driver must refuse: truncated ext ack, NaN position, unknown mode.
-        can.Message(arbitration_id=0x0A2, data=[0x0B, 0x10, 0x00], is_extended_id=False),
-        can.Message(arbitration_id=0x0A3, data=[0x0B, 0x10, *nan, 0x00, 0x00], is_extended_id=False),
-        can.Message(arbitration_id=0x0A4, data=[0x0B, 0x7E, 0, 0, 0, 0, 0, 0], is_extended_id=False),
-        # Module-bound nonsense the simulator must refuse: unknown command, FSTEP to NaN, short SETPARAM.
-        can.Message(arbitration_id=0x0E1, data=[0x55, 0x01], is_extended_id=False),
-        can.Message(arbitration_id=0x0E2, data=[0x0B, 0x10, *nan, 0x04, 0x00], is_extended_id=False),
-        can.Message(arbitration_id=0x0E5, data=[0x08, 0x3C], is_extended_id=False),
-    ]
-    bus = can.Bus(**arm.can_kwargs)
-    try:
-        for _ in range(20):
-            for m in garbage:
-                bus.send(m)
-            time.sleep(0.01)
-    finally:
-        bus.shutdown()
-    time.sleep(0.5)
-    # Nothing moved wrongly: still holding the goal, driver still running.
-    np.testing.assert_allclose(arm.q, q1, atol=2e-3)
-    t0 = client.now_ns()
-    assert wait_for(lambda: client.diag_since(t0), 5)
-    d = client.diag_since(t0)[-1]
-    assert d["can_driver: loop"][2]["state"] == "running"
-    malformed = {int(k.split()[2]): int(v[2]["malformed"])
-                 for k, v in d.items() if k.startswith("can_driver: module")}
-    assert malformed[2] > 0 and malformed[3] > 0 and malformed[4] > 0, malformed
-    assert arm.status().raw["counters"]["malformed"] > 0
-    # And it still follows commands.
-    client.send_trajectory([np.zeros(N)], [1.5])
-    arm.wait_at(np.zeros(N), 2e-3, 10)
-
-
-def test_hil_command_beyond_joint_limit_clamped(redarm_arm_factory: Factory, client: Client) -> None:
-    arm = start_and_init(client, redarm_arm_factory)
-    j = 1  # +-91 deg
-    beyond = np.zeros(N)
-    # within command_limit_tolerance_rad (5 mrad) of the limit: clamped (further beyond: refused)
-    beyond[j] = ARM.upper[j] + 0.004
-    client.send_trajectory([beyond], [1.0])
-    worst_setpoint = worst_q = -math.inf
-    end = time.monotonic() + 30.0
-    settled = 0
-    while time.monotonic() < end and settled < 25:  # until it has rested at the limit for 0.5 s
-        st = arm.status().raw
-        worst_setpoint = max(worst_setpoint, st["q_setpoint"][j])
-        worst_q = max(worst_q, st["q"][j])
-        settled = settled + 1 if abs(st["q"][j] - (ARM.upper[j] - 1e-3)) < 1e-4 else 0
-        time.sleep(0.02)
-    st = arm.status().raw
-    # Went to the limit and rests there short of it by the driver's 1 mrad margin ...
-    assert st["q"][j] == pytest.approx(ARM.upper[j] - 1e-3, abs=1e-4)
-    # ... the module's profile never ran past the limit (a stream that pauses while the joint moves,
-    # e.g. the driver descheduled, is overshot as physics demands, but braked for the limit) ...
-    assert worst_setpoint <= ARM.upper[j] + 1e-9
-    assert worst_q <= ARM.upper[j] + 5e-5  # ... nor did the joint (BEYOND_SOFT trips at +1e-4)
-    mod = next(m for m in st["modules"] if m["id"] == j + 1)
-    assert "ERROR" not in mod["flags"] and "BEYOND_SOFT" not in mod["flags"]
-    arm.driver.wait_for_line(r"clamped", 2, from_start=True)
-    t0 = client.now_ns()
-    assert wait_for(lambda: client.diag_since(t0), 5)
-    values = client.diag_since(t0)[-1]["can_driver: loop"][2]
-    assert int(values["clamped_cycles"]) > 0 and values["state"] == "running"
-
-
 def test_hil_bus_server_lost_and_back(redarm_arm_factory: Factory, client: Client) -> None:
     arm = start_and_init(client, redarm_arm_factory)
     target = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.5])
@@ -430,54 +573,6 @@ def test_hil_power_cycle_refuses_recover_and_init_rearms_the_watchdog(redarm_arm
     np.testing.assert_allclose(arm.q, q_stop, atol=1e-4)
 
 
-def test_hil_forged_reply_is_never_published(redarm_arm_factory: Factory, client: Client) -> None:
-    from redarm_ros.can import protocol as pc
-
-    arm = start_and_init(client, redarm_arm_factory)
-    q1 = goal_pose()
-    q1[2] = 0.2
-    client.send_trajectory([q1], [1.0])
-    arm.wait_at(q1, 2e-3, 10)
-    # Another node answers for module 3 with a well-formed acknowledgement claiming 3.0 rad.
-    forged = pc.set_move_ext_ack(3, pc.MoveMode.FSTEP_EXT, 3.0, 0x20, 0)
-    # Judged by the time each state was measured (its stamp): a starved test process may still take
-    # states measured during the move after the arm got there (a fresh-clone run saw joint 3 at 0.164).
-    t_forged = client.now_ns()
-    seen: list[float] = []  # |joint 3 - 0.2| of every state measured from now on (not only the last 200)
-
-    def watch(js: JointState) -> None:
-        if js.header.stamp.sec * 1_000_000_000 + js.header.stamp.nanosec >= t_forged:
-            seen.append(abs(js.position[2] - 0.2))
-
-    with client.lock:
-        client.watch = watch
-    try:
-        with can.Bus(**arm.can_kwargs) as bus:
-            end = time.monotonic() + 1.0
-            while time.monotonic() < end:
-                bus.send(forged)
-                time.sleep(0.002)
-        time.sleep(0.3)
-        wait_for(lambda: len(seen) >= 10, 10.0)  # a starved test process takes its backlog late
-    finally:
-        with client.lock:
-            client.watch = None
-    # Joint states kept flowing (how fast this starved test process takes them is not the claim: a
-    # fresh-clone run received 34 in the 1.3 s)
-    assert len(seen) >= 10, len(seen)
-    assert max(seen) < 0.01  # never the forged 3.0 rad
-    np.testing.assert_allclose(arm.q, q1, atol=2e-3)
-    t0 = client.now_ns()
-    assert wait_for(lambda: client.diag_since(t0), 5)
-    d = client.diag_since(t0)[-1]
-    m3 = d[f"can_driver: module 3 ({ARM.joint_names[2]})"][2]
-    # Each forged frame was refused: by the plausibility check when it came while the driver waited
-    # for module 3, as a late (unasked) reply otherwise; which one depends on timing (a busy machine
-    # delivers the flood in bursts between the cycles), that none was taken does not.
-    assert int(m3["implausible"]) + int(m3["late"]) > 0, m3
-    assert d["can_driver: loop"][2]["state"] == "running"
-
-
 FLOODER = """
 import sys, time, can
 bus = can.Bus(interface="remote", channel=sys.argv[1])
@@ -517,39 +612,6 @@ def test_hil_recover_after_a_flood(redarm_arm_factory: Factory, client: Client) 
     q2[0] += 0.2
     client.send_trajectory([q2], [1.0])
     arm.wait_at(q2, 2e-3, 8)
-
-
-def test_hil_park_reaches_the_posture_within_limits(redarm_arm_factory: Factory, client: Client) -> None:
-    arm = start_and_init(client, redarm_arm_factory)
-    client.send_trajectory([goal_pose()], [1.0])  # start the park from somewhere else than home
-    arm.wait_at(goal_pose(), 2e-3, 10)
-    answer: list[Trigger.Response] = []
-    caller = threading.Thread(target=lambda: answer.append(client.call("park", timeout=60)))
-    caller.start()
-    samples = []
-    while caller.is_alive():  # the simulated arm during the move (status at 50 Hz)
-        samples.append(arm.status().raw)
-        time.sleep(0.02)
-    caller.join()
-    assert answer and answer[0].success, answer
-    assert "parked" in answer[0].message
-    # It answered once the arm was there (the driver's tolerance is 2 mrad) ...
-    np.testing.assert_allclose(arm.q, ARM.park, atol=2.5e-3)
-    # ... and the move kept the velocity and position limits (pybullet's measured joint velocity). A
-    # busy machine polls less often (17 samples seen beside a CPU hog): distinct status writes only.
-    samples = list({s["wall_time"]: s for s in samples}.values())
-    dq = np.array([s["dq"] for s in samples])
-    q = np.array([s["q"] for s in samples])
-    assert len(samples) >= 10, len(samples)
-    assert np.all(np.abs(dq) <= ARM.max_vel * 1.05 + 1e-3), np.max(np.abs(dq) / ARM.max_vel, axis=0)
-    assert np.all(q >= ARM.lower - 1e-4) and np.all(q <= ARM.upper + 1e-4)
-    # A synchronised move: every joint that moves is still on its way halfway through (in time).
-    t = np.array([s["wall_time"] for s in samples])
-    mid = q[int(np.argmin(np.abs(t - 0.5 * (t[0] + t[-1]))))]
-    moving = np.abs(ARM.park - goal_pose()) > 0.1
-    assert np.all(np.abs(mid - ARM.park)[moving] > 0.01)
-    mods = arm.status().raw["modules"]
-    assert all("ERROR" not in m["flags"] for m in mods)
 
 
 def test_hil_park_refused_while_halted_and_sim_starts_in_park(redarm_arm_factory: Factory,
