@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 
 from redarm_ros.nodes.command_timing import CLOCK_WINDOW_S, CommandClock
@@ -54,3 +55,20 @@ def test_a_zero_delay_never_stamps() -> None:
     assert clk.segment(10.0, 0.01).stamp is None
     with pytest.raises(ValueError):
         CommandClock(-0.1)
+
+
+def test_the_offset_is_the_least_age_within_the_window() -> None:
+    """Kept up to date per message: the least age of the joint_states received within the last
+    CLOCK_WINDOW_S, as a search over them all would find, with ages rising, falling and unstamped."""
+    rng = np.random.default_rng(7)
+    clk = CommandClock(0.03)
+    seen: list[tuple[float, float]] = []
+    now = 50.0
+    for _ in range(600):
+        now += float(rng.uniform(0.0, 0.03))
+        stamped = rng.random() > 0.1
+        stamp = now - float(rng.uniform(-0.01, 0.3)) if stamped else 0.0
+        clk.joint_state(stamp, now)
+        seen.append((now, now - stamp if stamped else math.inf))
+        window = [age for t, age in seen if now - t <= CLOCK_WINDOW_S]
+        assert clk.offset() == min(window)

@@ -66,6 +66,14 @@ def test_elbow_circle_rejects_unreachable(geom) -> None:
     assert e.value.distance > 0
     with pytest.raises(InvalidInputError):
         elbow_circle(geom, np.full((4, 4), np.nan))
+    T = _tool_pose([0.55, 0.1, 0.2])
+    for bad in ((3, 2, math.inf), (0, 1, math.nan), (3, 3, -math.inf)):  # any entry, the last row too
+        T_bad = T.copy()
+        T_bad[bad[0], bad[1]] = bad[2]
+        with pytest.raises(InvalidInputError):
+            elbow_circle(geom, T_bad)
+    with pytest.raises(InvalidInputError):
+        elbow_circle(geom, T[:3])
 
 
 def test_elbow_height_slope_matches_finite_difference(geom) -> None:

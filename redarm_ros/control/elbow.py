@@ -66,11 +66,17 @@ class ArmGeometry:
 
     def wrist(self, T: np.ndarray) -> Vec3:
         """Wrist centre (m) for tool pose ``T`` (4x4, base frame)."""
+        return self.wrist_of_rows(np.asarray(T, dtype=float).tolist())
+
+    def wrist_of_rows(self, rows: list[list[float]]) -> Vec3:
+        """:meth:`wrist` of a pose given as its rows of plain floats (``T.tolist()``): the same
+        arithmetic without numpy's cost per element (the elbow circle is computed several times a step)."""
         w = self.wrist_in_tool
+        r0, r1, r2 = rows[0], rows[1], rows[2]
         return (
-            float(T[0, 3] + T[0, 0] * w[0] + T[0, 1] * w[1] + T[0, 2] * w[2]),
-            float(T[1, 3] + T[1, 0] * w[0] + T[1, 1] * w[1] + T[1, 2] * w[2]),
-            float(T[2, 3] + T[2, 0] * w[0] + T[2, 1] * w[1] + T[2, 2] * w[2]),
+            r0[3] + r0[0] * w[0] + r0[1] * w[1] + r0[2] * w[2],
+            r1[3] + r1[0] * w[0] + r1[1] * w[1] + r1[2] * w[2],
+            r2[3] + r2[0] * w[0] + r2[1] * w[1] + r2[2] * w[2],
         )
 
     @property
@@ -148,9 +154,10 @@ def elbow_circle(geom: ArmGeometry, T: Any) -> ElbowCircle:
             ``|upper - fore|`` to the shoulder (``distance``: how far outside, m).
     """
     T = np.asarray(T, dtype=float)
-    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+    rows = T.tolist() if T.shape == (4, 4) else None
+    if rows is None or not all(map(math.isfinite, rows[0] + rows[1] + rows[2] + rows[3])):
         raise InvalidInputError("T must be a finite 4x4 homogeneous transform", field="T")
-    pw = geom.wrist(T)
+    pw = geom.wrist_of_rows(rows)
     ps = geom.shoulder
     dx, dy, dz = pw[0] - ps[0], pw[1] - ps[1], pw[2] - ps[2]
     dist = math.sqrt(dx * dx + dy * dy + dz * dz)
@@ -166,7 +173,7 @@ def elbow_circle(geom: ArmGeometry, T: Any) -> ElbowCircle:
     rho = math.sqrt(max(l2 * l2 - along * along, 0.0))
     center = (ps[0] + along * n[0], ps[1] + along * n[1], ps[2] + along * n[2])
     a, b = shortest_rotation_basis(n)
-    tool = (float(T[0, 3]), float(T[1, 3]), float(T[2, 3]))
+    tool = (rows[0][3], rows[1][3], rows[2][3])
     return ElbowCircle(center, n, rho, a, b, geom.base, ps, pw, tool)
 
 

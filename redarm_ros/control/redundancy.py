@@ -15,6 +15,7 @@ rad, s.
 from __future__ import annotations
 
 import math
+import struct
 from collections.abc import Callable
 from dataclasses import replace
 from typing import Protocol
@@ -210,6 +211,8 @@ class SwivelRedundancy:
         self.paper_swivel = PaperSwivel(p.paper_swivel, p.capsules, p.swivel.max_rate, arm.lower, arm.upper)
         self.stepper = IKStepper(arm, self.geom, p.flip_ratio, p.swivel_search_step, p.swivel_search_count)
         self.guard = CollisionGuard(arm, p.capsules, p.collision_margin, p.guard_step)
+        # swivel_acc_share's last answer: (params, the reference's pose, swivel and joints as bytes, value)
+        self._acc_share: tuple[ControllerParams, bytes, float] | None = None
 
     # -- the reference ----------------------------------------------------------------------------
     def scene_index(self, scene: Scene, p: ControllerParams) -> SceneIndex:
@@ -304,15 +307,23 @@ class SwivelRedundancy:
     def swivel_acc_share(self, st: CoreState, p: ControllerParams) -> float:
         """While tracking: the largest change of the swivel rate (rad/s^2) that keeps every joint within
         ``joint_brake_share`` of its acceleration limit, from how much each joint turns per radian of
-        swivel at the reference (the rest is the hand's, which has priority); at most max_swivel_acc."""
+        swivel at the reference (the rest is the hand's, which has priority); at most max_swivel_acc.
+        (A step that plans ahead and then tracks asks twice at the same reference: the IK solve is
+        done once.)"""
+        ref = st.ref
+        key = struct.pack("8d", *ref.pos, *ref.rot, ref.s) + ref.q.tobytes()
+        last = self._acc_share
+        if last is not None and last[0] is p and last[1] == key:
+            return last[2]
         s_acc = p.max_swivel_acc
-        T_ref = pose_matrix(st.ref.pos, st.ref.rot)
-        pick = self.stepper.solve(T_ref, st.ref.s + 0.01, st.ref.q, 1.0)
+        T_ref = pose_matrix(ref.pos, ref.rot)
+        pick = self.stepper.solve(T_ref, ref.s + 0.01, ref.q, 1.0)
         if pick is not None:
-            dq_ds = np.abs(pick[0] - st.ref.q) / 0.01
+            dq_ds = np.abs(pick[0] - ref.q) / 0.01
             with np.errstate(divide="ignore"):
                 lim = np.where(dq_ds > 1e-9, p.joint_brake_share * self.bounds.max_acc / dq_ds, np.inf)
             s_acc = min(s_acc, float(np.min(lim)))
+        self._acc_share = (p, key, s_acc)
         return s_acc
 
     def _settling_rate_cap(self, st: CoreState, p: ControllerParams, sd: float) -> float:

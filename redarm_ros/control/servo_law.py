@@ -18,7 +18,7 @@ from redarm_ros.control.ik_step import DeadEnd, IKStep, blend, pose_matrix
 from redarm_ros.control.joint_limits import JointBounds
 from redarm_ros.control.lookahead import JointLookahead, growing_blocks
 from redarm_ros.control.params import ControllerParams, ServoParams
-from redarm_ros.control.redundancy import Redundancy
+from redarm_ros.control.redundancy import PosesAhead, Redundancy
 from redarm_ros.control.servo import ServoTarget, servo_step
 from redarm_ros.control.slide import obstacle_slide, workspace_slide
 from redarm_ros.control.state import ZERO3, CoreState, Mode, PlanAhead
@@ -89,6 +89,15 @@ class ServoLaw:
     def step(self, st: CoreState, p: ControllerParams, dt: float) -> None:
         """One step of the reference towards the goal stream's prediction or along the twist."""
         sp: ServoParams = p.servo
+        # The goal's predicted poses, once per step and horizon: the plan ahead's path and the pose law's
+        # swivel both look ahead (the same goal, the same time).
+        predicted: dict[float, list[tuple[float, np.ndarray]]] = {}
+
+        def poses_ahead(horizon: float) -> list[tuple[float, np.ndarray]]:
+            if horizon not in predicted:
+                predicted[horizon] = self._poses_ahead(st, horizon)
+            return predicted[horizon]
+
         if float(np.max(np.abs(st.ref.q - st.cmd.q) * self.bounds.inv_vel)) > sp.resync_lag:
             # The command lags (a joint at its acceleration limit, the guard): the servo goes on from
             # where the arm is, so the reference never runs off to a configuration the arm cannot
@@ -96,7 +105,7 @@ class ServoLaw:
             self.command.resync_reference(st, keep_velocity=True)
             if self.redundancy.pose_law(p):
                 self.redundancy.onto_preferred_swivel(st, p)
-        if self._planned_step(st, p, dt):
+        if self._planned_step(st, p, dt, poses_ahead):
             return
         ref = st.ref
         target = self._target(st, p)
@@ -122,8 +131,7 @@ class ServoLaw:
                 new_rot = ref.rot if k <= 0.0 else blend(ref.pos, ref.rot, ref.pos, new_rot, k)[1]
         new_pos = (ref.pos[0] + d[0], ref.pos[1] + d[1], ref.pos[2] + d[2])
         red = self.redundancy
-        swivel = red.servo_swivel_fn(st, p, dt, self.view.local.scene,
-                                     lambda horizon: self._poses_ahead(st, horizon))
+        swivel = red.servo_swivel_fn(st, p, dt, self.view.local.scene, poses_ahead)
         out = red.stepper.advance(ref.pos, ref.rot, ref.s, ref.q, new_pos, new_rot, dt, swivel,
                                   pose_swivel=red.pose_law(p))
         if isinstance(out, DeadEnd):
@@ -141,7 +149,7 @@ class ServoLaw:
         if limited and not st.message:
             st.message = f"{self._stream_word(st)}: {limited}: following as closely as they allow"
 
-    def _planned_step(self, st: CoreState, p: ControllerParams, dt: float) -> bool:
+    def _planned_step(self, st: CoreState, p: ControllerParams, dt: float, poses_ahead: PosesAhead) -> bool:
         """The step of a stream whose path asks a joint for nearly its acceleration limit within
         ``servo.plan_horizon`` (or did so within the last horizon, or whose plan is still held by a limit):
         the first step of each joint's motion planned ahead within the limits
@@ -167,7 +175,7 @@ class ServoLaw:
         if not planning:
             red.plan_offset(st, p)
         kept = (ahead.offset, ahead.rate)
-        path = red.path_joints(st, p, dt, poses, la.ends, lambda h: self._poses_ahead(st, h))
+        path = red.path_joints(st, p, dt, poses, la.ends, poses_ahead)
         if path is None:
             return False
         near = la.times()[1:-1] <= PLAN_TRIGGER_AHEAD  # (the path acceleration of the nearer knots)

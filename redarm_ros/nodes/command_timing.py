@@ -51,20 +51,25 @@ class CommandClock:
         if not (math.isfinite(delay) and delay >= 0.0):
             raise ValueError("delay must be a finite number >= 0")
         self.delay = float(delay)
-        self._ages: deque[tuple[float, float]] = deque()  # (receive time, age) of joint_states
+        # (receive time, age) of the joint_states of the window that no later one undercuts: the ages
+        # rise from front to back and the front is the window's least (asked for every control step,
+        # kept up to date per message instead of searched).
+        self._ages: deque[tuple[float, float]] = deque()
 
     def joint_state(self, stamp: float, now: float) -> None:
         """A joint_states message stamped ``stamp`` (s, driver's clock; 0 = unstamped) received at
         ``now`` (s, this node's ROS clock)."""
         age = now - stamp if stamp > 0.0 else math.inf
         ages = self._ages
+        while ages and ages[-1][1] >= age:
+            ages.pop()
         ages.append((now, age))
         while ages and now - ages[0][0] > CLOCK_WINDOW_S:
             ages.popleft()
 
     def offset(self) -> float:
         """Least age (s) of the recent joint_states (inf: none, or unstamped)."""
-        return min((a for _, a in self._ages), default=math.inf)
+        return self._ages[0][1] if self._ages else math.inf
 
     def clocks_agree(self) -> bool:
         """Whether the driver's clock is this node's (see the module docstring)."""
