@@ -8,12 +8,14 @@ import threading
 from typing import Any
 
 import numpy as np
+from test_control_replan_shape import speed_peaks
 
 from redarm_ros.control.corridor_route import (
     CorridorRoute,
     plan_route,
     route_duration,
     route_pace,
+    smoothed_along,
 )
 from redarm_ros.control.make import make_controller
 from redarm_ros.control.params import ControllerParams
@@ -213,6 +215,45 @@ def test_the_pace_slows_the_hand_only_where_the_joints_swing():
     assert np.max(np.abs(np.diff(q1))) / 0.01 <= 0.75  # share 0.7, checked on PACE_SAMPLES samples
 
 
+def _offset(u):
+    """A bend at u = 0.3 and a sharp peak at u = 0.8."""
+    return np.maximum(0.0, u - 0.3) + np.maximum(0.0, 1.0 - np.abs(u - 0.8) / 0.05)
+
+
+class _OffsetArm:
+    """A stand-in for smoothed_along: joint 1 is the swivel less :func:`_offset` of the progress (u in the
+    pose's x), the other joints stand clear of the singularities; the lower limits at -3 rad."""
+
+    lower, upper = np.full(7, -3.0), np.full(7, 3.0)
+
+    def ik(self, T, s, limits=False):
+        return np.tile([s - float(_offset(T[0, 3])), 1.0, 0.0, 1.0, 0.0, 1.0, 0.0], (8, 1))
+
+
+def _x_pose(u):
+    T = np.eye(4)
+    T[0, 3] = u
+    return T
+
+
+def test_the_schedule_is_smoothed_from_the_start_and_kept_only_where_the_average_fails():
+    """A schedule that leaves the start at rate 5 (rad per unit progress) for 0.01, bends at u = 0.3 and
+    rides joint 1's limit margin (0.1 rad) along a sharp peak at u = 0.8, where its average would pass
+    half the margin: the schedule is kept at the peak and smoothed elsewhere, the start's corner too."""
+    arm, u, margin = _OffsetArm(), np.linspace(0.0, 1.0, 401), 0.1
+    S = -3.0 + margin + _offset(u) + 5.0 * np.minimum(u, 0.01)
+    Q = np.stack([arm.ik(_x_pose(x), s)[0] for x, s in zip(u, S, strict=True)])
+    cor = SwivelCorridor(True, u, S, Q, 0, 1.0, 0.5, None, "", 0.1)
+    out = smoothed_along(arm, _x_pose, cor, margin, 0.1, 0.1)
+    rate = np.diff(out.swivel) / np.diff(u)
+    assert out.swivel[0] == S[0] and np.max(np.abs(np.diff(rate[:40]))) < 0.1  # no corner after the start
+    bend = (u[:-2] > 0.2) & (u[:-2] < 0.4)
+    assert np.max(np.abs(np.diff(rate)[bend])) < 0.1  # (1.0 unsmoothed)
+    at_peak = np.abs(u - 0.8) < 0.03
+    np.testing.assert_allclose(out.swivel[at_peak], S[at_peak])
+    assert np.min(out.q[:, 0]) >= -3.0 + 0.5 * margin
+
+
 def held_corridor_planner() -> tuple[Any, Any, np.ndarray, threading.Event]:
     """(arm, controller with the corridor on, reset at the park posture, gate): the worker thread's plan
     finishes only once the test sets the gate."""
@@ -319,3 +360,32 @@ def test_a_slow_straight_route_is_made_fast_enough_by_the_speed_guide():
     message, phase, replanned, ratio, within = _straight_move(q0, T)
     assert message == "straight through the swivel corridor", message
     assert phase is Phase.REACHED and not replanned and ratio <= 1.05 and within
+
+
+def test_a_route_whose_schedule_bends_sharply_keeps_one_speed_peak():
+    """A PA10 reach whose schedule leaves the start at the swivel's rate bound and bends where the rate
+    bound ends: the command could not follow the corners within the joints' acceleration limits (the
+    hand's speed had 10 peaks); smoothed from the start and between samples, the hand goes straight
+    with one speed peak."""
+    arm = load_arm("pa10")
+    ctl = make_controller(arm)
+    q0 = np.array([2.6658949544843136, -0.9060346603831069, -2.6631937104629557, 0.6793788223681327,
+                   1.425603890627079, -2.289605722707155, 0.19091811029233297])
+    ctl.reset(q0)
+    T = _pose([-0.1664671342110127, -0.33995906338033893, 0.749007192012173],
+              [[-0.015535727475606831, -0.2107575665469273, -0.9774149013162329],
+               [-0.9988798993342904, -0.040424108127071326, 0.024593458236865262],
+               [-0.04469438306679345, 0.9767021754994449, -0.20989347892902813]])
+    assert ctl.set_goal(T).accepted
+    assert wait_for_plan(ctl).message == "straight through the swivel corridor"
+    qs = [q0]
+    for _ in range(1200):
+        r = ctl.step(0.01)
+        qs.append(r.q)
+        if r.phase is Phase.REACHED:
+            break
+    assert r.phase is Phase.REACHED
+    P = arm.fk_batch(np.array(qs))[:, :3, 3]
+    v = np.linalg.norm(np.diff(P, axis=0), axis=1) / 0.01
+    assert np.sum(v) * 0.01 / np.linalg.norm(P[-1] - P[0]) <= 1.05
+    assert speed_peaks(v) == 1

@@ -162,39 +162,62 @@ def route_duration(corridor: SwivelCorridor, length: float, angle: float, v_max:
 
 def smoothed(arm: CorridorArm, T0: np.ndarray, T1: np.ndarray, cor: SwivelCorridor, m_limit: float,
              m_sing: float, m_elbow: float, window: float = 0.08) -> SwivelCorridor:
-    """The schedule averaged over +-``window`` of progress (triangular weights; the start kept), if every
-    sample's joints at the averaged swivel keep half the margins and stay continuous (each joint within
-    0.15 rad of the sample before); else the schedule as it is. The backward pass leaves corners where
-    the rate bound starts or ends; the command cannot follow a corner within the joints' acceleration
-    limits without the hand leaving the line."""
+    """The schedule averaged over +-``window`` of progress (see :func:`smoothed_along`). The backward pass
+    leaves corners where the rate bound starts or ends; the command cannot follow a corner within the
+    joints' acceleration limits without the hand leaving the line (its speed then has several peaks)."""
     return smoothed_along(arm, lambda u: route_pose(T0, T1, u), cor, m_limit, m_sing, m_elbow, window)
+
+
+#: rounds of :func:`smoothed_along`: each keeps the schedule itself around the samples the average failed
+SMOOTH_ROUNDS = 4
 
 
 def smoothed_along(arm: CorridorArm, pose_at: Any, cor: SwivelCorridor, m_limit: float, m_sing: float,
                    m_elbow: float, window: float = 0.08, share: np.ndarray | None = None) -> SwivelCorridor:
-    """:func:`smoothed` for a route whose pose (4x4) at progress u is ``pose_at(u)``; ``share`` (per
-    sample, 0..1): how much of the average replaces the schedule there (None: all)."""
+    """The schedule of a route whose pose (4x4) at progress u is ``pose_at(u)``, averaged over
+    +-``window`` of progress (triangular weights; ``share`` (per sample, 0..1): how much of the average
+    replaces the schedule there, None: all). The start is kept: the average is taken of the schedule
+    extended oddly about it, so the smoothed swivel also leaves the start at the average rate (a corner
+    just after the start, where the swivel first turns at the rate bound, is smoothed too). Every sample's
+    joints at the new swivel must keep half the margins and stay continuous (each joint within 0.15 rad
+    of the sample before); where one does not, the schedule is kept within ``window`` of it (blended in
+    over the next ``window``) and the rest tried again, up to SMOOTH_ROUNDS times."""
     u, S = cor.u, cor.swivel
     if len(u) < 3:
         return cor
-    W = np.maximum(0.0, 1.0 - np.abs(u[:, None] - u[None, :]) / window)
-    W *= np.gradient(u)[None, :]  # (uneven samples: weights per unit progress)
-    S_new = (W @ S) / W.sum(axis=1)
-    if share is not None:
-        S_new = share * S_new + (1.0 - share) * S
-    S_new[0] = S[0]
+    du = np.gradient(u)[None, :]  # (uneven samples: weights per unit progress)
+    W = np.maximum(0.0, 1.0 - np.abs(u[:, None] - u[None, :]) / window) * du
+    W_odd = np.maximum(0.0, 1.0 - np.abs(u[:, None] + u[None, :] - 2.0 * u[0]) / window) * du
+    S_avg = (W @ S + W_odd @ (2.0 * S[0] - S)) / (W.sum(axis=1) + W_odd.sum(axis=1))
+    want = np.ones(len(u)) if share is None else np.asarray(share, float)
     lo = np.asarray(arm.lower) + 0.5 * m_limit
     up = np.asarray(arm.upper) - 0.5 * m_limit
-    Q = np.empty_like(cor.q)
-    Q[0] = cor.q[0]
-    for i in range(1, len(u)):
-        row = arm.ik(pose_at(float(u[i])), float(S_new[i]), limits=False)[cor.pattern]
-        q = row + 2.0 * math.pi * np.round((Q[i - 1] - row) / (2.0 * math.pi))
-        if np.any(q < lo) or np.any(q > up) or float(np.max(np.abs(q - Q[i - 1]))) > 0.15 \
-                or min(abs(math.sin(q[1])), abs(math.sin(q[5]))) < 0.5 * m_sing or abs(q[3]) < 0.5 * m_elbow:
-            return cor
-        Q[i] = q
-    return replace(cor, swivel=S_new, q=Q, max_joint_step=float(np.max(np.abs(np.diff(Q, axis=0)))))
+    failed: list[float] = []
+    for _ in range(SMOOTH_ROUNDS):
+        keep = np.ones(len(u))
+        for uf in failed:
+            keep = np.minimum(keep, np.clip(np.abs(u - uf) / window - 1.0, 0.0, 1.0))
+        mix = want * keep
+        S_new = mix * S_avg + (1.0 - mix) * S
+        S_new[0] = S[0]
+        Q = np.empty_like(cor.q)
+        Q[0] = cor.q[0]
+        bad = None
+        for i in range(1, len(u)):
+            row = arm.ik(pose_at(float(u[i])), float(S_new[i]), limits=False)[cor.pattern]
+            q = row + 2.0 * math.pi * np.round((Q[i - 1] - row) / (2.0 * math.pi))
+            if np.any(q < lo) or np.any(q > up) or float(np.max(np.abs(q - Q[i - 1]))) > 0.15 \
+                    or min(abs(math.sin(q[1])), abs(math.sin(q[5]))) < 0.5 * m_sing \
+                    or abs(q[3]) < 0.5 * m_elbow:
+                bad = float(u[i])
+                break
+            Q[i] = q
+        if bad is None:
+            return replace(cor, swivel=S_new, q=Q, max_joint_step=float(np.max(np.abs(np.diff(Q, axis=0)))))
+        if not np.any(mix > 0.0):
+            break
+        failed.append(bad)
+    return cor
 
 
 #: swivels (evenly spaced on the circle) at which :func:`goal_keeps` looks at the goal's joints
