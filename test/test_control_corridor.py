@@ -16,6 +16,7 @@ from redarm_ros.control.corridor_route import (
     route_duration,
     route_pace,
     smoothed_along,
+    timed_route,
 )
 from redarm_ros.control.make import make_controller
 from redarm_ros.control.params import ControllerParams
@@ -252,6 +253,34 @@ def test_the_schedule_is_smoothed_from_the_start_and_kept_only_where_the_average
     at_peak = np.abs(u - 0.8) < 0.03
     np.testing.assert_allclose(out.swivel[at_peak], S[at_peak])
     assert np.min(out.q[:, 0]) >= -3.0 + 0.5 * margin
+
+
+def _route_speed(route: CorridorRoute) -> np.ndarray:
+    """The hand's speed (m/s) along ``route``, stepped at 10 ms."""
+    ts = np.arange(0.0, route.duration + 1e-9, 0.01)
+    return np.diff([route.progress_at(t) for t in ts]) * math.dist(route.p0, route.p1) / 0.01
+
+
+def test_a_slow_swing_mid_route_is_taken_with_one_speed_peak_when_time_allows():
+    """Joint 1 swinging fast over a tenth of the route: the pace gives the hand two speed peaks (fast,
+    slow through the swing, fast); allowed up to 30 s, the route keeps one peak, in at most 0.6 of the
+    time the route paced by u takes, its progress and time consistent and joint 1 within (about) its
+    share of the velocity limit; allowed less, it takes the pace."""
+    cor = _swinging_corridor()
+    vel, acc = np.ones(7), np.full(7, 2.0)
+    route = CorridorRoute((0.0, 0.0, 0.0), (0.5, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0), cor, 0.0)
+    timing = (0.5, 0.0, 0.4, 1.5, 1.0, vel, acc, 0.7)
+    by_u = route_duration(cor, 0.5, 0.0, 0.4, 1.5, 1.0, vel, acc, 0.7)
+    paced = timed_route(route, *timing, pace_after=5.0)
+    assert speed_peaks(_route_speed(paced)) == 2 and paced.pace_u is not None
+    bell = timed_route(route, *timing, pace_after=30.0)
+    assert speed_peaks(_route_speed(bell)) == 1
+    assert paced.duration < bell.duration <= min(30.0, 0.6 * by_u), (paced.duration, bell.duration, by_u)
+    for t in np.array([0.05, 0.4, 0.8]) * bell.duration:
+        assert math.isclose(bell.time_at(bell.progress_at(t)), t, abs_tol=1e-3)
+    ts = np.arange(0.0, bell.duration + 1e-9, 0.01)
+    q1 = np.interp([bell.progress_at(t) for t in ts], cor.u, cor.q[:, 0])
+    assert np.max(np.abs(np.diff(q1))) / 0.01 <= 0.75
 
 
 def held_corridor_planner() -> tuple[Any, Any, np.ndarray, threading.Event]:

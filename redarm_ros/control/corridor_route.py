@@ -13,8 +13,10 @@ and the swivel follows the schedule at the hand's progress. The profile runs in 
 sigma when in u it would be too slow: sigma grows with the time the joints need per unit of progress
 (each joint's |dq/du| over its velocity limit, the hand's length over its speed, the turn and the
 swivel over their rates), so where the line passes near a singularity and joints 1 and 3 swing fast the
-hand slows there only (its speed then has more than one peak), instead of the whole route slowing to
-that stretch's pace. The duration T is the least that keeps
+hand slows there only, instead of the whole route slowing to that stretch's pace. Its speed would then
+have more than one peak: if time allows (``pace_after``), the paced profile is retimed to keep one
+peak (:func:`single_peaked_clock`: the hand does not speed up again after the slow stretch, or reaches
+its speed before it), else it runs in the pace. The duration T is the least that keeps
 every joint's velocity and acceleration (and the hand, orientation and swivel rates) within ``share``
 of their limits along that profile. The duration is set by the joint that needs the most time per unit
 progress, so a slow route (or none) of the straight route is planned again with the schedule on the
@@ -69,9 +71,14 @@ class CorridorRoute:
     t: float = 0.0
     t_moved: float = 0.0  # controller time (s) when the route's clock last advanced
     pace_u: np.ndarray | None = None  # u at evenly spaced pace values (None: the pace is u)
+    # u at evenly spaced time shares: the single-peaked pace (:func:`single_peaked_clock`), which the
+    # minimum-jerk profile does not time (None: the profile in the pace)
+    clock_u: np.ndarray | None = None
 
     def progress_at(self, t: float) -> float:
         """The progress u at time t (s) along the route."""
+        if self.clock_u is not None:
+            return float(np.interp(t / self.duration, np.linspace(0.0, 1.0, len(self.clock_u)), self.clock_u))
         sig = min_jerk(t / self.duration)
         if self.pace_u is None:
             return sig
@@ -79,6 +86,8 @@ class CorridorRoute:
 
     def time_at(self, u: float) -> float:
         """The time (s) along the route at which the progress is u (the inverse of :meth:`progress_at`)."""
+        if self.clock_u is not None:
+            return self.duration * float(np.interp(u, self.clock_u, np.linspace(0.0, 1.0, len(self.clock_u))))
         sig = u if self.pace_u is None else \
             float(np.interp(u, self.pace_u, np.linspace(0.0, 1.0, len(self.pace_u))))
         return self.duration * min_jerk_inverse(sig)
@@ -134,14 +143,47 @@ def route_pace(corridor: SwivelCorridor, length: float, angle: float, v_max: flo
     return np.interp(np.linspace(0.0, 1.0, PACE_SAMPLES), sigma, u)
 
 
+#: samples of the single-peaked clock (time shares evenly spaced) and of the rate it is made from
+CLOCK_SAMPLES = 1001
+BELL_SAMPLES = 401
+
+
+def single_peaked_clock(pace_u: np.ndarray) -> np.ndarray:
+    """The minimum-jerk profile in the pace ``pace_u`` retimed so that the progress rate (the hand's
+    speed) rises to one peak and falls: the rate is cut down to its largest single-peaked lower bound
+    (up to the peak the least rate still to come before it, after it the least rate so far), the peak
+    placed where that takes least time. Where the paced rate dips as the joints swing, the hand keeps the
+    dip's speed from the peak on (or up to it) instead of speeding up again; it is nowhere faster than in
+    the pace. Returns u at CLOCK_SAMPLES evenly spaced shares of the new duration."""
+    x = np.linspace(0.0, 1.0, BELL_SAMPLES)
+    u = np.interp(min_jerk(x), np.linspace(0.0, 1.0, len(pace_u)), pace_u)
+    v = np.maximum(np.gradient(u, x), 0.0)
+    best, best_time = v, math.inf
+    for m in range(1, BELL_SAMPLES - 1):
+        g = np.concatenate((np.minimum.accumulate(v[m::-1])[::-1], np.minimum.accumulate(v[m:])[1:]))
+        stretch = np.where(g > 1e-12, v / np.maximum(g, 1e-12), 1.0)
+        time = float(np.sum(stretch))
+        if time < best_time:
+            best, best_time = stretch, time
+    # the new time per unit x is the stretch v / g (1 at the ends, where both vanish)
+    t = np.concatenate(([0.0], np.cumsum(0.5 * (best[1:] + best[:-1]) * np.diff(x))))
+    clock = np.interp(np.linspace(0.0, 1.0, CLOCK_SAMPLES), t / t[-1], u)
+    return clock + np.linspace(0.0, 1e-9, CLOCK_SAMPLES)  # (strictly increasing, for the inverse)
+
+
 def route_duration(corridor: SwivelCorridor, length: float, angle: float, v_max: float, w_max: float,
                    s_rate: float, max_vel: np.ndarray, max_acc: np.ndarray, share: float,
-                   pace_u: np.ndarray | None = None) -> float:
-    """The least duration (s) of the minimum-jerk route in the pace ``pace_u`` (None: in u) within the
-    limits (see the module docstring)."""
-    x = np.linspace(0.0, 1.0, PACE_SAMPLES)
+                   pace_u: np.ndarray | None = None, clock_u: np.ndarray | None = None) -> float:
+    """The least duration (s) of the minimum-jerk route in the pace ``pace_u`` (None: in u), or of the
+    route on the clock ``clock_u`` (:func:`single_peaked_clock`), within the limits (see the module
+    docstring)."""
+    # (the clock's ramps can be short: as finely as it is sampled)
+    x = np.linspace(0.0, 1.0, PACE_SAMPLES if clock_u is None else CLOCK_SAMPLES)
     sig = min_jerk(x)
-    u = sig if pace_u is None else np.interp(sig, np.linspace(0.0, 1.0, len(pace_u)), pace_u)
+    if clock_u is not None:
+        u = np.interp(x, np.linspace(0.0, 1.0, len(clock_u)), clock_u)
+    else:
+        u = sig if pace_u is None else np.interp(sig, np.linspace(0.0, 1.0, len(pace_u)), pace_u)
     # position, orientation and swivel along the profile at T = 1: a rate is the x-derivative / T
     du = np.gradient(u, x)
     T = max(MIN_DURATION, float(np.max(du)) * max(length / v_max, angle / w_max))
@@ -286,19 +328,24 @@ def route_margins(arm: CorridorArm, T0: np.ndarray, T1: np.ndarray, q0: np.ndarr
 def timed_route(route: CorridorRoute, length: float, angle: float, v_max: float, w_max: float, s_rate: float,
                 max_vel: np.ndarray, max_acc: np.ndarray, share: float, pace_after: float) -> CorridorRoute:
     """``route`` (of hand path ``length`` m and turn ``angle`` rad) with its duration: the minimum-jerk
-    profile in u unless that takes longer than ``pace_after`` (s), then in the pace (:func:`route_pace`)."""
+    profile in u unless that takes longer than ``pace_after`` (s); then the pace (:func:`route_pace`)
+    made single-peaked (:func:`single_peaked_clock`) unless that too takes longer; then the pace."""
     cor = route.corridor
     T = route_duration(cor, length, angle, v_max, w_max, s_rate, max_vel, max_acc, share)
     if T <= pace_after:
-        return replace(route, duration=T, pace_u=None)
+        return replace(route, duration=T, pace_u=None, clock_u=None)
     pace_u = route_pace(cor, length, angle, v_max, w_max, s_rate, max_vel)
+    clock_u = single_peaked_clock(pace_u)
+    T = route_duration(cor, length, angle, v_max, w_max, s_rate, max_vel, max_acc, share, clock_u=clock_u)
+    if T <= pace_after:
+        return replace(route, duration=T, pace_u=None, clock_u=clock_u)
     T = route_duration(cor, length, angle, v_max, w_max, s_rate, max_vel, max_acc, share, pace_u)
-    return replace(route, duration=T, pace_u=pace_u)
+    return replace(route, duration=T, pace_u=pace_u, clock_u=None)
 
 
 def _slower(a: CorridorRoute, b: CorridorRoute) -> bool:
-    """Is route a worse than b: paced where b is not (its hand speed has several peaks), or as paced and
-    longer."""
+    """Is route a worse than b: in the pace where b is not (its hand speed has several peaks), or as
+    paced and longer."""
     return (a.pace_u is not None, a.duration) > (b.pace_u is not None, b.duration)
 
 
