@@ -8,12 +8,15 @@ import threading
 from typing import Any
 
 import numpy as np
+from test_control_replan_shape import READY, speed_peaks
 
 from redarm_ros.control.corridor_route import (
     CorridorRoute,
     plan_route,
     route_duration,
     route_pace,
+    smoothed_along,
+    timed_route,
 )
 from redarm_ros.control.make import make_controller
 from redarm_ros.control.params import ControllerParams
@@ -213,6 +216,73 @@ def test_the_pace_slows_the_hand_only_where_the_joints_swing():
     assert np.max(np.abs(np.diff(q1))) / 0.01 <= 0.75  # share 0.7, checked on PACE_SAMPLES samples
 
 
+def _offset(u):
+    """A bend at u = 0.3 and a sharp peak at u = 0.8."""
+    return np.maximum(0.0, u - 0.3) + np.maximum(0.0, 1.0 - np.abs(u - 0.8) / 0.05)
+
+
+class _OffsetArm:
+    """A stand-in for smoothed_along: joint 1 is the swivel less :func:`_offset` of the progress (u in the
+    pose's x), the other joints stand clear of the singularities; the lower limits at -3 rad."""
+
+    lower, upper = np.full(7, -3.0), np.full(7, 3.0)
+
+    def ik(self, T, s, limits=False):
+        return np.tile([s - float(_offset(T[0, 3])), 1.0, 0.0, 1.0, 0.0, 1.0, 0.0], (8, 1))
+
+
+def _x_pose(u):
+    T = np.eye(4)
+    T[0, 3] = u
+    return T
+
+
+def test_the_schedule_is_smoothed_from_the_start_and_kept_only_where_the_average_fails():
+    """A schedule that leaves the start at rate 5 (rad per unit progress) for 0.01, bends at u = 0.3 and
+    rides joint 1's limit margin (0.1 rad) along a sharp peak at u = 0.8, where its average would pass
+    half the margin: the schedule is kept at the peak and smoothed elsewhere, the start's corner too."""
+    arm, u, margin = _OffsetArm(), np.linspace(0.0, 1.0, 401), 0.1
+    S = -3.0 + margin + _offset(u) + 5.0 * np.minimum(u, 0.01)
+    Q = np.stack([arm.ik(_x_pose(x), s)[0] for x, s in zip(u, S, strict=True)])
+    cor = SwivelCorridor(True, u, S, Q, 0, 1.0, 0.5, None, "", 0.1)
+    out = smoothed_along(arm, _x_pose, cor, margin, 0.1, 0.1)
+    rate = np.diff(out.swivel) / np.diff(u)
+    assert out.swivel[0] == S[0] and np.max(np.abs(np.diff(rate[:40]))) < 0.1  # no corner after the start
+    bend = (u[:-2] > 0.2) & (u[:-2] < 0.4)
+    assert np.max(np.abs(np.diff(rate)[bend])) < 0.1  # (1.0 unsmoothed)
+    at_peak = np.abs(u - 0.8) < 0.03
+    np.testing.assert_allclose(out.swivel[at_peak], S[at_peak])
+    assert np.min(out.q[:, 0]) >= -3.0 + 0.5 * margin
+
+
+def _route_speed(route: CorridorRoute) -> np.ndarray:
+    """The hand's speed (m/s) along ``route``, stepped at 10 ms."""
+    ts = np.arange(0.0, route.duration + 1e-9, 0.01)
+    return np.diff([route.progress_at(t) for t in ts]) * math.dist(route.p0, route.p1) / 0.01
+
+
+def test_a_slow_swing_mid_route_is_taken_with_one_speed_peak_when_time_allows():
+    """Joint 1 swinging fast over a tenth of the route: the pace gives the hand two speed peaks (fast,
+    slow through the swing, fast); allowed up to 30 s, the route keeps one peak, in at most 0.6 of the
+    time the route paced by u takes, its progress and time consistent and joint 1 within (about) its
+    share of the velocity limit; allowed less, it takes the pace."""
+    cor = _swinging_corridor()
+    vel, acc = np.ones(7), np.full(7, 2.0)
+    route = CorridorRoute((0.0, 0.0, 0.0), (0.5, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0), cor, 0.0)
+    timing = (0.5, 0.0, 0.4, 1.5, 1.0, vel, acc, 0.7)
+    by_u = route_duration(cor, 0.5, 0.0, 0.4, 1.5, 1.0, vel, acc, 0.7)
+    paced = timed_route(route, *timing, pace_after=5.0)
+    assert speed_peaks(_route_speed(paced)) == 2 and paced.pace_u is not None
+    bell = timed_route(route, *timing, pace_after=30.0)
+    assert speed_peaks(_route_speed(bell)) == 1
+    assert paced.duration < bell.duration <= min(30.0, 0.6 * by_u), (paced.duration, bell.duration, by_u)
+    for t in np.array([0.05, 0.4, 0.8]) * bell.duration:
+        assert math.isclose(bell.time_at(bell.progress_at(t)), t, abs_tol=1e-3)
+    ts = np.arange(0.0, bell.duration + 1e-9, 0.01)
+    q1 = np.interp([bell.progress_at(t) for t in ts], cor.u, cor.q[:, 0])
+    assert np.max(np.abs(np.diff(q1))) / 0.01 <= 0.75
+
+
 def held_corridor_planner() -> tuple[Any, Any, np.ndarray, threading.Event]:
     """(arm, controller with the corridor on, reset at the park posture, gate): the worker thread's plan
     finishes only once the test sets the gate."""
@@ -319,3 +389,59 @@ def test_a_slow_straight_route_is_made_fast_enough_by_the_speed_guide():
     message, phase, replanned, ratio, within = _straight_move(q0, T)
     assert message == "straight through the swivel corridor", message
     assert phase is Phase.REACHED and not replanned and ratio <= 1.05 and within
+
+
+def test_a_route_whose_schedule_bends_sharply_keeps_one_speed_peak():
+    """A PA10 reach whose schedule leaves the start at the swivel's rate bound and bends where the rate
+    bound ends: the command could not follow the corners within the joints' acceleration limits (the
+    hand's speed had 10 peaks); smoothed from the start and between samples, the hand goes straight
+    with one speed peak."""
+    arm = load_arm("pa10")
+    ctl = make_controller(arm)
+    q0 = np.array([2.6658949544843136, -0.9060346603831069, -2.6631937104629557, 0.6793788223681327,
+                   1.425603890627079, -2.289605722707155, 0.19091811029233297])
+    ctl.reset(q0)
+    T = _pose([-0.1664671342110127, -0.33995906338033893, 0.749007192012173],
+              [[-0.015535727475606831, -0.2107575665469273, -0.9774149013162329],
+               [-0.9988798993342904, -0.040424108127071326, 0.024593458236865262],
+               [-0.04469438306679345, 0.9767021754994449, -0.20989347892902813]])
+    assert ctl.set_goal(T).accepted
+    assert wait_for_plan(ctl).message == "straight through the swivel corridor"
+    qs = [q0]
+    for _ in range(1200):
+        r = ctl.step(0.01)
+        qs.append(r.q)
+        if r.phase is Phase.REACHED:
+            break
+    assert r.phase is Phase.REACHED
+    P = arm.fk_batch(np.array(qs))[:, :3, 3]
+    v = np.linalg.norm(np.diff(P, axis=0), axis=1) / 0.01
+    assert np.sum(v) * 0.01 / np.linalg.norm(P[-1] - P[0]) <= 1.05
+    assert speed_peaks(v) == 1
+
+
+def test_a_route_from_the_ready_posture_keeps_one_speed_peak():
+    """PA10 from its ready posture, the line passing near the shoulder singularity: where the schedule
+    bends, joints 1 and 3 follow the swivel many times over; the straight route's schedule smoothed over
+    STRAIGHT_WINDOW keeps them within the command's acceleration limits (at 0.08 the hand's speed had 2
+    peaks), so the hand goes straight with one speed peak."""
+    arm = load_arm("pa10")
+    ctl = make_controller(arm)
+    ctl.reset(READY)
+    T = _pose([0.3929507043394475, 0.7600314115756154, 0.4594049181314856],
+              [[-0.8569785693731684, 0.3889759611626206, 0.33806128626734644],
+               [0.4114140926630704, 0.911430263123888, -0.005772332296615619],
+               [-0.31036458559787383, 0.13413641228069073, -0.9411063951047854]])
+    assert ctl.set_goal(T).accepted
+    assert wait_for_plan(ctl).message == "straight through the swivel corridor"
+    qs = [READY]
+    for _ in range(1000):
+        r = ctl.step(0.01)
+        qs.append(r.q)
+        if r.phase is Phase.REACHED:
+            break
+    assert r.phase is Phase.REACHED
+    P = arm.fk_batch(np.array(qs))[:, :3, 3]
+    v = np.linalg.norm(np.diff(P, axis=0), axis=1) / 0.01
+    assert np.sum(v) * 0.01 / np.linalg.norm(P[-1] - P[0]) <= 1.05
+    assert speed_peaks(v) == 1

@@ -286,3 +286,20 @@ def test_the_speed_guide_lowers_the_joints_path_speed_demand():
         assert np.allclose(arm.fk(q), route_pose(T0, T1, float(u)), atol=1e-9)
     with pytest.raises(InvalidInputError):
         swivel_corridor(arm, T0, T1, q0, speed_rates=speeds[:7], **opts)
+
+
+def test_the_schedule_between_samples_has_no_rate_corners_and_no_overshoot():
+    """swivel_at: the rate is continuous at a sample where the schedule bends (linear interpolation
+    jumps from 2 to 1 rad per unit progress there), and between samples the swivel stays within its
+    neighbours' (a schedule turning back at a sample does not pass it)."""
+    u = np.array([0.0, 0.25, 0.5, 0.75, 1.0])
+    cor = SwivelCorridor(True, u, np.array([0.0, 0.5, 0.75, 1.0, 0.5]), np.zeros((5, 7)), 0, 1.0, 0.5,
+                         None, "", 0.1)
+    e = 1e-6
+    left = (cor.swivel_at(0.25) - cor.swivel_at(0.25 - e)) / e
+    right = (cor.swivel_at(0.25 + e) - cor.swivel_at(0.25)) / e
+    assert abs(left - right) < 1e-3 and 1.0 < left < 2.0
+    assert cor.swivel_at(0.0) == 0.0 and cor.swivel_at(1.0) == 0.5 and cor.swivel_at(0.5) == 0.75
+    xs = np.linspace(0.5, 1.0, 201)
+    assert max(cor.swivel_at(float(x)) for x in xs) <= 1.0 + 1e-12  # the turn at u = 0.75
+    assert cor.swivel_at(-1.0) == 0.0 and cor.swivel_at(2.0) == 0.5

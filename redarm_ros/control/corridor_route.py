@@ -13,8 +13,10 @@ and the swivel follows the schedule at the hand's progress. The profile runs in 
 sigma when in u it would be too slow: sigma grows with the time the joints need per unit of progress
 (each joint's |dq/du| over its velocity limit, the hand's length over its speed, the turn and the
 swivel over their rates), so where the line passes near a singularity and joints 1 and 3 swing fast the
-hand slows there only (its speed then has more than one peak), instead of the whole route slowing to
-that stretch's pace. The duration T is the least that keeps
+hand slows there only, instead of the whole route slowing to that stretch's pace. Its speed would then
+have more than one peak: if time allows (``pace_after``), the paced profile is retimed to keep one
+peak (:func:`single_peaked_clock`: the hand does not speed up again after the slow stretch, or reaches
+its speed before it), else it runs in the pace. The duration T is the least that keeps
 every joint's velocity and acceleration (and the hand, orientation and swivel rates) within ``share``
 of their limits along that profile. The duration is set by the joint that needs the most time per unit
 progress, so a slow route (or none) of the straight route is planned again with the schedule on the
@@ -49,6 +51,12 @@ MIN_DURATION = 0.3
 #: limiter brakes the joint (powercube7, margin 0.01 rad: path ratio 1.12, seven speed peaks).
 GUIDE_AFTER = 1.5
 GUIDE_RATE = 10.0
+#: half-width (progress) of the schedule smoothing of the straight route (the via legs keep 0.08, which
+#: keeps more of them within the margins): near the shoulder singularity joints 1 and 3 follow the swivel
+#: many times over, and at 0.08 a bend of the schedule still asked up to 5 times their acceleration limit
+#: (the command lags, the hand's speed ripples). free45 single-peaked, powercube7: 92 -> 95 % (seed
+#: 3200), 91 -> 97 % (seed 3300); pa10 about the same
+STRAIGHT_WINDOW = 0.12
 
 
 @dataclass
@@ -69,9 +77,14 @@ class CorridorRoute:
     t: float = 0.0
     t_moved: float = 0.0  # controller time (s) when the route's clock last advanced
     pace_u: np.ndarray | None = None  # u at evenly spaced pace values (None: the pace is u)
+    # u at evenly spaced time shares: the single-peaked pace (:func:`single_peaked_clock`), which the
+    # minimum-jerk profile does not time (None: the profile in the pace)
+    clock_u: np.ndarray | None = None
 
     def progress_at(self, t: float) -> float:
         """The progress u at time t (s) along the route."""
+        if self.clock_u is not None:
+            return float(np.interp(t / self.duration, np.linspace(0.0, 1.0, len(self.clock_u)), self.clock_u))
         sig = min_jerk(t / self.duration)
         if self.pace_u is None:
             return sig
@@ -79,6 +92,8 @@ class CorridorRoute:
 
     def time_at(self, u: float) -> float:
         """The time (s) along the route at which the progress is u (the inverse of :meth:`progress_at`)."""
+        if self.clock_u is not None:
+            return self.duration * float(np.interp(u, self.clock_u, np.linspace(0.0, 1.0, len(self.clock_u))))
         sig = u if self.pace_u is None else \
             float(np.interp(u, self.pace_u, np.linspace(0.0, 1.0, len(self.pace_u))))
         return self.duration * min_jerk_inverse(sig)
@@ -134,14 +149,47 @@ def route_pace(corridor: SwivelCorridor, length: float, angle: float, v_max: flo
     return np.interp(np.linspace(0.0, 1.0, PACE_SAMPLES), sigma, u)
 
 
+#: samples of the single-peaked clock (time shares evenly spaced) and of the rate it is made from
+CLOCK_SAMPLES = 1001
+BELL_SAMPLES = 401
+
+
+def single_peaked_clock(pace_u: np.ndarray) -> np.ndarray:
+    """The minimum-jerk profile in the pace ``pace_u`` retimed so that the progress rate (the hand's
+    speed) rises to one peak and falls: the rate is cut down to its largest single-peaked lower bound
+    (up to the peak the least rate still to come before it, after it the least rate so far), the peak
+    placed where that takes least time. Where the paced rate dips as the joints swing, the hand keeps the
+    dip's speed from the peak on (or up to it) instead of speeding up again; it is nowhere faster than in
+    the pace. Returns u at CLOCK_SAMPLES evenly spaced shares of the new duration."""
+    x = np.linspace(0.0, 1.0, BELL_SAMPLES)
+    u = np.interp(min_jerk(x), np.linspace(0.0, 1.0, len(pace_u)), pace_u)
+    v = np.maximum(np.gradient(u, x), 0.0)
+    best, best_time = v, math.inf
+    for m in range(1, BELL_SAMPLES - 1):
+        g = np.concatenate((np.minimum.accumulate(v[m::-1])[::-1], np.minimum.accumulate(v[m:])[1:]))
+        stretch = np.where(g > 1e-12, v / np.maximum(g, 1e-12), 1.0)
+        time = float(np.sum(stretch))
+        if time < best_time:
+            best, best_time = stretch, time
+    # the new time per unit x is the stretch v / g (1 at the ends, where both vanish)
+    t = np.concatenate(([0.0], np.cumsum(0.5 * (best[1:] + best[:-1]) * np.diff(x))))
+    clock = np.interp(np.linspace(0.0, 1.0, CLOCK_SAMPLES), t / t[-1], u)
+    return clock + np.linspace(0.0, 1e-9, CLOCK_SAMPLES)  # (strictly increasing, for the inverse)
+
+
 def route_duration(corridor: SwivelCorridor, length: float, angle: float, v_max: float, w_max: float,
                    s_rate: float, max_vel: np.ndarray, max_acc: np.ndarray, share: float,
-                   pace_u: np.ndarray | None = None) -> float:
-    """The least duration (s) of the minimum-jerk route in the pace ``pace_u`` (None: in u) within the
-    limits (see the module docstring)."""
-    x = np.linspace(0.0, 1.0, PACE_SAMPLES)
+                   pace_u: np.ndarray | None = None, clock_u: np.ndarray | None = None) -> float:
+    """The least duration (s) of the minimum-jerk route in the pace ``pace_u`` (None: in u), or of the
+    route on the clock ``clock_u`` (:func:`single_peaked_clock`), within the limits (see the module
+    docstring)."""
+    # (the clock's ramps can be short: as finely as it is sampled)
+    x = np.linspace(0.0, 1.0, PACE_SAMPLES if clock_u is None else CLOCK_SAMPLES)
     sig = min_jerk(x)
-    u = sig if pace_u is None else np.interp(sig, np.linspace(0.0, 1.0, len(pace_u)), pace_u)
+    if clock_u is not None:
+        u = np.interp(x, np.linspace(0.0, 1.0, len(clock_u)), clock_u)
+    else:
+        u = sig if pace_u is None else np.interp(sig, np.linspace(0.0, 1.0, len(pace_u)), pace_u)
     # position, orientation and swivel along the profile at T = 1: a rate is the x-derivative / T
     du = np.gradient(u, x)
     T = max(MIN_DURATION, float(np.max(du)) * max(length / v_max, angle / w_max))
@@ -162,39 +210,62 @@ def route_duration(corridor: SwivelCorridor, length: float, angle: float, v_max:
 
 def smoothed(arm: CorridorArm, T0: np.ndarray, T1: np.ndarray, cor: SwivelCorridor, m_limit: float,
              m_sing: float, m_elbow: float, window: float = 0.08) -> SwivelCorridor:
-    """The schedule averaged over +-``window`` of progress (triangular weights; the start kept), if every
-    sample's joints at the averaged swivel keep half the margins and stay continuous (each joint within
-    0.15 rad of the sample before); else the schedule as it is. The backward pass leaves corners where
-    the rate bound starts or ends; the command cannot follow a corner within the joints' acceleration
-    limits without the hand leaving the line."""
+    """The schedule averaged over +-``window`` of progress (see :func:`smoothed_along`). The backward pass
+    leaves corners where the rate bound starts or ends; the command cannot follow a corner within the
+    joints' acceleration limits without the hand leaving the line (its speed then has several peaks)."""
     return smoothed_along(arm, lambda u: route_pose(T0, T1, u), cor, m_limit, m_sing, m_elbow, window)
+
+
+#: rounds of :func:`smoothed_along`: each keeps the schedule itself around the samples the average failed
+SMOOTH_ROUNDS = 4
 
 
 def smoothed_along(arm: CorridorArm, pose_at: Any, cor: SwivelCorridor, m_limit: float, m_sing: float,
                    m_elbow: float, window: float = 0.08, share: np.ndarray | None = None) -> SwivelCorridor:
-    """:func:`smoothed` for a route whose pose (4x4) at progress u is ``pose_at(u)``; ``share`` (per
-    sample, 0..1): how much of the average replaces the schedule there (None: all)."""
+    """The schedule of a route whose pose (4x4) at progress u is ``pose_at(u)``, averaged over
+    +-``window`` of progress (triangular weights; ``share`` (per sample, 0..1): how much of the average
+    replaces the schedule there, None: all). The start is kept: the average is taken of the schedule
+    extended oddly about it, so the smoothed swivel also leaves the start at the average rate (a corner
+    just after the start, where the swivel first turns at the rate bound, is smoothed too). Every sample's
+    joints at the new swivel must keep half the margins and stay continuous (each joint within 0.15 rad
+    of the sample before); where one does not, the schedule is kept within ``window`` of it (blended in
+    over the next ``window``) and the rest tried again, up to SMOOTH_ROUNDS times."""
     u, S = cor.u, cor.swivel
     if len(u) < 3:
         return cor
-    W = np.maximum(0.0, 1.0 - np.abs(u[:, None] - u[None, :]) / window)
-    W *= np.gradient(u)[None, :]  # (uneven samples: weights per unit progress)
-    S_new = (W @ S) / W.sum(axis=1)
-    if share is not None:
-        S_new = share * S_new + (1.0 - share) * S
-    S_new[0] = S[0]
+    du = np.gradient(u)[None, :]  # (uneven samples: weights per unit progress)
+    W = np.maximum(0.0, 1.0 - np.abs(u[:, None] - u[None, :]) / window) * du
+    W_odd = np.maximum(0.0, 1.0 - np.abs(u[:, None] + u[None, :] - 2.0 * u[0]) / window) * du
+    S_avg = (W @ S + W_odd @ (2.0 * S[0] - S)) / (W.sum(axis=1) + W_odd.sum(axis=1))
+    want = np.ones(len(u)) if share is None else np.asarray(share, float)
     lo = np.asarray(arm.lower) + 0.5 * m_limit
     up = np.asarray(arm.upper) - 0.5 * m_limit
-    Q = np.empty_like(cor.q)
-    Q[0] = cor.q[0]
-    for i in range(1, len(u)):
-        row = arm.ik(pose_at(float(u[i])), float(S_new[i]), limits=False)[cor.pattern]
-        q = row + 2.0 * math.pi * np.round((Q[i - 1] - row) / (2.0 * math.pi))
-        if np.any(q < lo) or np.any(q > up) or float(np.max(np.abs(q - Q[i - 1]))) > 0.15 \
-                or min(abs(math.sin(q[1])), abs(math.sin(q[5]))) < 0.5 * m_sing or abs(q[3]) < 0.5 * m_elbow:
-            return cor
-        Q[i] = q
-    return replace(cor, swivel=S_new, q=Q, max_joint_step=float(np.max(np.abs(np.diff(Q, axis=0)))))
+    failed: list[float] = []
+    for _ in range(SMOOTH_ROUNDS):
+        keep = np.ones(len(u))
+        for uf in failed:
+            keep = np.minimum(keep, np.clip(np.abs(u - uf) / window - 1.0, 0.0, 1.0))
+        mix = want * keep
+        S_new = mix * S_avg + (1.0 - mix) * S
+        S_new[0] = S[0]
+        Q = np.empty_like(cor.q)
+        Q[0] = cor.q[0]
+        bad = None
+        for i in range(1, len(u)):
+            row = arm.ik(pose_at(float(u[i])), float(S_new[i]), limits=False)[cor.pattern]
+            q = row + 2.0 * math.pi * np.round((Q[i - 1] - row) / (2.0 * math.pi))
+            if np.any(q < lo) or np.any(q > up) or float(np.max(np.abs(q - Q[i - 1]))) > 0.15 \
+                    or min(abs(math.sin(q[1])), abs(math.sin(q[5]))) < 0.5 * m_sing \
+                    or abs(q[3]) < 0.5 * m_elbow:
+                bad = float(u[i])
+                break
+            Q[i] = q
+        if bad is None:
+            return replace(cor, swivel=S_new, q=Q, max_joint_step=float(np.max(np.abs(np.diff(Q, axis=0)))))
+        if not np.any(mix > 0.0):
+            break
+        failed.append(bad)
+    return cor
 
 
 #: swivels (evenly spaced on the circle) at which :func:`goal_keeps` looks at the goal's joints
@@ -263,19 +334,24 @@ def route_margins(arm: CorridorArm, T0: np.ndarray, T1: np.ndarray, q0: np.ndarr
 def timed_route(route: CorridorRoute, length: float, angle: float, v_max: float, w_max: float, s_rate: float,
                 max_vel: np.ndarray, max_acc: np.ndarray, share: float, pace_after: float) -> CorridorRoute:
     """``route`` (of hand path ``length`` m and turn ``angle`` rad) with its duration: the minimum-jerk
-    profile in u unless that takes longer than ``pace_after`` (s), then in the pace (:func:`route_pace`)."""
+    profile in u unless that takes longer than ``pace_after`` (s); then the pace (:func:`route_pace`)
+    made single-peaked (:func:`single_peaked_clock`) unless that too takes longer; then the pace."""
     cor = route.corridor
     T = route_duration(cor, length, angle, v_max, w_max, s_rate, max_vel, max_acc, share)
     if T <= pace_after:
-        return replace(route, duration=T, pace_u=None)
+        return replace(route, duration=T, pace_u=None, clock_u=None)
     pace_u = route_pace(cor, length, angle, v_max, w_max, s_rate, max_vel)
+    clock_u = single_peaked_clock(pace_u)
+    T = route_duration(cor, length, angle, v_max, w_max, s_rate, max_vel, max_acc, share, clock_u=clock_u)
+    if T <= pace_after:
+        return replace(route, duration=T, pace_u=None, clock_u=clock_u)
     T = route_duration(cor, length, angle, v_max, w_max, s_rate, max_vel, max_acc, share, pace_u)
-    return replace(route, duration=T, pace_u=pace_u)
+    return replace(route, duration=T, pace_u=pace_u, clock_u=None)
 
 
 def _slower(a: CorridorRoute, b: CorridorRoute) -> bool:
-    """Is route a worse than b: paced where b is not (its hand speed has several peaks), or as paced and
-    longer."""
+    """Is route a worse than b: in the pace where b is not (its hand speed has several peaks), or as
+    paced and longer."""
     return (a.pace_u is not None, a.duration) > (b.pace_u is not None, b.duration)
 
 
@@ -294,7 +370,7 @@ def _find_corridor(arm: CorridorArm, T0: np.ndarray, T1: np.ndarray, q0: np.ndar
 def plan_route(arm: CorridorArm, T0: np.ndarray, T1: np.ndarray, q0: np.ndarray, preferred: Any,
                margin_sing: float, margin_limit: float, v_max: float, w_max: float, s_rate: float,
                max_vel: np.ndarray, max_acc: np.ndarray, share: float, pace_after: float = math.inf,
-               fast: bool = False) -> tuple[CorridorRoute | None, str]:
+               fast: bool = False, window: float = 0.08) -> tuple[CorridorRoute | None, str]:
     """The corridor route from the reference (pose T0, joints q0) to T1, or (None, why there is none),
     with the margins of :func:`route_margins`. The minimum-jerk profile runs in
     u (a single-peaked hand speed) unless that takes longer than ``pace_after`` (s): then in the pace
@@ -302,7 +378,7 @@ def plan_route(arm: CorridorArm, T0: np.ndarray, T1: np.ndarray, q0: np.ndarray,
 
     ``fast``: a route that takes over GUIDE_AFTER times the hand's own time, or none, is planned again
     with the schedule on the speed guide (the swivel rate bound GUIDE_RATE) and the better of the two
-    kept (not paced, then the shorter)."""
+    kept (not paced, then the shorter). ``window``: the schedule's smoothing (:func:`smoothed`)."""
     p0 = (float(T0[0, 3]), float(T0[1, 3]), float(T0[2, 3]))
     p1 = (float(T1[0, 3]), float(T1[1, 3]), float(T1[2, 3]))
     r0, r1 = quat_from_matrix(T0[:3, :3]), quat_from_matrix(T1[:3, :3])
@@ -312,7 +388,7 @@ def plan_route(arm: CorridorArm, T0: np.ndarray, T1: np.ndarray, q0: np.ndarray,
     timing = (length, angle, v_max, w_max, s_rate, max_vel, max_acc, share, pace_after)
 
     def route_of(cor: SwivelCorridor, m: RouteMargins) -> CorridorRoute:
-        cor = smoothed(arm, T0, T1, cor, m.limit, min(m.shoulder, m.wrist), m.elbow)
+        cor = smoothed(arm, T0, T1, cor, m.limit, min(m.shoulder, m.wrist), m.elbow, window)
         return timed_route(CorridorRoute(p0, p1, r0, turn, cor, 0.0), *timing)
 
     tries = route_margins(arm, T0, T1, q0, margin_sing, margin_limit)

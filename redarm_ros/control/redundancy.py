@@ -22,7 +22,7 @@ from typing import Protocol
 
 import numpy as np
 
-from redarm_ros.control.corridor_route import CorridorRoute, plan_route, timed_route
+from redarm_ros.control.corridor_route import STRAIGHT_WINDOW, CorridorRoute, plan_route, timed_route
 from redarm_ros.control.elbow import ArmGeometry, ElbowCircle, elbow_circle
 from redarm_ros.control.goal_check import check_goal, stream_feasibility
 from redarm_ros.control.goal_hint import BaseMoveHints
@@ -663,7 +663,7 @@ class SwivelRedundancy:
                 route, why = plan_route(arm, T0, T1, q0, None, rp.corridor_sing_margin,
                                         rp.corridor_limit_margin, p.speed.v_max, p.max_ori_rate,
                                         p.swivel.max_rate, max_vel, max_acc, rp.corridor_share,
-                                        pace_after=min(t_most, t_pace), fast=True)
+                                        pace_after=min(t_most, t_pace), fast=True, window=STRAIGHT_WINDOW)
             except (InvalidInputError, UnreachableError) as e:  # (a start the corridor cannot take)
                 return None, f"the corridor cannot start here: {e}"
             if route is not None and route.duration > t_most:

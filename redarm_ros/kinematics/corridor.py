@@ -48,6 +48,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -125,9 +126,37 @@ class SwivelCorridor:
     reason: str
     max_joint_step: float
 
+    @cached_property
+    def _slopes(self) -> np.ndarray:
+        """d swivel / du at the samples for :meth:`swivel_at`: monotone (Fritsch-Carlson) slopes, 0 at
+        a sample where the schedule turns back, one-sided at the ends."""
+        h = np.maximum(np.diff(self.u), 1e-12)
+        d = np.diff(self.swivel) / h
+        m = np.empty(len(self.u))
+        m[0], m[-1] = d[0], d[-1]
+        w1, w2 = 2.0 * h[1:] + h[:-1], h[1:] + 2.0 * h[:-1]
+        same = d[:-1] * d[1:] > 0.0
+        with np.errstate(divide="ignore", invalid="ignore"):
+            m[1:-1] = np.where(same, (w1 + w2) / (w1 / d[:-1] + w2 / d[1:]), 0.0)
+        return m
+
     def swivel_at(self, u: float) -> float:
-        """The schedule's swivel (rad, unwrapped) at progress ``u`` (linear between samples, clamped)."""
-        return float(np.interp(min(max(float(u), 0.0), 1.0), self.u, self.swivel))
+        """The schedule's swivel (rad, unwrapped) at progress ``u`` (clamped): a monotone cubic between
+        samples (within its ends' swivels, as the linear one), so its rate has no corners at the samples
+        that the joints' acceleration limits could not follow."""
+        x = min(max(float(u), 0.0), 1.0)
+        us, S = self.u, self.swivel
+        if len(us) < 3:
+            return float(np.interp(x, us, S))
+        k = min(max(int(np.searchsorted(us, x, side="right")) - 1, 0), len(us) - 2)
+        h = float(us[k + 1] - us[k])
+        if h <= 1e-12:
+            return float(S[k + 1])
+        t = (x - float(us[k])) / h
+        m = self._slopes
+        t2, t3 = t * t, t * t * t
+        return float((2.0 * t3 - 3.0 * t2 + 1.0) * S[k] + (t3 - 2.0 * t2 + t) * h * m[k]
+                     + (-2.0 * t3 + 3.0 * t2) * S[k + 1] + (t3 - t2) * h * m[k + 1])
 
 
 def route_pose(T_start: np.ndarray, T_goal: np.ndarray, u: float) -> np.ndarray:
