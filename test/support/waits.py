@@ -7,6 +7,10 @@ from typing import Any
 
 from redarm_ros.procs import poll_until
 
+#: Time budget (s) for a solver or search whose test judges the answer, not the speed: it only
+#: bounds a hang, so a starved machine cannot turn a correct answer into a TIMEOUT.
+HANG_BUDGET_S = 30.0
+
 
 def wait_until(pred: Callable[[], object], timeout: float = 5.0, step: float = 0.01) -> bool:
     """Poll ``pred`` every ``step`` s until it is true (True) or ``timeout`` s have passed (False)."""
