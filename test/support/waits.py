@@ -1,4 +1,5 @@
-"""Polling waits for tests that run threads (driver loops, emulators) beside the test."""
+"""Polling waits for tests that run threads (driver loops, emulators) beside the test, and the time
+budget of calls whose tests judge the answer, not the speed."""
 
 from __future__ import annotations
 
