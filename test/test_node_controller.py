@@ -603,12 +603,15 @@ def test_goal_stream_on_the_topic_is_tracked(h: Harness) -> None:
     settles on the last goal."""
     T0 = ARM.fk(Q0)
     h.send_goal(T0)
-    assert h.wait_reached(10.0)
+    assert h.wait_reached(30.0)
     n = len(h.states)
     t0 = h.ros_now()
     sent = 0
-    while sent <= 75:  # 1.5 s; each goal stamped with its sample time (a loaded machine sends late)
-        if h.ros_now() - t0 >= sent * 0.02:
+    # 1.5 s; each goal stamped with its sample time. A sender that woke late sends every sample due at
+    # once, as a real one does: sending one per turn, a starved loop fell ever further behind until its
+    # stamps lay a second in the past, which the controller rightly took for another clock.
+    while sent <= 75:
+        while sent <= 75 and h.ros_now() - t0 >= sent * 0.02:
             T = T0.copy()
             T[1, 3] += 0.08 * sent * 0.02
             h.send_goal(T, stamp=t0 + sent * 0.02)
@@ -618,9 +621,12 @@ def test_goal_stream_on_the_topic_is_tracked(h: Harness) -> None:
     assert tracking, [s.phase for s in h.states[n:]]
     mid = tracking[len(tracking) // 2]
     assert mid.goal_kind == "stream"
-    assert mid.stream_rate == pytest.approx(50.0, rel=0.3)
-    assert mid.goal_velocity.linear.y == pytest.approx(0.08, rel=0.3)
-    assert h.wait_reached(10.0, after=len(h.states))
+    # Rate and velocity as most tracking states give them: on a starved executor goals can arrive so late
+    # (seen: 2.4 s) that their stamps count as another clock and the stream starts anew, its first
+    # estimates from a few samples.
+    assert float(np.median([s.stream_rate for s in tracking])) == pytest.approx(50.0, rel=0.3)
+    assert float(np.median([s.goal_velocity.linear.y for s in tracking])) == pytest.approx(0.08, rel=0.3)
+    assert h.wait_reached(30.0, after=len(h.states))
     assert ARM.pose_error(h.arm.q, T)[0] < 1e-3
     assert_within_joint_speeds(h.arm)
 
