@@ -10,6 +10,7 @@ import math
 import numpy as np
 import pytest
 from support.benches import load_bench
+from support.waits import HANG_BUDGET_S
 
 from redarm_ros.geometry.self_collision import self_collision
 from redarm_ros.kinematics import IKStatus, load_arm
@@ -32,7 +33,7 @@ FRONT = IKFrontEnd(LOADED, "pa10", suggest_base_move=False)
 
 
 def _solve(T: np.ndarray, arm: str) -> object:
-    return FRONT.solve(T, arm, swivel=None, seed=[], all_solutions=False, timeout_s=0.05)
+    return FRONT.solve(T, arm, swivel=None, seed=[], all_solutions=False, timeout_s=HANG_BUDGET_S)
 
 
 def _unsolvable_poses(name: str, count: int, seed: int) -> list[np.ndarray]:
@@ -46,7 +47,7 @@ def test_moving_the_base_by_the_suggestion_makes_the_pose_solvable(name: str) ->
     arm = LOADED[name]
     optimal = 0
     for T in _unsolvable_poses(name, 12, seed=5):
-        bp = suggest_base_move(arm, T, timeout_s=10.0)
+        bp = suggest_base_move(arm, T, timeout_s=HANG_BUDGET_S)
         assert bp.valid, bp.message
         T2 = bp.apply(T)
         assert np.allclose(planar_transform(bp.x, bp.y, bp.yaw) @ T2, T, atol=1e-12)
@@ -72,7 +73,7 @@ def test_seven_dof_suggestion_is_the_nearest_point_of_the_elbow_circle(name: str
     mid = 0.5 * float(arm.upper[3])
     at_nearest = 0
     for T in _unsolvable_poses(name, 10, seed=6):
-        bp = suggest_base_move(arm, T, timeout_s=10.0)
+        bp = suggest_base_move(arm, T, timeout_s=HANG_BUDGET_S)
         assert bp.valid, bp.message
         if bp.optimal:
             assert bp.elbow == pytest.approx(mid)
@@ -93,7 +94,7 @@ def test_powercube6_out_of_reach_straight_ahead() -> None:
     T = np.eye(4)
     T[:3, 3] = (1.2, 0.0, 0.1)
     assert _solve(T, "powercube6").status is IKStatus.OUT_OF_REACH
-    bp = suggest_base_move(arm, T)
+    bp = suggest_base_move(arm, T, timeout_s=HANG_BUDGET_S)
     wx = 1.2 - L56
     assert bp.valid and bp.optimal and bp.yaw == 0.0
     assert bp.x == pytest.approx(wx - (L1 + math.sqrt((L23 + L4) ** 2 - 0.1**2)), abs=1e-12)
@@ -110,7 +111,7 @@ def test_powercube6_approach_outside_the_arm_plane_is_fixed_by_a_sideways_move()
     T = transform_from_xyz_rpy((0.5, 0.0, 0.2), (0.0, 0.0, 0.6))  # approach turned 0.6 rad off radial
     ans = _solve(T, "powercube6")
     assert ans.status is IKStatus.OUT_OF_REACH and "arm plane" in ans.message
-    bp = suggest_base_move(arm, T)
+    bp = suggest_base_move(arm, T, timeout_s=HANG_BUDGET_S)
     assert bp.valid and bp.optimal
     a = T[:3, 0]
     W = wrist_point(arm, T)
@@ -125,10 +126,10 @@ def test_yaw_is_suggested_only_when_no_translation_works_nearby() -> None:
     base turned; without yaw the suggestion is a larger move or none."""
     arm = LOADED["powercube6"]
     T = transform_from_xyz_rpy((-0.9, 0.0, 0.1), (0.0, 0.0, math.pi))  # approach pointing away, along -x
-    with_yaw = suggest_base_move(arm, T)
+    with_yaw = suggest_base_move(arm, T, timeout_s=HANG_BUDGET_S)
     assert with_yaw.valid and abs(with_yaw.yaw) > 0.1
     assert _solve(with_yaw.apply(T), "powercube6").status is IKStatus.SUCCESS
-    no_yaw = suggest_base_move(arm, T, allow_yaw=False)
+    no_yaw = suggest_base_move(arm, T, allow_yaw=False, timeout_s=HANG_BUDGET_S)
     assert no_yaw.yaw == 0.0
     assert (not no_yaw.valid) or no_yaw.distance > with_yaw.distance
     if no_yaw.valid:
@@ -140,12 +141,12 @@ def test_hopeless_poses_are_invalid_with_a_reason(name: str) -> None:
     arm = LOADED[name]
     high = np.eye(4)
     high[:3, 3] = (0.3, 0.2, 3.0)  # far above anything the arm can reach from any base position
-    bp = suggest_base_move(arm, high)
+    bp = suggest_base_move(arm, high, timeout_s=HANG_BUDGET_S)
     assert not bp.valid and "above the shoulder" in bp.message
     assert bp.describe().startswith("no base move found")
     low = np.eye(4)
     low[:3, 3] = (0.6, 0.0, -0.5)  # below the ground plane: a planar move keeps every height
-    bp = suggest_base_move(arm, low)
+    bp = suggest_base_move(arm, low, timeout_s=HANG_BUDGET_S)
     assert not bp.valid and "below the ground plane" in bp.message
 
 
@@ -160,8 +161,9 @@ def test_collision_check_can_be_switched_off() -> None:
     """Below the ground plane but otherwise reachable from elsewhere: only the check refuses it."""
     arm = LOADED["pa10"]
     T = transform_from_xyz_rpy((1.4, 0.0, -0.02), (0.0, math.pi, 0.0))  # tool pointing down, into the table
-    assert not suggest_base_move(arm, T).valid
-    bp = suggest_base_move(arm, T, check_collisions=False)
+    refused = suggest_base_move(arm, T, timeout_s=HANG_BUDGET_S)
+    assert not refused.valid and "below the ground plane" in refused.message
+    bp = suggest_base_move(arm, T, check_collisions=False, timeout_s=HANG_BUDGET_S)
     assert bp.valid and arm.pose_error(bp.q, bp.apply(T))[0] < 1e-9
 
 

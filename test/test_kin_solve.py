@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 import pytest
 from support.benches import load_bench
+from support.waits import HANG_BUDGET_S
 
 from redarm_ros.errors import InvalidInputError
 from redarm_ros.geometry.self_collision import self_collision, self_collision_batch
@@ -19,13 +20,13 @@ from redarm_ros.kinematics.solve import IKFrontEnd, nearest_collision_free
 MIXED = load_bench("bench_common").mixed_collision_poses
 
 ARMS = {name: load_arm(name) for name in ("pa10", "powercube6", "powercube7")}
-FRONT = IKFrontEnd(ARMS, "pa10")
+FRONT = IKFrontEnd(ARMS, "pa10", base_move_timeout_s=HANG_BUDGET_S)
 PA10 = ARMS["pa10"]
 TWO_PI = 2.0 * math.pi
 
 
 def _solve(T: np.ndarray, arm: str = "pa10", **kw: Any) -> Any:
-    opts = {"swivel": None, "seed": [], "all_solutions": False, "timeout_s": 0.05}
+    opts = {"swivel": None, "seed": [], "all_solutions": False, "timeout_s": HANG_BUDGET_S}
     opts.update(kw)
     return FRONT.solve(T, arm, **opts)
 
@@ -104,13 +105,14 @@ def test_statuses_for_bad_and_unreachable_requests() -> None:
 
 def test_internal_error_is_not_invalid_input(monkeypatch: pytest.MonkeyPatch) -> None:
     arm = load_arm("powercube7")
-    front = IKFrontEnd({"powercube7": arm}, "powercube7")
+    front = IKFrontEnd({"powercube7": arm}, "powercube7", base_move_timeout_s=HANG_BUDGET_S)
 
     def broken(*a: Any, **k: Any) -> Any:
         raise ZeroDivisionError("a solver bug")
 
     monkeypatch.setattr(arm, "ik_nearest", broken)
-    ans = front.solve(arm.fk(np.zeros(7)), "", swivel=None, seed=[], all_solutions=False, timeout_s=0.05)
+    ans = front.solve(arm.fk(np.zeros(7)), "", swivel=None, seed=[], all_solutions=False,
+                      timeout_s=HANG_BUDGET_S)
     assert ans.status is IKStatus.INTERNAL_ERROR and "ZeroDivisionError" in ans.message
 
 
@@ -153,10 +155,11 @@ def test_nearest_collision_free_on_the_swivel_circle_matches_a_dense_sweep() -> 
     """The seed is a colliding solution of the pose: the answer is collision-free and no farther from the
     seed than the best collision-free solution of a 0.1 deg sweep over all swivels and flip patterns."""
     arm = _wide_pa10()
-    front = IKFrontEnd({"wide": arm}, "wide")
+    front = IKFrontEnd({"wide": arm}, "wide", base_move_timeout_s=HANG_BUDGET_S)
     model = front.models["wide"]
     for T, q_coll, free_rows in _mixed_poses(arm, model, 4, seed=3):
-        ans = front.solve(T, "wide", swivel=None, seed=list(q_coll), all_solutions=True, timeout_s=0.05)
+        ans = front.solve(T, "wide", swivel=None, seed=list(q_coll), all_solutions=True,
+                          timeout_s=HANG_BUDGET_S)
         assert ans.status is IKStatus.SUCCESS, ans.message
         assert not self_collision(arm, ans.q, model=model).colliding and ans.clearance >= 0.0
         assert ans.position_error < 1e-9 and ans.orientation_error < 1e-9
@@ -165,18 +168,18 @@ def test_nearest_collision_free_on_the_swivel_circle_matches_a_dense_sweep() -> 
         assert len(ans.solutions) >= 1
         assert not self_collision_batch(arm, ans.solutions, model=model).colliding.any()
         # with the filter off the colliding seed itself is the answer
-        off = front.solve(T, "wide", swivel=None, seed=list(q_coll), all_solutions=False, timeout_s=0.05,
-                          check_collisions=False)
+        off = front.solve(T, "wide", swivel=None, seed=list(q_coll), all_solutions=False,
+                          timeout_s=HANG_BUDGET_S, check_collisions=False)
         assert off.status is IKStatus.SUCCESS and np.max(np.abs(off.q - q_coll)) < 1e-6
         assert math.isnan(off.clearance)
 
 
 def test_swivel_given_where_every_solution_collides() -> None:
     arm = _wide_pa10()
-    front = IKFrontEnd({"wide": arm}, "wide")
+    front = IKFrontEnd({"wide": arm}, "wide", base_move_timeout_s=HANG_BUDGET_S)
     T, q_coll, _ = _mixed_poses(arm, front.models["wide"], 1, seed=4)[0]
     s = arm.swivel(q_coll)
-    ans = front.solve(T, "wide", swivel=s, seed=[], all_solutions=False, timeout_s=0.05)
+    ans = front.solve(T, "wide", swivel=s, seed=[], all_solutions=False, timeout_s=HANG_BUDGET_S)
     assert ans.status is IKStatus.ALL_SOLUTIONS_COLLIDE and ans.q is None
     assert "at swivel" in ans.message and "nearest collision-free solution is at swivel" in ans.message
     assert ans.base_offset is None  # other swivels are free: no base move is suggested
@@ -184,7 +187,7 @@ def test_swivel_given_where_every_solution_collides() -> None:
     assert found is not None and f"at swivel {found.swivel:.4f} rad" in ans.message
     assert not self_collision(arm, found.q, model=front.models["wide"]).colliding
     off = front.solve(
-        T, "wide", swivel=s, seed=[], all_solutions=False, timeout_s=0.05, check_collisions=False
+        T, "wide", swivel=s, seed=[], all_solutions=False, timeout_s=HANG_BUDGET_S, check_collisions=False
     )
     assert off.status is IKStatus.SUCCESS
 
@@ -246,7 +249,7 @@ def test_out_of_reach_answer_carries_a_base_move_that_solves_it(name: str) -> No
     moved = _solve(bp.apply(T), name)
     assert moved.status is IKStatus.SUCCESS, moved.message
     quiet = IKFrontEnd(ARMS, "pa10", suggest_base_move=False)
-    ans = quiet.solve(T, name, swivel=None, seed=[], all_solutions=False, timeout_s=0.05)
+    ans = quiet.solve(T, name, swivel=None, seed=[], all_solutions=False, timeout_s=HANG_BUDGET_S)
     assert ans.base_offset is None and "moving the base" not in ans.message
 
 
@@ -275,9 +278,9 @@ def test_exhaustive_nearest_option_is_passed_to_the_swivel_arms_only() -> None:
     )
     arm = ARMS["powercube7"]
     seed = (arm.lower + arm.upper) / 2
-    opts = {"swivel": None, "seed": seed.tolist(), "all_solutions": False, "timeout_s": 0.05,
+    opts = {"swivel": None, "seed": seed.tolist(), "all_solutions": False, "timeout_s": HANG_BUDGET_S,
             "check_collisions": False}
-    exhaustive = IKFrontEnd(ARMS, "pa10", exhaustive_nearest=True)
+    exhaustive = IKFrontEnd(ARMS, "pa10", exhaustive_nearest=True, base_move_timeout_s=HANG_BUDGET_S)
     q_fast, _ = arm.ik_nearest(T, seed)
     q_ex, _ = arm.ik_nearest(T, seed, exhaustive=True)
     a_fast = FRONT.solve(T, "powercube7", **opts)

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from support.waits import HANG_BUDGET_S
 
 from redarm_ros.errors import ConfigError
 from redarm_ros.kinematics import has_swivel, load_arm
@@ -304,16 +305,16 @@ def test_ik_front_end_serves_urdf_arms_with_the_collision_filter() -> None:
     for name, arm in (("iiwa", iiwa), ("panda", panda)):
         for _ in range(8):
             T = arm.fk(rng.uniform(arm.lower, arm.upper))
-            ans = fe.solve(T, name, swivel=None, seed=[], all_solutions=True, timeout_s=1.0)
+            ans = fe.solve(T, name, swivel=None, seed=[], all_solutions=True, timeout_s=HANG_BUDGET_S)
             assert ans.status in (IKStatus.SUCCESS, IKStatus.ALL_SOLUTIONS_COLLIDE), ans.message
             assert ans.solver == describe_solver(arm)
             if ans.status is IKStatus.SUCCESS:
                 assert _strict(arm, ans.q, T) and ans.clearance >= 0.0
     T = iiwa.fk(np.full(7, 0.3))
-    ans = fe.solve(T, "iiwa", swivel=0.2, seed=[], all_solutions=True, timeout_s=1.0)
+    ans = fe.solve(T, "iiwa", swivel=0.2, seed=[], all_solutions=True, timeout_s=HANG_BUDGET_S)
     assert ans.status is IKStatus.SUCCESS and all(_strict(iiwa, r, T) for r in ans.solutions)
     T[2, 3] += 5.0
-    ans = fe.solve(T, "iiwa", swivel=None, seed=[], all_solutions=False, timeout_s=1.0)
+    ans = fe.solve(T, "iiwa", swivel=None, seed=[], all_solutions=False, timeout_s=HANG_BUDGET_S)
     assert ans.status is IKStatus.OUT_OF_REACH and "no base placement model" in ans.message
 
 

@@ -56,10 +56,12 @@ class IdealArm:
         self.segment_starts_ok = True  # every two-point message starts at the previous command
         self.speed_ratio = 0.0  # largest |dq| / (max_vel * duration) of a two-point segment, over the joints
         self.longest_segment = 0.0  # s
+        self.commanded_s = 0.0  # the controller's time in motion: the durations of its steps, summed
         self.pub = self.node.create_publisher(JointState, "joint_states", 10)
         self.node.create_subscription(JointTrajectory, "joint_command", self._on_cmd, 100)
         self.node.create_timer(0.01, self.publish)
         self.publishing = True
+        self.ticks = 0  # calls of that 100 Hz timer: the executor's own clock, slowed with the machine
 
     def _on_cmd(self, msg: JointTrajectory) -> None:
         assert list(msg.joint_names) == ARM.joint_names
@@ -78,6 +80,7 @@ class IdealArm:
         q = np.array(end.positions)
         duration = end.time_from_start.sec + end.time_from_start.nanosec * 1e-9
         self.longest_segment = max(self.longest_segment, duration)
+        self.commanded_s += duration
         if len(msg.points) == 2:  # the speed the segment asks for, whatever the step's duration was
             dq = np.abs(q - np.array(msg.points[0].positions))
             self.speed_ratio = max(self.speed_ratio, float(np.max(dq / (ARM.max_vel * duration))))
@@ -85,6 +88,7 @@ class IdealArm:
         self.q = q
 
     def publish(self) -> None:
+        self.ticks += 1
         if self.publishing:
             msg = JointState(name=ARM.joint_names, position=[float(v) for v in self.q])
             if self.stamp_offset is not None:
@@ -116,6 +120,22 @@ class Harness:
 
     def spin_until(self, cond: Callable[[], bool], timeout: float) -> bool:
         return spin_until(self.ex, cond, timeout, 0.01)
+
+    def spin_ticks(self, ticks: int, cond: Callable[[], bool] = lambda: False) -> bool:
+        """Spin until ``cond`` holds (True) or the ideal arm's 100 Hz timer has fired ``ticks`` times
+        more (False): a window on the executor's clock, which a loaded machine stretches together with
+        the controller's timers (a rcl timer skips the periods it missed, never fires faster)."""
+        k = self.arm.ticks
+        self.spin_until(lambda: bool(cond()) or self.arm.ticks - k >= ticks, 60.0 + ticks * 0.1)
+        return bool(cond())
+
+    def pump(self, wait_s: float = 0.002, at_most: int = 30) -> None:
+        """Run the callbacks that are ready (waiting up to ``wait_s`` for the first). A test's sending
+        loop calls it between messages: one callback per message would starve the nodes on a loaded
+        machine, and their subscriptions (depth 10) would drop most of what was sent."""
+        self.ex.spin_once(timeout_sec=wait_s)
+        for _ in range(at_most):
+            self.ex.spin_once(timeout_sec=0.0)
 
     def wait_connected(self) -> None:
         assert self.spin_until(lambda: self.goal_pub.get_subscription_count() > 0
@@ -321,8 +341,13 @@ def test_diagnostics_count_the_loops_steps_and_the_obstacles_kept(h_busy: Harnes
     near = _marker(Marker.SPHERE, (0.5, -0.4, 0.3), (0.1, 0.1, 0.1), mid=0)
     far = _marker(Marker.SPHERE, (6.0, 6.0, 0.3), (0.1, 0.1, 0.1), mid=1)  # beyond any reach
     h.obs_pub.publish(MarkerArray(markers=[near, far]))
-    assert h.spin_until(lambda: sum(d["obstacles"] == "2" for d in diags) >= 2, 10.0), diags
-    a, b = [d for d in diags if d["obstacles"] == "2"][-2:]
+    # Two reports of the loop stepping (on a starved machine a report may come after ten missed ticks
+    # and say "no step for ..."; that is the stopped case below, not this one).
+    def stepping() -> list[dict[str, str]]:
+        return [d for d in diags if d["obstacles"] == "2" and not d["_msg"].startswith("no step for")]
+
+    assert h.spin_until(lambda: len(stepping()) >= 2, 30.0), diags
+    a, b = stepping()[-2:]
     assert b["obstacles_within_reach"] == "1"
     assert b["rate_hz_target"] == "100"
     steps = int(b["steps"]) - int(a["steps"])
@@ -344,12 +369,16 @@ def test_diagnostics_count_the_loops_steps_and_the_obstacles_kept(h_busy: Harnes
 def test_markers_published(h: Harness) -> None:
     h.send_goal(goal_from(Q0, (0.0, 0.2, 0.0)))
     h.obs_pub.publish(MarkerArray(markers=[_marker(Marker.CYLINDER, (0.5, -0.4, 0.1), (0.1, 0.1, 0.2))]))
-    assert h.spin_until(lambda: any({m.ns for m in ma.markers} >= {"arm", "elbow_circle", "goal", "obstacles",
-                                                                    "heading"} for ma in h.markers), 5.0)
-    ma = h.markers[-1]
-    circle = next(m for m in ma.markers if m.ns == "elbow_circle")
+    # Over the arrays since the goal: obstacles are re-sent every 2 s, the heading only while the arm
+    # moves, so one array need not carry both (on a loaded machine often does not).
+    def drawn(ns: str) -> list[Marker]:
+        return [m for ma in h.markers for m in ma.markers if m.ns == ns and m.action == Marker.ADD]
+
+    wanted = ("arm", "elbow_circle", "goal", "obstacles", "heading")
+    assert h.spin_until(lambda: all(drawn(ns) for ns in wanted), 30.0), [ns for ns in wanted if not drawn(ns)]
+    circle = drawn("elbow_circle")[-1]
     assert len(circle.points) > 20 and circle.header.frame_id == "base_link"
-    obs = next(m for m in ma.markers if m.ns == "obstacles")
+    obs = drawn("obstacles")[-1]
     assert obs.type == Marker.CYLINDER and obs.scale.z == pytest.approx(0.2)
 
 
@@ -418,17 +447,20 @@ def test_parameters(ctx: Any) -> None:
         # an empty base_frame would refuse every goal given in base_link: refused itself
         assert not node.set_parameters([Parameter("base_frame", value="")])[0].successful
         assert node.get_parameter("base_frame").value == "base_link"
-        # the marker rate applies at run time: 0 stops the markers, 50 Hz runs them at 50 Hz
+        # The marker rate applies at run time: 0 stops the markers, 50 Hz runs them at 50 Hz. Counted
+        # against the loop's own steps (50 Hz too), not the wall clock: on a starved machine both
+        # timers fire late together.
+        def markers_per_step(steps: int) -> float:
+            n, k = len(h.markers), node.steps
+            assert h.spin_until(lambda: node.steps - k >= steps, 60.0), "the loop stopped stepping"
+            return (len(h.markers) - n) / (node.steps - k)
+
         assert node.set_parameters([Parameter("markers_rate_hz", value=0.0)])[0].successful
-        h.spin_until(lambda: False, 0.3)  # (a message already in flight)
-        n = len(h.markers)
-        h.spin_until(lambda: False, 1.0)
-        assert len(h.markers) == n
+        markers_per_step(10)  # (a message already in flight)
+        assert markers_per_step(50) == 0.0
         assert node.set_parameters([Parameter("markers_rate_hz", value=50.0)])[0].successful
-        h.spin_until(lambda: False, 0.2)
-        n = len(h.markers)
-        h.spin_until(lambda: False, 1.0)
-        assert len(h.markers) - n >= 25  # 50 Hz (10 Hz before): generous for a loaded machine
+        markers_per_step(10)
+        assert markers_per_step(50) >= 0.6  # about 1 (0.2 at the 10 Hz before)
         assert not node.set_parameters([Parameter("markers_rate_hz", value=-1.0)])[0].successful
     finally:
         h.close()
@@ -571,35 +603,45 @@ def test_goal_stream_on_the_topic_is_tracked(h: Harness) -> None:
     settles on the last goal."""
     T0 = ARM.fk(Q0)
     h.send_goal(T0)
-    assert h.wait_reached(10.0)
+    assert h.wait_reached(30.0)
     n = len(h.states)
     t0 = h.ros_now()
     sent = 0
-    while sent <= 75:  # 1.5 s; each goal stamped with its sample time (a loaded machine sends late)
-        if h.ros_now() - t0 >= sent * 0.02:
+    # 1.5 s; each goal stamped with its sample time. A sender that woke late sends every sample due at
+    # once, as a real one does: sending one per turn, a starved loop fell ever further behind until its
+    # stamps lay a second in the past, which the controller rightly took for another clock.
+    while sent <= 75:
+        while sent <= 75 and h.ros_now() - t0 >= sent * 0.02:
             T = T0.copy()
             T[1, 3] += 0.08 * sent * 0.02
             h.send_goal(T, stamp=t0 + sent * 0.02)
             sent += 1
-        h.ex.spin_once(timeout_sec=0.002)
+        h.pump()
     tracking = [s for s in h.states[n:] if s.phase == ControllerState.TRACKING]
     assert tracking, [s.phase for s in h.states[n:]]
     mid = tracking[len(tracking) // 2]
     assert mid.goal_kind == "stream"
-    assert mid.stream_rate == pytest.approx(50.0, rel=0.3)
-    assert mid.goal_velocity.linear.y == pytest.approx(0.08, rel=0.3)
-    assert h.wait_reached(10.0, after=len(h.states))
+    # Rate and velocity as most tracking states give them: on a starved executor goals can arrive so late
+    # (seen: 2.4 s) that their stamps count as another clock and the stream starts anew, its first
+    # estimates from a few samples.
+    assert float(np.median([s.stream_rate for s in tracking])) == pytest.approx(50.0, rel=0.3)
+    assert float(np.median([s.goal_velocity.linear.y for s in tracking])) == pytest.approx(0.08, rel=0.3)
+    assert h.wait_reached(30.0, after=len(h.states))
     assert ARM.pose_error(h.arm.q, T)[0] < 1e-3
     assert_within_joint_speeds(h.arm)
 
 
 def test_target_twist_moves_the_hand(h: Harness) -> None:
-    """A twist of 0.05 m/s along +y in the base frame for 0.6 s: phase tracking (goal_kind twist);
-    the hand moves about 3 cm along y; when the twist stops the arm comes to rest (phase idle)."""
+    """A twist of 0.05 m/s along +y in the base frame for 0.6 s of the controller's motion: phase tracking
+    (goal_kind twist); the hand moves about 3 cm along y; when the twist stops the arm comes to rest
+    (phase idle). The 0.6 s are the controller's own (its steps' durations, which a loaded machine
+    shortens against the wall clock: a late step is clamped to two periods)."""
     p0 = ARM.fk(h.arm.q)[:3, 3]
     t0 = time.monotonic()
+    moved0 = h.arm.commanded_s
     k = 0
-    while time.monotonic() - t0 < 0.6:
+    while h.arm.commanded_s - moved0 < 0.6:
+        assert time.monotonic() - t0 < 60.0, "the controller does not follow the twist"
         if time.monotonic() - t0 >= k * 0.02:
             msg = TwistStamped()
             msg.header.frame_id = "base_link"
@@ -607,10 +649,10 @@ def test_target_twist_moves_the_hand(h: Harness) -> None:
             msg.twist.linear.y = 0.05
             h.twist_pub.publish(msg)
             k += 1
-        h.ex.spin_once(timeout_sec=0.002)
+        h.pump()
     assert any(s.phase == ControllerState.TRACKING and s.goal_kind == "twist" for s in h.states)
-    assert h.wait_phase(ControllerState.IDLE, 5.0, after=len(h.states))
-    h.spin_until(lambda: False, 0.3)
+    assert h.wait_phase(ControllerState.IDLE, 30.0, after=len(h.states))
+    h.spin_ticks(30)
     p1 = ARM.fk(h.arm.q)[:3, 3]
     assert 0.015 < p1[1] - p0[1] < 0.045 and abs(p1[0] - p0[0]) < 0.003 and abs(p1[2] - p0[2]) < 0.003
     assert_within_joint_speeds(h.arm)
@@ -620,26 +662,30 @@ def test_a_controller_with_nothing_to_move_rests_and_wakes_on_an_input(h: Harnes
     """No goal, or a goal reached and held: the loop stops stepping and commanding (the driver holds the
     arm), ~/state comes once a second and /diagnostics says it is idle; a goal or a move of the measured
     arm wakes it at once."""
+    # Windows and deadlines in ticks of the ideal arm's 100 Hz timer, not wall seconds: a loaded
+    # machine slows the executor and the controller's timers together.
     diags: list[str] = []
     h.probe.create_subscription(DiagnosticArray, "/diagnostics", lambda arr: diags.extend(
         st.message for st in arr.status if st.name == "controller: loop"), 10)
-    assert h.spin_until(lambda: h.ctl.idle, 5.0)
-    h.spin_until(lambda: False, 0.2)  # what was published before it rested arrives
+    assert h.spin_until(lambda: h.ctl.idle, 30.0)
+    h.spin_ticks(20)  # what was published before it rested arrives
     steps, n_cmd, n_state, n_markers = h.ctl.steps, len(h.arm.commands), len(h.states), len(h.markers)
-    h.spin_until(lambda: False, 1.5)
+    n_diag = len(diags)
+    h.spin_ticks(150)  # at least 1.5 s
     assert h.ctl.steps == steps and len(h.arm.commands) == n_cmd
     assert len(h.markers) - n_markers <= 1  # drawn once at rest, not at markers_rate_hz
-    assert 1 <= len(h.states) - n_state <= 3  # the heartbeat, not 100 Hz
+    # the heartbeat, sent with each diagnostics message (1 Hz), not 100 Hz
+    assert 1 <= len(h.states) - n_state <= len(diags) - n_diag + 1
     assert any(m.startswith("idle") for m in diags)
     n = len(h.states)
     h.send_goal(goal_from(Q0, (0.0, 0.1, 0.0)))
-    assert h.spin_until(lambda: not h.ctl.idle and h.ctl.steps > steps, 1.0)
-    assert h.wait_reached(10.0, after=n)
+    assert h.spin_ticks(100, lambda: not h.ctl.idle and h.ctl.steps > steps)
+    assert h.wait_reached(30.0, after=n)
     assert h.spin_until(lambda: h.ctl.idle, 30.0)  # reached, the elbow settled and held: resting again
-    h.spin_until(lambda: False, 0.2)  # the last commands sent arrive
+    h.spin_ticks(20)  # the last commands sent arrive
     q_held, n_cmd = h.arm.q.copy(), len(h.arm.commands)
-    h.spin_until(lambda: False, 0.5)
+    h.spin_ticks(50)
     assert np.array_equal(h.arm.q, q_held) and len(h.arm.commands) == n_cmd and h.ctl.idle
     steps = h.ctl.steps
     h.arm.q = h.arm.q + np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.01])  # another client moved the arm
-    assert h.spin_until(lambda: not h.ctl.idle and h.ctl.steps > steps, 1.0)
+    assert h.spin_ticks(100, lambda: not h.ctl.idle and h.ctl.steps > steps)

@@ -1,4 +1,5 @@
-"""Polling waits for tests that run threads (driver loops, emulators) beside the test."""
+"""Polling waits for tests that run threads (driver loops, emulators) beside the test, and the time
+budget of calls whose tests judge the answer, not the speed."""
 
 from __future__ import annotations
 
@@ -6,6 +7,10 @@ from collections.abc import Callable
 from typing import Any
 
 from redarm_ros.procs import poll_until
+
+#: Time budget (s) for a solver or search whose test judges the answer, not the speed: it only
+#: bounds a hang, so a starved machine cannot turn a correct answer into a TIMEOUT.
+HANG_BUDGET_S = 30.0
 
 
 def wait_until(pred: Callable[[], object], timeout: float = 5.0, step: float = 0.01) -> bool:
