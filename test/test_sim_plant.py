@@ -9,7 +9,8 @@ from PIL import Image
 from redarm_ros.errors import InvalidInputError
 from redarm_ros.geometry.obstacles import load_scene
 from redarm_ros.kinematics import load_arm
-from redarm_ros.sim.plant import PybulletPlant
+from redarm_ros.sim import plant as plant_module
+from redarm_ros.sim.plant import FIXED_POINT_PROBE_STEPS, PybulletPlant
 
 
 @pytest.fixture
@@ -56,6 +57,74 @@ def test_gravity_is_on_and_the_arm_holds_an_outstretched_pose(pa10):
     pa10._forces = [1e-3] * pa10.n  # a limp arm must fall: gravity really acts
     pa10.step(1000)
     assert pa10.q[1] > 1.0
+
+
+def _settle(plant: PybulletPlant, limit: int = 5000) -> None:
+    """Step until pybullet is no longer stepped every step (the held arm reached its rest)."""
+    for _ in range(limit // 10):
+        before = plant.physics_steps
+        plant.step(10)
+        if plant.physics_steps - before < 10:
+            return
+    raise AssertionError("a held arm never came to rest")
+
+
+def test_a_held_arm_advances_simulated_time_without_stepping_pybullet(pa10):
+    _settle(pa10)
+    q, steps, physics = pa10.q, pa10.steps, pa10.physics_steps
+    pa10.step(3 * FIXED_POINT_PROBE_STEPS)
+    assert pa10.steps == steps + 3 * FIXED_POINT_PROBE_STEPS
+    assert pa10.sim_time == pytest.approx(pa10.steps * pa10.dt)
+    assert 1 <= pa10.physics_steps - physics <= 4  # only the periodic probes
+    assert np.array_equal(pa10.q, q)
+
+
+def test_a_command_after_rest_moves_the_arm_as_if_pybullet_had_stepped_all_along(monkeypatch):
+    arm, q0 = load_arm("pa10"), [0.3, 0.8, 0.2, -1.2, 0.4, 0.9, 0.1]
+
+    def trajectory(probe_steps: int) -> tuple[np.ndarray, int]:
+        monkeypatch.setattr(plant_module, "FIXED_POINT_PROBE_STEPS", probe_steps)
+        plant = PybulletPlant.create(arm, initial_q=q0)
+        try:
+            plant.step(2500)  # settled, and resting a while
+            plant.joint(1).command_position(1.2)
+            plant.joint(5).command_position(0.5, 0.5, None, None)
+            rows = []
+            for _ in range(1500):
+                plant.step()
+                rows.append(np.concatenate([plant.q, plant.dq, plant.q_setpoint]))
+            return np.array(rows), plant.physics_steps
+        finally:
+            plant.close()
+
+    stepped_always, n_always = trajectory(1)  # a probe every step: pybullet steps every step
+    coasting, n_coasting = trajectory(FIXED_POINT_PROBE_STEPS)
+    assert n_always == 4000 and n_coasting < n_always
+    n = coasting.shape[1] // 3
+    # positions and setpoints bit for bit (the first moving step is the same step); the velocities of a
+    # resting arm are rounding noise either way
+    assert np.array_equal(coasting[:, :n], stepped_always[:, :n])
+    assert np.array_equal(coasting[:, 2 * n:], stepped_always[:, 2 * n:])
+    assert np.abs(coasting[:, n:2 * n] - stepped_always[:, n:2 * n]).max() < 1e-12
+
+
+def test_a_resting_arm_that_starts_to_drift_is_stepped_again(pa10):
+    pa10.reset_joints([0, 0.5, 0, 0, 0, 0, 0])
+    _settle(pa10)
+    pa10._forces = [1e-3] * pa10.n  # the motors give way while nothing is stepped
+    pa10.step(FIXED_POINT_PROBE_STEPS)  # the probe sees the first bit move
+    physics = pa10.physics_steps
+    pa10.step(1000)
+    assert pa10.physics_steps == physics + 1000
+    assert pa10.q[1] > 1.0  # the arm falls: no rest hides it
+
+
+def test_a_scene_with_a_loose_object_is_stepped_every_step(pa10):
+    pa10.add_sphere([1.0, 1.0, 0.05], 0.05, mass=0.5)
+    pa10.step(3000)
+    physics = pa10.physics_steps
+    pa10.step(500)
+    assert pa10.physics_steps == physics + 500
 
 
 def test_velocity_halt_and_hold(pa10):

@@ -283,6 +283,24 @@ def test_a_stream_holding_still_keeps_the_setpoint_without_evaluating_the_law(
     assert calls and r.pos == pytest.approx(0.32, abs=2e-3)
 
 
+def test_a_jittery_stream_holding_still_keeps_the_setpoint_bit_for_bit() -> None:
+    """A real host's held stream: cycles and step durations jitter. The setpoint never moves by a
+    single bit (the reference's cubic used to round off an ulp now and then: a moving setpoint, and
+    a simulated arm stepped as if it moved)."""
+    rng = np.random.default_rng(7)
+    target = float(np.float32(0.8))
+    r = JointRamp(0.0, -3, 3, max_vel=2.0, max_acc=8.0)
+    for k in range(400):  # stream there, and hold
+        r.command_position(min(target, target * (k + 1) / 200), duration_s=float(rng.uniform(0.0036, 0.0044)))
+        _run(r, int(rng.choice([3, 4, 4, 5])))
+    assert r.pos == target and r.vel == 0.0
+    held = []
+    for _ in range(500):
+        r.command_position(target, duration_s=float(rng.uniform(0.0036, 0.0044)))
+        held += _run(r, int(rng.choice([3, 4, 4, 5])))
+    assert set(held) == {target} and r.streaming
+
+
 class _EveryBound(JointRamp):
     """The generator evaluating every speed bound, also those from farther than it could matter."""
 

@@ -4,6 +4,8 @@
 * Each joint has a :class:`~redarm_ros.sim.ramp.JointRamp` setpoint generator honouring the joint's max
   velocity and acceleration; every step its setpoint is fed to pybullet's ``POSITION_CONTROL`` with unit
   gains and a large force, so the measured joint tracks the setpoint within about a microradian.
+* A held arm that came to rest is not stepped in pybullet (simulated time still advances; a probe step
+  every second): see :data:`FIXED_POINT_PROBE_STEPS`.
 * :meth:`PybulletPlant.joint` returns per-joint adapters implementing the PowerCube module emulator's
   plant interface (``command_position``, ``command_velocity``, ``halt``, ``position``, ``velocity``,
   ``in_motion``). Those adapters only touch plain Python state under a lock and never call pybullet,
@@ -45,6 +47,13 @@ DEFAULT_TIME_STEP = 1e-3  # s
 # kp = 0.3 with a velocity feed-forward lags a whole step (2e-3 rad at 2 rad/s).
 POSITION_GAIN = 1.0
 VELOCITY_GAIN = 1.0
+# A held arm settles where a pybullet step with the same setpoints leaves every joint position bit for
+# bit unchanged (the velocities are rounding noise, ~1e-14 rad/s): a motion of 1e-13 rad in the step
+# would have shown, so the arm is at rest to that bound. From there :meth:`PybulletPlant.step` advances
+# simulated time without pybullet until a setpoint changes, and still steps pybullet once every
+# FIXED_POINT_PROBE_STEPS steps, which ends this at the first bit a drift would move.
+FIXED_POINT_PROBE_STEPS = 1000
+FIXED_POINT_SPEED = 1e-9  # rad/s; a measured joint speed above this is never taken for rest
 FORCE_SCALE = 10.0  # motor force = FORCE_SCALE * URDF effort (N m); 5 was already enough under gravity
 MOTION_EPS = 1e-3  # rad/s; measured speed above this counts as "in motion"
 
@@ -208,6 +217,10 @@ class PybulletPlant:
         self.link_names = link_names(arm)
         self.tool_link = self.n  # pybullet link index of the tool (fixed joint after the n revolute ones)
         self._objects: list[int] = []
+        self._dynamic_objects = False  # a body that can move on its own: the state is never a fixed point
+        self.physics_steps = 0  # pybullet steps taken (fewer than :attr:`steps` at a fixed point)
+        self._fixed_point = False  # the last pybullet step moved nothing (see FIXED_POINT_PROBE_STEPS)
+        self._coasted = 0  # steps since the last pybullet step
 
         lower = np.asarray(arm.lower, dtype=float)
         upper = np.asarray(arm.upper, dtype=float)
@@ -251,6 +264,7 @@ class PybulletPlant:
         self._q = q0.copy()
         self._dq = np.zeros(self.n)
         self._sp = q0.copy()
+        self._sp_list = self._sp.tolist()  # the setpoints of the last pybullet step, as fed to it
         self._joints = [JointPlant(self, i) for i in range(self.n)]
 
     @classmethod
@@ -297,14 +311,23 @@ class PybulletPlant:
         for i in self.indices:
             self.pb.resetJointState(self.body, i, float(qa[i]), 0.0, physicsClientId=self.cid)
         self._q, self._dq, self._sp = qa.copy(), np.zeros(self.n), qa.copy()
+        self._sp_list = self._sp.tolist()
+        self._fixed_point = False
 
     # -- stepping -------------------------------------------------------------------------------------
     def step(self, count: int = 1) -> None:
-        """Advance ``count`` physics steps of :attr:`dt` seconds each."""
+        """Advance ``count`` physics steps of :attr:`dt` seconds each (at a fixed point of a held arm,
+        without pybullet: see :data:`FIXED_POINT_PROBE_STEPS`)."""
         pb, cid, dt = self.pb, self.cid, self.dt
         for _ in range(count):
             with self.lock:
                 sp = [r.step(dt) for r in self._ramps]
+            held = sp == self._sp_list
+            if held and self._fixed_point and self._coasted < FIXED_POINT_PROBE_STEPS - 1:
+                self._coasted += 1
+                self.steps += 1
+                self.sim_time = self.steps * dt
+                continue
             pb.setJointMotorControlArray(
                 self.body,
                 self.indices,
@@ -318,8 +341,14 @@ class PybulletPlant:
             )
             pb.stepSimulation(physicsClientId=cid)
             states = pb.getJointStates(self.body, self.indices, physicsClientId=cid)
-            self._q = np.fromiter((s[0] for s in states), float, self.n)
-            self._dq = np.fromiter((s[1] for s in states), float, self.n)
+            q = np.fromiter((s[0] for s in states), float, self.n)
+            dq = np.fromiter((s[1] for s in states), float, self.n)
+            self._fixed_point = (held and not self._dynamic_objects and np.array_equal(q, self._q)
+                                 and float(np.max(np.abs(dq))) <= FIXED_POINT_SPEED)
+            self._coasted = 0
+            self.physics_steps += 1
+            self._q, self._dq = q, dq
+            self._sp_list = sp
             self._sp = np.asarray(sp, dtype=float)
             self.steps += 1
             self.sim_time = self.steps * dt
@@ -384,6 +413,8 @@ class PybulletPlant:
         vis = pb.createVisualShape(shape, rgbaColor=[float(c) for c in rgba], physicsClientId=cid, **vis_dims)
         body = pb.createMultiBody(float(mass), col, vis, pos, orn, physicsClientId=cid)
         self._objects.append(body)
+        self._fixed_point = False  # an object may touch the arm
+        self._dynamic_objects = self._dynamic_objects or float(mass) > 0.0
         return int(body)
 
     def add_sphere(

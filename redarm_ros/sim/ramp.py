@@ -305,7 +305,11 @@ class JointRamp:
                 self._piece = _Piece.TAIL
             else:
                 self._piece, self._s = _Piece.HOLD, 0.0
-        if self._piece is _Piece.HERMITE:
+        if self._piece is _Piece.HERMITE and self._p0 == self._p1 and self._v0 == 0.0 and self._v1 == 0.0:
+            # A piece that holds still (a host holding the arm): the cubic's exact value, not its
+            # rounding, which moved the reference by an ulp now and then and the setpoint with it.
+            self.ref = self._p1
+        elif self._piece is _Piece.HERMITE:
             t = self._s / self._tau
             t2, t3 = t * t, t * t * t
             self.ref = ((2 * t3 - 3 * t2 + 1) * self._p0 + (t3 - 2 * t2 + t) * self._tau * self._v0
