@@ -376,6 +376,25 @@ def _straight_move(q0, T):
     return r.message, r_end.phase, Phase.REPLANNING in phases, ratio, qs_ok
 
 
+
+def assert_straight_single_peaked(arm, ctl, q0: np.ndarray, T: np.ndarray, max_steps: int) -> None:
+    """From ``q0`` (the controller reset there), the goal ``T`` is reached by the straight corridor
+    route: hand path ratio at most 1.05 and one hand speed peak."""
+    assert ctl.set_goal(T).accepted
+    assert wait_for_plan(ctl).message == "straight through the swivel corridor"
+    qs = [q0]
+    for _ in range(max_steps):
+        r = ctl.step(0.01)
+        qs.append(r.q)
+        if r.phase is Phase.REACHED:
+            break
+    assert r.phase is Phase.REACHED
+    P = arm.fk_batch(np.array(qs))[:, :3, 3]
+    v = np.linalg.norm(np.diff(P, axis=0), axis=1) / 0.01
+    assert np.sum(v) * 0.01 / np.linalg.norm(P[-1] - P[0]) <= 1.05
+    assert speed_peaks(v) == 1
+
+
 def test_a_slow_straight_route_is_made_fast_enough_by_the_speed_guide():
     """A reach whose line passes the elbow and shoulder singularities nearby: on the schedule nearest the
     start swivel the route needs about 12 s, over 4 times a joint-space move (2.5 s), and went to the
@@ -405,19 +424,7 @@ def test_a_route_whose_schedule_bends_sharply_keeps_one_speed_peak():
               [[-0.015535727475606831, -0.2107575665469273, -0.9774149013162329],
                [-0.9988798993342904, -0.040424108127071326, 0.024593458236865262],
                [-0.04469438306679345, 0.9767021754994449, -0.20989347892902813]])
-    assert ctl.set_goal(T).accepted
-    assert wait_for_plan(ctl).message == "straight through the swivel corridor"
-    qs = [q0]
-    for _ in range(1200):
-        r = ctl.step(0.01)
-        qs.append(r.q)
-        if r.phase is Phase.REACHED:
-            break
-    assert r.phase is Phase.REACHED
-    P = arm.fk_batch(np.array(qs))[:, :3, 3]
-    v = np.linalg.norm(np.diff(P, axis=0), axis=1) / 0.01
-    assert np.sum(v) * 0.01 / np.linalg.norm(P[-1] - P[0]) <= 1.05
-    assert speed_peaks(v) == 1
+    assert_straight_single_peaked(arm, ctl, q0, T, max_steps=1200)
 
 
 def test_a_route_from_the_ready_posture_keeps_one_speed_peak():
@@ -432,16 +439,4 @@ def test_a_route_from_the_ready_posture_keeps_one_speed_peak():
               [[-0.8569785693731684, 0.3889759611626206, 0.33806128626734644],
                [0.4114140926630704, 0.911430263123888, -0.005772332296615619],
                [-0.31036458559787383, 0.13413641228069073, -0.9411063951047854]])
-    assert ctl.set_goal(T).accepted
-    assert wait_for_plan(ctl).message == "straight through the swivel corridor"
-    qs = [READY]
-    for _ in range(1000):
-        r = ctl.step(0.01)
-        qs.append(r.q)
-        if r.phase is Phase.REACHED:
-            break
-    assert r.phase is Phase.REACHED
-    P = arm.fk_batch(np.array(qs))[:, :3, 3]
-    v = np.linalg.norm(np.diff(P, axis=0), axis=1) / 0.01
-    assert np.sum(v) * 0.01 / np.linalg.norm(P[-1] - P[0]) <= 1.05
-    assert speed_peaks(v) == 1
+    assert_straight_single_peaked(arm, ctl, READY, T, max_steps=1000)
