@@ -13,6 +13,7 @@ from typing import Any
 
 import can
 import pytest
+from support.sim_thread import sim_running
 from support.waits import wait_until
 
 from redarm_ros.can import realtime
@@ -144,17 +145,9 @@ def test_sim_bus_thread_takes_its_slice() -> None:
     plant = PybulletPlant.create(load_arm("pa10"))
     sim = HardwareSim(plant, sim_bus, slice_ms=SLICE_MS)
     ready = threading.Event()
-    runner = threading.Thread(target=sim.run, kwargs={"on_ready": ready.set}, daemon=True)
-    runner.start()
-    try:
+    with sim_running(sim, [sim_bus.shutdown, plant.close], on_ready=ready.set):
         assert ready.wait(20)
         assert wait_until(lambda: _proc_slice_ns(os.getpid(), "sim-bus") == int(SLICE_MS * 1e6))
-    finally:
-        sim.request_stop()
-        runner.join(timeout=10)
-        sim_bus.shutdown()
-        plant.close()
-    assert not runner.is_alive()
 
 
 def test_driver_cycle_process_takes_its_slice() -> None:

@@ -11,6 +11,7 @@ from collections.abc import Iterator
 import can
 import numpy as np
 import pytest
+from support.sim_thread import sim_running
 
 from redarm_ros.can import protocol as pc
 from redarm_ros.can.protocol import ActState, Param
@@ -57,17 +58,8 @@ def rig() -> Iterator[tuple[HardwareSim, can.BusABC, FlakyBus]]:
     host = can.Bus(interface="virtual", channel=channel)
     plant = PybulletPlant.create(load_arm("pa10"))
     sim = HardwareSim(plant, sim_bus, faults=Faults(toggle_set={4}))
-    runner = threading.Thread(target=sim.run, daemon=True)
-    runner.start()
-    try:
+    with sim_running(sim, [host.shutdown, sim_bus.shutdown, plant.close]):
         yield sim, host, sim_bus
-    finally:
-        sim.request_stop()
-        runner.join(timeout=10)
-        host.shutdown()
-        sim_bus.shutdown()
-        plant.close()
-    assert not runner.is_alive()
 
 
 def _collect(host: can.BusABC, want: int, timeout: float = 1.0) -> list[object]:
@@ -258,19 +250,11 @@ def test_gc_frozen_after_start_up_and_its_pauses_counted():
         frozen_at_ready.append(gc.get_freeze_count())
         ready.set()
 
-    runner = threading.Thread(target=sim.run, kwargs={"on_ready": on_ready}, daemon=True)
-    runner.start()
-    try:
+    with sim_running(sim, [sim_bus.shutdown, plant.close], on_ready=on_ready):
         assert ready.wait(10)
         assert frozen_at_ready[0] > 1000  # the arm model, pybullet, numpy: everything made so far
         before = sim.counters.gc_collections
         gc.collect()
         assert sim.counters.gc_collections > before and sim.counters.gc_max_pause_ms > 0.0
         assert "gc_max_pause_ms" in sim.call_in_physics(sim.status).result(5)["counters"]
-    finally:
-        sim.request_stop()
-        runner.join(timeout=10)
-        sim_bus.shutdown()
-        plant.close()
-    assert not runner.is_alive()
     assert gc.get_freeze_count() == 0  # unfrozen again when run() returned

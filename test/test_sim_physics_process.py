@@ -10,7 +10,6 @@ from __future__ import annotations
 import functools
 import os
 import signal
-import threading
 import time
 import uuid
 from collections.abc import Iterator
@@ -19,6 +18,7 @@ from pathlib import Path
 import can
 import numpy as np
 import pytest
+from support.sim_thread import sim_running
 from support.stalling_plant import stalling_plant
 
 from redarm_ros.can import protocol as pc
@@ -41,17 +41,8 @@ def _serve(physics: PhysicsProcess) -> Iterator[tuple[HardwareSim, can.BusABC]]:
     sim_bus = can.Bus(interface="virtual", channel=channel)
     host = can.Bus(interface="virtual", channel=channel)
     sim = HardwareSim(physics, sim_bus)
-    runner = threading.Thread(target=sim.run, daemon=True)
-    runner.start()
-    try:
+    with sim_running(sim, [host.shutdown, sim_bus.shutdown, physics.close]):
         yield sim, host
-    finally:
-        sim.request_stop()
-        runner.join(timeout=10)
-        host.shutdown()
-        sim_bus.shutdown()
-        physics.close()
-    assert not runner.is_alive()
     assert not physics.alive()
 
 
