@@ -333,15 +333,57 @@ def _random_commands(r: JointRamp, rng: np.random.Generator, steps: int) -> list
 
 
 @pytest.mark.parametrize("seed", range(12))
-def test_speed_bounds_from_far_away_are_skipped_without_changing_a_step(seed: int) -> None:
+def test_speed_bounds_from_far_away_are_skipped_without_changing_a_step(
+        seed: int, monkeypatch: pytest.MonkeyPatch) -> None:
     # A bound from where the braking speed is at least max_vel cannot bind (every speed is capped at
-    # max_vel): the generator skips it, and every setpoint is the one of evaluating them all.
+    # max_vel), nor one whose cheap lower bound is above the speed: the generator skips them, and every
+    # setpoint is the one of evaluating them all.
+    import redarm_ros.sim.ramp as ramp_mod
+
     rng = np.random.default_rng(seed)
     lo, hi = -rng.uniform(0.2, 3.0), rng.uniform(0.2, 3.0)
     args = (rng.uniform(lo, hi), lo, hi, rng.uniform(0.3, 3.0), rng.uniform(0.5, 10.0))
     fast, full = JointRamp(*args), _EveryBound(*args)
-    assert _random_commands(fast, np.random.default_rng(100 + seed), 3000) == \
-        _random_commands(full, np.random.default_rng(100 + seed), 3000)
+    fast_run = _random_commands(fast, np.random.default_rng(100 + seed), 3000)
+    monkeypatch.setattr(ramp_mod, "_speed_cap", lambda v, d, a, dt: min(v, braking_speed(d, a, dt)))
+    assert fast_run == _random_commands(full, np.random.default_rng(100 + seed), 3000)
     a = fast.acc_limit
     far = fast._far_distance(a, DT)
     assert braking_speed(far, a, DT) >= fast.max_vel > braking_speed(0.999 * far, a, DT)
+
+
+def test_speed_cap_is_the_braking_law_s_min_exactly() -> None:
+    """``_speed_cap`` skips the law where a cheap lower bound shows it cannot bind: on speeds just
+    below, at and above the law's value (a few ulps either way), far below, 0, -0.0, negative, and
+    distances 0 and below, it returns exactly what ``min(speed, law)`` does."""
+    from redarm_ros.sim.ramp import _speed_cap
+
+    rng = np.random.default_rng(3)
+    for _ in range(3000):
+        acc, dt = float(rng.uniform(0.1, 50.0)), float(rng.choice([1e-3, 4e-3, 1e-2]))
+        d = float(rng.choice([0.0, -1e-3, 10.0 ** rng.uniform(-9, 1)]))
+        law = braking_speed(d, acc, dt)
+        speeds = [law, 0.0, -0.0, -law, 0.5 * law, 1e-6 * law, 2.0 * law, float(rng.normal())]
+        for k in range(1, 6):
+            speeds += [law + k * math.ulp(law), law - k * math.ulp(law)]
+        for v in speeds:
+            got = _speed_cap(v, d, acc, dt)
+            assert math.copysign(1.0, got) == math.copysign(1.0, min(v, law)) and got == min(v, law)
+
+
+def test_a_followed_stream_skips_most_far_side_bounds(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Following a smooth stream, the fence of the host's stop and the limits are evaluated only where
+    they may bind: fewer than two braking-law evaluations per step (four before), and every setpoint
+    the same as with each bound evaluated (test above)."""
+    import redarm_ros.sim.ramp as ramp_mod
+
+    r = JointRamp(0.0, -1.0, 1.0, max_vel=1.0, max_acc=4.0)
+    calls = []
+    monkeypatch.setattr(ramp_mod, "braking_speed_scalar",
+                        lambda *a: calls.append(a) or braking_speed(*a))
+    steps = 0
+    for k in range(250):  # 1 s of a 250 Hz host stream, sine within the limits
+        r.command_position(0.5 * math.sin(2.0 * math.pi * 0.5 * (k + 1) * 0.004), duration_s=0.004)
+        _run(r, 4)
+        steps += 4
+    assert len(calls) < 2 * steps

@@ -49,7 +49,9 @@ def braking_speed_scalar(distance: float, acc: float, dt: float) -> float:
         return 0.0
     adt = acc * dt
     x = distance / (adt * dt)
-    j = max(0, math.ceil((math.sqrt(1.0 + 8.0 * x) - 3.0) / 2.0))
+    j = math.ceil((math.sqrt(1.0 + 8.0 * x) - 3.0) / 2.0)
+    if j < 0:
+        j = 0
     while (j + 1) * (j + 2) / 2 < x:  # guard the float rounding of the closed form
         j += 1
     while j > 0 and j * (j + 1) / 2 >= x:

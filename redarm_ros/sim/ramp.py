@@ -76,6 +76,21 @@ def _braking_distance(speed: float, acc: float, dt: float) -> float:
     return adt * dt * ((j + 1) * f + j * (j + 1) / 2)
 
 
+def _speed_cap(speed: float, distance: float, acc: float, dt: float) -> float:
+    """``min(speed, braking_speed_scalar(distance, acc, dt))``: a speed (rad/s) towards a stop ``distance``
+    rad ahead, capped to one from which the joint stops there. The law is evaluated only where it may
+    bind (most bounds, per joint and step, do not): its speed ``v`` is at least 0, and since the
+    distance it brakes in is at most ``v^2 / 2 acc + v dt / 2 + acc dt^2 / 8``, at least
+    ``sqrt(2 acc d) - acc dt / 2``; a speed below that (less a rounding margin) is returned as it is."""
+    if speed <= 0.0:
+        return speed
+    if distance > 0.0:
+        least = math.sqrt(2.0 * acc * distance) - 0.5 * acc * dt
+        if speed < least - 1e-9 * (least + acc * dt):
+            return speed
+    return min(speed, braking_speed_scalar(distance, acc, dt))
+
+
 class _Piece(Enum):
     HERMITE = "hermite"  # towards the next step's midpoint
     TAIL = "tail"  # buffer dry: on to the last target at the last step's velocity
@@ -123,6 +138,8 @@ class JointRamp:
         self._knot = self._knot_vel = self._knot_dur = 0.0
         self._pending: deque[tuple[float, float]] = deque()  # (target, duration) waiting to play
         self._host = (self.pos, 0.0, 0.0)  # newest streamed target (rad), its step's velocity and duration
+        self._fence_key: tuple[tuple[float, float, float], float] | None = None  # (_host, acc) of _host_stop
+        self._host_stop = (self.pos, self.pos)  # where the host's stream can stop at the earliest (lo, hi)
         self._streaming = False
         self._stream_until = -math.inf  # an FSTEP before this time continues the stream
         self._single_end = 0.0  # when the last single FSTEP move was due to arrive
@@ -282,9 +299,12 @@ class JointRamp:
         where the host's stream can stop at the earliest, i.e. its newest target widened in the
         direction of that step's velocity ``u`` by the distance a host braking at ``a`` from there
         covers (its next step is at least ``|u| - a h`` fast; its steps last ``h``)."""
-        q, u, h = self._host
-        d = _braking_distance(abs(u) - a * h, a, h)
-        lo, hi = (q - d if u < 0.0 else q), (q + d if u > 0.0 else q)
+        if self._fence_key != (self._host, a):  # (computed once per host step, used every physics step)
+            q, u, h = self._host
+            d = _braking_distance(abs(u) - a * h, a, h)
+            self._fence_key = (self._host, a)
+            self._host_stop = (q - d if u < 0.0 else q), (q + d if u > 0.0 else q)
+        lo, hi = self._host_stop
         return min(lo, self.ref), max(hi, self.ref)
 
     def _advance_reference(self, dt: float) -> float:
@@ -365,9 +385,9 @@ class JointRamp:
                 # host's stop: 0.5-0.9 mrad past the driver's 1 mrad margin.
                 fence_lo, fence_hi = self._stream_fence(a)
                 if fence_hi - self.pos < far:
-                    v_des = min(v_des, braking_speed_scalar(fence_hi - self.pos, a, dt))
+                    v_des = _speed_cap(v_des, fence_hi - self.pos, a, dt)
                 if self.pos - fence_lo < far:
-                    v_des = max(v_des, -braking_speed_scalar(self.pos - fence_lo, a, dt))
+                    v_des = -_speed_cap(-v_des, self.pos - fence_lo, a, dt)
             v_des = max(-vcap, min(vcap, v_des))
         elif mode is RampMode.VELOCITY:
             v_des = self.target_vel
@@ -378,9 +398,9 @@ class JointRamp:
         # The limits in view in every mode: never faster towards one than allows stopping on it
         # (|v_des| <= max_vel here: a bound from at least ``far`` away changes nothing).
         if self.upper - self.pos < far:
-            v_des = min(v_des, braking_speed_scalar(self.upper - self.pos, a, dt))
+            v_des = _speed_cap(v_des, self.upper - self.pos, a, dt)
         if self.pos - self.lower < far:
-            v_des = max(v_des, -braking_speed_scalar(self.pos - self.lower, a, dt))
+            v_des = -_speed_cap(-v_des, self.pos - self.lower, a, dt)
         v_new = v + max(-dv, min(dv, v_des - v))
         p_new = self.pos + v_new * dt
         if settled:
