@@ -181,3 +181,48 @@ def test_the_simulator_exits_when_its_physics_process_dies(procs, canbus_server)
         assert time.monotonic() < deadline
         time.sleep(0.05)
     assert sim.returncode == EXIT_PHYSICS_LOST
+
+
+class _MovingPlant:
+    """A plant whose setpoints move every step (never at rest) and records the commands it gets."""
+
+    def __init__(self) -> None:
+        self.q_setpoint = np.zeros(2)
+        self.dq = np.ones(2)
+        self.steps: list[int] = []
+        self.commands: list[tuple] = []
+
+    def step(self, count: int) -> None:
+        self.steps.append(count)
+        self.q_setpoint = self.q_setpoint + count
+
+    def joint(self, j: int):
+        plant = self
+
+        class _J:
+            def command_position(self, *args) -> None:
+                plant.commands.append((j, *args))
+
+        return _J()
+
+
+def test_a_streaming_host_sets_the_physics_wake_ups_to_its_step() -> None:
+    # While it moves, the process wakes once per streamed step (a 250 Hz host's 4 ms: half the wake-ups
+    # of 2 ms), never more than MAX_MOVING_WAKE_S apart nor less than MOVING_WAKE_S; a single move
+    # (no duration) leaves the wake-ups as they are.
+    from redarm_ros.sim.physics_process import MAX_MOVING_WAKE_S, MOVING_WAKE_S, RealTimeStepper, _apply
+
+    plant = _MovingPlant()
+    stepper = RealTimeStepper(plant, 1000.0)
+    assert stepper.moving_batch == round(MOVING_WAKE_S * 1000) == 2
+    for duration, batch in ((0.004, 4), (0.002, 2), (0.0005, 2), (0.010, round(MAX_MOVING_WAKE_S * 1000)),
+                            (None, round(MAX_MOVING_WAKE_S * 1000)), (0.004, 4)):
+        assert _apply(plant, (1, "position", 0, 0.3, None, None, duration), stepper)
+        assert stepper.moving_batch == batch, duration
+    assert len(plant.commands) == 6
+    stepper.start()
+    stepper.advance(stepper.t0 + 0.0041)  # the first wake-up steps what is due, then plans a host step
+    assert plant.steps == [4] and stepper.batch == 4
+    late = stepper.counters.overruns
+    stepper.advance(stepper.t0 + 0.0081)  # four steps as planned: not late
+    assert plant.steps == [4, 4] and stepper.counters.overruns == late
