@@ -6,12 +6,15 @@ from __future__ import annotations
 import logging
 import os
 import signal
+import threading
 import time
 from collections.abc import Callable, Iterator
+from multiprocessing.connection import Connection
 from typing import Any
 
 import numpy as np
 import pytest
+from support.waits import HANG_BUDGET_S
 
 from redarm_ros.can.bus import open_bus
 from redarm_ros.can.bus_server import LoopbackBusServer
@@ -171,3 +174,40 @@ def test_a_still_arm_is_handed_on_at_the_heartbeat_rate_and_motion_at_the_full_r
     assert th.due(t + 0.048, q + 3e-3, None) and th.due(t + 0.060, q + 3e-3, None)  # polls
     full = SampleThrottle(100.0, 250.0)  # without a heartbeat rate: never slowed
     assert sum(full.due(t, q, target) for t in stamps) == 200
+
+
+def test_the_cycle_thread_writes_its_samples_itself_and_never_waits() -> None:
+    # No sender thread runs here: a sample still reaches the parent at once, written by the thread
+    # that made it (one wake-up of a helper thread per sample saved). A parent that stopped reading
+    # (the socket full) loses samples, counted, and the write returns at once.
+    import socket
+
+    from redarm_ros.can.driver_loop import CycleSample
+    from redarm_ros.can.driver_process import _Child
+
+    ours, theirs = socket.socketpair()
+    parent, child_conn = Connection(ours.detach()), Connection(theirs.detach())
+    spec = DriverSpec(module_ids=(1, 2, 3), lower=tuple(LOWER), upper=tuple(UPPER), max_vel=tuple(VMAX),
+                      max_acc=tuple(AMAX))
+    child = _Child(child_conn, spec)
+    try:
+        q = np.array([0.1, 0.2, 0.3])
+        child.on_sample(CycleSample(12.5, q, 2 * q, None))
+        assert parent.poll(2.0)
+        kind, stamp, pos, vel, target = parent.recv()
+        assert (kind, stamp, target) == ("sample", 12.5, None)
+        assert pos.tolist() == q.tolist() and vel.tolist() == (2 * q).tolist()
+        child._direct.setblocking(False)
+        with pytest.raises(BlockingIOError):  # fill the socket: the parent reads nothing
+            while True:
+                child._direct.send(b"\0" * 4096)
+        child._direct.setblocking(True)
+        full = CycleSample(13.0, q, q, q)
+        writer = threading.Thread(target=lambda: [child.on_sample(full) for _ in range(5)])
+        writer.start()
+        writer.join(HANG_BUDGET_S)  # (a write that waited would hang here)
+        assert not writer.is_alive() and child.samples_dropped == 5
+    finally:
+        child._direct.close()
+        child_conn.close()
+        parent.close()

@@ -17,10 +17,11 @@ silence check halt the arm. In its own process the cycle runs with
 ``accepting_commands``, ``state``, ``start``, ``stop``). The child is
 ``python -m redarm_ros.can.driver_process --fd N``, talking over a socket pair with pickled tuples:
 commands, requests and snapshot queries one way; every cycle's sample, state changes, log lines and
-answers the other way. Samples travel through a bounded queue and a sender thread, so a slow
-parent loses samples (counted) but never stalls the cycle; a parent reader that fell behind hands
-on only the newest sample queued (``samples_skipped`` counts the others), so what it publishes is
-never older than its own delay. The child ignores SIGINT and SIGTERM (the parent
+answers the other way. The cycle thread writes each sample itself, never waiting (a full socket: the
+sample is dropped and counted); while the socket is busy or samples wait, through a bounded queue and
+a sender thread, so a slow parent loses samples but never stalls the cycle. A parent reader that fell
+behind hands on only the newest sample queued (``samples_skipped`` counts the others), so what it
+publishes is never older than its own delay. The child ignores SIGINT and SIGTERM (the parent
 stops it) and ends when the parent's end of the socket closes, so a killed node takes its cycle
 with it: the modules' watchdog then halts the arm.
 """
@@ -34,6 +35,7 @@ import os
 import queue
 import signal
 import socket
+import struct
 import subprocess
 import sys
 import threading
@@ -41,6 +43,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from multiprocessing.connection import Connection
+from multiprocessing.reduction import ForkingPickler
 from pathlib import Path
 from typing import Any
 
@@ -491,6 +494,10 @@ class _Child:
         self.samples_dropped = 0
         self._samples_waiting = 0
         self._wait_lock = threading.Lock()
+        self._conn_lock = threading.Lock()  # one writer at a time on the socket
+        # The same socket (a second descriptor) for the cycle thread's own sample writes, which must not
+        # wait: sent with MSG_DONTWAIT, the socket itself stays blocking for the sender thread.
+        self._direct = socket.socket(fileno=os.dup(conn.fileno()))
         self.sender = threading.Thread(target=self._send_loop, name="can-driver-sender", daemon=True)
         self.loop: DriverLoop | None = None
 
@@ -503,7 +510,8 @@ class _Child:
                 with self._wait_lock:
                     self._samples_waiting -= 1
             try:
-                self.conn.send(item)
+                with self._conn_lock:
+                    self.conn.send(item)
             except OSError:
                 return  # the parent is gone; the main thread sees EOF and stops the loop
 
@@ -511,6 +519,17 @@ class _Child:
         self.out.put(item)
 
     def on_sample(self, s: CycleSample) -> None:
+        item = ("sample", s.stamp, s.positions, s.velocities, s.target)
+        # The cycle thread writes the sample itself when nothing waits for the sender thread and the
+        # socket is free: waking that thread (and handing it the interpreter lock) for every sample cost
+        # more than the write. The write never waits: a parent that stopped reading loses the sample
+        # (counted), as it would beyond SAMPLE_QUEUE below.
+        if not self._samples_waiting and self._conn_lock.acquire(blocking=False):
+            try:
+                self._send_now(item)
+            finally:
+                self._conn_lock.release()
+            return
         # Never block the cycle on a slow parent: beyond SAMPLE_QUEUE waiting, drop and count.
         with self._wait_lock:
             if self._samples_waiting >= SAMPLE_QUEUE:
@@ -518,6 +537,23 @@ class _Child:
                 return
             self._samples_waiting += 1
         self.out.put(("sample", s.stamp, s.positions, s.velocities, s.target))
+
+    def _send_now(self, item: tuple[Any, ...]) -> None:
+        """Write ``item`` in the connection's framing (a length, then the pickle), without waiting."""
+        payload = ForkingPickler.dumps(item)
+        data = struct.pack("!i", len(payload)) + bytes(payload)
+        try:
+            sent = self._direct.send(data, socket.MSG_DONTWAIT)
+        except BlockingIOError:
+            self.samples_dropped += 1
+            return
+        except OSError:
+            return  # the parent is gone; the main thread sees EOF and stops the loop
+        if sent < len(data):  # (not seen: a write this small is queued whole or not at all)
+            try:
+                self._direct.sendall(data[sent:])
+            except OSError:
+                return
 
     def on_state(self, state: LoopState, reason: str, fault: Fault | None) -> None:
         self.out.put(("state", state, reason, fault))
@@ -551,6 +587,7 @@ class _Child:
             loop.stop()
             self.out.put(None)
             self.sender.join(2.0)
+            self._direct.close()
 
     def _apply(self, msg: tuple[Any, ...]) -> None:
         loop = self.loop
