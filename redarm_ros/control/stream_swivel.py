@@ -38,9 +38,9 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from redarm_ros.control.elbow import ArmGeometry, ElbowCircle, elbow_circle
-from redarm_ros.control.joint_limits import braking_speed
 from redarm_ros.control.swivel_dynamics import wrap_angle
 from redarm_ros.errors import UnreachableError
+from redarm_ros.motion import braking_speed_scalar
 
 #: rad: an offset below this counts as 0 (no look-ahead needed)
 OFFSET_EPS = 1e-9
@@ -82,10 +82,10 @@ def offset_rate(offset: float, rate: float, push: float, close_acc: float, max_r
     d = abs(offset)
     back = 0.0
     if d > 0.0 and close_acc > 0.0:
-        back = -math.copysign(min(float(braking_speed(d, close_acc, dt)), max_rate), offset)
+        back = -math.copysign(min(braking_speed_scalar(d, close_acc, dt), max_rate), offset)
     elif d > 0.0:  # holding: no faster towards 0 than now, braking at ``acc`` so as to land on 0
         closing = abs(rate) if rate * offset < 0.0 else 0.0
-        back = -math.copysign(min(float(braking_speed(d, acc, dt)), max_rate, closing), offset)
+        back = -math.copysign(min(braking_speed_scalar(d, acc, dt), max_rate, closing), offset)
     want = max(-max_rate, min(max_rate, back + push))
     # Towards 0 the offset speeds up at close_acc too (not at the joints' whole share: the hand's motion
     # has priority); slowing down, turning and the forces' pushes use ``acc``.
