@@ -269,3 +269,25 @@ def test_kinematics_modules_import_without_a_cycle() -> None:
         visit(mod, [])
     assert "swivel" not in graph["model"] and "loader" in graph["__init__"]
     assert not (graph["numeric"] & {"model", "swivel", "powercube6", "loader"})
+
+
+@pytest.mark.parametrize("name", ["pa10", "powercube7", "powercube6"])
+def test_fk_after_key_points_at_the_same_joints_takes_one_pass(
+        name: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    # The controller asks for the key points of each command and then its pose: one FK pass serves
+    # both, bit for bit; other joints (a sign of zero too) get their own pass.
+    arm = load_arm(name)
+    rng = np.random.default_rng(11)
+    q = rng.uniform(arm.lower, arm.upper)
+    fresh = arm.fk(q)
+    passes = []
+    inner = arm._fk_lists
+    monkeypatch.setattr(arm, "_fk_lists", lambda *a: passes.append(1) or inner(*a))
+    arm.key_points(q)
+    assert np.array_equal(arm.fk(q.copy()), fresh) and len(passes) == 1
+    q2 = q.copy()
+    q2[-1] += 1e-9
+    assert np.array_equal(arm.fk(q2), load_arm(name).fk(q2)) and len(passes) == 2
+    z = np.zeros(arm.n)
+    arm.key_points(z)
+    assert np.array_equal(arm.fk(-z), load_arm(name).fk(-z)) and len(passes) == 4

@@ -242,6 +242,9 @@ class Arm:
             self._fast.append((Rl, pl, code, tuple(float(v) for v in a)))
         self._tool_R = None if np.array_equal(self.tool[:3, :3], np.eye(3)) else self.tool[:3, :3].tolist()
         self._tool_p = self.tool[:3, 3].tolist()
+        # The tool's (R rows, p) at the joints (as bytes) of the last key_points call: the controller asks
+        # for the key points and then the pose of each command it commits (one FK pass for both).
+        self._last_fk: tuple[bytes, list[list[float]], list[float]] | None = None
         self._setup_model()
 
     def _setup_model(self) -> None:
@@ -445,7 +448,11 @@ class Arm:
     def fk(self, q: Sequence[float]) -> np.ndarray:
         """Base -> tool 4x4 transform for joint angles q (rad, shape (n,))."""
         qa = self.check_q(q)
-        R, p = self._fk_lists(qa.tolist())
+        last = self._last_fk
+        if last is not None and last[0] == qa.tobytes():
+            R, p = last[1], last[2]
+        else:
+            R, p = self._fk_lists(qa.tolist())
         return np.array([R[0] + [p[0]], R[1] + [p[1]], R[2] + [p[2]], [0.0, 0.0, 0.0, 1.0]])
 
     def fk_pq(self, q: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
@@ -487,7 +494,9 @@ class Arm:
         # The scalar FK with its per-joint record (the controller asks every step; the 4x4 matrix
         # chain of fk_frames costs several times more).
         joints: list[tuple[list[float], list[float]]] = []
-        _, tool = self._fk_lists(self.check_q(q).tolist(), joints)
+        qa = self.check_q(q)
+        R, tool = self._fk_lists(qa.tolist(), joints)
+        self._last_fk = (qa.tobytes(), R, tool)
         pts = np.empty((5, 3))
         pts[0] = 0.0
         for k, i in enumerate(self.key_joints):
