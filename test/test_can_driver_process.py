@@ -211,3 +211,35 @@ def test_the_cycle_thread_writes_its_samples_itself_and_never_waits() -> None:
         child._direct.close()
         child_conn.close()
         parent.close()
+
+
+def test_a_sample_written_by_the_cycle_thread_never_overtakes_a_queued_one() -> None:
+    # A sample queued for the sender thread (the socket was busy) counts as waiting until it is
+    # written, so the next sample queues behind it instead of being written first: the parent, which
+    # hands on the newest it read, never goes back in time.
+    import socket
+
+    from redarm_ros.can.driver_loop import CycleSample
+    from redarm_ros.can.driver_process import _Child
+
+    ours, theirs = socket.socketpair()
+    parent, child_conn = Connection(ours.detach()), Connection(theirs.detach())
+    spec = DriverSpec(module_ids=(1,), lower=(-1.0,), upper=(1.0,), max_vel=(1.0,), max_acc=(1.0,))
+    child = _Child(child_conn, spec)
+    child.sender.start()
+    q = np.zeros(1)
+    try:
+        with child._conn_lock:  # the socket busy (the sender thread writing something else)
+            child.on_sample(CycleSample(1.0, q, q, None))
+            assert wait_for(lambda: child.out.empty(), HANG_BUDGET_S)  # the sender holds it, waiting
+            time.sleep(0.05)
+            assert child._samples_waiting == 1
+            child.on_sample(CycleSample(2.0, q, q, None))
+        stamps = [parent.recv()[1] for _ in range(2)]
+        assert stamps == [1.0, 2.0]
+    finally:
+        child.out.put(None)
+        child.sender.join(HANG_BUDGET_S)
+        child._direct.close()
+        child_conn.close()
+        parent.close()

@@ -506,14 +506,14 @@ class _Child:
             item = self.out.get()
             if item is None:
                 return
-            if item[0] == "sample":
-                with self._wait_lock:
-                    self._samples_waiting -= 1
             try:
                 with self._conn_lock:
                     self.conn.send(item)
             except OSError:
                 return  # the parent is gone; the main thread sees EOF and stops the loop
+            if item[0] == "sample":  # (counted out once written: a sample the cycle thread writes
+                with self._wait_lock:  # itself never overtakes one queued before it)
+                    self._samples_waiting -= 1
 
     def put(self, item: tuple[Any, ...]) -> None:
         self.out.put(item)
