@@ -553,8 +553,7 @@ def plan_route(arm: CorridorArm, T0: np.ndarray, T1: np.ndarray, q0: np.ndarray,
     ``fast``: without a corridor at those margins, the :func:`fallback_margins` are tried too; a route
     that takes over GUIDE_AFTER times the hand's own time, or none, is planned again with the schedule
     on the speed guide (the swivel rate bound GUIDE_RATE) and the better of the two kept (not paced, then
-    the shorter); a route still not on the minimum-jerk profile in u is planned once more on the guide
-    of the least total joint time, and its clock may follow the joints' limits (:func:`fast_clock`).
+    the shorter); a route too slow in the pace may follow the joints' limits (:func:`timed_route`).
     ``window``: the schedule's smoothing (:func:`smoothed`)."""
     p0 = (float(T0[0, 3]), float(T0[1, 3]), float(T0[2, 3]))
     p1 = (float(T1[0, 3]), float(T1[1, 3]), float(T1[2, 3]))
@@ -574,8 +573,7 @@ def plan_route(arm: CorridorArm, T0: np.ndarray, T1: np.ndarray, q0: np.ndarray,
     cor, m = _find_corridor(arm, T0, T1, q0, preferred, tries)
     route = route_of(cor, m) if cor.found else None
     why = cor.reason
-    hand_rate = max(length / v_max, angle / w_max)
-    hand_time = PEAK_RATE * hand_rate
+    hand_time = PEAK_RATE * max(length / v_max, angle / w_max)
     if fast and (route is None or route.duration > GUIDE_AFTER * hand_time):
         # the schedule keeps the joints' speed demand low (the route's duration is set by its worst joint),
         # down to what the hand's own length and turn take, and else keeps near the preferred swivel
@@ -587,15 +585,6 @@ def plan_route(arm: CorridorArm, T0: np.ndarray, T1: np.ndarray, q0: np.ndarray,
             guided = route_of(cor, m)
             if route is None or _slower(route, guided):
                 route = guided
-            if route.pace_u is not None or route.clock_u is not None:
-                # a route paced along its joints takes the time they need summed over it: the guide of
-                # the least sum (at the margins that found this corridor)
-                cor, m = _find_corridor(arm, T0, T1, q0, preferred, [m], **guide | {
-                    "speed_floor": hand_rate, "speed_total": True})
-                if cor.found:
-                    guided = route_of(cor, m)
-                    if _slower(route, guided):
-                        route = guided
     if route is None:
         return None, why
     return route, ""

@@ -96,9 +96,6 @@ MID_SHARE = 0.02
 GUIDE_SAMPLES = 40
 GUIDE_STEP = 0.05
 GUIDE_SLACK = 1.25
-#: the total-time guide's cost (s) of one rad of distance from the preferred swivel held over the whole route:
-#: small, it only chooses among schedules of about the same time
-GUIDE_DEV_COST = 0.05
 
 #: the preferred swivel (rad) at progress u and pose T (4x4), or a constant
 PreferredSwivel = Callable[[float, np.ndarray], float]
@@ -559,17 +556,13 @@ class _Corridor:
         return sched, pieces
 
     # -- the speed guide --------------------------------------------------------------------------
-    def speed_guide(self, rates: np.ndarray, floor: float, n: int = GUIDE_SAMPLES,
-                    total: bool = False) -> PreferredSwivel | None:
+    def speed_guide(self, rates: np.ndarray, floor: float, n: int = GUIDE_SAMPLES) -> PreferredSwivel | None:
         """The swivel the schedule follows when it keeps the joints' path-speed demand low (see
         :func:`swivel_corridor`): on ``n`` + 1 evenly spaced samples and a swivel grid, the schedule from
         the start whose largest demand max_j |dq_j/du| / rates[j] (s per unit progress; the swivel's
         |ds/du| / rates[7] too) is least, or at most ``floor`` (s per unit progress), is found (a bottleneck
         path); among those within GUIDE_SLACK of that least demand, the one nearest the preferred swivel
-        (least integral of the distance). ``total``: instead the schedule whose demand summed over the
-        route (the time the route takes at the joints' speeds, each step at least ``floor`` du) plus
-        GUIDE_DEV_COST times the integral of the distance is least (a shortest path). None where a sample
-        is out of reach or no grid path exists."""
+        (least integral of the distance). None where a sample is out of reach or no grid path exists."""
         us = np.linspace(0.0, 1.0, n + 1)
         du = 1.0 / n
         h = min(GUIDE_STEP, self.max_rate * du)
@@ -601,8 +594,7 @@ class _Corridor:
                 # (every joint modulo 2 pi: the closed form's copy may be 2 pi off the in-limit one)
                 d = np.abs(np.remainder(A[i + 1][:, src + o] - A[i][:, src] + PI, TWO_PI) - PI)
                 c = np.full(len(S), math.inf)
-                step = np.maximum(np.max(d / rates[:7, None], axis=0), abs(o) * h / rates[7])
-                c[src] = np.maximum(step, floor * du) if total else step * pace[i]
+                c[src] = np.maximum(np.max(d / rates[:7, None], axis=0), abs(o) * h / rates[7]) * pace[i]
                 c[~ok[i]] = math.inf
                 c[src[~ok[i + 1][src + o]]] = math.inf
                 out.append(c)
@@ -618,15 +610,14 @@ class _Corridor:
             return y
 
         E = [edges(i) for i in range(n)]
-        if not total:
-            V = np.full(len(S), math.inf)
-            V[K] = 0.0
-            for i in range(n):  # the bottleneck: least largest step demand up to each grid swivel
-                V = np.min([shifted(np.maximum(V, E[i][k]), o) for k, o in enumerate(offsets)], axis=0)
-            best = float(V.min())
-            if not math.isfinite(best):
-                return None
-            bound = max(GUIDE_SLACK * best, floor)
+        V = np.full(len(S), math.inf)
+        V[K] = 0.0
+        for i in range(n):  # the bottleneck: least largest step demand up to each grid swivel
+            V = np.min([shifted(np.maximum(V, E[i][k]), o) for k, o in enumerate(offsets)], axis=0)
+        best = float(V.min())
+        if not math.isfinite(best):
+            return None
+        bound = max(GUIDE_SLACK * best, floor)
 
         def dev(i: int) -> np.ndarray:
             return np.abs(np.remainder(S - self.preferred(float(us[i]), self.sample(float(us[i])).T) + PI,
@@ -634,14 +625,12 @@ class _Corridor:
         W = np.full(len(S), math.inf)
         W[K] = 0.0
         back = np.zeros((n, len(S)), int)
-        for i in range(n):  # the least total, or the nearest the preferred swivel, each step in the bound
-            cand = np.array([shifted(W + E[i][k] if total else np.where(E[i][k] <= bound, W, math.inf), o)
+        for i in range(n):  # the nearest the preferred swivel with every step within the bound
+            cand = np.array([shifted(np.where(E[i][k] <= bound, W, math.inf), o)
                              for k, o in enumerate(offsets)])
             j = np.argmin(cand, axis=0)
             back[i] = np.asarray(list(offsets))[j]
-            W = cand[j, np.arange(len(S))] + (GUIDE_DEV_COST if total else 1.0) * dev(i + 1)
-        if not np.isfinite(W).any():
-            return None
+            W = cand[j, np.arange(len(S))] + dev(i + 1)
         k = int(np.argmin(W))
         path = np.empty(n + 1)
         for i in range(n, 0, -1):
@@ -755,7 +744,6 @@ def swivel_corridor(
     end_step: float = 0.05,
     speed_rates: Any = None,
     speed_floor: float = 0.0,
-    speed_total: bool = False,
 ) -> SwivelCorridor:
     """The swivel corridor of the straight route from ``T_start`` (the pose of ``q_start``) to ``T_goal``,
     and a continuous swivel schedule through it (see the module docstring).
@@ -768,9 +756,7 @@ def swivel_corridor(
     refinement. ``speed_rates`` (8 values > 0: the joints' speeds, rad/s, then the swivel's): the
     schedule then follows the speed guide instead of the preferred swivel: the grid schedule whose
     joints need the least time per unit progress (each |dq/du| over its speed), up to ``speed_floor``
-    (s per unit progress, what the route takes anyway), and among those nearest the preferred swivel;
-    ``speed_total``: the schedule whose joints need the least time summed over the route (for a route
-    whose pace follows the joints' limits along it).
+    (s per unit progress, what the route takes anyway), and among those nearest the preferred swivel.
 
     Raises:
         InvalidInputError: malformed poses or joints, ``q_start`` not a solution of ``T_start`` (1e-6
@@ -827,7 +813,7 @@ def swivel_corridor(
         if not (isinstance(speed_floor, (int, float)) and math.isfinite(speed_floor) and speed_floor >= 0.0):
             raise InvalidInputError(f"speed_floor must be a finite number >= 0, got {speed_floor!r}",
                                     field="speed_floor", value=speed_floor)
-        guide = cor.speed_guide(rates, float(speed_floor), total=bool(speed_total))
+        guide = cor.speed_guide(rates, float(speed_floor))
         if guide is not None:
             cor.preferred = guide
     us = cor.topology_grid(samples)
