@@ -34,6 +34,7 @@ import numpy as np
 from redarm_ros.kinematics.corridor import SwivelCorridor, route_pose
 from redarm_ros.kinematics.protocols import CorridorArm
 from redarm_ros.kinematics.quaternion import (
+    matrix_from_quat,
     quat_from_matrix,
     quat_from_rotvec,
     quat_mul,
@@ -154,6 +155,20 @@ CLOCK_SAMPLES = 1001
 BELL_SAMPLES = 401
 
 
+def single_peaked(rate: np.ndarray, step: np.ndarray | float) -> np.ndarray:
+    """The largest single-peaked lower bound of ``rate`` (progress per s at samples ``step`` progress
+    apart): up to the peak the least rate still to come before it, after it the least rate so far, the
+    peak placed where the progress takes least time (the sum of step / rate)."""
+    best, best_time = rate, math.inf
+    w = np.broadcast_to(np.asarray(step, float), rate.shape)
+    for m in range(1, len(rate) - 1):
+        g = np.concatenate((np.minimum.accumulate(rate[m::-1])[::-1], np.minimum.accumulate(rate[m:])[1:]))
+        time = float(np.sum(np.where(g > 1e-12, w / np.maximum(g, 1e-12), 0.0)))
+        if time < best_time:
+            best, best_time = g, time
+    return best
+
+
 def single_peaked_clock(pace_u: np.ndarray) -> np.ndarray:
     """The minimum-jerk profile in the pace ``pace_u`` retimed so that the progress rate (the hand's
     speed) rises to one peak and falls: the rate is cut down to its largest single-peaked lower bound
@@ -164,25 +179,157 @@ def single_peaked_clock(pace_u: np.ndarray) -> np.ndarray:
     x = np.linspace(0.0, 1.0, BELL_SAMPLES)
     u = np.interp(min_jerk(x), np.linspace(0.0, 1.0, len(pace_u)), pace_u)
     v = np.maximum(np.gradient(u, x), 0.0)
-    best, best_time = v, math.inf
-    for m in range(1, BELL_SAMPLES - 1):
-        g = np.concatenate((np.minimum.accumulate(v[m::-1])[::-1], np.minimum.accumulate(v[m:])[1:]))
-        stretch = np.where(g > 1e-12, v / np.maximum(g, 1e-12), 1.0)
-        time = float(np.sum(stretch))
-        if time < best_time:
-            best, best_time = stretch, time
+    g = single_peaked(v, v)
     # the new time per unit x is the stretch v / g (1 at the ends, where both vanish)
-    t = np.concatenate(([0.0], np.cumsum(0.5 * (best[1:] + best[:-1]) * np.diff(x))))
+    stretch = np.where(g > 1e-12, v / np.maximum(g, 1e-12), 1.0)
+    t = np.concatenate(([0.0], np.cumsum(0.5 * (stretch[1:] + stretch[:-1]) * np.diff(x))))
     clock = np.interp(np.linspace(0.0, 1.0, CLOCK_SAMPLES), t / t[-1], u)
     return clock + np.linspace(0.0, 1e-9, CLOCK_SAMPLES)  # (strictly increasing, for the inverse)
 
 
+#: samples of the progress at which :func:`fast_clock` solves the route's joints and bounds its pace
+FAST_SAMPLES = 401
+
+
+def route_joints(arm: CorridorArm, route: CorridorRoute, u: np.ndarray) -> np.ndarray:
+    """The joints (len(u), n) the route commands at progress values ``u`` (ascending): the pose at u on
+    the schedule's swivel (:meth:`SwivelCorridor.swivel_at`), on the corridor's flip pattern, each the 2 pi
+    copy nearest the one before (from the corridor's start)."""
+    cor = route.corridor
+    Q = np.empty((len(u), cor.q.shape[1]))
+    q_prev = cor.q[0]
+    for i, x in enumerate(u):
+        pos, rot = route.pose(float(x))
+        T = np.eye(4)
+        T[:3, :3] = matrix_from_quat(rot)
+        T[:3, 3] = pos
+        row = arm.ik(T, cor.swivel_at(float(x)), limits=False)[cor.pattern]
+        Q[i] = q_prev = row + 2.0 * math.pi * np.round((q_prev - row) / (2.0 * math.pi))
+    return Q
+
+
+def fast_clock(arm: CorridorArm, route: CorridorRoute, length: float, angle: float, v_max: float,
+               w_max: float, s_rate: float, max_vel: np.ndarray, max_acc: np.ndarray,
+               share: float) -> tuple[np.ndarray, float]:
+    """The single-peaked clock of ``route`` that keeps the joints at their limits along the path: the
+    progress rate r(u) is the greatest whose joints keep ``share`` of their velocity and acceleration
+    limits (and the hand, turn and swivel their rates), found on the phase plane (r^2 over u: forward at
+    the most acceleration from rest, backward at the most deceleration to rest, below the velocity bound,
+    the speed from which each joint still stops before its limit (:func:`braking_need`) and the bound
+    where an acceleration within the limits exists at all) under a single-peaked ceiling
+    (:func:`single_peaked`). Where joints 1 and 3 swing near the shoulder singularity the hand slows
+    there; it keeps that speed to the end, or reaches it before. Returns u at CLOCK_SAMPLES evenly spaced
+    shares of the duration, and the duration (s), stretched where a step of the result still asks a
+    joint for more than its share."""
+    # (the corridor's own samples too: the schedule's curvature changes there, and near a singularity the
+    # joints follow it many times over)
+    u = np.unique(np.concatenate((np.linspace(0.0, 1.0, FAST_SAMPLES), route.corridor.u)))
+    n = len(u)
+    du = np.diff(u)
+    Q = route_joints(arm, route, u)
+    S = np.array([route.corridor.swivel_at(float(x)) for x in u])
+    dQ = np.gradient(Q, u, axis=0)
+    ddQ = np.gradient(dQ, u, axis=0)
+    vel, acc = share * np.asarray(max_vel, float), share * np.asarray(max_acc, float)
+    need = np.maximum(np.max(np.abs(dQ) / vel, axis=1), np.abs(np.gradient(S, u)) / s_rate)
+    need = np.maximum(need, max(length / v_max, angle / w_max, 1e-9))
+    limits = (np.asarray(arm.lower, float), np.asarray(arm.upper, float))
+    need = np.maximum(need, braking_need(Q, dQ, acc, limits))
+    ceiling = 1.0 / need**2  # (r^2)
+
+    def acc_range(k: int, x: float) -> tuple[float, float]:
+        """The progress accelerations (1/s^2) at sample k and r^2 = x that keep every joint's
+        |dq/du u'' + d2q/du2 x| within its limit (lo > hi: none)."""
+        d, dd = dQ[k], ddQ[k]
+        moving = np.abs(d) > 1e-9
+        if np.any(np.abs(dd[~moving]) * x > acc[~moving]):
+            return 1.0, -1.0
+        if not moving.any():
+            return -math.inf, math.inf
+        e1 = (-acc[moving] - dd[moving] * x) / d[moving]
+        e2 = (acc[moving] - dd[moving] * x) / d[moving]
+        return float(np.max(np.minimum(e1, e2))), float(np.min(np.maximum(e1, e2)))
+
+    for k in range(n):  # the bound where some acceleration keeps the limits (x = 0 has one)
+        lo, hi = acc_range(k, float(ceiling[k]))
+        if lo > hi:
+            a, b = 0.0, float(ceiling[k])
+            for _ in range(40):
+                m = 0.5 * (a + b)
+                lo, hi = acc_range(k, m)
+                a, b = (m, b) if lo <= hi else (a, m)
+            ceiling[k] = a
+    # per step between two samples (at its midpoint, where the result is checked): dq/du and d2q/du2
+    dQm, ddQm = 0.5 * (dQ[1:] + dQ[:-1]), 0.5 * (ddQ[1:] + ddQ[:-1])
+    # single-peaked first: where the rate is flat (no progress acceleration) the joints' accelerations
+    # are d2q/du2 r^2 alone
+    with np.errstate(divide="ignore"):
+        flat_step = np.min(acc / np.abs(ddQm), axis=1)
+    flat = np.minimum(np.append(flat_step, math.inf), np.insert(flat_step, 0, math.inf))
+    weight = np.gradient(u)  # (the progress each sample stands for)
+    ceiling = np.minimum(ceiling, single_peaked(np.sqrt(np.minimum(ceiling, flat)), weight) ** 2)
+
+    def reach(j: int, x_from: float, sign: float) -> float:
+        """The largest r^2 at the end of step j reached from r^2 = ``x_from`` at its start (``sign`` 1:
+        forward, from the sample before; -1: backward, from the sample after) at the most progress
+        acceleration (deceleration) the joints allow at the step's midpoint. Implicit (the new r^2 in
+        the bound): near the singularity d2q/du2 is large, and an explicit step would overshoot to rest.
+        Per joint the midpoint's acceleration is c x + e (x the new r^2), kept within +-acc on the side
+        the progress acceleration pushes it (sign dq/du)."""
+        d = sign * dQm[j]
+        c = 0.5 * ddQm[j] + d / (2.0 * du[j])
+        e = x_from * (0.5 * ddQm[j] - d / (2.0 * du[j]))
+        k = j + 1 if sign > 0.0 else j
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ups = np.where((d > 0.0) & (c > 0.0), (acc - e) / c,
+                           np.where((d < 0.0) & (c < 0.0), (-acc - e) / c, math.inf))
+        return max(0.0, min(float(ceiling[k]), float(np.min(ups))))
+
+    x = ceiling.copy()
+    x[0] = x[-1] = 0.0
+    for k in range(1, n):
+        x[k] = min(x[k], reach(k - 1, float(x[k - 1]), 1.0))
+    for k in range(n - 2, -1, -1):
+        x[k] = min(x[k], reach(k, float(x[k + 1]), -1.0))
+    best = single_peaked(np.sqrt(x), weight)
+    t = np.concatenate(([0.0], np.cumsum(2.0 * du / np.maximum(best[1:] + best[:-1], 1e-12))))
+    # the joints along the result, per step at its midpoint: the duration stretched to keep every one
+    # within the limits (the passes are exact only to their step)
+    x = best * best
+    ud2 = (np.diff(x) / (2.0 * du))[:, None]
+    mid = 0.5 * (x[1:] + x[:-1])[:, None]
+    vel_ratio = np.max(np.abs(dQ) * best[:, None] / vel)
+    acc_ratio = np.max(np.abs(dQm * ud2 + ddQm * mid) / acc)
+    stretch = max(1.0, float(vel_ratio), math.sqrt(float(acc_ratio)))
+    # within a step the progress acceleration is constant: u is quadratic in time there (a step taken at
+    # constant speed would stop dead at the end, where the last step can take a few tenths of a second)
+    tq = np.linspace(0.0, t[-1], CLOCK_SAMPLES)
+    k = np.clip(np.searchsorted(t, tq, side="right") - 1, 0, n - 2)
+    tau = tq - t[k]
+    clock = np.minimum(u[k] + best[k] * tau + 0.5 * ud2[k, 0] * tau * tau, u[k + 1])
+    clock[-1] = 1.0
+    return clock + np.linspace(0.0, 1e-9, CLOCK_SAMPLES), float(t[-1]) * stretch
+
+
+def braking_need(Q: np.ndarray, dQ: np.ndarray, acc: np.ndarray, limits: tuple[np.ndarray, np.ndarray]
+                 ) -> np.ndarray:
+    """Per sample, the time per unit of the path parameter (s) below which a joint at ``Q`` moving at
+    ``dQ`` (per unit of the parameter) towards a limit could no longer stop before it braking at ``acc``:
+    |dq| / sqrt(2 acc d), d the distance to that limit. A route that keeps it never makes the command's
+    limiter brake a joint onto its limit (the hand would leave the line)."""
+    lower, upper = limits
+    d = np.where(dQ > 0.0, upper - Q, Q - lower)
+    return np.max(np.abs(dQ) / np.sqrt(2.0 * acc * np.maximum(d, 1e-12)), axis=1)
+
+
 def route_duration(corridor: SwivelCorridor, length: float, angle: float, v_max: float, w_max: float,
                    s_rate: float, max_vel: np.ndarray, max_acc: np.ndarray, share: float,
-                   pace_u: np.ndarray | None = None, clock_u: np.ndarray | None = None) -> float:
+                   pace_u: np.ndarray | None = None, clock_u: np.ndarray | None = None,
+                   limits: tuple[np.ndarray, np.ndarray] | None = None) -> float:
     """The least duration (s) of the minimum-jerk route in the pace ``pace_u`` (None: in u), or of the
     route on the clock ``clock_u`` (:func:`single_peaked_clock`), within the limits (see the module
-    docstring)."""
+    docstring); given the joints' position ``limits`` (lower, upper), also slow enough that every joint
+    can stop before its limit at ``share`` of its acceleration (:func:`braking_need`)."""
     # (the clock's ramps can be short: as finely as it is sampled)
     x = np.linspace(0.0, 1.0, PACE_SAMPLES if clock_u is None else CLOCK_SAMPLES)
     sig = min_jerk(x)
@@ -205,7 +352,10 @@ def route_duration(corridor: SwivelCorridor, length: float, angle: float, v_max:
     # corners give a few samples a large second difference (the IK step and the command's acceleration
     # limit absorb those; the route's clock then waits for the hand)
     need = np.percentile(ddq, 95, axis=0) / (share * max_acc)
-    return max(T, math.sqrt(float(np.max(need))))
+    T = max(T, math.sqrt(float(np.max(need))))
+    if limits is not None:
+        T = max(T, float(np.max(braking_need(Q, np.gradient(Q, x, axis=0), share * max_acc, limits))))
+    return T
 
 
 def smoothed(arm: CorridorArm, T0: np.ndarray, T1: np.ndarray, cor: SwivelCorridor, m_limit: float,
@@ -331,22 +481,46 @@ def route_margins(arm: CorridorArm, T0: np.ndarray, T1: np.ndarray, q0: np.ndarr
     return out
 
 
+#: :func:`fallback_margins`: the joint-limit margin (rad, at most) and the share of the singularity margins
+FALLBACK_LIMIT = 0.02
+FALLBACK_SING = 1.0 / 3.0
+
+
+def fallback_margins(m: RouteMargins) -> RouteMargins:
+    """The margins of a last try of the straight route after ``m`` (the loosest of :func:`route_margins`)
+    closed: the joint limits FALLBACK_LIMIT, the singularities FALLBACK_SING of ``m``'s. A route near a
+    limit is timed so that the joint can stop before it (:func:`braking_need`); near the shoulder
+    singularity joints 1 and 3 swing fast, and the route's clock slows there (:func:`fast_clock`)."""
+    return replace(m, limit=min(m.limit, FALLBACK_LIMIT), shoulder=FALLBACK_SING * m.shoulder,
+                   wrist=FALLBACK_SING * m.wrist, elbow=FALLBACK_SING * m.elbow)
+
+
 def timed_route(route: CorridorRoute, length: float, angle: float, v_max: float, w_max: float, s_rate: float,
-                max_vel: np.ndarray, max_acc: np.ndarray, share: float, pace_after: float) -> CorridorRoute:
+                max_vel: np.ndarray, max_acc: np.ndarray, share: float, pace_after: float,
+                arm: CorridorArm | None = None) -> CorridorRoute:
     """``route`` (of hand path ``length`` m and turn ``angle`` rad) with its duration: the minimum-jerk
     profile in u unless that takes longer than ``pace_after`` (s); then the pace (:func:`route_pace`)
-    made single-peaked (:func:`single_peaked_clock`) unless that too takes longer; then the pace."""
+    made single-peaked (:func:`single_peaked_clock`) unless that too takes longer; then (given the
+    ``arm``) the clock along the joints' limits (:func:`fast_clock`); else the faster of that and the pace."""
     cor = route.corridor
-    T = route_duration(cor, length, angle, v_max, w_max, s_rate, max_vel, max_acc, share)
+    limits = None if arm is None else (np.asarray(arm.lower, float), np.asarray(arm.upper, float))
+    timing = (cor, length, angle, v_max, w_max, s_rate, max_vel, max_acc, share)
+    T = route_duration(*timing, limits=limits)
     if T <= pace_after:
         return replace(route, duration=T, pace_u=None, clock_u=None)
     pace_u = route_pace(cor, length, angle, v_max, w_max, s_rate, max_vel)
     clock_u = single_peaked_clock(pace_u)
-    T = route_duration(cor, length, angle, v_max, w_max, s_rate, max_vel, max_acc, share, clock_u=clock_u)
+    T = route_duration(*timing, clock_u=clock_u, limits=limits)
     if T <= pace_after:
         return replace(route, duration=T, pace_u=None, clock_u=clock_u)
-    T = route_duration(cor, length, angle, v_max, w_max, s_rate, max_vel, max_acc, share, pace_u)
-    return replace(route, duration=T, pace_u=pace_u, clock_u=None)
+    T = route_duration(*timing, pace_u, limits=limits)
+    paced = replace(route, duration=T, pace_u=pace_u, clock_u=None)
+    if arm is None or len(cor.u) < 2:
+        return paced
+    clock_u, T_fast = fast_clock(arm, route, length, angle, v_max, w_max, s_rate, max_vel, max_acc, share)
+    if T_fast <= max(pace_after, T):
+        return replace(route, duration=max(T_fast, MIN_DURATION), pace_u=None, clock_u=clock_u)
+    return paced
 
 
 def _slower(a: CorridorRoute, b: CorridorRoute) -> bool:
@@ -376,9 +550,11 @@ def plan_route(arm: CorridorArm, T0: np.ndarray, T1: np.ndarray, q0: np.ndarray,
     u (a single-peaked hand speed) unless that takes longer than ``pace_after`` (s): then in the pace
     (:func:`route_pace`; the hand slows where the joints swing).
 
-    ``fast``: a route that takes over GUIDE_AFTER times the hand's own time, or none, is planned again
-    with the schedule on the speed guide (the swivel rate bound GUIDE_RATE) and the better of the two
-    kept (not paced, then the shorter). ``window``: the schedule's smoothing (:func:`smoothed`)."""
+    ``fast``: without a corridor at those margins, the :func:`fallback_margins` are tried too; a route
+    that takes over GUIDE_AFTER times the hand's own time, or none, is planned again with the schedule
+    on the speed guide (the swivel rate bound GUIDE_RATE) and the better of the two kept (not paced, then
+    the shorter); a route too slow in the pace may follow the joints' limits (:func:`timed_route`).
+    ``window``: the schedule's smoothing (:func:`smoothed`)."""
     p0 = (float(T0[0, 3]), float(T0[1, 3]), float(T0[2, 3]))
     p1 = (float(T1[0, 3]), float(T1[1, 3]), float(T1[2, 3]))
     r0, r1 = quat_from_matrix(T0[:3, :3]), quat_from_matrix(T1[:3, :3])
@@ -389,9 +565,11 @@ def plan_route(arm: CorridorArm, T0: np.ndarray, T1: np.ndarray, q0: np.ndarray,
 
     def route_of(cor: SwivelCorridor, m: RouteMargins) -> CorridorRoute:
         cor = smoothed(arm, T0, T1, cor, m.limit, min(m.shoulder, m.wrist), m.elbow, window)
-        return timed_route(CorridorRoute(p0, p1, r0, turn, cor, 0.0), *timing)
+        return timed_route(CorridorRoute(p0, p1, r0, turn, cor, 0.0), *timing, arm=arm if fast else None)
 
     tries = route_margins(arm, T0, T1, q0, margin_sing, margin_limit)
+    if fast:
+        tries.append(fallback_margins(tries[-1]))
     cor, m = _find_corridor(arm, T0, T1, q0, preferred, tries)
     route = route_of(cor, m) if cor.found else None
     why = cor.reason
