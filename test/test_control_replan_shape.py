@@ -45,7 +45,7 @@ def test_the_cheapest_goal_configuration_bends_the_hand_path_least(monkeypatch: 
     assert cands and np.allclose(ARM.fk(cands[0].q), T, atol=1e-9)
     assert np.all(cands[0].q >= ARM.lower) and np.all(cands[0].q <= ARM.upper)
     assert hand_ratio(READY, cands[0].q) < 1.2
-    monkeypatch.setattr(replan, "BEND_COST", 0.0)  # by the move's time alone
+    monkeypatch.setattr(replan, "GOAL_BEND_COST", 0.0)  # by the move's time alone
     fastest = goal_candidates(stepper, guard, T, READY, Scene(), ReplanParams(), None)[0]
     assert hand_ratio(READY, fastest.q) > 1.5
     assert move_time(cands[0].q - READY, ARM.max_vel, ARM.max_acc) \
@@ -152,3 +152,58 @@ def speed_peaks(v: np.ndarray) -> int:
             if hi - x >= h:
                 peaks, up, lo = peaks + 1, False, x
     return peaks + up
+
+
+def reach(arm: object, q0: np.ndarray, q_goal: np.ndarray) -> tuple[np.ndarray, set[str]]:
+    """The commanded joints of a free-space point goal at the tool pose of ``q_goal`` from ``q0``
+    (corridor routes off: the joint-space move), and the messages on the way; it must be REACHED."""
+    ctl = make_controller(arm, Scene(), ControllerParams.from_dict({"replan": {"corridor": False}}))
+    ctl.reset(q0)
+    assert ctl.set_goal(arm.fk(q_goal)).accepted
+    qs, messages = [q0], set()
+    for _ in range(1500):
+        r = ctl.step(DT)
+        qs.append(r.q)
+        messages.add(r.message)
+        if r.phase is Phase.REACHED:
+            break
+    assert r.phase is Phase.REACHED
+    Q = np.array(qs)
+    assert np.all(Q >= arm.lower) and np.all(Q <= arm.upper)
+    assert np.all(np.abs(np.diff(Q, axis=0)) <= np.asarray(arm.max_vel) * DT * (1 + 1e-9))
+    assert np.all(np.abs(np.diff(Q, n=2, axis=0)) <= np.asarray(arm.max_acc) * DT * DT * (1 + 1e-9))
+    return Q, messages
+
+
+def hand_speed(arm: object, Q: np.ndarray) -> tuple[np.ndarray, float]:
+    """The hand's speed (m/s) along commanded joints ``Q``, and its path over its straight distance."""
+    P = arm.fk_batch(Q)[:, :3, 3]
+    v = np.linalg.norm(np.diff(P, axis=0), axis=1) / DT
+    return v, float(np.sum(v) * DT / np.linalg.norm(P[-1] - P[0]))
+
+
+def test_a_bend_of_two_half_waves_worth_its_time_straightens_the_hand_path_to_a_single_bell() -> None:
+    """The PowerCube arm's straight route to this goal runs joint 3 into its limit; the straight joint
+    move swings the hand 20 % off the line. The bend is searched for what the move costs (its paced
+    duration plus the hand's excess path), with two half-waves per joint: the hand's path within 5 % of
+    the line, paced to one minimum-jerk bell."""
+    arm = load_arm("powercube7")
+    q0 = np.array([0.714231, 0.800287, 2.772471, -0.707156, 2.776215, 1.32074, 0.686244])
+    q1 = np.array([-0.834395, 0.57861, 2.645131, -0.789873, 0.309778, -1.292967, 1.962486])
+    Q, messages = reach(arm, q0, q1)
+    assert any(m.startswith("moving in joint space (bent: the hand's path") for m in messages), messages
+    v, ratio = hand_speed(arm, Q)
+    assert ratio < 1.05
+    assert speed_peaks(v) == 1
+
+
+def test_a_start_closer_than_the_clearance_is_left_by_the_bent_move_without_a_stop() -> None:
+    """The PA10 starts 14 mm from itself (the planning clearance is more): the bent move gets clear on
+    its way, one bell, where a retreat first and then the move made the hand stop and start again."""
+    q0 = np.array([2.235862, -1.568157, 2.048432, 1.163047, 3.429334, -0.53051, 2.101875])
+    q1 = np.array([1.869266, -0.123214, -0.774378, 1.639934, 3.291239, -2.242345, -2.526043])
+    Q, messages = reach(ARM, q0, q1)
+    assert any(m.startswith("moving in joint space (bent: the hand's path") for m in messages), messages
+    v, ratio = hand_speed(ARM, Q)
+    assert speed_peaks(v) == 1
+    assert ratio < 1.15

@@ -188,3 +188,27 @@ def test_the_swivel_rate_does_not_jump_at_the_via():
     assert float(np.max(np.abs(np.diff(rate))[near])) < 0.3
     Q = route.corridor.q
     assert np.all(Q >= np.asarray(arm.lower) - 1e-9) and np.all(Q <= np.asarray(arm.upper) + 1e-9)
+
+
+def test_a_paced_via_route_is_kept_only_while_no_single_peaked_one_is_found():
+    """A route in the pace (the hand slows where the joints swing and speeds up again: several speed
+    peaks) is taken only if no later candidate gives a single-peaked one."""
+    arm = load_arm("pa10")
+    leg, _ = _legs(arm)
+    calls = []
+    timing = (0.4, 1.5, 1.0, np.asarray(arm.max_vel), np.asarray(arm.max_acc), 0.7)
+
+    def first_paced(route, length, angle):
+        calls.append(route.via)
+        return timed_route(route, length, angle, *timing, pace_after=0.0 if len(calls) == 1 else math.inf)
+
+    def all_paced(route, length, angle):
+        return timed_route(route, length, angle, *timing, pace_after=0.0)
+
+    T0 = arm.fk(Q_START)
+    route, search = plan_via_route(arm, T0, T_GOAL, Q_START, MARGIN_SING, MARGIN_LIMIT, leg, first_paced)
+    assert route is not None and route.pace_u is None
+    assert len(calls) == 2 and route.via is calls[1] and search.planned == 2
+    # with every route paced, the first is taken after all
+    route, search = plan_via_route(arm, T0, T_GOAL, Q_START, MARGIN_SING, MARGIN_LIMIT, leg, all_paced)
+    assert route is not None and route.pace_u is not None and np.allclose(route.via.T, calls[0].T)

@@ -13,7 +13,7 @@ after homing); a reactive method then stops for good. This module supplies the w
   joint-space move at the velocity/acceleration limits + a penalty for limit margins below
   ``limit_margin`` + a little for a swivel far from the preferred one + a little for a clearance below
   ``clearance``; colliding ones are dropped. In free space also the time the elbow takes to settle
-  on its preferred swivel after the move (at ``SETTLE_RATE``) and ``BEND_COST``
+  on its preferred swivel after the move (at ``SETTLE_RATE``) and ``GOAL_BEND_COST``
   per unit of the hand path's excess length on the straight joint segment (the straightest reach
   among the branches and swivels).
 * :class:`JointPlanner` searches a collision-free joint path to one of them, cheapest first: the
@@ -148,8 +148,12 @@ def _copies(q: np.ndarray, lower: np.ndarray, upper: np.ndarray, wide: list[int]
 
 
 #: s of goal-candidate cost per unit of the hand path's excess length (path ratio - 1) on the straight
-#: joint segment to it: a hand path 10 % longer weighs as much as a move BEND_COST / 10 s slower
-BEND_COST = 8.0
+#: joint segment to it: a hand path 10 % longer weighs as much as a move GOAL_BEND_COST / 10 s slower
+#: (more, and the goal configurations far from the elbow's preferred swivel win: it settles for long)
+GOAL_BEND_COST = 8.0
+#: the same for the bend of the move (:func:`bend_search`, :func:`worth_bending`): a bent move may take
+#: BEND_COST / 10 s longer per 10 % of the hand's path it saves
+BEND_COST = 24.0
 #: rad/s at which the elbow settles on its preferred swivel after a joint-space move, about: a free-space
 #: goal candidate's swivel off the preferred one costs the time that takes
 SETTLE_RATE = 0.3
@@ -181,41 +185,85 @@ def hand_path_ratio(arm: Any, q_from: np.ndarray, Q: np.ndarray, samples: int = 
 BEND_STEP, BEND_MIN_STEP = 0.3, 0.01
 BEND_CURVE_SAMPLES = 16
 BEND_GAIN = 0.02
+#: half-waves of the bend: joint j moves off the straight segment by sum_h bump[h, j] sin((h + 1) pi s);
+#: the second lets the joints' detour lean towards either end (one half-wave is symmetric)
+BEND_HARMONICS = 2
+
+
+def _bend_basis(s: np.ndarray, harmonics: int, order: int = 0) -> np.ndarray:
+    """The half-waves sin((h + 1) pi s) (``order`` 0) or their first or second derivative in s, at path
+    parameters ``s`` (k,): (k, harmonics)."""
+    w = math.pi * np.arange(1, harmonics + 1)
+    ws = np.outer(s, w)
+    if order == 0:
+        return np.sin(ws)
+    if order == 1:
+        return w * np.cos(ws)
+    return -w * w * np.sin(ws)
 
 
 def bent_points(qa: np.ndarray, qb: np.ndarray, bend: np.ndarray, s: np.ndarray) -> np.ndarray:
     """Joints (len(s), n) of the bent segment qa -> qb at path parameters ``s`` in [0, 1]: the straight
-    segment plus ``bend`` (rad per joint) times sin(pi s), which is 0 at both ends."""
-    return qa + s[:, None] * (qb - qa) + np.sin(math.pi * s)[:, None] * bend
+    segment plus the half-waves of ``bend`` ((h, n) rad, or (n,) for one: row h times sin((h + 1) pi s)),
+    which are 0 at both ends."""
+    bump = np.atleast_2d(bend)
+    return qa + s[:, None] * (qb - qa) + _bend_basis(s, len(bump)) @ bump
 
 
-def _bent_ratios(arm: Any, qa: np.ndarray, qb: np.ndarray, bends: np.ndarray, lower: np.ndarray,
-                 upper: np.ndarray) -> np.ndarray:
-    """The hand's path ratio on each bent segment (rows of ``bends``); inf where one leaves the limits."""
+def _pace_time(C: np.ndarray, lengths: np.ndarray, inv_vel: np.ndarray) -> np.ndarray:
+    """About the least duration (s) of each joint curve (k, m, n samples) paced so that the hand's path
+    length follows the minimum-jerk profile, at the joints' velocity limits (``inv_vel`` their
+    inverse): at each of its steps (hand step ``lengths`` (k, m - 1)) the joint time the step takes
+    over its share of the hand's path, times the profile's rate there."""
+    joint = np.max(np.abs(np.diff(C, axis=1)) * inv_vel, axis=2)  # (k, m - 1) s at full speed
+    total = np.sum(lengths, axis=1, keepdims=True)
+    cum = np.cumsum(lengths, axis=1) - 0.5 * lengths
+    x = np.interp(cum / np.maximum(total, 1e-12), _MJ_PROGRESS, _MJ_TIME)
+    share = lengths / np.maximum(total, 1e-12)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(share > 1e-9, min_jerk_rate(x) * joint / share, np.where(joint > 1e-9, np.inf, 0.0))
+    return np.max(t, axis=1)
+
+
+_MJ_TIME = np.linspace(0.0, 1.0, 1001)
+_MJ_PROGRESS = min_jerk(_MJ_TIME)
+
+
+def _bent_costs(arm: Any, qa: np.ndarray, qb: np.ndarray, bends: np.ndarray, lower: np.ndarray,
+                upper: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The hand's path ratio on each bent segment (``bends`` (k, h, n)) and its cost: about the least
+    duration of its paced move plus BEND_COST per unit of excess ratio; inf where one leaves the
+    limits."""
     s = np.linspace(0.0, 1.0, BEND_CURVE_SAMPLES + 1)
-    C = np.stack([bent_points(qa, qb, b, s) for b in bends])
+    base = qa + s[:, None] * (qb - qa)
+    C = base[None] + np.einsum("mh,khn->kmn", _bend_basis(s, bends.shape[1]), bends)
     P, steps = _hand_paths(arm, C)
     inside = np.all((C >= lower) & (C <= upper), axis=(1, 2))
     straight = max(float(np.linalg.norm(P[0, -1] - P[0, 0])), 1e-3)
-    return np.where(inside, np.sum(steps, axis=1) / straight, np.inf)
+    ratio = np.where(inside, np.sum(steps, axis=1) / straight, np.inf)
+    t = _pace_time(C, steps, 1.0 / np.asarray(arm.max_vel, float))
+    return ratio, np.where(inside, t + BEND_COST * (ratio - 1.0), np.inf)
 
 
-def bend_search(arm: Any, qa: np.ndarray, qb: np.ndarray, lower: np.ndarray, upper: np.ndarray
-                ) -> Generator[None, None, tuple[np.ndarray, float, float]]:
-    """The bend (rad per joint, see :func:`bent_points`) of the joint segment qa -> qb whose hand path is
-    shortest, within the limits: a coordinate search (each joint's bend up and down by a step, the step
-    halved when none shortens the path, down to BEND_MIN_STEP). A generator, one iteration per step
-    tried; returns (bend, the straight segment's path ratio, the bent one's)."""
-    bend = np.zeros(len(qa))
-    straight = best = float(_bent_ratios(arm, qa, qb, bend[None], lower, upper)[0])
+def bend_search(arm: Any, qa: np.ndarray, qb: np.ndarray, lower: np.ndarray, upper: np.ndarray,
+                harmonics: int = BEND_HARMONICS) -> Generator[None, None, tuple[np.ndarray, float, float]]:
+    """The bend ((harmonics, n) rad, see :func:`bent_points`) of the joint segment qa -> qb that is
+    cheapest (about its paced duration plus BEND_COST per unit of the hand's excess path ratio), within
+    the limits: a coordinate search (each half-wave of each joint up and down by a step, the step halved
+    when none is cheaper, down to BEND_MIN_STEP). A generator, one iteration per step tried; returns
+    (bend, the straight segment's path ratio, the bent one's)."""
+    n = len(qa)
+    bend = np.zeros((harmonics, n))
+    ratio0, cost0 = _bent_costs(arm, qa, qb, bend[None], lower, upper)
+    straight, best = float(ratio0[0]), float(cost0[0])
     step = BEND_STEP
-    eye = np.vstack((np.eye(len(qa)), -np.eye(len(qa))))
+    moves = np.concatenate((np.eye(harmonics * n), -np.eye(harmonics * n))).reshape(-1, harmonics, n)
     while step >= BEND_MIN_STEP:
         yield None
-        ratios = _bent_ratios(arm, qa, qb, bend + step * eye, lower, upper)
-        k = int(np.argmin(ratios))
-        if ratios[k] < best - 1e-4:
-            bend, best = bend + step * eye[k], float(ratios[k])
+        _, costs = _bent_costs(arm, qa, qb, bend + step * moves, lower, upper)
+        k = int(np.argmin(costs))
+        if costs[k] < best - 1e-3:
+            bend, best = bend + step * moves[k], float(costs[k])
         else:
             step *= 0.5
     # (the samples keep the limits; between them the curve may bulge past one: shrunk until dense
@@ -227,50 +275,57 @@ def bend_search(arm: Any, qa: np.ndarray, qb: np.ndarray, lower: np.ndarray, upp
             break
         bend = 0.8 * bend
     else:
-        return np.zeros(len(qa)), straight, straight
-    best = float(_bent_ratios(arm, qa, qb, bend[None], lower, upper)[0])
-    return bend, straight, best
+        return np.zeros((harmonics, n)), straight, straight
+    ratio, _ = _bent_costs(arm, qa, qb, bend[None], lower, upper)
+    return bend, straight, float(ratio[0])
 
 
-#: degrees of the polynomial that paces a bent segment by the hand's path length (the best fit is
-#: taken), and its samples
-PACE_DEGREES, PACE_SAMPLES = (5, 7, 9, 11), 64
+#: intervals of the table that paces a bent segment by the hand's path length, the finer samples per
+#: interval at which that length is measured, and the least speed of the hand along the curve (share of
+#: its mean) that a pace follows (slower, the joints would have to race: no pace)
+PACE_SAMPLES, PACE_FINE = 128, 8
+PACE_MIN_SPEED = 0.05
 
 
 @dataclass(frozen=True)
 class Bend:
-    """A bent joint segment's shape: ``bump`` (rad per joint, see :func:`bent_points`) and ``pace``, the
-    coefficients c of s(sigma) = sigma + sigma (1 - sigma) poly(c, sigma) (highest power first), the
-    path parameter at the share sigma of the hand's path length, so that a minimum-jerk profile in
-    sigma gives the hand the bell of a minimum-jerk reach; ``ratio`` the hand path over the line."""
+    """A bent joint segment's shape: ``bump`` (rad, see :func:`bent_points`) and ``pace``, the path
+    parameter s as a function of the share sigma of the hand's path length (so that a minimum-jerk
+    profile in sigma gives the hand the bell of a minimum-jerk reach): a monotone cubic Hermite table,
+    rows sigma, s and ds/dsigma at its nodes; ``ratio`` the hand path over the line."""
 
     bump: np.ndarray
     pace: np.ndarray
     ratio: float
 
 
+#: the pace of a segment whose path parameter is the time law itself (s = sigma)
+NO_PACE = np.array([[0.0, 1.0], [0.0, 1.0], [1.0, 1.0]])
+
+
 def paced_bend(arm: Any, qa: np.ndarray, qb: np.ndarray, bump: np.ndarray) -> Bend:
-    """The :class:`Bend` of the segment qa -> qb bent by ``bump``: its pace fitted to the hand's path
-    length at PACE_SAMPLES samples, the increasing fit of PACE_DEGREES nearest them (no pace, s = sigma,
-    where none is increasing)."""
-    s = np.linspace(0.0, 1.0, PACE_SAMPLES + 1)
+    """The :class:`Bend` of the segment qa -> qb bent by ``bump``: its pace tabulated at PACE_SAMPLES + 1
+    nodes evenly spaced in s, the hand's path length measured PACE_FINE times finer, the slopes from its
+    rate along the curve (limited so that the table is monotone); no pace where the hand moves slower
+    than PACE_MIN_SPEED of its mean along the curve."""
+    m = PACE_SAMPLES * PACE_FINE
+    s = np.linspace(0.0, 1.0, m + 1)
     Ps, steps = _hand_paths(arm, bent_points(qa, qb, bump, s)[None])
     P, cum = Ps[0], np.concatenate(([0.0], np.cumsum(steps[0])))
-    ratio = float(cum[-1] / max(float(np.linalg.norm(P[-1] - P[0])), 1e-3))
-    none = Bend(bump, np.zeros(1), ratio)
-    if cum[-1] < 1e-3:
-        return none
-    sigma = cum / cum[-1]
-    inner = (sigma > 1e-3) & (sigma < 1.0 - 1e-3)
-    si = sigma[inner]
-    dense = np.linspace(0.0, 1.0, 401)
-    best, worst = none, math.inf
-    for degree in PACE_DEGREES:  # the increasing fit nearest the samples
-        c = np.polyfit(si, (s[inner] - si) / (si * (1.0 - si)), degree)
-        miss = float(np.max(np.abs(_pace(c, sigma)[0] - s)))
-        if miss < worst and np.min(_pace(c, dense)[1]) > 0.05:
-            best, worst = Bend(bump, c, ratio), miss
-    return best
+    total = float(cum[-1])
+    ratio = total / max(float(np.linalg.norm(P[-1] - P[0])), 1e-3)
+    if total < 1e-3:
+        return Bend(bump, NO_PACE, ratio)
+    rate = np.gradient(P, s, axis=0, edge_order=2)  # dP/ds
+    speed = np.linalg.norm(rate[::PACE_FINE], axis=1)
+    if float(np.min(speed)) < PACE_MIN_SPEED * total:
+        return Bend(bump, NO_PACE, ratio)
+    sigma, s_n = cum[::PACE_FINE] / total, s[::PACE_FINE]
+    slope = total / speed
+    secant = np.diff(s_n) / np.diff(sigma)
+    slope[:-1] = np.minimum(slope[:-1], 3.0 * secant)  # (Fritsch-Carlson: no overshoot)
+    slope[1:] = np.minimum(slope[1:], 3.0 * secant)
+    return Bend(bump, np.array([sigma, s_n, slope]), ratio)
 
 
 #: shares of the searched bend weighed against the straight move (a bend lengthens the joints' travel)
@@ -291,11 +346,19 @@ def worth_bending(arm: Any, qa: np.ndarray, qb: np.ndarray, bump: np.ndarray, st
     return best
 
 
-def _pace(c: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """s, ds/dsigma, d2s/dsigma2 of the pace ``c`` (see :class:`Bend`) at ``sigma``."""
-    p, p1, p2 = np.polyval(c, sigma), np.polyval(np.polyder(c), sigma), np.polyval(np.polyder(c, 2), sigma)
-    w, w1 = sigma * (1.0 - sigma), 1.0 - 2.0 * sigma
-    return sigma + w * p, 1.0 + w1 * p + w * p1, -2.0 * p + 2.0 * w1 * p1 + w * p2
+def _pace(table: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """s, ds/dsigma, d2s/dsigma2 of the pace ``table`` (see :class:`Bend`) at ``sigma`` (any shape)."""
+    nodes, values, slopes = table
+    x = np.clip(np.asarray(sigma, float), 0.0, 1.0)
+    k = np.clip(np.searchsorted(nodes, x, side="right") - 1, 0, len(nodes) - 2)
+    h = nodes[k + 1] - nodes[k]
+    t = (x - nodes[k]) / h
+    y0, y1, m0, m1 = values[k], values[k + 1], slopes[k] * h, slopes[k + 1] * h
+    t2, t3 = t * t, t * t * t
+    s = (2 * t3 - 3 * t2 + 1) * y0 + (t3 - 2 * t2 + t) * m0 + (3 * t2 - 2 * t3) * y1 + (t3 - t2) * m1
+    s1 = ((6 * t2 - 6 * t) * (y0 - y1) + (3 * t2 - 4 * t + 1) * m0 + (3 * t2 - 2 * t) * m1) / h
+    s2 = ((12 * t - 6) * (y0 - y1) + (6 * t - 4) * m0 + (6 * t - 2) * m1) / (h * h)
+    return s, s1, s2
 
 
 @dataclass(frozen=True)
@@ -357,7 +420,7 @@ def goal_candidates_iter(stepper: IKStepper, guard: CollisionGuard, T: np.ndarra
             cost += ds / SETTLE_RATE
     if free:  # (near obstacles the clearance comes first)
         for i in range(0, len(Q), 128):
-            cost[i:i + 128] += BEND_COST * (hand_path_ratio(arm, q_from, Q[i:i + 128]) - 1.0)
+            cost[i:i + 128] += GOAL_BEND_COST * (hand_path_ratio(arm, q_from, Q[i:i + 128]) - 1.0)
             yield None
     out: list[Candidate] = []
     for n, i in enumerate(np.argsort(cost, kind="stable")):
@@ -469,22 +532,12 @@ class JointPlanner:
         if c_start < 0.0:
             self.reason = f"the arm is in contact with the scene (clearance {c_start:.3f} m)"
             return
-        head: list[np.ndarray] = []
         start = self.q_start
         lo, up = g.lower, g.upper
-        if c_start < p.clearance + g.step:
-            for q_r in self.retreat[:8]:
-                ok = yield from self._segment(start, q_r)
-                if ok:
-                    head, start = [start], q_r
-                    break
-            else:
-                esc = yield from self._escape(start, c_start)
-                if esc:
-                    head, start = [start, *esc[:-1]], esc[-1]
-        if not head and self.scene.free_space:
+        if self.scene.free_space:
             # free space: the direct move to the cheapest goal bent so that the hand's path is shortest,
-            # checked as the polyline through its samples
+            # checked as the polyline through its samples (from a start closer than the clearance, it
+            # must get clear first, as a retreat would: the march's dense part)
             arm, q_goal = self.stepper.arm, self.goals[0].q
             bend, straight, bent = yield from bend_search(arm, start, q_goal, lo, up)
             shape = worth_bending(arm, start, q_goal, bend, straight) if bent < straight - BEND_GAIN else None
@@ -496,6 +549,17 @@ class JointPlanner:
                 if ok:
                     self.path, self.bends = [start, q_goal], [shape]
                     return
+        head: list[np.ndarray] = []
+        if c_start < p.clearance + g.step:
+            for q_r in self.retreat[:8]:
+                ok = yield from self._segment(start, q_r)
+                if ok:
+                    head, start = [start], q_r
+                    break
+            else:
+                esc = yield from self._escape(start, c_start)
+                if esc:
+                    head, start = [start, *esc[:-1]], esc[-1]
         tries: list[list[np.ndarray]] = [[start, c.q] for c in self.goals]
         f0 = fold_posture(start, self.fold_pitch, lo, up)
         tries += [[start, f0, fold_posture(c.q, self.fold_pitch, lo, up), c.q] for c in self.goals[:3]]
@@ -558,7 +622,7 @@ def _dedupe(points: list[np.ndarray]) -> list[np.ndarray]:
 # Timing
 # ----------------------------------------------------------------------------------------------
 #: samples of a bent segment's time law at which its joint rates are bounded
-BEND_TIMING_SAMPLES = 401
+BEND_TIMING_SAMPLES = 1025
 
 
 @dataclass(frozen=True)
@@ -588,8 +652,10 @@ def _bent_motion(dq: np.ndarray, bend: Bend, x: np.ndarray) -> tuple[np.ndarray,
     sig, sig1, sig2 = min_jerk(x), min_jerk_rate(x), min_jerk_accel(x)
     s, g1, g2 = _pace(bend.pace, sig)
     s_x, s_xx = g1 * sig1, g2 * sig1 * sig1 + g1 * sig2
-    tangent = dq + math.pi * np.cos(math.pi * s) * bend.bump  # dq/ds
-    return s, tangent * s_x, tangent * s_xx - math.pi * math.pi * np.sin(math.pi * s) * bend.bump * s_x * s_x
+    bump = np.atleast_2d(bend.bump)
+    tangent = dq + _bend_basis(s[:, 0], len(bump), 1) @ bump  # dq/ds
+    curve = _bend_basis(s[:, 0], len(bump), 2) @ bump  # d2q/ds2
+    return s, tangent * s_x, tangent * s_xx + curve * s_x * s_x
 
 
 class JointPath:

@@ -17,7 +17,9 @@ the line least:
   ``VIA_SWIVELS`` swivels (nearest the start's first); the first ``MAX_PLANS`` that pass are planned in
   full (:func:`~redarm_ros.control.corridor_route.plan_route`: leg 1 preferring the via swivel that
   passed, leg 2 from leg 1's last configuration, so both keep the start's flip pattern), and the first
-  whose two corridors exist (and whose route is not too slow) is taken.
+  whose two corridors exist (and whose route is not too slow) is taken; one whose route is paced (the
+  hand's speed with several peaks, see :func:`~redarm_ros.control.corridor_route.timed_route`) only if
+  no later one is single-peaked.
 
 The route (:class:`ViaRoute`) is one minimum-jerk profile over both legs, the progress proportional
 to the hand's path length, the swivel on the two schedules joined. Around the via the corner is cut by
@@ -307,6 +309,7 @@ def plan_via_route(arm: CorridorArm, T0: np.ndarray, T1: np.ndarray, q0: np.ndar
     ``margin_limit`` are the corridor's; the screen keeps the loosest that :func:`route_margins` gives the
     straight route."""
     search = ViaSearch()
+    fallback: ViaRoute | None = None
     cands = via_candidates(T0, T1) if candidates is None else candidates
     s0 = float(arm.swivel(q0))
     pattern = _pattern(arm, T0, q0, s0)
@@ -344,8 +347,13 @@ def plan_via_route(arm: CorridorArm, T0: np.ndarray, T1: np.ndarray, q0: np.ndar
         if route.duration > max_duration:
             search.why = f"its route needs {route.duration:.1f} s"
             continue
-        return route, search
-    return None, search
+        if route.pace_u is None:
+            return route, search
+        # in the pace the hand slows where the joints swing and speeds up again (several speed peaks):
+        # kept while the next candidates are tried for a route with one
+        fallback = fallback or route
+        search.why = "its route is paced"
+    return fallback, search
 
 
 def _pattern(arm: CorridorArm, T0: np.ndarray, q0: np.ndarray, s0: float) -> int | None:
