@@ -164,7 +164,7 @@ if ! stamp_ok deps "$DEPS_KEY"; then
         WH_KEY="$(
             echo "$DEPS_KEY"
             "$VENV/bin/python" -c 'import sys, sysconfig; print(sys.version, sysconfig.get_platform())'
-            "$VENV/bin/python" -m pip --version
+            "$VENV/bin/python" -c 'import pip; print("pip", pip.__version__)'
             pip_config="$("$VENV/bin/python" -m pip config list 2>/dev/null | LC_ALL=C sort)"
             echo "$pip_config"
             env | grep '^PIP_' | LC_ALL=C sort
