@@ -162,7 +162,7 @@ if ! stamp_ok deps "$DEPS_KEY"; then
         # interpreter, version and configuration (constraint files included); with the wheelhouse the
         # install resolves offline, and still fails if it lacks anything rather than taking less.
         WH_KEY="$(
-            echo "$DEPS_KEY"
+            cd "$REPO" && hash_files requirements.txt requirements-build.txt
             "$VENV/bin/python" -c 'import sys, sysconfig; print(sys.version, sysconfig.get_platform())'
             "$VENV/bin/python" -c 'import pip; print("pip", pip.__version__)'
             pip_config="$("$VENV/bin/python" -m pip config list 2>/dev/null | LC_ALL=C sort)"
