@@ -198,7 +198,7 @@ if ! stamp_ok deps "$DEPS_KEY"; then
 fi
 if ! stamp_ok compiled "$DEPS_KEY"; then
     # Failures are ignored, as pip ignores them (some wheels ship files that are not Python 3.11).
-    # Left out: the wheels' own test suites and pybullet's gym examples (a third of the source), which
+    # Left out: the wheels' own test suites and pybullet's gym examples (a quarter of the source), which
     # nothing imports; anything imported there is compiled on first import.
     ( "$VENV/bin/python" -m compileall -q -j 0 -x '/(tests|pybullet_envs)/' "$VENV/lib" \
         >"$BUILD/logs/compileall.log" 2>&1 || true
