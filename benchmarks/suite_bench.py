@@ -2,14 +2,15 @@
 and whether it passes, quiet or with one core kept busy, and how much CPU it used.
 
 Each run clones the repository at one commit into a new temporary folder (nothing of this checkout's
-venv, build or caches comes along), runs ``CI=true make test`` there (set-up included, as ``.ci/run``
-does) and records the wall time in all, the set-up phase's (until pytest starts: venv, wheels,
-interfaces, ruff, the collection warm-up), pytest's own time and its summary line, the CPU time (user +
-sys) of everything the run started, the exit code and the load average before and after. The CPU time
-counts processes that outlive their parents too (this process is their subreaper); it is the measure to
-compare on a shared machine, where wall times vary with the other load. ``--busy`` keeps one core busy
-for the whole run with a shell loop at normal priority (started before the clone, ended by its PID after
-the run). The clone is removed after each run; a failed run keeps its log under ``--log-dir``.
+venv, build or caches comes along; the user's caches, pip's and the set-up's ``~/.cache/redarm_ros``, are
+used as on CI), runs ``CI=true make test`` there (set-up included, as ``.ci/run`` does) and records the
+wall time in all, the set-up phase's (until pytest starts: venv, wheels, interfaces, ruff, the collection
+warm-up), pytest's own time and its summary line, the CPU time (user + sys) of everything the run
+started, the exit code and the load average before and after. The CPU time counts processes that outlive
+their parents too (this process is their subreaper); it is the measure to compare on a shared machine,
+where wall times vary with the other load. ``--busy`` keeps one core busy for the whole run with a shell
+loop at normal priority (started before the clone, ended by its PID after the run). The clone is removed
+after each run; a failed run keeps its log under ``--log-dir``.
 
 Run: ``python3 benchmarks/suite_bench.py --runs 3`` (each run takes 7-8 minutes on 2 cores);
 ``--busy`` for the busy-core condition; ``--commit REV`` (default HEAD). Appends one row per run to
