@@ -1,12 +1,16 @@
 """Fresh-clone runs of the README's test command: how long ``CI=true make test`` takes on this machine
-and whether it passes, quiet or with one core kept busy.
+and whether it passes, quiet or with one core kept busy, and how much CPU it used.
 
 Each run clones the repository at one commit into a new temporary folder (nothing of this checkout's
-venv, build or caches comes along), runs ``CI=true make test`` there (set-up included, as ``.ci/run``
-does) and records the wall time in all, pytest's own time and its summary line, the exit code and the
-load average before and after. ``--busy`` keeps one core busy for the whole run with a shell loop at
-normal priority (started before the clone, ended by its PID after the run). The clone is removed after
-each run; a failed run keeps its log under ``--log-dir``.
+venv, build or caches comes along; the user's caches, pip's and the set-up's ``~/.cache/redarm_ros``, are
+used as on CI), runs ``CI=true make test`` there (set-up included, as ``.ci/run`` does) and records the
+wall time in all, the set-up phase's (until pytest starts: venv, wheels, interfaces, ruff, the collection
+warm-up), pytest's own time and its summary line, the CPU time (user + sys) of everything the run
+started, the exit code and the load average before and after. The CPU time counts processes that outlive
+their parents too (this process is their subreaper); it is the measure to compare on a shared machine,
+where wall times vary with the other load. ``--busy`` keeps one core busy for the whole run with a shell
+loop at normal priority (started before the clone, ended by its PID after the run). The clone is removed
+after each run; a failed run keeps its log under ``--log-dir``.
 
 Run: ``python3 benchmarks/suite_bench.py --runs 3`` (each run takes 7-8 minutes on 2 cores);
 ``--busy`` for the busy-core condition; ``--commit REV`` (default HEAD). Appends one row per run to
@@ -18,13 +22,16 @@ What it does not cover: a machine other than this one; the network namespace the
 from __future__ import annotations
 
 import argparse
+import ctypes
 import os
 import re
+import resource
 import shutil
 import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -43,6 +50,60 @@ HEADER = [
     "|---|---|---|---:|---|---|---|",
 ]
 SUMMARY = re.compile(r"=+ (.*\b(passed|failed|error)\b.*) in ([0-9.]+)s(?: \(([0-9:]+)\))? =+")
+
+
+def become_subreaper() -> None:
+    """Orphans of our children are re-parented to us (Linux), so their CPU time is counted."""
+    pr_set_child_subreaper = 36
+    try:
+        ctypes.CDLL(None, use_errno=True).prctl(pr_set_child_subreaper, 1, 0, 0, 0)
+    except (OSError, AttributeError):
+        pass
+
+
+def reap_orphans() -> None:
+    """Collect every child that has ended (orphans included) so getrusage counts it."""
+    while True:
+        try:
+            pid, _ = os.waitpid(-1, os.WNOHANG)
+        except ChildProcessError:
+            return
+        if pid == 0:
+            return
+
+
+def children_cpu_s() -> float:
+    """User + system CPU seconds of all ended and collected children so far."""
+    ru = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return ru.ru_utime + ru.ru_stime
+
+
+def run_timed(cmd: list[str], cwd: Path, env: dict[str, str], marker: str) -> tuple[int, str, float | None]:
+    """Run ``cmd`` (output merged), return its exit code (-1: timed out), its output and the seconds
+    until a line starting with ``marker`` appeared (None: never)."""
+    t0 = time.monotonic()
+    proc = subprocess.Popen(cmd, cwd=cwd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    lines: list[str] = []
+    marked: list[float] = []
+
+    def read() -> None:
+        assert proc.stdout is not None
+        for raw in proc.stdout:
+            line = raw.decode(errors="replace")
+            if not marked and line.startswith(marker):
+                marked.append(time.monotonic() - t0)
+            lines.append(line)
+
+    reader = threading.Thread(target=read, daemon=True)
+    reader.start()
+    try:
+        rc = proc.wait(TIMEOUT_S)
+    except subprocess.TimeoutExpired:
+        stop(proc)
+        rc = -1
+        lines.append("\n(timed out)")
+    reader.join(10.0)
+    return rc, "".join(lines), (marked[0] if marked else None)
 
 
 def start_hog() -> subprocess.Popen[bytes]:
@@ -73,12 +134,10 @@ def one_run(commit: str, busy: bool, log_dir: Path) -> dict[str, str]:
         subprocess.run(["git", "clone", "-q", str(REPO), str(src)], check=True)
         subprocess.run(["git", "-C", str(src), "checkout", "-q", commit], check=True)
         env = dict(os.environ, CI="true")
-        try:
-            out = subprocess.run(["make", "test"], cwd=src, env=env, stdout=subprocess.PIPE,
-                                 stderr=subprocess.STDOUT, timeout=TIMEOUT_S)
-            rc, text = out.returncode, out.stdout.decode(errors="replace")
-        except subprocess.TimeoutExpired as exc:
-            rc, text = -1, (exc.stdout or b"").decode(errors="replace") + "\n(timed out)"
+        cpu0 = children_cpu_s()
+        rc, text, setup_s = run_timed(["make", "test"], src, env, "+ pytest")
+        reap_orphans()
+        cpu = children_cpu_s() - cpu0
     finally:
         wall = time.monotonic() - t0
         if hog is not None:
@@ -100,6 +159,7 @@ def one_run(commit: str, busy: bool, log_dir: Path) -> dict[str, str]:
         result += " (" + ", ".join(f"`{t}`" for t in failed) + ")"
     return {"date": time.strftime("%Y-%m-%d %H:%M", time.gmtime()), "commit": commit[:10],
             "condition": "busy" if busy else "quiet", "wall": f"{wall:.0f}", "pytest": pytest_time,
+            "setup": "-" if setup_s is None else f"{setup_s:.0f}", "cpu": f"{cpu:.0f}",
             "result": result,
             "load": f"{load0[0]:.2f} / {load1[0]:.2f}"}
 
@@ -107,6 +167,7 @@ def one_run(commit: str, busy: bool, log_dir: Path) -> dict[str, str]:
 def write_row(row: dict[str, str]) -> None:
     """Put ``row`` first under the table (the file is created with its header when missing)."""
     lines = RESULTS.read_text().splitlines() if RESULTS.is_file() else list(HEADER)
+    row = dict(row, wall=f"{row['wall']} (set-up {row['setup']}, CPU {row['cpu']})")
     cells = [row[k] for k in ("date", "commit", "condition", "wall", "pytest", "result", "load")]
     at = len(HEADER)
     lines.insert(at, "| " + " | ".join(cells) + " |")
@@ -123,13 +184,16 @@ def main(argv: list[str] | None = None) -> int:
                     help="where a failed run's output is kept")
     ap.add_argument("--no-write", action="store_true", help="do not write the results file")
     args = ap.parse_args(argv)
+    become_subreaper()
     commit = subprocess.run(["git", "-C", str(REPO), "rev-parse", args.commit], check=True,
                             stdout=subprocess.PIPE, text=True).stdout.strip()
     failed = 0
     for i in range(args.runs):
         row = one_run(commit, args.busy, args.log_dir)
         failed += not row["result"].startswith("passed")
-        print(f"run {i + 1}/{args.runs}: {row['condition']} {row['wall']} s, {row['result']}", flush=True)
+        print(f"run {i + 1}/{args.runs}: {row['condition']} {row['wall']} s in all, set-up {row['setup']} s, "
+              f"pytest {row['pytest']}, CPU {row['cpu']} s (user + sys), load {row['load']}, {row['result']}",
+              flush=True)
         if not args.no_write:
             write_row(row)
     return 1 if failed else 0

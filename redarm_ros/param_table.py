@@ -27,9 +27,8 @@ from functools import cache
 from importlib import resources
 from typing import Any, TypeVar
 
-import yaml
-
 from redarm_ros.errors import ConfigError, InvalidInputError
+from redarm_ros.yaml_safe import safe_load
 
 #: The table, a data file of this package.
 TABLE_FILE = "parameters.yaml"
@@ -222,7 +221,7 @@ def load_table(text: str) -> dict[str, Group]:
     Raises:
         ConfigError: malformed table (the message names the entry).
     """
-    raw = yaml.safe_load(text)
+    raw = safe_load(text)
     if not isinstance(raw, Mapping):
         raise ConfigError("parameter table must be a mapping of sections")
     groups: dict[str, Group] = {}

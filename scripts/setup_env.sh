@@ -56,6 +56,18 @@ hash_files() { # sha256 over the given files' names and contents (missing files 
 stamp_ok() { [ -f "$STAMPS/$1" ] && [ "$(cat "$STAMPS/$1")" = "$2" ]; }
 stamp_set() { mkdir -p "$STAMPS"; echo "$2" >"$STAMPS/$1"; }
 
+# --- the set-up cache outside the clone (docs/setup.md): the pinned wheels and the built interfaces,
+# each under a hash of every input of the step; a key that differs builds afresh. REDARM_SETUP_CACHE=0:
+# no cache. The newest CACHE_KEEP entries of each kind stay.
+CACHE="${REDARM_CACHE_DIR:-${XDG_CACHE_HOME:-$HOME/.cache}/redarm_ros}"
+CACHE_KEEP=3
+cache_on() { [ "${REDARM_SETUP_CACHE:-1}" != 0 ]; }
+cache_prune() { # cache_prune KIND: drop all but the CACHE_KEEP newest entries of $CACHE/KIND
+    local old
+    mapfile -t old < <(ls -1dt "$CACHE/$1"/* 2>/dev/null | tail -n +$((CACHE_KEEP + 1)))
+    [ "${#old[@]}" -eq 0 ] || rm -rf "${old[@]}"
+}
+
 # --- serialise concurrent runs (two `make` targets at once must not race pip or colcon) ---------
 mkdir -p "$BUILD"
 exec 9>"$BUILD/setup.lock"
@@ -143,14 +155,53 @@ if ! stamp_ok deps "$DEPS_KEY"; then
     log "installing requirements.txt + requirements-build.txt into .venv (pip)"
     # pip byte-compiles file after file (half of this step); compileall does the venv on every core,
     # in the background while steps 3-5 run (the colcon build leaves a core idle much of the time).
-    quiet "$BUILD/logs/pip-install.log" "$VENV/bin/python" -m pip install --progress-bar off --no-compile \
-        -r "$REPO/requirements.txt" -r "$REPO/requirements-build.txt"
+    pip_reqs=(-r "$REPO/requirements.txt" -r "$REPO/requirements-build.txt")
+    if cache_on; then
+        # Most of a plain install is resolving against the indexes (their pages list thousands of
+        # files). The wheels it picks are kept in a wheelhouse keyed on the requirements and on pip's
+        # interpreter, version and configuration (constraint files included); with the wheelhouse the
+        # install resolves offline, and still fails if it lacks anything rather than taking less.
+        WH_KEY="$(
+            cd "$REPO" && hash_files requirements.txt requirements-build.txt
+            "$VENV/bin/python" -c 'import sys, sysconfig; print(sys.version, sysconfig.get_platform())'
+            "$VENV/bin/python" -c 'import pip; print("pip", pip.__version__)'
+            pip_config="$("$VENV/bin/python" -m pip config list 2>/dev/null | LC_ALL=C sort)"
+            echo "$pip_config"
+            env | grep '^PIP_' | LC_ALL=C sort
+            for f in $(echo "$pip_config" | sed -n "s/.*constraint='\(.*\)'/\1/p") ${PIP_CONSTRAINT:-}; do
+                hash_files "$f"
+            done
+        )"
+        WH="$CACHE/wheels/$(echo "$WH_KEY" | sha256sum | cut -c1-32)"
+        if [ ! -f "$WH/.complete" ]; then
+            log "collecting the pinned wheels into $WH (pip wheel)"
+            mkdir -p "$CACHE/wheels"
+            wh_tmp="$(mktemp -d "$CACHE/wheels/.tmp.XXXXXX")"
+            trap 'rm -rf "$wh_tmp"' EXIT
+            quiet "$BUILD/logs/pip-wheel.log" "$VENV/bin/python" -m pip wheel --progress-bar off \
+                -w "$wh_tmp" "${pip_reqs[@]}"
+            touch "$wh_tmp/.complete"
+            # Another clone may have finished the same key meanwhile: keep the first.
+            mv -T "$wh_tmp" "$WH" 2>/dev/null || rm -rf "$wh_tmp"
+            trap - EXIT
+            cache_prune wheels
+        fi
+        touch "$WH"
+        quiet "$BUILD/logs/pip-install.log" "$VENV/bin/python" -m pip install --progress-bar off --no-compile \
+            --no-index --find-links "$WH" "${pip_reqs[@]}"
+    else
+        quiet "$BUILD/logs/pip-install.log" "$VENV/bin/python" -m pip install --progress-bar off --no-compile \
+            "${pip_reqs[@]}"
+    fi
     rm -f "$STAMPS/editable" "$STAMPS/interfaces" "$STAMPS/compiled"
     stamp_set deps "$DEPS_KEY"
 fi
 if ! stamp_ok compiled "$DEPS_KEY"; then
     # Failures are ignored, as pip ignores them (some wheels ship files that are not Python 3.11).
-    ( "$VENV/bin/python" -m compileall -q -j 0 "$VENV/lib" >"$BUILD/logs/compileall.log" 2>&1 || true
+    # Left out: the wheels' own test suites and pybullet's gym examples (a quarter of the source), which
+    # nothing imports; anything imported there is compiled on first import.
+    ( "$VENV/bin/python" -m compileall -q -j 0 -x '/(tests|pybullet_envs)/' "$VENV/lib" \
+        >"$BUILD/logs/compileall.log" 2>&1 || true
       stamp_set compiled "$DEPS_KEY" ) &
     COMPILE_PID=$!
 fi
@@ -181,32 +232,76 @@ if ! stamp_ok editable "$EDITABLE_KEY" || [ ! -x "$VENV/bin/redarm-sim" ]; then
 fi
 
 # --- 5. interfaces package, colcon-built into the venv prefix ---------------------------------
+# colcon installs into a staging prefix (.build/colcon/install), which is then copied into the venv
+# with its path and the building venv's rewritten to this venv's in the few text files that name
+# them (setup scripts, one CMake export; no binary does). The staged tree is also what the cache keeps: its key adds to the
+# interface files everything the build reads (every installed distribution, the interpreter, the
+# compilers, this script), and a hit is deployed exactly as a build is.
 IFACE_DIR="$REPO/interfaces/redarm_interfaces"
 mapfile -t iface_files < <(cd "$REPO" && find interfaces -type f -not -name '*.pyc' | LC_ALL=C sort)
-IFACE_KEY="$(cd "$REPO" && hash_files "${iface_files[@]}" requirements-build.txt)"
+IFACE_KEY="$(
+    cd "$REPO"
+    hash_files "${iface_files[@]}" requirements.txt requirements-build.txt scripts/setup_env.sh
+    ls "$VENV/lib/python3.11/site-packages" | grep -E '\.(dist|egg)-info$' | grep -v '^redarm_' | LC_ALL=C sort
+    "$VENV/bin/python" -c 'import sys, sysconfig; print(sys.version, sysconfig.get_platform())'
+    echo "$PY_INC"
+    cmake --version | head -n 1; gcc --version | head -n 1; g++ --version | head -n 1
+    uname -m
+)"
+IFACE_KEY="$(echo "$IFACE_KEY" | sha256sum | cut -c1-32)"
 if [ -f "$IFACE_DIR/package.xml" ] && { ! stamp_ok interfaces "$IFACE_KEY" \
         || [ ! -d "$VENV/lib/python3.11/site-packages/redarm_interfaces" ]; }; then
-    log "colcon build interfaces/redarm_interfaces -> .venv (about 15 s)"
     COLCON_DIR="$BUILD/colcon"
-    rm -rf "$COLCON_DIR/build/redarm_interfaces"
+    STAGE="$COLCON_DIR/install"
+    IFACE_CACHED="$CACHE/interfaces/$IFACE_KEY.tar"
+    rm -rf "$STAGE"
     mkdir -p "$COLCON_DIR"
+    if cache_on && [ -f "$IFACE_CACHED" ]; then
+        log "interfaces/redarm_interfaces from the cache ($IFACE_CACHED)"
+        mkdir -p "$STAGE"
+        tar -xf "$IFACE_CACHED" -C "$STAGE"
+        touch "$IFACE_CACHED"
+    else
+        log "colcon build interfaces/redarm_interfaces -> .venv (about 15 s)"
+        rm -rf "$COLCON_DIR/build/redarm_interfaces"
+        (
+            cd "$COLCON_DIR"
+            export CMAKE_PREFIX_PATH="$VENV" AMENT_PREFIX_PATH="$VENV" PATH="$VENV/bin:$PATH"
+            export PYTHONNOUSERSITE=1 COLCON_HOME="$COLCON_DIR/home"
+            # Without -j in MAKEFLAGS colcon runs make with -l<cores> too: no second job while the load
+            # average is above the core count, which on a machine with anything else running (or still
+            # counting the pip step) makes the whole compile serial.
+            export MAKEFLAGS="-j$(nproc)"
+            quiet "$BUILD/logs/colcon-interfaces.log" "$VENV/bin/colcon" --log-base "$COLCON_DIR/log" build \
+                --merge-install --install-base "$STAGE" --build-base "$COLCON_DIR/build" \
+                --base-paths "$REPO/interfaces" --packages-select redarm_interfaces \
+                --event-handlers console_direct- \
+                --cmake-args -DBUILD_TESTING=OFF -DCMAKE_BUILD_TYPE=Release \
+                "-DPython3_EXECUTABLE=$VENV/bin/python3"
+        )
+        # Bytecode names its source's path; the venv's own compile writes it afresh.
+        find "$STAGE" -name __pycache__ -type d -prune -exec rm -rf {} +
+        # The paths the build wrote into text files: its install base and the venv it built against.
+        printf '%s\n' "$STAGE" "$VENV" >"$STAGE/.redarm-prefixes"
+        if cache_on; then
+            mkdir -p "$CACHE/interfaces"
+            if_tmp="$(mktemp "$CACHE/interfaces/.tmp.XXXXXX")"
+            trap 'rm -f "$if_tmp"' EXIT
+            tar -cf "$if_tmp" -C "$STAGE" .
+            mv -f "$if_tmp" "$IFACE_CACHED"
+            trap - EXIT
+            cache_prune interfaces
+        fi
+    fi
     # colcon marks its install base with COLCON_IGNORE; in the venv that also keeps any colcon
     # crawl of the repo out of the wheels' share/*/package.xml files.
-    (
-        cd "$COLCON_DIR"
-        export CMAKE_PREFIX_PATH="$VENV" AMENT_PREFIX_PATH="$VENV" PATH="$VENV/bin:$PATH"
-        export PYTHONNOUSERSITE=1 COLCON_HOME="$COLCON_DIR/home"
-        # Without -j in MAKEFLAGS colcon runs make with -l<cores> too: no second job while the load
-        # average is above the core count, which on a machine with anything else running (or still
-        # counting the pip step) makes the whole compile serial.
-        export MAKEFLAGS="-j$(nproc)"
-        quiet "$BUILD/logs/colcon-interfaces.log" "$VENV/bin/colcon" --log-base "$COLCON_DIR/log" build \
-            --merge-install --install-base "$VENV" --build-base "$COLCON_DIR/build" \
-            --base-paths "$REPO/interfaces" --packages-select redarm_interfaces \
-            --event-handlers console_direct- \
-            --cmake-args -DBUILD_TESTING=OFF -DCMAKE_BUILD_TYPE=Release \
-            "-DPython3_EXECUTABLE=$VENV/bin/python3"
-    )
+    mapfile -t built_paths <"$STAGE/.redarm-prefixes"
+    rm -f "$STAGE/.redarm-prefixes"
+    for built in "${built_paths[@]}"; do
+        mapfile -t named < <(grep -rlIF -- "$built" "$STAGE" || true)
+        [ "${#named[@]}" -eq 0 ] || sed -i "s#$built#$VENV#g" "${named[@]}"
+    done
+    cp -a "$STAGE/." "$VENV/"
     # The proof that matters: a plain venv interpreter (new process, bootstrapped LD_LIBRARY_PATH)
     # imports the generated types with their C typesupport.
     quiet "$BUILD/logs/interfaces-import.log" env -u _ROS_WHEELS_BOOTSTRAP_COMPLETE "$VENV/bin/python" -c \

@@ -618,13 +618,15 @@ class Scene:
         """
         import yaml
 
+        from redarm_ros.yaml_safe import safe_load
+
         p = Path(path)
         try:
             text = p.read_text()
         except OSError as exc:
             raise ConfigError(f"cannot read scene file {p}: {exc}", field="path", value=str(p)) from exc
         try:
-            data = yaml.safe_load(text)
+            data = safe_load(text)
         except yaml.YAMLError as exc:
             raise ConfigError(f"scene file {p} is not valid YAML: {exc}", field="path",
                               value=str(p)) from exc

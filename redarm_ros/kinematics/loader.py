@@ -25,6 +25,7 @@ from redarm_ros.kinematics.model import Arm, Joint, transform_from_xyz_rpy
 from redarm_ros.kinematics.powercube6 import PowerCube6Arm
 from redarm_ros.kinematics.swivel import SwivelArm, swivel_chain
 from redarm_ros.kinematics.urdf_chain import load_urdf_arm
+from redarm_ros.yaml_safe import safe_load
 
 __all__ = ["load_arm", "load_arm_or_urdf", "build_arm", "arm_config_dirs", "available_arms", "is_urdf_source"]
 
@@ -124,7 +125,7 @@ def load_arm(
     path = _find_config(name)
     try:
         with open(path, encoding="utf-8") as fh:
-            cfg = yaml.safe_load(fh)
+            cfg = safe_load(fh)
     except (OSError, yaml.YAMLError) as exc:
         raise ConfigError(
             f"cannot read arm config {str(path)!r}: {exc}", field="name", value=str(name)

@@ -44,6 +44,7 @@ from redarm_ros.kinematics.numeric import solve_dls_multistart
 from redarm_ros.kinematics.quaternion import rotation_error
 from redarm_ros.kinematics.result import IKBatchResult, IKInfo, IKStatus
 from redarm_ros.kinematics.swivel import SwivelArm, swivel_chain
+from redarm_ros.yaml_safe import safe_load
 
 __all__ = [
     "ACC_PER_VEL",
@@ -308,7 +309,7 @@ def _acc_limits(path: Path | None, limits_yaml: str | os.PathLike[str] | None) -
     if not cands:
         return {}
     try:
-        data = yaml.safe_load(cands[0].read_text(encoding="utf-8")) or {}
+        data = safe_load(cands[0].read_text(encoding="utf-8")) or {}
     except (OSError, yaml.YAMLError) as exc:
         raise ConfigError(f"cannot read joint limits {str(cands[0])!r}: {exc}", field="limits_yaml") from exc
     lim = data.get("joint_limits", {}) if isinstance(data, dict) else None

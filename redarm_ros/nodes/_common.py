@@ -298,13 +298,15 @@ def read_params_file(path: str) -> dict[str, Any]:
     """
     import yaml  # (only the nodes' start-up needs it)
 
+    from redarm_ros.yaml_safe import safe_load  # noqa: PLC0415
+
     try:
         with open(path, encoding="utf-8") as fh:
             text = fh.read()
     except OSError as exc:
         raise ValueError(f"parameter file {path}: {exc.strerror or exc}") from exc
     try:
-        doc = yaml.safe_load(text)
+        doc = safe_load(text)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f"line {mark.line + 1}, column {mark.column + 1}" if mark is not None else "YAML"

@@ -83,6 +83,7 @@ from redarm_ros.nodes._common import (
     urdf_arm_params,
     watch_duplicates,
 )
+from redarm_ros.yaml_safe import safe_load
 
 NODE_NAME = "can_driver"
 # What to do instead of a second driver of the same name: the start-up refusal and a late twin say it.
@@ -198,7 +199,7 @@ def parse_can_config(text: Any) -> dict[str, Any]:
     if text is None or (isinstance(text, str) and not text.strip()):
         return {}
     try:
-        value = yaml.safe_load(text)
+        value = safe_load(text)
     except yaml.YAMLError as exc:
         raise ConfigError(f"can.config is not valid YAML: {exc}", field="can.config", value=text) from exc
     if not isinstance(value, dict) or not all(isinstance(k, str) for k in value):

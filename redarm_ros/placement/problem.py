@@ -205,9 +205,11 @@ def load_problem(path: str | Path) -> PlacementProblem:
     """Read a task file (module doc). Raises :class:`ConfigError` naming the file for any problem."""
     import yaml
 
+    from redarm_ros.yaml_safe import safe_load
+
     p = Path(path)
     try:
-        data = yaml.safe_load(p.read_text())
+        data = safe_load(p.read_text())
     except OSError as exc:
         raise ConfigError(f"cannot read task file {p}: {exc}", field="path", value=str(p)) from exc
     except yaml.YAMLError as exc:
