@@ -31,6 +31,8 @@ from typing import Any
 
 import numpy as np
 
+from redarm_ros.control.guard import CollisionGuard
+from redarm_ros.geometry.obstacles import Clearance, Scene
 from redarm_ros.kinematics.corridor import SwivelCorridor, route_pose
 from redarm_ros.kinematics.protocols import CorridorArm
 from redarm_ros.kinematics.quaternion import (
@@ -206,6 +208,50 @@ def route_joints(arm: CorridorArm, route: CorridorRoute, u: np.ndarray) -> np.nd
         row = arm.ik(T, cor.swivel_at(float(x)), limits=False)[cor.pattern]
         Q[i] = q_prev = row + 2.0 * math.pi * np.round((q_prev - row) / (2.0 * math.pi))
     return Q
+
+
+#: :func:`route_clearance`: progress samples checked first, and the most the bisection may add
+CLEAR_SAMPLES = 65
+CLEAR_BUDGET = 4000
+
+
+def route_clearance(arm: CorridorArm, guard: CollisionGuard, route: CorridorRoute, scene: Scene,
+                    need: float) -> Clearance:
+    """The smallest clearance of the arm along ``route`` against ``scene`` and itself (the guard's
+    capsules and self-collision pairs) if the route keeps ``need`` (m), else a clearance below ``need``
+    (the first sample found that far in, or the check's budget spent). A sample of clearance ``c``
+    proves every configuration within ``c - need`` of joint travel (weighted by the guard's levers)
+    clear: an interval between two samples passes when its travel is at most the smaller clearance less
+    ``need`` (the chord taken for the arc, which it approaches as the interval halves), else it is
+    halved."""
+    lev = guard.max_levers()
+    u = np.linspace(0.0, 1.0, CLEAR_SAMPLES)
+    Q = route_joints(arm, route, u)
+
+    def at(x: float, q_near: np.ndarray) -> np.ndarray:
+        row = route_joints(arm, route, np.array([x]))[0]
+        return row + 2.0 * math.pi * np.round((q_near - row) / (2.0 * math.pi))
+
+    clear = [guard.clearance(q, scene) for q in Q]
+    worst = min(clear, key=lambda c: c.distance)
+    if worst.distance < need:
+        return worst
+    stack = [(float(u[i]), Q[i], clear[i], float(u[i + 1]), Q[i + 1], clear[i + 1])
+             for i in range(len(u) - 1)]
+    used = len(u)
+    while stack:
+        ua, qa, ca, ub, qb, cb = stack.pop()
+        if float(lev @ np.abs(qb - qa)) <= min(ca.distance, cb.distance) - need:
+            continue
+        um = 0.5 * (ua + ub)
+        qm = at(um, qa)
+        cm = guard.clearance(qm, scene)
+        used += 1
+        if cm.distance < need or used > CLEAR_BUDGET:
+            return Clearance(min(cm.distance, need - 1e-9), cm.link, cm.obstacle)
+        worst = min(worst, cm, key=lambda c: c.distance)
+        stack += [(um, qm, cm, ub, qb, cb), (ua, qa, ca, um, qm, cm)]
+    return worst
 
 
 def fast_clock(arm: CorridorArm, route: CorridorRoute, length: float, angle: float, v_max: float,

@@ -14,6 +14,7 @@ rad, s.
 
 from __future__ import annotations
 
+import copy
 import math
 import struct
 from collections.abc import Callable
@@ -22,11 +23,17 @@ from typing import Protocol
 
 import numpy as np
 
-from redarm_ros.control.corridor_route import STRAIGHT_WINDOW, CorridorRoute, plan_route, timed_route
+from redarm_ros.control.corridor_route import (
+    STRAIGHT_WINDOW,
+    CorridorRoute,
+    plan_route,
+    route_clearance,
+    timed_route,
+)
 from redarm_ros.control.elbow import ArmGeometry, ElbowCircle, elbow_circle
 from redarm_ros.control.goal_check import check_goal, stream_feasibility
 from redarm_ros.control.goal_hint import BaseMoveHints
-from redarm_ros.control.guard import CollisionGuard
+from redarm_ros.control.guard import CollisionGuard, describe
 from redarm_ros.control.ik_step import IKStep, IKStepper, SwivelFn, pose_matrix, pose_of
 from redarm_ros.control.ik_step6 import IKStepper6
 from redarm_ros.control.joint_limits import JointBounds, braking_speed, joint_share_acc
@@ -150,8 +157,9 @@ class Redundancy(Protocol):
         """Is a point goal set now planned through the swivel corridor?"""
         ...
 
-    def corridor_job(self, st: CoreState, p: ControllerParams, T: np.ndarray) -> CorridorJob:
-        """The planning of the route to ``T`` through the swivel corridor, for the worker thread."""
+    def corridor_job(self, st: CoreState, p: ControllerParams, T: np.ndarray, scene: Scene) -> CorridorJob:
+        """The planning of the route to ``T`` through the swivel corridor, checked against ``scene``, for
+        the worker thread."""
         ...
 
     def new_planner(self, st: CoreState, p: ControllerParams, T: np.ndarray, scene: Scene) -> PathSearch:
@@ -630,17 +638,34 @@ class SwivelRedundancy:
         return ""
 
     def corridor_asked(self, st: CoreState, p: ControllerParams, scene: Scene) -> bool:
-        """Is a point goal set now planned through the swivel corridor? Only with the hand at rest, in free
-        space (``scene`` without obstacles: the elbow's obstacle avoidance then keeps the attractor
-        dynamics) and with the swivel dynamics in charge of the elbow."""
+        """Is a point goal set now planned through the swivel corridor? Only with the hand at rest and
+        with the swivel dynamics in charge of the elbow (the route is checked against ``scene`` once
+        planned: :meth:`corridor_job`)."""
         return bool(p.replan.corridor) and p.swivel_mode not in ("fixed", PAPER_MODE) \
-            and scene.free_space and st.ref.v_tool <= 0.01 \
-            and st.att.v <= 0.01 and hasattr(self.arm, "swivel_corridor")
+            and st.ref.v_tool <= 0.01 and st.att.v <= 0.01 and hasattr(self.arm, "swivel_corridor")
 
-    def corridor_job(self, st: CoreState, p: ControllerParams, T: np.ndarray) -> CorridorJob:
+    def corridor_job(self, st: CoreState, p: ControllerParams, T: np.ndarray, scene: Scene) -> CorridorJob:
         """The planning of the straight route to the point goal ``T`` through the swivel corridor, from
         the reference as it is now, or else of a via route: a function of copies (it runs in the worker
-        thread) that returns the route, or None and why there is none."""
+        thread) that returns the route, or None and why there is none. A route that does not keep the
+        re-planner's clearance (``replan.clearance``) from ``scene`` and from the arm itself is refused."""
+        plan = self._corridor_plan(st, p, T)
+        guard, need = copy.copy(self.guard), p.replan.clearance  # (the copy counts its own evaluations)
+        guard.evaluations = 0
+
+        def job() -> tuple[CorridorRoute | None, str]:
+            route, why = plan()
+            if route is None:
+                return None, why
+            worst = route_clearance(self.arm, guard, route, scene, need)
+            if worst.distance < need:
+                return None, f"its route comes within {need:.2f} m: {describe(worst, scene)}"
+            return route, why
+
+        return job
+
+    def _corridor_plan(self, st: CoreState, p: ControllerParams, T: np.ndarray) -> CorridorJob:
+        """:meth:`corridor_job` without the collision check."""
         rp = p.replan
         arm, q0 = self.arm, st.ref.q.copy()
         # the route starts at the pose of the reference's joints: the reference pose may be off it by
