@@ -210,41 +210,68 @@ def route_joints(arm: CorridorArm, route: CorridorRoute, u: np.ndarray) -> np.nd
     return Q
 
 
-#: :func:`route_clearance`: progress samples checked first, and the most the bisection may add
+#: :func:`route_clearance`: progress samples checked first, and the most the check may take in all
 CLEAR_SAMPLES = 65
 CLEAR_BUDGET = 4000
+#: m: :func:`route_clearance`'s sample spacing (lever-weighted joint travel) where an end of the route is
+#: closer to the scene than the margin
+CLEAR_FINE = 1e-3
 
 
 def route_clearance(arm: CorridorArm, guard: CollisionGuard, route: CorridorRoute, scene: Scene,
                     need: float) -> Clearance:
     """The smallest clearance of the arm along ``route`` against ``scene`` and itself (the guard's
-    capsules and self-collision pairs) if the route keeps ``need`` (m), else a clearance below ``need``
-    (the first sample found that far in, or the check's budget spent). A sample of clearance ``c``
-    proves every configuration within ``c - need`` of joint travel (weighted by the guard's levers)
-    clear: an interval between two samples passes when its travel is at most the smaller clearance less
-    ``need`` (the chord taken for the arc, which it approaches as the interval halves), else it is
-    halved."""
+    capsules and self-collision pairs) where the route keeps ``need`` (m), else a clearance below
+    ``need`` (where it was found, or the check's budget spent).
+
+    A sample of clearance ``c`` proves every configuration within ``c - need`` of joint travel (weighted
+    by the guard's levers) clear: an interval between two samples passes when its travel is at most the
+    smaller clearance less ``need`` (the chord taken for the arc, which it approaches as the interval
+    halves), else it is halved. An end closer than ``need`` (a goal near the table) must get clear
+    without coming closer than it is: samples CLEAR_FINE of travel apart (between two the clearance
+    drops at most half that), each within CLEAR_FINE / 2 of the end's clearance or farther, up to the
+    first of the first samples that keeps ``need``."""
     lev = guard.max_levers()
     u = np.linspace(0.0, 1.0, CLEAR_SAMPLES)
     Q = route_joints(arm, route, u)
+    used = len(u)
 
-    def at(x: float, q_near: np.ndarray) -> np.ndarray:
-        row = route_joints(arm, route, np.array([x]))[0]
-        return row + 2.0 * math.pi * np.round((q_near - row) / (2.0 * math.pi))
+    def at(x: np.ndarray, q_near: np.ndarray) -> np.ndarray:
+        rows = route_joints(arm, route, x)
+        return rows + 2.0 * math.pi * np.round((q_near - rows) / (2.0 * math.pi))
 
     clear = [guard.clearance(q, scene) for q in Q]
-    worst = min(clear, key=lambda c: c.distance)
+    dist = np.array([c.distance for c in clear])
+    ok = np.flatnonzero(dist >= need)
+    if len(ok) == 0:
+        return min(clear, key=lambda c: c.distance)
+    worst = min((clear[k] for k in range(ok[0], ok[-1] + 1)), key=lambda c: c.distance)
     if worst.distance < need:
         return worst
-    stack = [(float(u[i]), Q[i], clear[i], float(u[i + 1]), Q[i + 1], clear[i + 1])
-             for i in range(len(u) - 1)]
-    used = len(u)
+    for k_end, k_clear in ((0, int(ok[0])), (len(u) - 1, int(ok[-1]))):
+        if k_end == k_clear:
+            continue
+        # the dense march from the end to the first sample that keeps need
+        lo, hi = sorted((k_end, k_clear))
+        travel = float(np.sum(np.abs(np.diff(Q[lo:hi + 1], axis=0)) @ lev))
+        n = min(int(math.ceil(2.0 * travel / CLEAR_FINE)) + 2, CLEAR_BUDGET)
+        x = np.linspace(u[k_end], u[k_clear], n)
+        floor = dist[k_end] - 0.5 * CLEAR_FINE
+        if floor < 0.0:  # (an arm in contact is the re-planner's)
+            return clear[k_end]
+        for q in at(x, Q[k_end]):
+            c = guard.clearance(q, scene)
+            used += 1
+            if c.distance < floor or used > CLEAR_BUDGET:
+                return Clearance(min(c.distance, need - 1e-9), c.link, c.obstacle)
+    stack = [(float(u[k]), Q[k], clear[k], float(u[k + 1]), Q[k + 1], clear[k + 1])
+             for k in range(int(ok[0]), int(ok[-1]))]
     while stack:
         ua, qa, ca, ub, qb, cb = stack.pop()
         if float(lev @ np.abs(qb - qa)) <= min(ca.distance, cb.distance) - need:
             continue
         um = 0.5 * (ua + ub)
-        qm = at(um, qa)
+        qm = at(np.array([um]), qa)[0]
         cm = guard.clearance(qm, scene)
         used += 1
         if cm.distance < need or used > CLEAR_BUDGET:
