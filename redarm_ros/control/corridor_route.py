@@ -1,7 +1,7 @@
 """The straight route of a point goal through the swivel corridor: the hand on the line at a minimum-jerk
 pace, the elbow on the corridor's swivel schedule.
 
-When a point goal is set with the hand at rest in free space, :func:`plan_route` asks the kinematics for
+When a point goal is set with the hand at rest, :func:`plan_route` asks the kinematics for
 the swivel corridor of the straight route (:func:`redarm_ros.kinematics.swivel_corridor`: every swivel at
 which the arm can follow the line within the joint limits and away from the shoulder, elbow and wrist
 singularities, and a continuous schedule nearest the preferred swivel), once per goal. If there is one,
