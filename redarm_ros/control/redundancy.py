@@ -660,6 +660,13 @@ class SwivelRedundancy:
             worst = route_clearance(self.arm, guard, route, scene, need)
             if worst.distance < need:
                 return None, f"its route comes within {need:.2f} m: {describe(worst, scene)}"
+            # the elbow rests where the swivel dynamics puts it: with an obstacle force at the route's end
+            # swivel, away from it (a slow self-motion after the route, the phase back from REACHED)
+            rest = self.swivel_dyn.forces(elbow_circle(self.geom, T), route.corridor.swivel_at(1.0), scene,
+                                          p.capsules)
+            if rest.obstacle != 0.0:
+                return None, (f"the elbow would end {rest.clearance:.2f} m from the scene, within the "
+                              "obstacle force's reach")
             return route, why
 
         return job
