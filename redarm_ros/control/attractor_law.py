@@ -124,9 +124,6 @@ class AttractorLaw:
         st.att.a = (ref.v_tool - v_before) / dt
         if route.t >= route.duration:
             st.route = None
-            # the swivel's wanted rate was the schedule's: REACHED waits for the swivel dynamics' (the
-            # elbow may still have to turn to its rest swivel), as after a joint-space move
-            ref.sdot_want = math.nan
             st.att.v, st.att.a = 0.0, 0.0
             st.att.phi, st.att.theta = self.heading_to_goal(st)
             if st.message == route.message():
