@@ -409,7 +409,7 @@ def test_a_route_from_closer_than_the_clearance_is_taken_if_it_gets_clear():
     arm = load_arm("pa10")
     q0 = np.array(arm.park, float)
     probe = make_controller(arm)
-    centre = tuple(np.asarray(arm.fk(q0))[:3, 3] - np.array([0.0, 0.0, 0.15]))
+    centre = tuple(np.asarray(arm.fk(q0))[:3, 3] - np.array([0.0, 0.0, 0.1]))
     c = probe.redundancy.guard.clearance(q0, Scene(obstacles=(Sphere(centre, 0.01),))).distance
     scene = Scene(obstacles=(Sphere(centre, c),))  # (its clearance: c less what the radius grew, 1 cm)
     ctl = make_controller(arm, scene)

@@ -28,6 +28,7 @@ from redarm_ros.control.corridor_route import (
     CorridorRoute,
     plan_route,
     route_clearance,
+    route_joints,
     timed_route,
 )
 from redarm_ros.control.elbow import ArmGeometry, ElbowCircle, elbow_circle
@@ -66,6 +67,10 @@ REST_SAMPLES = 64
 PACE_AFTER = 4.0
 #: s: the least extra time a corridor route may take beyond a joint-space move (replan.corridor_max_slowdown)
 SLOW_SLACK = 8.0
+
+#: rad: near obstacles a corridor route is taken only if it ends this near the preferred swivel (the swivel
+#: dynamics would turn the elbow on after it, the phase going back from REACHED)
+REST_OFFSET = 0.05
 
 #: the planning of a corridor route, run in a worker thread: the route, or None and why there is none
 CorridorJob = Callable[[], tuple[CorridorRoute | None, str]]
@@ -652,6 +657,11 @@ class SwivelRedundancy:
         plan = self._corridor_plan(st, p, T)
         guard, need = copy.copy(self.guard), p.replan.clearance  # (the copy counts its own evaluations)
         guard.evaluations = 0
+        lower, upper = self.bounds.lower.copy(), self.bounds.upper.copy()
+        try:
+            s_pref = self.preferred_swivel(st, p, elbow_circle(self.geom, T))
+        except UnreachableError:
+            s_pref = math.nan  # (no corridor either)
 
         def job() -> tuple[CorridorRoute | None, str]:
             route, why = plan()
@@ -660,13 +670,21 @@ class SwivelRedundancy:
             worst = route_clearance(self.arm, guard, route, scene, need)
             if worst.distance < need:
                 return None, f"its route comes within {need:.2f} m: {describe(worst, scene)}"
-            # the elbow rests where the swivel dynamics puts it: with an obstacle force at the route's end
-            # swivel, away from it (a slow self-motion after the route, the phase back from REACHED)
-            rest = self.swivel_dyn.forces(elbow_circle(self.geom, T), route.corridor.swivel_at(1.0), scene,
-                                          p.capsules)
+            if scene.free_space:
+                return route, why
+            # near obstacles the elbow must be able to rest where the route leaves it: else the swivel
+            # dynamics moves it on after the route (a long self-motion, the phase back from REACHED)
+            s_end = route.corridor.swivel_at(1.0)
+            rest = self.swivel_dyn.forces(elbow_circle(self.geom, T), s_end, scene, p.capsules)
             if rest.obstacle != 0.0:
                 return None, (f"the elbow would end {rest.clearance:.2f} m from the scene, within the "
                               "obstacle force's reach")
+            q_end = route_joints(self.arm, route, np.array([1.0]))[0]
+            if np.min(np.minimum(q_end - lower, upper - q_end)) < p.swivel.lim_threshold:
+                return None, "the route ends within the joint-limit force's reach"
+            off = abs(wrap_angle(s_end - s_pref))
+            if not off <= REST_OFFSET:
+                return None, f"the route ends {off:.2f} rad from the preferred swivel"
             return route, why
 
         return job
