@@ -11,9 +11,12 @@ import numpy as np
 from test_control_replan_shape import READY, speed_peaks
 
 from redarm_ros.control.corridor_route import (
+    CLEAR_SAMPLES,
     CorridorRoute,
     plan_route,
+    route_clearance,
     route_duration,
+    route_joints,
     route_pace,
     smoothed_along,
     timed_route,
@@ -21,7 +24,7 @@ from redarm_ros.control.corridor_route import (
 from redarm_ros.control.make import make_controller
 from redarm_ros.control.params import ControllerParams
 from redarm_ros.control.reach_controller import Phase
-from redarm_ros.geometry.obstacles import Scene, Sphere
+from redarm_ros.geometry.obstacles import Scene, Sphere, load_scene
 from redarm_ros.kinematics import load_arm
 from redarm_ros.kinematics.corridor import SwivelCorridor
 from redarm_ros.motion.min_jerk import (
@@ -294,8 +297,8 @@ def held_corridor_planner() -> tuple[Any, Any, np.ndarray, threading.Event]:
     gate = threading.Event()
     job = ctl.redundancy.corridor_job
 
-    def held_job(st, p, T):
-        run = job(st, p, T)
+    def held_job(st, p, T, scene):
+        run = job(st, p, T, scene)
         return lambda: (gate.wait(60), run())[1]
 
     ctl.redundancy.corridor_job = held_job
@@ -343,17 +346,118 @@ def test_a_goal_sent_to_the_re_planner_after_the_corridor_plan_keeps_the_command
     assert np.all(np.abs(qd1 - qd0) <= np.asarray(arm.max_acc) * 0.01 + 1e-9), qd1
 
 
-def test_a_corridor_planned_while_obstacles_came_is_dropped():
-    """Obstacles set while the worker thread plans: the route (planned in free space) is not taken, and
-    the state says why."""
+PARK_GOAL = np.array([0.5, 0.3, -0.2, -0.4, 0.3, 0.2, 0.4])  # (rad) the PA10's goal from its park posture
+
+
+def _line_middle(arm, q0: np.ndarray) -> tuple[float, float, float]:
+    """The middle of the hand's line from ``q0`` to the PARK_GOAL offset."""
+    a, b = np.asarray(arm.fk(q0))[:3, 3], np.asarray(arm.fk(q0 + PARK_GOAL))[:3, 3]
+    return tuple(float(x) for x in 0.5 * (a + b))
+
+
+def test_a_corridor_planned_while_the_scene_changed_is_planned_again():
+    """An obstacle set on the line while the worker thread plans: the route is planned again against the
+    new scene and refused there, and the state says why; an equal scene changes nothing."""
     arm, ctl, q0, gate = held_corridor_planner()
-    assert ctl.set_goal(arm.fk(q0 + np.array([0.5, 0.3, -0.2, -0.4, 0.3, 0.2, 0.4]))).accepted
+    assert ctl.set_goal(arm.fk(q0 + PARK_GOAL)).accepted
     ctl.step(0.01)
-    ctl.set_scene(Scene(obstacles=(Sphere((-0.6, -0.6, 0.3), 0.05),)))
+    plan = ctl._st.corridor_plan  # noqa: SLF001
+    ctl.set_scene(Scene())
+    assert ctl._st.corridor_plan is plan  # noqa: SLF001
+    ctl.set_scene(Scene(obstacles=(Sphere(_line_middle(arm, q0), 0.03),)))
+    assert ctl._st.corridor_plan is not plan  # noqa: SLF001
     gate.set()
     r = wait_for_plan(ctl)
     assert ctl._st.route is None  # noqa: SLF001
-    assert "the scene changed while it was planned" in r.message, r.message
+    assert "no swivel corridor: its route comes within 0.02 m: the " in r.message, r.message
+
+
+def test_a_corridor_route_is_left_when_the_scene_changes():
+    """The route was checked against the scene it was planned in: a new scene while the hand is on it
+    hands the goal to the attractor dynamics, which reaches it."""
+    arm = load_arm("pa10")
+    ctl = make_controller(arm)
+    q0 = np.array(arm.park, float)
+    ctl.reset(q0)
+    T = arm.fk(q0 + PARK_GOAL)
+    assert ctl.set_goal(T).accepted
+    wait_for_plan(ctl)
+    for _ in range(30):
+        ctl.step(0.01)
+    ctl.set_scene(Scene())
+    assert ctl._st.route is not None  # noqa: SLF001 (the same scene)
+    ctl.set_scene(Scene(obstacles=(Sphere((-0.6, -0.6, 0.3), 0.05),), table_height=0.0))
+    assert ctl._st.route is None  # noqa: SLF001
+    assert ctl.step(0.01).message == "the scene changed on the corridor route: attractor dynamics"
+    assert run_to_rest(ctl, T)[3].phase is Phase.REACHED
+
+
+def test_a_table_top_route_is_refused_where_the_elbow_cannot_rest_at_its_end():
+    """Near obstacles the route, clear of the table, is still refused where it ends off the preferred
+    swivel (the swivel dynamics would turn the elbow on after it): the attractor dynamics, and why."""
+    arm = load_arm("pa10")
+    ctl = make_controller(arm, load_scene("table_empty"))
+    q0 = np.array(arm.park, float)
+    ctl.reset(q0)
+    assert ctl.set_goal(arm.fk(q0 + PARK_GOAL)).accepted
+    r = wait_for_plan(ctl)
+    assert ctl._st.route is None  # noqa: SLF001
+    assert r.message.startswith("attractor dynamics, no swivel corridor: the route ends "), r.message
+    assert r.message.endswith("rad from the preferred swivel"), r.message
+
+
+def test_a_route_from_closer_than_the_clearance_passes_if_it_gets_clear():
+    """The hand starts 1 cm above a sphere (the planning clearance is 2 cm) and the route rises from it:
+    it passes (an end may be closer as long as the route comes no closer than it)."""
+    arm = load_arm("pa10")
+    q0 = np.array(arm.park, float)
+    ctl = make_controller(arm)
+    ctl.reset(q0)
+    assert ctl.set_goal(arm.fk(q0 + PARK_GOAL)).accepted
+    wait_for_plan(ctl)
+    route, guard = ctl._st.route, ctl.redundancy.guard  # noqa: SLF001
+    centre = tuple(np.asarray(arm.fk(q0))[:3, 3] - np.array([0.0, 0.0, 0.1]))
+    c = guard.clearance(q0, Scene(obstacles=(Sphere(centre, 0.01),))).distance
+    scene = Scene(obstacles=(Sphere(centre, c),))  # (its clearance: c less what the radius grew, 1 cm)
+    assert abs(guard.clearance(q0, scene).distance - 0.01) < 1e-9
+    assert route_clearance(arm, guard, route, scene, 0.02).distance >= 0.02
+    assert route_clearance(arm, guard, route, scene, 0.005).distance >= 0.005
+
+
+def test_a_corridor_route_into_an_obstacle_is_refused():
+    """A sphere on the line: the route is refused with what it would hit, and the attractor dynamics
+    takes the goal."""
+    arm = load_arm("pa10")
+    q0 = np.array(arm.park, float)
+    ctl = make_controller(arm, Scene(obstacles=(Sphere(_line_middle(arm, q0), 0.03),), table_height=0.0))
+    ctl.reset(q0)
+    assert ctl.set_goal(arm.fk(q0 + PARK_GOAL)).accepted
+    r = wait_for_plan(ctl)
+    assert ctl._st.route is None and r.phase is Phase.REACHING  # noqa: SLF001
+    assert r.message.startswith("attractor dynamics, no swivel corridor: its route comes within 0.02 m: "
+                                "the "), r.message
+    assert r.message.endswith("of obstacle 0")
+
+
+def test_route_clearance_finds_the_nearest_approach_between_samples():
+    """The check halves the intervals until nothing between the samples can come closer: against a
+    sphere below the line (nearest the arm between two of its first samples), the route passes at a
+    margin just below the least clearance of 2001 samples and fails just above it."""
+    arm = load_arm("pa10")
+    ctl = make_controller(arm)
+    q0 = np.array(arm.park, float)
+    ctl.reset(q0)
+    assert ctl.set_goal(arm.fk(q0 + PARK_GOAL)).accepted
+    wait_for_plan(ctl)
+    route = ctl._st.route  # noqa: SLF001
+    x = 32.5 / (CLEAR_SAMPLES - 1)
+    pos = np.asarray(route.pose(x)[0]) + np.array([0.0, 0.0, -0.12])
+    scene = Scene(obstacles=(Sphere(tuple(pos), 0.02),))
+    dense = min(ctl.redundancy.guard.clearance(q, scene).distance
+                for q in route_joints(arm, route, np.linspace(0.0, 1.0, 2001)))
+    assert 0.0 < dense < 0.1
+    assert route_clearance(arm, ctl.redundancy.guard, route, scene, dense - 0.002).distance >= dense - 0.002
+    assert route_clearance(arm, ctl.redundancy.guard, route, scene, dense + 0.002).distance < dense + 0.002
 
 
 def _pose(pos, R) -> np.ndarray:

@@ -1,7 +1,7 @@
 """The straight route of a point goal through the swivel corridor: the hand on the line at a minimum-jerk
 pace, the elbow on the corridor's swivel schedule.
 
-When a point goal is set with the hand at rest in free space, :func:`plan_route` asks the kinematics for
+When a point goal is set with the hand at rest, :func:`plan_route` asks the kinematics for
 the swivel corridor of the straight route (:func:`redarm_ros.kinematics.swivel_corridor`: every swivel at
 which the arm can follow the line within the joint limits and away from the shoulder, elbow and wrist
 singularities, and a continuous schedule nearest the preferred swivel), once per goal. If there is one,
@@ -31,6 +31,8 @@ from typing import Any
 
 import numpy as np
 
+from redarm_ros.control.guard import CollisionGuard
+from redarm_ros.geometry.obstacles import Clearance, Scene
 from redarm_ros.kinematics.corridor import SwivelCorridor, route_pose
 from redarm_ros.kinematics.protocols import CorridorArm
 from redarm_ros.kinematics.quaternion import (
@@ -206,6 +208,77 @@ def route_joints(arm: CorridorArm, route: CorridorRoute, u: np.ndarray) -> np.nd
         row = arm.ik(T, cor.swivel_at(float(x)), limits=False)[cor.pattern]
         Q[i] = q_prev = row + 2.0 * math.pi * np.round((q_prev - row) / (2.0 * math.pi))
     return Q
+
+
+#: :func:`route_clearance`: progress samples checked first, and the most the check may take in all
+CLEAR_SAMPLES = 65
+CLEAR_BUDGET = 4000
+#: m: :func:`route_clearance`'s sample spacing (lever-weighted joint travel) where an end of the route is
+#: closer to the scene than the margin
+CLEAR_FINE = 1e-3
+
+
+def route_clearance(arm: CorridorArm, guard: CollisionGuard, route: CorridorRoute, scene: Scene,
+                    need: float) -> Clearance:
+    """The smallest clearance of the arm along ``route`` against ``scene`` and itself (the guard's
+    capsules and self-collision pairs) where the route keeps ``need`` (m), else a clearance below
+    ``need`` (where it was found, or the check's budget spent).
+
+    A sample of clearance ``c`` proves every configuration within ``c - need`` of joint travel (weighted
+    by the guard's levers) clear: an interval between two samples passes when its travel is at most the
+    smaller clearance less ``need`` (the chord taken for the arc, which it approaches as the interval
+    halves), else it is halved. An end closer than ``need`` (a goal near the table) must get clear
+    without coming closer than it is: samples CLEAR_FINE of travel apart (between two the clearance
+    drops at most half that), each within CLEAR_FINE / 2 of the end's clearance or farther, up to the
+    first of the first samples that keeps ``need``."""
+    lev = guard.max_levers()
+    u = np.linspace(0.0, 1.0, CLEAR_SAMPLES)
+    Q = route_joints(arm, route, u)
+    used = len(u)
+
+    def at(x: np.ndarray, q_near: np.ndarray) -> np.ndarray:
+        rows = route_joints(arm, route, x)
+        return rows + 2.0 * math.pi * np.round((q_near - rows) / (2.0 * math.pi))
+
+    clear = [guard.clearance(q, scene) for q in Q]
+    dist = np.array([c.distance for c in clear])
+    ok = np.flatnonzero(dist >= need)
+    if len(ok) == 0:
+        return min(clear, key=lambda c: c.distance)
+    worst = min((clear[k] for k in range(ok[0], ok[-1] + 1)), key=lambda c: c.distance)
+    if worst.distance < need:
+        return worst
+    for k_end, k_clear in ((0, int(ok[0])), (len(u) - 1, int(ok[-1]))):
+        if k_end == k_clear:
+            continue
+        # the dense march from the end to the first sample that keeps need
+        lo, hi = sorted((k_end, k_clear))
+        travel = float(np.sum(np.abs(np.diff(Q[lo:hi + 1], axis=0)) @ lev))
+        n = min(int(math.ceil(2.0 * travel / CLEAR_FINE)) + 2, CLEAR_BUDGET)
+        x = np.linspace(u[k_end], u[k_clear], n)
+        floor = dist[k_end] - 0.5 * CLEAR_FINE
+        if floor < 0.0:  # (an arm in contact is the re-planner's)
+            return clear[k_end]
+        for q in at(x, Q[k_end]):
+            c = guard.clearance(q, scene)
+            used += 1
+            if c.distance < floor or used > CLEAR_BUDGET:
+                return Clearance(min(c.distance, need - 1e-9), c.link, c.obstacle)
+    stack = [(float(u[k]), Q[k], clear[k], float(u[k + 1]), Q[k + 1], clear[k + 1])
+             for k in range(int(ok[0]), int(ok[-1]))]
+    while stack:
+        ua, qa, ca, ub, qb, cb = stack.pop()
+        if float(lev @ np.abs(qb - qa)) <= min(ca.distance, cb.distance) - need:
+            continue
+        um = 0.5 * (ua + ub)
+        qm = at(np.array([um]), qa)[0]
+        cm = guard.clearance(qm, scene)
+        used += 1
+        if cm.distance < need or used > CLEAR_BUDGET:
+            return Clearance(min(cm.distance, need - 1e-9), cm.link, cm.obstacle)
+        worst = min(worst, cm, key=lambda c: c.distance)
+        stack += [(um, qm, cm, ub, qb, cb), (ua, qa, ca, um, qm, cm)]
+    return worst
 
 
 def fast_clock(arm: CorridorArm, route: CorridorRoute, length: float, angle: float, v_max: float,

@@ -282,7 +282,7 @@ class NoRedundancy:
         """No swivel corridor."""
         return False
 
-    def corridor_job(self, st: CoreState, p: ControllerParams, T: np.ndarray) -> CorridorJob:
+    def corridor_job(self, st: CoreState, p: ControllerParams, T: np.ndarray, scene: Scene) -> CorridorJob:
         """No swivel corridor.
 
         Raises:

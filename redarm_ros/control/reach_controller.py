@@ -352,6 +352,7 @@ class ReachController:
         :class:`GoalCheck` is returned; otherwise returns None. A BLOCKED goal is planned again."""
         if not isinstance(scene, Scene):
             raise InvalidInputError("scene must be a Scene", field="scene", value=scene)
+        changed = scene != self.scene
         self._install_scene(scene)
         st = self._st
         if st is None:
@@ -372,6 +373,8 @@ class ReachController:
             if st.phase is Phase.BLOCKED or st.mode in (Mode.PLAN, Mode.JOINT):
                 st.progress = Progress(t_best=st.time)
                 self.replan.start(st, self.params, "the scene changed")
+            elif changed:
+                self._corridor_rescene(st, T)
         elif st.goal.kind is GoalKind.STREAM:
             st.stream_note = self.redundancy.stream_feasibility(T, local.scene, self.params)
         return None
@@ -525,11 +528,13 @@ class ReachController:
         if st.ref.circle is None:
             self.replan.start(st, self.params, "the arm is stretched (no elbow circle)")
             return
-        if self.redundancy.corridor_asked(st, self.params, self.view.index.reach_scene.scene):
+        scene = self.view.index.reach_scene.scene
+        if self.redundancy.corridor_asked(st, self.params, scene):
             # planned in the worker thread (up to about a second); the arm holds at rest meanwhile
             if self._corridor_pool is None:
                 self._corridor_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="swivel-corridor")
-            st.corridor_plan = self._corridor_pool.submit(self.redundancy.corridor_job(st, self.params, T))
+            st.corridor_plan = self._corridor_pool.submit(
+                self.redundancy.corridor_job(st, self.params, T, scene))
             st.mode = Mode.ATTRACTOR
             st.att.v, st.att.a, st.att.turn, st.att.v_cap = 0.0, 0.0, (0.0, 0.0), None
             st.message = PLANNING
@@ -537,6 +542,20 @@ class ReachController:
             st.progress.due = math.inf
             return
         self._point_goal_route(T, None, "")
+
+    def _corridor_rescene(self, st: CoreState, T: np.ndarray) -> None:
+        """The scene changed: a corridor route being planned is planned again against the new scene (the
+        arm still holds); one being followed, checked against the old scene, is left for the attractor
+        dynamics."""
+        if st.corridor_plan is not None:
+            assert self._corridor_pool is not None
+            st.corridor_plan.cancel()
+            st.corridor_plan = self._corridor_pool.submit(
+                self.redundancy.corridor_job(st, self.params, T, self.view.index.reach_scene.scene))
+        elif st.route is not None:
+            st.route = None
+            self.attractor.enter(st)
+            st.message = "the scene changed on the corridor route: attractor dynamics"
 
     def _point_goal_route(self, T: np.ndarray, route: CorridorRoute | None, no_corridor: str) -> None:
         """Start the point goal ``T`` on its corridor ``route``, or without one (``no_corridor`` says why
@@ -589,7 +608,7 @@ class ReachController:
             st.corridor_plan = None
             scene = self.view.index.reach_scene.scene
             if route is not None and not self.redundancy.corridor_asked(st, p, scene):
-                route, why = None, "the scene changed while it was planned"  # obstacles came meanwhile
+                route, why = None, "the arm or the parameters changed while it was planned"
             assert st.goal is not None
             self._point_goal_route(pose_matrix(st.goal.pos, st.goal.rot), route, why)
             # this step's command: the planner's (it brakes the arm), or braking onto the reference

@@ -14,6 +14,7 @@ rad, s.
 
 from __future__ import annotations
 
+import copy
 import math
 import struct
 from collections.abc import Callable
@@ -22,11 +23,18 @@ from typing import Protocol
 
 import numpy as np
 
-from redarm_ros.control.corridor_route import STRAIGHT_WINDOW, CorridorRoute, plan_route, timed_route
+from redarm_ros.control.corridor_route import (
+    STRAIGHT_WINDOW,
+    CorridorRoute,
+    plan_route,
+    route_clearance,
+    route_joints,
+    timed_route,
+)
 from redarm_ros.control.elbow import ArmGeometry, ElbowCircle, elbow_circle
 from redarm_ros.control.goal_check import check_goal, stream_feasibility
 from redarm_ros.control.goal_hint import BaseMoveHints
-from redarm_ros.control.guard import CollisionGuard
+from redarm_ros.control.guard import CollisionGuard, describe
 from redarm_ros.control.ik_step import IKStep, IKStepper, SwivelFn, pose_matrix, pose_of
 from redarm_ros.control.ik_step6 import IKStepper6
 from redarm_ros.control.joint_limits import JointBounds, braking_speed, joint_share_acc
@@ -59,6 +67,10 @@ REST_SAMPLES = 64
 PACE_AFTER = 4.0
 #: s: the least extra time a corridor route may take beyond a joint-space move (replan.corridor_max_slowdown)
 SLOW_SLACK = 8.0
+
+#: rad: near obstacles a corridor route is taken only if it ends this near the preferred swivel (the swivel
+#: dynamics would turn the elbow on after it, the phase going back from REACHED)
+REST_OFFSET = 0.05
 
 #: the planning of a corridor route, run in a worker thread: the route, or None and why there is none
 CorridorJob = Callable[[], tuple[CorridorRoute | None, str]]
@@ -150,8 +162,9 @@ class Redundancy(Protocol):
         """Is a point goal set now planned through the swivel corridor?"""
         ...
 
-    def corridor_job(self, st: CoreState, p: ControllerParams, T: np.ndarray) -> CorridorJob:
-        """The planning of the route to ``T`` through the swivel corridor, for the worker thread."""
+    def corridor_job(self, st: CoreState, p: ControllerParams, T: np.ndarray, scene: Scene) -> CorridorJob:
+        """The planning of the route to ``T`` through the swivel corridor, checked against ``scene``, for
+        the worker thread."""
         ...
 
     def new_planner(self, st: CoreState, p: ControllerParams, T: np.ndarray, scene: Scene) -> PathSearch:
@@ -630,17 +643,54 @@ class SwivelRedundancy:
         return ""
 
     def corridor_asked(self, st: CoreState, p: ControllerParams, scene: Scene) -> bool:
-        """Is a point goal set now planned through the swivel corridor? Only with the hand at rest, in free
-        space (``scene`` without obstacles: the elbow's obstacle avoidance then keeps the attractor
-        dynamics) and with the swivel dynamics in charge of the elbow."""
+        """Is a point goal set now planned through the swivel corridor? Only with the hand at rest and
+        with the swivel dynamics in charge of the elbow (the route is checked against ``scene`` once
+        planned: :meth:`corridor_job`)."""
         return bool(p.replan.corridor) and p.swivel_mode not in ("fixed", PAPER_MODE) \
-            and scene.free_space and st.ref.v_tool <= 0.01 \
-            and st.att.v <= 0.01 and hasattr(self.arm, "swivel_corridor")
+            and st.ref.v_tool <= 0.01 and st.att.v <= 0.01 and hasattr(self.arm, "swivel_corridor")
 
-    def corridor_job(self, st: CoreState, p: ControllerParams, T: np.ndarray) -> CorridorJob:
+    def corridor_job(self, st: CoreState, p: ControllerParams, T: np.ndarray, scene: Scene) -> CorridorJob:
         """The planning of the straight route to the point goal ``T`` through the swivel corridor, from
         the reference as it is now, or else of a via route: a function of copies (it runs in the worker
-        thread) that returns the route, or None and why there is none."""
+        thread) that returns the route, or None and why there is none. A route that does not keep the
+        re-planner's clearance (``replan.clearance``) from ``scene`` and from the arm itself is refused."""
+        plan = self._corridor_plan(st, p, T)
+        guard, need = copy.copy(self.guard), p.replan.clearance  # (the copy counts its own evaluations)
+        guard.evaluations = 0
+        lower, upper = self.bounds.lower.copy(), self.bounds.upper.copy()
+        try:
+            s_pref = self.preferred_swivel(st, p, elbow_circle(self.geom, T))
+        except UnreachableError:
+            s_pref = math.nan  # (no corridor either)
+
+        def job() -> tuple[CorridorRoute | None, str]:
+            route, why = plan()
+            if route is None:
+                return None, why
+            worst = route_clearance(self.arm, guard, route, scene, need)
+            if worst.distance < need:
+                return None, f"its route comes within {need:.2f} m: {describe(worst, scene)}"
+            if scene.free_space:
+                return route, why
+            # near obstacles the elbow must be able to rest where the route leaves it: else the swivel
+            # dynamics moves it on after the route (a long self-motion, the phase back from REACHED)
+            s_end = route.corridor.swivel_at(1.0)
+            rest = self.swivel_dyn.forces(elbow_circle(self.geom, T), s_end, scene, p.capsules)
+            if rest.obstacle != 0.0:
+                return None, (f"the elbow would end {rest.clearance:.2f} m from the scene, within the "
+                              "obstacle force's reach")
+            q_end = route_joints(self.arm, route, np.array([1.0]))[0]
+            if np.min(np.minimum(q_end - lower, upper - q_end)) < p.swivel.lim_threshold:
+                return None, "the route ends within the joint-limit force's reach"
+            off = abs(wrap_angle(s_end - s_pref))
+            if not off <= REST_OFFSET:
+                return None, f"the route ends {off:.2f} rad from the preferred swivel"
+            return route, why
+
+        return job
+
+    def _corridor_plan(self, st: CoreState, p: ControllerParams, T: np.ndarray) -> CorridorJob:
+        """:meth:`corridor_job` without the collision check."""
         rp = p.replan
         arm, q0 = self.arm, st.ref.q.copy()
         # the route starts at the pose of the reference's joints: the reference pose may be off it by
