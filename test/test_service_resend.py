@@ -4,6 +4,8 @@ is taken (Fast DDS drops a response when the server has not matched the caller's
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
+from types import SimpleNamespace
 
 import pytest
 
@@ -15,6 +17,7 @@ from rclpy.executors import MultiThreadedExecutor  # noqa: E402
 from rclpy.task import Future  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
+from redarm_ros.nodes import _common  # noqa: E402
 from redarm_ros.nodes._common import call_resending  # noqa: E402
 from redarm_ros.procs import poll_until  # noqa: E402
 
@@ -48,10 +51,19 @@ def test_an_unanswered_request_is_sent_again_and_the_answer_taken() -> None:
     assert cli.removed == cli.futures[:2]  # the abandoned copies no longer wait for an answer
 
 
-def test_no_answer_at_all_gives_none_after_the_timeout() -> None:
+def test_no_answer_at_all_gives_none_after_the_timeout(monkeypatch: pytest.MonkeyPatch) -> None:
+    # On a clock that moves only while call_resending waits: the count of copies does not depend on how
+    # soon a loaded machine wakes the waiting thread.
+    clock = [0.0]
+    monkeypatch.setattr(_common, "time", SimpleNamespace(monotonic=lambda: clock[0]))
+
+    def wait(pred: Callable[[], bool], seconds: float) -> bool:
+        clock[0] += seconds
+        return pred()
+
     cli = FakeClient(answer_copy=None)
-    assert call_resending(cli, object(), poll_until, timeout=0.3, resend_after_s=0.1) is None
-    assert 3 <= len(cli.futures) <= 4
+    assert call_resending(cli, object(), wait, timeout=0.3, resend_after_s=0.1) is None
+    assert len(cli.futures) == 3  # sent at 0, 0.1 and 0.2 s
     assert cli.removed == cli.futures
 
 
