@@ -117,22 +117,8 @@ def test_a_free_space_dead_end_is_left_by_a_bent_joint_move_with_a_short_hand_pa
     bent (as far as it is worth the time): the hand's path within 15 % of the line (the straight joint
     move: 1.24), one speed peak, every joint within its limits; ``~/state`` says so."""
     q0 = np.array([-0.276, 0.847, -1.472, -1.928, -0.765, -1.563, -4.628])
-    T = ARM.fk(np.array([0.447, -0.575, 0.94, -1.293, 3.542, -0.699, -4.462]))
-    ctl = make_controller(ARM, Scene(), ControllerParams.from_dict({"replan": {"corridor": False}}))
-    ctl.reset(q0)
-    assert ctl.set_goal(T).accepted
-    qs, messages = [q0], set()
-    for _ in range(1500):
-        r = ctl.step(DT)
-        qs.append(r.q)
-        messages.add(r.message)
-        if r.phase is Phase.REACHED:
-            break
-    assert r.phase is Phase.REACHED
+    Q, messages = reach(ARM, q0, np.array([0.447, -0.575, 0.94, -1.293, 3.542, -0.699, -4.462]))
     assert any(m.startswith("moving in joint space (bent: the hand's path") for m in messages), messages
-    Q = np.array(qs)
-    assert np.all(Q >= ARM.lower) and np.all(Q <= ARM.upper)
-    assert np.all(np.abs(np.diff(Q, axis=0)) <= np.asarray(ARM.max_vel) * DT * (1 + 1e-9))
     P = ARM.fk_batch(Q)[:, :3, 3]
     v = np.linalg.norm(np.diff(P, axis=0), axis=1) / DT
     assert np.sum(v) * DT / np.linalg.norm(P[-1] - P[0]) < 1.15
