@@ -840,6 +840,7 @@ def test_live_watchdog_trips_when_cycles_stop(live) -> None:
     time.sleep(1.0)  # host "hangs": no traffic for longer than the 0.3 s watchdog
     res = drv.cycle(None, 0.01)
     assert res.fault and all(bits & S.COMM_ERROR for bits in res.fault.bits.values())
+    assert "module 1: ERROR|COMM_ERROR" in str(res.fault)  # the report says it was the watchdog
     assert drv.state is DriverState.FAULT
     drv.recover()
     assert drv.cycle(None, 0.01).fault is None

@@ -308,6 +308,26 @@ def test_watchdog_judges_the_host_by_wire_time_not_by_when_frames_are_read(clock
     assert out and out[0].state & S.COMM_ERROR
 
 
+def test_halted_at_is_when_the_halt_was_on_the_bus_or_the_watchdog_ran_out(clock: FakeClock) -> None:
+    """A test compares when modules halted, whenever it gets to look: a HALT counts at its wire
+    time, a watchdog at its deadline however late a check noticed it; RESET clears the record."""
+    arm = make_arm(clock, n=2, config=int(ActConfig.WATCHDOG_ENABLE))
+    m1, m2 = arm[1], arm[2]
+    t0 = clock()
+    assert m1.halted_at is None and m2.halted_at is None
+    clock.advance(0.03)
+    m1.handle(p.CommandRequest(1, p.Command.HALT), t0 + 0.02)  # read 10 ms after it was on the bus
+    m1.handle(p.Broadcast(p.BroadcastCommand.HALT_ALL, 0), t0 + 0.025)  # a second HALT changes nothing
+    assert m1.halted_at == pytest.approx(t0 + 0.02)
+    clock.advance(0.2)  # module 2 heard nothing since t0: its watchdog ran out at t0 + 0.1
+    arm.tick()
+    assert m2.sticky & S.COMM_ERROR and m2.halted_at == pytest.approx(t0 + 0.1)
+    m2.handle(p.CommandRequest(2, p.Command.RESET))
+    assert m2.halted_at is None
+    m2.inject_fault(S.HALTED)
+    assert m2.halted_at == pytest.approx(clock())
+
+
 def test_a_tick_judges_time_as_of_when_the_queue_was_known_empty(clock: FakeClock) -> None:
     """The reader found its queue empty, then waited 300 ms for the CPU before ticking; the host's
     refreshes of that time are not read yet. Judged as of the empty queue, nothing expired; the

@@ -2,9 +2,9 @@
 controller as separate processes, started by redarm_ros.bringup). The test process is an ordinary
 ROS client: from the homed (stretched) pose it sends one goal (the controller leaves the singular
 pose in joint space by itself), then streams a short line at 50 Hz with header stamps, and checks the
-*simulated* tool (pybullet link state, from the simulator's status file) followed it and settled on
-the last goal. The bounds are generous (a loaded machine); the accuracy is measured by
-benchmarks/track_bench.py --stack."""
+hand (every measured /joint_states) followed it and the *simulated* tool (pybullet link state, read
+from the simulator) settled on the last goal. The bounds are generous (a loaded machine); the
+accuracy is measured by benchmarks/track_bench.py --stack."""
 
 from __future__ import annotations
 
@@ -20,6 +20,7 @@ require_ros(stack=True)
 
 from geometry_msgs.msg import PoseStamped  # noqa: E402
 from redarm_interfaces.msg import ControllerState  # noqa: E402
+from sensor_msgs.msg import JointState  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 from support.stack_client import StackClient, client_in_context, stack_fixture  # noqa: E402
 from support.stack_client import pose_down as pose  # noqa: E402
@@ -56,6 +57,13 @@ class Client(StackClient):
         self.node.create_subscription(ControllerState, "/controller/state", self.states.append, 200)
         self.stamped_commands = 0  # /joint_command segments with a header stamp (command_delay_s)
         self.node.create_subscription(JointTrajectory, "joint_command", self._on_cmd, 200)
+        # (measured at, wall s; hand position): queued by DDS however late this process takes them
+        self.hand: list[tuple[float, np.ndarray]] = []
+        self.node.create_subscription(JointState, "/joint_states", self._on_joints, 1000)
+
+    def _on_joints(self, msg: JointState) -> None:
+        q = np.array([msg.position[msg.name.index(name)] for name in ARM.joint_names])
+        self.hand.append((msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9, ARM.fk(q)[:3, 3]))
 
     def _on_cmd(self, msg: JointTrajectory) -> None:
         self.stamped_commands += bool(msg.header.stamp.sec or msg.header.stamp.nanosec)
@@ -135,9 +143,13 @@ def test_stream_followed_by_the_simulated_tool(stack: SimulatedArm, client: Clie
         client.ex.spin_once(timeout_sec=0.002)
     stack.check()
     assert any(s.phase == ControllerState.TRACKING and s.goal_kind == "stream" for s in client.states[n:])
-    live = [(w - t0, p) for w, p in samples if 0.0 <= w - t0 <= duration]
-    # The hand stays on the streamed path: distance to the path as a curve, not to the point due at
-    # the sample's time, which a busy machine's latency shifts (the timed error is a benchmark's).
+    # The hand as measured in every cycle the driver published (not the simulator polled from here: a
+    # starved test process gets too few looks in 2 s) stays on the streamed path: distance to the path
+    # as a curve, not to the point due at the sample's time, which a busy machine's latency shifts
+    # (the timed error is a benchmark's).
+    # (one callback per spin: the window's joint states may still wait in the reader's queue)
+    assert client.spin_until(lambda: bool(client.hand) and client.hand[-1][0] > t0 + duration, 30.0)
+    live = [(w - t0, p) for w, p in client.hand if 0.0 <= w - t0 <= duration]
     path = np.array([line_path(t, duration)[:3, 3] for t in np.linspace(0.0, duration, 2001)])
     err = np.array([np.min(np.linalg.norm(path - p, axis=1)) for _, p in live])
     assert len(err) > 20

@@ -81,6 +81,21 @@ def test_real_arm_script_drives_a_simulated_arm(procs: Any, canbus_server: Any) 
 stack = sc.stack_fixture(arm="pa10", description=True, ready_timeout_s=90.0)  # as redarm-bringup
 
 
+@pytest.fixture(autouse=True)
+def driver_running(request: pytest.FixtureRequest, procs: Any) -> None:
+    """Each test on the shared stack starts with its driver running. A halt (the modules' watchdog on
+    a starved machine, a fault) outlasts the test it happened in, and every later test's arm would
+    stand still; so a halt left behind is recovered with ``~/recover``, as a user would, and said."""
+    if "stack" not in request.fixturenames:
+        return
+    arm = request.getfixturevalue("stack")
+    halted = [m.id for m in arm.status().modules.values() if m.halted]
+    if halted:
+        code, out = run_example(procs, "call_trigger.py", "can_driver/recover")
+        assert code == 0, f"the driver was halted (modules {halted}) and ~/recover failed: {out}"
+        print(f"modules {halted} were halted before this test; {out.strip()}")
+
+
 def test_ik_client(stack: Stack, procs: Any) -> None:
     code, out = run_example(procs, "ik_client.py")
     assert code == 0, out

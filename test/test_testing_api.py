@@ -17,7 +17,14 @@ from support.pc_host import Host
 from redarm_ros.can import protocol as pc
 from redarm_ros.can.protocol import ActState, Param
 from redarm_ros.kinematics import load_arm
-from redarm_ros.testing import SimArmConfig, SimControlError, SimulatedArm, WaitTimeoutError, wait_until
+from redarm_ros.testing import (
+    WATCHDOG_S,
+    SimArmConfig,
+    SimControlError,
+    SimulatedArm,
+    WaitTimeoutError,
+    wait_until,
+)
 
 pytestmark = [pytest.mark.hil, pytest.mark.usefixtures("no_open_buses")]
 
@@ -89,6 +96,25 @@ def test_power_cycle_loses_homing_and_settings(redarm_arm: SimulatedArm, host: H
     assert st.silenced == frozenset()  # on again: it speaks
     assert not host.state(2) & ActState.HOME_OK  # as the vendor library reads it
     assert host.param(2, Param.ACT_CONFIG) == 0  # factory settings
+
+
+def test_each_module_says_when_it_halted_however_late_the_test_looks(redarm_arm: SimulatedArm,
+                                                                       host: Host) -> None:
+    # Module 2 by a HALT, module 1 by its watchdog (armed, then never refreshed); looked at 0.3 s later.
+    before = redarm_arm.status()
+    assert host.ask(pc.halt(2)) is not None
+    assert host.ask(pc.set_param(1, Param.ACT_CONFIG, int(pc.ActConfig.WATCHDOG_ENABLE))) is not None
+    after = redarm_arm.status()
+    time.sleep(0.3)
+    st = redarm_arm.wait_modules(ActState.HALTED | ActState.COMM_ERROR, [1], timeout=5.0)
+    slack = 1e-3  # the frames' stamps are converted from wall time
+    assert before.uptime_s - slack <= st.modules[2].halted_at_s <= after.uptime_s + slack
+    armed_at = st.modules[1].halted_at_s - WATCHDOG_S  # its watchdog ran out WATCHDOG_S after
+    assert before.uptime_s - slack <= armed_at <= after.uptime_s + slack
+    assert st.uptime_s - st.modules[2].halted_at_s >= 0.3  # not when the status was read
+    assert st.modules[3].halted_at_s is None
+    assert host.ask(pc.reset(2)) is not None
+    assert redarm_arm.status().modules[2].halted_at_s is None
 
 
 def test_module_error_and_beyond_soft(redarm_arm: SimulatedArm, host: Host) -> None:

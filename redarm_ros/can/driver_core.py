@@ -90,6 +90,9 @@ FAULT_BITS = (
     | ActState.BEYOND_HARD
     | POWER_STAGE_FAULTS
 )
+#: Bits named in a fault report: the fault bits and COMM_ERROR (the module's watchdog ran out: it heard
+#: nothing from the host for its timeout, e.g. a starved cycle).
+REPORTED_BITS = FAULT_BITS | ActState.COMM_ERROR
 _LATENCY_WINDOW = 1024
 #: Requests outside the cycle (configure, reset, home, state reads) are sent this many times to a
 #: module that has not answered, waiting ``reply_timeout_s``, then twice, then four times that:
@@ -191,8 +194,8 @@ class ForeignHostError(RedarmError):
 
 
 def fault_bit_names(bits: int) -> str:
-    """``"ERROR|POWERFAULT"``: names of the :data:`FAULT_BITS` set in ``bits``."""
-    return "|".join(b.name or "" for b in ActState if b & bits and b & FAULT_BITS)
+    """``"ERROR|POWERFAULT"``: names of the :data:`REPORTED_BITS` set in ``bits``."""
+    return "|".join(b.name or "" for b in ActState if b & bits and b & REPORTED_BITS)
 
 
 class ModuleStats:
@@ -1357,5 +1360,5 @@ class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those o
         if j in res:
             st = ActState(int(res[j].value))  # type: ignore[attr-defined]
             self._states[j] = int(st)
-            return st & FAULT_BITS or ActState.ERROR
+            return st & REPORTED_BITS or ActState.ERROR
         return ActState.ERROR

@@ -32,6 +32,8 @@ Behaviour (choices for what the M5 documentation leaves open are marked *choice*
   refreshed by the broadcast ``0x100 [07 00]``, by the WATCHDOG command, and by any other
   frame addressed to the module. If nothing arrives for ``watchdog_timeout_s`` (default
   0.1 s), the module halts and sets ERROR | HALTED | COMM_ERROR; a RESET re-arms it.
+  :attr:`PowerCubeModule.halted_at` records when HALTED was set: the HALT's wire time, or the
+  moment the watchdog ran out (however late a check noticed it).
   Time is *wall time on the wire*: a frame counts at the moment it was on the bus (its
   ``timestamp``, see :func:`wire_time`), not when the emulator got to read it, so an emulator
   that was itself descheduled judges the host as a real module would; the check without a
@@ -399,6 +401,9 @@ class PowerCubeModule:
         self._pending: p.SetMoveRequest | None = None
         self._wd_deadline: float | None = None
         self._now = clock()  # time of the frame being handled (wire time) or of the last tick
+        #: when HALTED was set (module clock, s): the HALT frame's wire time, or when the watchdog
+        #: ran out; None while not halted
+        self.halted_at: float | None = None
         self.silenced = False
         self.ignored_setparams = 0
         self.requests = 0
@@ -497,19 +502,23 @@ class PowerCubeModule:
             self._homing = False
             if not self._st & _BLOCKING:
                 self._st |= _HOME_OK
-        if self._wd_deadline is not None and self._now > self._wd_deadline:
+        expired = self._wd_deadline
+        if expired is not None and self._now > expired:
             self._wd_deadline = None  # re-armed by RESET
             logger.warning("module %d: watchdog expired, halting", self.module_id)
-            self._fault(ActState.HALTED | ActState.COMM_ERROR)
+            self._fault(ActState.HALTED | ActState.COMM_ERROR, at=expired)
         if not self._st & _ERROR:
             pos = self.plant.position()
             lo, hi = self._params[Param.ACT_FMINPOS], self._params[Param.ACT_FMAXPOS]
             if pos < lo - SOFT_LIMIT_TOLERANCE or pos > hi + SOFT_LIMIT_TOLERANCE:
                 self._fault(ActState.BEYOND_SOFT)
 
-    def _fault(self, bits: ActState) -> None:
-        """Set ERROR plus ``bits``, stop the plant, drop a pending move; queue a state frame."""
+    def _fault(self, bits: ActState, at: float | None = None) -> None:
+        """Set ERROR plus ``bits`` (as of ``at``, default the current frame's time), stop the plant,
+        drop a pending move; queue a state frame."""
         was_error = bool(self._st & _ERROR)
+        if bits & _HALTED:
+            self._mark_halted(self._now if at is None else at)
         self._st |= _ERROR | int(bits)
         self._pending = None
         self._homing = False
@@ -519,7 +528,11 @@ class PowerCubeModule:
 
     def inject_fault(self, bits: ActState) -> None:
         """Test hook: raise a fault (e.g. POWERFAULT, TOW_ERROR) as the hardware would."""
-        self._fault(ActState(bits))
+        self._fault(ActState(bits), at=self._clock())
+
+    def _mark_halted(self, at: float) -> None:
+        if not self._st & _HALTED:  # the first HALT counts; a repeated one changes nothing
+            self.halted_at = at
 
     def _refresh_watchdog(self) -> None:
         if self._wd_deadline is not None:
@@ -560,6 +573,7 @@ class PowerCubeModule:
 
     def _reset(self) -> None:
         self._st &= ~_STICKY
+        self.halted_at = None
         self._pending = None
         self._homing = False
         self.plant.halt()
@@ -579,6 +593,7 @@ class PowerCubeModule:
         )
 
     def _halt(self) -> None:
+        self._mark_halted(self._now)
         self._st |= _HALTED
         self._pending = None
         self._homing = False

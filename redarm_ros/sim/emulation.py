@@ -122,8 +122,10 @@ class PlantModules:
         """ERROR plus ``bits`` on module ``module_id``, as its hardware would raise them."""
         self.bank.inject_fault(module_id, bits)
 
-    def describe(self) -> list[dict[str, Any]]:
-        """Per module: id, ACT_STATE (int and flag names), homed, position (rad). No side effects."""
+    def describe(self, epoch: float = 0.0) -> list[dict[str, Any]]:
+        """Per module: id, ACT_STATE (int and flag names), position (rad), requests handled, and
+        ``halted_at_s``: when HALTED was set, in s since ``epoch`` (``time.monotonic`` scale), or
+        None. No side effects."""
         out = []
         with self.bank.lock:
             for mid in self.module_ids:
@@ -137,6 +139,7 @@ class PlantModules:
                         "flags": [f.name for f in ActState if f.value and f in st and f.name],
                         "position": m.plant.position(),
                         "requests": m.requests,
+                        "halted_at_s": None if m.halted_at is None else m.halted_at - epoch,
                     }
                 )
         return out

@@ -518,7 +518,7 @@ class HardwareSim:
             "dq": dq.tolist(),
             "q_setpoint": q_sp.tolist(),
             "tool": {"position": pos.tolist(), "quaternion_xyzw": quat.tolist()},
-            "modules": self.emulator.describe(),
+            "modules": self.emulator.describe(epoch=self._start),  # times on the uptime_s scale
             "faults": faults,
             "counters": counters,
             "snapshots": list(self.snapshots),

@@ -30,12 +30,15 @@ class SimControlError(RedarmError):
 @dataclass(frozen=True)
 class ModuleStatus:
     """One emulated module as the simulator sees it: ``id``, ``state`` (ACT_STATE), ``position``
-    (rad), ``requests`` (frames it handled)."""
+    (rad), ``requests`` (frames it handled), ``halted_at_s``: when HALTED was set, on the
+    simulator's ``uptime_s`` clock (the HALT's time on the bus, or when its watchdog ran out), or
+    None while not halted."""
 
     id: int
     state: ActState
     position: float
     requests: int
+    halted_at_s: float | None = None
 
     def has(self, bits: ActState) -> bool:
         """True if every bit of ``bits`` is set."""
@@ -90,7 +93,8 @@ class SimStatus:
         tool[:3, :3] = quat_to_matrix(from_xyzw(st["tool"]["quaternion_xyzw"]))
         tool[:3, 3] = st["tool"]["position"]
         modules = {int(m["id"]): ModuleStatus(int(m["id"]), ActState(int(m["state"])), float(m["position"]),
-                                              int(m["requests"])) for m in st["modules"]}
+                                              int(m["requests"]), m.get("halted_at_s"))
+                   for m in st["modules"]}
         return cls(q=np.asarray(st["q"], float), dq=np.asarray(st["dq"], float),
                    q_setpoint=np.asarray(st["q_setpoint"], float), tool=tool, modules=modules,
                    silenced=frozenset(st["faults"]["silenced"]), faults=dict(st["faults"]),
