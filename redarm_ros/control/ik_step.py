@@ -129,8 +129,9 @@ class IKStepper(StepperBase):
         cont = self._continued_copies(sols, q_ref)
         ok = (cont >= self.lower) & (cont <= self.upper)
         sols = np.where(ok, cont, sols)  # (only wide joints differ)
-        ratios = np.max(np.abs(sols - q_ref) * self.inv_vel, axis=1) / dt
-        i = int(np.argmin(ratios))
+        # (the ufuncs' own reduce and argmin: np.max / np.argmin add their Python wrappers' cost)
+        ratios = np.maximum.reduce(np.abs(sols - q_ref) * self.inv_vel, axis=1) / dt
+        i = int(ratios.argmin())
         return sols[i], float(ratios[i])
 
     def solve(self, T: np.ndarray, s: float, q_ref: np.ndarray, dt: float) -> tuple[np.ndarray, float] | None:
@@ -175,8 +176,8 @@ class IKStepper(StepperBase):
     def _continued_copies(self, sols: np.ndarray, q_ref: np.ndarray) -> np.ndarray:
         """``sols`` with each wide joint on its 2 pi copy nearest ``q_ref``, in its limits or not."""
         out = sols.copy()
-        for j in self.wide:
-            out[:, j] -= 2.0 * math.pi * np.round((sols[:, j] - q_ref[j]) / (2.0 * math.pi))
+        for j in self.wide:  # (np.rint: what np.round does at 0 decimals, without its wrapper)
+            out[:, j] -= 2.0 * math.pi * np.rint((sols[:, j] - q_ref[j]) / (2.0 * math.pi))
         return out
 
     # -- the cascade ------------------------------------------------------------------------------
