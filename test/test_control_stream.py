@@ -84,6 +84,31 @@ def test_the_path_ahead_of_a_fast_circle_follows_its_turn_and_stops_with_the_str
     assert StreamEstimator().path_poses(np.array([0.1]), 0.0) is None
 
 
+def test_a_held_orientation_takes_the_short_way_with_the_same_numbers() -> None:
+    """A stream that keeps its orientation (the rotation vectors all zero) gets the rotation block of
+    the general Rodrigues product bit for bit, also with a -0.0 in the orientation's matrix; a turning
+    stream still goes the general way."""
+    from redarm_ros.control.stream import _rotvec_matrices
+    from redarm_ros.kinematics.quaternion import matrix_from_quat
+
+    rng = np.random.default_rng(7)
+    for k in range(40):
+        q = rng.normal(size=4)
+        rot = (1.0, 0.0, 0.0, 0.0) if k == 0 else tuple(float(x) for x in q / np.linalg.norm(q))
+        est = StreamEstimator()
+        feed(est, circle, [i * 0.02 for i in range(12)], rot=lambda t, rot=rot: rot)
+        times = 0.22 + np.arange(1, 1 + k % 9 + 1) * 0.1
+        out = est.path_poses(times, 0.22)
+        assert out is not None
+        general = _rotvec_matrices(np.zeros((len(times), 3))) @ np.asarray(matrix_from_quat(rot))
+        assert out[:, :3, :3].tobytes() == general.tobytes()
+    turning = StreamEstimator()
+    feed(turning, line, [i * 0.02 for i in range(10)], rot=lambda t: quat_from_rotvec((0.0, 0.0, 0.5 * t)))
+    out = turning.path_poses(np.array([0.3, 0.5]), 0.18)
+    assert out is not None
+    assert quat_angle(quat_from_matrix(out[0, :3, :3]), quat_from_matrix(out[1, :3, :3])) > 0.05
+
+
 def test_angular_velocity_from_orientations() -> None:
     est = StreamEstimator()
     rate = 0.5  # rad/s about z

@@ -232,3 +232,40 @@ def test_limit_force_from_probed_margins(geom) -> None:
     # margins beyond the threshold, or none probed: no limit force
     assert dyn.forces(circle, s, None, ArmCapsules(), limit_margins=(0.3, 0.35, 0.25)).limits == 0.0
     assert dyn.forces(circle, s, None, ArmCapsules()).limits == 0.0
+
+
+def test_ik_step_selection_is_numpys_row_by_row() -> None:
+    """IKStepper.select over plain floats gives numpy's answer bit for bit: each wide joint on its in-limit
+    2 pi copy nearest the reference (np.rint's half-to-even at the ties), the ratio as np.max / dt, the first
+    row of least ratio as np.argmin; seeded random rows around and across the +-pi seams."""
+    from redarm_ros.control.make import make_controller
+    from redarm_ros.control.reach_controller import ControllerParams
+
+    arm = load_arm("pa10")
+    stp = make_controller(arm, None, ControllerParams()).redundancy.stepper
+    lower, upper, inv_vel = stp.lower, stp.upper, stp.inv_vel
+
+    def numpy_select(sols: np.ndarray, q_ref: np.ndarray, dt: float) -> tuple[np.ndarray, float]:
+        cont = sols.copy()
+        for j in stp.wide:
+            cont[:, j] -= 2.0 * math.pi * np.round((sols[:, j] - q_ref[j]) / (2.0 * math.pi))
+        ok = (cont >= lower) & (cont <= upper)
+        picked = np.where(ok, cont, sols)
+        ratios = np.max(np.abs(picked - q_ref) * inv_vel, axis=1) / dt
+        i = int(np.argmin(ratios))
+        return picked[i], float(ratios[i])
+
+    rng = np.random.default_rng(11)
+    for k in range(3000):
+        q_ref = rng.uniform(lower, upper)
+        rows = rng.uniform(-math.pi, math.pi, size=(int(rng.integers(1, 9)), 7))
+        if k % 3 == 0:  # copies 2 pi away, ties at half a turn, a repeated row (argmin's first)
+            turns = rng.integers(-3, 4, size=(len(rows), len(stp.wide)))
+            rows[:, stp.wide] = q_ref[stp.wide] + math.pi * turns
+            rows = np.vstack([rows, rows[:1]])
+        dt = float(rng.choice([0.01, 1.0, 0.004]))
+        got = stp.select(rows, q_ref, dt)
+        want = numpy_select(rows, q_ref, dt)
+        assert got is not None
+        assert got[0].tobytes() == want[0].tobytes() and got[1] == want[1]
+    assert stp.select(np.empty((0, 7)), q_ref, 0.01) is None

@@ -689,3 +689,42 @@ def test_a_controller_with_nothing_to_move_rests_and_wakes_on_an_input(h: Harnes
     steps = h.ctl.steps
     h.arm.q = h.arm.q + np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.01])  # another client moved the arm
     assert h.spin_ticks(100, lambda: not h.ctl.idle and h.ctl.steps > steps)
+
+
+def test_joint_states_in_any_order_with_missing_repeated_or_bad_joints(ctx: Any) -> None:
+    """joint_states by name: any order, extra joints, a repeated name (its last value), positions fewer
+    than names (those names count as missing); a message without every arm joint or with NaN is ignored
+    with a warning; a new layout is looked up again, also back to an earlier one."""
+    node = ControllerNode(context=ctx, parameter_overrides=[Parameter("duplicate_check_s", value=0.0)])
+    try:
+        names = list(node.arm.joint_names)
+        q = np.linspace(-0.5, 0.7, len(names))
+        warned: list[str] = []
+        node._warn_throttled = lambda key, text, period_s=2.0: warned.append(key)  # type: ignore[method-assign]
+
+        def js(nm: list[str], pos: list[float]) -> JointState:
+            m = JointState()
+            m.name, m.position = nm, pos
+            return m
+
+        def got() -> list[float]:
+            assert node._q_meas is not None
+            return node._q_meas.tolist()
+
+        node._on_joint_states(js(names, q.tolist()))
+        assert got() == q.tolist()
+        order = [6, 0, 5, 1, 4, 2, 3]
+        node._on_joint_states(js(["gripper", *[names[i] for i in order]], [9.0, *(q[order] + 1.0).tolist()]))
+        assert got() == (q + 1.0).tolist()
+        node._on_joint_states(js([*names, names[2]], [*q.tolist(), 5.0]))  # a repeated name: its last value
+        assert got()[2] == 5.0 and got()[:2] == q[:2].tolist()
+        before = got()
+        node._on_joint_states(js(names[:-1], q[:-1].tolist()))  # a joint missing
+        node._on_joint_states(js(names, q[:-1].tolist()))  # fewer positions than names
+        assert got() == before and warned == ["js-names", "js-names"]
+        node._on_joint_states(js(names, [*q[:-1].tolist(), math.nan]))
+        assert got() == before and warned[-1] == "js-nan"
+        node._on_joint_states(js(names, (q + 2.0).tolist()))  # back to the first layout
+        assert got() == (q + 2.0).tolist()
+    finally:
+        node.destroy_node()

@@ -49,9 +49,14 @@ def levers(key_points: np.ndarray, radius: float) -> np.ndarray:
     ``radius``): joints 1-3 turn about the shoulder, joint 4 about the elbow, joints 5-7 about the
     wrist. A joint turning by ``dq`` moves no point of the arm farther than ``lever * |dq|``."""
     kp = key_points
-    sh = max(float(np.linalg.norm(kp[i] - kp[1])) for i in (2, 3, 4)) + radius
-    el = max(float(np.linalg.norm(kp[i] - kp[2])) for i in (3, 4)) + radius
-    wr = float(np.linalg.norm(kp[4] - kp[3])) + radius
+
+    def dist(i: int, j: int) -> float:  # np.linalg.norm's own arithmetic (sqrt of the dot), minus its wrapper
+        d = kp[i] - kp[j]
+        return math.sqrt(d.dot(d))
+
+    sh = max(dist(i, 1) for i in (2, 3, 4)) + radius
+    el = max(dist(i, 2) for i in (3, 4)) + radius
+    wr = dist(4, 3) + radius
     return np.array([sh, sh, sh, el, wr, wr, wr])
 
 

@@ -102,6 +102,8 @@ class StreamEstimator:
         self._last_arrival = -math.inf
         self._fit: tuple[np.ndarray, ...] | None = None
         self._fit3: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # (p0, v, a) of _fitted_turn
+        self._tau_pos: tuple[np.ndarray, np.ndarray] | None = None  # the fit's stamps (tau) and positions
+        self._still: tuple[Quat, np.ndarray] | None = None  # see _still_rotation
         self._period: float | None = None  # period() of the samples as they are (None: not computed yet)
         self.count = 0  # samples accepted since reset
         self.dropped = 0  # out-of-window or duplicate samples ignored
@@ -183,15 +185,19 @@ class StreamEstimator:
         n = len(self._samples)
         tau = np.array([s.t - ref.t for s in self._samples])
         P = np.array([s.pos for s in self._samples])
-        R = np.array([rotvec_between(ref.rot, s.rot) for s in self._samples])
+        # (a stream that keeps its orientation: the one rotation vector, not one call per sample)
+        same = rotvec_between(ref.rot, ref.rot)
+        R = np.array([same if s.rot == ref.rot else rotvec_between(ref.rot, s.rot) for s in self._samples])
+        self._tau_pos = (tau, P)
         z = np.zeros(3)
         if n == 1:
             self._fit = (P[0], z, z, z, z, z)
             return self._fit
-        cols = [np.ones(n), tau]
+        A = np.empty((n, 3 if n >= 3 else 2))  # columns 1, tau, tau^2 / 2 (n >= 3)
+        A[:, 0] = 1.0
+        A[:, 1] = tau
         if n >= 3:
-            cols.append(0.5 * tau * tau)
-        A = np.stack(cols, axis=1)
+            A[:, 2] = 0.5 * tau * tau
         M = A.T @ A
         if n >= 3:
             M[2, 2] += self.params.accel_weight
@@ -217,9 +223,9 @@ class StreamEstimator:
         p0, v, a, *_ = self._fitted()
         n = len(self._samples)
         if n >= 4:
-            ref = self._samples[-1]
-            tau = np.array([s.t - ref.t for s in self._samples])
-            P = np.array([s.pos for s in self._samples])
+            tau, P = self._tau_pos  # (of the same samples as the fit)
+            A = np.empty((n, 3))
+            A[:, 0] = 1.0
             for _ in range(3):
                 speed2 = float(v @ v)
                 if speed2 < 1e-12:
@@ -228,7 +234,8 @@ class StreamEstimator:
                 w = math.sqrt(float(a_n @ a_n) / speed2)
                 if not 1e-3 < w * float(-tau[0]) < 1.0:
                     break  # (straight: the quadratic fit is the fit; over 1 rad: no turn to trust)
-                A = np.stack([np.ones(n), np.sin(w * tau) / w, (1.0 - np.cos(w * tau)) / (w * w)], axis=1)
+                A[:, 1] = np.sin(w * tau) / w
+                A[:, 2] = (1.0 - np.cos(w * tau)) / (w * w)
                 M = A.T @ A
                 M[2, 2] += self.params.accel_weight
                 try:
@@ -278,8 +285,19 @@ class StreamEstimator:
                 out[:, :3, 3] = p0 + (np.sin(th)[:, None] * e + (1.0 - np.cos(th))[:, None] * nrm) / k
             _, _, _, r0, w, al = self._fitted()
         rv = r0 + tau[:, None] * w + 0.5 * (tau * tau)[:, None] * al
-        out[:, :3, :3] = _rotvec_matrices(rv) @ np.asarray(matrix_from_quat(ref.rot))
+        if rv.any():
+            out[:, :3, :3] = _rotvec_matrices(rv) @ np.asarray(matrix_from_quat(ref.rot))
+        else:  # the orientation holds: every row the identity times R0, the same numbers, made once
+            out[:, :3, :3] = self._still_rotation(ref.rot)
         return out
+
+    def _still_rotation(self, rot: Quat) -> np.ndarray:
+        """``_rotvec_matrices(0) @ R(rot)`` (1, 3, 3), as the general case computes it for a zero rotation
+        vector (the exact identity times R), kept for the last ``rot``."""
+        kept = self._still
+        if kept is None or kept[0] != rot:
+            kept = self._still = (rot, _rotvec_matrices(np.zeros((1, 3))) @ np.asarray(matrix_from_quat(rot)))
+        return kept[1]
 
     def velocity(self) -> tuple[Vec3, Vec3]:
         """Estimated linear (m/s) and angular (rad/s) velocity of the stream."""

@@ -38,7 +38,6 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
-from builtin_interfaces.msg import Duration, Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Point, PoseStamped, TwistStamped
 from rclpy.parameter import Parameter
@@ -297,6 +296,8 @@ class ControllerNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
         self._last_step = time.monotonic()
         self._last_dt = 1.0 / p["rate_hz"]
         self._meas_hist: list[tuple[float, np.ndarray]] = []
+        # joint_states layout: ((names, count of positions), index of each arm joint or None, missing names)
+        self._js_layout: tuple[Any, list[int] | None, list[str]] = (None, None, [])
         self._last_cmd: np.ndarray | None = None
         self._cmd_clock = CommandClock(float(p["command_delay_s"]))
         self._markers: dict[tuple[str, int], Any] = {}
@@ -309,6 +310,9 @@ class ControllerNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
         self._marker_listeners = 0
         self._obstacle_markers: list[Marker] = []
         self._last_result: Any = None
+        self._state_out = ControllerState()  # ~/state, refilled per message (_state_msg)
+        self._cmd_msg = (JointTrajectory(joint_names=self._names), JointTrajectoryPoint(),
+                         JointTrajectoryPoint())  # /joint_command and its two points (_publish_command)
         self.steps = 0
         self.loop_stats = LoopStats(self.period)
         # Wiring.
@@ -399,14 +403,18 @@ class ControllerNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
 
     # -- inputs -----------------------------------------------------------------------------------
     def _on_joint_states(self, msg: JointState) -> None:
-        pos = dict(zip(msg.name, msg.position, strict=False))
-        try:
-            q = np.array([pos[n] for n in self._names], dtype=float)
-        except KeyError:
-            missing = [n for n in self._names if n not in pos]
+        pos = msg.position
+        key = (tuple(msg.name), len(pos))
+        if key != self._js_layout[0]:  # (a driver sends the same names every time: looked up once)
+            at = {n: i for i, n in enumerate(msg.name[:len(pos)])}  # (a repeated name: its last value)
+            missing = [n for n in self._names if n not in at]
+            self._js_layout = (key, None if missing else [at[n] for n in self._names], missing)
+        index, missing = self._js_layout[1], self._js_layout[2]
+        if index is None:
             self._warn_throttled("js-names", f"joint_states lacks joints {missing}; ignored")
             return
-        if not np.all(np.isfinite(q)):
+        q = np.array([pos[i] for i in index], dtype=float)
+        if not np.isfinite(q).all():
             self._warn_throttled("js-nan", "joint_states with NaN/inf ignored")
             return
         self._q_meas = q
@@ -685,57 +693,71 @@ class ControllerNode(ParamNode, node_name=NODE_NAME, params=PARAMS):
         Stamped (``command_delay_s``), the segment ends that long after the step ``t_step`` (ROS time);
         the driver follows the previous one until it starts."""
         seg = self._cmd_clock.segment(t_step, self._last_dt)
+        # One message and its two points, refilled every step (publish() copies them out at once): a
+        # new message is some 10 us of constructors a step.
+        msg, start, end = self._cmd_msg
         dt = seg.duration
         sec = int(dt)
-        end = JointTrajectoryPoint(positions=q.tolist(),
-                                   time_from_start=Duration(sec=sec, nanosec=int((dt - sec) * 1e9)))
-        msg = JointTrajectory()
-        msg.joint_names = self._names
+        end.positions = q.tolist()
+        end.time_from_start.sec, end.time_from_start.nanosec = sec, int((dt - sec) * 1e9)
+        stamp = msg.header.stamp
         if seg.stamp is not None:
             sec = int(seg.stamp)
-            msg.header.stamp = Time(sec=sec, nanosec=int((seg.stamp - sec) * 1e9))
-        elif self._cmd_clock.delay > 0.0:
-            off = self._cmd_clock.offset()
-            why = "unstamped" if math.isinf(off) else f"{off:+.3f} s off this node's clock"
-            self._warn_throttled("cmd-clock", f"joint_states stamps are {why}: /joint_command segments go "
-                                 "out unstamped (started on receipt; command_delay_s not applied)", 10.0)
+            stamp.sec, stamp.nanosec = sec, int((seg.stamp - sec) * 1e9)
+        else:
+            stamp.sec, stamp.nanosec = 0, 0
+            if self._cmd_clock.delay > 0.0:
+                off = self._cmd_clock.offset()
+                why = "unstamped" if math.isinf(off) else f"{off:+.3f} s off this node's clock"
+                self._warn_throttled("cmd-clock", f"joint_states stamps are {why}: /joint_command "
+                                     "segments go out unstamped (started on receipt; command_delay_s not "
+                                     "applied)", 10.0)
         if self._last_cmd is None:
             msg.points = [end]
         else:
-            start = JointTrajectoryPoint(positions=self._last_cmd.tolist(), time_from_start=Duration())
+            start.positions = self._last_cmd.tolist()
             msg.points = [start, end]
         self.cmd_pub.publish(msg)
         self._last_cmd = q.copy()
 
     def _state_msg(self, res: Any) -> ControllerState:
-        st = ControllerState()
+        """``~/state`` of step result ``res`` (None: no step yet). One message, every field refilled on each
+        call (publish() copies it out at once; a new one costs some 10 us of constructors a step)."""
+        st = self._state_out
         st.header.stamp = self.get_clock().now().to_msg()
         st.header.frame_id = self.get_parameter("base_frame").value
+        v = w = (0.0, 0.0, 0.0)
+        goal = None
         if res is None:
             st.phase = ControllerState.IDLE
             st.swivel = st.swivel_desired = math.nan
             st.clearance = st.distance_to_goal = st.orientation_error = math.inf
             st.message = "waiting for joint_states"
-            return st
-        st.phase = _PHASE_MSG[res.phase]
-        st.swivel = float(res.swivel)
-        st.swivel_desired = float(res.swivel_desired)
-        st.clearance = float(res.clearance)
-        st.distance_to_goal = float(res.distance_to_goal)
-        st.orientation_error = float(res.orientation_error)
-        st.message = res.message
-        kind = self.ctl.goal_kind
-        st.goal_kind = "" if kind is None else kind.value
-        v, w = res.goal_velocity, res.goal_rate
-        st.goal_velocity.linear.x, st.goal_velocity.linear.y, st.goal_velocity.linear.z = v
-        st.goal_velocity.angular.x, st.goal_velocity.angular.y, st.goal_velocity.angular.z = w
-        st.stream_rate = float(res.stream_rate)
-        goal = self.ctl.goal
+            st.goal_kind = ""
+            st.stream_rate = 0.0
+        else:
+            st.phase = _PHASE_MSG[res.phase]
+            st.swivel = float(res.swivel)
+            st.swivel_desired = float(res.swivel_desired)
+            st.clearance = float(res.clearance)
+            st.distance_to_goal = float(res.distance_to_goal)
+            st.orientation_error = float(res.orientation_error)
+            st.message = res.message
+            kind = self.ctl.goal_kind
+            st.goal_kind = "" if kind is None else kind.value
+            v, w = res.goal_velocity, res.goal_rate
+            st.stream_rate = float(res.stream_rate)
+            goal = self.ctl.goal
+        lin, ang = st.goal_velocity.linear, st.goal_velocity.angular
+        lin.x, lin.y, lin.z = v
+        ang.x, ang.y, ang.z = w
+        p, o = st.goal.position, st.goal.orientation
         if goal is not None:
-            (gx, gy, gz), (w, x, y, z) = goal
-            st.goal.position = Point(x=gx, y=gy, z=gz)
-            o = st.goal.orientation
-            o.x, o.y, o.z, o.w = float(x), float(y), float(z), float(w)
+            (p.x, p.y, p.z), (qw, qx, qy, qz) = goal
+            o.x, o.y, o.z, o.w = float(qx), float(qy), float(qz), float(qw)
+        else:  # (a message's defaults)
+            p.x = p.y = p.z = 0.0
+            o.x, o.y, o.z, o.w = 0.0, 0.0, 0.0, 1.0
         return st
 
     # -- RViz -------------------------------------------------------------------------------------
