@@ -1203,17 +1203,18 @@ class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those o
         clock = self._clock
         patch = p.patch_fstep
         batch = self._fstep_msgs[:n]
-        for j in range(n):
-            patch(batch[j], q[j], ms)
+        for j, x in enumerate(q.tolist()):
+            patch(batch[j], x, ms)
         batch.append(self._startmove)
         if self.watchdog_refresh:
             batch.append(self._wd_refresh)
         stamp = self._send_many(batch)
-        t_sent = np.full(n, stamp)
 
-        replied = np.zeros(n, dtype=bool)
-        latency = np.full(n, np.nan)
-        short = np.zeros(n, dtype=np.int64)
+        # Per joint in lists while the replies come in (seven scalar writes each, not numpy item
+        # writes); arrays once for the result.
+        replied = [False] * n
+        latency = [math.nan] * n
+        short = [0] * n
         remaining = n
         implausible = 0
         deadline = self._deadline
@@ -1249,7 +1250,7 @@ class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those o
             remaining -= 1
             self._accept_position(j, fields[0], t)
             short[j] = fields[1]
-            latency[j] = t - t_sent[j]
+            latency[j] = t - stamp
 
         # bookkeeping
         lost = 0
@@ -1259,9 +1260,9 @@ class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those o
                 s.replies += 1
                 s.consecutive_misses = 0
                 s.silent = False
-                s.add_latency(float(latency[j]))
+                s.add_latency(latency[j])
                 # keep the long-only bits (HOME_OK, causes) from the last full read
-                self._states[j] = (int(self._states[j]) & _LONG_ONLY) | p.LONG_BITS_OF_SHORT[int(short[j])]
+                self._states[j] = (int(self._states[j]) & _LONG_ONLY) | p.LONG_BITS_OF_SHORT[short[j]]
             else:
                 s.lost += 1
                 lost += 1
@@ -1284,8 +1285,8 @@ class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those o
             velocities=vel,
             targets=q,
             states=self._states.copy(),
-            replied=replied,
-            latency_s=latency,
+            replied=np.array(replied, dtype=bool),
+            latency_s=np.array(latency),
             clamped=tuple(int(j) for j in np.flatnonzero(lim_mask | step_mask)),
             clamped_to_limits=lim_mask,
             clamped_step=step_mask,
@@ -1308,7 +1309,7 @@ class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those o
         # faults: ERROR in a short state, or a state frame with fault bits
         faults = dict(self._pending_faults)
         self._pending_faults.clear()
-        errored = np.flatnonzero(short & _SHORT_ERROR).tolist()
+        errored = [j for j in range(n) if short[j] & _SHORT_ERROR]
         if errored or faults:
             self._halt_all()
             for j in errored:
