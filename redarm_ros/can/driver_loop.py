@@ -1279,7 +1279,7 @@ class DriverLoop:
         if shaper is None:
             shaper = self._shaper = ReferenceShaper(drv.limits, period, self.config.limit_margin_rad)
             shaper.reset(q_ref)
-        lo, hi = drv.limits.lower, drv.limits.upper
+        lo_list, hi_list = drv.limits.lower.tolist(), drv.limits.upper.tolist()
         frames_per_cycle = drv.frames_per_cycle
         gc_every = max(1, int(round(0.2 / period)))  # young-generation collection about 5 times a second
         quiet_gc = self.config.quiet_gc
@@ -1302,9 +1302,17 @@ class DriverLoop:
                 seen_generation = self.commands.generation
                 if self.commands.mode is CommandMode.HOLD:
                     shaper.hold_still()  # the jump to a hold point is no target velocity to feed forward
-            clipped = np.clip(target, lo, hi)
-            outside = clipped != target
-            beyond = tuple(int(j) for j in np.flatnonzero(outside)) if outside.any() else ()
+            # Into the limits joint by joint on floats (numpy's clip, NaN passed on: the shaper refuses it).
+            clipped_list: list[float] = []
+            outside: list[int] = []
+            for j, (x, low, high) in enumerate(zip(target.tolist(), lo_list, hi_list, strict=True)):
+                y = x if x > low or x != x else low
+                y = y if y < high or y != y else high
+                clipped_list.append(y)
+                if y != x:
+                    outside.append(j)
+            clipped = np.array(clipped_list)
+            beyond = tuple(outside)
             # (the park move advances per cycle run, not per wall-clock second: one period each)
             # None = one nominal period: the first cycle after a pause has none of its own
             elapsed = None if prev_now is None or self.commands.mode is CommandMode.PARK else now - prev_now
@@ -1313,15 +1321,14 @@ class DriverLoop:
             result = drv.cycle(ref, period)
             q_meas = result.positions
             q_ref = result.targets
-            lat = result.latency_s
-            ok = lat[np.isfinite(lat)]
+            ok = [x for x in result.latency_s.tolist() if math.isfinite(x)]
             with self._lock:
                 self._q_meas = q_meas
                 self._q_ref = q_ref
                 self._last_result = result
                 self._frames_tx += frames_per_cycle
-                self._latencies.extend(ok.tolist())
-                self._frames_rx += int(ok.size)
+                self._latencies.extend(ok)
+                self._frames_rx += len(ok)
             if beyond or result.clamped:
                 self._note_clamps(result, now, beyond)
             if result.lost and not prev_lost:  # the first cycle of a run of misses: when, and who
