@@ -318,6 +318,26 @@ def test_targets_clamped_to_limits_and_speed(scripted: ScriptedBus, clock: FakeC
     assert res.clamped == () and res.targets[2] == 0.025
 
 
+def test_targets_are_numpys_clips_to_the_bit(scripted: ScriptedBus, clock: FakeClock) -> None:
+    """The cycle clamps joint by joint on floats: exactly numpy's clip into the limits, then within
+    max_vel * dt of the last target, and the masks and clamped joints of those two clips."""
+    drv = ready_driver(scripted, clock)
+    rng = np.random.default_rng(11)
+    last = drv.cycle(None, 0.01).targets
+    for k in range(40):
+        dt = float(rng.choice([0.002, 0.004, 0.01]))
+        target = rng.uniform(drv.lower - 0.5, drv.upper + 0.5) if k % 4 else last + rng.normal(0, 1e-3, N)
+        inside = np.clip(target, drv.lower, drv.upper)
+        step = drv.max_vel * dt
+        want = np.clip(inside, last - step, last + step)
+        res = drv.cycle(target, dt)
+        assert res.targets.tobytes() == want.tobytes(), k
+        assert res.clamped_to_limits.tolist() == (inside != target).tolist(), k
+        assert res.clamped_step.tolist() == (want != inside).tolist(), k
+        assert res.clamped == tuple(np.flatnonzero((inside != target) | (want != inside)).tolist()), k
+        last = res.targets
+
+
 def test_hold_when_no_target(scripted: ScriptedBus, clock: FakeClock) -> None:
     drv = ready_driver(scripted, clock)
     drv.cycle([0.21, -0.1, 0.0], 0.01)

@@ -120,3 +120,22 @@ def test_a_stopped_server_is_a_lost_bus() -> None:
         assert bus.is_lost
     finally:
         bus.shutdown()
+
+
+def test_recv_waits_its_timeout_and_keeps_software_filters() -> None:
+    """recv hands frames on without python-can's per-frame wrapper, but still waits the whole timeout
+    for none, and filters set on either layer (ours or the relay bus) are kept."""
+    with LoopbackBusServer() as srv, open_bus(**srv.client_config()) as a, \
+            open_bus(**srv.client_config()) as b, \
+            open_bus(**srv.client_config(), can_filters=[{"can_id": 0x0E1, "can_mask": 0x7FF}]) as f:
+        raw = RelayBus(srv.client_config()["channel"], can_filters=[{"can_id": 0x0E2, "can_mask": 0x7FF}])
+        try:
+            t0 = time.monotonic()
+            assert b.recv(0.1) is None
+            assert time.monotonic() - t0 >= 0.095
+            a.send_many(_msgs(4))
+            assert [b.recv(1.0).arbitration_id for _ in range(4)] == [0x0E0, 0x0E1, 0x0E2, 0x0E3]
+            assert f.recv(1.0).arbitration_id == 0x0E1 and f.recv(0.1) is None
+            assert raw.recv(1.0).arbitration_id == 0x0E2 and raw.recv(0.1) is None
+        finally:
+            raw.shutdown()

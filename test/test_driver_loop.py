@@ -27,7 +27,7 @@ from redarm_ros.can.driver_loop import (
 from redarm_ros.can.module_emulator import EmulatedArm
 from redarm_ros.can.protocol import Command
 from redarm_ros.errors import BusError, InvalidInputError
-from redarm_ros.motion import JointLimits
+from redarm_ros.motion import JointLimits, braking_distance
 
 N = 3
 
@@ -341,6 +341,83 @@ def test_shaper_positions_sent_keep_the_limits_whatever_the_targets() -> None:
         assert np.all(np.abs(v) <= sh.max_vel * (1 + 1e-9) + 1e-12), seed
         assert np.all(np.abs(acc) <= sh.max_acc * (1 + 1e-6) + 1e-9), (seed, np.max(np.abs(acc) / sh.max_acc))
         assert np.all(rs >= sh.lower - 1e-12) and np.all(rs <= sh.upper + 1e-12), seed
+
+
+class _VectorShaper:
+    """The reference shaper's law in its numpy form (the oracle of the joint-by-joint one)."""
+
+    def __init__(self, limits: JointLimits, dt: float) -> None:
+        self.lim, self.dt = limits, dt
+        self.r = self.v = self.g_prev = None
+
+    def stopping_point(self) -> np.ndarray:
+        a, dt = self.lim.max_acc, self.dt
+        if not self.v.any():
+            return self.r.copy()
+        d = braking_distance(np.maximum(np.abs(self.v) - a * dt, 0.0), a, dt)
+        return self.lim.clip(self.r + np.sign(self.v) * d)
+
+    def step(self, target: np.ndarray, elapsed: float | None) -> np.ndarray:
+        lim, dt = self.lim, self.dt
+        a, vmax = lim.max_acc, lim.max_vel
+        g = lim.clip(target)
+        if self.r is None:
+            self.r, self.v = g, np.zeros_like(g)
+            return g.copy()
+        if not self.v.any() and np.array_equal(g, self.r) and (self.g_prev is None
+                                                                or np.array_equal(g, self.g_prev)):
+            self.g_prev = g
+            return self.r.copy()
+        h = dt if elapsed is None else max(float(elapsed), 0.25 * dt)
+        u = np.zeros_like(g) if self.g_prev is None else np.clip((g - self.g_prev) / h, -vmax, vmax)
+        self.g_prev = g
+        r, v = self.r, self.v
+        e = (g - u * dt) - r
+        v_des = np.clip(u + np.sign(e) * braking_speed(np.abs(e), a, dt), -vmax, vmax)
+        ahead = g + u * np.abs(u) / (2.0 * a) - r
+        cap = braking_speed(np.abs(ahead), a, dt)
+        v_des = np.clip(v_des, np.where(ahead < 0.0, -cap, -vmax), np.where(ahead > 0.0, cap, vmax))
+        up, down = lim.stop_speeds(r, dt)
+        v_des = np.clip(v_des, -down, up)
+        r_new = r + (v + np.clip(v_des - v, -a * dt, a * dt)) * dt
+        step = (g - r) / dt
+        land = (np.abs(step - v) <= a * dt) & (np.abs(step) <= a * dt) & (u == 0)
+        self.r = lim.clip(np.where(land, g, r_new))
+        self.v = (self.r - r) / dt
+        return self.r.copy()
+
+
+def test_shaper_gives_the_vector_laws_numbers_bit_for_bit() -> None:
+    """The shaper runs its law joint by joint on floats: the same operations in the same order as the
+    law's numpy form, so the same references, velocities and stopping points, bit for bit (adversarial
+    streams, late cycles, holds, signed zeros at the limits)."""
+    limits = JointLimits([-1.5, -2.0], [1.5, 2.0], [1.0, 2.0], [2.0, 8.0])
+    for seed in range(48):
+        rng = np.random.default_rng(seed)
+        sh = ReferenceShaper(limits, 0.004, 1e-3 if seed % 2 else 0.0)
+        oracle = _VectorShaper(sh.limits, sh.dt)
+        targets = np.clip(_adversarial_targets(rng, sh.dt), [-1.5, -2.0], [1.5, 2.0])
+        if seed % 3 == 0:
+            targets[rng.integers(len(targets), size=20)] = np.array([-0.0, 0.0])
+        sh.reset(targets[0])
+        oracle.step(targets[0], None)
+        for k, g in enumerate(targets):
+            if k % 97 == 50:
+                sh.hold_still()
+                oracle.g_prev = None
+            elapsed = None if rng.random() < 0.7 else sh.dt * rng.choice([0.1, 1.0, 1.3, 2.0, 3.0])
+            got, want = sh.step(g, elapsed), oracle.step(g, elapsed)
+            assert got.tobytes() == want.tobytes() and sh.v.tobytes() == oracle.v.tobytes(), (seed, k)
+            assert sh.stopping_point().tobytes() == oracle.stopping_point().tobytes(), (seed, k)
+
+
+def test_shaper_refuses_a_target_that_is_not_finite() -> None:
+    sh = make_shaper()
+    sh.reset(np.zeros(2))
+    for bad in ([np.nan, 0.0], [0.0, np.inf]):
+        with pytest.raises(InvalidInputError):
+            sh.step(np.array(bad))
+    np.testing.assert_array_equal(sh.step(np.array([0.1, 0.0])), sh.r)  # still usable
 
 
 def test_backoff_doubles_to_a_cap_and_resets() -> None:

@@ -239,7 +239,26 @@ class ReopenableBus(Protocol):
         """Open the same configuration again; raise :class:`BusError` if that fails."""
 
 
-class ReconnectingBus(can.BusABC):
+_CAN_RX_LOG = logging.getLogger("can.bus")  # python-can's log of received frames (BusABC.recv)
+
+
+class DirectRecv:
+    """Mixin for a :class:`can.BusABC` whose ``_recv_internal`` waits out the whole timeout: ``recv``
+    returns what it gives when no software filter is set, without :meth:`can.BusABC.recv`'s loop
+    around it (which then only re-checks the empty filter list, reads the clock twice and calls the
+    logger: two layers of it per frame on a driver's cycle, 250 cycles a second). With filters, the
+    base class's ``recv``. Received frames are logged as python-can does, when that level is on."""
+
+    def recv(self, timeout: float | None = None) -> can.Message | None:
+        if self._filters is not None:  # type: ignore[attr-defined]
+            return super().recv(timeout)  # type: ignore[misc]
+        msg, _ = self._recv_internal(timeout)  # type: ignore[attr-defined]
+        if msg is not None and _CAN_RX_LOG.isEnabledFor(can.BusABC.RECV_LOGGING_LEVEL):
+            _CAN_RX_LOG.log(can.BusABC.RECV_LOGGING_LEVEL, "Received: %s", msg)
+        return msg
+
+
+class ReconnectingBus(DirectRecv, can.BusABC):
     """A python-can bus over a configuration, with typed errors and :meth:`reopen`.
 
     Every failure of the underlying transport surfaces as :class:`BusError` (cause kept). When

@@ -418,7 +418,9 @@ class _Relay:
                 return
         # What is still unread (in our buffer and in the kernel): a client that sends faster than the
         # bus forwards has frames skipped while this is above the limit, as arbitration would lose them.
-        backlog = len(c.rbuf) + _pending_bytes(c.sock)
+        # A read shorter than asked for took all the kernel held: no need to ask it (one system call
+        # less per read, two reads a driver cycle).
+        backlog = len(c.rbuf) + (_pending_bytes(c.sock) if len(chunk) >= _RECV_BYTES else 0)
         binary_frames: list[bytes] = []
         now = time.time()
         buf = c.rbuf

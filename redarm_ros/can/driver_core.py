@@ -459,6 +459,10 @@ class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those o
         self._brake = np.asarray(self.limits.max_vel, dtype=float) ** 2 / (
             2.0 * np.asarray(self.limits.max_acc, dtype=float))  # braking distance from max_vel (rad)
         self._states = np.zeros(n, dtype=np.int64)
+        # The limits per joint as floats (the cycle clamps its targets joint by joint), and no joint.
+        self._lower_list, self._upper_list = self.lower.tolist(), self.upper.tolist()
+        self._max_vel_list = self.max_vel.tolist()
+        self._no_joints = np.zeros(n, dtype=bool)
         self._prev_stamp: float | None = None
         self._prev_q: np.ndarray | None = None
         self._needs_resync = False
@@ -1183,19 +1187,31 @@ class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those o
     def _cycle_locked(self, q_in: np.ndarray | None, dt: float, resynced: bool) -> CycleResult:
         n = self.n
         holding = self.state is not DriverState.READY
-        lim_mask = np.zeros(n, dtype=bool)
-        step_mask = np.zeros(n, dtype=bool)
+        lim_mask = step_mask = self._no_joints
+        clamped: tuple[int, ...] = ()
         if holding:
             q = self._q_meas.copy()
         elif q_in is None or resynced:
             q = self._q_cmd.copy()
         else:
-            q = np.clip(q_in, self.lower, self.upper)
-            lim_mask = q != q_in
-            step = self.max_vel * dt
-            q_step = np.clip(q, self._q_cmd - step, self._q_cmd + step)
-            step_mask = q_step != q
-            q = q_step
+            # Into the limits, then within one step at max_vel of the last target: joint by joint on
+            # floats (a clip as numpy's: ``x if x > lo else lo``, then ``y if y < hi else hi``).
+            q_list, at_limit, stepped = [], [], []
+            joints = zip(q_in.tolist(), self._lower_list, self._upper_list, self._q_cmd.tolist(),
+                         self._max_vel_list, strict=True)
+            for x, lo, hi, last, vmax in joints:
+                y = x if x > lo else lo
+                y = y if y < hi else hi
+                step = vmax * dt
+                z = y if y > last - step else last - step
+                z = z if z < last + step else last + step
+                q_list.append(z)
+                at_limit.append(y != x)
+                stepped.append(z != y)
+            q = np.array(q_list)
+            if True in at_limit or True in stepped:
+                lim_mask, step_mask = np.array(at_limit), np.array(stepped)
+                clamped = tuple(j for j in range(n) if at_limit[j] or stepped[j])
         ms = min(0xFFFF, max(1, round(dt * 1000.0)))
 
         late = self._drain()
@@ -1206,17 +1222,18 @@ class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those o
         clock = self._clock
         patch = p.patch_fstep
         batch = self._fstep_msgs[:n]
-        for j in range(n):
-            patch(batch[j], q[j], ms)
+        for j, x in enumerate(q.tolist()):
+            patch(batch[j], x, ms)
         batch.append(self._startmove)
         if self.watchdog_refresh:
             batch.append(self._wd_refresh)
         stamp = self._send_many(batch)
-        t_sent = np.full(n, stamp)
 
-        replied = np.zeros(n, dtype=bool)
-        latency = np.full(n, np.nan)
-        short = np.zeros(n, dtype=np.int64)
+        # Per joint in lists while the replies come in (seven scalar writes each, not numpy item
+        # writes); arrays once for the result.
+        replied = [False] * n
+        latency = [math.nan] * n
+        short = [0] * n
         remaining = n
         implausible = 0
         deadline = self._deadline
@@ -1252,7 +1269,7 @@ class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those o
             remaining -= 1
             self._accept_position(j, fields[0], t)
             short[j] = fields[1]
-            latency[j] = t - t_sent[j]
+            latency[j] = t - stamp
 
         # bookkeeping
         lost = 0
@@ -1262,9 +1279,9 @@ class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those o
                 s.replies += 1
                 s.consecutive_misses = 0
                 s.silent = False
-                s.add_latency(float(latency[j]))
+                s.add_latency(latency[j])
                 # keep the long-only bits (HOME_OK, causes) from the last full read
-                self._states[j] = (int(self._states[j]) & _LONG_ONLY) | p.LONG_BITS_OF_SHORT[int(short[j])]
+                self._states[j] = (int(self._states[j]) & _LONG_ONLY) | p.LONG_BITS_OF_SHORT[short[j]]
             else:
                 s.lost += 1
                 lost += 1
@@ -1287,11 +1304,11 @@ class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those o
             velocities=vel,
             targets=q,
             states=self._states.copy(),
-            replied=replied,
-            latency_s=latency,
-            clamped=tuple(int(j) for j in np.flatnonzero(lim_mask | step_mask)),
-            clamped_to_limits=lim_mask,
-            clamped_step=step_mask,
+            replied=np.array(replied, dtype=bool),
+            latency_s=np.array(latency),
+            clamped=clamped,
+            clamped_to_limits=lim_mask.copy(),
+            clamped_step=step_mask.copy(),
             lost=lost,
             late=late,
             malformed=self.decoder.malformed - malformed0,
@@ -1311,7 +1328,7 @@ class PowerCubeArmDriver(LimitsView):  # lower, upper, max_vel, max_acc: those o
         # faults: ERROR in a short state, or a state frame with fault bits
         faults = dict(self._pending_faults)
         self._pending_faults.clear()
-        errored = np.flatnonzero(short & _SHORT_ERROR).tolist()
+        errored = [j for j in range(n) if short[j] & _SHORT_ERROR]
         if errored or faults:
             self._halt_all()
             for j in errored:

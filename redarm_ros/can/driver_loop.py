@@ -58,7 +58,13 @@ from redarm_ros.can.driver_core import (
     ModuleStatsView,
 )
 from redarm_ros.errors import BusError, BusTimeoutError, InvalidInputError, RedarmError, RequestRefusedError
-from redarm_ros.motion import JointLimits, LimitsView, braking_distance, braking_speed
+from redarm_ros.motion import (
+    JointLimits,
+    LimitsView,
+    braking_distance_scalar,
+    braking_speed,
+    braking_speed_scalar,
+)
 from redarm_ros.motion.sync_move import synchronized_move
 
 _LOG = logging.getLogger(__name__)
@@ -374,7 +380,12 @@ class ReferenceShaper(LimitsView):  # lower/upper: the joint limits inset by the
         self.dt = float(dt)
         self.r: np.ndarray | None = None
         self.v = np.zeros(limits.n)
-        self._g_prev: np.ndarray | None = None
+        self._g_prev: list[float] | None = None
+        # Per joint as floats: the law runs joint by joint (see step).
+        lim = self.limits
+        self._lower, self._upper = lim.lower.tolist(), lim.upper.tolist()
+        self._acc, self._vmax = lim.max_acc.tolist(), lim.max_vel.tolist()
+        self._acc_dt = (lim.max_acc * self.dt).tolist()
 
     def reset(self, q: np.ndarray) -> None:
         """Start from rest at ``q`` (rad): after init, recover, reconnect."""
@@ -394,11 +405,19 @@ class ReferenceShaper(LimitsView):  # lower/upper: the joint limits inset by the
             return None
         if not self.v.any():  # at rest (most cycles of a held arm): where it is, as the law below gives
             return self.r.copy()
-        a = self.limits.max_acc
         # the discrete law's own distance from the next step's speed (|v| braked by a dt): the
         # braking step then lands on this point exactly, with no overshoot to come back from
-        d = braking_distance(np.maximum(np.abs(self.v) - a * self.dt, 0.0), a, self.dt)
-        return self.limits.clip(self.r + np.sign(self.v) * d)
+        # (joint by joint on floats, as in step)
+        dt, distance = self.dt, braking_distance_scalar
+        out = []
+        for rj, vj, a, adt, lo, hi in zip(self.r.tolist(), self.v.tolist(), self._acc, self._acc_dt,
+                                          self._lower, self._upper, strict=True):
+            s = abs(vj) - adt
+            d = distance(s if s > 0.0 else 0.0, a, dt)
+            x = rj + (1.0 if vj > 0.0 else (-1.0 if vj < 0.0 else 0.0)) * d
+            x = x if x > lo else lo
+            out.append(x if x < hi else hi)
+        return np.array(out)
 
     def step(self, target: np.ndarray, elapsed: float | None = None) -> np.ndarray:
         """Advance one cycle toward ``target`` (n,) rad (clamped into the inset limits); returns the
@@ -407,46 +426,86 @@ class ReferenceShaper(LimitsView):  # lower/upper: the joint limits inset by the
         that time. Taken per nominal period instead, every skipped tick doubled or tripled the
         velocity fed forward, and the reference overshot the end of a trajectory (134 / 340 mrad
         with 20 % / 50 % of the cycles 1-3 ticks late, replayed offline on the PA10's limits; now 0,
-        see docs/can_driver.md, "One cycle")."""
+        see docs/can_driver.md, "One cycle").
+
+        Raises:
+            InvalidInputError: ``target`` holds NaN or inf (the commands are checked before they get
+                here: a bug).
+        """
         if self.r is None:
             self.reset(target)
             return self.r.copy()  # type: ignore[union-attr]
-        lim, dt = self.limits, self.dt
-        a, vmax = lim.max_acc, lim.max_vel
-        g = lim.clip(target)
+        # The law joint by joint on floats: on an arm's seven joints, the four dozen numpy calls of its
+        # vector form cost several times more, 250 times a second. Same operations in the same order,
+        # so the same numbers; a clip is numpy's: ``x if x > lo else lo``, then ``y if y < hi else hi``.
+        tq = np.asarray(target, dtype=float).tolist()
+        if not math.isfinite(sum(tq)) and not all(map(math.isfinite, tq)):
+            raise InvalidInputError("shaper target contains NaN or inf", field="target", value=tq)
+        lower, upper = self._lower, self._upper
+        g = []
+        for x, lo, hi in zip(tq, lower, upper, strict=True):
+            x = x if x > lo else lo
+            g.append(x if x < hi else hi)
         g_prev = self._g_prev
-        if not self.v.any() and np.array_equal(g, self.r) and (g_prev is None or np.array_equal(g, g_prev)):
+        r = self.r.tolist()  # type: ignore[union-attr]
+        v = self.v.tolist()
+        if not any(v) and g == r and (g_prev is None or g == g_prev):
             # At rest on a target that stands still (a held arm, 250 times a second): the law below
-            # gives the same reference and zero velocity; skip its few dozen array operations.
+            # gives the same reference and zero velocity; skip it.
             self._g_prev = g
-            return self.r.copy()
+            return self.r.copy()  # type: ignore[union-attr]
+        dt = self.dt
         h = dt if elapsed is None else max(float(elapsed), 0.25 * dt)
-        u = np.zeros_like(g) if self._g_prev is None else np.clip((g - self._g_prev) / h, -vmax, vmax)
         self._g_prev = g
-        r, v = self.r, self.v
-        # Tracking error against where the target was: with u fed forward, r then lands on g.
-        e = (g - u * dt) - r
-        v_des = np.clip(u + np.sign(e) * braking_speed(np.abs(e), a, dt), -vmax, vmax)
-        # Approach the nearest point where the target can stop (braking at max_acc from u) no faster
-        # than allows stopping on it: a reference that lags (skipped ticks) catches up without its
-        # catch-up speed adding to the target's own, which carried it beyond a trajectory's end.
-        ahead = g + u * np.abs(u) / (2.0 * a) - r
-        cap = braking_speed(np.abs(ahead), a, dt)
-        v_des = np.clip(v_des, np.where(ahead < 0.0, -cap, -vmax), np.where(ahead > 0.0, cap, vmax))
-        # Never faster toward a limit than allows stopping on it (exact discrete law: no overshoot).
-        up, down = lim.stop_speeds(r, dt)
-        v_des = np.clip(v_des, -down, up)
-        v_new = v + np.clip(v_des - v, -a * dt, a * dt)
-        r_new = r + v_new * dt
-        # Land exactly on a stationary target instead of dithering around it, but only with a step
-        # the acceleration limit allows both now and for the stop in the next cycle.
-        step = (g - r) / dt
-        land = (np.abs(step - v) <= a * dt) & (np.abs(step) <= a * dt) & (u == 0)
-        r_new = np.where(land, g, r_new)
-        self.r = lim.clip(r_new)
-        # The velocity is the step actually sent (landing, clipping), so the next cycle's
-        # acceleration limit holds on the positions the modules receive.
-        self.v = (self.r - r) / dt
+        speed = braking_speed_scalar
+        r_out: list[float] = []
+        v_out: list[float] = []
+        joints = zip(g, r, v, self._acc, self._vmax, self._acc_dt, strict=True)
+        for j, (gj, rj, vj, a, vmax, adt) in enumerate(joints):
+            if g_prev is None:
+                u = 0.0
+            else:
+                u = (gj - g_prev[j]) / h
+                u = u if u > -vmax else -vmax
+                u = u if u < vmax else vmax
+            # Tracking error against where the target was: with u fed forward, r then lands on g.
+            e = (gj - u * dt) - rj
+            sign_e = 1.0 if e > 0.0 else (-1.0 if e < 0.0 else 0.0)
+            vd = u + sign_e * speed(abs(e), a, dt)
+            vd = vd if vd > -vmax else -vmax
+            vd = vd if vd < vmax else vmax
+            # Approach the nearest point where the target can stop (braking at max_acc from u) no
+            # faster than allows stopping on it: a reference that lags (skipped ticks) catches up
+            # without its catch-up speed adding to the target's own, which carried it beyond a
+            # trajectory's end.
+            ahead = gj + u * abs(u) / (2.0 * a) - rj
+            cap = speed(abs(ahead), a, dt)
+            lo = -cap if ahead < 0.0 else -vmax
+            hi = cap if ahead > 0.0 else vmax
+            vd = vd if vd > lo else lo
+            vd = vd if vd < hi else hi
+            # Never faster toward a limit than allows stopping on it (exact discrete law: no overshoot).
+            lo = -speed(rj - lower[j], a, dt)
+            hi = speed(upper[j] - rj, a, dt)
+            vd = vd if vd > lo else lo
+            vd = vd if vd < hi else hi
+            dv = vd - vj
+            dv = dv if dv > -adt else -adt
+            dv = dv if dv < adt else adt
+            r_new = rj + (vj + dv) * dt
+            # Land exactly on a stationary target instead of dithering around it, but only with a
+            # step the acceleration limit allows both now and for the stop in the next cycle.
+            step = (gj - rj) / dt
+            if abs(step - vj) <= adt and abs(step) <= adt and u == 0.0:
+                r_new = gj
+            r_new = r_new if r_new > lower[j] else lower[j]
+            r_new = r_new if r_new < upper[j] else upper[j]
+            r_out.append(r_new)
+            # The velocity is the step actually sent (landing, clipping), so the next cycle's
+            # acceleration limit holds on the positions the modules receive.
+            v_out.append((r_new - rj) / dt)
+        self.r = np.array(r_out)
+        self.v = np.array(v_out)
         return self.r.copy()
 
 
@@ -1220,7 +1279,7 @@ class DriverLoop:
         if shaper is None:
             shaper = self._shaper = ReferenceShaper(drv.limits, period, self.config.limit_margin_rad)
             shaper.reset(q_ref)
-        lo, hi = drv.limits.lower, drv.limits.upper
+        lo_list, hi_list = drv.limits.lower.tolist(), drv.limits.upper.tolist()
         frames_per_cycle = drv.frames_per_cycle
         gc_every = max(1, int(round(0.2 / period)))  # young-generation collection about 5 times a second
         quiet_gc = self.config.quiet_gc
@@ -1243,9 +1302,17 @@ class DriverLoop:
                 seen_generation = self.commands.generation
                 if self.commands.mode is CommandMode.HOLD:
                     shaper.hold_still()  # the jump to a hold point is no target velocity to feed forward
-            clipped = np.clip(target, lo, hi)
-            outside = clipped != target
-            beyond = tuple(int(j) for j in np.flatnonzero(outside)) if outside.any() else ()
+            # Into the limits joint by joint on floats (numpy's clip, NaN passed on: the shaper refuses it).
+            clipped_list: list[float] = []
+            outside: list[int] = []
+            for j, (x, low, high) in enumerate(zip(target.tolist(), lo_list, hi_list, strict=True)):
+                y = x if x > low or x != x else low
+                y = y if y < high or y != y else high
+                clipped_list.append(y)
+                if y != x:
+                    outside.append(j)
+            clipped = np.array(clipped_list)
+            beyond = tuple(outside)
             # (the park move advances per cycle run, not per wall-clock second: one period each)
             # None = one nominal period: the first cycle after a pause has none of its own
             elapsed = None if prev_now is None or self.commands.mode is CommandMode.PARK else now - prev_now
@@ -1254,15 +1321,14 @@ class DriverLoop:
             result = drv.cycle(ref, period)
             q_meas = result.positions
             q_ref = result.targets
-            lat = result.latency_s
-            ok = lat[np.isfinite(lat)]
+            ok = [x for x in result.latency_s.tolist() if math.isfinite(x)]
             with self._lock:
                 self._q_meas = q_meas
                 self._q_ref = q_ref
                 self._last_result = result
                 self._frames_tx += frames_per_cycle
-                self._latencies.extend(ok.tolist())
-                self._frames_rx += int(ok.size)
+                self._latencies.extend(ok)
+                self._frames_rx += len(ok)
             if beyond or result.clamped:
                 self._note_clamps(result, now, beyond)
             if result.lost and not prev_lost:  # the first cycle of a run of misses: when, and who

@@ -41,6 +41,8 @@ from urllib.parse import urlparse
 
 import can
 
+from redarm_ros.can.bus import DirectRecv
+
 __all__ = ["BINARY_MSG", "BINARY_PROTOCOL", "BINARY_TYPE", "JSON_PROTOCOL", "RelayBus", "binary_flags"]
 
 #: Timestamp, arbitration id, DLC, flags of a binary frame message (after its type byte).
@@ -79,7 +81,7 @@ def _masked_frame(opcode: int, payload: bytes) -> bytes:
     return head + _ZERO_KEY + payload
 
 
-class RelayBus(can.BusABC):
+class RelayBus(DirectRecv, can.BusABC):
     """A python-can bus on a ``ws://127.0.0.1:<port>/`` channel (see the module docstring).
 
     Args:

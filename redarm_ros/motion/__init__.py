@@ -10,12 +10,13 @@ from redarm_ros.motion.limits import (
     JointLimits,
     LimitsView,
     braking_distance,
+    braking_distance_scalar,
     braking_speed,
     braking_speed_scalar,
     velocity_bounds,
 )
 
 __all__ = [
-    "JointLimits", "LimitsView", "braking_distance", "braking_speed", "braking_speed_scalar",
-    "velocity_bounds",
+    "JointLimits", "LimitsView", "braking_distance", "braking_distance_scalar", "braking_speed",
+    "braking_speed_scalar", "velocity_bounds",
 ]

@@ -31,7 +31,8 @@ import numpy as np
 
 from redarm_ros.errors import InvalidInputError
 
-__all__ = ["JointLimits", "braking_distance", "braking_speed", "braking_speed_scalar", "velocity_bounds"]
+__all__ = ["JointLimits", "braking_distance", "braking_distance_scalar", "braking_speed",
+           "braking_speed_scalar", "velocity_bounds"]
 
 
 #: Up to this many values, :func:`braking_speed` evaluates the scalar law value by value.
@@ -97,6 +98,20 @@ def _braking_speed_array(distance: np.ndarray, acc: np.ndarray, dt: float) -> np
     j = np.where((j > 0) & (j * (j + 1.0) / 2.0 >= x), j - 1.0, j)
     f = (x - j * (j + 1.0) / 2.0) / (j + 1.0)
     return np.where(d > 0.0, (j + f) * adt, 0.0)
+
+
+def braking_distance_scalar(speed: float, acc: float, dt: float) -> float:
+    """:func:`braking_distance` of one joint in pure Python (the same operations: the same number)."""
+    s = abs(speed)
+    if not s > 0.0:
+        return 0.0
+    adt = acc * dt
+    k = s / adt
+    j = float(math.ceil(k)) - 1.0
+    if not j > 0.0:
+        j = 0.0
+    f = k - j
+    return adt * dt * ((j + 1.0) * f + j * (j + 1.0) / 2.0)
 
 
 def braking_distance(speed: Any, acc: Any, dt: float) -> np.ndarray:
