@@ -95,7 +95,7 @@ def _wait(pred: Callable[[], Any], timeout: float) -> bool:
     return True
 
 
-def test_iiwa_demo_from_its_urdf_passes(procs: Any, redarm_ros: Any, tmp_path: Path) -> None:
+def test_iiwa_demo_from_its_urdf_passes(procs: Any, ros_env: Any, tmp_path: Path) -> None:
     # The iiwa14-like arm through the stack's URDF path (simulator, driver, IK service, controller and
     # description all from the URDF file), its own goal set; no GIF (the recording and the GIF are
     # tested above). A lighter stack than the default rates above: the driver at 125 Hz, the controller
@@ -107,6 +107,7 @@ def test_iiwa_demo_from_its_urdf_passes(procs: Any, redarm_ros: Any, tmp_path: P
     from redarm_ros.nodes._common import call_resending
     from redarm_ros.nodes.controller import pose_to_msg
     from redarm_ros.sim.urdf_arms import iiwa14_urdf
+    from redarm_ros.testing.ros import RosTestContext
 
     out = tmp_path / "demo_iiwa"
     cmd = python_module_cmd("redarm_ros.demo", "--arm", "iiwa14", "--output", str(out), "--log-level", "warn",
@@ -122,7 +123,8 @@ def test_iiwa_demo_from_its_urdf_passes(procs: Any, redarm_ros: Any, tmp_path: P
     req.target = pose_to_msg(T)
     req.target.header.frame_id = "base_link"
     req.seed = [float(v) for v in DEMOS["iiwa14"].ready_q]
-    ik = call_resending(redarm_ros.node.create_client(SolveIK, "/ik_service/solve_ik"), req, _wait, 30.0)
+    with RosTestContext(ros_env.domain_id) as ros:  # (only for the call: its executor thread spins)
+        ik = call_resending(ros.node.create_client(SolveIK, "/ik_service/solve_ik"), req, _wait, 30.0)
     assert ik is not None and ik.status == SolveIK.Response.SUCCESS, ik
     assert ik.solver == "closed-form swivel IK"
     assert list(ik.solution.name) == arm.joint_names
