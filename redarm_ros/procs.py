@@ -344,6 +344,12 @@ class ManagedProcess:
             tail=self.tail(_TAIL_LINES),
         )
 
+    def skip_output(self) -> None:
+        """Later :meth:`wait_for_line` calls (without ``from_start``) look only at lines from now on: a
+        child shared by several tests, each waiting for its own lines, not an earlier test's."""
+        with self._cond:
+            self._cursor = self._first_index + len(self._lines)
+
     # -- life cycle -----------------------------------------------------------------------------
     @property
     def returncode(self) -> int | None:

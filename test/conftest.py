@@ -48,9 +48,9 @@ def pytest_configure(config: pytest.Config) -> None:
 # finishing a long file alone. The two hil units take about as long as each other.
 SERIAL_UNIT = "hil tests"
 SECOND_SERIAL_UNIT = "hil tests (demo)"
-SECOND_UNIT_FILES = frozenset({"test/test_e2e_demo.py", "test/test_examples.py", "test/test_e2e_urdf.py",
-                               "test/test_e2e_stack6.py", "test/test_two_hosts.py",
-                               "test/test_e2e_namespace.py", "test/test_e2e_stream.py"})
+SECOND_UNIT_FILES = frozenset({"test/test_e2e_demo.py", "test/test_examples.py", "test/test_e2e_stack6.py",
+                               "test/test_two_hosts.py", "test/test_e2e_namespace.py",
+                               "test/test_e2e_stream.py"})
 # The files outside the hil units that took longest in a full run on two cores (one of them kept busy),
 # longest first; a file missing here only starts later.
 LONGEST_FILES = (

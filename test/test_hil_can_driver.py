@@ -192,11 +192,13 @@ def homed_arm(request: pytest.FixtureRequest, _shared_arm: dict[str, SimulatedAr
     if arm is None:
         arm = start_arm(redarm_arm_factory)
     init_and_check(client, arm)
+    arm.driver.skip_output()  # the test waits for the driver's lines from now on, not an earlier test's
     failed = request.session.testsfailed
     yield arm
     if arm is _shared_arm.get("arm"):
         dead = arm.stack.group.unexpected_deaths()
-        if dead or request.session.testsfailed > failed:
+        stopped = not all(c.is_running() for c in arm.children.values())  # e.g. a driver told to exit
+        if dead or stopped or request.session.testsfailed > failed:
             _shared_arm.pop("arm").close()  # the next tests start their own
         if dead:
             pytest.fail(f"shared arm: {', '.join(c.name for c in dead)} died", pytrace=False)
@@ -221,10 +223,27 @@ def _refused(d: dict[str, tuple[int, str, dict[str, str]]]) -> int:
     return int(m3["implausible"]) + int(m3["late"])
 
 
+FLOODER = """
+import sys, time, can
+bus = can.Bus(interface="remote", channel=sys.argv[1])
+junk = can.Message(arbitration_id=0x123, data=[0xAA] * 8, is_extended_id=False)
+sent, t0 = 0, time.monotonic()
+while (t := time.monotonic() - t0) < 5.0:
+    bus.send(junk)
+    sent += 1
+    if sent % 200 == 0 and sent > 20000 * t:
+        time.sleep(0.002)
+bus.shutdown()
+print(f"FLOODED {sent}", flush=True)
+"""
+
+
 class TestOneArm:
-    """The tests that leave the simulated arm initialised and running, on one arm (``homed_arm``),
-    stopped when the last of them is done: before the tests that start arms of their own (two drivers
-    on one ROS domain would be two nodes named /can_driver)."""
+    """The tests that leave the simulated arm initialised and running (faults cleared and the arm
+    recovered), on one arm (``homed_arm``, which initialises it again for each), stopped when the last
+    of them is done (the SIGTERM test, which ends the driver): before the tests that start arms of their
+    own (two drivers on one ROS domain would be two nodes named /can_driver; a test that starts a
+    process of the arm again has its own, as that process would outlive it)."""
 
     def test_hil_nominal_trajectory_followed(self, homed_arm: SimulatedArm, client: Client) -> None:
         arm = homed_arm
@@ -400,6 +419,82 @@ class TestOneArm:
         mods = arm.status().raw["modules"]
         assert all("ERROR" not in m["flags"] for m in mods)
 
+    def test_hil_silent_module_halts_all_until_recover(self, homed_arm: SimulatedArm, client: Client) -> None:
+        arm = homed_arm
+        far = np.array([1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+        client.send_trajectory([far], [3.0])  # 1/3 rad/s on joint 1
+        assert wait_for(lambda: arm.q[0] > 0.1, 5)
+        t0 = client.now_ns()
+        arm.silence(3)
+        assert wait_for(lambda: arm.status().raw["faults"]["silenced"] == [3], 5)
+        arm.driver.wait_for_line(r"HALTED: module 3 stopped answering: module 3 missed 5 consecutive", 5)
+
+        # Everything stops (braking), well short of the goal, and stays stopped.
+        time.sleep(0.5)
+        q_stop = arm.q
+        time.sleep(0.5)
+        np.testing.assert_allclose(arm.q, q_stop, atol=1e-4)
+        assert q_stop[0] < 0.9
+        mods = {m["id"]: m for m in arm.status().raw["modules"]}
+        assert all("HALTED" in mods[i]["flags"] for i in (1, 2, 4, 5, 6, 7))
+        # Reported on /diagnostics: loop ERROR (halted), module 3 ERROR.
+        assert wait_for(lambda: any(d["can_driver: loop"][0] == ERROR for d in client.diag_since(t0)), 5)
+        d = [d for d in client.diag_since(t0) if d["can_driver: loop"][0] == ERROR][-1]
+        assert d["can_driver: loop"][2]["state"] == "halted"
+        assert d[f"can_driver: module 3 ({ARM.joint_names[2]})"][0] == ERROR
+        # A command while halted is ignored.
+        client.send_trajectory([np.zeros(N)], [0.5])
+        time.sleep(0.5)
+        np.testing.assert_allclose(arm.q, q_stop, atol=1e-4)
+        # Recover only after the module speaks again.
+        arm.unsilence()
+        assert wait_for(lambda: arm.status().raw["faults"]["silenced"] == [], 5)
+        r = client.call("recover")
+        assert r.success, r.message
+        time.sleep(0.5)
+        np.testing.assert_allclose(arm.q, q_stop, atol=1e-3)  # holds, old goal not resumed
+        q2 = q_stop.copy()
+        q2[1] = -0.2
+        client.send_trajectory([q2], [1.0])
+        arm.wait_at(q2, 2e-3, 8)
+
+    def test_hil_recover_after_a_flood(self, homed_arm: SimulatedArm, client: Client) -> None:
+        arm = homed_arm
+        # 5 s of foreign frames at up to 20k frames/s from a node of its own (a process, so the rate is
+        # not limited by this test's interpreter); it prints how many it sent.
+        out = subprocess.run([sys.executable, "-c", FLOODER, arm.can_kwargs["channel"]], capture_output=True,
+                             text=True, timeout=120, check=True).stdout
+        sent = int(out.split()[-1])
+        t_end = time.monotonic()
+        # The driver may have halted meanwhile (replies stuck behind the flood); ~/recover must work
+        # right after it, not seconds later (the bus keeps no backlog).
+        attempts = 0
+        while True:
+            attempts += 1
+            r = client.call("recover")
+            if r.success or attempts == 3:
+                break
+        took = time.monotonic() - t_end
+        print(f"flood: {sent} frames in 5 s ({sent / 5:.0f}/s); ~/recover succeeded after {took:.2f} s "
+              f"({attempts} call(s))")
+        assert r.success, r.message
+        q2 = arm.q
+        q2[0] += 0.2
+        client.send_trajectory([q2], [1.0])
+        arm.wait_at(q2, 2e-3, 8)
+
+    def test_hil_sigterm_stops_the_driver_cleanly(self, homed_arm: SimulatedArm, client: Client) -> None:
+        """docker stop and systemd send SIGTERM (systemd to the whole process group, so the cycle process
+        gets it too): the driver takes the same clean path as on Ctrl-C."""
+        arm = homed_arm
+        driver = arm.driver
+        driver.expect_exit()
+        os.killpg(driver.pid, signal.SIGTERM)
+        assert driver.popen.wait(30) == 0, driver.tail(30)
+        out = "\n".join(driver.output())
+        for bad in ("ended unexpectedly", "unreachable", "Broken pipe", "Failed to publish", "Traceback"):
+            assert bad not in out, (bad, driver.tail(30))
+
 
 def test_hil_dropped_replies_still_followed(redarm_arm_factory: Factory, client: Client) -> None:
     # A lossy bus: a module counts as silent only after 8 misses in a row (0.05**8 per cycle).
@@ -419,46 +514,6 @@ def test_hil_dropped_replies_still_followed(redarm_arm_factory: Factory, client:
     lost = sum(int(d[k][2]["lost"]) for k in d if k.startswith("can_driver: module"))
     assert lost > 0  # the drops were real and counted
     assert arm.status().raw["counters"]["dropped_replies"] > 0
-
-
-def test_hil_silent_module_halts_all_until_recover(redarm_arm_factory: Factory, client: Client) -> None:
-    arm = start_and_init(client, redarm_arm_factory)
-    far = np.array([1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
-    client.send_trajectory([far], [3.0])  # 1/3 rad/s on joint 1
-    assert wait_for(lambda: arm.q[0] > 0.1, 5)
-    t0 = client.now_ns()
-    arm.silence(3)
-    assert wait_for(lambda: arm.status().raw["faults"]["silenced"] == [3], 5)
-    arm.driver.wait_for_line(r"HALTED: module 3 stopped answering: module 3 missed 5 consecutive", 5)
-
-    # Everything stops (braking), well short of the goal, and stays stopped.
-    time.sleep(0.5)
-    q_stop = arm.q
-    time.sleep(0.5)
-    np.testing.assert_allclose(arm.q, q_stop, atol=1e-4)
-    assert q_stop[0] < 0.9
-    mods = {m["id"]: m for m in arm.status().raw["modules"]}
-    assert all("HALTED" in mods[i]["flags"] for i in (1, 2, 4, 5, 6, 7))
-    # Reported on /diagnostics: loop ERROR (halted), module 3 ERROR.
-    assert wait_for(lambda: any(d["can_driver: loop"][0] == ERROR for d in client.diag_since(t0)), 5)
-    d = [d for d in client.diag_since(t0) if d["can_driver: loop"][0] == ERROR][-1]
-    assert d["can_driver: loop"][2]["state"] == "halted"
-    assert d[f"can_driver: module 3 ({ARM.joint_names[2]})"][0] == ERROR
-    # A command while halted is ignored.
-    client.send_trajectory([np.zeros(N)], [0.5])
-    time.sleep(0.5)
-    np.testing.assert_allclose(arm.q, q_stop, atol=1e-4)
-    # Recover only after the module speaks again.
-    arm.unsilence()
-    assert wait_for(lambda: arm.status().raw["faults"]["silenced"] == [], 5)
-    r = client.call("recover")
-    assert r.success, r.message
-    time.sleep(0.5)
-    np.testing.assert_allclose(arm.q, q_stop, atol=1e-3)  # holds, old goal not resumed
-    q2 = q_stop.copy()
-    q2[1] = -0.2
-    client.send_trajectory([q2], [1.0])
-    arm.wait_at(q2, 2e-3, 8)
 
 
 def test_hil_simulator_killed_and_restarted(redarm_arm_factory: Factory, client: Client) -> None:
@@ -573,47 +628,6 @@ def test_hil_power_cycle_refuses_recover_and_init_rearms_the_watchdog(redarm_arm
     np.testing.assert_allclose(arm.q, q_stop, atol=1e-4)
 
 
-FLOODER = """
-import sys, time, can
-bus = can.Bus(interface="remote", channel=sys.argv[1])
-junk = can.Message(arbitration_id=0x123, data=[0xAA] * 8, is_extended_id=False)
-sent, t0 = 0, time.monotonic()
-while (t := time.monotonic() - t0) < 5.0:
-    bus.send(junk)
-    sent += 1
-    if sent % 200 == 0 and sent > 20000 * t:
-        time.sleep(0.002)
-bus.shutdown()
-print(f"FLOODED {sent}", flush=True)
-"""
-
-
-def test_hil_recover_after_a_flood(redarm_arm_factory: Factory, client: Client) -> None:
-    arm = start_and_init(client, redarm_arm_factory)
-    # 5 s of foreign frames at up to 20k frames/s from a node of its own (a process, so the rate is
-    # not limited by this test's interpreter); it prints how many it sent.
-    out = subprocess.run([sys.executable, "-c", FLOODER, arm.can_kwargs["channel"]], capture_output=True,
-                         text=True, timeout=120, check=True).stdout
-    sent = int(out.split()[-1])
-    t_end = time.monotonic()
-    # The driver may have halted meanwhile (replies stuck behind the flood); ~/recover must work
-    # right after it, not seconds later (the bus keeps no backlog).
-    attempts = 0
-    while True:
-        attempts += 1
-        r = client.call("recover")
-        if r.success or attempts == 3:
-            break
-    took = time.monotonic() - t_end
-    print(f"flood: {sent} frames in 5 s ({sent / 5:.0f}/s); ~/recover succeeded after {took:.2f} s "
-          f"({attempts} call(s))")
-    assert r.success, r.message
-    q2 = arm.q
-    q2[0] += 0.2
-    client.send_trajectory([q2], [1.0])
-    arm.wait_at(q2, 2e-3, 8)
-
-
 def test_hil_park_refused_while_halted_and_sim_starts_in_park(redarm_arm_factory: Factory,
                                                               client: Client) -> None:
     arm = start_arm(redarm_arm_factory, start="park")
@@ -632,19 +646,6 @@ def test_hil_park_refused_while_halted_and_sim_starts_in_park(redarm_arm_factory
     r = client.call("park", timeout=60)
     assert r.success, r.message
     np.testing.assert_allclose(arm.q, ARM.park, atol=2.5e-3)
-
-
-def test_hil_sigterm_stops_the_driver_cleanly(redarm_arm_factory: Factory, client: Client) -> None:
-    """docker stop and systemd send SIGTERM (systemd to the whole process group, so the cycle process
-    gets it too): the driver takes the same clean path as on Ctrl-C."""
-    arm = start_and_init(client, redarm_arm_factory)
-    driver = arm.driver
-    driver.expect_exit()
-    os.killpg(driver.pid, signal.SIGTERM)
-    assert driver.popen.wait(30) == 0, driver.tail(30)
-    out = "\n".join(driver.output())
-    for bad in ("ended unexpectedly", "unreachable", "Broken pipe", "Failed to publish", "Traceback"):
-        assert bad not in out, (bad, driver.tail(30))
 
 
 def test_hil_a_second_driver_in_another_namespace_is_seen_on_the_bus(redarm_arm_factory: Factory,

@@ -78,6 +78,11 @@ def test_wait_for_line_consumes_in_order_and_prefixes() -> None:
         assert child.wait_for_line(r"tick (\d)", 10, from_start=True).group(1) == "0"
         with pytest.raises(ReadinessTimeoutError):
             child.wait_for_line(r"never", 0.3)
+        child.wait_for_line(r"tick 2", 10)
+        child.wait_for_line(r"tick 0", 10, from_start=True)  # the cursor back after the first line
+        child.skip_output()  # ... and past every line read so far
+        with pytest.raises(ReadinessTimeoutError):
+            child.wait_for_line(r"tick", 0.3)
     finally:
         child.stop(FAST)
     assert "[talker] tick 2" in seen
