@@ -662,12 +662,15 @@ class SwivelRedundancy:
             s_pref = self.preferred_swivel(st, p, elbow_circle(self.geom, T))
         except UnreachableError:
             s_pref = math.nan  # (no corridor either)
+        # what the rest checks read, taken now: the controller thread may set new parameters meanwhile
+        arm, geom, dyn = self.arm, self.geom, copy.copy(self.swivel_dyn)
+        lim_threshold, capsules = p.swivel.lim_threshold, p.capsules
 
         def job() -> tuple[CorridorRoute | None, str]:
             route, why = plan()
             if route is None:
                 return None, why
-            worst = route_clearance(self.arm, guard, route, scene, need)
+            worst = route_clearance(arm, guard, route, scene, need)
             if worst.distance < need:
                 return None, f"its route comes within {need:.2f} m: {describe(worst, scene)}"
             if scene.free_space:
@@ -675,12 +678,12 @@ class SwivelRedundancy:
             # near obstacles the elbow must be able to rest where the route leaves it: else the swivel
             # dynamics moves it on after the route (a long self-motion, the phase back from REACHED)
             s_end = route.corridor.swivel_at(1.0)
-            rest = self.swivel_dyn.forces(elbow_circle(self.geom, T), s_end, scene, p.capsules)
+            rest = dyn.forces(elbow_circle(geom, T), s_end, scene, capsules)
             if rest.obstacle != 0.0:
                 return None, (f"the elbow would end {rest.clearance:.2f} m from the scene, within the "
                               "obstacle force's reach")
-            q_end = route_joints(self.arm, route, np.array([1.0]))[0]
-            if np.min(np.minimum(q_end - lower, upper - q_end)) < p.swivel.lim_threshold:
+            q_end = route_joints(arm, route, np.array([1.0]))[0]
+            if np.min(np.minimum(q_end - lower, upper - q_end)) < lim_threshold:
                 return None, "the route ends within the joint-limit force's reach"
             off = abs(wrap_angle(s_end - s_pref))
             if not off <= REST_OFFSET:
