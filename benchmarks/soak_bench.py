@@ -26,7 +26,9 @@ request read 5 ms or more after it was sent, every reply sent 5 ms or more after
 and every physics wake-up 5 ms or more late; the benchmark notes when it started the hog and each new
 process, and samples every 25 ms the run-queue wait of every thread of the bus server, the simulator
 and the driver (``/proc/<pid>/task/*/schedstat``; waits of 4 ms or more are kept). For each miss it
-prints what happened within 1 s of it (run-queue waits: 0.1 s), the timeline.
+prints what happened within 1 s of it (run-queue waits: 0.1 s), the timeline. Each run also records
+whether the kernel shares the CPU per session first (``kernel.sched_autogroup_enabled``; every stack
+process and the hog run in a session of their own) and the time the hypervisor stole from the machine.
 
 Run: ``.venv/bin/python benchmarks/soak_bench.py`` (10 min; ``--quick`` = 60 s smoke, as ``make bench``
 runs it; ``--no-hog``; ``--realtime-priority 0`` runs the chain and the driver node at normal
@@ -455,6 +457,26 @@ HEADER = ("| duration | hog | RT prio | load avg mean / max | halts | missed rep
 SEP = "|" + "---|" * 16
 
 
+def autogroup_setting() -> str:
+    """The kernel's per-session CPU grouping (``kernel.sched_autogroup_enabled``): with it on, the CPU
+    is shared between sessions first and between the threads of a session second. Every stack process
+    and the hog run in a session of their own."""
+    try:
+        on = Path("/proc/sys/kernel/sched_autogroup_enabled").read_text().strip() == "1"
+    except OSError:
+        return "autogroup: not in this kernel"
+    return "autogroup on (CPU shared per session)" if on else "autogroup off (CPU shared per thread)"
+
+
+def steal_ticks() -> int:
+    """CPU time the hypervisor gave to others while this machine's CPUs wanted it (/proc/stat, ticks)."""
+    try:
+        fields = Path("/proc/stat").read_text().split("\n", 1)[0].split()
+        return int(fields[8])
+    except (OSError, IndexError, ValueError):
+        return 0
+
+
 def row_text(r: Row) -> str:
     return (f"| {r.seconds:g} s | {r.hog} | {r.prio} | {r.load_mean:.2f} / {r.load_max:.2f} | {r.halts} | "
             f"{r.lost} | {r.cycles} | {r.overruns} | {r.p99_ms:.2f} / {r.max_ms:.2f} | "
@@ -521,11 +543,13 @@ def main(argv: list[str] | None = None) -> int:
     print(f"soak: {seconds:g} s at 250 Hz, hog {hog}, real-time priority {args.realtime_priority} ...",
           flush=True)
     load_before = os.getloadavg()
+    steal_before = steal_ticks()
     if not args.newcomer_period > 0:
         ap.error("--newcomer-period must be > 0")
     obs, diag, sim = soak(seconds, hog, args.realtime_priority, args.newcomer_period, args.sim_physics,
                           args.slice_ms)
     load_after = os.getloadavg()
+    steal_ms = (steal_ticks() - steal_before) * 1e3 / os.sysconf("SC_CLK_TCK")
     r = summarise(seconds, hog, args.realtime_priority, obs, diag, sim)
     run = "\n".join([
         f"## Run {time.strftime('%Y-%m-%d %H:%M')} — {seconds:g} s, load average (1/5/15 min) "
@@ -541,6 +565,8 @@ def main(argv: list[str] | None = None) -> int:
         f"stream targets sent: {obs.stream_sent}. Simulator: longest garbage collection "
         f"{r.sim_gc_max_pause_ms:.2f} ms CPU ({r.sim_gc_collections} collections), longest "
         f"request-to-reply {r.sim_reply_max_ms:.2f} ms.",
+        "",
+        f"Kernel: {autogroup_setting()}; time stolen by the hypervisor over the run: {steal_ms:.0f} ms.",
         "",
         f"Slow events: simulator {sim_counts(sim)}; bus server slow hops {len(obs.hop_lines)}. Longest "
         f"run-queue wait in a {SCHEDSTAT_PERIOD_S * 1e3:.0f} ms sample, ms (samples of "
