@@ -69,6 +69,7 @@ from redarm_ros.procs import (
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench_common, also when loaded by path
 import bench_common  # noqa: E402
+from host_speed import HostSpeedProbe  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results" / "soak_bench.md"
 REPO = Path(__file__).resolve().parents[1]
@@ -546,8 +547,9 @@ def main(argv: list[str] | None = None) -> int:
     steal_before = steal_ticks()
     if not args.newcomer_period > 0:
         ap.error("--newcomer-period must be > 0")
-    obs, diag, sim = soak(seconds, hog, args.realtime_priority, args.newcomer_period, args.sim_physics,
-                          args.slice_ms)
+    with HostSpeedProbe() as probe:
+        obs, diag, sim = soak(seconds, hog, args.realtime_priority, args.newcomer_period, args.sim_physics,
+                              args.slice_ms)
     load_after = os.getloadavg()
     steal_ms = (steal_ticks() - steal_before) * 1e3 / os.sysconf("SC_CLK_TCK")
     r = summarise(seconds, hog, args.realtime_priority, obs, diag, sim)
@@ -566,7 +568,8 @@ def main(argv: list[str] | None = None) -> int:
         f"{r.sim_gc_max_pause_ms:.2f} ms CPU ({r.sim_gc_collections} collections), longest "
         f"request-to-reply {r.sim_reply_max_ms:.2f} ms.",
         "",
-        f"Kernel: {autogroup_setting()}; time stolen by the hypervisor over the run: {steal_ms:.0f} ms.",
+        f"Kernel: {autogroup_setting()}; time stolen by the hypervisor over the run: {steal_ms:.0f} ms. "
+        f"Host speed: {probe.summary()} (`benchmarks/host_speed.py`).",
         "",
         f"Slow events: simulator {sim_counts(sim)}; bus server slow hops {len(obs.hop_lines)}. Longest "
         f"run-queue wait in a {SCHEDSTAT_PERIOD_S * 1e3:.0f} ms sample, ms (samples of "

@@ -57,6 +57,7 @@ from redarm_ros.procs import descendants, group_members
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench_common, also when loaded by path
 import bench_common  # noqa: E402
+from host_speed import HostSpeedProbe  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results" / "stack_cpu_bench.md"
 ARM_NAME = "pa10"
@@ -406,7 +407,8 @@ def main(argv: list[str] | None = None) -> int:
     load0 = os.getloadavg()
     if args.repeat < 1:
         ap.error("--repeat must be at least 1")
-    runs = [run(args) for _ in range(1 if args.quick else args.repeat)]
+    with HostSpeedProbe() as probe:  # the host's own speed over the run: CPU figures scale with it
+        runs = [run(args) for _ in range(1 if args.quick else args.repeat)]
     title = f"## Run {time.strftime('%Y-%m-%d %H:%M')}" + (f" — {args.label}" if args.label else "") + (
         " (quick)" if args.quick else "")
     lines = [title, "", "Total per case, % of one core:", "", *summary(runs), ""]
@@ -414,7 +416,9 @@ def main(argv: list[str] | None = None) -> int:
         lines += [f"Stack run {i + 1} of {len(runs)}:", "", *table(results), ""]
         lines += [f"- {r.name}: {r.note}" for r in results]
         lines.append("")
-    lines += [bench_common.load_line(load0, t_start), ""]
+    lines += [bench_common.load_line(load0, t_start), "",
+              f"Host speed over the run: {probe.summary()} (`benchmarks/host_speed.py`; the same work costs "
+              "more CPU on a slower host, and every CPU figure above with it).", ""]
     text = "\n".join(lines)
     print(text)
     if not args.no_write:

@@ -6,7 +6,9 @@ venv, build or caches comes along; the user's caches, pip's and the set-up's ``~
 used as on CI), runs ``CI=true make test`` there (set-up included, as ``.ci/run`` does) and records the
 wall time in all, the set-up phase's (until pytest starts: venv, wheels, interfaces, ruff, the collection
 warm-up), pytest's own time and its summary line, the CPU time (user + sys) of everything the run
-started, the exit code and the load average before and after. The CPU time counts processes that outlive
+started, the exit code, the load average before and after, and the host's speed over the run (the
+median CPU time of ``benchmarks/host_speed.py``'s reference work: the same suite costs more CPU where it
+is higher). The CPU time counts processes that outlive
 their parents too (this process is their subreaper); it is the measure to compare on a shared machine,
 where wall times vary with the other load. ``--busy`` keeps one core busy for the whole run with a shell
 loop at normal priority (started before the clone, ended by its PID after the run). The clone is removed
@@ -34,6 +36,9 @@ import tempfile
 import threading
 import time
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from host_speed import HostSpeedProbe  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "benchmarks" / "results" / "suite_bench.md"
@@ -126,6 +131,7 @@ def stop(proc: subprocess.Popen[bytes]) -> None:
 def one_run(commit: str, busy: bool, log_dir: Path) -> dict[str, str]:
     """Clone ``commit``, run the test command, and return the row's fields."""
     load0 = os.getloadavg()
+    probe = HostSpeedProbe()  # its CPU is not counted: it is collected after the run's figure
     hog = start_hog() if busy else None
     work = Path(tempfile.mkdtemp(prefix="redarm-suite-"))
     t0 = time.monotonic()
@@ -142,6 +148,7 @@ def one_run(commit: str, busy: bool, log_dir: Path) -> dict[str, str]:
         wall = time.monotonic() - t0
         if hog is not None:
             stop(hog)
+        probe.stop()
         shutil.rmtree(work, ignore_errors=True)
     load1 = os.getloadavg()
     found = list(SUMMARY.finditer(text))
@@ -160,6 +167,7 @@ def one_run(commit: str, busy: bool, log_dir: Path) -> dict[str, str]:
     return {"date": time.strftime("%Y-%m-%d %H:%M", time.gmtime()), "commit": commit[:10],
             "condition": "busy" if busy else "quiet", "wall": f"{wall:.0f}", "pytest": pytest_time,
             "setup": "-" if setup_s is None else f"{setup_s:.0f}", "cpu": f"{cpu:.0f}",
+            "host": "-" if probe.median_ms is None else f"{probe.median_ms:.1f}",
             "result": result,
             "load": f"{load0[0]:.2f} / {load1[0]:.2f}"}
 
@@ -167,7 +175,7 @@ def one_run(commit: str, busy: bool, log_dir: Path) -> dict[str, str]:
 def write_row(row: dict[str, str]) -> None:
     """Put ``row`` first under the table (the file is created with its header when missing)."""
     lines = RESULTS.read_text().splitlines() if RESULTS.is_file() else list(HEADER)
-    row = dict(row, wall=f"{row['wall']} (set-up {row['setup']}, CPU {row['cpu']})")
+    row = dict(row, wall=f"{row['wall']} (set-up {row['setup']}, CPU {row['cpu']}, host {row['host']} ms)")
     cells = [row[k] for k in ("date", "commit", "condition", "wall", "pytest", "result", "load")]
     at = len(HEADER)
     lines.insert(at, "| " + " | ".join(cells) + " |")
@@ -192,7 +200,8 @@ def main(argv: list[str] | None = None) -> int:
         row = one_run(commit, args.busy, args.log_dir)
         failed += not row["result"].startswith("passed")
         print(f"run {i + 1}/{args.runs}: {row['condition']} {row['wall']} s in all, set-up {row['setup']} s, "
-              f"pytest {row['pytest']}, CPU {row['cpu']} s (user + sys), load {row['load']}, {row['result']}",
+              f"pytest {row['pytest']}, CPU {row['cpu']} s (user + sys), host ref {row['host']} ms, "
+              f"load {row['load']}, {row['result']}",
               flush=True)
         if not args.no_write:
             write_row(row)
