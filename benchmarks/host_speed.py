@@ -10,7 +10,8 @@ figures compare in proportion to them.
 
 Standard library only: ``suite_bench`` runs on the system Python, before any venv exists.
 
-Run alone: ``python3 benchmarks/host_speed.py [SECONDS]`` prints the probe figures over that time.
+Run alone: ``python3 benchmarks/host_speed.py [--seconds S]`` prints the probe figures over that time;
+it writes no results file.
 """
 
 from __future__ import annotations
@@ -109,8 +110,18 @@ class HostSpeedProbe:
                 f"{len(self.samples)}; {min(self.samples):.1f}-{max(self.samples):.1f})")
 
 
-if __name__ == "__main__":
-    seconds = float(sys.argv[1]) if len(sys.argv) > 1 else 20.0
+def main(argv: list[str] | None = None) -> int:
+    import argparse
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seconds", type=float, default=20.0, help="how long to sample (one sample a second)")
+    ap.add_argument("--quick", action="store_true", help="3 s")
+    args = ap.parse_args(argv)
     with HostSpeedProbe(period_s=1.0) as probe:
-        time.sleep(seconds)
+        time.sleep(3.0 if args.quick else args.seconds)
     print(probe.summary())
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
