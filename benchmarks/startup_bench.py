@@ -11,6 +11,7 @@ Run::
 
     .venv/bin/python benchmarks/startup_bench.py                 # 7 runs a module
     .venv/bin/python benchmarks/startup_bench.py -n 11 --src /tmp/other_checkout   # another tree's code
+    .venv/bin/python benchmarks/startup_bench.py --env OPENBLAS_NUM_THREADS=1      # as a stack child
     scripts/ros_sandbox.sh .venv/bin/python benchmarks/startup_bench.py --stack  # + a whole bringup
 
 ``--src DIR`` runs the children in DIR (the ``-c`` interpreter puts its working directory first on
@@ -48,9 +49,13 @@ MODULES = [
 REPO = Path(__file__).resolve().parents[1]
 
 
+_EXTRA_ENV: dict[str, str] = {}  # --env KEY=VALUE: what a tree's stack gives its children
+
+
 def _env() -> dict[str, str]:
     env = dict(os.environ)
     env.pop("PYTHONDONTWRITEBYTECODE", None)  # the suite writes and uses bytecode caches
+    env.update(_EXTRA_ENV)
     return env
 
 
@@ -106,7 +111,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--src", type=Path, default=REPO, help="source tree whose redarm_ros is imported")
     ap.add_argument("--modules", nargs="*", default=MODULES, help="modules to import (default: the stack's)")
     ap.add_argument("--stack", action="store_true", help="also time a whole redarm-bringup start and stop")
+    ap.add_argument("--env", action="append", default=[], metavar="KEY=VALUE",
+                    help="set in the children's environment (e.g. OPENBLAS_NUM_THREADS=1, as the stack does)")
     ns = ap.parse_args(argv)
+    _EXTRA_ENV.update(kv.split("=", 1) for kv in ns.env)
 
     names = ["pass", *ns.modules]
     for m in names:  # warm-up: write the bytecode caches, check every import works
@@ -115,7 +123,7 @@ def main(argv: list[str] | None = None) -> int:
     for _ in range(ns.n):
         for m in names:
             runs[m].append(import_cpu(m, ns.python, ns.src))
-    print(f"import CPU (user+sys) in s, median of {ns.n}, src {ns.src}")
+    print(f"import CPU (user+sys) in s, median of {ns.n}, src {ns.src}, env {ns.env or '-'}")
     for m in names:
         label = "(bare interpreter)" if m == "pass" else m
         vals = " ".join(f"{v:.2f}" for v in runs[m])
