@@ -485,7 +485,7 @@ def _spawn_without_main(pickled: Any) -> Iterator[None]:
 
     spawn imports the parent's main module in the child (as ``__mp_main__``) so that whatever was
     pickled from it resolves. The simulator runs as ``python -m redarm_ros.sim.hardware``, whose
-    imports (python-can, the protocol: ~0.2 s of CPU) the physics process never uses. When nothing the
+    imports (python-can, the protocol: ~0.15 s of CPU) the physics process never uses. When nothing the
     child is handed names ``__main__``, the main module's spec and file are hidden while the child is
     started (spawn then leaves main alone, as it does for an interactive parent); otherwise, and on any
     doubt, nothing changes.
