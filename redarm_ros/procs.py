@@ -3,7 +3,7 @@
 Every child started here gets the workplace DDS rules in its environment
 (``FASTDDS_BUILTIN_TRANSPORTS=SHM``, a given ``ROS_DOMAIN_ID``, ``ROS_LOG_DIR``
 in a temp dir, ``PYTHONUNBUFFERED=1``), so no ROS packet leaves the machine and
-two test runs never see each other.
+two test runs never see each other; also ``OPENBLAS_NUM_THREADS=1`` unless set.
 
 Pieces:
 
@@ -164,6 +164,9 @@ def ros_child_env(
     env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     env["PYTHONUNBUFFERED"] = "1"
     env.setdefault("RCUTILS_COLORIZED_OUTPUT", "0")
+    # numpy's OpenBLAS otherwise starts a thread per core that spins idle for ~0.1 s of CPU in every
+    # child that imports numpy; the children's matrices (7x7) run single-threaded in BLAS anyway.
+    env.setdefault("OPENBLAS_NUM_THREADS", "1")
     if log_dir is None:
         log_dir = tempfile.mkdtemp(prefix="redarm_roslog_")
     env["ROS_LOG_DIR"] = os.fspath(log_dir)

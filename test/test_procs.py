@@ -47,6 +47,13 @@ def test_env_enforces_dds_rules(tmp_path: Path) -> None:
         ros_child_env(999)
 
 
+def test_env_single_threaded_blas_unless_set(tmp_path: Path) -> None:
+    # Idle OpenBLAS threads cost each numpy child ~0.1 s of CPU at start; a caller's choice wins.
+    assert ros_child_env(17, log_dir=tmp_path, base={})["OPENBLAS_NUM_THREADS"] == "1"
+    env = ros_child_env(17, log_dir=tmp_path, base={"OPENBLAS_NUM_THREADS": "4"})
+    assert env["OPENBLAS_NUM_THREADS"] == "4"
+
+
 def test_group_children_see_the_rules() -> None:
     code = """
         import os

@@ -10,6 +10,8 @@ from __future__ import annotations
 import functools
 import os
 import signal
+import subprocess
+import sys
 import time
 import uuid
 from collections.abc import Iterator
@@ -226,3 +228,25 @@ def test_a_streaming_host_sets_the_physics_wake_ups_to_its_step() -> None:
     late = stepper.counters.overruns
     stepper.advance(stepper.t0 + 0.0081)  # four steps as planned: not late
     assert plant.steps == [4, 4] and stepper.counters.overruns == late
+
+
+def test_the_physics_process_does_not_run_the_parents_main_module_again(tmp_path: Path) -> None:
+    """spawn would import the parent's ``__main__`` in the child (as ``__mp_main__``): for the simulator
+    that is python-can and the protocol, which the physics never uses. Nothing pickled names it here."""
+    probe, seen = tmp_path / "probe_main.py", tmp_path / "imported_again"
+    probe.write_text(
+        "import functools, os, sys\n"
+        "from redarm_ros.kinematics import load_arm\n"
+        "from redarm_ros.sim.physics_process import PhysicsProcess, build_plant\n"
+        "if __name__ != '__main__':\n"
+        f"    open({str(seen)!r}, 'a').write(__name__ + '\\n')\n"
+        "else:\n"
+        "    arm = load_arm('pa10')\n"
+        "    PhysicsProcess(arm, functools.partial(build_plant, arm, time_step=1e-3)).close()\n"
+        "    print(sys.modules['__main__'].__file__, flush=True)\n",
+        encoding="utf-8",
+    )
+    out = subprocess.run([sys.executable, str(probe)], cwd=tmp_path, capture_output=True, text=True,
+                         timeout=120, check=True).stdout
+    assert out.strip() == str(probe)  # the main module got its file back
+    assert not seen.exists(), seen.read_text()

@@ -34,8 +34,8 @@ on the remote bus can stop delivery to other clients; build them with ``check=Tr
 from __future__ import annotations
 
 import errno
-import http.client
 import logging
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -54,21 +54,23 @@ ADAPTER_UP_RECIPE = "sudo ip link set {ch} up type can bitrate 500000"
 NO_ANSWER_ADVICE = ("check the CAN cable and its 120 ohm termination, that the modules are powered, and "
                     "that the bit rate and module_ids match the modules")
 
-try:  # python-can-remote is optional for socketcan-only deployments
-    from can_remote.websocket import WebsocketClosed as _WebsocketClosed
-except ImportError:  # pragma: no cover - the pinned environment has it
+# Errors that mean "the connection is gone": the bus must be reopened. python-can-remote's
+# ``WebsocketClosed`` and ``http.client.HTTPException`` can only be raised once their modules are loaded
+# (by a python-can-remote bus), so they join then: importing python-can-remote builds an SSL context
+# (~35 ms of CPU in every process that imports this module), and the stack's buses never load it.
+_BASE_LOST_ERRORS: tuple[type[BaseException], ...] = (OSError, EOFError)
 
-    class _WebsocketClosed(Exception):  # type: ignore[no-redef]  # noqa: N818 - mirrors the library name
-        """Placeholder when python-can-remote is not installed."""
 
-
-# Errors that mean "the connection is gone": the bus must be reopened.
-_LOST_ERRORS: tuple[type[BaseException], ...] = (
-    _WebsocketClosed,
-    OSError,
-    http.client.HTTPException,
-    EOFError,
-)
+def _lost_errors() -> tuple[type[BaseException], ...]:
+    """The "connection gone" exception types (evaluated only when an ``except`` clause is reached)."""
+    errors = _BASE_LOST_ERRORS
+    ws = sys.modules.get("can_remote.websocket")
+    if ws is not None:
+        errors += (ws.WebsocketClosed,)
+    http_client = sys.modules.get("http.client")
+    if http_client is not None:
+        errors += (http_client.HTTPException,)
+    return errors
 
 
 def resolve_config(
@@ -341,7 +343,7 @@ class ReconnectingBus(DirectRecv, can.BusABC):
         bus = self._live("send")
         try:
             bus.send(msg, timeout)
-        except _LOST_ERRORS as exc:
+        except _lost_errors() as exc:
             raise self._mark_lost(exc, "send") from exc
         except can.CanError as exc:
             raise BusError(f"CAN send failed: {exc}") from exc
@@ -364,7 +366,7 @@ class ReconnectingBus(DirectRecv, can.BusABC):
             else:
                 for msg in msgs:
                     bus.send(msg)
-        except _LOST_ERRORS as exc:
+        except _lost_errors() as exc:
             raise self._mark_lost(exc, "send") from exc
         except can.CanError as exc:
             raise BusError(f"CAN send failed: {exc}") from exc
@@ -373,7 +375,7 @@ class ReconnectingBus(DirectRecv, can.BusABC):
         bus = self._live("recv")
         try:
             return bus.recv(timeout), False
-        except _LOST_ERRORS as exc:
+        except _lost_errors() as exc:
             raise self._mark_lost(exc, "recv") from exc
         except can.CanError as exc:
             raise BusError(f"CAN receive failed: {exc}") from exc

@@ -73,10 +73,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-import can
-
 from redarm_ros.can import realtime
-from redarm_ros.can.bus import check_message
 from redarm_ros.errors import BusError, InvalidInputError
 from redarm_ros.procs import ChildDiedError, ManagedProcess, ReadinessTimeoutError, python_module_cmd
 
@@ -544,6 +541,12 @@ class _Relay:
 
     def _frame_from_json(self, fields: Any, now: float) -> bytes | None:
         """A checked binary frame message from a JSON client's message fields (None: dropped)."""
+        # python-can costs ~0.2 s of CPU to import and only JSON frames need it (imported already when
+        # a JSON client connected, see _handshake); binary clients (the stack's own) never do.
+        import can  # noqa: PLC0415
+
+        from redarm_ros.can.bus import check_message  # noqa: PLC0415
+
         try:
             fields = dict(fields)
             if not isinstance(fields.get("timestamp", 0.0), (int, float)):
@@ -651,6 +654,10 @@ class _Relay:
         offered = [p.strip() for p in headers.get("sec-websocket-protocol", "can.json.v1").split(",")]
         chosen = "can.binary+json.v1" if "can.binary+json.v1" in offered else "can.json.v1"
         c.binary = chosen == "can.binary+json.v1"
+        if not c.binary:  # its frames need python-can (_frame_from_json): import it now, not mid-relay
+            import can  # noqa: F401, PLC0415
+
+            import redarm_ros.can.bus  # noqa: F401, PLC0415
         reply = ("HTTP/1.1 101 Switching Protocols\r\nUpgrade: WebSocket\r\nConnection: Upgrade\r\n"
                  f"Sec-WebSocket-Accept: {accept}\r\nSec-WebSocket-Protocol: {chosen}\r\n\r\n")
         c.state = "ws"

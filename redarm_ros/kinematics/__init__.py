@@ -18,6 +18,8 @@ An arm from a URDF: ``load_arm("robot.urdf", base_link="base_link", tip_link="to
 of ``/robot_description``); :func:`describe_solver` says which IK it gets and why.
 """
 
+from typing import TYPE_CHECKING, Any
+
 from redarm_ros.kinematics.corridor import SwivelCorridor, route_pose, swivel_corridor
 from redarm_ros.kinematics.loader import (
     arm_config_dirs,
@@ -31,7 +33,22 @@ from redarm_ros.kinematics.powercube6 import PowerCube6Arm
 from redarm_ros.kinematics.protocols import AnalyticIK, SwivelKinematics, has_analytic_ik, has_swivel
 from redarm_ros.kinematics.result import IKInfo, IKStatus
 from redarm_ros.kinematics.swivel import SwivelArm
-from redarm_ros.kinematics.urdf_chain import MappedSwivelArm, describe_solver, load_urdf_arm
+
+if TYPE_CHECKING:
+    from redarm_ros.kinematics.urdf_chain import MappedSwivelArm, describe_solver, load_urdf_arm
+
+# The URDF front end is imported on first use (it brings the geometry package's capsule model): a
+# process that only loads a bundled arm does not pay for it.
+_LAZY = {"MappedSwivelArm", "describe_solver", "load_urdf_arm"}
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        from redarm_ros.kinematics import urdf_chain  # noqa: PLC0415
+
+        return getattr(urdf_chain, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 __all__ = [
     "Arm",

@@ -24,7 +24,6 @@ from redarm_ros.errors import ConfigError
 from redarm_ros.kinematics.model import Arm, Joint, transform_from_xyz_rpy
 from redarm_ros.kinematics.powercube6 import PowerCube6Arm
 from redarm_ros.kinematics.swivel import SwivelArm, swivel_chain
-from redarm_ros.kinematics.urdf_chain import load_urdf_arm
 from redarm_ros.yaml_safe import safe_load
 
 __all__ = ["load_arm", "load_arm_or_urdf", "build_arm", "arm_config_dirs", "available_arms", "is_urdf_source"]
@@ -121,6 +120,10 @@ def load_arm(
             raise ConfigError("a URDF arm needs both base_link and tip_link", field="base_link")
         if "arm_name" in overrides:
             overrides["name"] = str(overrides.pop("arm_name"))
+        # The URDF front end (and the capsule model it brings) only for a URDF arm: the bundled arms'
+        # processes skip its import.
+        from redarm_ros.kinematics.urdf_chain import load_urdf_arm  # noqa: PLC0415
+
         return load_urdf_arm(name, base_link, tip_link, **overrides)
     path = _find_config(name)
     try:

@@ -48,9 +48,10 @@ import os
 import pickle
 import signal
 import struct
+import sys
 import threading
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
 from typing import Any
@@ -296,7 +297,8 @@ class PhysicsProcess:
             args=(make_plant, self._raw, recv, self.rate_hz, int(realtime_priority),
                   logging.getLogger().getEffectiveLevel()),
         )
-        self._proc.start()
+        with _spawn_without_main((make_plant, arm)):
+            self._proc.start()
         recv.close()
         deadline = time.monotonic() + start_timeout_s
         while self._view[_READY] == 0.0 and self._proc.is_alive() and time.monotonic() < deadline:
@@ -475,6 +477,35 @@ def _apply(plant: Any, cmd: tuple[Any, ...], stepper: RealTimeStepper | None = N
     else:
         raise ValueError(f"unknown physics command {op!r}")
     return True
+
+
+@contextlib.contextmanager
+def _spawn_without_main(pickled: Any) -> Iterator[None]:
+    """While a spawn child starts, keep it from running the parent's ``__main__`` module again.
+
+    spawn imports the parent's main module in the child (as ``__mp_main__``) so that whatever was
+    pickled from it resolves. The simulator runs as ``python -m redarm_ros.sim.hardware``, whose
+    imports (python-can, the protocol: ~0.15 s of CPU) the physics process never uses. When nothing the
+    child is handed names ``__main__``, the main module's spec and file are hidden while the child is
+    started (spawn then leaves main alone, as it does for an interactive parent); otherwise, and on any
+    doubt, nothing changes.
+    """
+    main = sys.modules.get("__main__")
+    try:
+        refs_main = b"__main__" in pickle.dumps(pickled)
+    except Exception:  # noqa: BLE001 - unpicklable here: let spawn report it as before
+        refs_main = True
+    if main is None or refs_main:
+        yield
+        return
+    saved = {k: main.__dict__[k] for k in ("__spec__", "__file__") if k in main.__dict__}
+    main.__spec__ = None
+    main.__dict__.pop("__file__", None)
+    try:
+        yield
+    finally:
+        main.__dict__.pop("__spec__", None)
+        main.__dict__.update(saved)
 
 
 def _physics_main(make_plant: Callable[[], Any], raw: Any, conn: Connection, rate_hz: float,

@@ -32,11 +32,20 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
-from xml.sax.saxutils import escape
 
 import numpy as np
 
 from redarm_ros.errors import InvalidInputError
+
+
+def escape(data: str, entities: dict[str, str] | None = None) -> str:
+    """``xml.sax.saxutils.escape``, the same replacements in the same order: that module imports
+    ``urllib.request`` and ``http.client`` (~25 ms of CPU in every process that builds a URDF)."""
+    data = data.replace("&", "&amp;").replace(">", "&gt;").replace("<", "&lt;")
+    for key, value in (entities or {}).items():
+        data = data.replace(key, value)
+    return data
+
 
 GRAVITY = 9.81  # m/s^2
 SEGMENT_DENSITY = 1200.0  # kg/m^3, a hollow aluminium tube smeared over a solid cylinder
