@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import random
 import struct
 
 import can
@@ -186,6 +187,21 @@ def test_short_long_state_mapping() -> None:
     assert p.long_state_from_short(short) == p.ActState.ERROR | p.ActState.MOTION | p.ActState.INPROGRESS
     for s in p.ShortState:
         assert p.short_state_from_long(p.long_state_from_short(s)) == s
+
+
+def test_short_bits_from_long_is_the_bit_by_bit_mapping() -> None:
+    """The table lookup gives what mapping each long bit onto its short bit gives, for any state."""
+
+    def bit_by_bit(state: int) -> int:
+        return sum(int(s) for s, long_bit in p._SHORT_TO_LONG if state & long_bit)
+
+    rng = random.Random(7)
+    states = [*range(1 << 12), *(rng.getrandbits(32) for _ in range(20000)), 0xFFFFFFFF]
+    states += [p.LONG_BITS_OF_SHORT[b] | extra for b in range(256) for extra in (0, int(p.ActState.HOME_OK))]
+    for state in states:
+        assert p.short_bits_from_long(state) == bit_by_bit(state)
+    assert p.short_bits_from_long(p.ActState.ERROR | p.ActState.MOTION) == int(
+        p.ShortState.ERROR | p.ShortState.MOTION)
 
 
 def test_classify_id_ranges() -> None:

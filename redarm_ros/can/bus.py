@@ -372,7 +372,9 @@ class ReconnectingBus(DirectRecv, can.BusABC):
             raise BusError(f"CAN send failed: {exc}") from exc
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
-        bus = self._live("recv")
+        bus = self._bus
+        if bus is None:
+            bus = self._live("recv")  # raises: lost or shut down
         try:
             return bus.recv(timeout), False
         except _lost_errors() as exc:

@@ -153,7 +153,7 @@ class MoveMode(IntEnum):
     @property
     def has_duration(self) -> bool:
         """True for FSTEP and FSTEP_EXT, which carry a u16 time in milliseconds."""
-        return self in (MoveMode.FSTEP, MoveMode.FSTEP_EXT)
+        return self in _DURATION_MODES
 
     @property
     def base(self) -> MoveMode:
@@ -164,6 +164,7 @@ class MoveMode(IntEnum):
 _EXTENDED_MODES: Final = frozenset(
     {MoveMode.FRAMP_EXT, MoveMode.FSTEP_EXT, MoveMode.FVEL_EXT, MoveMode.FCUR_EXT}
 )
+_DURATION_MODES: Final = frozenset({MoveMode.FSTEP, MoveMode.FSTEP_EXT})
 _EXT_TO_BASE: Final = {
     MoveMode.FRAMP_EXT: MoveMode.FRAMP,
     MoveMode.FSTEP_EXT: MoveMode.FSTEP,
@@ -354,15 +355,15 @@ LONG_BITS_OF_SHORT: Final = tuple(
 #: The ACT_STATE bits that have a short-state equivalent.
 LONG_BITS_WITH_SHORT: Final = LONG_BITS_OF_SHORT[0xFF]
 _SHORT_MEMBERS: Final = tuple(ShortState(b) for b in range(256))
+#: The inverse of LONG_BITS_OF_SHORT: the short state byte of every combination of those ACT_STATE bits
+#: (eight distinct long bits, one per short bit).
+_SHORT_OF_LONG: Final = {long_bits: b for b, long_bits in enumerate(LONG_BITS_OF_SHORT)}
+assert len(_SHORT_OF_LONG) == 256
 
 
 def short_bits_from_long(state: int) -> int:
     """:func:`short_state_from_long` as a plain int (hot path)."""
-    short = 0
-    for s, long_bit in _SHORT_TO_LONG_INT:
-        if state & long_bit:
-            short |= s
-    return short
+    return _SHORT_OF_LONG[state & LONG_BITS_WITH_SHORT]
 
 
 def short_state_from_long(state: int) -> ShortState:
@@ -484,6 +485,12 @@ Frame = Request | Reply
 # Builders
 # --------------------------------------------------------------------------------------------------
 
+# Enum members as plain constants for the per-frame paths (a class attribute look-up of an enum costs
+# about 0.1 us).
+_SETMOVE: Final = Command.SETMOVE
+_SETPARAM: Final = Command.SETPARAM
+_GETPARAM: Final = Command.GETPARAM
+_CMD_ACK: Final = IdBase.CMD_ACK
 _F32: Final = struct.Struct("<f")
 _U16: Final = struct.Struct("<H")
 _U32: Final = struct.Struct("<I")
@@ -755,14 +762,16 @@ def set_move_ext_ack(
     ``position_rad`` is the actual position *before* the move.
     """
     _check_module_id(module_id)
-    m = _as_mode(mode)
-    if not m.extended:
+    m = mode if type(mode) is MoveMode else _as_mode(mode)
+    if m not in _EXTENDED_MODES:
         raise InvalidInputError(f"{m.name} is acknowledged by set_move_ack", field="mode", value=mode)
-    for name, v in (("short_state", short_state), ("dio", dio)):
-        if not 0 <= int(v) <= 0xFF:
-            raise InvalidInputError(f"{name} must fit a byte, got {v!r}", field=name, value=v)
-    data = _EXT_ACK.pack(Command.SETMOVE, m, _check_float(position_rad, "position_rad"), short_state, dio)
-    return _message(IdBase.CMD_ACK + module_id, data)
+    if not 0 <= int(short_state) <= 0xFF:
+        raise InvalidInputError(f"short_state must fit a byte, got {short_state!r}", field="short_state",
+                                value=short_state)
+    if not 0 <= int(dio) <= 0xFF:
+        raise InvalidInputError(f"dio must fit a byte, got {dio!r}", field="dio", value=dio)
+    data = _EXT_ACK.pack(_SETMOVE, m, _check_float(position_rad, "position_rad"), short_state, dio)
+    return _message(_CMD_ACK + module_id, data)
 
 
 def state_frame(module_id: int, state: ActState | int) -> can.Message:
@@ -824,19 +833,27 @@ _RANGES: Final = (
 )
 
 
+#: (kind, module id) of every id in the PowerCube ranges (classify_id without a loop per frame).
+_KIND_OF_ID: Final = {
+    int(IdBase.BROADCAST): (FrameKind.BROADCAST, 0),
+    **{int(base) + i: (kind, i) for base, kind in _RANGES for i in range(MIN_MODULE_ID, MAX_MODULE_ID + 1)},
+}
+
+
 def classify_id(arbitration_id: int) -> tuple[FrameKind, int]:
     """Split an 11-bit id into (kind, module id); module id is 0 for the broadcast.
 
     Raises:
         ProtocolError: the id is in none of the PowerCube ranges.
     """
-    if arbitration_id == IdBase.BROADCAST:
-        return FrameKind.BROADCAST, 0
-    for base, kind in _RANGES:
-        module_id = arbitration_id - base
-        if MIN_MODULE_ID <= module_id <= MAX_MODULE_ID:
-            return kind, module_id
-    raise ProtocolError(f"CAN id 0x{arbitration_id:03X} is outside the PowerCube id ranges")
+    found = _KIND_OF_ID.get(arbitration_id)
+    if found is not None:
+        return found
+    raise _outside_ranges(arbitration_id)
+
+
+def _outside_ranges(arbitration_id: int, msg: can.Message | None = None) -> ProtocolError:
+    return ProtocolError(f"CAN id 0x{arbitration_id:03X} is outside the PowerCube id ranges", frame=msg)
 
 
 def _fail(msg: can.Message, why: str) -> ProtocolError:
@@ -894,24 +911,24 @@ def _decode_request(msg: can.Message, data: bytes, module_id: int) -> Request:
     if cmd in SIMPLE_COMMANDS:
         _need_dlc(msg, data, 1, cmd.name)
         return CommandRequest(module_id, cmd)
-    if cmd is Command.SETPARAM:
+    if cmd is _SETPARAM:
         if len(data) < 2:
             raise _fail(msg, "SETPARAM needs a parameter byte")
         param = _parse_param(msg, data[1])
         _need_dlc(msg, data, 2 + PARAM_TYPES[param].size, f"SETPARAM {param.name}")
         return SetParamRequest(module_id, param, _unpack_value(msg, param, data[2:]))
-    if cmd is Command.SETMOVE:
+    if cmd is _SETMOVE:
         if len(data) < 2:
             raise _fail(msg, "SETMOVE needs a mode byte")
         mode = _parse_mode(msg, data[1])
-        if mode.has_duration:
+        if mode in _DURATION_MODES:
             _need_dlc(msg, data, _FSTEP.size, f"SETMOVE {mode.name}")
             _, _, x, ms = _FSTEP.unpack(data)
             return SetMoveRequest(module_id, mode, _finite(msg, x, "target"), ms)
         _need_dlc(msg, data, _FMOVE.size, f"SETMOVE {mode.name}")
         _, _, x = _FMOVE.unpack(data)
         return SetMoveRequest(module_id, mode, _finite(msg, x, "value"))
-    if cmd is Command.GETPARAM:
+    if cmd is _GETPARAM:
         raise _fail(msg, "GETPARAM must be sent on 0x0C0+id")
     raise _fail(msg, f"{cmd.name} is not a module command (broadcast only)")
 
@@ -957,6 +974,9 @@ def _decode_state(msg: can.Message, data: bytes, module_id: int) -> StateFrame:
 
 
 def _decode_broadcast(msg: can.Message, data: bytes, _module_id: int) -> Broadcast:
+    known = _BROADCASTS.get(data)  # a driver sends the same two or three every cycle
+    if known is not None:
+        return known
     _need_dlc(msg, data, 2, "broadcast")
     try:
         cmd = BroadcastCommand(data[0])
@@ -968,7 +988,11 @@ def _decode_broadcast(msg: can.Message, data: bytes, _module_id: int) -> Broadca
             raise _fail(msg, f"baud-rate index {arg} is not 0..3")
     elif arg != 0:
         raise _fail(msg, f"{cmd.name} needs byte 1 = 0, got 0x{arg:02X}")
-    return Broadcast(cmd, arg)
+    frame = _BROADCASTS[data] = Broadcast(cmd, arg)  # immutable; one per valid byte pair (a dozen at most)
+    return frame
+
+
+_BROADCASTS: dict[bytes, Broadcast] = {}
 
 
 _DECODERS: Final = {
@@ -992,11 +1016,10 @@ def decode(msg: can.Message) -> Frame:
         raise ProtocolError(
             f"not a PowerCube frame (extended/remote/error/FD) id 0x{msg.arbitration_id:X}", frame=msg
         )
-    try:
-        kind, module_id = classify_id(msg.arbitration_id)
-    except ProtocolError as exc:
-        exc.frame = msg
-        raise
+    found = _KIND_OF_ID.get(msg.arbitration_id)  # classify_id, without one more call per frame
+    if found is None:
+        raise _outside_ranges(msg.arbitration_id, msg)
+    kind, module_id = found
     data = bytes(msg.data)
     if msg.dlc != len(data):
         raise _fail(msg, f"DLC {msg.dlc} does not match {len(data)} data bytes")

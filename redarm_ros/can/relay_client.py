@@ -62,6 +62,15 @@ _HANDSHAKE_TIMEOUT_S = 5.0
 _CLOSE_WAIT_S = 0.5
 
 
+#: The message fields of each flags byte (python-can keywords), looked up once per frame.
+_FLAG_FIELDS: dict[int, dict[str, bool]] = {
+    f: {"is_extended_id": bool(f & F_EXT), "is_remote_frame": bool(f & F_RTR),
+        "is_error_frame": bool(f & F_ERR), "is_fd": bool(f & F_FD), "bitrate_switch": bool(f & F_BRS),
+        "error_state_indicator": bool(f & F_ESI)}
+    for f in range(256)
+}
+
+
 def binary_flags(msg: can.Message) -> int:
     """The flags byte of ``msg`` in a binary frame message."""
     return ((F_EXT if msg.is_extended_id else 0) | (F_RTR if msg.is_remote_frame else 0)
@@ -187,12 +196,10 @@ class RelayBus(DirectRecv, can.BusABC):
             if opcode == OP_BINARY:
                 if length >= 1 + BINARY_MSG.size and buf[start] == BINARY_TYPE:
                     ts, arb_id, dlc, flags = unpack(buf, start + 1)
-                    frames.append(can.Message(
-                        timestamp=ts, arbitration_id=arb_id, is_extended_id=bool(flags & F_EXT),
-                        is_remote_frame=bool(flags & F_RTR), is_error_frame=bool(flags & F_ERR),
-                        is_fd=bool(flags & F_FD), bitrate_switch=bool(flags & F_BRS),
-                        error_state_indicator=bool(flags & F_ESI), dlc=dlc,
-                        data=bytes(buf[start + 1 + BINARY_MSG.size:pos])))
+                    # (a slice of the buffer is a bytearray of its own: the message keeps it as its data)
+                    frames.append(can.Message(timestamp=ts, arbitration_id=arb_id, dlc=dlc,
+                                              data=buf[start + 1 + BINARY_MSG.size:pos],
+                                              **_FLAG_FIELDS[flags]))
             elif opcode == OP_TEXT:
                 self._text(bytes(buf[start:pos]))
             elif opcode == OP_PING:

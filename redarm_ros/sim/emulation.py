@@ -36,34 +36,22 @@ class _LimitedJoint:
     def __init__(self, joint: Plant, lower: float, upper: float) -> None:
         self._j = joint
         self._lo, self._hi = lower, upper
-
-    def command_position(
-        self, target: float, vel_limit: float | None, acc_limit: float | None, duration_s: float | None
-    ) -> None:
-        self._j.command_position(target, vel_limit, acc_limit, duration_s)
-
-    def command_velocity(self, velocity: float) -> None:
-        self._j.command_velocity(velocity)
-
-    def halt(self) -> None:
-        self._j.halt()
+        self._position = joint.position
+        # The rest passes straight through: the joint's own methods, not one more call per use.
+        self.command_position = joint.command_position
+        self.command_velocity = joint.command_velocity
+        self.halt = joint.halt
+        self.velocity = joint.velocity
+        self.in_motion = joint.in_motion
+        self.set_travel_limits = joint.set_travel_limits
 
     def position(self) -> float:
-        q = self._j.position()
+        q = self._position()
         if self._hi < q <= self._hi + LIMIT_SLACK:
             return self._hi
         if self._lo - LIMIT_SLACK <= q < self._lo:
             return self._lo
         return q
-
-    def velocity(self) -> float:
-        return self._j.velocity()
-
-    def in_motion(self) -> bool:
-        return self._j.in_motion()
-
-    def set_travel_limits(self, lower: float, upper: float) -> None:
-        self._j.set_travel_limits(lower, upper)
 
 
 class PlantModules:

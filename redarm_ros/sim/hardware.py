@@ -46,7 +46,7 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Collection, Sequence
 from concurrent.futures import Future
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -369,9 +369,7 @@ class HardwareSim:
         if target is None or (target != 0 and target not in self.emulator.ids):
             c.foreign += 1
             return
-        with self._lock:
-            silenced = set(self.faults.silenced)
-            drop, delay = self.faults.drop_replies, self.faults.delay_replies_ms
+        silenced, drop, delay = self._faults_now()
         if target != 0 and target in silenced:
             c.silenced_rx += 1
             return
@@ -403,8 +401,22 @@ class HardwareSim:
             return
         self._emit(replies, t_rx, drop, delay)
 
+    def _faults_now(self) -> tuple[Collection[int], float, float]:
+        """The silenced ids (a copy: another thread may change them), drop fraction and reply delay in
+        force; without the lock and the copy while no fault is set (the settings are only ever
+        changed under the lock, by one assignment or one in-place set operation)."""
+        f = self.faults
+        if not f.silenced and f.drop_replies == 0.0 and f.delay_replies_ms == 0.0:
+            return _NO_IDS, 0.0, 0.0
+        with self._lock:
+            return set(self.faults.silenced), self.faults.drop_replies, self.faults.delay_replies_ms
+
     def _emit(self, frames: Sequence[can.Message], t_rx: float, drop: float, delay: float) -> None:
         """Send frames now or later, or drop them, as the faults say."""
+        if drop == 0.0 and delay == 0.0:
+            for reply in frames:
+                self._send(reply, t_rx)
+            return
         c = self.counters
         for reply in frames:
             if drop > 0.0 and self._rng.random() < drop:
@@ -418,9 +430,7 @@ class HardwareSim:
             self._send(reply, t_rx)
 
     def _tick(self, now: float) -> None:
-        with self._lock:
-            silenced = set(self.faults.silenced)
-            drop, delay = self.faults.drop_replies, self.faults.delay_replies_ms
+        silenced, drop, delay = self._faults_now()
         # The watchdogs judge time as of when the queue was known empty, less the bus server's transit:
         # had this thread waited for the CPU between that receive and now, the frames sent meanwhile
         # are not read yet, and the host must not be blamed for them.
@@ -451,7 +461,8 @@ class HardwareSim:
         backlog = False
         while not self._stop.is_set():
             now = time.monotonic()
-            self._flush_pending(now)
+            if self._pending:
+                self._flush_pending(now)
             if not backlog:
                 # Tick only once the queue is drained: after this thread waited for the CPU, frames
                 # that already arrived must refresh the modules' watchdogs before they are checked.
@@ -718,12 +729,16 @@ class HardwareSim:
             self.write_status()
 
 
+_NO_IDS: frozenset[int] = frozenset()
+_REQUEST_TYPES = (pc.CommandRequest, pc.SetParamRequest, pc.GetParamRequest, pc.SetMoveRequest)
+
+
 def _target_of(frame: Any) -> int | None:
     """Module id a request is for, 0 for a broadcast, None for anything not a request."""
+    if isinstance(frame, _REQUEST_TYPES):
+        return int(frame.module_id)
     if isinstance(frame, pc.Broadcast):
         return 0
-    if isinstance(frame, pc.CommandRequest | pc.SetParamRequest | pc.GetParamRequest | pc.SetMoveRequest):
-        return int(frame.module_id)
     return None
 
 

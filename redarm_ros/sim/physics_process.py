@@ -224,6 +224,7 @@ class RemoteJoint:
     def __init__(self, physics: PhysicsProcess, index: int) -> None:
         self._p = physics
         self.index = index
+        self._v = memoryview(physics._view)  # the shared state; an item of it is a Python float at once
         lay = physics._lay
         self._q = lay["q"].start + index
         self._dq = lay["dq"].start + index
@@ -246,16 +247,16 @@ class RemoteJoint:
 
     def position(self) -> float:
         """Measured joint position (rad) after the physics' last step."""
-        return float(self._p._view[self._q])
+        return self._v[self._q]
 
     def velocity(self) -> float:
         """Measured joint velocity (rad/s) after the physics' last step."""
-        return float(self._p._view[self._dq])
+        return self._v[self._dq]
 
     def in_motion(self) -> bool:
         """True while the setpoint moves, the joint measurably does, or a motion command is on its way
         (a module in motion from the moment it took the command, as in the thread)."""
-        v = self._p._view
+        v = self._v
         if self._motion_seq and v[_APPLIED] >= self._motion_seq:
             self._motion_seq = 0
         return bool(self._motion_seq) or v[self._active] > 0.5 or abs(v[self._dq]) > MOTION_EPS
