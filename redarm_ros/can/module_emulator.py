@@ -644,7 +644,7 @@ class PowerCubeModule:
         else:
             self._start_move(frame)
         self._move_mode = int(frame.mode)
-        if frame.mode in _EXTENDED_MODES:
+        if frame.mode in p.EXTENDED_MOVE_MODES:
             short = p.short_bits_from_long(self._state_bits())
             return p.set_move_ext_ack(self.module_id, frame.mode, before, short, 0)
         return self._ack(p.set_move_ack(self.module_id, frame.mode))
@@ -734,8 +734,6 @@ _BASE_MOVE_HANDLERS: dict[MoveMode, Callable[[PowerCubeModule, p.SetMoveRequest]
 }
 #: Every mode's handler (an extended mode moves as its plain one), looked up without ``MoveMode.base``.
 _MOVE_HANDLERS = {mode: _BASE_MOVE_HANDLERS[mode.base] for mode in MoveMode}
-#: The modes acknowledged with position and state.
-_EXTENDED_MODES = frozenset(mode for mode in MoveMode if mode.extended)
 
 _DYNAMIC_PARAMS: dict[Param, Callable[[PowerCubeModule], float | int]] = {
     Param.ACT_STATE: lambda m: int(m._state_bits()),
@@ -778,10 +776,6 @@ PARAM_ACCESS: dict[Param, ParamAccess] = {
 # --------------------------------------------------------------------------------------------------
 
 
-#: the frames a module answers (broadcasts aside)
-_REQUESTS = (p.CommandRequest, p.SetParamRequest, p.GetParamRequest, p.SetMoveRequest)
-
-
 class ModuleBank:
     """Modules by id: routes a CAN frame to its module (or all, for broadcasts), returns replies.
 
@@ -819,7 +813,7 @@ class ModuleBank:
         Modules in ``silenced`` ignore the frame (a fault: no state change, no reply)."""
         stamped = isinstance(on_wire, can.Message)
         with self.lock:
-            if isinstance(frame, _REQUESTS):
+            if isinstance(frame, p.MODULE_REQUEST_TYPES):
                 module = self.modules.get(frame.module_id)
                 if module is None or frame.module_id in silenced:
                     return []

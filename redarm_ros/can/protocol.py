@@ -148,7 +148,7 @@ class MoveMode(IntEnum):
     @property
     def extended(self) -> bool:
         """True for the modes whose acknowledgement carries position and state."""
-        return self in _EXTENDED_MODES
+        return self in EXTENDED_MOVE_MODES
 
     @property
     def has_duration(self) -> bool:
@@ -161,7 +161,8 @@ class MoveMode(IntEnum):
         return _EXT_TO_BASE.get(self, self)
 
 
-_EXTENDED_MODES: Final = frozenset(
+#: The modes acknowledged with the position and the short state.
+EXTENDED_MOVE_MODES: Final = frozenset(
     {MoveMode.FRAMP_EXT, MoveMode.FSTEP_EXT, MoveMode.FVEL_EXT, MoveMode.FCUR_EXT}
 )
 _DURATION_MODES: Final = frozenset({MoveMode.FSTEP, MoveMode.FSTEP_EXT})
@@ -478,6 +479,8 @@ class StateFrame:
 
 
 Request = CommandRequest | SetParamRequest | GetParamRequest | SetMoveRequest | Broadcast
+#: The requests addressed to one module (not the broadcast), for ``isinstance`` checks.
+MODULE_REQUEST_TYPES: Final = (CommandRequest, SetParamRequest, GetParamRequest, SetMoveRequest)
 Reply = CommandAck | SetParamAck | GetParamReply | SetMoveAck | SetMoveExtAck | StateFrame
 Frame = Request | Reply
 
@@ -763,7 +766,7 @@ def set_move_ext_ack(
     """
     _check_module_id(module_id)
     m = mode if type(mode) is MoveMode else _as_mode(mode)
-    if m not in _EXTENDED_MODES:
+    if m not in EXTENDED_MOVE_MODES:
         raise InvalidInputError(f"{m.name} is acknowledged by set_move_ack", field="mode", value=mode)
     if not 0 <= int(short_state) <= 0xFF:
         raise InvalidInputError(f"short_state must fit a byte, got {short_state!r}", field="short_state",

@@ -730,12 +730,11 @@ class HardwareSim:
 
 
 _NO_IDS: frozenset[int] = frozenset()
-_REQUEST_TYPES = (pc.CommandRequest, pc.SetParamRequest, pc.GetParamRequest, pc.SetMoveRequest)
 
 
 def _target_of(frame: Any) -> int | None:
     """Module id a request is for, 0 for a broadcast, None for anything not a request."""
-    if isinstance(frame, _REQUEST_TYPES):
+    if isinstance(frame, pc.MODULE_REQUEST_TYPES):
         return int(frame.module_id)
     if isinstance(frame, pc.Broadcast):
         return 0
