@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 import sys
+import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any, TypeVar
@@ -167,11 +168,22 @@ def ready_client_fixture(make: Callable[[Any], GoalClient], joint_names: list[st
 
 
 def sim_tool_reaches(c: StackClient, stack: SimulatedArm, T: np.ndarray, pos_tol: float, rot_tol: float,
-                     timeout: float) -> bool:
-    """Spin until the simulated tool is within ``pos_tol`` m and ``rot_tol`` rad of ``T``."""
+                     timeout: float, stay_s: float = 0.5) -> bool:
+    """Spin until the simulated tool has stayed within ``pos_tol`` m and ``rot_tol`` rad of ``T`` for
+    ``stay_s`` s. A tool only passing through the tolerance does not count: the joints end their moves
+    at different times, so the tool's way in need not be monotone (a busy run read 1.02 mm just after a
+    reading within 1 mm)."""
+    since: list[float] = []
+
     def there() -> bool:
         pe, re = pose_err(sim_tool(stack), T)
-        return pe < pos_tol and re < rot_tol
+        now = time.monotonic()
+        if not (pe < pos_tol and re < rot_tol):
+            since.clear()
+            return False
+        if not since:
+            since.append(now)
+        return now - since[0] >= stay_s
 
     return c.spin_until(there, timeout)
 
