@@ -193,11 +193,17 @@ def joint_share_acc(rate: float, default: float, qd: np.ndarray, max_acc: np.nda
     """Largest rate of change of ``rate`` (a hand speed or an orientation rate) that keeps every joint
     within ``share`` of its acceleration limit ``max_acc``, the joint velocities ``qd`` of the last
     reference step taken as proportional to ``rate``; ``default`` caps it and is used at rest."""
+    acc = max_acc.tolist()  # (plain floats: the same quotients and least one, without numpy's per-call cost)
     if rate < 1e-4:  # from rest: a gentle first step, the ratio is measured from the next one
-        return min(default, 0.1 * float(np.min(max_acc)))
-    qd = np.abs(qd)
-    mask = qd > 1e-6
-    if not np.any(mask):
+        return min(default, 0.1 * min(acc))
+    least = math.inf
+    moving = False
+    for a_j, v in zip(acc, qd.tolist(), strict=True):
+        v = abs(v)
+        if v > 1e-6:
+            moving = True
+            least = min(least, a_j / v)
+    if not moving:
         return default
-    a = float(np.min(max_acc[mask] / qd[mask])) * rate * share
+    a = least * rate * share
     return max(min(a, default), 1e-3)
