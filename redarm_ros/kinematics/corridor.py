@@ -229,6 +229,16 @@ class _Corridor:
         self.wide = [j for j in range(7) if self.up[j] - self.lo[j] >= TWO_PI - 2e-10]
         self.wide_pivots = all(j % 2 == 0 for j in self.wide)
         self.wide_rows = [j // 2 for j in self.wide] + [4 + j // 2 for j in self.wide]  # rows X, then Y
+        # per-call constants of the wide joints' helpers below (the same arrays they built each call)
+        self._wide_sign = self.sign[self.wide][:, None]
+        self._wide_shift = self.shift[self.wide][:, None]
+        self._wide_degen = [(k, j) for k, j in enumerate(self.wide) if j in (0, 4)]
+        self._wide_lo_chk = self.lo[self.wide][:, None] - CHECK_TOL
+        self._wide_up_chk = self.up[self.wide][:, None] + CHECK_TOL
+        bounds = np.concatenate([self.lo[self.wide], self.up[self.wide]])  # (_wide_roots: lower, then upper)
+        self._root_p = np.array([j // 2 for j in self.wide] * 2, dtype=int)
+        self._root_sin = -np.sin(bounds)[:, None]
+        self._root_cos = np.cos(bounds)[:, None]
         # grid step (rad) along a piece for the wide joints' continuous value: a pivot turns at most about
         # 1 / m rad per rad of swivel at a hinge margin m, so consecutive grid values differ by ~1.5 < pi
         self.h = min(0.05, 1.5 * min(self.m["shoulder"], self.m["wrist"]))
@@ -297,19 +307,22 @@ class _Corridor:
         (pivot joints: atan2 of two rows of the closed form)."""
         if not self.wide_pivots:
             return self.angles(fn, s)[self.wide]
-        P = fn.K[self.wide_rows] @ np.stack([np.ones_like(s), np.cos(s), np.sin(s)])
+        CS = np.empty((3, s.shape[0]))  # (the rows np.stack([ones, cos s, sin s]) made, filled in place)
+        CS[0] = 1.0
+        np.cos(s, out=CS[1])
+        np.sin(s, out=CS[2])
+        P = fn.K[self.wide_rows] @ CS
         n = len(self.wide)
         th = np.arctan2(P[n:], P[:n])
-        for k, j in enumerate(self.wide):
+        for k, j in self._wide_degen:
             if (j == 0 and fn.deg_shoulder) or (j == 4 and fn.deg_wrist):
                 th[k] = 0.0
-        return th * self.sign[self.wide][:, None] + self.shift[self.wide][:, None]
+        return th * self._wide_sign + self._wide_shift
 
     def _wide_roots(self, fn: SwivelFunctions, lo: float, hi: float) -> np.ndarray:
         """Swivels in [lo, hi] where a wide joint equals one of its bounds (mod pi): closed-form roots."""
-        L = np.concatenate([self.lo[self.wide], self.up[self.wide]])
-        p = np.array([j // 2 for j in self.wide] * 2)
-        E = -np.sin(L)[:, None] * fn.K[p] + np.cos(L)[:, None] * fn.K[p + 4]
+        p = self._root_p
+        E = self._root_sin * fn.K[p] + self._root_cos * fn.K[p + 4]
         x = np.concatenate(roots(E))
         x = x[x == x]
         base = lo + (x - lo) % TWO_PI
@@ -359,8 +372,7 @@ class _Corridor:
         if hit is not None:
             return hit
         V = V0 + shift[:, None]
-        lo_w, up_w = self.lo[self.wide][:, None], self.up[self.wide][:, None]
-        ok = np.all((V >= lo_w - CHECK_TOL) & (V <= up_w + CHECK_TOL), axis=0)
+        ok = ((V >= self._wide_lo_chk) & (V <= self._wide_up_chk)).all(axis=0)
         ok_mid, ok_pt = ok[1::2], ok[0::2]
         pts = allp[0::2]
         runs: list[tuple[float, float, float, np.ndarray]] = []
