@@ -349,7 +349,7 @@ class _Corridor:
         allp[1::2] = 0.5 * (pts[1:] + pts[:-1])
         A = self._wide_angles(smp.fn, allp)
         V = A.copy()  # unwrapped along the grid: each step taken as the nearest 2 pi copy
-        V[:, 1:] -= TWO_PI * np.cumsum(np.round(np.diff(A, axis=1) / TWO_PI), axis=1)
+        V[:, 1:] -= TWO_PI * (np.diff(A, axis=1) / TWO_PI).round().cumsum(axis=1)  # (methods: no wrapper)
         smp.grids[key] = (allp, V)
         return allp, V
 
@@ -357,10 +357,10 @@ class _Corridor:
         """The 2 pi shift (per wide joint) that puts the grid values of J on the branch that has about the
         values ``w`` at swivel s (within pi)."""
         allp, V = self._wide_grid(smp, J)
-        i = min(int(np.searchsorted(allp, s)), len(allp) - 1)
+        i = min(int(allp.searchsorted(s)), len(allp) - 1)
         if i > 0 and abs(allp[i - 1] - s) < abs(allp[i] - s):
             i -= 1
-        return TWO_PI * np.round((w - V[:, i]) / TWO_PI)
+        return TWO_PI * ((w - V[:, i]) / TWO_PI).round()
 
     def wide_runs(self, smp: _Sample, J: tuple[float, float], shift: np.ndarray
                   ) -> list[tuple[float, float, float, np.ndarray]]:
@@ -397,10 +397,10 @@ class _Corridor:
         """The wide joints' exact values at swivel s on the branch of J given by ``shift``."""
         assert smp.fn is not None
         allp, V = self._wide_grid(smp, J)
-        i = min(int(np.searchsorted(allp, s)), len(allp) - 1)
+        i = min(int(allp.searchsorted(s)), len(allp) - 1)
         approx = V[:, i] + shift
         base = self._wide_angles(smp.fn, np.array([s]))[:, 0]
-        return base + TWO_PI * np.round((approx - base) / TWO_PI)
+        return base + TWO_PI * ((approx - base) / TWO_PI).round()
 
     # -- refinement of the samples ---------------------------------------------------------------
     def topology_grid(self, n0: int) -> list[float]:

@@ -319,9 +319,9 @@ class LimitTables:
             wj = self.wide
             kmax = np.maximum(np.floor(room[wj] * INV_2PI), 0.0)
             r = 0.0 if ref is None else ref[wj][:, None, None]
-            k = np.clip(np.rint((r - V[wj]) * INV_2PI), 0.0, kmax)
+            k = np.rint((r - V[wj]) * INV_2PI).clip(0.0, kmax)  # (ndarray methods: np.clip's, no wrapper)
             V[wj] += TWO_PI * k
-        return np.clip(V, self.lo3, self.up3), feas
+        return V.clip(self.lo3, self.up3), feas
 
 
 @dataclass
@@ -495,7 +495,7 @@ def roots(E: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     r = -E[:, 0] / np.maximum(np.sqrt(e1 * e1 + e2 * e2), 1e-300)
     r[np.abs(r) > 1.0 + TANGENT_TOL] = np.nan
     phi = np.arctan2(e2, e1)
-    d = np.arccos(np.clip(r, -1.0, 1.0))
+    d = np.arccos(r.clip(-1.0, 1.0))
     return phi + d, phi - d
 
 
