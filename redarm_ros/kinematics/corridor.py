@@ -372,7 +372,7 @@ class _Corridor:
         if hit is not None:
             return hit
         V = V0 + shift[:, None]
-        ok = ((V >= self._wide_lo_chk) & (V <= self._wide_up_chk)).all(axis=0)
+        ok = np.logical_and.reduce((V >= self._wide_lo_chk) & (V <= self._wide_up_chk), axis=0)  # all(axis=0)
         ok_mid, ok_pt = ok[1::2], ok[0::2]
         pts = allp[0::2]
         runs: list[tuple[float, float, float, np.ndarray]] = []

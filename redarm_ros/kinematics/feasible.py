@@ -321,7 +321,7 @@ class LimitTables:
             r = 0.0 if ref is None else ref[wj][:, None, None]
             k = np.rint((r - V[wj]) * INV_2PI).clip(0.0, kmax)  # (ndarray methods: np.clip's, no wrapper)
             V[wj] += TWO_PI * k
-        return V.clip(self.lo3, self.up3), feas
+        return np.minimum(np.maximum(V, self.lo3), self.up3), feas  # np.clip's picks, without its wrappers
 
 
 @dataclass
@@ -495,7 +495,7 @@ def roots(E: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     r = -E[:, 0] / np.maximum(np.sqrt(e1 * e1 + e2 * e2), 1e-300)
     r[np.abs(r) > 1.0 + TANGENT_TOL] = np.nan
     phi = np.arctan2(e2, e1)
-    d = np.arccos(r.clip(-1.0, 1.0))
+    d = np.arccos(np.minimum(np.maximum(r, -1.0), 1.0))  # np.clip's picks (NaN stays), without its wrappers
     return phi + d, phi - d
 
 
