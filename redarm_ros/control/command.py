@@ -94,7 +94,7 @@ class CommandShaper:
 
     def speed_ratio(self, st: CoreState, q: np.ndarray, dt: float) -> float:
         """The largest joint speed over its limit of a reference step to ``q`` taking ``dt`` s."""
-        return float(np.max(np.abs(q - st.ref.q) * self.bounds.inv_vel)) / dt
+        return float((np.abs(q - st.ref.q) * self.bounds.inv_vel).max()) / dt
 
     def commit(self, st: CoreState, p: ControllerParams, step: IKStep, dt: float) -> bool:
         """Take the IK step as the new reference and move the command towards it within the velocity

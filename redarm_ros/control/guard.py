@@ -132,7 +132,7 @@ class CollisionGuard:
         the longest to stop sets it): braking along the current joint-space direction."""
         with np.errstate(divide="ignore"):
             r = np.where(np.abs(qd) > 0.0, max_acc / np.abs(qd), np.inf)
-        return float(np.min(r))
+        return float(r.min())
 
     def braking_clearance(self, q: np.ndarray, qd: np.ndarray, c: float, dt: float,
                           scene: Scene, sync: bool = False, kp: np.ndarray | None = None) -> Clearance | None:
