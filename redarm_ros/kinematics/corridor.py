@@ -63,6 +63,7 @@ from redarm_ros.kinematics.feasible import (
     SwivelFunctions,
     pattern_intervals,
     roots,
+    sorted_unique,
 )
 from redarm_ros.kinematics.quaternion import (
     matrix_from_quat,
@@ -343,7 +344,7 @@ class _Corridor:
         lo, hi = J
         assert smp.fn is not None
         n = max(2, int(math.ceil((hi - lo) / self.h)) + 1)
-        pts = np.unique(np.concatenate([np.linspace(lo, hi, n), self._wide_roots(smp.fn, lo, hi)]))
+        pts = sorted_unique(np.concatenate([np.linspace(lo, hi, n), self._wide_roots(smp.fn, lo, hi)]))
         allp = np.empty(2 * len(pts) - 1)
         allp[0::2] = pts
         allp[1::2] = 0.5 * (pts[1:] + pts[:-1])

@@ -499,6 +499,19 @@ def roots(E: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return phi + d, phi - d
 
 
+def sorted_unique(x: np.ndarray) -> np.ndarray:
+    """``np.unique`` of a 1-D float array without NaN, by its own sorting path (the same sort, then the
+    first of every run of equal values: 0.0 or -0.0 as np.unique keeps it), without its Python set-up:
+    less than half its cost on the few hundred values asked here."""
+    a = np.sort(x)
+    if len(a) < 2:
+        return a
+    keep = np.empty(len(a), dtype=bool)
+    keep[0] = True
+    np.not_equal(a[1:], a[:-1], out=keep[1:])
+    return a[keep]
+
+
 def _alternatives(th: np.ndarray) -> np.ndarray:
     """(7, M) base-pattern angles -> (7, 2, M): per joint the base and the flipped alternative."""
     return th[:, None, :] * ALT_SIGN[:, :, None] + ALT_SHIFT[:, :, None]
@@ -508,7 +521,7 @@ def _critical(fn: SwivelFunctions, tab: LimitTables) -> np.ndarray:
     Ec, _ = fn.equations(tab)
     rp, rm = roots(Ec)
     allr = np.concatenate([rp, rm, fn.extremes()])
-    return np.unique(wrap(allr[allr == allr]))
+    return sorted_unique(wrap(allr[allr == allr]))
 
 
 def feasible_intervals(fn: SwivelFunctions, tab: LimitTables) -> list[np.ndarray]:
