@@ -226,7 +226,8 @@ class _Corridor:
         self.sign = np.array([ALT_SIGN[j, ALT_INDEX[b, j]] for j in range(7)])
         self.shift = np.array([ALT_SHIFT[j, ALT_INDEX[b, j]] for j in range(7)])
         self.lo, self.up, self.lo_tol, self.up_tol = self._bounds()
-        self.tab = LimitTables(self.lo, self.up, INTERVAL_ROOT_TOL) if np.all(self.lo <= self.up) else None
+        self.tab = LimitTables.shared(self.lo, self.up, INTERVAL_ROOT_TOL) if np.all(self.lo <= self.up) \
+            else None
         self.wide = [j for j in range(7) if self.up[j] - self.lo[j] >= TWO_PI - 2e-10]
         self.wide_pivots = all(j % 2 == 0 for j in self.wide)
         self.wide_rows = [j // 2 for j in self.wide] + [4 + j // 2 for j in self.wide]  # rows X, then Y

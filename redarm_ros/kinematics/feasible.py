@@ -150,6 +150,23 @@ class LimitTables:
     computation is ill-conditioned (theta2 or theta6 near 0).
     """
 
+    #: tables by their limits (:meth:`shared`); a few per arm and margin set, never changed once built
+    _shared: dict[tuple[bytes, bytes, float], LimitTables] = {}
+
+    @classmethod
+    def shared(cls, lower: np.ndarray, upper: np.ndarray, root_tol: float = SEARCH_ROOT_TOL) -> LimitTables:
+        """The tables of these limits, built once (2 ms each; a swivel corridor asks for them on every
+        plan, with the same few limits every time). Built from copies: the caller's arrays stay theirs."""
+        lo = np.asarray(lower, dtype=float)
+        up = np.asarray(upper, dtype=float)
+        key = (lo.tobytes(), up.tobytes(), float(root_tol))
+        tab = cls._shared.get(key)
+        if tab is None:
+            if len(cls._shared) >= 256:  # (a bound, not expected to be reached)
+                cls._shared.clear()
+            tab = cls._shared[key] = cls(lo.copy(), up.copy(), root_tol)
+        return tab
+
     def __init__(self, lower: np.ndarray, upper: np.ndarray, root_tol: float = SEARCH_ROOT_TOL) -> None:
         self.lower = np.asarray(lower, dtype=float)
         self.upper = np.asarray(upper, dtype=float)
