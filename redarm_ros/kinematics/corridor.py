@@ -202,13 +202,17 @@ class _Piece:
     parents: list[int]
 
 
+#: corridors' samples by route, flip pattern and bounds (see :func:`corridor_screen`'s ``shared_samples``)
+SharedSamples = dict[tuple[Any, ...], dict[float, _Sample]]
+
+
 class _Corridor:
     """The computation behind :func:`swivel_corridor` (state of one call)."""
 
     def __init__(self, arm: SwivelArm, T0: np.ndarray, T1: np.ndarray, q_start: np.ndarray,
                  margins: dict[str, float],
                  max_rate: float, preferred: PreferredSwivel, max_joint_step: float, min_du: float,
-                 end_step: float) -> None:
+                 end_step: float, shared_samples: SharedSamples | None = None) -> None:
         self.arm = arm
         self.T0, self.T1 = T0, T1
         self.q0r = quat_from_matrix(T0[:3, :3])
@@ -244,7 +248,10 @@ class _Corridor:
         # grid step (rad) along a piece for the wide joints' continuous value: a pivot turns at most about
         # 1 / m rad per rad of swivel at a hinge margin m, so consecutive grid values differ by ~1.5 < pi
         self.h = min(0.05, 1.5 * min(self.m["shoulder"], self.m["wrist"]))
-        self.cache: dict[float, _Sample] = {}
+        # the samples by progress: a sample is a function of the route, the flip pattern and the bounds
+        # alone (not of the start swivel), so corridors that share all of them may share the samples
+        self.cache: dict[float, _Sample] = {} if shared_samples is None else shared_samples.setdefault(
+            (T0.tobytes(), T1.tobytes(), self.pattern, self.lo.tobytes(), self.up.tobytes(), self.h), {})
         self.frontier = 0.0  # progress from which the initial steps are not refined yet (topology_grid)
         self.rows: dict[tuple[float, float], np.ndarray] = {}  # ik rows on the pattern by (u, swivel)
 
@@ -894,16 +901,19 @@ def corridor_screen(
     elbow_margin: float,
     max_rate: float,
     samples: int = 16,
+    shared_samples: SharedSamples | None = None,
 ) -> float | None:
     """A quick screen before :func:`swivel_corridor` (same arguments, checked by the caller): the
     forward pass alone at ``samples`` + 1 evenly spaced progress values, without refinement. Returns
     the first of them with no reachable swivel, or None. Coarse: a corridor that closes between two
-    samples passes the screen (the full call finds it); one that a refinement would reconnect may fail it."""
+    samples passes the screen (the full call finds it); one that a refinement would reconnect may fail it.
+    ``shared_samples``: a dict the caller keeps across screens of the same route from other start
+    swivels (the route's samples are computed once; the result is the same)."""
     margins = {"limit": limit_margin, "shoulder": shoulder_margin, "wrist": wrist_margin,
                "elbow": elbow_margin}
     s0 = float(arm.swivel(q_start))
     cor = _Corridor(arm, np.asarray(T_start, float), np.asarray(T_goal, float), np.asarray(q_start, float),
-                    margins, float(max_rate), lambda _u, _T: s0, 0.1, 1e-3, 0.05)
+                    margins, float(max_rate), lambda _u, _T: s0, 0.1, 1e-3, 0.05, shared_samples)
     us = [float(u) for u in np.linspace(0.0, 1.0, samples + 1)]
     _levels, closed, _misses = cor.forward(us)
     return None if closed is None else us[closed]
