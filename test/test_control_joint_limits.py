@@ -6,10 +6,12 @@ import numpy as np
 import pytest
 
 from redarm_ros.control.joint_limits import (
+    JointBounds,
     LimitMode,
     brake_step,
     braking_speed,
     limit_step,
+    track_step,
     velocity_bounds,
 )
 
@@ -99,3 +101,39 @@ def test_the_controller_brakes_by_the_shared_motion_law() -> None:
     theirs = motion.velocity_bounds(q, v, DT, LO, HI, VMAX, AMAX)
     np.testing.assert_array_equal(ours[0], theirs[0])
     np.testing.assert_array_equal(ours[1], theirs[1])
+
+
+def _track_step_arrays(q: np.ndarray, qd: np.ndarray, q_ref: np.ndarray, qd_ref: np.ndarray, dt: float,
+                       b: JointBounds) -> tuple[np.ndarray, np.ndarray]:
+    """track_step as the controller wrote it in numpy before (the reference for the float loop)."""
+    u = np.clip(qd_ref, -b.max_vel, b.max_vel)
+    e = q_ref - u * dt - q
+    v_des = u + np.sign(e) * braking_speed(np.abs(e), b.max_acc, dt)
+    e = q_ref - q
+    lo, hi = velocity_bounds(q, qd, dt, b.max_vel, b.max_acc, b.lower, b.upper)
+    v = np.clip(v_des, lo, hi)
+    small = np.abs(e) <= 1e-12
+    v = np.where(small & (np.abs(qd_ref) <= 1e-12) & (lo <= 0.0) & (hi >= 0.0), 0.0, v)
+    q_new = np.clip(q + v * dt, b.lower, b.upper)
+    q_new = np.where(np.abs(q_ref - q_new) <= 1e-12, q_ref, q_new)
+    return q_new, (q_new - q) / dt
+
+
+def test_track_step_gives_the_same_floats_as_the_array_form() -> None:
+    """Bit for bit, signed zeros included: random states, and values on the limits, at rest, exactly
+    on the reference and on +-0."""
+    rng = np.random.default_rng(7)
+    b = JointBounds(LO, HI, VMAX, 1.0 / VMAX, AMAX)
+    picks = np.array([0.0, -0.0, 1e-13, -1e-13, 1.0, -1.0, 2.0, -2.0, 6.0, -6.0, 3.0, -3.0, 0.02, -0.02])
+    for k in range(3000):
+        if k % 2:
+            q, qd, qr, vr = (rng.choice(picks, 3) for _ in range(4))
+        else:
+            q = rng.uniform(LO - 0.1, HI + 0.1)
+            qd, vr = rng.uniform(-1.5 * VMAX, 1.5 * VMAX), rng.uniform(-1.5 * VMAX, 1.5 * VMAX)
+            qr = q + rng.choice([0.0, 1e-13, 1e-3, 0.1, 1.0]) * rng.normal(size=3)
+        q = np.clip(q, LO, HI)
+        want_q, want_qd = _track_step_arrays(q, qd, qr, vr, DT, b)
+        got_q, got_qd = track_step(q.tolist(), qd.tolist(), qr.tolist(), vr.tolist(), DT, b)
+        assert np.array(got_q).tobytes() == want_q.tobytes(), (q, qd, qr, vr)
+        assert np.array(got_qd).tobytes() == want_qd.tobytes(), (q, qd, qr, vr)

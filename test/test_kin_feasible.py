@@ -850,3 +850,14 @@ def test_exhaustive_nearest_is_never_farther_than_the_default(name) -> None:
         q1, i1 = arm.ik_nearest(T, qs, exhaustive=True)
         assert i0.ok and i1.ok and _solved(arm, q1, T)
         assert float(np.sum((q1 - qs) ** 2)) <= float(np.sum((q0 - qs) ** 2)) + 1e-12
+
+
+def test_sorted_unique_is_np_unique_bit_for_bit() -> None:
+    """The same values in the same order, 0.0 or -0.0 as np.unique keeps it (short and long arrays, many
+    repeats)."""
+    rng = np.random.default_rng(1)
+    picks = np.array([0.0, -0.0, 1.0, -1.0, 0.5, math.pi, -math.pi, 1e-300, -1e-300])
+    for k in range(6000):
+        n = int(rng.integers(0, 300 if k % 3 == 0 else 40))
+        x = rng.choice(picks, n) if k % 2 else rng.normal(size=n).round(1)
+        assert fz.sorted_unique(x).tobytes() == np.unique(x).tobytes()

@@ -160,7 +160,7 @@ class AttractorLaw:
                 # Stopping distance: the clearance the arm would lose while its joints brake at their
                 # acceleration limits (~ rate * t_stop / 2) must stay within stop_share of the
                 # clearance left; the swivel meanwhile turns the elbow away.
-                t_stop = float(np.max(np.abs(cmd.qd) / self.bounds.max_acc))
+                t_stop = float((np.abs(cmd.qd) / self.bounds.max_acc).max())
                 loss = cmd.obs_rate * (0.5 * t_stop + dt)
                 room = p.stop_share * max(cmd.obs_clear - p.collision_margin, 0.0)
                 if loss > room:
@@ -267,7 +267,7 @@ class AttractorLaw:
         cap = math.inf
         if predicted > 0.85 and v_now > 1e-4:
             cap = max(v_now * 0.85 / predicted, 0.02)
-        lag = float(np.max(np.abs(st.ref.q - st.cmd.q) * self.bounds.inv_vel))  # s at full joint speed
+        lag = float((np.abs(st.ref.q - st.cmd.q) * self.bounds.inv_vel).max())  # s at full joint speed
         if lag > p.max_lag and v_now > 1e-3:
             cap = min(cap, max(v_now * p.max_lag / lag, 0.02))
         if math.isfinite(cap):

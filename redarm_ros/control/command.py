@@ -17,7 +17,7 @@ import numpy as np
 
 from redarm_ros.control.guard import CollisionGuard, describe
 from redarm_ros.control.ik_step import IKStep, pose_of
-from redarm_ros.control.joint_limits import JointBounds, braking_speed, velocity_bounds
+from redarm_ros.control.joint_limits import JointBounds, track_step
 from redarm_ros.control.params import ControllerParams
 from redarm_ros.control.redundancy import Redundancy
 from redarm_ros.control.state import (
@@ -94,7 +94,7 @@ class CommandShaper:
 
     def speed_ratio(self, st: CoreState, q: np.ndarray, dt: float) -> float:
         """The largest joint speed over its limit of a reference step to ``q`` taking ``dt`` s."""
-        return float(np.max(np.abs(q - st.ref.q) * self.bounds.inv_vel)) / dt
+        return float((np.abs(q - st.ref.q) * self.bounds.inv_vel).max()) / dt
 
     def commit(self, st: CoreState, p: ControllerParams, step: IKStep, dt: float) -> bool:
         """Take the IK step as the new reference and move the command towards it within the velocity
@@ -127,23 +127,12 @@ class CommandShaper:
         position limits (time-optimal per joint: the reference velocity plus the speed from which the
         lag can still be braked away), then check it with the collision guard. Returns False if the
         guard refused it (then the arm brakes and holds)."""
-        b = self.bounds
         cmd, ref = st.cmd, st.ref
-        qc, qd = cmd.q, cmd.qd
         # The lag behind where the reference was a step ago: with the reference's velocity fed
         # forward, a command on the reference stays on it (no limit cycle around a moving reference).
-        u = np.clip(ref.qd, -b.max_vel, b.max_vel)
-        e = ref.q - u * dt - qc
-        v_des = u + np.sign(e) * braking_speed(np.abs(e), b.max_acc, dt)
-        e = ref.q - qc
-        lo, hi = velocity_bounds(qc, qd, dt, b.max_vel, b.max_acc, b.lower, b.upper)
-        v = np.clip(v_des, lo, hi)
-        small = np.abs(e) <= 1e-12  # land exactly on a resting reference
-        v = np.where(small & (np.abs(ref.qd) <= 1e-12) & (lo <= 0.0) & (hi >= 0.0), 0.0, v)
-        q_new = np.clip(qc + v * dt, b.lower, b.upper)
-        snap = np.abs(ref.q - q_new) <= 1e-12
-        q_new = np.where(snap, ref.q, q_new)
-        return self._command(st, q_new, (q_new - qc) / dt, dt)
+        q_new, qd_new = track_step(cmd.q.tolist(), cmd.qd.tolist(), ref.q.tolist(), ref.qd.tolist(), dt,
+                                   self.bounds)
+        return self._command(st, np.array(q_new), np.array(qd_new), dt)
 
     def _command(self, st: CoreState, q: np.ndarray, qd: np.ndarray, dt: float) -> bool:
         """Commit command ``q`` (rad) moving at ``qd`` (rad/s) if the guard allows it; otherwise brake."""

@@ -132,7 +132,7 @@ class CollisionGuard:
         the longest to stop sets it): braking along the current joint-space direction."""
         with np.errstate(divide="ignore"):
             r = np.where(np.abs(qd) > 0.0, max_acc / np.abs(qd), np.inf)
-        return float(np.min(r))
+        return float(r.min())
 
     def braking_clearance(self, q: np.ndarray, qd: np.ndarray, c: float, dt: float,
                           scene: Scene, sync: bool = False, kp: np.ndarray | None = None) -> Clearance | None:
@@ -140,21 +140,20 @@ class CollisionGuard:
         every ``step`` m of possible travel and lowered by that much), or None if no point of the arm
         can travel ``c - margin`` before the joints stop. ``sync``: every joint brakes in proportion
         (the arm stays on its joint-space line, e.g. a planned path) instead of each as hard as it can."""
-        n = int(float(np.max(np.abs(qd) / self.max_acc)) / dt) + 2
-        k = np.arange(1, n + 1)[:, None]
+        n = int(float((np.abs(qd) / self.max_acc).max()) / dt) + 2
         if sync:
-            rate = self.sync_rate(qd, self.max_acc)
-            v = qd * np.maximum(1.0 - k * rate * dt, 0.0)
-        else:
-            v = np.sign(qd) * np.maximum(np.abs(qd) - k * self.max_acc * dt, 0.0)  # brake_step, closed form
-        # rad still to go per joint (the continuous bound for independent braking)
-        turn = np.abs(dt * np.sum(v, axis=0)) if sync else qd * qd / (2.0 * self.max_acc)
+            v = self._braking_velocities(qd, n, dt, sync)
+            turn = np.abs(dt * v.sum(axis=0))
+        else:  # (the braking path is needed only past the quick test below: most calls end there)
+            turn = qd * qd / (2.0 * self.max_acc)  # rad still to go per joint (the continuous bound)
         turn = turn + np.abs(qd) * dt
-        if not np.any(turn > 0.0):
+        if not (turn > 0.0).any():
             return None
         lever = self.levers(q, kp)
         if c - float(np.dot(lever, turn)) >= self.margin:
             return None
+        if not sync:
+            v = self._braking_velocities(qd, n, dt, sync)
         worst: Clearance | None = None
         path = np.clip(q + dt * np.cumsum(v, axis=0), self.lower, self.upper)
         moved = np.cumsum(np.abs(np.diff(np.vstack([q, path]), axis=0)) @ lever)
@@ -170,6 +169,14 @@ class CollisionGuard:
             if i >= n - 1:
                 return worst
             at, gap = float(moved[i]), max(room, self.step)
+
+    def _braking_velocities(self, qd: np.ndarray, n: int, dt: float, sync: bool) -> np.ndarray:
+        """(n, 7) joint velocities of the n braking steps from ``qd`` (see :meth:`braking_clearance`)."""
+        k = np.arange(1, n + 1)[:, None]
+        if sync:
+            rate = self.sync_rate(qd, self.max_acc)
+            return qd * np.maximum(1.0 - k * rate * dt, 0.0)
+        return np.sign(qd) * np.maximum(np.abs(qd) - k * self.max_acc * dt, 0.0)  # brake_step, closed form
 
     def check(self, q: np.ndarray, qd: np.ndarray, prev: float, dt: float, scene: Scene, sync: bool = False,
               on_path: bool = False, kp: np.ndarray | None = None) -> tuple[Clearance, Clearance | None]:

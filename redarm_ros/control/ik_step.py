@@ -153,7 +153,7 @@ class IKStepper(StepperBase):
 
     def margin(self, q: np.ndarray) -> float:
         """Smallest distance (rad) of any joint to its limit."""
-        return float(np.min(np.minimum(q - self.lower, self.upper - q)))
+        return float(np.minimum(q - self.lower, self.upper - q).min())
 
     def limit_margins(self, T: np.ndarray, s: float, q_ref: np.ndarray, eps: float,
                       threshold: float) -> tuple[float, float, float] | None:

@@ -17,6 +17,7 @@ from __future__ import annotations
 import enum
 import math
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -109,6 +110,51 @@ def limit_step(q_prev: np.ndarray, v_prev: np.ndarray, q_target: np.ndarray, dt:
     return LimitedStep(q, (q - q_prev) / dt, LimitMode.CLIPPED, math.nan)
 
 
+def track_step(q: list[float], qd: list[float], q_ref: list[float], qd_ref: list[float], dt: float,
+               bounds: JointBounds) -> tuple[list[float], list[float]]:
+    """One command step (rad, rad/s) from ``q`` moving at ``qd`` towards a reference at ``q_ref``
+    moving at ``qd_ref`` (plain float lists; finite values): the reference velocity (clipped to the
+    velocity limit) fed forward plus the speed from which the lag can still be braked away, within
+    :func:`velocity_bounds`; lands exactly on a resting reference within 1e-12 rad.
+
+    Joint by joint in plain floats: seven-element numpy calls cost several times the arithmetic. The
+    operations are those of the array form (np.clip is ``x if x > lo else lo`` then ``y if y < hi else
+    hi``, np.maximum / np.minimum pick the same way, np.sign gives +0.0 for -0.0), so the floats are
+    the same, signed zeros included (test_control_joint_limits compares the two)."""
+    bs = motion.braking_speed_scalar
+    q_new: list[float] = []
+    qd_new: list[float] = []
+    for qc, vp, qr, vr, lower, upper, vmax, acc in zip(q, qd, q_ref, qd_ref, *bounds.lists, strict=True):
+        u = vr if vr > -vmax else -vmax  # the reference velocity within the velocity limit
+        u = u if u < vmax else vmax
+        e = qr - u * dt - qc  # the lag behind where the reference was a step ago
+        sign = 1.0 if e > 0.0 else (-1.0 if e < 0.0 else 0.0)
+        v = u + sign * bs(abs(e), acc, dt)
+        adt = acc * dt  # velocity_bounds: velocity, acceleration and braking onto the position limits
+        lo = vp - adt
+        lo = lo if lo > -vmax else -vmax
+        hi = vp + adt
+        hi = hi if hi < vmax else vmax
+        hi_pos = bs(upper - qc, acc, dt)
+        lo_pos = -bs(qc - lower, acc, dt)
+        lo = lo if lo < hi_pos else hi_pos
+        lo = lo if lo > lo_pos else lo_pos
+        hi = hi if hi > lo_pos else lo_pos
+        hi = hi if hi < hi_pos else hi_pos
+        v = v if v > lo else lo
+        v = v if v < hi else hi
+        if abs(qr - qc) <= 1e-12 and abs(vr) <= 1e-12 and lo <= 0.0 and hi >= 0.0:
+            v = 0.0  # land exactly on a resting reference
+        x = qc + v * dt
+        x = x if x > lower else lower
+        x = x if x < upper else upper
+        if abs(qr - x) <= 1e-12:
+            x = qr
+        q_new.append(x)
+        qd_new.append((x - qc) / dt)
+    return q_new, qd_new
+
+
 def brake_step(q_prev: np.ndarray, v_prev: np.ndarray, dt: float, max_acc: np.ndarray,
                lower: np.ndarray, upper: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """One step of the hardest allowed braking (each joint's speed reduced towards 0 by
@@ -129,6 +175,12 @@ class JointBounds:
     inv_vel: np.ndarray
     max_acc: np.ndarray
 
+    @cached_property
+    def lists(self) -> tuple[list[float], list[float], list[float], list[float]]:
+        """(lower, upper, max_vel, max_acc) as plain float lists (the per-joint loop of
+        :func:`track_step`)."""
+        return self.lower.tolist(), self.upper.tolist(), self.max_vel.tolist(), self.max_acc.tolist()
+
     @classmethod
     def of(cls, arm: ControlledArm) -> JointBounds:
         """The limits of ``arm``."""
@@ -141,11 +193,17 @@ def joint_share_acc(rate: float, default: float, qd: np.ndarray, max_acc: np.nda
     """Largest rate of change of ``rate`` (a hand speed or an orientation rate) that keeps every joint
     within ``share`` of its acceleration limit ``max_acc``, the joint velocities ``qd`` of the last
     reference step taken as proportional to ``rate``; ``default`` caps it and is used at rest."""
+    acc = max_acc.tolist()  # (plain floats: the same quotients and least one, without numpy's per-call cost)
     if rate < 1e-4:  # from rest: a gentle first step, the ratio is measured from the next one
-        return min(default, 0.1 * float(np.min(max_acc)))
-    qd = np.abs(qd)
-    mask = qd > 1e-6
-    if not np.any(mask):
+        return min(default, 0.1 * min(acc))
+    least = math.inf
+    moving = False
+    for a_j, v in zip(acc, qd.tolist(), strict=True):
+        v = abs(v)
+        if v > 1e-6:
+            moving = True
+            least = min(least, a_j / v)
+    if not moving:
         return default
-    a = float(np.min(max_acc[mask] / qd[mask])) * rate * share
+    a = least * rate * share
     return max(min(a, default), 1e-3)

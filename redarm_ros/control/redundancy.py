@@ -335,7 +335,7 @@ class SwivelRedundancy:
             dq_ds = np.abs(pick[0] - ref.q) / 0.01
             with np.errstate(divide="ignore"):
                 lim = np.where(dq_ds > 1e-9, p.joint_brake_share * self.bounds.max_acc / dq_ds, np.inf)
-            s_acc = min(s_acc, float(np.min(lim)))
+            s_acc = min(s_acc, float(lim.min()))
         self._acc_share = (p, key, s_acc)
         return s_acc
 
@@ -354,7 +354,7 @@ class SwivelRedundancy:
         reached = st.phase is Phase.REACHED
         cap = p.settle_swivel_rate if reached else math.inf
         rate = abs(st.ref.sdot)
-        ratio = float(np.max(np.abs(st.ref.qd) / self.bounds.max_vel))
+        ratio = float((np.abs(st.ref.qd) / self.bounds.max_vel).max())
         if rate >= 1e-9 and ratio >= 1e-12:
             cap = min(cap, (REST_SPEED_SHARE if reached else p.settle_speed_share) * rate / ratio)
         return max(-cap, min(cap, sd))

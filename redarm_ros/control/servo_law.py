@@ -98,7 +98,7 @@ class ServoLaw:
                 predicted[horizon] = self._poses_ahead(st, horizon)
             return predicted[horizon]
 
-        if float(np.max(np.abs(st.ref.q - st.cmd.q) * self.bounds.inv_vel)) > sp.resync_lag:
+        if float((np.abs(st.ref.q - st.cmd.q) * self.bounds.inv_vel).max()) > sp.resync_lag:
             # The command lags (a joint at its acceleration limit, the guard): the servo goes on from
             # where the arm is, so the reference never runs off to a configuration the arm cannot
             # follow; the hand then follows as closely as the limits allow.

@@ -277,7 +277,7 @@ class StreamEstimator:
             lasts = self.params.window if a_t >= 0.0 else min(self.params.window, speed / -a_t)
             tt = np.minimum(tau, lasts)
             arc = speed * tau + a_t * tt * (tau - 0.5 * tt)
-            if k * float(np.max(np.abs(arc))) < 1e-9:
+            if k * float(np.abs(arc).max()) < 1e-9:
                 out[:, :3, 3] = p0 + arc[:, None] * e
             else:
                 nrm = a_n / (k * speed * speed)

@@ -39,7 +39,7 @@ import numpy as np
 
 from redarm_ros.control.corridor_route import CorridorRoute, RouteMargins, route_margins, smoothed_along
 from redarm_ros.control.ik_step import pose_matrix
-from redarm_ros.kinematics.corridor import SwivelCorridor, corridor_screen, route_pose
+from redarm_ros.kinematics.corridor import SharedSamples, SwivelCorridor, corridor_screen, route_pose
 from redarm_ros.kinematics.protocols import CorridorArm
 from redarm_ros.kinematics.quaternion import quat_from_rotvec, quat_mul, quat_normalize, rotvec_between
 
@@ -369,6 +369,7 @@ def _via_swivel(arm: CorridorArm, T_via: np.ndarray, T1: np.ndarray, q0: np.ndar
     """The swivel at the via, of VIA_SWIVELS nearest the start's ``s0`` first, whose joints on the flip
     ``pattern`` keep the limits and from which leg 2 passes the screen (counted in ``search``); None if
     none does."""
+    shared: SharedSamples = {}  # (the screens of this leg from each swivel share its route's samples)
     for k in sorted(range(VIA_SWIVELS), key=lambda k: min(k, VIA_SWIVELS - k)):
         s = s0 + (2.0 * math.pi * k / VIA_SWIVELS if k <= VIA_SWIVELS // 2 else
                   2.0 * math.pi * (k - VIA_SWIVELS) / VIA_SWIVELS)
@@ -379,14 +380,15 @@ def _via_swivel(arm: CorridorArm, T_via: np.ndarray, T1: np.ndarray, q0: np.ndar
         if not arm.within_limits(q, 0.0):
             continue
         search.screened += 1
-        if _screen(arm, T_via, T1, q, m):
+        if _screen(arm, T_via, T1, q, m, shared):
             return s
     return None
 
 
-def _screen(arm: CorridorArm, T0: np.ndarray, T1: np.ndarray, q0: np.ndarray, m: RouteMargins) -> bool:
+def _screen(arm: CorridorArm, T0: np.ndarray, T1: np.ndarray, q0: np.ndarray, m: RouteMargins,
+            shared: SharedSamples | None = None) -> bool:
     """Does the leg pass the screen (:func:`~redarm_ros.kinematics.corridor.corridor_screen`) with the
-    margins ``m``?"""
+    margins ``m``? ``shared``: the route's samples kept across screens of the same leg."""
     return corridor_screen(arm, T0, T1, q0, limit_margin=m.limit, shoulder_margin=m.shoulder,
                            wrist_margin=m.wrist, elbow_margin=m.elbow, max_rate=m.rate,
-                           samples=SCREEN_SAMPLES) is None
+                           samples=SCREEN_SAMPLES, shared_samples=shared) is None

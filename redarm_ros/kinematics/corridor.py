@@ -63,6 +63,7 @@ from redarm_ros.kinematics.feasible import (
     SwivelFunctions,
     pattern_intervals,
     roots,
+    sorted_unique,
 )
 from redarm_ros.kinematics.quaternion import (
     matrix_from_quat,
@@ -201,13 +202,17 @@ class _Piece:
     parents: list[int]
 
 
+#: corridors' samples by route, flip pattern and bounds (see :func:`corridor_screen`'s ``shared_samples``)
+SharedSamples = dict[tuple[Any, ...], dict[float, _Sample]]
+
+
 class _Corridor:
     """The computation behind :func:`swivel_corridor` (state of one call)."""
 
     def __init__(self, arm: SwivelArm, T0: np.ndarray, T1: np.ndarray, q_start: np.ndarray,
                  margins: dict[str, float],
                  max_rate: float, preferred: PreferredSwivel, max_joint_step: float, min_du: float,
-                 end_step: float) -> None:
+                 end_step: float, shared_samples: SharedSamples | None = None) -> None:
         self.arm = arm
         self.T0, self.T1 = T0, T1
         self.q0r = quat_from_matrix(T0[:3, :3])
@@ -225,14 +230,28 @@ class _Corridor:
         self.sign = np.array([ALT_SIGN[j, ALT_INDEX[b, j]] for j in range(7)])
         self.shift = np.array([ALT_SHIFT[j, ALT_INDEX[b, j]] for j in range(7)])
         self.lo, self.up, self.lo_tol, self.up_tol = self._bounds()
-        self.tab = LimitTables(self.lo, self.up, INTERVAL_ROOT_TOL) if np.all(self.lo <= self.up) else None
+        self.tab = LimitTables.shared(self.lo, self.up, INTERVAL_ROOT_TOL) if np.all(self.lo <= self.up) \
+            else None
         self.wide = [j for j in range(7) if self.up[j] - self.lo[j] >= TWO_PI - 2e-10]
         self.wide_pivots = all(j % 2 == 0 for j in self.wide)
         self.wide_rows = [j // 2 for j in self.wide] + [4 + j // 2 for j in self.wide]  # rows X, then Y
+        # per-call constants of the wide joints' helpers below (the same arrays they built each call)
+        self._wide_sign = self.sign[self.wide][:, None]
+        self._wide_shift = self.shift[self.wide][:, None]
+        self._wide_degen = [(k, j) for k, j in enumerate(self.wide) if j in (0, 4)]
+        self._wide_lo_chk = self.lo[self.wide][:, None] - CHECK_TOL
+        self._wide_up_chk = self.up[self.wide][:, None] + CHECK_TOL
+        bounds = np.concatenate([self.lo[self.wide], self.up[self.wide]])  # (_wide_roots: lower, then upper)
+        self._root_p = np.array([j // 2 for j in self.wide] * 2, dtype=int)
+        self._root_sin = -np.sin(bounds)[:, None]
+        self._root_cos = np.cos(bounds)[:, None]
         # grid step (rad) along a piece for the wide joints' continuous value: a pivot turns at most about
         # 1 / m rad per rad of swivel at a hinge margin m, so consecutive grid values differ by ~1.5 < pi
         self.h = min(0.05, 1.5 * min(self.m["shoulder"], self.m["wrist"]))
-        self.cache: dict[float, _Sample] = {}
+        # the samples by progress: a sample is a function of the route, the flip pattern and the bounds
+        # alone (not of the start swivel), so corridors that share all of them may share the samples
+        self.cache: dict[float, _Sample] = {} if shared_samples is None else shared_samples.setdefault(
+            (T0.tobytes(), T1.tobytes(), self.pattern, self.lo.tobytes(), self.up.tobytes(), self.h), {})
         self.frontier = 0.0  # progress from which the initial steps are not refined yet (topology_grid)
         self.rows: dict[tuple[float, float], np.ndarray] = {}  # ik rows on the pattern by (u, swivel)
 
@@ -297,19 +316,22 @@ class _Corridor:
         (pivot joints: atan2 of two rows of the closed form)."""
         if not self.wide_pivots:
             return self.angles(fn, s)[self.wide]
-        P = fn.K[self.wide_rows] @ np.stack([np.ones_like(s), np.cos(s), np.sin(s)])
+        CS = np.empty((3, s.shape[0]))  # (the rows np.stack([ones, cos s, sin s]) made, filled in place)
+        CS[0] = 1.0
+        np.cos(s, out=CS[1])
+        np.sin(s, out=CS[2])
+        P = fn.K[self.wide_rows] @ CS
         n = len(self.wide)
         th = np.arctan2(P[n:], P[:n])
-        for k, j in enumerate(self.wide):
+        for k, j in self._wide_degen:
             if (j == 0 and fn.deg_shoulder) or (j == 4 and fn.deg_wrist):
                 th[k] = 0.0
-        return th * self.sign[self.wide][:, None] + self.shift[self.wide][:, None]
+        return th * self._wide_sign + self._wide_shift
 
     def _wide_roots(self, fn: SwivelFunctions, lo: float, hi: float) -> np.ndarray:
         """Swivels in [lo, hi] where a wide joint equals one of its bounds (mod pi): closed-form roots."""
-        L = np.concatenate([self.lo[self.wide], self.up[self.wide]])
-        p = np.array([j // 2 for j in self.wide] * 2)
-        E = -np.sin(L)[:, None] * fn.K[p] + np.cos(L)[:, None] * fn.K[p + 4]
+        p = self._root_p
+        E = self._root_sin * fn.K[p] + self._root_cos * fn.K[p + 4]
         x = np.concatenate(roots(E))
         x = x[x == x]
         base = lo + (x - lo) % TWO_PI
@@ -330,13 +352,13 @@ class _Corridor:
         lo, hi = J
         assert smp.fn is not None
         n = max(2, int(math.ceil((hi - lo) / self.h)) + 1)
-        pts = np.unique(np.concatenate([np.linspace(lo, hi, n), self._wide_roots(smp.fn, lo, hi)]))
+        pts = sorted_unique(np.concatenate([np.linspace(lo, hi, n), self._wide_roots(smp.fn, lo, hi)]))
         allp = np.empty(2 * len(pts) - 1)
         allp[0::2] = pts
         allp[1::2] = 0.5 * (pts[1:] + pts[:-1])
         A = self._wide_angles(smp.fn, allp)
         V = A.copy()  # unwrapped along the grid: each step taken as the nearest 2 pi copy
-        V[:, 1:] -= TWO_PI * np.cumsum(np.round(np.diff(A, axis=1) / TWO_PI), axis=1)
+        V[:, 1:] -= TWO_PI * (np.diff(A, axis=1) / TWO_PI).round().cumsum(axis=1)  # (methods: no wrapper)
         smp.grids[key] = (allp, V)
         return allp, V
 
@@ -344,10 +366,10 @@ class _Corridor:
         """The 2 pi shift (per wide joint) that puts the grid values of J on the branch that has about the
         values ``w`` at swivel s (within pi)."""
         allp, V = self._wide_grid(smp, J)
-        i = min(int(np.searchsorted(allp, s)), len(allp) - 1)
+        i = min(int(allp.searchsorted(s)), len(allp) - 1)
         if i > 0 and abs(allp[i - 1] - s) < abs(allp[i] - s):
             i -= 1
-        return TWO_PI * np.round((w - V[:, i]) / TWO_PI)
+        return TWO_PI * ((w - V[:, i]) / TWO_PI).round()
 
     def wide_runs(self, smp: _Sample, J: tuple[float, float], shift: np.ndarray
                   ) -> list[tuple[float, float, float, np.ndarray]]:
@@ -359,8 +381,7 @@ class _Corridor:
         if hit is not None:
             return hit
         V = V0 + shift[:, None]
-        lo_w, up_w = self.lo[self.wide][:, None], self.up[self.wide][:, None]
-        ok = np.all((V >= lo_w - CHECK_TOL) & (V <= up_w + CHECK_TOL), axis=0)
+        ok = np.logical_and.reduce((V >= self._wide_lo_chk) & (V <= self._wide_up_chk), axis=0)  # all(axis=0)
         ok_mid, ok_pt = ok[1::2], ok[0::2]
         pts = allp[0::2]
         runs: list[tuple[float, float, float, np.ndarray]] = []
@@ -385,10 +406,10 @@ class _Corridor:
         """The wide joints' exact values at swivel s on the branch of J given by ``shift``."""
         assert smp.fn is not None
         allp, V = self._wide_grid(smp, J)
-        i = min(int(np.searchsorted(allp, s)), len(allp) - 1)
+        i = min(int(allp.searchsorted(s)), len(allp) - 1)
         approx = V[:, i] + shift
         base = self._wide_angles(smp.fn, np.array([s]))[:, 0]
-        return base + TWO_PI * np.round((approx - base) / TWO_PI)
+        return base + TWO_PI * ((approx - base) / TWO_PI).round()
 
     # -- refinement of the samples ---------------------------------------------------------------
     def topology_grid(self, n0: int) -> list[float]:
@@ -880,16 +901,19 @@ def corridor_screen(
     elbow_margin: float,
     max_rate: float,
     samples: int = 16,
+    shared_samples: SharedSamples | None = None,
 ) -> float | None:
     """A quick screen before :func:`swivel_corridor` (same arguments, checked by the caller): the
     forward pass alone at ``samples`` + 1 evenly spaced progress values, without refinement. Returns
     the first of them with no reachable swivel, or None. Coarse: a corridor that closes between two
-    samples passes the screen (the full call finds it); one that a refinement would reconnect may fail it."""
+    samples passes the screen (the full call finds it); one that a refinement would reconnect may fail it.
+    ``shared_samples``: a dict the caller keeps across screens of the same route from other start
+    swivels (the route's samples are computed once; the result is the same)."""
     margins = {"limit": limit_margin, "shoulder": shoulder_margin, "wrist": wrist_margin,
                "elbow": elbow_margin}
     s0 = float(arm.swivel(q_start))
     cor = _Corridor(arm, np.asarray(T_start, float), np.asarray(T_goal, float), np.asarray(q_start, float),
-                    margins, float(max_rate), lambda _u, _T: s0, 0.1, 1e-3, 0.05)
+                    margins, float(max_rate), lambda _u, _T: s0, 0.1, 1e-3, 0.05, shared_samples)
     us = [float(u) for u in np.linspace(0.0, 1.0, samples + 1)]
     _levels, closed, _misses = cor.forward(us)
     return None if closed is None else us[closed]

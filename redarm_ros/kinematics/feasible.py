@@ -150,6 +150,23 @@ class LimitTables:
     computation is ill-conditioned (theta2 or theta6 near 0).
     """
 
+    #: tables by their limits (:meth:`shared`); a few per arm and margin set, never changed once built
+    _shared: dict[tuple[bytes, bytes, float], LimitTables] = {}
+
+    @classmethod
+    def shared(cls, lower: np.ndarray, upper: np.ndarray, root_tol: float = SEARCH_ROOT_TOL) -> LimitTables:
+        """The tables of these limits, built once (2 ms each; a swivel corridor asks for them on every
+        plan, with the same few limits every time). Built from copies: the caller's arrays stay theirs."""
+        lo = np.asarray(lower, dtype=float)
+        up = np.asarray(upper, dtype=float)
+        key = (lo.tobytes(), up.tobytes(), float(root_tol))
+        tab = cls._shared.get(key)
+        if tab is None:
+            if len(cls._shared) >= 256:  # (a bound, not expected to be reached)
+                cls._shared.clear()
+            tab = cls._shared[key] = cls(lo.copy(), up.copy(), root_tol)
+        return tab
+
     def __init__(self, lower: np.ndarray, upper: np.ndarray, root_tol: float = SEARCH_ROOT_TOL) -> None:
         self.lower = np.asarray(lower, dtype=float)
         self.upper = np.asarray(upper, dtype=float)
@@ -319,9 +336,9 @@ class LimitTables:
             wj = self.wide
             kmax = np.maximum(np.floor(room[wj] * INV_2PI), 0.0)
             r = 0.0 if ref is None else ref[wj][:, None, None]
-            k = np.clip(np.rint((r - V[wj]) * INV_2PI), 0.0, kmax)
+            k = np.rint((r - V[wj]) * INV_2PI).clip(0.0, kmax)  # (ndarray methods: np.clip's, no wrapper)
             V[wj] += TWO_PI * k
-        return np.clip(V, self.lo3, self.up3), feas
+        return np.minimum(np.maximum(V, self.lo3), self.up3), feas  # np.clip's picks, without its wrappers
 
 
 @dataclass
@@ -495,8 +512,21 @@ def roots(E: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     r = -E[:, 0] / np.maximum(np.sqrt(e1 * e1 + e2 * e2), 1e-300)
     r[np.abs(r) > 1.0 + TANGENT_TOL] = np.nan
     phi = np.arctan2(e2, e1)
-    d = np.arccos(np.clip(r, -1.0, 1.0))
+    d = np.arccos(np.minimum(np.maximum(r, -1.0), 1.0))  # np.clip's picks (NaN stays), without its wrappers
     return phi + d, phi - d
+
+
+def sorted_unique(x: np.ndarray) -> np.ndarray:
+    """``np.unique`` of a 1-D float array without NaN, by its own sorting path (the same sort, then the
+    first of every run of equal values: 0.0 or -0.0 as np.unique keeps it), without its Python set-up:
+    less than half its cost on the few hundred values asked here."""
+    a = np.sort(x)
+    if len(a) < 2:
+        return a
+    keep = np.empty(len(a), dtype=bool)
+    keep[0] = True
+    np.not_equal(a[1:], a[:-1], out=keep[1:])
+    return a[keep]
 
 
 def _alternatives(th: np.ndarray) -> np.ndarray:
@@ -508,7 +538,7 @@ def _critical(fn: SwivelFunctions, tab: LimitTables) -> np.ndarray:
     Ec, _ = fn.equations(tab)
     rp, rm = roots(Ec)
     allr = np.concatenate([rp, rm, fn.extremes()])
-    return np.unique(wrap(allr[allr == allr]))
+    return sorted_unique(wrap(allr[allr == allr]))
 
 
 def feasible_intervals(fn: SwivelFunctions, tab: LimitTables) -> list[np.ndarray]:
