@@ -49,10 +49,10 @@ def capture(arm_name: str, moves: int, seed: int, params: ControllerParams) -> l
     jobs: list[dict[str, Any]] = []
     orig = SwivelRedundancy.corridor_job
 
-    def spy(self: SwivelRedundancy, st: Any, p: ControllerParams, T: np.ndarray) -> Any:
+    def spy(self: SwivelRedundancy, st: Any, p: ControllerParams, T: np.ndarray, scene: Scene) -> Any:
         jobs.append({"q0": st.ref.q.copy(), "pos": np.array(st.ref.pos), "rot": np.array(st.ref.rot),
                      "T1": np.array(T, float)})
-        return orig(self, st, p, T)
+        return orig(self, st, p, T, scene)
 
     SwivelRedundancy.corridor_job = spy  # type: ignore[method-assign]
     try:
@@ -76,7 +76,7 @@ def run_plan(red: SwivelRedundancy, params: ControllerParams, job: dict[str, Any
     """One plan, as the controller's worker thread runs it: (route or None, why, wall time s, this
     thread's CPU time s)."""
     ref = SimpleNamespace(q=job["q0"].copy(), pos=tuple(job["pos"]), rot=tuple(job["rot"]))
-    fn = red.corridor_job(SimpleNamespace(ref=ref), params, job["T1"])
+    fn = red.corridor_job(SimpleNamespace(ref=ref), params, job["T1"], Scene())  # (free45: no obstacles)
     t0, c0 = time.perf_counter(), time.thread_time()
     route, why = fn()
     return route, why, time.perf_counter() - t0, time.thread_time() - c0
@@ -158,7 +158,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--tol", type=float, default=0.02, help="joints' tolerance of --compare (rad)")
     ap.add_argument("--note", default="", help="appended to the section title (e.g. the code's commit)")
     ap.add_argument("--no-write", action="store_true", help="do not write the results file")
+    ap.add_argument("--quick", action="store_true", help="a smoke run: 3 moves of the PA10")
     args = ap.parse_args(argv)
+    if args.quick:
+        args.arms, args.moves = "pa10", 3
     pdict = json.loads(args.params) if args.params else {}
     pdict.setdefault("replan", {})["corridor"] = True
     params = ControllerParams.from_dict(pdict)
