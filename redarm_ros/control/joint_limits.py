@@ -121,7 +121,7 @@ def track_step(q: list[float], qd: list[float], q_ref: list[float], qd_ref: list
     operations are those of the array form (np.clip is ``x if x > lo else lo`` then ``y if y < hi else
     hi``, np.maximum / np.minimum pick the same way, np.sign gives +0.0 for -0.0), so the floats are
     the same, signed zeros included (test_control_joint_limits compares the two)."""
-    bs = motion.braking_speed_scalar
+    bs, bounds_of = motion.braking_speed_scalar, motion.velocity_bounds_scalar
     q_new: list[float] = []
     qd_new: list[float] = []
     for qc, vp, qr, vr, lower, upper, vmax, acc in zip(q, qd, q_ref, qd_ref, *bounds.lists, strict=True):
@@ -130,17 +130,7 @@ def track_step(q: list[float], qd: list[float], q_ref: list[float], qd_ref: list
         e = qr - u * dt - qc  # the lag behind where the reference was a step ago
         sign = 1.0 if e > 0.0 else (-1.0 if e < 0.0 else 0.0)
         v = u + sign * bs(abs(e), acc, dt)
-        adt = acc * dt  # velocity_bounds: velocity, acceleration and braking onto the position limits
-        lo = vp - adt
-        lo = lo if lo > -vmax else -vmax
-        hi = vp + adt
-        hi = hi if hi < vmax else vmax
-        hi_pos = bs(upper - qc, acc, dt)
-        lo_pos = -bs(qc - lower, acc, dt)
-        lo = lo if lo < hi_pos else hi_pos
-        lo = lo if lo > lo_pos else lo_pos
-        hi = hi if hi > lo_pos else lo_pos
-        hi = hi if hi < hi_pos else hi_pos
+        lo, hi = bounds_of(qc, vp, dt, lower, upper, vmax, acc)
         v = v if v > lo else lo
         v = v if v < hi else hi
         if abs(qr - qc) <= 1e-12 and abs(vr) <= 1e-12 and lo <= 0.0 and hi >= 0.0:

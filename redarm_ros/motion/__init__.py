@@ -14,9 +14,10 @@ from redarm_ros.motion.limits import (
     braking_speed,
     braking_speed_scalar,
     velocity_bounds,
+    velocity_bounds_scalar,
 )
 
 __all__ = [
     "JointLimits", "LimitsView", "braking_distance", "braking_distance_scalar", "braking_speed",
-    "braking_speed_scalar", "velocity_bounds",
+    "braking_speed_scalar", "velocity_bounds", "velocity_bounds_scalar",
 ]
